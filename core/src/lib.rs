@@ -1,0 +1,3 @@
+//! piezo-core: placeholder, being written.
+#![no_std]
+#![forbid(unsafe_code)]

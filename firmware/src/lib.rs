@@ -1,0 +1,2 @@
+//! firmware: the real-time compensator loop (being written).
+#![no_std]

@@ -1,0 +1,1 @@
+//! host-sim: simulated piezo plants (being written).
