@@ -1,3 +1,28 @@
-//! piezo-core: placeholder, being written.
+//! # piezo-core
+//!
+//! The one implementation of the piezo hysteresis model that the firmware, the host simulation and the
+//! identification all call: the rate-independent Bouc-Wen operator stepped in input increments
+//! ([`bouc_wen`]), its output maps — the static map of seed 001 with its asymmetric variant
+//! ([`static_model`]) and the mass–spring–damper of seed 000 ([`dynamic_model`]) — the inverse
+//! feedforward compensator ([`compensator`]) and the error measures of the seeds ([`metrics`]).
+//!
+//! `no_std`, no allocation, `unsafe` forbidden, f32 on the per-sample path, SI units (volts, metres,
+//! seconds, newtons). Parameters are validated once, when built, into types that cannot hold an invalid
+//! set; the per-sample steps then return plain values, never fail and never panic. Settings (the
+//! validated parameter types) are kept apart from state (`*State` structs), so a new parameter set can
+//! take over between two samples from the same state.
 #![no_std]
 #![forbid(unsafe_code)]
+
+pub mod bouc_wen;
+pub mod compensator;
+pub mod dynamic_model;
+pub mod error;
+pub mod metrics;
+pub mod static_model;
+
+pub use bouc_wen::{max_input_span, BoucWen, BoucWenParams, BoundClass, HysteresisState};
+pub use compensator::{Command, CommandStatus, Compensator, CompensatorSettings, CompensatorState};
+pub use dynamic_model::{DynamicModel, DynamicState, MassSpringDamperParams};
+pub use error::{ParamError, MIN_SLOPE_RATIO};
+pub use static_model::{Asymmetry, ModelState, StaticMap, StaticModel};

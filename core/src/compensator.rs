@@ -1,0 +1,322 @@
+//! The inverse feedforward compensator: desired displacement in, drive voltage out.
+//!
+//! For a static (or asymmetric static) model the compensator solves, at every sample, the one-step
+//! inverse of the *discretised* forward map exactly:
+//!
+//! ```text
+//! find u[k]:   k1·u[k] + k2·h(u[k]) + y0 = y_d[k]                          (static map, seed 001)
+//! ```
+//!
+//! where `h(u[k])` is the Bouc-Wen state reached from the current state when the input moves from
+//! `u[k−1]` to `u[k]` — the same function ([`StaticModel`]'s one-step update) that the forward model
+//! uses, so forward(inverse(y_d)) = y_d up to f32 rounding. Along a monotone input increment Δu the
+//! map is strictly monotone (checked when built, below), and the derivative of the exact path integral
+//! is known in closed form, `dy/dΔu = k1 + k2·dh/du(h(Δu))`, so the solve is a safeguarded Newton
+//! iteration on Δu inside `[0, Δu_limit]` in the direction that reduces the error: a first guess from
+//! the slope at the current state, then at most two corrections (quadratic convergence; for n = 1 the
+//! equation is the monotone scalar equation `k1·Δu + k2·(A − κh)·Δu·g(κΔu) = e`). The hysteresis state
+//! is always advanced by the voltage actually commanded (after the window and slew limits).
+//!
+//! For the dynamic model of seed 000 the map is the force balance: the compensator commands
+//!
+//! ```text
+//! k1·u[k] + h(u[k]) = m0·ẍ_d + c0·ẋ_d + k0·(x_d − x0)
+//! ```
+//!
+//! with the reference's derivatives when they are known ([`Compensator::compensate_with_derivatives`],
+//! inverse dynamics) and zero otherwise (quasi-static inverse).
+//!
+//! # Invertibility (checked when built)
+//! The inverse exists and is unique only where the one-step map is strictly monotone in u. Over all
+//! reachable hysteresis states and both directions, dy/du must keep one sign and
+//! `min|dy/du| / max|dy/du| ≥ MIN_SLOPE_RATIO` (0.01): otherwise [`ParamError::NotInvertible`]. The
+//! output window must lie inside the model's validated input range.
+//!
+//! # Safety of the per-sample path
+//! Never panics, never returns NaN, never leaves `[output_min_v, output_max_v]`, never moves by more
+//! than `slew_limit_v_per_s · sample_period_s` per sample (unless the window itself moved the last
+//! voltage back inside). A non-finite reference holds the last voltage.
+
+use crate::dynamic_model::DynamicModel;
+use crate::error::{finite, positive, ParamError, MIN_SLOPE_RATIO};
+use crate::static_model::{ModelState, StaticMap, StaticModel};
+
+/// Output limits of the compensator.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CompensatorSettings {
+    /// Lowest voltage ever commanded [V].
+    pub output_min_v: f32,
+    /// Highest voltage ever commanded [V].
+    pub output_max_v: f32,
+    /// Largest rate of change of the commanded voltage [V/s] (+∞ for none).
+    pub slew_limit_v_per_s: f32,
+    /// Loop period [s].
+    pub sample_period_s: f32,
+}
+
+/// What the compensator did with a sample.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CommandStatus {
+    /// The commanded voltage reproduces the reference through the model.
+    Tracking,
+    /// The window or the slew limit stopped the voltage short of the reference.
+    Limited,
+    /// The reference was not a finite number: the last voltage is held.
+    HeldInvalidReference,
+}
+
+/// One sample's output.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Command {
+    /// Voltage to write to the amplifier [V]; always finite and inside the window.
+    pub voltage_v: f32,
+    /// How it was obtained.
+    pub status: CommandStatus,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Target {
+    /// y = k1·u + k2·h + y0 is the position.
+    Position,
+    /// k1·u + h is the force of the mass–spring–damper.
+    Force {
+        mass_kg: f32,
+        damping_n_s_per_m: f32,
+        stiffness_n_per_m: f32,
+        rest_position_m: f32,
+    },
+}
+
+/// The validated compensator settings (model + limits). State lives in [`CompensatorState`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Compensator {
+    model: StaticModel,
+    target: Target,
+    settings: CompensatorSettings,
+    max_step_v: f32,
+    slope_sign: f32,
+}
+
+/// The compensator's state: the model state at the last commanded voltage.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct CompensatorState {
+    /// Model state; `model.input_v` is the last commanded voltage.
+    pub model: ModelState,
+}
+
+impl CompensatorState {
+    /// At rest with `voltage_v` applied and no hysteretic state.
+    pub fn at_rest(voltage_v: f32) -> Self {
+        Self {
+            model: ModelState::at_rest(voltage_v),
+        }
+    }
+
+    /// The last commanded voltage [V].
+    pub fn voltage_v(&self) -> f32 {
+        self.model.input_v
+    }
+}
+
+/// Newton corrections after the first guess.
+const NEWTON_CORRECTIONS: usize = 2;
+
+impl Compensator {
+    /// A compensator for a static or asymmetric static model (output y in metres).
+    pub fn new(model: StaticModel, settings: CompensatorSettings) -> Result<Self, ParamError> {
+        Self::build(model, Target::Position, settings)
+    }
+
+    /// A compensator for the dynamic model of seed 000 (force balance; see the module doc).
+    pub fn for_dynamic(
+        model: &DynamicModel,
+        settings: CompensatorSettings,
+    ) -> Result<Self, ParamError> {
+        let p = model.params();
+        let force_map = StaticMap {
+            k1_m_per_v: p.force_per_volt_n_per_v,
+            k2_m_per_h: 1.0,
+            offset_m: 0.0,
+        };
+        let forward = StaticModel::new(*model.hysteresis(), force_map)?;
+        Self::build(
+            forward,
+            Target::Force {
+                mass_kg: p.mass_kg,
+                damping_n_s_per_m: p.damping_n_s_per_m,
+                stiffness_n_per_m: p.stiffness_n_per_m,
+                rest_position_m: p.rest_position_m,
+            },
+            settings,
+        )
+    }
+
+    fn build(
+        model: StaticModel,
+        target: Target,
+        settings: CompensatorSettings,
+    ) -> Result<Self, ParamError> {
+        let min = finite("output_min_v", settings.output_min_v)?;
+        let max = finite("output_max_v", settings.output_max_v)?;
+        if max <= min {
+            return Err(ParamError::OutOfRange {
+                field: "output_max_v",
+                value: max,
+                requirement: "> output_min_v",
+            });
+        }
+        let (range_min, range_max) = model.hysteresis().input_range_v();
+        if min < range_min {
+            return Err(ParamError::OutOfRange {
+                field: "output_min_v",
+                value: min,
+                requirement: "inside the model's validated input range",
+            });
+        }
+        if max > range_max {
+            return Err(ParamError::OutOfRange {
+                field: "output_max_v",
+                value: max,
+                requirement: "inside the model's validated input range",
+            });
+        }
+        let period = positive("sample_period_s", settings.sample_period_s)?;
+        let slew = settings.slew_limit_v_per_s;
+        if slew.is_nan() || slew <= 0.0 {
+            return Err(ParamError::OutOfRange {
+                field: "slew_limit_v_per_s",
+                value: slew,
+                requirement: "> 0 (+inf for no limit)",
+            });
+        }
+        let (lo, hi) = model.slope_range();
+        let monotone = (lo > 0.0 || hi < 0.0)
+            && lo.abs().min(hi.abs()) >= MIN_SLOPE_RATIO * lo.abs().max(hi.abs());
+        if !monotone || !lo.is_finite() || !hi.is_finite() {
+            return Err(ParamError::NotInvertible {
+                min_slope: lo,
+                max_slope: hi,
+            });
+        }
+        Ok(Self {
+            model,
+            target,
+            settings,
+            max_step_v: (slew * period).min(max - min),
+            slope_sign: if lo > 0.0 { 1.0 } else { -1.0 },
+        })
+    }
+
+    /// The forward model the compensator inverts (for the dynamic model: its force map).
+    pub fn model(&self) -> &StaticModel {
+        &self.model
+    }
+
+    /// The limits.
+    pub fn settings(&self) -> CompensatorSettings {
+        self.settings
+    }
+
+    /// The voltage for the desired position `desired_m` [m] (quasi-static for the dynamic model).
+    #[inline]
+    pub fn compensate(&self, state: &mut CompensatorState, desired_m: f32) -> Command {
+        self.compensate_with_derivatives(state, desired_m, 0.0, 0.0)
+    }
+
+    /// The voltage for the desired position with its known velocity [m/s] and acceleration [m/s²]
+    /// (used by the dynamic model's inverse dynamics; ignored by static models).
+    pub fn compensate_with_derivatives(
+        &self,
+        state: &mut CompensatorState,
+        desired_m: f32,
+        velocity_m_per_s: f32,
+        acceleration_m_per_s2: f32,
+    ) -> Command {
+        let target = match self.target {
+            Target::Position => desired_m,
+            Target::Force {
+                mass_kg,
+                damping_n_s_per_m,
+                stiffness_n_per_m,
+                rest_position_m,
+            } => {
+                mass_kg * acceleration_m_per_s2
+                    + damping_n_s_per_m * velocity_m_per_s
+                    + stiffness_n_per_m * (desired_m - rest_position_m)
+            }
+        };
+        self.solve(state, target)
+    }
+
+    fn solve(&self, state: &mut CompensatorState, target: f32) -> Command {
+        let CompensatorSettings {
+            output_min_v: min,
+            output_max_v: max,
+            ..
+        } = self.settings;
+        let model = &self.model;
+        let map = model.map();
+        let u0 = if state.model.input_v.is_finite() {
+            state.model.input_v.clamp(min, max)
+        } else {
+            min.max(0.0).min(max)
+        };
+        state.model.input_v = u0;
+        let hold = model.next_state(&state.model, u0);
+        if !target.is_finite() {
+            state.model = hold;
+            return Command {
+                voltage_v: u0,
+                status: CommandStatus::HeldInvalidReference,
+            };
+        }
+        let error_at_hold = map.output(u0, hold.hysteresis.h) - target;
+        if error_at_hold == 0.0 {
+            state.model = hold;
+            return Command {
+                voltage_v: u0,
+                status: CommandStatus::Tracking,
+            };
+        }
+        // Direction in which the output error shrinks.
+        let direction = if error_at_hold * self.slope_sign < 0.0 {
+            1.0
+        } else {
+            -1.0
+        };
+        let limit = if direction > 0.0 {
+            (max - u0).min(self.max_step_v)
+        } else {
+            (min - u0).max(-self.max_step_v)
+        };
+        let clamp_step = |du: f32| -> f32 {
+            if direction > 0.0 {
+                du.clamp(0.0, limit)
+            } else {
+                du.clamp(limit, 0.0)
+            }
+        };
+        let mut du = clamp_step(-error_at_hold / model.step_slope(&hold, direction));
+        let mut reached = model.next_state(&state.model, (u0 + du).clamp(min, max));
+        for _ in 0..NEWTON_CORRECTIONS {
+            let error = map.output(reached.input_v, reached.hysteresis.h) - target;
+            let corrected = clamp_step(du - error / model.step_slope(&reached, direction));
+            if corrected == du || corrected.is_nan() {
+                break;
+            }
+            du = corrected;
+            reached = model.next_state(&state.model, (u0 + du).clamp(min, max));
+        }
+        let remaining = map.output(reached.input_v, reached.hysteresis.h) - target;
+        let limited = du == limit && remaining * self.slope_sign * direction < 0.0;
+        state.model = reached;
+        Command {
+            voltage_v: reached.input_v,
+            status: if limited {
+                CommandStatus::Limited
+            } else {
+                CommandStatus::Tracking
+            },
+        }
+    }
+}

@@ -1,0 +1,323 @@
+//! The static output map of seed 001 and its asymmetric variant.
+//!
+//! ```text
+//! y = k1·u + k2·h + y0                                         (seed 001 eq. 1, with an offset y0)
+//! ```
+//!
+//! with `h` from the Bouc-Wen operator ([`crate::bouc_wen`]), `y` in metres, `k1` in m/V, `k2` in m per
+//! unit of h.
+//!
+//! # Asymmetric variant (seed 001 eq. 3) — the reading implemented here
+//! The printed equation is garbled (MODELS.md); this crate implements it literally, in time:
+//!
+//! ```text
+//! U(t) = u(t − φ)                                   φ: input shift [s], |φ| ≤ one sample period T
+//! ḣ = A·U̇ − β·|U̇|·|h|^(n−1)·h − γ·U̇·|h|^n + δ·u·sgn(u̇)      δ [h per V·s]
+//! y = k1·u + k2·h + y0
+//! ```
+//!
+//! Discretised at the sample period T: the shift is a fractional-sample delay by linear interpolation
+//! (extrapolation for φ < 0), `U[k] = u[k] − (φ/T)·(u[k] − u[k−1])`; the Bouc-Wen part is integrated
+//! exactly along the path from `U[k−1]` to `U[k]`; the δ-term adds `δ·sgn(Δu)·T·(u[k−1] + u[k])/2`
+//! (the trapezoidal integral of u over the sample, exact for a linear ramp), half before and half after
+//! the Bouc-Wen increment (Strang splitting). With δ = 0 and φ = 0 this is exactly the standard model.
+//! Note what the literal reading implies: the δ-term is rate-dependent (it acts per second, not per
+//! volt) and is discontinuous at u̇ = 0; over one period of a time-symmetric input it integrates to
+//! zero, over an input with unequal rise and fall times it drifts until the state bound clamps it.
+
+use crate::bouc_wen::{BoucWen, HysteresisState};
+use crate::error::{finite, positive, ParamError};
+
+/// The linear part of the static map: y = k1·u + k2·h + y0.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StaticMap {
+    /// k1: direct gain [m/V].
+    pub k1_m_per_v: f32,
+    /// k2: gain of the hysteretic state [m per unit of h].
+    pub k2_m_per_h: f32,
+    /// y0: output offset [m].
+    pub offset_m: f32,
+}
+
+impl StaticMap {
+    /// y = k1·u + k2·h + y0.
+    #[inline]
+    pub fn output(&self, input_v: f32, h: f32) -> f32 {
+        self.k1_m_per_v * input_v + self.k2_m_per_h * h + self.offset_m
+    }
+
+    fn validate(&self) -> Result<(), ParamError> {
+        finite("k1_m_per_v", self.k1_m_per_v)?;
+        finite("k2_m_per_h", self.k2_m_per_h)?;
+        finite("offset_m", self.offset_m)?;
+        if self.k1_m_per_v == 0.0 && self.k2_m_per_h == 0.0 {
+            return Err(ParamError::OutOfRange {
+                field: "k1_m_per_v",
+                value: 0.0,
+                requirement: "nonzero when k2_m_per_h is zero",
+            });
+        }
+        Ok(())
+    }
+}
+
+/// The asymmetric terms of seed 001 (both zero for the standard model).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Asymmetry {
+    /// δ: asymmetric factor, ΔE = δ·u·sgn(u̇) added to ḣ [h per V·s].
+    pub delta_per_v_s: f32,
+    /// φ: input shift, U(t) = u(t − φ) [s]; |φ| ≤ the sample period.
+    pub input_shift_s: f32,
+}
+
+/// A validated static (or asymmetric static) hysteresis model: settings only.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StaticModel {
+    hysteresis: BoucWen,
+    map: StaticMap,
+    /// δ·T/2 [h per V]: half of the δ-increment per unit of mean input.
+    delta_half_step: f32,
+    /// φ/T: the fractional input shift.
+    shift_fraction: f32,
+    sample_period_s: f32,
+}
+
+/// The state of a [`StaticModel`].
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ModelState {
+    /// Last input u[k−1] [V].
+    pub input_v: f32,
+    /// Bouc-Wen state: its `input_v` is the shifted input U[k−1], its `h` the hysteretic state.
+    pub hysteresis: HysteresisState,
+}
+
+impl ModelState {
+    /// At rest at input `input_v`.
+    pub fn at_rest(input_v: f32) -> Self {
+        Self {
+            input_v,
+            hysteresis: HysteresisState::at_rest(input_v),
+        }
+    }
+}
+
+impl StaticModel {
+    /// The standard (symmetric) model of seed 001: y = k1·u + k2·h + y0.
+    pub fn new(hysteresis: BoucWen, map: StaticMap) -> Result<Self, ParamError> {
+        map.validate()?;
+        Ok(Self {
+            hysteresis,
+            map,
+            delta_half_step: 0.0,
+            shift_fraction: 0.0,
+            sample_period_s: 0.0,
+        })
+    }
+
+    /// The asymmetric model of seed 001 sampled at `sample_period_s` (see the module doc for the
+    /// reading). Refuses |φ| > T.
+    pub fn asymmetric(
+        hysteresis: BoucWen,
+        map: StaticMap,
+        asymmetry: Asymmetry,
+        sample_period_s: f32,
+    ) -> Result<Self, ParamError> {
+        map.validate()?;
+        positive("sample_period_s", sample_period_s)?;
+        finite("delta_per_v_s", asymmetry.delta_per_v_s)?;
+        finite("input_shift_s", asymmetry.input_shift_s)?;
+        if asymmetry.input_shift_s.abs() > sample_period_s {
+            return Err(ParamError::OutOfRange {
+                field: "input_shift_s",
+                value: asymmetry.input_shift_s,
+                requirement: "within ± one sample period",
+            });
+        }
+        Ok(Self {
+            hysteresis,
+            map,
+            delta_half_step: 0.5 * asymmetry.delta_per_v_s * sample_period_s,
+            shift_fraction: asymmetry.input_shift_s / sample_period_s,
+            sample_period_s,
+        })
+    }
+
+    /// The Bouc-Wen operator.
+    pub fn hysteresis(&self) -> &BoucWen {
+        &self.hysteresis
+    }
+
+    /// The linear map.
+    pub fn map(&self) -> StaticMap {
+        self.map
+    }
+
+    /// The asymmetric terms (zero for the standard model).
+    pub fn asymmetry(&self) -> Asymmetry {
+        if self.sample_period_s == 0.0 {
+            return Asymmetry::default();
+        }
+        Asymmetry {
+            delta_per_v_s: 2.0 * self.delta_half_step / self.sample_period_s,
+            input_shift_s: self.shift_fraction * self.sample_period_s,
+        }
+    }
+
+    /// Whether the asymmetric terms are active.
+    pub fn is_asymmetric(&self) -> bool {
+        self.delta_half_step != 0.0 || self.shift_fraction != 0.0
+    }
+
+    /// Advances the state to input `input_v` and returns the output y [m]. A non-finite input holds
+    /// the previous one; the input is clamped into the operator's range.
+    #[inline]
+    pub fn step(&self, state: &mut ModelState, input_v: f32) -> f32 {
+        let previous = self.hysteresis.sanitize_input(state.input_v, 0.0);
+        let u = self.hysteresis.sanitize_input(input_v, previous);
+        *state = self.next_state(state, u);
+        self.map.output(u, state.hysteresis.h)
+    }
+
+    /// The output y [m] of a state.
+    #[inline]
+    pub fn output(&self, state: &ModelState) -> f32 {
+        self.map.output(state.input_v, state.hysteresis.h)
+    }
+
+    /// The state after the input moves from `state.input_v` to the (already sanitised) `u`.
+    /// Shared by [`StaticModel::step`] and the inverse compensator, so both use one discretisation.
+    #[inline]
+    pub(crate) fn next_state(&self, state: &ModelState, u: f32) -> ModelState {
+        let previous = state.input_v;
+        let du = u - previous;
+        let shifted = u - self.shift_fraction * du;
+        let mut h = state.hysteresis.h;
+        let half = if du > 0.0 {
+            self.delta_half_step * 0.5 * (u + previous)
+        } else if du < 0.0 {
+            -self.delta_half_step * 0.5 * (u + previous)
+        } else {
+            0.0
+        };
+        h = self
+            .hysteresis
+            .advance(h + half, shifted - state.hysteresis.input_v);
+        h = self.hysteresis.clamp_state(h + half);
+        ModelState {
+            input_v: u,
+            hysteresis: HysteresisState {
+                input_v: shifted,
+                h,
+            },
+        }
+    }
+
+    /// dy/du at the end of a step that moved the input in direction `direction`, for the state
+    /// reached: `k1 + k2·((1 − φ/T)·dh/dU + δ·T/2·sgn Δu)`. Exact derivative of the one-step map for
+    /// the path integral (used as the Newton slope of the inverse).
+    #[inline]
+    pub(crate) fn step_slope(&self, reached: &ModelState, direction: f32) -> f32 {
+        let dh_du = self.hysteresis.slope(reached.hysteresis.h, direction);
+        let s = if direction < 0.0 { -1.0 } else { 1.0 };
+        self.map.k1_m_per_v
+            + self.map.k2_m_per_h * ((1.0 - self.shift_fraction) * dh_du + self.delta_half_step * s)
+    }
+
+    /// The extreme one-step slopes dy/du over all reachable states and both directions.
+    pub fn slope_range(&self) -> (f32, f32) {
+        let (lo, hi) = self.hysteresis.slope_range();
+        let w = 1.0 - self.shift_fraction;
+        let k2 = self.map.k2_m_per_h;
+        let spread = (k2 * self.delta_half_step).abs();
+        let a = self.map.k1_m_per_v + k2 * w * lo;
+        let b = self.map.k1_m_per_v + k2 * w * hi;
+        (a.min(b) - spread, a.max(b) + spread)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bouc_wen::BoucWenParams;
+
+    fn seed001_case1() -> BoucWen {
+        BoucWen::new(BoucWenParams {
+            a: -7.02182e-2,
+            beta: 4.45753,
+            gamma: 3.49259,
+            n: 3.05869,
+        })
+        .unwrap()
+    }
+
+    #[test]
+    fn symmetric_asymmetry_reduces_to_standard() {
+        let map = StaticMap {
+            k1_m_per_v: -3.51711e-7,
+            k2_m_per_h: -1.94566e-6,
+            offset_m: 0.0,
+        };
+        let standard = StaticModel::new(seed001_case1(), map).unwrap();
+        let zero =
+            StaticModel::asymmetric(seed001_case1(), map, Asymmetry::default(), 1e-4).unwrap();
+        let (mut s1, mut s2) = (ModelState::default(), ModelState::default());
+        for k in 0..10_000 {
+            let t = k as f32 * 1e-4;
+            let u = 10.0 - 10.0 * libm::cosf(4.0 * core::f32::consts::PI * t);
+            assert_eq!(standard.step(&mut s1, u), zero.step(&mut s2, u));
+        }
+    }
+
+    #[test]
+    fn delta_changes_the_loop_and_stays_periodic() {
+        let map = StaticMap {
+            k1_m_per_v: -3.51711e-7,
+            k2_m_per_h: -1.94566e-6,
+            offset_m: 0.0,
+        };
+        let asym = Asymmetry {
+            delta_per_v_s: -1.95e-2,
+            input_shift_s: 5.16e-7,
+        };
+        let standard = StaticModel::new(seed001_case1(), map).unwrap();
+        let model = StaticModel::asymmetric(seed001_case1(), map, asym, 1e-4).unwrap();
+        let (mut s1, mut s2) = (ModelState::default(), ModelState::default());
+        let mut max_diff = 0.0f32;
+        let mut end_of_first = 0.0;
+        for k in 0..10_000 {
+            let t = k as f32 * 1e-4;
+            let u = 10.0 - 10.0 * libm::cosf(4.0 * core::f32::consts::PI * t);
+            let y1 = standard.step(&mut s1, u);
+            let y2 = model.step(&mut s2, u);
+            max_diff = max_diff.max((y1 - y2).abs());
+            if k == 4999 {
+                end_of_first = y2;
+            }
+        }
+        let end = model.output(&s2);
+        // The δ-term moves the output by a visible fraction of a micrometre ...
+        assert!(max_diff > 2e-8 && max_diff < 1e-6, "max diff {max_diff}");
+        // ... and, for this time-symmetric input, does not drift from cycle to cycle.
+        assert!((end - end_of_first).abs() < 1e-9, "{end} vs {end_of_first}");
+    }
+
+    #[test]
+    fn shift_beyond_one_sample_is_refused() {
+        let map = StaticMap {
+            k1_m_per_v: 1e-6,
+            k2_m_per_h: 1e-7,
+            offset_m: 0.0,
+        };
+        let asym = Asymmetry {
+            delta_per_v_s: 0.0,
+            input_shift_s: 2e-4,
+        };
+        assert!(matches!(
+            StaticModel::asymmetric(seed001_case1(), map, asym, 1e-4),
+            Err(ParamError::OutOfRange {
+                field: "input_shift_s",
+                ..
+            })
+        ));
+    }
+}
