@@ -1,1 +1,114 @@
-//! Integration tests across the crates live in `tests/tests/`.
+//! Shared helpers of the integration tests.
+//!
+//! [`reference`] is the independent reference the core is checked against: it integrates the
+//! continuous-time model *in time*, in f64, with classical RK4 at a step many times finer than the
+//! sample period, and it does not call any code of `piezo-core`. Between two samples the input is
+//! the straight line through them (first-order hold): a sampled model cannot know more about the
+//! input between samples, and for the rate-independent Bouc-Wen state the hold type does not matter
+//! at the sample instants.
+
+pub mod reference {
+    /// Bouc-Wen parameters in f64: ḣ = A·u̇ − β·|u̇|·|h|^(n−1)·h − γ·u̇·|h|^n.
+    #[derive(Debug, Clone, Copy)]
+    pub struct BoucWen64 {
+        pub a: f64,
+        pub beta: f64,
+        pub gamma: f64,
+        pub n: f64,
+    }
+
+    impl BoucWen64 {
+        /// ḣ for input rate `du_dt`.
+        pub fn rate(&self, h: f64, du_dt: f64) -> f64 {
+            let hn = h.abs().powf(self.n);
+            self.a * du_dt - self.beta * du_dt.abs() * hn * h.signum() - self.gamma * du_dt * hn
+        }
+    }
+
+    /// Mass–spring–damper m·ẍ + c·ẋ + k·(x − x0) = k1·u + h.
+    #[derive(Debug, Clone, Copy)]
+    pub struct Msd64 {
+        pub mass: f64,
+        pub damping: f64,
+        pub stiffness: f64,
+        pub rest: f64,
+        pub k1: f64,
+    }
+
+    /// h at every sample of `inputs` (sampled at `period`), from h = 0 at the first sample,
+    /// integrating in time with `substeps` RK4 steps per sample.
+    pub fn bouc_wen_states(
+        bw: BoucWen64,
+        inputs: &[f64],
+        period: f64,
+        substeps: usize,
+    ) -> Vec<f64> {
+        let mut h = 0.0;
+        let mut out = Vec::with_capacity(inputs.len());
+        out.push(h);
+        let dt = period / substeps as f64;
+        for w in inputs.windows(2) {
+            let du_dt = (w[1] - w[0]) / period;
+            for _ in 0..substeps {
+                let k1 = bw.rate(h, du_dt);
+                let k2 = bw.rate(h + 0.5 * dt * k1, du_dt);
+                let k3 = bw.rate(h + 0.5 * dt * k2, du_dt);
+                let k4 = bw.rate(h + dt * k3, du_dt);
+                h += dt / 6.0 * (k1 + 2.0 * (k2 + k3) + k4);
+            }
+            out.push(h);
+        }
+        out
+    }
+
+    /// x at every sample for the dynamic model, starting at rest (x = x0 + k1·u0/k, ẋ = 0, h = 0).
+    pub fn dynamic_positions(
+        bw: BoucWen64,
+        msd: Msd64,
+        inputs: &[f64],
+        period: f64,
+        substeps: usize,
+    ) -> Vec<f64> {
+        let mut state = [msd.rest + msd.k1 * inputs[0] / msd.stiffness, 0.0, 0.0];
+        let mut out = Vec::with_capacity(inputs.len());
+        out.push(state[0]);
+        let dt = period / substeps as f64;
+        for w in inputs.windows(2) {
+            let du_dt = (w[1] - w[0]) / period;
+            let rhs = |t: f64, s: [f64; 3]| -> [f64; 3] {
+                let u = w[0] + du_dt * t;
+                let force = msd.k1 * u + s[2];
+                [
+                    s[1],
+                    (force - msd.damping * s[1] - msd.stiffness * (s[0] - msd.rest)) / msd.mass,
+                    bw.rate(s[2], du_dt),
+                ]
+            };
+            let mut t = 0.0;
+            for _ in 0..substeps {
+                let add = |s: [f64; 3], k: [f64; 3], f: f64| {
+                    [s[0] + f * k[0], s[1] + f * k[1], s[2] + f * k[2]]
+                };
+                let k1 = rhs(t, state);
+                let k2 = rhs(t + 0.5 * dt, add(state, k1, 0.5 * dt));
+                let k3 = rhs(t + 0.5 * dt, add(state, k2, 0.5 * dt));
+                let k4 = rhs(t + dt, add(state, k3, dt));
+                for i in 0..3 {
+                    state[i] += dt / 6.0 * (k1[i] + 2.0 * (k2[i] + k3[i]) + k4[i]);
+                }
+                t += dt;
+            }
+            out.push(state[0]);
+        }
+        out
+    }
+
+    /// RMS of `a − b` divided by the span (max − min) of `b`.
+    pub fn relative_rms_error(a: &[f64], b: &[f64]) -> f64 {
+        assert_eq!(a.len(), b.len(), "series lengths differ");
+        let sse: f64 = a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum();
+        let max = b.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+        let min = b.iter().cloned().fold(f64::INFINITY, f64::min);
+        (sse / a.len() as f64).sqrt() / (max - min)
+    }
+}
