@@ -13,7 +13,8 @@
 //! map is strictly monotone (checked when built, below), and the derivative of the exact path integral
 //! is known in closed form, `dy/dΔu = k1 + k2·dh/du(h(Δu))`, so the solve is a safeguarded Newton
 //! iteration on Δu inside `[0, Δu_limit]` in the direction that reduces the error: a first guess from
-//! the slope at the current state, then at most two corrections (quadratic convergence; for n = 1 the
+//! the slope at the current state, then at most four corrections, stopping as soon as one changes
+//! nothing (quadratic convergence: one or two suffice in a loop at a normal rate; for n = 1 the
 //! equation is the monotone scalar equation `k1·Δu + k2·(A − κh)·Δu·g(κΔu) = e`). The hysteresis state
 //! is always advanced by the voltage actually commanded (after the window and slew limits).
 //!
@@ -119,7 +120,7 @@ impl CompensatorState {
 }
 
 /// Newton corrections after the first guess.
-const NEWTON_CORRECTIONS: usize = 2;
+const NEWTON_CORRECTIONS: usize = 4;
 
 impl Compensator {
     /// A compensator for a static or asymmetric static model (output y in metres).
@@ -296,11 +297,12 @@ impl Compensator {
                 du.clamp(limit, 0.0)
             }
         };
-        let mut du = clamp_step(-error_at_hold / model.step_slope(&hold, direction));
+        let mut du = clamp_step(-error_at_hold / model.step_slope(&state.model, &hold, direction));
         let mut reached = model.next_state(&state.model, (u0 + du).clamp(min, max));
         for _ in 0..NEWTON_CORRECTIONS {
             let error = map.output(reached.input_v, reached.hysteresis.h) - target;
-            let corrected = clamp_step(du - error / model.step_slope(&reached, direction));
+            let corrected =
+                clamp_step(du - error / model.step_slope(&state.model, &reached, direction));
             if corrected == du || corrected.is_nan() {
                 break;
             }

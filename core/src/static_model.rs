@@ -212,12 +212,24 @@ impl StaticModel {
         }
     }
 
-    /// dy/du at the end of a step that moved the input in direction `direction`, for the state
-    /// reached: `k1 + k2·((1 − φ/T)·dh/dU + δ·T/2·sgn Δu)`. Exact derivative of the one-step map for
-    /// the path integral (used as the Newton slope of the inverse).
+    /// dy/du[k] of the one-step map at the end of a step from `from` to `reached` (whose input moved
+    /// in direction `direction`): `k1 + k2·((1 − φ/T)·dh/dU + δ·T/2·sgn Δu)`, with dh/dU taken on the
+    /// branch the shifted input U actually moved along. The exact derivative of the path integral
+    /// (used as the Newton slope of the inverse).
     #[inline]
-    pub(crate) fn step_slope(&self, reached: &ModelState, direction: f32) -> f32 {
-        let dh_du = self.hysteresis.slope(reached.hysteresis.h, direction);
+    pub(crate) fn step_slope(
+        &self,
+        from: &ModelState,
+        reached: &ModelState,
+        direction: f32,
+    ) -> f32 {
+        let shifted_move = reached.hysteresis.input_v - from.hysteresis.input_v;
+        let branch = if shifted_move != 0.0 {
+            shifted_move
+        } else {
+            direction * (1.0 - self.shift_fraction)
+        };
+        let dh_du = self.hysteresis.slope(reached.hysteresis.h, branch);
         let s = if direction < 0.0 { -1.0 } else { 1.0 };
         self.map.k1_m_per_v
             + self.map.k2_m_per_h * ((1.0 - self.shift_fraction) * dh_du + self.delta_half_step * s)
