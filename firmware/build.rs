@@ -1,0 +1,55 @@
+//! Puts the right `memory.x` on the linker search path, for thumb targets only.
+//!
+//! cortex-m-rt's `link.x` does `INCLUDE memory.x`. In a workspace the linker runs from the
+//! workspace root, so the file has to be put on the search path explicitly:
+//! - feature `board` (or no image feature): `../memory.x` at the repository root (STM32F407);
+//! - feature `qemu`: `firmware/memory-mps2-an386.x` (QEMU mps2-an386).
+//!
+//! The chosen file is copied to `OUT_DIR/memory.x` and `OUT_DIR` is added to the search path.
+//! Catch: cargo runs the linker in the workspace root, and rust-lld resolves `INCLUDE memory.x`
+//! against the current directory before any `-L` path, so the root (board) `memory.x` would
+//! always win. For the QEMU image this script therefore also passes
+//! `--remap-inputs=memory.x=OUT_DIR/memory.x` (an ld.lld option, LLVM ≥ 17) so the linker reads
+//! the mps2-an386 layout instead. Check with `readelf -S`: `.vector_table` at 0x00000000 (QEMU)
+//! or 0x08000000 (board).
+//!
+//! Enabling both image features on a thumb target is an error. On the host (`cargo test` at
+//! the root) this script does nothing.
+use std::env;
+use std::fs;
+use std::path::PathBuf;
+
+fn main() {
+    let manifest_dir =
+        PathBuf::from(env::var("CARGO_MANIFEST_DIR").expect("cargo sets CARGO_MANIFEST_DIR"));
+    let board_layout = manifest_dir.join("..").join("memory.x");
+    let qemu_layout = manifest_dir.join("memory-mps2-an386.x");
+    println!("cargo:rerun-if-changed=build.rs");
+    println!("cargo:rerun-if-changed={}", board_layout.display());
+    println!("cargo:rerun-if-changed={}", qemu_layout.display());
+
+    let target = env::var("TARGET").unwrap_or_default();
+    if !target.starts_with("thumb") {
+        return;
+    }
+    let qemu = env::var_os("CARGO_FEATURE_QEMU").is_some();
+    let board = env::var_os("CARGO_FEATURE_BOARD").is_some();
+    if qemu && board {
+        panic!("features `qemu` and `board` select different memory layouts: enable only one");
+    }
+    let chosen = if qemu { qemu_layout } else { board_layout };
+    let out_dir = PathBuf::from(env::var("OUT_DIR").expect("cargo sets OUT_DIR"));
+    fs::copy(&chosen, out_dir.join("memory.x"))
+        .unwrap_or_else(|e| panic!("cannot copy {}: {e}", chosen.display()));
+    println!("cargo:rustc-link-search={}", out_dir.display());
+    if qemu {
+        println!(
+            "cargo:rustc-link-arg-bins=--remap-inputs=memory.x={}",
+            out_dir.join("memory.x").display()
+        );
+    }
+    // defmt's linker script is only needed (and only found) where defmt is linked: the board image.
+    if board {
+        println!("cargo:rustc-link-arg-bins=-Tdefmt.x");
+    }
+}

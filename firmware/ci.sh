@@ -1,0 +1,69 @@
+#!/usr/bin/env bash
+# Firmware CI: builds the QEMU image, runs it under QEMU (mps2-an386) with a timeout, fails on a
+# non-zero exit; runs clippy on both images for the target; builds the STM32F407 board image;
+# prints image sizes. Installs nothing: it checks prerequisites and says what is missing.
+#
+# Prerequisites (what .ci/run installs):
+#   rustup target add thumbv7em-none-eabihf
+#   apt-get install -y --no-install-recommends qemu-system-arm binutils
+#
+# usage: firmware/ci.sh            (from anywhere; honours CARGO_TARGET_DIR, QEMU_TIMEOUT)
+#   SKIP_BOARD=1 firmware/ci.sh    skips the board image (stm32f4xx-hal: ~25 s cold build)
+#
+# The host side of this crate (library tests, clippy --all-targets) runs in the workspace's
+# `cargo test` / `cargo clippy` at the root; the images are feature-gated and target-only.
+set -euo pipefail
+here=$(cd "$(dirname "$0")" && pwd)
+cd "$here"
+target=thumbv7em-none-eabihf
+
+missing=0
+if ! rustup target list --installed 2>/dev/null | grep -qx "$target"; then
+  echo "ci.sh: Rust target $target is not installed: rustup target add $target" >&2
+  missing=1
+fi
+if ! command -v qemu-system-arm >/dev/null; then
+  echo "ci.sh: qemu-system-arm not found: apt-get install -y --no-install-recommends qemu-system-arm" >&2
+  missing=1
+fi
+if ! command -v size >/dev/null; then
+  echo "ci.sh: 'size' not found (binutils): apt-get install -y --no-install-recommends binutils" >&2
+  missing=1
+fi
+[[ $missing == 0 ]] || exit 2
+
+target_dir=${CARGO_TARGET_DIR:-$(cd .. && pwd)/target}
+out=$target_dir/$target/release
+
+echo "== firmware: clippy (target $target, features qemu, board)"
+cargo clippy --release --features qemu --lib --bins -- -D warnings
+cargo clippy --release --features board --lib --bins -- -D warnings
+
+echo "== firmware: QEMU image (mps2-an386)"
+cargo build --release --features qemu --bin qemu
+if ! readelf -S "$out/qemu" | grep -q '\.vector_table.* 00000000 '; then
+  echo "ci.sh: the qemu image is not linked at 0x00000000 (wrong memory.x?)" >&2
+  exit 1
+fi
+size "$out/qemu"
+status=0
+"$here/run-qemu.sh" "$out/qemu" || status=$?
+if [[ $status != 0 ]]; then
+  [[ $status == 124 ]] && echo "ci.sh: QEMU timed out after ${QEMU_TIMEOUT:-60} s" >&2
+  echo "ci.sh: QEMU image FAILED (exit $status)" >&2
+  exit 1
+fi
+echo "ci.sh: QEMU image passed"
+
+if [[ ${SKIP_BOARD:-0} == 1 ]]; then
+  echo "== firmware: board image skipped (SKIP_BOARD=1)"
+else
+  echo "== firmware: board image (STM32F407)"
+  cargo build --release --features board --bin board
+  if ! readelf -S "$out/board" | grep -q '\.vector_table.* 08000000 '; then
+    echo "ci.sh: the board image is not linked at 0x08000000 (wrong memory.x?)" >&2
+    exit 1
+  fi
+  size "$out/board"
+fi
+echo "ci.sh: firmware OK (QEMU self-check passed, images built)"

@@ -1,0 +1,144 @@
+//! STM32F4-Discovery (STM32F407VG) bring-up: clocks, the two SPI buses, chip selects, the loop
+//! timer, and the DAC8563/ADS8681 drivers on them. Target only (`board` feature).
+//!
+//! Wiring (RM0090 / STM32F407 datasheet alternate-function table, AF5 for SPI1/SPI2; the
+//! Discovery user manual UM1472 for pins already used on the board):
+//!
+//! | signal                | MCU pin | notes                                                   |
+//! |-----------------------|---------|---------------------------------------------------------|
+//! | SPI1 SCK → ADS8681    | PA5     | SPI mode 0, 21 MHz (84 MHz APB2 / 4)                    |
+//! | SPI1 MISO ← ADS8681   | PA6     | ADS8681 SDO-0                                           |
+//! | SPI1 MOSI → ADS8681   | PA7     | ADS8681 SDI                                             |
+//! | ADS8681 CONVST/CS     | PE7     | chip select; rising edge starts a conversion            |
+//! | LIS3DSH CS (on board) | PE3     | held high so the on-board accelerometer stays off SPI1  |
+//! | SPI2 SCK → DAC8563    | PB13    | SPI mode 1, 21 MHz (42 MHz APB1 / 2)                    |
+//! | SPI2 MOSI → DAC8563   | PB15    | DAC8563 DIN (the DAC has no data output; PB14 unused)   |
+//! | DAC8563 SYNC          | PB12    | chip select                                             |
+//! | DAC8563 LDAC, CLR     | —       | tie LDAC low, CLR high (LDAC register set to ignore pin) |
+//!
+//! The two converters sit on separate buses because they need different SPI modes (ADS8681
+//! mode 0 at power-on, DAC8563 mode 1).
+//!
+//! Clocks: 8 MHz HSE crystal → PLL → SYSCLK 168 MHz, AHB 168 MHz, APB2 84 MHz, APB1 42 MHz
+//! (TIM2 kernel clock 84 MHz).
+//!
+//! Loop timer: TIM2 counts at [`LOOP_RATE_HZ`] = 10 kHz; the main loop polls its update flag
+//! and runs one [`crate::control::tick`] per period. Deadline: a tick must finish within
+//! 100 µs. Its cost: one 32-bit ADC frame (1.5 µs at 21 MHz), one 24-bit DAC frame (1.1 µs)
+//! and about 130 instructions of loop body (measured under QEMU with the simulated stage, see
+//! `firmware/ci.sh`), i.e. a few µs at 168 MHz. Not measured on hardware yet (DWT cycle counter).
+
+use embedded_hal_bus::spi::{ExclusiveDevice, NoDelay};
+use stm32f4xx_hal::gpio::{Output, PB12, PE7};
+use stm32f4xx_hal::pac;
+use stm32f4xx_hal::prelude::*;
+use stm32f4xx_hal::rcc::Config;
+use stm32f4xx_hal::spi::{Mode, Phase, Polarity, Spi};
+use stm32f4xx_hal::timer::CounterHz;
+
+use crate::ads8681::{Ads8681, InputRange};
+use crate::converter::DriverError;
+use crate::dac8563::Dac8563;
+
+/// Loop rate, hertz (TIM2 update rate).
+pub const LOOP_RATE_HZ: u32 = 10_000;
+
+/// The ADS8681 as an SPI device on SPI1 with CS on PE7.
+pub type AdcSpi = ExclusiveDevice<Spi<pac::SPI1>, PE7<Output>, NoDelay>;
+/// The DAC8563 as an SPI device on SPI2 with SYNC on PB12.
+pub type DacSpi = ExclusiveDevice<Spi<pac::SPI2>, PB12<Output>, NoDelay>;
+
+/// SPI error of the board's devices (GPIO chip selects are infallible on this MCU).
+pub type AdcError = DriverError<<AdcSpi as embedded_hal::spi::ErrorType>::Error>;
+/// SPI error of the board's DAC.
+pub type DacError = DriverError<<DacSpi as embedded_hal::spi::ErrorType>::Error>;
+
+/// Why bring-up failed.
+#[derive(Debug)]
+pub enum BoardError {
+    /// The DAC init sequence failed.
+    Dac(DacError),
+    /// The ADC init (range write and readback) failed.
+    Adc(AdcError),
+    /// The loop timer could not be started.
+    Timer,
+}
+
+/// Everything the loop needs.
+pub struct Board {
+    /// Piezo amplifier DAC (channel A).
+    pub dac: Dac8563<DacSpi>,
+    /// Displacement sensor ADC.
+    pub adc: Ads8681<AdcSpi>,
+    /// TIM2, updating at [`LOOP_RATE_HZ`].
+    pub loop_timer: CounterHz<pac::TIM2>,
+}
+
+impl Board {
+    /// Clocks, pins, buses, timer; then the DAC init (outputs to 0 V) and the ADC init (range
+    /// ±10.24 V, read back).
+    pub fn init(dp: pac::Peripherals) -> Result<Self, BoardError> {
+        let mut rcc = dp.RCC.freeze(
+            Config::hse(8.MHz())
+                .sysclk(168.MHz())
+                .pclk1(42.MHz())
+                .pclk2(84.MHz()),
+        );
+        let gpioa = dp.GPIOA.split(&mut rcc);
+        let gpiob = dp.GPIOB.split(&mut rcc);
+        let gpioe = dp.GPIOE.split(&mut rcc);
+
+        // Keep the on-board LIS3DSH deselected for good; it shares SPI1. Dropping the pin
+        // handle leaves the pin configured and high.
+        let mut accel_cs = gpioe.pe3.into_push_pull_output();
+        accel_cs.set_high();
+
+        let mode0 = Mode {
+            polarity: Polarity::IdleLow,
+            phase: Phase::CaptureOnFirstTransition,
+        };
+        let mode1 = Mode {
+            polarity: Polarity::IdleLow,
+            phase: Phase::CaptureOnSecondTransition,
+        };
+        let spi1 = Spi::new(
+            dp.SPI1,
+            (Some(gpioa.pa5), Some(gpioa.pa6), Some(gpioa.pa7)),
+            mode0,
+            21.MHz(),
+            &mut rcc,
+        );
+        let spi2 = Spi::new(
+            dp.SPI2,
+            (Some(gpiob.pb13), Some(gpiob.pb14), Some(gpiob.pb15)),
+            mode1,
+            21.MHz(),
+            &mut rcc,
+        );
+        // Chip selects start high (ExclusiveDevice sets them high; GPIO errors are Infallible).
+        let adc_cs = gpioe.pe7.into_push_pull_output();
+        let dac_sync = gpiob.pb12.into_push_pull_output();
+        let Ok(adc_spi) = ExclusiveDevice::new_no_delay(spi1, adc_cs);
+        let Ok(dac_spi) = ExclusiveDevice::new_no_delay(spi2, dac_sync);
+
+        let mut dac = Dac8563::new(dac_spi);
+        dac.init().map_err(BoardError::Dac)?;
+        let mut adc = Ads8681::new(adc_spi, InputRange::Bipolar2_5x);
+        adc.init().map_err(BoardError::Adc)?;
+
+        let mut loop_timer = dp.TIM2.counter_hz(&mut rcc);
+        loop_timer
+            .start(LOOP_RATE_HZ.Hz())
+            .map_err(|_| BoardError::Timer)?;
+        Ok(Self {
+            dac,
+            adc,
+            loop_timer,
+        })
+    }
+
+    /// Blocks until the next TIM2 update (the start of the next tick).
+    pub fn wait_for_tick(&mut self) {
+        while self.loop_timer.wait().is_err() {}
+    }
+}
