@@ -1,1 +1,20 @@
-//! host-sim: simulated piezo plants (being written).
+//! host-sim: independent f64 reference plants for the piezo hysteresis compensator.
+//!
+//! The plants here are the truth the compensator of `piezo-core` is judged against. They do not call the
+//! core's model step: they integrate their own f64 equations with an adaptive Dormand–Prince 5(4) pair
+//! ([`ode`]), clip steps at sample instants and input breakpoints, and carry effects no model declares
+//! ([`effects`]). Signals ([`signal`]), CSV I/O ([`csv`]), plots ([`plot`]) and the command line ([`cli`])
+//! sit on top.
+
+// `!(x > 0.0)` is used on purpose: it rejects NaN as well as out-of-range values.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
+pub mod bouc_wen;
+pub mod cli;
+pub mod csv;
+pub mod effects;
+pub mod ode;
+pub mod plant;
+pub mod plot;
+pub mod signal;
+pub mod sim;

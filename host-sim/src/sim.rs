@@ -1,0 +1,390 @@
+//! Sampled simulation of a plant under signals and effects.
+//!
+//! The joint state [amplifier outputs | plant states | creep elements] is integrated with [`Dp45`] between
+//! consecutive events: output sample instants k/f_s and the breakpoints (jumps, corners, reversals) of every
+//! input signal. At a breakpoint where a held input jumps (and no amplifier smooths it), the plant moves its
+//! hysteresis state along the jump ([`Plant::input_jump`]). Outputs are recorded at the sample instants
+//! (after any jump at that instant), then delayed, made noisy and quantised as the effects ask.
+
+use crate::csv::Table;
+use crate::effects::{DacSignal, Effects};
+use crate::ode::{Dp45, Dp45Settings, Dp45Stats, OdeError, OdeSystem};
+use crate::plant::{InputAt, Plant, PlantError};
+use crate::signal::{Signal, SignalError};
+use rand_chacha::ChaCha8Rng;
+use rand_core::{RngCore, SeedableRng};
+use std::fmt;
+
+/// Simulation errors.
+#[derive(Debug, Clone, PartialEq)]
+pub enum SimError {
+    /// From the plant.
+    Plant(PlantError),
+    /// From the integrator.
+    Ode(OdeError),
+    /// From a signal.
+    Signal(SignalError),
+    /// Invalid settings.
+    Settings(String),
+}
+
+impl fmt::Display for SimError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::Plant(e) => e.fmt(f),
+            Self::Ode(e) => e.fmt(f),
+            Self::Signal(e) => e.fmt(f),
+            Self::Settings(m) => write!(f, "{m}"),
+        }
+    }
+}
+
+impl std::error::Error for SimError {}
+
+impl From<PlantError> for SimError {
+    fn from(e: PlantError) -> Self {
+        Self::Plant(e)
+    }
+}
+impl From<OdeError> for SimError {
+    fn from(e: OdeError) -> Self {
+        Self::Ode(e)
+    }
+}
+impl From<SignalError> for SimError {
+    fn from(e: SignalError) -> Self {
+        Self::Signal(e)
+    }
+}
+
+/// Sampling and integrator settings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SimSettings {
+    /// Output sample rate, Hz.
+    pub sample_rate_hz: f64,
+    /// Duration, s; samples at k/f_s for k = 0 .. round(duration·f_s) − 1.
+    pub duration_s: f64,
+    /// Integrator tolerances (atol in state units; the default suits nm-scale displacements).
+    pub ode: Dp45Settings,
+}
+
+impl SimSettings {
+    /// Default tolerances (rtol 1e-8, atol 1e-14).
+    pub fn new(sample_rate_hz: f64, duration_s: f64) -> Self {
+        Self {
+            sample_rate_hz,
+            duration_s,
+            ode: Dp45Settings {
+                rtol: 1e-8,
+                atol: 1e-14,
+                ..Default::default()
+            },
+        }
+    }
+}
+
+/// Sampled result.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SimOutput {
+    /// Sample times, s.
+    pub t_s: Vec<f64>,
+    /// Input names (`u_V` or `ux_V`, `uy_V`).
+    pub input_names: Vec<String>,
+    /// Commanded inputs per channel, V (after the DAC if present).
+    pub inputs_v: Vec<Vec<f64>>,
+    /// Output names (`y_m` or `x_m`, `y_m`).
+    pub output_names: Vec<String>,
+    /// Measured outputs per channel, m.
+    pub outputs_m: Vec<Vec<f64>>,
+    /// Integrator counters.
+    pub stats: Dp45Stats,
+}
+
+impl SimOutput {
+    /// As a CSV table: `t_s`, inputs, outputs.
+    pub fn to_table(&self) -> Table {
+        let mut names = vec!["t_s".to_string()];
+        names.extend(self.input_names.iter().cloned());
+        names.extend(self.output_names.iter().cloned());
+        let mut columns = vec![self.t_s.clone()];
+        columns.extend(self.inputs_v.iter().cloned());
+        columns.extend(self.outputs_m.iter().cloned());
+        Table {
+            path: Default::default(),
+            names,
+            columns,
+        }
+    }
+}
+
+struct Ctx<'a> {
+    plant: &'a dyn Plant,
+    signals: &'a [Box<dyn Signal>],
+    effects: &'a Effects,
+    n_in: usize,
+    n_amp: usize,
+    n_plant: usize,
+    n_out: usize,
+}
+
+struct Segment<'a> {
+    ctx: &'a Ctx<'a>,
+    t_start: f64,
+}
+
+struct Inputs<'a> {
+    ctx: &'a Ctx<'a>,
+    t_now: f64,
+    t_start: f64,
+    amp_state: &'a [f64],
+}
+
+impl InputAt for Inputs<'_> {
+    fn input(&self, channel: usize, t: f64) -> (f64, f64) {
+        let sig = &self.ctx.signals[channel.min(self.ctx.n_in - 1)];
+        match self.ctx.effects.amplifier {
+            Some(amp) => {
+                let v = self.amp_state[channel];
+                let (u, _) = sig.eval(self.t_now, self.t_now > self.t_start);
+                let dv = amp.rate(u, v);
+                // A time-shifted query (stage's φ) uses the first-order Taylor expansion of v.
+                (v + (t - self.t_now) * dv, dv)
+            }
+            None => sig.eval(t, t > self.t_start),
+        }
+    }
+}
+
+impl OdeSystem for Segment<'_> {
+    fn dim(&self) -> usize {
+        self.ctx.n_amp
+            + self.ctx.n_plant
+            + self.ctx.n_out
+                * self
+                    .ctx
+                    .effects
+                    .creep
+                    .as_ref()
+                    .map_or(0, |c| c.elements.len())
+    }
+    fn rhs(&self, t: f64, x: &[f64], dx: &mut [f64]) {
+        let c = self.ctx;
+        let (amp_x, rest) = x.split_at(c.n_amp);
+        let (plant_x, creep_x) = rest.split_at(c.n_plant);
+        let (amp_dx, rest_dx) = dx.split_at_mut(c.n_amp);
+        let (plant_dx, creep_dx) = rest_dx.split_at_mut(c.n_plant);
+        let inputs = Inputs {
+            ctx: c,
+            t_now: t,
+            t_start: self.t_start,
+            amp_state: amp_x,
+        };
+        if let Some(amp) = c.effects.amplifier {
+            for ch in 0..c.n_amp {
+                let (u, _) = c.signals[ch].eval(t, t > self.t_start);
+                amp_dx[ch] = amp.rate(u, amp_x[ch]);
+            }
+        }
+        c.plant.rhs(t, plant_x, &inputs, plant_dx);
+        if let Some(creep) = &c.effects.creep {
+            let mut u = [0.0; 2];
+            for (ch, uu) in u.iter_mut().enumerate().take(c.n_in) {
+                *uu = inputs.input(ch, t).0;
+            }
+            let mut free = [0.0; 2];
+            c.plant
+                .free_displacement(plant_x, &u[..c.n_in], &mut free[..c.n_out]);
+            let n = creep.elements.len();
+            for j in 0..c.n_out {
+                for (i, &(tau, w)) in creep.elements.iter().enumerate() {
+                    creep_dx[j * n + i] = (w * free[j] - creep_x[j * n + i]) / tau;
+                }
+            }
+        }
+    }
+}
+
+/// Standard normal deviate by Box–Muller from a ChaCha8 stream.
+fn gaussian(rng: &mut ChaCha8Rng) -> f64 {
+    let u1 = ((rng.next_u64() >> 11) as f64 + 0.5) / (1u64 << 53) as f64;
+    let u2 = ((rng.next_u64() >> 11) as f64) / (1u64 << 53) as f64;
+    (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
+}
+
+/// Runs `plant` under `signals` (one per plant input) with `effects`; the plant must already carry its
+/// plant-internal effects (see [`Effects::apply_to_plant`]).
+pub fn simulate(
+    plant: &dyn Plant,
+    signals: Vec<Box<dyn Signal>>,
+    effects: &Effects,
+    settings: &SimSettings,
+) -> Result<SimOutput, SimError> {
+    let n_in = plant.input_names().len();
+    let n_out = plant.output_names().len();
+    if signals.len() != n_in {
+        return Err(SimError::Settings(format!(
+            "plant {} needs {n_in} input signal(s), got {}",
+            plant.name(),
+            signals.len()
+        )));
+    }
+    let fs = settings.sample_rate_hz;
+    if !(fs > 0.0 && fs.is_finite() && settings.duration_s > 0.0 && settings.duration_s.is_finite())
+    {
+        return Err(SimError::Settings(format!(
+            "sample rate ({fs} Hz) and duration ({} s) must be positive and finite",
+            settings.duration_s
+        )));
+    }
+    let n_samples = (settings.duration_s * fs).round() as usize;
+    if n_samples == 0 || n_samples > 200_000_000 {
+        return Err(SimError::Settings(format!(
+            "{n_samples} samples: need 1 .. 2e8"
+        )));
+    }
+    let signals: Vec<Box<dyn Signal>> = match effects.dac {
+        Some(dac) => signals
+            .into_iter()
+            .map(|inner| Box::new(DacSignal { inner, dac }) as Box<dyn Signal>)
+            .collect(),
+        None => signals,
+    };
+    let t_of = |k: usize| k as f64 / fs;
+    // Validity of the input range (sampled at the output instants and at the breakpoints).
+    let (mut lo, mut hi) = (0.0f64, 0.0f64);
+    let mut bps = Vec::new();
+    for s in &signals {
+        s.breakpoints(0.0, t_of(n_samples), &mut bps);
+        for v in (0..n_samples)
+            .map(|k| s.value(t_of(k)))
+            .chain(bps.iter().map(|&t| s.value(t)))
+        {
+            lo = lo.min(v);
+            hi = hi.max(v);
+        }
+        bps.clear();
+    }
+    plant.check_input_span(lo, hi)?;
+
+    let n_amp = if effects.amplifier.is_some() { n_in } else { 0 };
+    let ctx = Ctx {
+        plant,
+        signals: &signals,
+        effects,
+        n_in,
+        n_amp,
+        n_plant: plant.state_dim(),
+        n_out,
+    };
+    let dim = Segment {
+        ctx: &ctx,
+        t_start: 0.0,
+    }
+    .dim();
+    let mut x = vec![0.0; dim];
+    plant.initial_state(&mut x[n_amp..n_amp + ctx.n_plant]);
+    let mut ode = Dp45::new(dim, settings.ode);
+
+    let mut t_s = Vec::with_capacity(n_samples);
+    let mut inputs_v = vec![Vec::with_capacity(n_samples); n_in];
+    let mut outputs_m = vec![Vec::with_capacity(n_samples); n_out];
+    let mut t = 0.0;
+    let apply_jumps = |x: &mut [f64], tb: f64, first: bool| {
+        if n_amp > 0 {
+            return;
+        }
+        for (ch, s) in signals.iter().enumerate() {
+            let from = if first { 0.0 } else { s.eval(tb, true).0 };
+            let to = s.eval(tb, false).0;
+            if from != to {
+                plant.input_jump(&mut x[n_amp..n_amp + ctx.n_plant], ch, from, to);
+            }
+        }
+    };
+    // The plant rests at u = 0; a non-zero u(0) is a jump at t = 0.
+    apply_jumps(&mut x, 0.0, true);
+    let n_creep = effects.creep.as_ref().map_or(0, |c| c.elements.len());
+    for k in 0..n_samples {
+        let tk = t_of(k);
+        if k > 0 {
+            bps.clear();
+            for s in &signals {
+                s.breakpoints(t, tk, &mut bps);
+            }
+            bps.retain(|&b| b > t && b < tk);
+            bps.sort_by(f64::total_cmp);
+            bps.dedup();
+            bps.push(tk);
+            for &tb in &bps {
+                let seg = Segment {
+                    ctx: &ctx,
+                    t_start: t,
+                };
+                ode.advance(&seg, &mut t, &mut x, tb)?;
+                t = tb;
+                apply_jumps(&mut x, tb, false);
+            }
+            plant.check_state(&x[n_amp..n_amp + ctx.n_plant])?;
+        }
+        t_s.push(tk);
+        let mut u = [0.0; 2];
+        for ch in 0..n_in {
+            u[ch] = if n_amp > 0 {
+                x[ch]
+            } else {
+                signals[ch].value(tk)
+            };
+            inputs_v[ch].push(signals[ch].value(tk));
+        }
+        let mut y = [0.0; 2];
+        plant.output(&x[n_amp..n_amp + ctx.n_plant], &u[..n_in], &mut y[..n_out]);
+        for j in 0..n_out {
+            let creep: f64 = x[n_amp + ctx.n_plant + j * n_creep..][..n_creep]
+                .iter()
+                .sum();
+            let drift = effects.drift.map_or(0.0, |d| d.at(tk));
+            outputs_m[j].push(y[j] + creep + drift);
+        }
+    }
+    // Sensor-side effects.
+    if let Some(d) = effects.sensor_delay_s {
+        for ch in outputs_m.iter_mut() {
+            let orig = ch.clone();
+            for (k, v) in ch.iter_mut().enumerate() {
+                let pos = (t_of(k) - d) * fs;
+                *v = if pos <= 0.0 {
+                    orig[0]
+                } else {
+                    let i = pos.floor() as usize;
+                    let f = pos - i as f64;
+                    if i + 1 < orig.len() {
+                        orig[i] * (1.0 - f) + orig[i + 1] * f
+                    } else {
+                        orig[orig.len() - 1]
+                    }
+                };
+            }
+        }
+    }
+    if let Some(noise) = effects.noise {
+        let mut rng = ChaCha8Rng::seed_from_u64(noise.seed);
+        for k in 0..n_samples {
+            for ch in outputs_m.iter_mut() {
+                ch[k] += noise.rms_m * gaussian(&mut rng);
+            }
+        }
+    }
+    if let Some(lsb) = effects.adc_lsb_m {
+        for v in outputs_m.iter_mut().flatten() {
+            *v = (*v / lsb).round() * lsb;
+        }
+    }
+    Ok(SimOutput {
+        t_s,
+        input_names: plant.input_names().iter().map(|s| s.to_string()).collect(),
+        inputs_v,
+        output_names: plant.output_names().iter().map(|s| s.to_string()).collect(),
+        outputs_m,
+        stats: ode.stats(),
+    })
+}

@@ -1,0 +1,380 @@
+//! Plant figures and effects: each test fails if its figure or effect is missing.
+
+use host_sim::effects::Effects;
+use host_sim::plant::{AsymmetricStage, Nac2024, Plant, PlantKind, StageCase, XyStage};
+use host_sim::signal::{staircase, Piecewise, Signal, Sine};
+use host_sim::sim::{simulate, SimOutput, SimSettings};
+
+const HOLD_S: f64 = 0.03;
+
+fn run(
+    plant: &dyn Plant,
+    signals: Vec<Box<dyn Signal>>,
+    effects: &Effects,
+    fs: f64,
+    dur: f64,
+) -> SimOutput {
+    simulate(plant, signals, effects, &SimSettings::new(fs, dur)).unwrap()
+}
+
+/// Settled output at the end of each staircase level; returns (max output, max opening, voltage of max).
+fn loop_figures(out: &SimOutput, axis: usize, levels: usize) -> (f64, f64, f64, Vec<(f64, f64)>) {
+    let per = (HOLD_S * 10_000.0) as usize;
+    let pts: Vec<(f64, f64)> = (0..levels)
+        .map(|i| {
+            (
+                out.inputs_v[axis][(i + 1) * per - 1],
+                out.outputs_m[axis][(i + 1) * per - 1],
+            )
+        })
+        .collect();
+    let half = levels / 2;
+    let mut best = (0.0, 0.0);
+    let mut openings = Vec::new();
+    for i in 0..=half {
+        let j = levels - 1 - i;
+        assert!((pts[i].0 - pts[j].0).abs() < 1e-9);
+        let o = (pts[j].1 - pts[i].1).abs();
+        openings.push((pts[i].0, o));
+        if o > best.0 {
+            best = (o, pts[i].0);
+        }
+    }
+    let max = pts.iter().map(|p| p.1).fold(f64::MIN, f64::max);
+    (max, best.0, best.1, openings)
+}
+
+fn xy_staircase(high: f64, step: f64) -> SimOutput {
+    let stage = XyStage::default();
+    let levels = 2 * (high / step).round() as usize + 1;
+    let sig = || Box::new(staircase(0.0, high, step, HOLD_S).unwrap()) as Box<dyn Signal>;
+    run(
+        &stage,
+        vec![sig(), sig()],
+        &Effects::default(),
+        10_000.0,
+        levels as f64 * HOLD_S,
+    )
+}
+
+fn within(value: f64, target: f64, rel: f64) -> bool {
+    (value - target).abs() <= rel * target.abs()
+}
+
+#[test]
+fn xy_max_displacement_is_64_um() {
+    let out = xy_staircase(120.0, 10.0);
+    for axis in 0..2 {
+        let (max, ..) = loop_figures(&out, axis, 25);
+        assert!(within(max, 64e-6, 0.10), "axis {axis}: max {max:e}");
+    }
+}
+
+#[test]
+fn xy_loop_opening_120v_x_is_7_91_um() {
+    let (_, o, u, ops) = loop_figures(&xy_staircase(120.0, 10.0), 0, 25);
+    assert!(within(o, 7.91e-6, 0.10), "x opening {o:e} at {u} V");
+    let at80 = ops.iter().find(|p| p.0 == 80.0).unwrap().1;
+    assert!(at80 > 0.85 * o, "opening at 80 V {at80:e} vs max {o:e}");
+}
+
+#[test]
+fn xy_loop_opening_120v_y_is_7_55_um() {
+    let (_, o, u, ops) = loop_figures(&xy_staircase(120.0, 10.0), 1, 25);
+    assert!(within(o, 7.55e-6, 0.10), "y opening {o:e} at {u} V");
+    let at80 = ops.iter().find(|p| p.0 == 80.0).unwrap().1;
+    assert!(at80 > 0.85 * o, "opening at 80 V {at80:e} vs max {o:e}");
+}
+
+#[test]
+fn xy_loop_opening_12v_x_is_0_344_um() {
+    let (_, o, ..) = loop_figures(&xy_staircase(12.0, 1.0), 0, 25);
+    assert!(within(o, 0.344e-6, 0.10), "x opening {o:e}");
+}
+
+#[test]
+fn xy_loop_opening_12v_y_is_0_264_um() {
+    let (_, o, ..) = loop_figures(&xy_staircase(12.0, 1.0), 1, 25);
+    assert!(within(o, 0.264e-6, 0.10), "y opening {o:e}");
+}
+
+#[test]
+fn xy_axes_are_independent_and_coupling_effect_couples_them() {
+    let drive_y_only = || -> Vec<Box<dyn Signal>> {
+        vec![
+            Box::new(Piecewise::new(vec![0.0], vec![0.0], true).unwrap()),
+            Box::new(staircase(0.0, 60.0, 60.0, HOLD_S).unwrap()),
+        ]
+    };
+    let stage = XyStage::default();
+    let out = run(&stage, drive_y_only(), &Effects::default(), 10_000.0, 0.06);
+    assert_eq!(
+        out.outputs_m[0].iter().fold(0.0f64, |a, v| a.max(v.abs())),
+        0.0
+    );
+    let mut e = Effects::default();
+    e.add_spec("coupling:xy=0.02,yx=0").unwrap();
+    let mut p = PlantKind::XyStage(XyStage::default());
+    e.apply_to_plant(&mut p).unwrap();
+    let out = run(p.as_plant(), drive_y_only(), &e, 10_000.0, 0.06);
+    let x = *out.outputs_m[0].last().unwrap();
+    let y = *out.outputs_m[1].last().unwrap();
+    assert!(within(x, 0.02 * y, 1e-6), "x {x:e} y {y:e}");
+}
+
+#[test]
+fn zoh_staircase_and_slow_ramp_agree_on_static_loop() {
+    // Rate independence through two different input paths: jump integration in u versus time integration.
+    let stage = XyStage::default();
+    let zoh = xy_staircase(12.0, 12.0);
+    let ramp: Box<dyn Signal> =
+        Box::new(Piecewise::new(vec![0.0, 0.02, 0.05], vec![0.0, 12.0, 12.0], false).unwrap());
+    let cont = run(
+        &stage,
+        vec![
+            ramp,
+            Box::new(Piecewise::new(vec![0.0], vec![0.0], true).unwrap()),
+        ],
+        &Effects::default(),
+        10_000.0,
+        0.05,
+    );
+    let a = zoh.outputs_m[0][599];
+    let b = *cont.outputs_m[0].last().unwrap();
+    assert!((a - b).abs() < 1e-4 * a.abs(), "{a:e} vs {b:e}");
+}
+
+fn nac_sine(amp: f64, freq: f64) -> Vec<Box<dyn Signal>> {
+    vec![Box::new(Sine {
+        amplitude_v: amp,
+        offset_v: 0.0,
+        frequency_hz: freq,
+        phase_rad: 0.0,
+    })]
+}
+
+#[test]
+fn nac2024_static_gain_and_resonance() {
+    let p = Nac2024::published();
+    assert!(within(
+        p.input_gain_n_per_v / p.stiffness_n_per_m,
+        2.68e-9,
+        0.01
+    ));
+    let fn_hz = (p.stiffness_n_per_m / p.mass_kg).sqrt() / (2.0 * std::f64::consts::PI);
+    assert!(within(fn_hz, 166e3, 0.01), "{fn_hz}");
+    // 10 kHz, 9.738 V sine (the paper's identification signal): peak ≈ (9.738 + h)/k0.
+    let out = run(&p, nac_sine(9.738, 1e4), &Effects::default(), 2.56e6, 2e-4);
+    let peak = out.outputs_m[0].iter().fold(0.0f64, |a, v| a.max(v.abs()));
+    assert!(peak > 20e-9 && peak < 40e-9, "peak {peak:e}");
+}
+
+#[test]
+fn nac2024_refuses_inputs_beyond_validity() {
+    let p = Nac2024::published();
+    let r = simulate(
+        &p,
+        nac_sine(50.0, 1e4),
+        &Effects::default(),
+        &SimSettings::new(2.56e6, 1e-4),
+    );
+    let msg = r.unwrap_err().to_string();
+    assert!(msg.contains("beta + gamma < 0"), "{msg}");
+}
+
+#[test]
+fn nac2024_second_mode_effect_changes_square_response() {
+    let sq = || -> Vec<Box<dyn Signal>> {
+        vec![Box::new(
+            host_sim::signal::PeriodicPiecewise::ramp_square(0.0, 7.8335, 1e-4, 1.8672e-6).unwrap(),
+        )]
+    };
+    let base = run(
+        &Nac2024::published(),
+        sq(),
+        &Effects::default(),
+        2.56e6,
+        45e-6,
+    );
+    let mut e = Effects::default();
+    e.add_spec("second-mode:freq_hz=480e3,zeta=0.02,participation=0.1")
+        .unwrap();
+    let mut p = PlantKind::Nac2024(Nac2024::published());
+    e.apply_to_plant(&mut p).unwrap();
+    let two = run(p.as_plant(), sq(), &e, 2.56e6, 45e-6);
+    let diff = base.outputs_m[0]
+        .iter()
+        .zip(&two.outputs_m[0])
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max);
+    assert!(diff > 1e-9, "second mode invisible: {diff:e}");
+    // Settled value is 10 % higher with participation 0.1.
+    let (a, b) = (
+        *base.outputs_m[0].last().unwrap(),
+        *two.outputs_m[0].last().unwrap(),
+    );
+    assert!(within(b, 1.1 * a, 0.01), "{a:e} {b:e}");
+}
+
+fn stage_signal() -> Vec<Box<dyn Signal>> {
+    vec![Box::new(Sine {
+        amplitude_v: 10.0,
+        offset_v: 10.0,
+        frequency_hz: 2.0,
+        phase_rad: -std::f64::consts::FRAC_PI_2,
+    })]
+}
+
+#[test]
+fn stage_cases_run_and_differ() {
+    let run_case = |c| {
+        run(
+            &AsymmetricStage::new(c),
+            stage_signal(),
+            &Effects::default(),
+            10_000.0,
+            1.0,
+        )
+    };
+    let (i, ii, iii) = (
+        run_case(StageCase::I),
+        run_case(StageCase::II),
+        run_case(StageCase::III),
+    );
+    assert_eq!(i.t_s.len(), 10_000);
+    let peak = i.outputs_m[0].iter().fold(0.0f64, |a, v| a.max(v.abs()));
+    // k1·20 V = 7.03 µm plus the hysteresis term (|k2·h| ≤ ≈ 0.84 µm).
+    assert!(peak > 6e-6 && peak < 9e-6, "peak {peak:e}");
+    let d = |a: &SimOutput, b: &SimOutput| {
+        a.outputs_m[0]
+            .iter()
+            .zip(&b.outputs_m[0])
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f64::max)
+    };
+    assert!(d(&i, &ii) > 1e-8, "delta term invisible: {:e}", d(&i, &ii));
+    assert!(d(&ii, &iii) > 0.0, "phi shift invisible");
+}
+
+fn step_effect_run(spec: &str, dur: f64) -> (SimOutput, SimOutput) {
+    let sig = || -> Vec<Box<dyn Signal>> {
+        vec![Box::new(
+            Piecewise::new(vec![0.0, 1e-3], vec![0.0, 10.0], true).unwrap(),
+        )]
+    };
+    let p = AsymmetricStage::new(StageCase::I);
+    let base = run(&p, sig(), &Effects::default(), 10_000.0, dur);
+    let mut e = Effects::default();
+    e.add_spec(spec).unwrap();
+    let mut pk = PlantKind::Stage(p);
+    e.apply_to_plant(&mut pk).unwrap();
+    (base, run(pk.as_plant(), sig(), &e, 10_000.0, dur))
+}
+
+#[test]
+fn creep_keeps_moving_after_a_step() {
+    let (base, creep) = step_effect_run("creep:tau=0.05/0.5,weight=0.02/0.02", 1.0);
+    let b = &base.outputs_m[0];
+    let c = &creep.outputs_m[0];
+    assert_eq!(b[100], b[9999]); // no creep in the model
+    let moved = (c[9999] - c[100]) / c[100];
+    assert!(moved > 0.02 && moved < 0.04, "creep {moved}");
+}
+
+#[test]
+fn thermal_drift_adds_a_slope() {
+    let (base, d) = step_effect_run("drift:rate=1e-8", 1.0);
+    let diff = d.outputs_m[0][9999] - base.outputs_m[0][9999];
+    assert!(within(diff, 1e-8 * 0.9999, 1e-6), "{diff:e}");
+}
+
+#[test]
+fn sensor_delay_shifts_output() {
+    let (base, d) = step_effect_run("delay:s=0.002", 0.01);
+    assert_eq!(d.outputs_m[0][50], base.outputs_m[0][30]);
+    assert_ne!(d.outputs_m[0][25], base.outputs_m[0][25]);
+}
+
+#[test]
+fn amplifier_bandwidth_smooths_step() {
+    let (base, a) = step_effect_run("amplifier:bandwidth_hz=100", 0.1);
+    // One time constant (1.59 ms) after the step the amplifier output is at 63 % of the step.
+    let k = 10 + 16;
+    let frac =
+        (a.outputs_m[0][k] - a.outputs_m[0][0]) / (base.outputs_m[0][k] - base.outputs_m[0][0]);
+    assert!(frac > 0.5 && frac < 0.75, "{frac}");
+    assert!(within(a.outputs_m[0][999], base.outputs_m[0][999], 1e-3));
+}
+
+#[test]
+fn amplifier_slew_limit_makes_a_ramp() {
+    let (base, a) = step_effect_run("amplifier:bandwidth_hz=1e5,slew_v_per_s=1000", 0.03);
+    // 10 V at 1000 V/s takes 10 ms: half way after 5 ms.
+    let k = 10 + 50;
+    let frac =
+        (a.outputs_m[0][k] - a.outputs_m[0][0]) / (base.outputs_m[0][k] - base.outputs_m[0][0]);
+    assert!(frac > 0.4 && frac < 0.6, "{frac}");
+}
+
+#[test]
+fn noise_is_seeded_and_has_the_asked_rms() {
+    let (base, n1) = step_effect_run("noise:rms_m=1e-9,seed=7", 0.5);
+    let (_, n2) = step_effect_run("noise:rms_m=1e-9,seed=7", 0.5);
+    let (_, n3) = step_effect_run("noise:rms_m=1e-9,seed=8", 0.5);
+    assert_eq!(n1.outputs_m, n2.outputs_m);
+    assert_ne!(n1.outputs_m, n3.outputs_m);
+    let r: Vec<f64> = n1.outputs_m[0]
+        .iter()
+        .zip(&base.outputs_m[0])
+        .map(|(a, b)| a - b)
+        .collect();
+    let rms = (r.iter().map(|v| v * v).sum::<f64>() / r.len() as f64).sqrt();
+    assert!(within(rms, 1e-9, 0.05), "{rms:e}");
+}
+
+#[test]
+fn adc_quantises_output() {
+    let (base, q) = step_effect_run("adc:lsb_m=1e-7", 0.01);
+    for (a, b) in q.outputs_m[0].iter().zip(&base.outputs_m[0]) {
+        assert!(((a / 1e-7) - (a / 1e-7).round()).abs() < 1e-6);
+        assert!((a - b).abs() <= 0.5e-7 + 1e-15);
+    }
+    assert_ne!(q.outputs_m, base.outputs_m);
+}
+
+#[test]
+fn dac_holds_and_quantises_input() {
+    let p = AsymmetricStage::new(StageCase::I);
+    let mut e = Effects::default();
+    e.add_spec("dac:bits=8,min=0,max=20,rate_hz=200").unwrap();
+    let out = run(&p, stage_signal(), &e, 10_000.0, 0.5);
+    let lsb = 20.0 / 255.0;
+    for u in &out.inputs_v[0] {
+        assert!(((u / lsb) - (u / lsb).round()).abs() < 1e-9, "{u}");
+    }
+    // Held for 5 ms = 50 samples.
+    assert_eq!(out.inputs_v[0][101], out.inputs_v[0][149]);
+    let base = run(&p, stage_signal(), &Effects::default(), 10_000.0, 0.5);
+    assert_ne!(out.outputs_m, base.outputs_m);
+}
+
+#[test]
+fn electrostriction_adds_quadratic_term() {
+    let (base, e) = step_effect_run("electrostriction:per_v=0.01", 0.01);
+    // Stage, 10 V: the k1 term grows by 1 + 0.01·10 = 1.1.
+    let k1 = -3.51711e-4 * 1e-3;
+    let extra = e.outputs_m[0][50] - base.outputs_m[0][50];
+    assert!(within(extra, k1 * 0.01 * 100.0, 1e-9), "{extra:e}");
+}
+
+#[test]
+fn default_parameters_are_valid() {
+    let s = XyStage::default();
+    let (x, y) = s.axes();
+    assert!(XyStage::new(x.clone(), y.clone()).is_ok());
+    let g = s.static_gain();
+    assert!(
+        within(g[0], 64.0 / 38.0, 0.001) && within(g[1], 64.0 / 38.0, 0.001),
+        "{g:?}"
+    );
+}
