@@ -51,7 +51,7 @@ use crate::error::{finite, ParamError};
 /// Raw Bouc-Wen parameters as identified or published (not yet validated).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct BoucWenParams {
-    /// A: gain of the hysteretic state on the input [h per V]. Must be nonzero; may be negative.
+    /// A: gain of the hysteretic state on the input \[h per V\]. Must be nonzero; may be negative.
     pub a: f32,
     /// β: weight of the |u̇|-term (≥ 0).
     pub beta: f32,
@@ -106,9 +106,9 @@ pub struct BoucWen {
 /// The state of one Bouc-Wen operator: the last input it was advanced to and its hysteretic state.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct HysteresisState {
-    /// Last input seen [V].
+    /// Last input seen \[V\].
     pub input_v: f32,
-    /// Hysteretic state h [unit of A·u].
+    /// Hysteretic state h \[unit of A·u\].
     pub h: f32,
 }
 
@@ -475,7 +475,7 @@ impl BoucWen {
 }
 
 /// The largest input span over which the state of a set with β + γ·sgn A ≤ 0 stays within
-/// `state_limit`, starting from rest: `∫₀^limit dh / (A' − (β + γ')·h^n)` [V]. For a bounded set
+/// `state_limit`, starting from rest: `∫₀^limit dh / (A' − (β + γ')·h^n)` \[V\]. For a bounded set
 /// (β + γ' > 0) the span is unlimited when the limit is at least the bound: returns +∞ then.
 pub fn max_input_span(params: BoucWenParams, state_limit: f32) -> f32 {
     let a_abs = f64::from(params.a.abs());

@@ -45,13 +45,13 @@ use crate::static_model::{ModelState, StaticMap, StaticModel};
 /// Output limits of the compensator.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct CompensatorSettings {
-    /// Lowest voltage ever commanded [V].
+    /// Lowest voltage ever commanded \[V\].
     pub output_min_v: f32,
-    /// Highest voltage ever commanded [V].
+    /// Highest voltage ever commanded \[V\].
     pub output_max_v: f32,
-    /// Largest rate of change of the commanded voltage [V/s] (+∞ for none).
+    /// Largest rate of change of the commanded voltage \[V/s\] (+∞ for none).
     pub slew_limit_v_per_s: f32,
-    /// Loop period [s].
+    /// Loop period \[s\].
     pub sample_period_s: f32,
 }
 
@@ -69,7 +69,7 @@ pub enum CommandStatus {
 /// One sample's output.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Command {
-    /// Voltage to write to the amplifier [V]; always finite and inside the window.
+    /// Voltage to write to the amplifier \[V\]; always finite and inside the window.
     pub voltage_v: f32,
     /// How it was obtained.
     pub status: CommandStatus,
@@ -113,7 +113,7 @@ impl CompensatorState {
         }
     }
 
-    /// The last commanded voltage [V].
+    /// The last commanded voltage \[V\].
     pub fn voltage_v(&self) -> f32 {
         self.model.input_v
     }
@@ -218,13 +218,13 @@ impl Compensator {
         self.settings
     }
 
-    /// The voltage for the desired position `desired_m` [m] (quasi-static for the dynamic model).
+    /// The voltage for the desired position `desired_m` \[m\] (quasi-static for the dynamic model).
     #[inline]
     pub fn compensate(&self, state: &mut CompensatorState, desired_m: f32) -> Command {
         self.compensate_with_derivatives(state, desired_m, 0.0, 0.0)
     }
 
-    /// The voltage for the desired position with its known velocity [m/s] and acceleration [m/s²]
+    /// The voltage for the desired position with its known velocity \[m/s\] and acceleration \[m/s²\]
     /// (used by the dynamic model's inverse dynamics; ignored by static models).
     pub fn compensate_with_derivatives(
         &self,

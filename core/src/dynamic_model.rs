@@ -34,15 +34,15 @@ use crate::error::{finite, positive, ParamError};
 /// Mechanical parameters of the mass–spring–damper (seed 000 Table 1 units).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MassSpringDamperParams {
-    /// m0 [kg], > 0.
+    /// m0 \[kg\], > 0.
     pub mass_kg: f32,
-    /// c0 [N·s/m], ≥ 0.
+    /// c0 \[N·s/m\], ≥ 0.
     pub damping_n_s_per_m: f32,
-    /// k0 [N/m], > 0.
+    /// k0 \[N/m\], > 0.
     pub stiffness_n_per_m: f32,
-    /// x0: rest position [m].
+    /// x0: rest position \[m\].
     pub rest_position_m: f32,
-    /// k1: force per volt [N/V].
+    /// k1: force per volt \[N/V\].
     pub force_per_volt_n_per_v: f32,
 }
 
@@ -53,7 +53,7 @@ pub struct DynamicModel {
     params: MassSpringDamperParams,
     sample_period_s: f32,
     natural_rad_per_s: f32,
-    /// Φ − I, row-major, acting on z = [x − x0, ẋ/ωn].
+    /// Φ − I, row-major, acting on z = \[x − x0, ẋ/ωn\].
     phi_minus_identity: [[f32; 2]; 2],
     /// Input columns for F at the start, middle and end of the step (already divided by k0).
     gamma_start: [f32; 2],
@@ -66,9 +66,9 @@ pub struct DynamicModel {
 pub struct DynamicState {
     /// Bouc-Wen operator state (last input and h).
     pub hysteresis: HysteresisState,
-    /// x − x0 [m].
+    /// x − x0 \[m\].
     pub displacement_m: f32,
-    /// ẋ/ωn [m].
+    /// ẋ/ωn \[m\].
     pub scaled_velocity_m: f32,
 }
 
@@ -167,7 +167,7 @@ impl DynamicModel {
         self.params
     }
 
-    /// The sample period [s].
+    /// The sample period \[s\].
     pub fn sample_period_s(&self) -> f32 {
         self.sample_period_s
     }
@@ -182,7 +182,7 @@ impl DynamicModel {
         }
     }
 
-    /// Advances to input `input_v` (sanitised like [`BoucWen::step`]) and returns x [m].
+    /// Advances to input `input_v` (sanitised like [`BoucWen::step`]) and returns x \[m\].
     #[inline]
     pub fn step(&self, state: &mut DynamicState, input_v: f32) -> f32 {
         let bw = &self.hysteresis;
@@ -216,12 +216,12 @@ impl DynamicModel {
         self.params.rest_position_m + next[0]
     }
 
-    /// Position x [m] of a state.
+    /// Position x \[m\] of a state.
     pub fn position_m(&self, state: &DynamicState) -> f32 {
         self.params.rest_position_m + state.displacement_m
     }
 
-    /// Velocity ẋ [m/s] of a state.
+    /// Velocity ẋ \[m/s\] of a state.
     pub fn velocity_m_per_s(&self, state: &DynamicState) -> f32 {
         state.scaled_velocity_m * self.natural_rad_per_s
     }

@@ -41,11 +41,11 @@ pub enum ParamError {
     /// β + γ ≤ 0 and the declared input span drives |h| above the declared state limit.
     /// `max_span_v` is the largest input span for which |h| stays within `state_limit`.
     StateLimitExceeded {
-        /// Declared input span u_max − u_min [V].
+        /// Declared input span u_max − u_min \[V\].
         span_v: f32,
         /// Declared limit on |h|.
         state_limit: f32,
-        /// Largest admissible span for that limit [V] (0 if none).
+        /// Largest admissible span for that limit \[V\] (0 if none).
         max_span_v: f32,
     },
     /// The forward map y(u) is not strictly monotone over the reachable states, so the one-step
@@ -60,7 +60,7 @@ pub enum ParamError {
     /// The discretised mass–spring–damper could not be built (its matrix exponential did not
     /// converge or produced non-finite coefficients) for this sample period.
     Discretisation {
-        /// Sample period [s] that was asked for.
+        /// Sample period \[s\] that was asked for.
         sample_period_s: f32,
     },
 }

@@ -47,7 +47,7 @@ pub fn r_squared<T: Copy + Into<f64>>(measured: &[T], predicted: &[T]) -> Option
     Some(1.0 - sse(measured, predicted)? / total)
 }
 
-/// MRD = max|x − x̂| / max|x| · 100 [%].
+/// MRD = max|x − x̂| / max|x| · 100 \[%\].
 pub fn mrd_percent<T: Copy + Into<f64>>(measured: &[T], predicted: &[T]) -> Option<f64> {
     let worst = pairs(measured, predicted)?.fold(0.0f64, |m, (x, p)| m.max((x - p).abs()));
     let scale = measured.iter().fold(0.0f64, |m, &x| m.max(x.into().abs()));

@@ -31,11 +31,11 @@ use crate::error::{finite, positive, ParamError};
 /// The linear part of the static map: y = k1·u + k2·h + y0.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StaticMap {
-    /// k1: direct gain [m/V].
+    /// k1: direct gain \[m/V\].
     pub k1_m_per_v: f32,
-    /// k2: gain of the hysteretic state [m per unit of h].
+    /// k2: gain of the hysteretic state \[m per unit of h\].
     pub k2_m_per_h: f32,
-    /// y0: output offset [m].
+    /// y0: output offset \[m\].
     pub offset_m: f32,
 }
 
@@ -64,9 +64,9 @@ impl StaticMap {
 /// The asymmetric terms of seed 001 (both zero for the standard model).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct Asymmetry {
-    /// δ: asymmetric factor, ΔE = δ·u·sgn(u̇) added to ḣ [h per V·s].
+    /// δ: asymmetric factor, ΔE = δ·u·sgn(u̇) added to ḣ \[h per V·s\].
     pub delta_per_v_s: f32,
-    /// φ: input shift, U(t) = u(t − φ) [s]; |φ| ≤ the sample period.
+    /// φ: input shift, U(t) = u(t − φ) \[s\]; |φ| ≤ the sample period.
     pub input_shift_s: f32,
 }
 
@@ -75,7 +75,7 @@ pub struct Asymmetry {
 pub struct StaticModel {
     hysteresis: BoucWen,
     map: StaticMap,
-    /// δ·T/2 [h per V]: half of the δ-increment per unit of mean input.
+    /// δ·T/2 \[h per V\]: half of the δ-increment per unit of mean input.
     delta_half_step: f32,
     /// φ/T: the fractional input shift.
     shift_fraction: f32,
@@ -85,9 +85,9 @@ pub struct StaticModel {
 /// The state of a [`StaticModel`].
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct ModelState {
-    /// Last input u[k−1] [V].
+    /// Last input u\[k−1\] \[V\].
     pub input_v: f32,
-    /// Bouc-Wen state: its `input_v` is the shifted input U[k−1], its `h` the hysteretic state.
+    /// Bouc-Wen state: its `input_v` is the shifted input U\[k−1\], its `h` the hysteretic state.
     pub hysteresis: HysteresisState,
 }
 
@@ -168,7 +168,7 @@ impl StaticModel {
         self.delta_half_step != 0.0 || self.shift_fraction != 0.0
     }
 
-    /// Advances the state to input `input_v` and returns the output y [m]. A non-finite input holds
+    /// Advances the state to input `input_v` and returns the output y \[m\]. A non-finite input holds
     /// the previous one; the input is clamped into the operator's range.
     #[inline]
     pub fn step(&self, state: &mut ModelState, input_v: f32) -> f32 {
@@ -178,7 +178,7 @@ impl StaticModel {
         self.map.output(u, state.hysteresis.h)
     }
 
-    /// The output y [m] of a state.
+    /// The output y \[m\] of a state.
     #[inline]
     pub fn output(&self, state: &ModelState) -> f32 {
         self.map.output(state.input_v, state.hysteresis.h)
@@ -212,7 +212,7 @@ impl StaticModel {
         }
     }
 
-    /// dy/du[k] of the one-step map at the end of a step from `from` to `reached` (whose input moved
+    /// dy/du\[k\] of the one-step map at the end of a step from `from` to `reached` (whose input moved
     /// in direction `direction`): `k1 + k2·((1 − φ/T)·dh/dU + δ·T/2·sgn Δu)`, with dh/dU taken on the
     /// branch the shifted input U actually moved along. The exact derivative of the path integral
     /// (used as the Newton slope of the inverse).

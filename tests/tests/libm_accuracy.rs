@@ -11,7 +11,13 @@ fn ulps(got: f32, exact: f64) -> f64 {
     (f64::from(got) - exact).abs() / spacing.max(f64::MIN_POSITIVE)
 }
 
-fn sweep(name: &str, lo: f32, hi: f32, f32_fn: impl Fn(f32) -> f32, f64_fn: impl Fn(f64) -> f64) -> f64 {
+fn sweep(
+    name: &str,
+    lo: f32,
+    hi: f32,
+    f32_fn: impl Fn(f32) -> f32,
+    f64_fn: impl Fn(f64) -> f64,
+) -> f64 {
     let n = 200_000;
     let mut worst = 0.0f64;
     for i in 0..=n {
