@@ -13,8 +13,9 @@
 //! map is strictly monotone (checked when built, below), and the derivative of the exact path integral
 //! is known in closed form, `dy/dΔu = k1 + k2·dh/du(h(Δu))`, so the solve is a safeguarded Newton
 //! iteration on Δu inside `[0, Δu_limit]` in the direction that reduces the error: a first guess from
-//! the slope at the current state, then at most four corrections, stopping as soon as one changes
-//! nothing (quadratic convergence: one or two suffice in a loop at a normal rate; for n = 1 the
+//! the slope at the current state, then at most four corrections, stopping as soon as one moves the
+//! voltage by less than 1e-7 of the window (quadratic convergence: one suffices in a loop at a normal
+//! rate; for n = 1 the
 //! equation is the monotone scalar equation `k1·Δu + k2·(A − κh)·Δu·g(κΔu) = e`). The hysteresis state
 //! is always advanced by the voltage actually commanded (after the window and slew limits).
 //!
@@ -96,6 +97,9 @@ pub struct Compensator {
     settings: CompensatorSettings,
     max_step_v: f32,
     slope_sign: f32,
+    /// Newton stops when a correction is below this: 1e-7 of the window (10 µV on 100 V, far
+    /// below one step of a 16-bit DAC).
+    voltage_tolerance_v: f32,
 }
 
 /// The compensator's state: the model state at the last commanded voltage.
@@ -205,6 +209,7 @@ impl Compensator {
             settings,
             max_step_v: (slew * period).min(max - min),
             slope_sign: if lo > 0.0 { 1.0 } else { -1.0 },
+            voltage_tolerance_v: 1e-7 * (max - min),
         })
     }
 
@@ -303,7 +308,7 @@ impl Compensator {
             let error = map.output(reached.input_v, reached.hysteresis.h) - target;
             let corrected =
                 clamp_step(du - error / model.step_slope(&state.model, &reached, direction));
-            if corrected == du || corrected.is_nan() {
+            if (corrected - du).abs() <= self.voltage_tolerance_v || corrected.is_nan() {
                 break;
             }
             du = corrected;
