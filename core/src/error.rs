@@ -95,9 +95,9 @@ impl fmt::Display for ParamError {
                 max_span_v,
             } => write!(
                 f,
-                "Bouc-Wen set with beta + gamma <= 0: over an input span of {span_v} V the state \
+                "Bouc-Wen set with beta + gamma <= 0: over an input span of {span_v:.1} V the state \
                  reaches |h| > {state_limit}; it stays within |h| <= {state_limit} only for input \
-                 spans up to {max_span_v} V (narrow the input range or raise the state limit)"
+                 spans up to {max_span_v:.1} V (narrow the input range or raise the state limit)"
             ),
             ParamError::NotInvertible {
                 min_slope,
