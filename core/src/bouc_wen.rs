@@ -37,7 +37,9 @@
 //! * `β ≥ 0` is required. Then unloading (`s·sgn h < 0`) shrinks |h| at least as fast as loading grows
 //!   it, and the largest |h| reachable from `h = 0` with the input kept in a range of span S is the
 //!   monotone loading sweep `L(S)` of `dh/du = A' − (β + γ')·h^n` from 0 over S.
-//! * `β + γ' > 0` (classes I and II): bounded for every input, `|h| ≤ H = (A'/(β + γ'))^(1/n)`.
+//! * `β + γ' > 0` (classes I and II): bounded for every input, `|h| ≤ H = (A'/(β + γ'))^(1/n)`;
+//!   built with a finite input range, the bound used (for the state clamp and the inverse's
+//!   monotonicity check) is the tighter `min(H, L(S))`.
 //! * `β + γ' ≤ 0`: unbounded on loading. Accepted only through [`BoucWen::with_input_range`], when
 //!   `L(S)` stays below a declared state limit; the input is then clamped into that range on every
 //!   step. The published NAC2024 set (β + γ = −0.0123, n = 1.419) reaches |h| = 10 at an input span
@@ -200,7 +202,16 @@ impl BoucWen {
             f64::from(n),
         );
         let (class, state_bound) = if load > 0.0 {
-            (BoundClass::Bounded, libm::pow(a_abs / load, 1.0 / nn))
+            let bound = libm::pow(a_abs / load, 1.0 / nn);
+            // With a finite range the loading sweep over its span may stay well below the bound;
+            // the monotonicity check of the inverse and the state clamp then use that tighter level.
+            let span = f64::from(input_max_v) - f64::from(input_min_v);
+            let reach = if span.is_finite() {
+                loading_reach(a_abs, load, nn, span, bound).unwrap_or(bound)
+            } else {
+                bound
+            };
+            (BoundClass::Bounded, reach.min(bound))
         } else {
             if !state_limit.is_finite() {
                 return Err(ParamError::UnboundedWithoutRange {
@@ -268,7 +279,7 @@ impl BoucWen {
     #[inline]
     pub fn sanitize_input(&self, input_v: f32, hold_v: f32) -> f32 {
         let u = if input_v.is_finite() { input_v } else { hold_v };
-        u.clamp(self.input_min_v, self.input_max_v)
+        u.max(self.input_min_v).min(self.input_max_v)
     }
 
     /// Clamps a state into the reachable bound; NaN becomes 0.
@@ -277,7 +288,7 @@ impl BoucWen {
         if h.is_nan() {
             0.0
         } else {
-            h.clamp(-self.clamp_bound, self.clamp_bound)
+            h.max(-self.clamp_bound).min(self.clamp_bound)
         }
     }
 
@@ -519,14 +530,16 @@ fn loading_span(a_abs: f64, load: f64, n: f64, limit: f64) -> f64 {
     sum
 }
 
-/// |h| reached by the loading sweep `dh/du = A' − load·h^n` from 0 over `span` volts (RK4 in f64,
-/// 4096 steps), or `None` when it exceeds `limit` (or is not finite).
+/// |h| reached by the loading sweep `dh/du = A' − load·h^n` from 0 over `span` volts (RK4 in f64),
+/// or `None` when it exceeds `limit` (or is not finite).
 fn loading_reach(a_abs: f64, load: f64, n: f64, span: f64, limit: f64) -> Option<f64> {
-    const STEPS: usize = 4096;
     let rate = |h: f64| a_abs - load * libm::pow(h.max(0.0), n);
-    let du = span / STEPS as f64;
+    // At least 4096 steps, and enough that |∂rate/∂h|·du ≤ 0.1 up to `limit` (at most 10⁶).
+    let stiffness = n * load.abs() * libm::pow(limit, n - 1.0);
+    let steps = libm::ceil(span * stiffness / 0.1).max(4096.0).min(1e6) as usize;
+    let du = span / steps as f64;
     let mut h = 0.0f64;
-    for _ in 0..STEPS {
+    for _ in 0..steps {
         let k1 = rate(h);
         let k2 = rate(h + 0.5 * du * k1);
         let k3 = rate(h + 0.5 * du * k2);

@@ -263,7 +263,7 @@ impl Compensator {
         let model = &self.model;
         let map = model.map();
         let u0 = if state.model.input_v.is_finite() {
-            state.model.input_v.clamp(min, max)
+            state.model.input_v.max(min).min(max)
         } else {
             min.max(0.0).min(max)
         };
@@ -297,13 +297,13 @@ impl Compensator {
         };
         let clamp_step = |du: f32| -> f32 {
             if direction > 0.0 {
-                du.clamp(0.0, limit)
+                du.max(0.0).min(limit)
             } else {
-                du.clamp(limit, 0.0)
+                du.max(limit).min(0.0)
             }
         };
         let mut du = clamp_step(-error_at_hold / model.step_slope(&state.model, &hold, direction));
-        let mut reached = model.next_state(&state.model, (u0 + du).clamp(min, max));
+        let mut reached = model.next_state(&state.model, (u0 + du).max(min).min(max));
         for _ in 0..NEWTON_CORRECTIONS {
             let error = map.output(reached.input_v, reached.hysteresis.h) - target;
             let corrected =
@@ -312,7 +312,7 @@ impl Compensator {
                 break;
             }
             du = corrected;
-            reached = model.next_state(&state.model, (u0 + du).clamp(min, max));
+            reached = model.next_state(&state.model, (u0 + du).max(min).min(max));
         }
         let remaining = map.output(reached.input_v, reached.hysteresis.h) - target;
         let limited = du == limit && remaining * self.slope_sign * direction < 0.0;

@@ -331,3 +331,50 @@ fn swapping_parameters_between_two_samples_keeps_the_voltage_continuous() {
     );
     assert!(step_at_swap <= settings.slew_limit_v_per_s * settings.sample_period_s);
 }
+
+#[test]
+fn xy_stage_stack_sets_are_invertible_over_their_0_to_120_v_range() {
+    // The two-axis stage's stacks (host-sim `XyStage`): n = 1, y = d·(u − h). Over the whole bounded
+    // class the unloading slope at |h| = A/(β+γ) exceeds 1 and dy/du would change sign; over 0–120 V
+    // the state only reaches the first-loading level, where the map stays monotone.
+    for (a, beta, gamma) in [
+        (0.18522f32, 0.029586f32, -0.020710f32),
+        (0.16792, 0.025721, -0.018005),
+    ] {
+        let params = BoucWenParams {
+            a,
+            beta,
+            gamma,
+            n: 1.0,
+        };
+        let unrestricted = BoucWen::new(params).unwrap();
+        let ranged = BoucWen::with_input_range(params, 0.0, 120.0, 1e3).unwrap();
+        let full_bound = a / (beta + gamma);
+        assert!((unrestricted.state_bound() - full_bound).abs() < 1e-4 * full_bound);
+        // Loading sweep over 120 V from rest: h = (A/κ)(1 − e^(−κ·120)), κ = β + γ.
+        let kappa = f64::from(beta + gamma);
+        let sweep = f64::from(a) / kappa * (1.0 - (-kappa * 120.0).exp());
+        assert!(
+            (f64::from(ranged.state_bound()) - sweep).abs() < 1e-4 * sweep,
+            "bound {} vs loading sweep {sweep}",
+            ranged.state_bound()
+        );
+        let d = 0.4e-6;
+        let map = StaticMap {
+            k1_m_per_v: d,
+            k2_m_per_h: -d,
+            offset_m: 0.0,
+        };
+        let settings = CompensatorSettings {
+            output_min_v: 0.0,
+            output_max_v: 120.0,
+            slew_limit_v_per_s: 1e5,
+            sample_period_s: 1e-4,
+        };
+        assert!(matches!(
+            Compensator::new(StaticModel::new(unrestricted, map).unwrap(), settings),
+            Err(ParamError::NotInvertible { .. })
+        ));
+        assert!(Compensator::new(StaticModel::new(ranged, map).unwrap(), settings).is_ok());
+    }
+}
