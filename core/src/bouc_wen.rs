@@ -536,7 +536,7 @@ fn loading_reach(a_abs: f64, load: f64, n: f64, span: f64, limit: f64) -> Option
     let rate = |h: f64| a_abs - load * libm::pow(h.max(0.0), n);
     // At least 4096 steps, and enough that |∂rate/∂h|·du ≤ 0.1 up to `limit` (at most 10⁶).
     let stiffness = n * load.abs() * libm::pow(limit, n - 1.0);
-    let steps = libm::ceil(span * stiffness / 0.1).max(4096.0).min(1e6) as usize;
+    let steps = libm::ceil(span * stiffness / 0.1).clamp(4096.0, 1e6) as usize;
     let du = span / steps as f64;
     let mut h = 0.0f64;
     for _ in 0..steps {
