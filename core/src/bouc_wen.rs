@@ -361,6 +361,24 @@ impl BoucWen {
         (lo, hi)
     }
 
+    /// Whether n = 1 (the linear-in-h closed form applies).
+    #[inline]
+    pub fn is_exponent_one(&self) -> bool {
+        self.exponent == Exponent::One
+    }
+
+    /// For n = 1, the branch of an increment from `h0` in direction `direction`: `(q, κ, σ)` with
+    /// κ = β·s + γ·σ, q = A − κ·h₀, σ the sign of h on the branch, so that
+    /// h(Δu) = h₀ + q·Δu·g(κΔu) until h reaches zero.
+    #[inline]
+    pub(crate) fn n1_branch(&self, h0: f32, direction: f32) -> (f32, f32, f32) {
+        let BoucWenParams { a, beta, gamma, .. } = self.params;
+        let s = if direction < 0.0 { -1.0 } else { 1.0 };
+        let sigma = self.branch_sign(h0, s);
+        let kappa = beta * s + gamma * sigma;
+        (a - kappa * h0, kappa, sigma)
+    }
+
     /// Sign used while `h` is zero: the state leaves zero in the direction of `A·Δu`.
     #[inline]
     fn branch_sign(&self, h: f32, du: f32) -> f32 {
@@ -557,10 +575,16 @@ fn loading_reach(a_abs: f64, load: f64, n: f64, span: f64, limit: f64) -> Option
 #[inline]
 pub(crate) fn relax_factor(z: f32) -> f32 {
     if z.abs() < 0.1 {
-        1.0 - 0.5 * z * (1.0 - z / 3.0 * (1.0 - 0.25 * z * (1.0 - 0.2 * z)))
+        relax_series(z)
     } else {
         -libm::expm1f(-z) / z
     }
+}
+
+/// The 5-term series of g(z) = (1 − e^(−z))/z: 1 − z/2 + z²/6 − z³/24 + z⁴/120 (for |z| < 0.1).
+#[inline]
+pub(crate) fn relax_series(z: f32) -> f32 {
+    1.0 - 0.5 * z * (1.0 - z / 3.0 * (1.0 - 0.25 * z * (1.0 - 0.2 * z)))
 }
 
 /// ln(1 + x)/x, 1 at x = 0. Series below |x| = 0.01, libm `log1pf` above.

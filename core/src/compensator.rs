@@ -39,6 +39,7 @@
 //! than `slew_limit_v_per_s · sample_period_s` per sample (unless the window itself moved the last
 //! voltage back inside). A non-finite reference holds the last voltage.
 
+use crate::bouc_wen::{relax_series, HysteresisState};
 use crate::dynamic_model::DynamicModel;
 use crate::error::{finite, positive, ParamError, MIN_SLOPE_RATIO};
 use crate::static_model::{ModelState, StaticMap, StaticModel};
@@ -295,25 +296,19 @@ impl Compensator {
         } else {
             (min - u0).max(-self.max_step_v)
         };
-        let clamp_step = |du: f32| -> f32 {
-            if direction > 0.0 {
-                du.max(0.0).min(limit)
-            } else {
-                du.max(limit).min(0.0)
-            }
-        };
-        let mut du = clamp_step(-error_at_hold / model.step_slope(&state.model, &hold, direction));
-        let mut reached = model.next_state(&state.model, (u0 + du).max(min).min(max));
-        for _ in 0..NEWTON_CORRECTIONS {
-            let error = map.output(reached.input_v, reached.hysteresis.h) - target;
-            let corrected =
-                clamp_step(du - error / model.step_slope(&state.model, &reached, direction));
-            if (corrected - du).abs() <= self.voltage_tolerance_v || corrected.is_nan() {
-                break;
-            }
-            du = corrected;
-            reached = model.next_state(&state.model, (u0 + du).max(min).min(max));
-        }
+        let (reached, du) = self
+            .solve_n1_fast(&state.model, u0, -error_at_hold, direction, limit)
+            .unwrap_or_else(|| {
+                self.solve_newton(
+                    &state.model,
+                    &hold,
+                    u0,
+                    target,
+                    error_at_hold,
+                    direction,
+                    limit,
+                )
+            });
         let remaining = map.output(reached.input_v, reached.hysteresis.h) - target;
         let limited = du == limit && remaining * self.slope_sign * direction < 0.0;
         state.model = reached;
@@ -325,5 +320,225 @@ impl Compensator {
                 CommandStatus::Tracking
             },
         }
+    }
+
+    /// The general solve: Newton on Δu ∈ \[0, limit\] with the exact path derivative of the one-step
+    /// map as slope. Returns the state reached and Δu.
+    #[allow(clippy::too_many_arguments)]
+    fn solve_newton(
+        &self,
+        from: &ModelState,
+        hold: &ModelState,
+        u0: f32,
+        target: f32,
+        error_at_hold: f32,
+        direction: f32,
+        limit: f32,
+    ) -> (ModelState, f32) {
+        let CompensatorSettings {
+            output_min_v: min,
+            output_max_v: max,
+            ..
+        } = self.settings;
+        let model = &self.model;
+        let map = model.map();
+        let mut du = toward(
+            -error_at_hold / model.step_slope(from, hold, direction),
+            direction,
+            limit,
+        );
+        let mut reached = model.next_state(from, (u0 + du).max(min).min(max));
+        for _ in 0..NEWTON_CORRECTIONS {
+            let error = map.output(reached.input_v, reached.hysteresis.h) - target;
+            let corrected = toward(
+                du - error / model.step_slope(from, &reached, direction),
+                direction,
+                limit,
+            );
+            if (corrected - du).abs() <= self.voltage_tolerance_v || corrected.is_nan() {
+                break;
+            }
+            du = corrected;
+            reached = model.next_state(from, (u0 + du).max(min).min(max));
+        }
+        (reached, du)
+    }
+
+    /// The fast solve for n = 1 without asymmetric terms. Along an increment that does not cross
+    /// h = 0 the one-step map is `y(Δu) = y_hold + Δu·(k1 + k2·q·g(κΔu))`, q = A − κ·h₀
+    /// ([`crate::bouc_wen`]), so `Δu = e/(k1 + k2·q·g(κΔu))` with e = y_d − y_hold: two fixed-point
+    /// iterations from Δu = e/(k1 + k2·q), g from its series. Taken only when |κΔu| < 0.1 and the
+    /// iteration contracts by ≤ 1e-2 per pass (error ≤ 1e-4·(κΔu)²·|Δu| after two); otherwise, or if
+    /// h would cross zero, `None` hands over to [`Compensator::solve_newton`].
+    fn solve_n1_fast(
+        &self,
+        from: &ModelState,
+        u0: f32,
+        error: f32,
+        direction: f32,
+        limit: f32,
+    ) -> Option<(ModelState, f32)> {
+        let model = &self.model;
+        let bw = model.hysteresis();
+        if !bw.is_exponent_one() || model.is_asymmetric() {
+            return None;
+        }
+        let StaticMap {
+            k1_m_per_v: k1,
+            k2_m_per_h: k2,
+            ..
+        } = model.map();
+        let h0 = from.hysteresis.h;
+        let (q, kappa, sigma) = bw.n1_branch(h0, direction);
+        let slope = k1 + k2 * q;
+        let mut du = toward(error / slope, direction, limit);
+        // Contraction factor of the fixed-point map: |κΔu|·|k2·q| / (2·|slope|).
+        if (kappa * du).abs() >= 0.1 || (kappa * du * k2 * q).abs() > 0.02 * slope.abs() {
+            return None;
+        }
+        for _ in 0..2 {
+            du = toward(
+                error / (k1 + k2 * q * relax_series(kappa * du)),
+                direction,
+                limit,
+            );
+        }
+        let z = kappa * du;
+        if z.abs() >= 0.1 {
+            return None;
+        }
+        let h1 = h0 + q * du * relax_series(z);
+        if h1 * sigma < 0.0 {
+            return None;
+        }
+        let u = (u0 + du)
+            .max(self.settings.output_min_v)
+            .min(self.settings.output_max_v);
+        Some((
+            ModelState {
+                input_v: u,
+                hysteresis: HysteresisState {
+                    input_v: u,
+                    h: bw.clamp_state(h1),
+                },
+            },
+            du,
+        ))
+    }
+}
+
+/// Clamps a voltage step into \[0, limit\] (direction > 0) or \[limit, 0\] (direction < 0).
+#[inline]
+fn toward(du: f32, direction: f32, limit: f32) -> f32 {
+    if direction > 0.0 {
+        du.max(0.0).min(limit)
+    } else {
+        du.max(limit).min(0.0)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bouc_wen::{BoucWen, BoucWenParams};
+
+    /// The n = 1 fast path and the general Newton solve give the same voltage and state.
+    #[test]
+    fn n1_fast_path_agrees_with_newton() {
+        let bw = BoucWen::with_input_range(
+            BoucWenParams {
+                a: 0.18522,
+                beta: 0.029586,
+                gamma: -0.020710,
+                n: 1.0,
+            },
+            0.0,
+            120.0,
+            1e3,
+        )
+        .unwrap();
+        let map = StaticMap {
+            k1_m_per_v: 0.53e-6,
+            k2_m_per_h: -0.53e-6,
+            offset_m: 0.0,
+        };
+        let compensator = Compensator::new(
+            StaticModel::new(bw, map).unwrap(),
+            CompensatorSettings {
+                output_min_v: 0.0,
+                output_max_v: 120.0,
+                slew_limit_v_per_s: 1e5,
+                sample_period_s: 1e-4,
+            },
+        )
+        .unwrap();
+        let mut state = CompensatorState::at_rest(0.0);
+        let (mut fast_taken, mut compared) = (0, 0);
+        for k in 0..20_000 {
+            let t = k as f32 * 1e-4;
+            let y_d = 30e-6 - 25e-6 * libm::cosf(2.0 * core::f32::consts::PI * 3.0 * t)
+                + 2e-6 * libm::sinf(2.0 * core::f32::consts::PI * 47.0 * t);
+            let before = state;
+            let hold = compensator
+                .model
+                .next_state(&before.model, before.model.input_v);
+            let error_at_hold = compensator.model.output(&hold) - y_d;
+            let direction = if error_at_hold * compensator.slope_sign < 0.0 {
+                1.0
+            } else {
+                -1.0
+            };
+            let limit = if direction > 0.0 {
+                (120.0 - before.model.input_v).min(compensator.max_step_v)
+            } else {
+                (0.0 - before.model.input_v).max(-compensator.max_step_v)
+            };
+            let u0 = before.model.input_v;
+            if error_at_hold != 0.0 {
+                let newton = compensator.solve_newton(
+                    &before.model,
+                    &hold,
+                    u0,
+                    y_d,
+                    error_at_hold,
+                    direction,
+                    limit,
+                );
+                if let Some(fast) =
+                    compensator.solve_n1_fast(&before.model, u0, -error_at_hold, direction, limit)
+                {
+                    fast_taken += 1;
+                    // Both solve y(u) = y_d to the f32 resolution of y (ulp ≈ 3.6e-12 m at 40 µm,
+                    // i.e. ≈ 2e-5 V at this slope); compare residuals in ulps and voltages to 1e-4 V.
+                    let ulp = f32::EPSILON * y_d.abs();
+                    let residual_fast = (compensator.model.output(&fast.0) - y_d).abs();
+                    let residual_newton = (compensator.model.output(&newton.0) - y_d).abs();
+                    assert!(
+                        residual_fast <= residual_newton + 4.0 * ulp,
+                        "k={k}: residual fast {residual_fast:e}, newton {residual_newton:e}"
+                    );
+                    assert!(
+                        (fast.0.input_v - newton.0.input_v).abs() < 1e-4,
+                        "k={k}: u fast {} newton {}",
+                        fast.0.input_v,
+                        newton.0.input_v
+                    );
+                    let forward = compensator.model.next_state(&before.model, fast.0.input_v);
+                    assert!(
+                        (fast.0.hysteresis.h - forward.hysteresis.h).abs() < 1e-5,
+                        "k={k}: h fast {} forward {}",
+                        fast.0.hysteresis.h,
+                        forward.hysteresis.h
+                    );
+                }
+                compared += 1;
+            }
+            compensator.compensate(&mut state, y_d);
+        }
+        // The fast path is the common case in a loop at a normal rate.
+        assert!(
+            fast_taken * 10 > compared * 9,
+            "fast path taken {fast_taken} of {compared}"
+        );
     }
 }
