@@ -1,7 +1,13 @@
 #!/usr/bin/env bash
-# Instructions per loop tick of the QEMU image, counted exactly under QEMU (mps2-an386) with the
-# shared qemu-insn-count tool: window 0 = BENCH_TICKS ticks of control::tick on the simulated
-# stage (linear feed-forward, guard, DacCode conversion, plant step), window 1 = empty window.
+# Instructions per axis-step of the compensator + safety guard, and per two-axis loop tick,
+# counted exactly under QEMU (mps2-an386, Cortex-M4F) with the shared qemu-insn-count tool on the
+# `check` image (src/bin/check.rs):
+#   window 0: BENCH_STEPS two-axis steps of Compensator::compensate + SafetyLimits::apply, n = 1
+#             (the parameter file's set)
+#   window 1: the same with n = GENERAL_N (general-n RK4 path of the core)
+#   window 2: BENCH_TICKS full ticks of TwoAxisLoop::tick (sensor, compensator, guard, DAC code,
+#             frame) plus the simulated stage's DAC/ADC and its Euler step
+#   window 3: empty (marker overhead, subtracted)
 # Not cycles: see the tool's README. Needs qemu-system-arm, gcc, nm.
 # usage: firmware/bench.sh   (COUNT_SH=path/to/count.sh to override the tool's location)
 set -euo pipefail
@@ -9,12 +15,17 @@ here=$(cd "$(dirname "$0")" && pwd)
 cd "$here"
 count_sh=${COUNT_SH:-$here/../../shared/tools/qemu-insn-count/count.sh}
 [[ -f $count_sh ]] || { echo "bench.sh: count.sh not found at $count_sh (set COUNT_SH)" >&2; exit 2; }
-bench_ticks=$(sed -n 's/^ *pub const BENCH_TICKS: u32 = \([0-9_]*\);/\1/p' src/bin/qemu.rs | tr -d _)
-cargo build --release --features qemu --bin qemu
-elf=${CARGO_TARGET_DIR:-$here/../target}/thumbv7em-none-eabihf/release/qemu
+const() { sed -n "s/^ *pub const $1: [a-z0-9]* = \([0-9_.]*\);/\1/p" src/bin/check.rs | tr -d _; }
+steps=$(const BENCH_STEPS) ticks=$(const BENCH_TICKS) general_n=$(const GENERAL_N)
+cargo build --release --features qemu --bin check
+elf=${CARGO_TARGET_DIR:-$here/../target}/thumbv7em-none-eabihf/release/check
 lines=$(bash "$count_sh" "$elf")
 echo "$lines"
-loop=$(awk '/window 0 /{sub("insns=","",$4); print $4}' <<<"$lines")
-empty=$(awk '/window 1 /{sub("insns=","",$4); print $4}' <<<"$lines")
-awk -v l="$loop" -v e="$empty" -v n="$bench_ticks" \
-  'BEGIN { printf "instructions per tick: %.1f (%d ticks)\n", (l - e) / n, n }'
+win() { awk -v w="$1" '$2 == "window" && $3 == w {sub("insns=", "", $4); print $4}' <<<"$lines"; }
+n1=$(win 0) nx=$(win 1) loop=$(win 2) empty=$(win 3)
+[[ -n $n1 && -n $nx && -n $loop && -n $empty ]] || { echo "bench.sh: expected 4 windows" >&2; exit 1; }
+awk -v a="$n1" -v b="$nx" -v c="$loop" -v e="$empty" -v s="$steps" -v t="$ticks" -v n="$general_n" 'BEGIN {
+  printf "instructions per axis-step (n = 1, compensator + safety guard): %.1f\n", (a - e) / (2 * s)
+  printf "instructions per axis-step (n = %s, compensator + safety guard): %.1f\n", n, (b - e) / (2 * s)
+  printf "instructions per two-axis loop tick (n = 1, incl. simulated stage): %.1f\n", (c - e) / t
+}'

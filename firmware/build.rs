@@ -1,4 +1,16 @@
-//! Puts the right `memory.x` on the linker search path, for thumb targets only.
+//! Two jobs: turn the parameter file into Rust consts, and put the right `memory.x` on the
+//! linker search path (thumb targets only).
+//!
+//! # Parameters
+//! The parameter file is `firmware/params/xy-stage.toml`, or the file named by the environment
+//! variable `PIEZO_PARAMS` (absolute, or relative to `firmware/`). It is parsed (`toml`),
+//! validated with `piezo-core`'s own constructors (`BoucWen::with_input_range`,
+//! `StaticModel::new`, `Compensator::new`: see `build/params.rs`) and written to
+//! `OUT_DIR/params.rs`, which `src/params.rs` includes. A refused file stops the build with a
+//! message naming the file and the field. The version string (`name version`) and an FNV-1a
+//! checksum of the file's bytes are part of the consts and are logged at boot.
+//!
+//! # Memory layout
 //!
 //! cortex-m-rt's `link.x` does `INCLUDE memory.x`. In a workspace the linker runs from the
 //! workspace root, so the file has to be put on the search path explicitly:
@@ -19,9 +31,17 @@ use std::env;
 use std::fs;
 use std::path::PathBuf;
 
+#[path = "build/params.rs"]
+mod params;
+
+/// Default parameter file, relative to `firmware/`.
+const DEFAULT_PARAMS: &str = "params/xy-stage.toml";
+
 fn main() {
     let manifest_dir =
         PathBuf::from(env::var("CARGO_MANIFEST_DIR").expect("cargo sets CARGO_MANIFEST_DIR"));
+    let out_dir = PathBuf::from(env::var("OUT_DIR").expect("cargo sets OUT_DIR"));
+    generate_params(&manifest_dir, &out_dir);
     let board_layout = manifest_dir.join("..").join("memory.x");
     let qemu_layout = manifest_dir.join("memory-mps2-an386.x");
     println!("cargo:rerun-if-changed=build.rs");
@@ -38,7 +58,6 @@ fn main() {
         panic!("features `qemu` and `board` select different memory layouts: enable only one");
     }
     let chosen = if qemu { qemu_layout } else { board_layout };
-    let out_dir = PathBuf::from(env::var("OUT_DIR").expect("cargo sets OUT_DIR"));
     fs::copy(&chosen, out_dir.join("memory.x"))
         .unwrap_or_else(|e| panic!("cannot copy {}: {e}", chosen.display()));
     println!("cargo:rustc-link-search={}", out_dir.display());
@@ -52,4 +71,27 @@ fn main() {
     if board {
         println!("cargo:rustc-link-arg-bins=-Tdefmt.x");
     }
+}
+
+/// Parses and validates the parameter file and writes `OUT_DIR/params.rs`; exits with a message
+/// naming the file and field if the file is refused.
+fn generate_params(manifest_dir: &std::path::Path, out_dir: &std::path::Path) {
+    println!("cargo:rerun-if-env-changed=PIEZO_PARAMS");
+    println!("cargo:rerun-if-changed=build/params.rs");
+    let given = env::var("PIEZO_PARAMS").unwrap_or_else(|_| DEFAULT_PARAMS.to_string());
+    let path = manifest_dir.join(&given);
+    println!("cargo:rerun-if-changed={}", path.display());
+    let bytes = fs::read(&path).unwrap_or_else(|e| {
+        eprintln!(
+            "error: parameter file {} (PIEZO_PARAMS={given}): {e}",
+            path.display()
+        );
+        std::process::exit(1);
+    });
+    let set = params::load(&given, &bytes).unwrap_or_else(|message| {
+        eprintln!("error: {message}");
+        std::process::exit(1);
+    });
+    fs::write(out_dir.join("params.rs"), params::generate(&set, &given))
+        .unwrap_or_else(|e| panic!("cannot write OUT_DIR/params.rs: {e}"));
 }

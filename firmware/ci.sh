@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # Firmware CI: builds the QEMU image, runs it under QEMU (mps2-an386) with a timeout, fails on a
-# non-zero exit; runs clippy on both images for the target; builds the STM32F407 board image;
-# prints image sizes. Installs nothing: it checks prerequisites and says what is missing.
+# non-zero exit; runs the check image (bench windows) likewise; checks that no panic path is
+# reachable in the check image (panic handler -> undefined symbol; surviving sites listed by
+# panic-sites.sh must be in panic-sites.allowed); runs clippy on the images for the target;
+# builds the STM32F407 board image; prints image sizes. Installs nothing: it checks prerequisites and says what is missing.
 #
 # Prerequisites (what .ci/run installs):
 #   rustup target add thumbv7em-none-eabihf
@@ -37,10 +39,11 @@ out=$target_dir/$target/release
 
 echo "== firmware: clippy (target $target, features qemu, board)"
 cargo clippy --release --features qemu --lib --bins -- -D warnings
+cargo clippy --release --features panic-never --bin check -- -D warnings
 cargo clippy --release --features board --lib --bins -- -D warnings
 
-echo "== firmware: QEMU image (mps2-an386)"
-cargo build --release --features qemu --bin qemu
+echo "== firmware: QEMU image (mps2-an386) and check image"
+cargo build --release --features qemu --bin qemu --bin check
 if ! readelf -S "$out/qemu" | grep -q '\.vector_table.* 00000000 '; then
   echo "ci.sh: the qemu image is not linked at 0x00000000 (wrong memory.x?)" >&2
   exit 1
@@ -54,6 +57,45 @@ if [[ $status != 0 ]]; then
   exit 1
 fi
 echo "ci.sh: QEMU image passed"
+size "$out/check"
+status=0
+"$here/run-qemu.sh" "$out/check" || status=$?
+[[ $status == 0 ]] || { echo "ci.sh: check image FAILED under QEMU (exit $status)" >&2; exit 1; }
+
+echo "== firmware: no panic reachable (check image, panic handler -> undefined symbol)"
+# Attribute first (on the image without the trap), then try to link the trap.
+sites=""
+if command -v llvm-objdump >/dev/null; then
+  sites=$("$here/panic-sites.sh" "$out/check")
+fi
+log=$(mktemp)
+if cargo build --release --features panic-never --bin check 2>"$log"; then
+  echo "ci.sh: no panic path reachable in the check image (boot, loop, compensator n = 1 and 1.5)"
+else
+  if ! grep -q loop_code_reached_a_panic_path "$log"; then
+    cat "$log" >&2
+    echo "ci.sh: check image (panic-never) failed to build" >&2
+    exit 1
+  fi
+  if ! command -v llvm-objdump >/dev/null; then
+    echo "ci.sh: WARNING: panic paths are reachable in the check image and llvm-objdump is missing," >&2
+    echo "ci.sh: WARNING: so they cannot be attributed (apt-get install llvm); not failing on it" >&2
+  else
+    echo "panic sites surviving optimisation (file:line, std function, caller):"
+    echo "$sites" | sed 's/^/  /'
+    allowed=$(grep -v '^#' "$here/panic-sites.allowed" | sed '/^$/d')
+    unexpected=$(echo "$sites" | awk -F'\t' -v allowed="$allowed" '
+      BEGIN { n = split(allowed, a, "\n"); for (i = 1; i <= n; i++) ok[a[i]] = 1 }
+      { f = $1; sub(/:[0-9?]+$/, "", f); if (!(f in ok)) print }')
+    if [[ -n $unexpected ]]; then
+      echo "ci.sh: panic sites outside firmware/panic-sites.allowed:" >&2
+      echo "$unexpected" >&2
+      exit 1
+    fi
+    echo "ci.sh: all reachable panic sites are the known ones in core/ (panic-sites.allowed)"
+  fi
+fi
+rm -f "$log"
 
 if [[ ${SKIP_BOARD:-0} == 1 ]]; then
   echo "== firmware: board image skipped (SKIP_BOARD=1)"

@@ -51,6 +51,7 @@
 //! to the reachable bound (which absorbs f32 rounding), and the result is always finite.
 
 use crate::error::{finite, ParamError};
+use crate::math::{clamp, max, min};
 
 /// Raw Bouc-Wen parameters as identified or published (not yet validated).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -279,7 +280,7 @@ impl BoucWen {
     #[inline]
     pub fn sanitize_input(&self, input_v: f32, hold_v: f32) -> f32 {
         let u = if input_v.is_finite() { input_v } else { hold_v };
-        u.max(self.input_min_v).min(self.input_max_v)
+        clamp(u, self.input_min_v, self.input_max_v)
     }
 
     /// Clamps a state into the reachable bound; NaN becomes 0.
@@ -288,7 +289,7 @@ impl BoucWen {
         if h.is_nan() {
             0.0
         } else {
-            h.max(-self.clamp_bound).min(self.clamp_bound)
+            clamp(h, -self.clamp_bound, self.clamp_bound)
         }
     }
 
@@ -439,7 +440,7 @@ impl BoucWen {
     }
 
     fn advance_general(&self, h0: f32, du: f32) -> f32 {
-        let needed = libm::ceilf(du.abs() * self.substeps_per_v).max(1.0);
+        let needed = max(libm::ceilf(du.abs() * self.substeps_per_v), 1.0);
         if needed <= MAX_SUBSTEPS || self.class == BoundClass::RangeLimited {
             // Range-limited sets have |Δu| ≤ span, so `needed` is bounded by the build-time span.
             return self.rk4(h0, du, needed);
@@ -466,7 +467,7 @@ impl BoucWen {
             }
             let sigma = if h < 0.0 { -1.0 } else { 1.0 };
             let branch = n * (beta * s * sigma + gamma).abs() * libm::powf(h.abs(), n - 1.0);
-            let length = (SUBSTEP_THETA / branch.max(decay_rate)).min(rest);
+            let length = min(SUBSTEP_THETA / max(branch, decay_rate), rest);
             h = self.rk4(h, s * length, 1.0);
             rest -= length;
             spent += 1.0;

@@ -42,6 +42,7 @@
 use crate::bouc_wen::{relax_series, HysteresisState};
 use crate::dynamic_model::DynamicModel;
 use crate::error::{finite, positive, ParamError, MIN_SLOPE_RATIO};
+use crate::math::{self, clamp};
 use crate::static_model::{ModelState, StaticMap, StaticModel};
 
 /// Output limits of the compensator.
@@ -264,12 +265,22 @@ impl Compensator {
         let model = &self.model;
         let map = model.map();
         let u0 = if state.model.input_v.is_finite() {
-            state.model.input_v.max(min).min(max)
+            clamp(state.model.input_v, min, max)
         } else {
-            min.max(0.0).min(max)
+            clamp(0.0, min, max)
         };
+        // Holding the voltage changes the state only through the asymmetric terms (the input shift
+        // lets U catch up with u) or when the stored voltage had to be moved into the window; in
+        // the common case the hold state is the current one.
+        let unchanged = !model.is_asymmetric()
+            && u0 == state.model.input_v
+            && state.model.hysteresis.input_v == u0;
         state.model.input_v = u0;
-        let hold = model.next_state(&state.model, u0);
+        let hold = if unchanged {
+            state.model
+        } else {
+            model.next_state(&state.model, u0)
+        };
         if !target.is_finite() {
             state.model = hold;
             return Command {
@@ -292,9 +303,9 @@ impl Compensator {
             -1.0
         };
         let limit = if direction > 0.0 {
-            (max - u0).min(self.max_step_v)
+            math::min(max - u0, self.max_step_v)
         } else {
-            (min - u0).max(-self.max_step_v)
+            math::max(min - u0, -self.max_step_v)
         };
         let (reached, du) = self
             .solve_n1_fast(&state.model, u0, -error_at_hold, direction, limit)
@@ -347,7 +358,7 @@ impl Compensator {
             direction,
             limit,
         );
-        let mut reached = model.next_state(from, (u0 + du).max(min).min(max));
+        let mut reached = model.next_state(from, clamp(u0 + du, min, max));
         for _ in 0..NEWTON_CORRECTIONS {
             let error = map.output(reached.input_v, reached.hysteresis.h) - target;
             let corrected = toward(
@@ -359,17 +370,18 @@ impl Compensator {
                 break;
             }
             du = corrected;
-            reached = model.next_state(from, (u0 + du).max(min).min(max));
+            reached = model.next_state(from, clamp(u0 + du, min, max));
         }
         (reached, du)
     }
 
     /// The fast solve for n = 1 without asymmetric terms. Along an increment that does not cross
     /// h = 0 the one-step map is `y(Δu) = y_hold + Δu·(k1 + k2·q·g(κΔu))`, q = A − κ·h₀
-    /// ([`crate::bouc_wen`]), so `Δu = e/(k1 + k2·q·g(κΔu))` with e = y_d − y_hold: two fixed-point
-    /// iterations from Δu = e/(k1 + k2·q), g from its series. Taken only when |κΔu| < 0.1 and the
-    /// iteration contracts by ≤ 1e-2 per pass (error ≤ 1e-4·(κΔu)²·|Δu| after two); otherwise, or if
-    /// h would cross zero, `None` hands over to [`Compensator::solve_newton`].
+    /// ([`crate::bouc_wen`]), with the exact derivative `k1 + k2·q·e^(−κΔu)` (the slope at the end
+    /// state, whose sign the build-time check fixes). Two Newton steps on this closed form from
+    /// `Δu = e/(k1 + k2·q)`, g and e^(−z) from their series: no libm call and no full forward step.
+    /// Taken when |κΔu| < 0.1 and h does not cross zero; otherwise `None` hands over to
+    /// [`Compensator::solve_newton`].
     fn solve_n1_fast(
         &self,
         from: &ModelState,
@@ -390,18 +402,16 @@ impl Compensator {
         } = model.map();
         let h0 = from.hysteresis.h;
         let (q, kappa, sigma) = bw.n1_branch(h0, direction);
-        let slope = k1 + k2 * q;
-        let mut du = toward(error / slope, direction, limit);
-        // Contraction factor of the fixed-point map: |κΔu|·|k2·q| / (2·|slope|).
-        if (kappa * du).abs() >= 0.1 || (kappa * du * k2 * q).abs() > 0.02 * slope.abs() {
-            return None;
-        }
+        let k2q = k2 * q;
+        let mut du = toward(error / (k1 + k2q), direction, limit);
         for _ in 0..2 {
-            du = toward(
-                error / (k1 + k2 * q * relax_series(kappa * du)),
-                direction,
-                limit,
-            );
+            let z = kappa * du;
+            if z.abs() >= 0.1 {
+                return None;
+            }
+            let residual = du * (k1 + k2q * relax_series(z)) - error;
+            let slope = k1 + k2q * exp_neg_series(z);
+            du = toward(du - residual / slope, direction, limit);
         }
         let z = kappa * du;
         if z.abs() >= 0.1 {
@@ -411,9 +421,11 @@ impl Compensator {
         if h1 * sigma < 0.0 {
             return None;
         }
-        let u = (u0 + du)
-            .max(self.settings.output_min_v)
-            .min(self.settings.output_max_v);
+        let u = clamp(
+            u0 + du,
+            self.settings.output_min_v,
+            self.settings.output_max_v,
+        );
         Some((
             ModelState {
                 input_v: u,
@@ -427,13 +439,19 @@ impl Compensator {
     }
 }
 
+/// e^(−z) by its 5-term series 1 − z + z²/2 − z³/6 + z⁴/24 (|z| < 0.1: truncation < 1e-7).
+#[inline]
+fn exp_neg_series(z: f32) -> f32 {
+    1.0 - z * (1.0 - 0.5 * z * (1.0 - z / 3.0 * (1.0 - 0.25 * z)))
+}
+
 /// Clamps a voltage step into \[0, limit\] (direction > 0) or \[limit, 0\] (direction < 0).
 #[inline]
 fn toward(du: f32, direction: f32, limit: f32) -> f32 {
     if direction > 0.0 {
-        du.max(0.0).min(limit)
+        clamp(du, 0.0, limit)
     } else {
-        du.max(limit).min(0.0)
+        clamp(du, limit, 0.0)
     }
 }
 

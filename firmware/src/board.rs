@@ -11,10 +11,17 @@
 //! | SPI1 MOSI → ADS8681   | PA7     | ADS8681 SDI                                             |
 //! | ADS8681 CONVST/CS     | PE7     | chip select; rising edge starts a conversion            |
 //! | LIS3DSH CS (on board) | PE3     | held high so the on-board accelerometer stays off SPI1  |
+//! | SPI3 SCK → ADS8681 y  | PC10    | second sensor (y axis), SPI mode 0, 21 MHz (42 MHz / 2)  |
+//! | SPI3 MISO ← ADS8681 y | PC11    | AF6                                                     |
+//! | SPI3 MOSI → ADS8681 y | PC12    | AF6                                                     |
+//! | ADS8681 y CONVST/CS   | PD0     | chip select                                             |
+//! | CS43L22 RESET (board) | PD4     | held low: the on-board audio DAC shares PC10/PC12 (I2S3) |
 //! | SPI2 SCK → DAC8563    | PB13    | SPI mode 1, 21 MHz (42 MHz APB1 / 2)                    |
 //! | SPI2 MOSI → DAC8563   | PB15    | DAC8563 DIN (the DAC has no data output; PB14 unused)   |
 //! | DAC8563 SYNC          | PB12    | chip select                                             |
 //! | DAC8563 LDAC, CLR     | —       | tie LDAC low, CLR high (LDAC register set to ignore pin) |
+//!
+//! DAC8563 channel A drives the x amplifier, channel B the y amplifier.
 //!
 //! The two converters sit on separate buses because they need different SPI modes (ADS8681
 //! mode 0 at power-on, DAC8563 mode 1).
@@ -23,13 +30,15 @@
 //! (TIM2 kernel clock 84 MHz).
 //!
 //! Loop timer: TIM2 counts at [`LOOP_RATE_HZ`] = 10 kHz; the main loop polls its update flag
-//! and runs one [`crate::control::tick`] per period. Deadline: a tick must finish within
-//! 100 µs. Its cost: one 32-bit ADC frame (1.5 µs at 21 MHz), one 24-bit DAC frame (1.1 µs)
-//! and about 130 instructions of loop body (measured under QEMU with the simulated stage, see
-//! `firmware/ci.sh`), i.e. a few µs at 168 MHz. Not measured on hardware yet (DWT cycle counter).
+//! ([`wait_for_tick`]) and runs one [`crate::xy_loop::TwoAxisLoop::tick`] per period. Deadline:
+//! a tick must finish within 100 µs; if the update flag is already set when the loop comes back
+//! to wait, the deadline was missed and the next tick is told so (safe state, counted). Cost:
+//! two 32-bit ADC frames (1.5 µs each at 21 MHz), two 24-bit DAC frames (1.1 µs each) and the
+//! loop body (2 × 781 instructions of compensator + guard with n = 1 under QEMU, see
+//! `firmware/bench.sh`), i.e. roughly 15–25 µs at 168 MHz. Not measured on hardware yet (DWT).
 
 use embedded_hal_bus::spi::{ExclusiveDevice, NoDelay};
-use stm32f4xx_hal::gpio::{Output, PB12, PE7};
+use stm32f4xx_hal::gpio::{Output, PB12, PD0, PE7};
 use stm32f4xx_hal::pac;
 use stm32f4xx_hal::prelude::*;
 use stm32f4xx_hal::rcc::Config;
@@ -45,11 +54,15 @@ pub const LOOP_RATE_HZ: u32 = 10_000;
 
 /// The ADS8681 as an SPI device on SPI1 with CS on PE7.
 pub type AdcSpi = ExclusiveDevice<Spi<pac::SPI1>, PE7<Output>, NoDelay>;
+/// The y-axis ADS8681 as an SPI device on SPI3 with CS on PD0.
+pub type AdcYSpi = ExclusiveDevice<Spi<pac::SPI3>, PD0<Output>, NoDelay>;
 /// The DAC8563 as an SPI device on SPI2 with SYNC on PB12.
 pub type DacSpi = ExclusiveDevice<Spi<pac::SPI2>, PB12<Output>, NoDelay>;
 
 /// SPI error of the board's devices (GPIO chip selects are infallible on this MCU).
 pub type AdcError = DriverError<<AdcSpi as embedded_hal::spi::ErrorType>::Error>;
+/// SPI error of the y-axis ADC (same kind as [`AdcError`]).
+pub type AdcYError = DriverError<<AdcYSpi as embedded_hal::spi::ErrorType>::Error>;
 /// SPI error of the board's DAC.
 pub type DacError = DriverError<<DacSpi as embedded_hal::spi::ErrorType>::Error>;
 
@@ -58,8 +71,10 @@ pub type DacError = DriverError<<DacSpi as embedded_hal::spi::ErrorType>::Error>
 pub enum BoardError {
     /// The DAC init sequence failed.
     Dac(DacError),
-    /// The ADC init (range write and readback) failed.
+    /// The x ADC init (range write and readback) failed.
     Adc(AdcError),
+    /// The y ADC init failed.
+    AdcY(AdcYError),
     /// The loop timer could not be started.
     Timer,
 }
@@ -68,8 +83,10 @@ pub enum BoardError {
 pub struct Board {
     /// Piezo amplifier DAC (channel A).
     pub dac: Dac8563<DacSpi>,
-    /// Displacement sensor ADC.
+    /// Displacement sensor ADC, x axis.
     pub adc: Ads8681<AdcSpi>,
+    /// Displacement sensor ADC, y axis.
+    pub adc_y: Ads8681<AdcYSpi>,
     /// TIM2, updating at [`LOOP_RATE_HZ`].
     pub loop_timer: CounterHz<pac::TIM2>,
 }
@@ -86,7 +103,12 @@ impl Board {
         );
         let gpioa = dp.GPIOA.split(&mut rcc);
         let gpiob = dp.GPIOB.split(&mut rcc);
+        let gpioc = dp.GPIOC.split(&mut rcc);
+        let gpiod = dp.GPIOD.split(&mut rcc);
         let gpioe = dp.GPIOE.split(&mut rcc);
+        // Keep the on-board CS43L22 audio DAC in reset: its I2S3 pins are SPI3's.
+        let mut audio_reset = gpiod.pd4.into_push_pull_output();
+        audio_reset.set_low();
 
         // Keep the on-board LIS3DSH deselected for good; it shares SPI1. Dropping the pin
         // handle leaves the pin configured and high.
@@ -115,16 +137,27 @@ impl Board {
             21.MHz(),
             &mut rcc,
         );
+        let spi3 = Spi::new(
+            dp.SPI3,
+            (Some(gpioc.pc10), Some(gpioc.pc11), Some(gpioc.pc12)),
+            mode0,
+            21.MHz(),
+            &mut rcc,
+        );
         // Chip selects start high (ExclusiveDevice sets them high; GPIO errors are Infallible).
         let adc_cs = gpioe.pe7.into_push_pull_output();
         let dac_sync = gpiob.pb12.into_push_pull_output();
         let Ok(adc_spi) = ExclusiveDevice::new_no_delay(spi1, adc_cs);
         let Ok(dac_spi) = ExclusiveDevice::new_no_delay(spi2, dac_sync);
+        let adc_y_cs = gpiod.pd0.into_push_pull_output();
+        let Ok(adc_y_spi) = ExclusiveDevice::new_no_delay(spi3, adc_y_cs);
 
         let mut dac = Dac8563::new(dac_spi);
         dac.init().map_err(BoardError::Dac)?;
         let mut adc = Ads8681::new(adc_spi, InputRange::Bipolar2_5x);
         adc.init().map_err(BoardError::Adc)?;
+        let mut adc_y = Ads8681::new(adc_y_spi, InputRange::Bipolar2_5x);
+        adc_y.init().map_err(BoardError::AdcY)?;
 
         let mut loop_timer = dp.TIM2.counter_hz(&mut rcc);
         loop_timer
@@ -133,12 +166,24 @@ impl Board {
         Ok(Self {
             dac,
             adc,
+            adc_y,
             loop_timer,
         })
     }
 
-    /// Blocks until the next TIM2 update (the start of the next tick).
-    pub fn wait_for_tick(&mut self) {
-        while self.loop_timer.wait().is_err() {}
+    /// Blocks until the next TIM2 update (the start of the next tick); returns true if the
+    /// update flag was already set when called, i.e. the previous tick missed its deadline.
+    pub fn wait_for_tick(&mut self) -> bool {
+        wait_for_tick(&mut self.loop_timer)
     }
+}
+
+/// Blocks until the next TIM2 update; true if the update flag was already set when called (the
+/// work since the last update took longer than one period: a missed deadline).
+pub fn wait_for_tick(timer: &mut CounterHz<pac::TIM2>) -> bool {
+    let late = timer.wait().is_ok();
+    if !late {
+        while timer.wait().is_err() {}
+    }
+    late
 }

@@ -7,8 +7,14 @@
 //! - [`dac8563`], [`ads8681`]: drivers for TI DAC8563 and ADS8681 over
 //!   `embedded_hal::spi::SpiDevice`;
 //! - [`safety`]: output window, slew limit, NaN hold, fault counters;
-//! - [`control`]: the per-tick loop body [`control::tick`] with a pluggable feed-forward;
-//! - [`plant`], [`demo`]: a simulated stage and the fixed run the QEMU image checks itself with.
+//! - [`control`]: the single-axis loop body [`control::tick`] and [`control::TrackingStats`];
+//! - [`params`]: the parameter set built in by `build.rs` from `firmware/params/*.toml`;
+//! - [`reference`]: waveform generator (sine, triangle, steps, raster, streamed setpoints);
+//! - [`xy_loop`]: the two-axis loop (reference → `piezo_core::Compensator` → guard → DAC, sensor
+//!   every tick, fault detection and safe state, overrun count);
+//! - [`frames`]: sample frames out, with sequence numbers and gap detection;
+//! - [`plant`], [`demo`]: a simulated two-axis stage (independent f32 Bouc-Wen + lag) and the
+//!   fixed run the QEMU image checks itself with.
 //!
 //! Board code (STM32F407, `board` feature, target only) is in `board`. The images are
 //! `src/bin/qemu.rs` (feature `qemu`) and `src/bin/board.rs` (feature `board`); see
@@ -21,8 +27,12 @@ pub mod control;
 pub mod converter;
 pub mod dac8563;
 pub mod demo;
+pub mod frames;
+pub mod params;
 pub mod plant;
+pub mod reference;
 pub mod safety;
+pub mod xy_loop;
 
 #[cfg(all(target_os = "none", feature = "board"))]
 pub mod board;

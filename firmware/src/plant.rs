@@ -1,84 +1,169 @@
-//! A simulated piezo stage behind the converter traits, for the QEMU image and host tests.
+//! A simulated two-axis piezo stage behind the converter traits, for the QEMU image and host tests.
 //!
-//! Not a model to identify against (that is `piezo-core`); just a plausible plant that a
-//! feed-forward must fight, with independent, simple physics:
+//! Deliberately *not* the core's model: each axis is its own f32 Bouc-Wen operator integrated
+//! with explicit Euler sub-steps in the input (not `piezo_core`'s exact path integral), followed by
+//! a first-order lag, so that the compensator is checked against dynamics it does not contain
+//! (the lag) and an integrator it does not share:
 //!
 //! ```text
-//! u  = G_amp · V_dac                               actuator volts from the DAC code
-//! p  = min(u + r, max(u − r, p₋))                  play (backlash) operator, half-width r volts
-//! x  = x₋ + α · (k · p − x₋)                       first-order lag, α = 1 − exp(−T/τ), k m/V
-//! V_sensor = x / (metres per volt)  →  AdcCode     sensor and ADC (default ±10.24 V range)
+//! u  = G_amp · V_dac                                         actuator volts (zero-order hold)
+//! per tick, m = ⌈|u − u₋| / δu_max⌉ Euler sub-steps of δu = (u − u₋)/m:
+//!     h += A·δu − β·|δu|·|h|^(n−1)·h − γ·δu·|h|^n            (Bouc-Wen, rate-independent form)
+//! y  = k1·u + k2·h + y0                                       static map (same parameters as the
+//!                                                             parameter file)
+//! x  = x₋ + α·(y − x₋),  α = 1 − exp(−T/τ)                   first-order lag (stage mechanics)
+//! V_sensor = x / (metres per volt)  →  AdcCode               sensor and ADC (±10.24 V range)
 //! ```
 //!
-//! The plant advances one tick on each DAC write. DAC and ADC sides share one
-//! `Cell<SimPlant>` (the plant is `Copy`), so [`PlantDac`] and [`PlantAdc`] can be borrowed
-//! at the same time, as the loop needs, without `RefCell` panics.
+//! Time is explicit: the DAC side sets an axis's input code (held), the ADC side reads the
+//! current displacement, and [`XyPlant::advance`] moves the stage one loop period on. The two
+//! sides share one `Cell<XyPlant>` (the plant is `Copy`), so [`PlantDac`] and [`PlantAdc`] can be
+//! borrowed at the same time without `RefCell` panics.
 
 use core::cell::Cell;
 use core::convert::Infallible;
 
+use piezo_core::{BoucWenParams, StaticMap};
+
 use crate::codes::{AdcCode, DacCode, SensorScale};
 use crate::converter::{AdcRead, DacWrite, ErrorType};
+use crate::xy_loop::Axis;
 
-/// Physical parameters of the simulated stage.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct PlantParams {
-    /// Piezo amplifier gain, actuator volts per DAC volt.
-    pub amplifier_gain_v_per_v: f32,
-    /// Static displacement per actuator volt, metres per volt.
-    pub stroke_m_per_v: f32,
-    /// Half-width of the play operator, actuator volts.
-    pub play_half_width_v: f32,
-    /// Lag coefficient per tick, `α = 1 − exp(−T/τ)`, in (0, 1].
-    pub lag_alpha: f32,
-    /// Displacement sensor gain.
-    pub sensor: SensorScale,
-}
+/// Largest input change per Euler sub-step [V].
+pub const MAX_SUBSTEP_V: f32 = 0.05;
+/// Most Euler sub-steps in one tick.
+pub const MAX_SUBSTEPS: u32 = 512;
+/// Lag time constant of the simulated stage mechanics [s] (first mode ≈ 3.2 kHz: 1/(2π·3.2 kHz)).
+pub const LAG_TIME_CONSTANT_S: f32 = 50e-6;
 
-/// State of the simulated stage.
+/// One axis of the simulated stage.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct SimPlant {
-    params: PlantParams,
-    play_output_v: f32,
+pub struct StackPlant {
+    bouc_wen: BoucWenParams,
+    map: StaticMap,
+    lag_alpha: f32,
+    input_v: f32,
+    h: f32,
     displacement_m: f32,
 }
 
-impl SimPlant {
-    /// A stage at rest (0 V, 0 m).
-    pub fn new(params: PlantParams) -> Self {
+impl StackPlant {
+    /// At rest at `input_v` (h = 0, settled), with lag `α = 1 − exp(−T/τ)`.
+    pub fn new(bouc_wen: BoucWenParams, map: StaticMap, lag_alpha: f32, input_v: f32) -> Self {
         Self {
-            params,
-            play_output_v: 0.0,
-            displacement_m: 0.0,
+            bouc_wen,
+            map,
+            lag_alpha,
+            input_v,
+            h: 0.0,
+            displacement_m: map.output(input_v, 0.0),
         }
     }
 
-    /// Current displacement in metres.
+    /// Hysteretic state h.
+    pub fn h(&self) -> f32 {
+        self.h
+    }
+
+    /// Displacement [m] (after the lag).
     pub fn displacement_m(&self) -> f32 {
         self.displacement_m
     }
 
-    /// Advances one tick with the DAC at `code`.
-    pub fn step(&mut self, code: DacCode) {
-        let p = &self.params;
-        let u = code.to_volts() * p.amplifier_gain_v_per_v;
-        let r = p.play_half_width_v;
-        self.play_output_v = self.play_output_v.max(u - r).min(u + r);
-        let target = p.stroke_m_per_v * self.play_output_v;
-        self.displacement_m += p.lag_alpha * (target - self.displacement_m);
-    }
-
-    /// What the ADC reads now.
-    pub fn sensor_code(&self) -> AdcCode {
-        AdcCode::from_volts(self.params.sensor.volts(self.displacement_m))
+    /// Moves the input to `input_v` along a straight path and advances the lag one period.
+    pub fn advance(&mut self, input_v: f32) {
+        let BoucWenParams { a, beta, gamma, n } = self.bouc_wen;
+        let du = input_v - self.input_v;
+        let substeps = libm::ceilf(du.abs() / MAX_SUBSTEP_V).clamp(1.0, MAX_SUBSTEPS as f32);
+        let step = du / substeps;
+        let mut h = self.h;
+        let mut i = 0.0;
+        while i < substeps {
+            let magnitude = if n == 1.0 {
+                h.abs()
+            } else {
+                libm::powf(h.abs(), n)
+            };
+            let sign = if h < 0.0 { -1.0 } else { 1.0 };
+            h += a * step - beta * step.abs() * magnitude * sign - gamma * step * magnitude;
+            i += 1.0;
+        }
+        self.h = h;
+        self.input_v = input_v;
+        let target = self.map.output(input_v, h);
+        self.displacement_m += self.lag_alpha * (target - self.displacement_m);
     }
 }
 
-/// DAC side of a shared [`SimPlant`]; one channel.
-pub struct PlantDac<'a>(pub &'a Cell<SimPlant>);
+/// The two-axis stage: two [`StackPlant`]s, the amplifier and the sensor.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct XyPlant {
+    axes: [StackPlant; 2],
+    codes: [DacCode; 2],
+    amplifier_gain_v_per_v: f32,
+    sensor: SensorScale,
+}
 
-/// ADC side of a shared [`SimPlant`]; one channel.
-pub struct PlantAdc<'a>(pub &'a Cell<SimPlant>);
+impl XyPlant {
+    /// A stage at rest with both DAC codes at 0.
+    pub fn new(axes: [StackPlant; 2], amplifier_gain_v_per_v: f32, sensor: SensorScale) -> Self {
+        Self {
+            axes,
+            codes: [DacCode::SAFE; 2],
+            amplifier_gain_v_per_v,
+            sensor,
+        }
+    }
+
+    /// The stage of the built-in parameter file ([`crate::params`]), lag
+    /// [`LAG_TIME_CONSTANT_S`], at rest at the lower end of each window.
+    pub fn from_params(sample_period_s: f32) -> Option<Self> {
+        use crate::params::{AMPLIFIER_GAIN_V_PER_V, AXES, SENSOR_M_PER_V};
+        let alpha = 1.0 - libm::expf(-sample_period_s / LAG_TIME_CONSTANT_S);
+        let axis = |i: usize| {
+            let p = AXES[i];
+            StackPlant::new(p.bouc_wen, p.static_map, alpha, p.output_min_v)
+        };
+        Some(Self::new(
+            [axis(0), axis(1)],
+            AMPLIFIER_GAIN_V_PER_V,
+            SensorScale::new(SENSOR_M_PER_V)?,
+        ))
+    }
+
+    /// One axis.
+    pub fn axis(&self, axis: Axis) -> &StackPlant {
+        &self.axes[axis.index()]
+    }
+
+    /// Sets an axis's DAC code (takes effect at the next [`XyPlant::advance`]).
+    pub fn set_code(&mut self, axis: Axis, code: DacCode) {
+        self.codes[axis.index()] = code;
+    }
+
+    /// The DAC code an axis holds.
+    pub fn code(&self, axis: Axis) -> DacCode {
+        self.codes[axis.index()]
+    }
+
+    /// One loop period on, with the held DAC codes.
+    pub fn advance(&mut self) {
+        for (plant, code) in self.axes.iter_mut().zip(self.codes) {
+            plant.advance(code.to_volts() * self.amplifier_gain_v_per_v);
+        }
+    }
+
+    /// What the ADC reads for an axis now.
+    pub fn sensor_code(&self, axis: Axis) -> AdcCode {
+        AdcCode::from_volts(self.sensor.volts(self.axis(axis).displacement_m()))
+    }
+}
+
+/// DAC side of a shared [`XyPlant`]; channel = axis.
+pub struct PlantDac<'a>(pub &'a Cell<XyPlant>);
+
+/// ADC side of a shared [`XyPlant`]; channel = axis.
+pub struct PlantAdc<'a>(pub &'a Cell<XyPlant>);
 
 impl ErrorType for PlantDac<'_> {
     type Error = Infallible;
@@ -89,77 +174,84 @@ impl ErrorType for PlantAdc<'_> {
 }
 
 impl DacWrite for PlantDac<'_> {
-    type Channel = ();
+    type Channel = Axis;
 
-    fn write_code(&mut self, _channel: (), code: DacCode) -> Result<(), Infallible> {
+    fn write_code(&mut self, channel: Axis, code: DacCode) -> Result<(), Infallible> {
         let mut plant = self.0.get();
-        plant.step(code);
+        plant.set_code(channel, code);
         self.0.set(plant);
         Ok(())
     }
 }
 
 impl AdcRead for PlantAdc<'_> {
-    type Channel = ();
+    type Channel = Axis;
 
-    fn read_code(&mut self, _channel: ()) -> Result<AdcCode, Infallible> {
-        Ok(self.0.get().sensor_code())
+    fn read_code(&mut self, channel: Axis) -> Result<AdcCode, Infallible> {
+        Ok(self.0.get().sensor_code(channel))
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::params::AXES;
+    use piezo_core::{BoucWen, HysteresisState};
 
-    fn params() -> PlantParams {
-        PlantParams {
-            amplifier_gain_v_per_v: 20.0,
-            stroke_m_per_v: 0.15e-6,
-            play_half_width_v: 2.0,
-            lag_alpha: 0.5,
-            sensor: SensorScale::new(1.5e-6).unwrap(),
+    fn stack(i: usize) -> StackPlant {
+        StackPlant::new(AXES[i].bouc_wen, AXES[i].static_map, 1.0, 0.0)
+    }
+
+    /// The Euler plant and the core's exact step agree on the first loading (to the Euler
+    /// error), yet are different integrators.
+    #[test]
+    fn euler_plant_follows_the_bouc_wen_law() {
+        for (i, axis) in AXES.iter().enumerate() {
+            let mut plant = stack(i);
+            let bw = BoucWen::new(axis.bouc_wen).unwrap();
+            let mut state = HysteresisState::at_rest(0.0);
+            for k in 1..=1200 {
+                let u = k as f32 * 0.1;
+                plant.advance(u);
+                bw.step(&mut state, u);
+            }
+            assert!(
+                (plant.h() - state.h).abs() < 2e-3 * state.h.abs(),
+                "{} vs {}",
+                plant.h(),
+                state.h
+            );
+            // First loading to 120 V gives the 38 µm free stroke the file was built for.
+            assert!(
+                (plant.displacement_m() - 38e-6).abs() < 0.1e-6,
+                "{}",
+                plant.displacement_m()
+            );
         }
     }
 
     #[test]
-    fn settles_to_static_gain_minus_play() {
-        let mut plant = SimPlant::new(params());
-        let code = DacCode::from_volts(2.5); // 50 V at the actuator
-        for _ in 0..100 {
-            plant.step(code);
-        }
-        // Rising from 0: the play output lags the input by r = 2 V, so x = k (u − r).
-        let expected = 0.15e-6 * (code.to_volts() * 20.0 - 2.0);
-        assert!((plant.displacement_m() - expected).abs() < 1e-12);
-        let sensed = AdcCode::to_volts(plant.sensor_code()) * 1.5e-6;
-        assert!((sensed - expected).abs() < AdcCode::VOLTS_PER_LSB * 1.5e-6);
-    }
-
-    #[test]
-    fn play_gives_hysteresis_between_up_and_down_branches() {
-        let mut plant = SimPlant::new(params());
-        let mid = DacCode::from_volts(2.5);
-        for _ in 0..100 {
-            plant.step(mid);
-        }
+    fn branches_differ_at_the_same_input() {
+        let mut plant = stack(0);
+        plant.advance(60.0);
         let rising = plant.displacement_m();
-        for _ in 0..100 {
-            plant.step(DacCode::from_volts(5.0));
-        }
-        for _ in 0..100 {
-            plant.step(mid);
-        }
+        plant.advance(120.0);
+        plant.advance(60.0);
         let falling = plant.displacement_m();
-        // Same input, branches 2 r k apart.
-        assert!(((falling - rising) - 2.0 * 2.0 * 0.15e-6).abs() < 1e-11);
+        assert!(falling - rising > 1e-6, "{rising} {falling}");
     }
 
     #[test]
-    fn dac_and_adc_sides_share_the_plant() {
-        let cell = Cell::new(SimPlant::new(params()));
+    fn dac_and_adc_sides_share_the_plant_and_time_is_explicit() {
+        let cell = Cell::new(XyPlant::from_params(1e-4).unwrap());
         let (mut dac, mut adc) = (PlantDac(&cell), PlantAdc(&cell));
-        assert_eq!(adc.read_code(()).unwrap(), AdcCode::MID_SCALE);
-        dac.write_code((), DacCode::MAX).unwrap();
-        assert!(adc.read_code(()).unwrap() > AdcCode::MID_SCALE);
+        assert_eq!(adc.read_code(Axis::X).unwrap(), AdcCode::MID_SCALE);
+        dac.write_code(Axis::X, DacCode(30_000)).unwrap();
+        assert_eq!(adc.read_code(Axis::X).unwrap(), AdcCode::MID_SCALE);
+        let mut p = cell.get();
+        p.advance();
+        cell.set(p);
+        assert!(adc.read_code(Axis::X).unwrap() > AdcCode::MID_SCALE);
+        assert_eq!(adc.read_code(Axis::Y).unwrap(), AdcCode::MID_SCALE);
     }
 }

@@ -114,7 +114,7 @@ impl SafetyLimits {
         let last_safe_volts = if initial_volts.is_nan() {
             self.min_volts
         } else {
-            initial_volts.clamp(self.min_volts, self.max_volts)
+            into_window(initial_volts, self.min_volts, self.max_volts)
         };
         GuardState {
             last_safe_volts,
@@ -129,13 +129,13 @@ impl SafetyLimits {
     pub fn apply(&self, state: &mut GuardState, requested_volts: f32) -> f32 {
         let counters = &mut state.counters;
         // Also repairs a state built for another window.
-        let last = state.last_safe_volts.clamp(self.min_volts, self.max_volts);
+        let last = into_window(state.last_safe_volts, self.min_volts, self.max_volts);
         if !requested_volts.is_finite() {
             counters.non_finite = counters.non_finite.saturating_add(1);
             state.last_safe_volts = last;
             return last;
         }
-        let target = requested_volts.clamp(self.min_volts, self.max_volts);
+        let target = into_window(requested_volts, self.min_volts, self.max_volts);
         if target != requested_volts {
             counters.window_clamped = counters.window_clamped.saturating_add(1);
         }
@@ -144,10 +144,28 @@ impl SafetyLimits {
             target
         } else {
             counters.slew_limited = counters.slew_limited.saturating_add(1);
-            (last + self.max_step_volts.copysign(delta)).clamp(self.min_volts, self.max_volts)
+            into_window(
+                last + self.max_step_volts.copysign(delta),
+                self.min_volts,
+                self.max_volts,
+            )
         };
         state.last_safe_volts = out;
         out
+    }
+}
+
+/// `x` forced into `[min, max]` (NaN gives `min`). Not `f32::clamp`: that asserts `min ≤ max`,
+/// a panic path the optimiser cannot remove (the limits are run-time values), and the `check`
+/// image refuses any reachable panic. `SafetyLimits::new` guarantees `min < max`.
+#[inline]
+fn into_window(x: f32, min: f32, max: f32) -> f32 {
+    if x > max {
+        max
+    } else if x >= min {
+        x
+    } else {
+        min
     }
 }
 

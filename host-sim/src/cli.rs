@@ -1,5 +1,5 @@
-//! Command line (clap derive). `main.rs` only calls [`run`]. Subcommands: `simulate` now; `demo`,
-//! `reproduce` and `identify` are to be added to [`Command`] later.
+//! Command line (clap derive). `main.rs` only calls [`run`]. Subcommands: `simulate`, `demo`,
+//! `reproduce`. Progress goes to stderr, the result (table or summary) to stdout.
 
 use crate::csv::write_csv;
 use crate::effects::{Effects, EFFECT_HELP};
@@ -26,6 +26,85 @@ pub enum Command {
         "Plants: {PLANT_NAMES}\n  nac2024   Noliac NAC2024 actuator (seed 000), output y_m, 2.56 MHz default rate\n  stage     asymmetric stage (seed 001, Case III; stage-case1/stage-case2 too), output y_m, 10 kHz\n  xy-stage  two-axis flexure stage (seed 002), inputs ux_V/uy_V, outputs x_m/y_m, 10 kHz\n\n{SIGNAL_HELP}\n\n{EFFECT_HELP}"
     ))]
     Simulate(SimulateArgs),
+    /// XY stage tracking a triangle on both axes with and without the piezo-core inverse compensator:
+    /// prints RMS and max tracking error per axis and mode, writes plots, demo.csv and summary.json.
+    #[command(
+        after_help = "The plant is host-sim's f64 XY stage (seed 002), driven through a zero-order-hold DAC at --rate. \
+Uncompensated: the best affine feed-forward u = (r - c)/g, (g, c) fitted by least squares to the plant's own response. \
+Compensated: per axis piezo_core::Compensator on y = G*d*(u - h) with the plant's stack parameters. \
+Both command one sample ahead. Output window 0-120 V."
+    )]
+    Demo(DemoArgs),
+    /// Reproduces the papers' figures with the simulated plants and the piezo-core models: writes
+    /// DIR/reproduce.json (each figure with the paper's value beside it) and plots.
+    #[command(
+        after_help = "Sections:\n  xy_stage  loop openings at 120 V and 12 V staircases and maximum displacement (seed 002)\n  nac2024   R^2 and MRD of the core DynamicModel (Table 1, f32, 2.56 MHz, range +-10 V, state limit 10) against the plant with a second mode and a 10 % heavier mass, 10-200 kHz sines of 9.738 V, next to Table 2 (seed 000)\n  stage     RAE and AFV of the standard and asymmetric core models on the stage plant, Cases I-III (seed 001)"
+    )]
+    Reproduce(ReproduceArgs),
+}
+
+/// Plot formats.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum PlotFormat {
+    /// SVG only.
+    Svg,
+    /// PNG only (text from the embedded DejaVu font).
+    Png,
+    /// Both.
+    Both,
+}
+
+impl PlotFormat {
+    fn extensions(self) -> &'static [&'static str] {
+        match self {
+            Self::Svg => &["svg"],
+            Self::Png => &["png"],
+            Self::Both => &["svg", "png"],
+        }
+    }
+}
+
+/// Arguments of `demo`.
+#[derive(Debug, clap::Args)]
+pub struct DemoArgs {
+    /// Output directory (created if missing).
+    #[arg(long, default_value = "out/demo")]
+    pub out: PathBuf,
+    /// Triangle frequency of the x axis [Hz].
+    #[arg(long = "x-freq", default_value_t = 2.0)]
+    pub x_freq: f64,
+    /// Triangle frequency of the y axis [Hz].
+    #[arg(long = "y-freq", default_value_t = 1.0)]
+    pub y_freq: f64,
+    /// Record length [s].
+    #[arg(long, default_value_t = 2.0)]
+    pub duration: f64,
+    /// Lower end of the reference [fraction of the stroke].
+    #[arg(long, default_value_t = 0.1)]
+    pub low: f64,
+    /// Upper end of the reference [fraction of the stroke].
+    #[arg(long, default_value_t = 0.9)]
+    pub high: f64,
+    /// Loop rate (DAC updates and sensor samples) [Hz].
+    #[arg(long, default_value_t = 10_000.0)]
+    pub rate: f64,
+    /// Time skipped at the start of the error metrics [s].
+    #[arg(long, default_value_t = 0.01)]
+    pub settle: f64,
+    /// Plot format.
+    #[arg(long, value_enum, default_value_t = PlotFormat::Both)]
+    pub format: PlotFormat,
+}
+
+/// Arguments of `reproduce`.
+#[derive(Debug, clap::Args)]
+pub struct ReproduceArgs {
+    /// Output directory (created if missing).
+    #[arg(long, default_value = "out/reproduce")]
+    pub out: PathBuf,
+    /// Plot format.
+    #[arg(long, value_enum, default_value_t = PlotFormat::Both)]
+    pub format: PlotFormat,
 }
 
 /// Arguments of `simulate`.
@@ -52,7 +131,34 @@ pub struct SimulateArgs {
 pub fn run(cli: Cli) -> Result<String, String> {
     match cli.command {
         Command::Simulate(a) => simulate_cmd(&a),
+        Command::Demo(a) => demo_cmd(&a),
+        Command::Reproduce(a) => reproduce_cmd(&a),
     }
+}
+
+fn progress(line: &str) {
+    eprintln!("{line}");
+}
+
+fn demo_cmd(a: &DemoArgs) -> Result<String, String> {
+    let settings = crate::demo::DemoSettings {
+        x_frequency_hz: a.x_freq,
+        y_frequency_hz: a.y_freq,
+        duration_s: a.duration,
+        low_fraction: a.low,
+        high_fraction: a.high,
+        loop_rate_hz: a.rate,
+        settle_s: a.settle,
+    };
+    let result = crate::demo::run_demo(&settings, &mut progress)?;
+    let files = result.write(&a.out, a.format.extensions())?;
+    Ok(format!("{}written: {}", result.table(), files.join(", ")))
+}
+
+fn reproduce_cmd(a: &ReproduceArgs) -> Result<String, String> {
+    let report = crate::reproduce::run_reproduce(&mut progress)?;
+    let files = report.write(&a.out, a.format.extensions())?;
+    Ok(format!("{}written: {}", report.table(), files.join(", ")))
 }
 
 fn simulate_cmd(a: &SimulateArgs) -> Result<String, String> {
@@ -128,6 +234,52 @@ mod tests {
     }
 
     #[test]
+    fn demo_and_reproduce_help_document_their_options() {
+        let mut cmd = Cli::command();
+        let help = cmd
+            .find_subcommand_mut("demo")
+            .unwrap()
+            .render_long_help()
+            .to_string();
+        for word in [
+            "--out",
+            "--x-freq",
+            "--y-freq",
+            "--duration",
+            "--low",
+            "--high",
+            "--rate",
+            "--settle",
+            "--format",
+            "out/demo",
+        ] {
+            assert!(help.contains(word), "demo help lacks {word}");
+        }
+        let help = cmd
+            .find_subcommand_mut("reproduce")
+            .unwrap()
+            .render_long_help()
+            .to_string();
+        for word in ["--out", "--format", "xy_stage", "nac2024", "stage"] {
+            assert!(help.contains(word), "reproduce help lacks {word}");
+        }
+    }
+
+    #[test]
+    fn demo_errors_name_the_option() {
+        let cli = Cli::try_parse_from(["host-sim", "demo", "--x-freq", "0"]).unwrap();
+        let e = run(cli).unwrap_err();
+        assert!(e.starts_with("--x-freq"), "{e}");
+        let cli =
+            Cli::try_parse_from(["host-sim", "demo", "--low", "0.5", "--high", "0.2"]).unwrap();
+        assert!(run(cli).unwrap_err().starts_with("--low"));
+        let e = Cli::try_parse_from(["host-sim", "demo", "--rate", "fast"])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("--rate"), "{e}");
+    }
+
+    #[test]
     fn errors_name_the_argument_and_choices() {
         let out = std::env::temp_dir().join(format!("host_sim_cli_{}.csv", std::process::id()));
         let e = run(args("nac", "sine", &[], &out)).unwrap_err();
@@ -151,7 +303,9 @@ mod tests {
             &[],
             &out,
         );
-        let Command::Simulate(a) = &mut cli.command;
+        let Command::Simulate(a) = &mut cli.command else {
+            unreachable!()
+        };
         a.plot = Some(dir.join("xy.svg"));
         run(cli).unwrap();
         let t = crate::csv::read_csv(&out).unwrap();

@@ -12,9 +12,11 @@
 pub mod bouc_wen;
 pub mod cli;
 pub mod csv;
+pub mod demo;
 pub mod effects;
 pub mod ode;
 pub mod plant;
 pub mod plot;
+pub mod reproduce;
 pub mod signal;
 pub mod sim;

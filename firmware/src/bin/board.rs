@@ -1,15 +1,14 @@
-//! STM32F4-Discovery image: the compensator loop on real converters (DAC8563 → piezo amplifier,
-//! displacement sensor → ADS8681), paced by TIM2 at 10 kHz. Wiring, clocks and deadline are in
-//! `piezo_firmware::board`.
+//! STM32F4-Discovery image: the two-axis compensator loop on real converters (DAC8563 channel A/B
+//! → x/y piezo amplifiers, displacement sensors → one ADS8681 per axis), paced by TIM2 at 10 kHz.
+//! Wiring, clocks and deadline are in `piezo_firmware::board`; the loop in
+//! `piezo_firmware::xy_loop`.
 //!
 //! Build: `cd firmware && cargo build --release --features board --bin board`.
 //! Flash and run (probe-rs, the runner in `firmware/.cargo/config.toml`):
-//! `cd firmware && cargo run --release --features board --bin board`. Logs are defmt over RTT.
-//!
-//! The loop tracks the same reference as the QEMU self-check ([`piezo_firmware::demo`]) with the
-//! linear feed-forward; replace the closure with the `piezo-core` compensator. On any converter
-//! error the loop tries once to put the DAC at 0 V, logs, and parks (no retry at 10 kHz into a
-//! broken bus).
+//! `cd firmware && cargo run --release --features board --bin board`. Logs are defmt over RTT:
+//! at boot the parameter set (version, FNV-1a of the file), then sample frames (one every 10th
+//! tick) in batches of 8, and the loop's counters once a second. A fault puts the loop in its safe state
+//! (outputs held, logged once); it stays there (rearm needs a command link, not built yet).
 //!
 //! On the host this file builds to a stub `main` (only with `--features board`).
 #![cfg_attr(target_os = "none", no_std)]
@@ -23,17 +22,36 @@ mod image {
     use cortex_m_rt::entry;
     use stm32f4xx_hal::pac;
 
-    use piezo_firmware::board::Board;
-    use piezo_firmware::codes::DacCode;
-    use piezo_firmware::control::{tick, LoopIo};
-    use piezo_firmware::converter::DacWrite;
+    use piezo_firmware::board::{self, Board};
     use piezo_firmware::dac8563::Dac8563Channel;
-    use piezo_firmware::demo::{self, linear_feedforward};
+    use piezo_firmware::demo;
+    use piezo_firmware::frames::SampleFrame;
+    use piezo_firmware::params;
+    use piezo_firmware::reference::ReferenceGenerator;
+    use piezo_firmware::xy_loop::{AdcPair, Feedforward, Mode, TwoAxisLoop, XyIo};
+
+    /// Frames are produced every this many ticks (1 kHz of frames at a 10 kHz loop).
+    const FRAME_DECIMATION: u32 = 10;
 
     #[entry]
     fn main() -> ! {
+        defmt::info!(
+            "parameters {=str} ({=str}), fnv1a32 {=u32:#010x}, loop {} Hz",
+            params::VERSION,
+            params::SOURCE,
+            params::FNV1A32,
+            params::LOOP_RATE_HZ
+        );
         let Some(dp) = pac::Peripherals::take() else {
             defmt::panic!("peripherals already taken");
+        };
+        let mut settings = match demo::settings() {
+            Ok(s) => s,
+            Err(e) => defmt::panic!("parameter set refused: {}", defmt::Debug2Format(&e)),
+        };
+        settings.frame_decimation = FRAME_DECIMATION;
+        let Some(scale) = demo::sensor_scale() else {
+            defmt::panic!("sensor scale refused");
         };
         let board = match Board::init(dp) {
             Ok(board) => board,
@@ -42,52 +60,46 @@ mod image {
         let Board {
             dac,
             adc,
+            adc_y,
             mut loop_timer,
         } = board;
-        let mut io = LoopIo {
+        let mut io = XyIo {
             dac,
-            dac_channel: Dac8563Channel::A,
-            adc,
-            adc_channel: (),
+            dac_channels: [Dac8563Channel::A, Dac8563Channel::B],
+            sensor: AdcPair {
+                x: adc,
+                y: adc_y,
+                scale,
+            },
         };
-        let config = demo::loop_config();
-        let mut guard = config.limits().state(0.0);
-        defmt::info!("loop running at {} Hz", piezo_firmware::board::LOOP_RATE_HZ);
+        let reference = ReferenceGenerator::new(demo::program(), params::SAMPLE_PERIOD_S, [0.0; 2]);
+        // The DAC init left both outputs at 0 V.
+        let mut lp = TwoAxisLoop::new(settings, Feedforward::Compensator, reference, [0.0; 2]);
+        defmt::info!("loop running at {} Hz", board::LOOP_RATE_HZ);
 
+        let mut batch = heapless::Vec::<SampleFrame, 8>::new();
         let mut k: u32 = 0;
+        let mut reported_safe = false;
         loop {
-            while loop_timer.wait().is_err() {}
-            let reference_m = demo::reference_m(k % demo::DEMO_TICKS);
-            match tick(
-                &mut io,
-                &config,
-                &mut guard,
-                reference_m,
-                linear_feedforward,
-            ) {
-                Ok(out) => {
-                    if k.is_multiple_of(piezo_firmware::board::LOOP_RATE_HZ) {
-                        defmt::info!(
-                            "tick {}: error {} nm, out {} V, faults {}",
-                            k,
-                            out.tracking_error_m * 1e9,
-                            out.applied_volts,
-                            guard.counters().total()
-                        );
-                    }
-                }
-                Err(e) => {
-                    let safe = io.dac.write_code(Dac8563Channel::A, DacCode::SAFE);
-                    defmt::error!(
-                        "tick {} failed: {}; DAC to 0 V: {}; parked",
-                        k,
-                        defmt::Debug2Format(&e),
-                        safe.is_ok()
-                    );
-                    loop {
-                        cortex_m::asm::wfi();
-                    }
-                }
+            let late = board::wait_for_tick(&mut loop_timer);
+            let report = lp.tick(&mut io, late);
+            if let (Mode::Safe(fault), false) = (report.mode, reported_safe) {
+                reported_safe = true;
+                defmt::error!(
+                    "tick {}: safe state ({}), outputs held at {} V",
+                    k,
+                    defmt::Debug2Format(&fault),
+                    report.applied_v
+                );
+            }
+            // Send frames in batches of 8 (one defmt record per 80 ticks); a full queue drops
+            // frames, which the receiver sees as a sequence gap.
+            if lp.frames.len() >= batch.capacity() {
+                lp.frames.drain_into(&mut batch);
+                defmt::info!("frames {}", batch.as_slice());
+            }
+            if k.is_multiple_of(board::LOOP_RATE_HZ) {
+                defmt::info!("counters {}", defmt::Debug2Format(&lp.counters()));
             }
             k = k.wrapping_add(1);
         }

@@ -1,17 +1,17 @@
-//! QEMU image for `mps2-an386` (Cortex-M4F): runs the fixed self-check of
-//! [`piezo_firmware::demo`] (the loop body [`piezo_firmware::control::tick`] against a simulated
-//! stage), prints the result over semihosting and exits QEMU with success or failure.
+//! QEMU image for `mps2-an386` (Cortex-M4F): the self-check of [`piezo_firmware::demo`] — the
+//! two-axis loop [`piezo_firmware::xy_loop::TwoAxisLoop`] with `piezo_core::Compensator` against
+//! the simulated stage (independent f32 Bouc-Wen + lag), once compensated and once with the
+//! linear baseline — then an overrun drill. Prints the parameter set (version, FNV-1a), RMS and
+//! peak error of both runs, a few sample frames, and exits QEMU with success only if the
+//! compensated RMS error is below 0.2 × the uncompensated one and below the absolute limits.
 //!
 //! Build and run (from `firmware/`): `cargo qemu`, or `./ci.sh`, or
 //! `cargo build --release --features qemu --bin qemu` then
-//! `./run-qemu.sh ../target/thumbv7em-none-eabihf/release/qemu` (path under `CARGO_TARGET_DIR`).
+//! `./run-qemu.sh $CARGO_TARGET_DIR/thumbv7em-none-eabihf/release/qemu`.
 //!
 //! Nothing can hang CI: the panic handler, HardFault and every unhandled exception exit QEMU with
-//! failure through semihosting, and the run script adds a timeout.
-//!
-//! After the self-check a bench window runs [`BENCH_TICKS`] ticks between the markers
-//! `bench_mark_start`/`bench_mark_end`, for `/work/shared/tools/qemu-insn-count/count.sh`
-//! (instructions per tick = window 1 / BENCH_TICKS, minus window 2, the empty window).
+//! failure through semihosting, and the run script adds a timeout. (Instruction counts and the
+//! no-panic link check are in the `check` image, `src/bin/check.rs`.)
 //!
 //! On the host this file builds to a stub `main` (only with `--features qemu`), so
 //! `cargo clippy --all-features` on the host still works.
@@ -20,48 +20,104 @@
 
 #[cfg(target_os = "none")]
 mod image {
-    use core::cell::Cell;
     use core::fmt::Write as _;
-    use core::hint::black_box;
 
     use cortex_m_rt::{entry, exception, ExceptionFrame};
     use cortex_m_semihosting::{debug, hio, hprintln};
 
-    use piezo_firmware::control::{tick, LoopIo};
-    use piezo_firmware::demo::{self, linear_feedforward};
-    use piezo_firmware::plant::{PlantAdc, PlantDac, SimPlant};
+    use piezo_firmware::demo::{self, DemoComparison, DemoReport};
+    use piezo_firmware::frames::{SampleFrame, SequenceChecker};
+    use piezo_firmware::params;
+    use piezo_firmware::xy_loop::{Feedforward, Mode};
 
-    /// Ticks in the instruction-count window.
-    pub const BENCH_TICKS: u32 = 1_000;
+    /// Frames printed from the compensated run (one batch, starting at this tick).
+    const PRINT_FRAMES_AT_TICK: u32 = 2_000;
+    /// Frames in the printed batch.
+    const PRINT_FRAMES: usize = 4;
 
     #[entry]
     fn main() -> ! {
         hprintln!(
-            "piezo-firmware qemu: {} ticks at {} Hz, linear feed-forward on the simulated stage",
-            demo::DEMO_TICKS,
-            demo::LOOP_RATE_HZ
+            "piezo-firmware qemu: parameters {} ({}), fnv1a32 {:#010x}, loop {} Hz",
+            params::VERSION,
+            params::SOURCE,
+            params::FNV1A32,
+            params::LOOP_RATE_HZ
         );
-        // The feed-forward is the one thing to swap: pass the compensator's step here.
-        let report = demo::run_demo(linear_feedforward);
+        let mut receiver = SequenceChecker::default();
+        let mut received: u32 = 0;
+        let mut printed = heapless::Vec::<SampleFrame, PRINT_FRAMES>::new();
+        let compensated = demo::run_demo(Feedforward::Compensator, |k, lp| {
+            // The sender: drain every tick (the receiver checks the sequence); print one batch.
+            let mut batch = heapless::Vec::<SampleFrame, 8>::new();
+            lp.frames.drain_into(&mut batch);
+            for f in &batch {
+                receiver.accept(f.sequence);
+                received += 1;
+                if k >= PRINT_FRAMES_AT_TICK && printed.len() < PRINT_FRAMES {
+                    let _ = printed.push(*f);
+                }
+            }
+        });
+        let uncompensated = demo::run_demo(Feedforward::Linear, |_, _| {});
+        let (compensated, uncompensated) = match (compensated, uncompensated) {
+            (Ok(c), Ok(u)) => (c, u),
+            (Err(e), _) | (_, Err(e)) => fail(format_args!("parameter set refused at boot: {e:?}")),
+        };
+        for f in &printed {
+            hprintln!(
+                "frame {}: x ref {} m cmd {} V sensor {} m | y ref {} m cmd {} V sensor {} m | wire {:02x?}",
+                f.sequence,
+                f.axes[0].reference_m,
+                f.axes[0].commanded_v,
+                f.axes[0].sensor_m,
+                f.axes[1].reference_m,
+                f.axes[1].commanded_v,
+                f.axes[1].sensor_m,
+                &f.to_bytes()[..8]
+            );
+        }
         hprintln!(
-            "tracking error after settling: rms {} nm (limit {}), max {} nm (limit {})",
-            report.stats.rms_m() * 1e9,
+            "frames: {} received, {} gaps ({} lost)",
+            received,
+            receiver.gaps,
+            receiver.lost
+        );
+        let cmp = DemoComparison {
+            compensated,
+            uncompensated,
+        };
+        print_run("compensated  ", &compensated);
+        print_run("uncompensated", &uncompensated);
+        let ratio = cmp.ratio();
+        hprintln!(
+            "ratio compensated/uncompensated rms: x {} y {} (limit {}); limits rms {} nm, max {} nm",
+            ratio[0],
+            ratio[1],
+            demo::RATIO_LIMIT,
             demo::RMS_ERROR_LIMIT_M * 1e9,
-            report.stats.max_abs_m() * 1e9,
             demo::MAX_ERROR_LIMIT_M * 1e9
         );
-        hprintln!(
-            "guard faults: non_finite {} window_clamped {} slew_limited {} (after settling: {})",
-            report.counters.non_finite,
-            report.counters.window_clamped,
-            report.counters.slew_limited,
-            report.faults_after_settle
-        );
-        let passed = report.passed();
-
-        bench();
-
-        if passed {
+        let drill = demo::overrun_drill();
+        let drill_ok = match drill {
+            Ok((counters, mode, before, at_fault)) => {
+                hprintln!(
+                    "overrun drill: injected at tick {}: overruns {}, safe entries {}, mode {:?}, output {:?} V held (was {:?} V)",
+                    demo::DRILL_OVERRUN_TICK,
+                    counters.overruns,
+                    counters.safe_entries,
+                    mode,
+                    at_fault,
+                    before
+                );
+                counters.overruns == 1 && matches!(mode, Mode::Safe(_)) && before == at_fault
+            }
+            Err(e) => {
+                hprintln!("overrun drill could not run: {:?}", e);
+                false
+            }
+        };
+        if cmp.passed() && drill_ok && receiver.gaps == 0 {
             hprintln!("PASS");
             debug::exit(debug::EXIT_SUCCESS);
         } else {
@@ -72,48 +128,18 @@ mod image {
         loop {}
     }
 
-    /// [`BENCH_TICKS`] ticks of the loop body (with the simulated stage behind the traits)
-    /// between the markers, then an empty window.
-    fn bench() {
-        let plant = Cell::new(SimPlant::new(demo::plant_params()));
-        let config = demo::loop_config();
-        let mut io = LoopIo {
-            dac: PlantDac(&plant),
-            dac_channel: (),
-            adc: PlantAdc(&plant),
-            adc_channel: (),
-        };
-        let mut guard = config.limits().state(50.0);
-        bench_mark_start();
-        for k in 0..BENCH_TICKS {
-            let reference_m = demo::REFERENCE_OFFSET_M + k as f32 * 1e-10;
-            let out = tick(
-                &mut io,
-                &config,
-                &mut guard,
-                black_box(reference_m),
-                linear_feedforward,
-            );
-            black_box(out.ok());
-        }
-        bench_mark_end();
-        bench_mark_start();
-        bench_mark_end();
-    }
-
-    // The markers are found by name (`nm`), so they must keep their symbol and not be merged.
-    #[allow(unsafe_code)] // `no_mangle` only; no unsafe operation.
-    #[no_mangle]
-    #[inline(never)]
-    extern "C" fn bench_mark_start() {
-        black_box(0x5741_5254_u32);
-    }
-
-    #[allow(unsafe_code)] // `no_mangle` only; no unsafe operation.
-    #[no_mangle]
-    #[inline(never)]
-    extern "C" fn bench_mark_end() {
-        black_box(0x0045_4e44_u32);
+    fn print_run(name: &str, r: &DemoReport) {
+        hprintln!(
+            "{}: x rms {} nm max {} nm | y rms {} nm max {} nm | faults {} guard after settle {} limited {}",
+            name,
+            r.stats[0].rms_m() * 1e9,
+            r.stats[0].max_abs_m() * 1e9,
+            r.stats[1].rms_m() * 1e9,
+            r.stats[1].max_abs_m() * 1e9,
+            r.counters.faults(),
+            r.guard_faults_after_settle,
+            r.counters.compensator_limited
+        );
     }
 
     fn fail(what: core::fmt::Arguments<'_>) -> ! {

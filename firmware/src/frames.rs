@@ -1,0 +1,274 @@
+//! Sample frames out: what the loop did, per tick (or every `decimation`-th tick), for a host to
+//! record.
+//!
+//! A [`SampleFrame`] is `{sequence, per axis: reference_m, commanded_v, sensor_m}`. The loop pushes
+//! frames into a fixed-capacity [`FrameQueue`]; the sender drains them in batches (defmt on the
+//! board, semihosting in QEMU) in the 28-byte little-endian wire format of
+//! [`SampleFrame::to_bytes`]. The sequence number counts every frame the loop *produced*,
+//! including those dropped because the queue was full, so a receiver ([`SequenceChecker`]) sees a
+//! gap exactly where frames were lost, in the link or in the queue.
+
+use heapless::Deque;
+
+/// Frames the queue holds.
+pub const FRAME_QUEUE_CAPACITY: usize = 32;
+
+/// One axis of a frame.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[cfg_attr(all(target_os = "none", feature = "board"), derive(defmt::Format))]
+pub struct AxisSample {
+    /// Setpoint of the tick [m].
+    pub reference_m: f32,
+    /// Voltage applied to the actuator (after the safety guard) [V].
+    pub commanded_v: f32,
+    /// Sensor reading at the start of the tick [m] (NaN if the read failed).
+    pub sensor_m: f32,
+}
+
+/// One frame.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[cfg_attr(all(target_os = "none", feature = "board"), derive(defmt::Format))]
+pub struct SampleFrame {
+    /// Frame number, +1 per produced frame (wraps at 2³²).
+    pub sequence: u32,
+    /// x, y.
+    pub axes: [AxisSample; 2],
+}
+
+/// Size of a frame on the wire.
+pub const FRAME_BYTES: usize = 28;
+
+impl SampleFrame {
+    /// Wire format: `sequence` (u32), then per axis `reference_m`, `commanded_v`, `sensor_m`
+    /// (f32), all little-endian.
+    pub fn to_bytes(&self) -> [u8; FRAME_BYTES] {
+        let mut out = [0u8; FRAME_BYTES];
+        let mut words = [0u32; 7];
+        words[0] = self.sequence;
+        for (i, a) in self.axes.iter().enumerate() {
+            words[1 + 3 * i] = a.reference_m.to_bits();
+            words[2 + 3 * i] = a.commanded_v.to_bits();
+            words[3 + 3 * i] = a.sensor_m.to_bits();
+        }
+        for (chunk, word) in out.chunks_exact_mut(4).zip(words) {
+            chunk.copy_from_slice(&word.to_le_bytes());
+        }
+        out
+    }
+
+    /// Inverse of [`SampleFrame::to_bytes`].
+    pub fn from_bytes(bytes: &[u8; FRAME_BYTES]) -> Self {
+        let mut words = [0u32; 7];
+        for (word, chunk) in words.iter_mut().zip(bytes.chunks_exact(4)) {
+            let mut b = [0u8; 4];
+            b.copy_from_slice(chunk);
+            *word = u32::from_le_bytes(b);
+        }
+        let axis = |i: usize| AxisSample {
+            reference_m: f32::from_bits(words[1 + 3 * i]),
+            commanded_v: f32::from_bits(words[2 + 3 * i]),
+            sensor_m: f32::from_bits(words[3 + 3 * i]),
+        };
+        Self {
+            sequence: words[0],
+            axes: [axis(0), axis(1)],
+        }
+    }
+}
+
+/// The loop's outgoing frames: decimation, sequence numbers, a bounded queue.
+#[derive(Debug)]
+pub struct FrameQueue {
+    frames: Deque<SampleFrame, FRAME_QUEUE_CAPACITY>,
+    decimation: u32,
+    countdown: u32,
+    next_sequence: u32,
+    dropped: u32,
+}
+
+impl FrameQueue {
+    /// One frame every `decimation` ticks (0 is taken as 1).
+    pub fn new(decimation: u32) -> Self {
+        Self {
+            frames: Deque::new(),
+            decimation: decimation.max(1),
+            countdown: 0,
+            next_sequence: 0,
+            dropped: 0,
+        }
+    }
+
+    /// Called once per tick: `make` builds the frame only on the ticks that produce one.
+    /// A frame that finds the queue full is dropped (and counted); its sequence number is used.
+    #[inline]
+    pub fn offer(&mut self, make: impl FnOnce() -> [AxisSample; 2]) {
+        if self.countdown > 0 {
+            self.countdown -= 1;
+            return;
+        }
+        self.countdown = self.decimation - 1;
+        let frame = SampleFrame {
+            sequence: self.next_sequence,
+            axes: make(),
+        };
+        self.next_sequence = self.next_sequence.wrapping_add(1);
+        if self.frames.push_back(frame).is_err() {
+            self.dropped = self.dropped.saturating_add(1);
+        }
+    }
+
+    /// Moves up to `N` frames, oldest first, into `batch` (cleared first); returns how many.
+    pub fn drain_into<const N: usize>(
+        &mut self,
+        batch: &mut heapless::Vec<SampleFrame, N>,
+    ) -> usize {
+        batch.clear();
+        while batch.len() < N {
+            match self.frames.pop_front() {
+                Some(f) => {
+                    // Cannot fail: the length was checked above.
+                    let _ = batch.push(f);
+                }
+                None => break,
+            }
+        }
+        batch.len()
+    }
+
+    /// Frames waiting.
+    pub fn len(&self) -> usize {
+        self.frames.len()
+    }
+
+    /// True if no frame is waiting.
+    pub fn is_empty(&self) -> bool {
+        self.frames.is_empty()
+    }
+
+    /// Frames dropped because the queue was full (saturating).
+    pub fn dropped(&self) -> u32 {
+        self.dropped
+    }
+
+    /// Sequence number the next frame will get.
+    pub fn next_sequence(&self) -> u32 {
+        self.next_sequence
+    }
+}
+
+/// Receiver side: finds gaps in the sequence numbers.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct SequenceChecker {
+    expected: Option<u32>,
+    /// Gaps seen.
+    pub gaps: u32,
+    /// Frames missing in those gaps.
+    pub lost: u32,
+}
+
+impl SequenceChecker {
+    /// Takes one received sequence number; returns how many frames are missing before it
+    /// (0 if none). A number that goes backwards restarts the count (a reboot) without a gap.
+    pub fn accept(&mut self, sequence: u32) -> u32 {
+        let missing = match self.expected {
+            Some(e) => {
+                let ahead = sequence.wrapping_sub(e);
+                if ahead < u32::MAX / 2 {
+                    ahead
+                } else {
+                    0
+                }
+            }
+            None => 0,
+        };
+        if missing > 0 {
+            self.gaps += 1;
+            self.lost = self.lost.saturating_add(missing);
+        }
+        self.expected = Some(sequence.wrapping_add(1));
+        missing
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn axes(v: f32) -> [AxisSample; 2] {
+        [
+            AxisSample {
+                reference_m: v,
+                commanded_v: 2.0 * v,
+                sensor_m: f32::NAN,
+            },
+            AxisSample {
+                reference_m: -v,
+                commanded_v: 3.0,
+                sensor_m: 1e-6,
+            },
+        ]
+    }
+
+    #[test]
+    fn wire_format_round_trips_bit_exactly() {
+        let f = SampleFrame {
+            sequence: 0xdead_beef,
+            axes: axes(1.5e-6),
+        };
+        let bytes = f.to_bytes();
+        assert_eq!(&bytes[..4], &[0xef, 0xbe, 0xad, 0xde]);
+        let back = SampleFrame::from_bytes(&bytes);
+        assert_eq!(back.to_bytes(), bytes);
+        assert_eq!(back.sequence, f.sequence);
+        assert!(back.axes[0].sensor_m.is_nan());
+    }
+
+    #[test]
+    fn decimation_and_batches() {
+        let mut q = FrameQueue::new(4);
+        for k in 0..40 {
+            q.offer(|| axes(k as f32));
+        }
+        assert_eq!(q.len(), 10);
+        let mut batch = heapless::Vec::<SampleFrame, 8>::new();
+        assert_eq!(q.drain_into(&mut batch), 8);
+        assert_eq!(batch[0].axes[0].reference_m, 0.0);
+        assert_eq!(batch[1].axes[0].reference_m, 4.0);
+        assert_eq!(batch[7].sequence, 7);
+        assert_eq!(q.drain_into(&mut batch), 2);
+        assert!(q.is_empty());
+    }
+
+    #[test]
+    fn overflow_drops_and_the_receiver_sees_the_gap() {
+        let mut q = FrameQueue::new(1);
+        let mut rx = SequenceChecker::default();
+        let mut batch = heapless::Vec::<SampleFrame, 16>::new();
+        for k in 0..(FRAME_QUEUE_CAPACITY + 5) {
+            q.offer(|| axes(k as f32));
+        }
+        assert_eq!(q.dropped(), 5);
+        for _ in 0..3 {
+            q.drain_into(&mut batch);
+            for f in &batch {
+                assert_eq!(rx.accept(f.sequence), 0);
+            }
+        }
+        q.offer(|| axes(0.0));
+        q.drain_into(&mut batch);
+        assert_eq!(rx.accept(batch[0].sequence), 5);
+        assert_eq!((rx.gaps, rx.lost), (1, 5));
+    }
+
+    #[test]
+    fn sequence_wraps_without_a_gap() {
+        let mut rx = SequenceChecker::default();
+        rx.accept(u32::MAX - 1);
+        assert_eq!(rx.accept(u32::MAX), 0);
+        assert_eq!(rx.accept(0), 0);
+        assert_eq!(rx.accept(2), 1);
+        // Backwards: a restart, not a gap.
+        assert_eq!(rx.accept(0), 0);
+        assert_eq!(rx.gaps, 1);
+    }
+}

@@ -1,0 +1,339 @@
+//! Reference generator: the two-axis setpoint of each tick, in metres.
+//!
+//! Programs ([`Program`]):
+//! - per axis a [`Waveform`]: constant, sine, triangle or steps (square wave), each
+//!   `offset + amplitude · w(φ)` with `w ∈ [−1, 1]` and a phase φ in cycles advanced by
+//!   `f · T` per tick and wrapped to `[0, 1)` (no precision loss over long runs);
+//! - a raster: x sweeps a triangle between `x_min` and `x_max`, one line per half period; at
+//!   each turn-around y moves to the next of `lines` equally spaced rows between `y_min` and
+//!   `y_max`, then back (boustrophedon in both directions);
+//! - streamed setpoints: one `[x, y]` per tick from a fixed-capacity queue
+//!   ([`STREAM_CAPACITY`] − 1 entries, `heapless::spsc::Queue`), filled by the host link; when
+//!   the queue runs dry the last setpoint is held and the underrun is counted.
+//!
+//! [`ReferenceGenerator::next_setpoint`] never panics and does not allocate. A non-finite setpoint is
+//! passed on: the compensator holds its voltage for it and the safety guard counts it.
+
+use heapless::spsc::Queue;
+
+/// Queue size for streamed setpoints (holds one fewer).
+pub const STREAM_CAPACITY: usize = 64;
+
+/// One axis's periodic waveform.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Waveform {
+    /// `offset_m`.
+    Constant {
+        /// Value [m].
+        offset_m: f32,
+    },
+    /// `offset + amplitude · sin(2πφ)`.
+    Sine {
+        /// Centre [m].
+        offset_m: f32,
+        /// Amplitude [m].
+        amplitude_m: f32,
+        /// Frequency [Hz].
+        frequency_hz: f32,
+    },
+    /// `offset + amplitude · tri(φ)`, rising from −1 at φ = 0 to +1 at φ = ½.
+    Triangle {
+        /// Centre [m].
+        offset_m: f32,
+        /// Amplitude [m].
+        amplitude_m: f32,
+        /// Frequency [Hz].
+        frequency_hz: f32,
+    },
+    /// `offset − amplitude` for φ < ½, `offset + amplitude` after.
+    Steps {
+        /// Centre [m].
+        offset_m: f32,
+        /// Half the step height [m].
+        amplitude_m: f32,
+        /// Frequency [Hz].
+        frequency_hz: f32,
+    },
+}
+
+impl Waveform {
+    fn frequency_hz(&self) -> f32 {
+        match *self {
+            Waveform::Constant { .. } => 0.0,
+            Waveform::Sine { frequency_hz, .. }
+            | Waveform::Triangle { frequency_hz, .. }
+            | Waveform::Steps { frequency_hz, .. } => frequency_hz,
+        }
+    }
+
+    /// Value at phase `phase` cycles (in `[0, 1)`).
+    pub fn at(&self, phase: f32) -> f32 {
+        match *self {
+            Waveform::Constant { offset_m } => offset_m,
+            Waveform::Sine {
+                offset_m,
+                amplitude_m,
+                ..
+            } => offset_m + amplitude_m * libm::sinf(2.0 * core::f32::consts::PI * phase),
+            Waveform::Triangle {
+                offset_m,
+                amplitude_m,
+                ..
+            } => offset_m + amplitude_m * triangle(phase),
+            Waveform::Steps {
+                offset_m,
+                amplitude_m,
+                ..
+            } => {
+                if phase < 0.5 {
+                    offset_m - amplitude_m
+                } else {
+                    offset_m + amplitude_m
+                }
+            }
+        }
+    }
+}
+
+/// −1 at 0, +1 at ½, −1 at 1.
+fn triangle(phase: f32) -> f32 {
+    if phase < 0.5 {
+        4.0 * phase - 1.0
+    } else {
+        3.0 - 4.0 * phase
+    }
+}
+
+/// What the generator plays.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Program {
+    /// One waveform per axis.
+    PerAxis([Waveform; 2]),
+    /// Raster scan (see module docs).
+    Raster {
+        /// Left end of a line [m].
+        x_min_m: f32,
+        /// Right end of a line [m].
+        x_max_m: f32,
+        /// First row [m].
+        y_min_m: f32,
+        /// Last row [m].
+        y_max_m: f32,
+        /// Rows (≥ 2).
+        lines: u16,
+        /// Lines per second (a triangle period is two lines).
+        line_rate_hz: f32,
+    },
+    /// Setpoints from [`ReferenceGenerator::push_setpoint`].
+    Streamed,
+}
+
+/// The generator: program, phase and the stream queue.
+pub struct ReferenceGenerator {
+    program: Program,
+    sample_period_s: f32,
+    phase: [f32; 2],
+    /// Raster: completed lines since the start (wraps).
+    line: u32,
+    stream: Queue<[f32; 2], STREAM_CAPACITY>,
+    last_streamed: [f32; 2],
+    underruns: u32,
+}
+
+impl ReferenceGenerator {
+    /// A generator for `program` at the loop period `sample_period_s`, starting at phase 0.
+    /// `initial_m` is what [`Program::Streamed`] holds before the first setpoint arrives.
+    pub fn new(program: Program, sample_period_s: f32, initial_m: [f32; 2]) -> Self {
+        Self {
+            program,
+            sample_period_s,
+            phase: [0.0; 2],
+            line: 0,
+            stream: Queue::new(),
+            last_streamed: initial_m,
+            underruns: 0,
+        }
+    }
+
+    /// The program.
+    pub fn program(&self) -> Program {
+        self.program
+    }
+
+    /// Switches program, restarting its phase (the stream queue is kept).
+    pub fn set_program(&mut self, program: Program) {
+        self.program = program;
+        self.phase = [0.0; 2];
+        self.line = 0;
+    }
+
+    /// Queues one streamed setpoint; gives it back if the queue is full.
+    pub fn push_setpoint(&mut self, setpoint_m: [f32; 2]) -> Result<(), [f32; 2]> {
+        self.stream.enqueue(setpoint_m)
+    }
+
+    /// Streamed setpoints waiting.
+    pub fn queued(&self) -> usize {
+        self.stream.len()
+    }
+
+    /// Ticks in [`Program::Streamed`] that found the queue empty (saturating).
+    pub fn underruns(&self) -> u32 {
+        self.underruns
+    }
+
+    /// The setpoint of this tick, then advances one tick.
+    pub fn next_setpoint(&mut self) -> [f32; 2] {
+        match self.program {
+            Program::PerAxis(waves) => {
+                let out = [waves[0].at(self.phase[0]), waves[1].at(self.phase[1])];
+                for (phase, wave) in self.phase.iter_mut().zip(waves) {
+                    *phase = wrap(*phase + wave.frequency_hz() * self.sample_period_s);
+                }
+                out
+            }
+            Program::Raster {
+                x_min_m,
+                x_max_m,
+                y_min_m,
+                y_max_m,
+                lines,
+                line_rate_hz,
+            } => {
+                let half = 0.5 * (x_max_m - x_min_m);
+                let x = x_min_m + half + half * triangle(self.phase[0]);
+                let rows = u32::from(lines.max(2));
+                let k = self.line % (2 * rows - 2);
+                let row = if k < rows { k } else { 2 * rows - 2 - k };
+                let y = y_min_m + (y_max_m - y_min_m) * row as f32 / (rows - 1) as f32;
+                let advanced = self.phase[0] + 0.5 * line_rate_hz * self.sample_period_s;
+                // A line ends at each half period of the triangle.
+                let before = self.phase[0] < 0.5;
+                let wrapped = wrap(advanced);
+                if (before && wrapped >= 0.5) || wrapped < self.phase[0] {
+                    self.line = self.line.wrapping_add(1);
+                }
+                self.phase[0] = wrapped;
+                [x, y]
+            }
+            Program::Streamed => {
+                match self.stream.dequeue() {
+                    Some(s) => self.last_streamed = s,
+                    None => self.underruns = self.underruns.saturating_add(1),
+                }
+                self.last_streamed
+            }
+        }
+    }
+}
+
+/// Phase into `[0, 1)`; non-finite phases restart at 0.
+fn wrap(phase: f32) -> f32 {
+    if !phase.is_finite() {
+        return 0.0;
+    }
+    let w = phase - libm::floorf(phase);
+    if (0.0..1.0).contains(&w) {
+        w
+    } else {
+        0.0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const T: f32 = 1e-4;
+
+    #[test]
+    fn sine_and_triangle_hit_their_extremes() {
+        let mut g = ReferenceGenerator::new(
+            Program::PerAxis([
+                Waveform::Sine {
+                    offset_m: 10.0,
+                    amplitude_m: 2.0,
+                    frequency_hz: 100.0,
+                },
+                Waveform::Triangle {
+                    offset_m: 0.0,
+                    amplitude_m: 1.0,
+                    frequency_hz: 100.0,
+                },
+            ]),
+            T,
+            [0.0; 2],
+        );
+        let samples: std::vec::Vec<[f32; 2]> = (0..100).map(|_| g.next_setpoint()).collect();
+        assert!((samples[0][0] - 10.0).abs() < 1e-6);
+        assert!((samples[25][0] - 12.0).abs() < 1e-4);
+        assert!((samples[75][0] - 8.0).abs() < 1e-4);
+        assert!((samples[0][1] + 1.0).abs() < 1e-6);
+        assert!((samples[50][1] - 1.0).abs() < 1e-4);
+        // One full period later the waveform repeats.
+        assert!((g.next_setpoint()[0] - 10.0).abs() < 1e-3);
+    }
+
+    #[test]
+    fn steps_switch_at_half_period() {
+        let w = Waveform::Steps {
+            offset_m: 1.0,
+            amplitude_m: 0.5,
+            frequency_hz: 10.0,
+        };
+        assert_eq!(w.at(0.1), 0.5);
+        assert_eq!(w.at(0.6), 1.5);
+    }
+
+    #[test]
+    fn raster_visits_every_row_and_returns() {
+        let mut g = ReferenceGenerator::new(
+            Program::Raster {
+                x_min_m: 0.0,
+                x_max_m: 1.0,
+                y_min_m: 0.0,
+                y_max_m: 3.0,
+                lines: 4,
+                line_rate_hz: 100.0,
+            },
+            T,
+            [0.0; 2],
+        );
+        // 100 ticks per line; rows 0,1,2,3,2,1,0,...
+        let mut rows = std::vec::Vec::new();
+        for k in 0..800 {
+            let [x, y] = g.next_setpoint();
+            assert!((-1e-6..=1.0 + 1e-6).contains(&x));
+            if k % 100 == 50 {
+                rows.push(y.round() as i32);
+            }
+        }
+        assert_eq!(rows, [0, 1, 2, 3, 2, 1, 0, 1]);
+    }
+
+    #[test]
+    fn stream_plays_in_order_holds_and_counts_underruns() {
+        let mut g = ReferenceGenerator::new(Program::Streamed, T, [5.0, 6.0]);
+        assert_eq!(g.next_setpoint(), [5.0, 6.0]);
+        assert_eq!(g.underruns(), 1);
+        g.push_setpoint([1.0, 2.0]).unwrap();
+        g.push_setpoint([3.0, 4.0]).unwrap();
+        assert_eq!(g.queued(), 2);
+        assert_eq!(g.next_setpoint(), [1.0, 2.0]);
+        assert_eq!(g.next_setpoint(), [3.0, 4.0]);
+        assert_eq!(g.next_setpoint(), [3.0, 4.0]);
+        assert_eq!(g.underruns(), 2);
+        for i in 0..STREAM_CAPACITY - 1 {
+            g.push_setpoint([i as f32; 2]).unwrap();
+        }
+        assert_eq!(g.push_setpoint([9.0; 2]), Err([9.0; 2]));
+    }
+
+    #[test]
+    fn phase_wrap_is_total() {
+        for p in [f32::NAN, f32::INFINITY, -0.25, 1.0, 3.75, -1e-30] {
+            let w = wrap(p);
+            assert!((0.0..1.0).contains(&w), "{p} -> {w}");
+        }
+    }
+}

@@ -1,0 +1,587 @@
+//! The two-axis loop: per tick and per axis, reference → `piezo_core::Compensator` → safety guard
+//! → DAC, with the sensor read every tick, fault detection, a latched safe state and sample
+//! frames. No hardware in here: the converters come in through [`DacWrite`] and
+//! [`PositionSensor`], the timer through the `deadline_missed` argument, so the same code runs on
+//! the board, under QEMU and in host tests with mock converters.
+//!
+//! # One tick ([`TwoAxisLoop::tick`])
+//!
+//! ```text
+//! 0. deadline_missed (the previous tick overran)        → fault Overrun
+//! 1. per axis: x_meas = sensor.read_m(axis)             Err → fault SensorError
+//!                                                       non-finite → fault NonFiniteReading
+//!                                                       frozen → fault StuckReading
+//! 2. running: [r_x, r_y] = reference.next()
+//!    per axis: u_req = compensator.compensate(state, r)  (or the linear baseline
+//!                                                       u_min + (r − y_rest)/g_lin)
+//!              u     = guard.apply(u_req)               window, slew, non-finite → hold
+//!    safe:     u     = last guarded output (hold); reference paused, compensator frozen
+//! 3. per axis: DAC code = u / G_amp                     Err → fault DacError; axes not yet
+//!                                                       written this tick get their hold value
+//! 4. frame {sequence, per axis: r, u, x_meas}           every `decimation`-th tick
+//! ```
+//!
+//! A fault latches the safe state *in the tick that detects it* (the DAC codes written in that
+//! tick are already the hold values, except for axes whose new code was written before a later
+//! axis's DAC write failed) and counts it ([`LoopCounters`]); the loop stays safe until
+//! [`TwoAxisLoop::rearm`]. The safe state holds each actuator at its last guarded voltage: no step
+//! on the stage, the compensator's state stays consistent with the voltage actually applied.
+//! Stuck detection: the reading bit-identical for [`StuckPolicy::ticks`] ticks while the
+//! commanded voltage moved by at least [`StuckPolicy::min_motion_v`] since it froze.
+//!
+//! # Deadline
+//! A tick must have written both DAC codes within one loop period `T = 1/loop_rate_hz` (100 µs at
+//! 10 kHz) of the timer update that started it. The caller detects a miss and passes it to the
+//! next tick as `deadline_missed`: on the board the TIM2 update flag is already set when the loop
+//! comes back to wait for it; under QEMU and on the host the flag is injected. A missed deadline
+//! trips the safe state in the tick that is told about it.
+//!
+//! Never panics (checked mechanically by the `check` image, see `firmware/ci.sh`), no allocation.
+
+use piezo_core::{CommandStatus, Compensator, CompensatorState, ParamError};
+
+use crate::codes::{DacCode, SensorScale};
+use crate::converter::{AdcRead, DacWrite, Error, ErrorKind, ErrorType};
+use crate::frames::{AxisSample, FrameQueue};
+use crate::params::AxisParams;
+use crate::reference::ReferenceGenerator;
+use crate::safety::{GuardState, LimitsError, SafetyLimits};
+
+/// An axis of the stage.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Axis {
+    /// x (index 0).
+    X,
+    /// y (index 1).
+    Y,
+}
+
+impl Axis {
+    /// Both axes, in order.
+    pub const ALL: [Axis; 2] = [Axis::X, Axis::Y];
+
+    /// 0 for x, 1 for y.
+    #[inline]
+    pub fn index(self) -> usize {
+        match self {
+            Axis::X => 0,
+            Axis::Y => 1,
+        }
+    }
+}
+
+/// Something that measures each axis's displacement in metres.
+pub trait PositionSensor: ErrorType {
+    /// The displacement of `axis` now [m].
+    fn read_m(&mut self, axis: Axis) -> Result<f32, Self::Error>;
+}
+
+/// A [`PositionSensor`] made of an ADC (one channel per axis) and the sensor gain.
+#[derive(Debug)]
+pub struct AdcSensor<A: AdcRead> {
+    /// The converter.
+    pub adc: A,
+    /// Its channel for x and for y.
+    pub channels: [A::Channel; 2],
+    /// Metres per volt at the ADC input.
+    pub scale: SensorScale,
+}
+
+impl<A: AdcRead> ErrorType for AdcSensor<A> {
+    type Error = A::Error;
+}
+
+impl<A: AdcRead> PositionSensor for AdcSensor<A> {
+    #[inline]
+    fn read_m(&mut self, axis: Axis) -> Result<f32, A::Error> {
+        let code = self.adc.read_code(self.channels[axis.index()])?;
+        Ok(self.scale.metres(code.to_volts()))
+    }
+}
+
+/// A [`PositionSensor`] made of two single-channel ADCs of possibly different types (the board:
+/// one ADS8681 per axis on separate buses).
+#[derive(Debug)]
+pub struct AdcPair<X: AdcRead<Channel = ()>, Y: AdcRead<Channel = ()>> {
+    /// x-axis converter.
+    pub x: X,
+    /// y-axis converter.
+    pub y: Y,
+    /// Metres per volt at the ADC input (both axes).
+    pub scale: SensorScale,
+}
+
+/// Error of an [`AdcPair`]: which converter failed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PairError<EX, EY> {
+    /// The x converter.
+    X(EX),
+    /// The y converter.
+    Y(EY),
+}
+
+impl<EX: Error, EY: Error> Error for PairError<EX, EY> {
+    fn kind(&self) -> ErrorKind {
+        match self {
+            PairError::X(e) => e.kind(),
+            PairError::Y(e) => e.kind(),
+        }
+    }
+}
+
+impl<X: AdcRead<Channel = ()>, Y: AdcRead<Channel = ()>> ErrorType for AdcPair<X, Y> {
+    type Error = PairError<X::Error, Y::Error>;
+}
+
+impl<X: AdcRead<Channel = ()>, Y: AdcRead<Channel = ()>> PositionSensor for AdcPair<X, Y> {
+    #[inline]
+    fn read_m(&mut self, axis: Axis) -> Result<f32, Self::Error> {
+        let code = match axis {
+            Axis::X => self.x.read_code(()).map_err(PairError::X)?,
+            Axis::Y => self.y.read_code(()).map_err(PairError::Y)?,
+        };
+        Ok(self.scale.metres(code.to_volts()))
+    }
+}
+
+/// The converters the loop drives.
+#[derive(Debug)]
+pub struct XyIo<D: DacWrite, S: PositionSensor> {
+    /// Drives both piezo amplifiers.
+    pub dac: D,
+    /// DAC channel of x and of y.
+    pub dac_channels: [D::Channel; 2],
+    /// Reads both displacements.
+    pub sensor: S,
+}
+
+/// Which feed-forward computes the requested voltage.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Feedforward {
+    /// `piezo_core::Compensator` (the inverse hysteresis model).
+    Compensator,
+    /// The uncompensated baseline: `u = u_min + (r − y_rest)/g_lin`, with `g_lin` the secant gain
+    /// of the first loading over the window.
+    Linear,
+}
+
+/// When a frozen sensor reading counts as stuck.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StuckPolicy {
+    /// Consecutive ticks with a bit-identical reading.
+    pub ticks: u32,
+    /// Least change of the commanded voltage since the reading froze [V].
+    pub min_motion_v: f32,
+}
+
+impl StuckPolicy {
+    /// 10 ticks and 1 V: at ≈ 0.35 µm/V the stage moves ≥ 0.04 µm (≥ 13 sensor LSB) for 1 V even
+    /// on the steepest unloading branch.
+    pub const DEFAULT: StuckPolicy = StuckPolicy {
+        ticks: 10,
+        min_motion_v: 1.0,
+    };
+}
+
+/// Settings of one axis.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AxisConfig {
+    compensator: Compensator,
+    limits: SafetyLimits,
+    linear_gain_m_per_v: f32,
+    rest_output_m: f32,
+    min_v: f32,
+}
+
+/// Why an axis could not be configured.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum ConfigError {
+    /// The core refused the model or the compensator limits.
+    Core(ParamError),
+    /// The safety guard refused the limits.
+    Limits(LimitsError),
+    /// Amplifier gain or linear gain not finite and positive / nonzero.
+    Gain,
+}
+
+/// The guard allows this much more slew per tick than the compensator itself uses, so that it
+/// only acts on a real fault and not on the rounding of `u₋ + Δu`.
+pub const GUARD_SLEW_MARGIN: f32 = 1.001;
+
+impl AxisConfig {
+    /// An axis from the parameter file, at loop period `sample_period_s`: the core's compensator
+    /// and a guard with the same window and slew limit (plus [`GUARD_SLEW_MARGIN`]).
+    pub fn from_params(p: &AxisParams, sample_period_s: f32) -> Result<Self, ConfigError> {
+        let model = p.model().map_err(ConfigError::Core)?;
+        let compensator =
+            Compensator::new(model, p.settings(sample_period_s)).map_err(ConfigError::Core)?;
+        let max_step_v = p.slew_limit_v_per_s * sample_period_s * GUARD_SLEW_MARGIN;
+        let limits = SafetyLimits::new(p.output_min_v, p.output_max_v, max_step_v)
+            .map_err(ConfigError::Limits)?;
+        if !(p.linear_gain_m_per_v.is_finite() && p.linear_gain_m_per_v != 0.0) {
+            return Err(ConfigError::Gain);
+        }
+        Ok(Self {
+            compensator,
+            limits,
+            linear_gain_m_per_v: p.linear_gain_m_per_v,
+            rest_output_m: p.rest_output_m,
+            min_v: p.output_min_v,
+        })
+    }
+
+    /// The core's compensator.
+    pub fn compensator(&self) -> &Compensator {
+        &self.compensator
+    }
+
+    /// The guard's limits.
+    pub fn limits(&self) -> &SafetyLimits {
+        &self.limits
+    }
+}
+
+/// Settings of the loop.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LoopSettings {
+    /// x, y.
+    pub axes: [AxisConfig; 2],
+    /// Actuator volts per DAC volt.
+    pub amplifier_gain_v_per_v: f32,
+    /// Stuck-sensor detection.
+    pub stuck: StuckPolicy,
+    /// Frame decimation (one frame every this many ticks).
+    pub frame_decimation: u32,
+}
+
+impl LoopSettings {
+    /// Both axes of the parameter file at its loop rate, default stuck policy, one frame per tick.
+    pub fn from_params(
+        axes: &[AxisParams; 2],
+        amplifier_gain_v_per_v: f32,
+        sample_period_s: f32,
+    ) -> Result<Self, ConfigError> {
+        if !(amplifier_gain_v_per_v.is_finite() && amplifier_gain_v_per_v > 0.0) {
+            return Err(ConfigError::Gain);
+        }
+        Ok(Self {
+            axes: [
+                AxisConfig::from_params(&axes[0], sample_period_s)?,
+                AxisConfig::from_params(&axes[1], sample_period_s)?,
+            ],
+            amplifier_gain_v_per_v,
+            stuck: StuckPolicy::DEFAULT,
+            frame_decimation: 1,
+        })
+    }
+}
+
+/// What tripped the safe state.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Fault {
+    /// The previous tick missed its deadline.
+    Overrun,
+    /// Reading an axis's sensor failed (bus error).
+    SensorError(Axis),
+    /// An axis's sensor gave NaN or ±∞.
+    NonFiniteReading(Axis),
+    /// An axis's sensor reading froze while the actuator moved.
+    StuckReading(Axis),
+    /// Writing an axis's DAC code failed.
+    DacError(Axis),
+}
+
+/// Running or safe (with the fault that tripped it).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Mode {
+    /// Tracking the reference.
+    Running,
+    /// Holding the outputs after a fault, until [`TwoAxisLoop::rearm`].
+    Safe(Fault),
+}
+
+/// Event counts since the loop was made (saturating).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct LoopCounters {
+    /// Ticks run.
+    pub ticks: u32,
+    /// Missed deadlines.
+    pub overruns: u32,
+    /// Failed sensor reads.
+    pub sensor_errors: u32,
+    /// Non-finite sensor readings.
+    pub non_finite_readings: u32,
+    /// Stuck-sensor detections.
+    pub stuck_readings: u32,
+    /// Failed DAC writes.
+    pub dac_errors: u32,
+    /// Transitions Running → Safe.
+    pub safe_entries: u32,
+    /// Samples where the compensator's window or slew limit stopped it short (both axes).
+    pub compensator_limited: u32,
+    /// Samples with a non-finite reference, held by the compensator (both axes).
+    pub held_references: u32,
+}
+
+impl LoopCounters {
+    /// Faults of all kinds (overruns, sensor errors, non-finite and stuck readings, DAC errors).
+    pub fn faults(&self) -> u32 {
+        self.overruns
+            .saturating_add(self.sensor_errors)
+            .saturating_add(self.non_finite_readings)
+            .saturating_add(self.stuck_readings)
+            .saturating_add(self.dac_errors)
+    }
+}
+
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+struct StuckDetector {
+    last_bits: u32,
+    same_ticks: u32,
+    volts_at_freeze: f32,
+    reported: bool,
+}
+
+impl StuckDetector {
+    /// True (once per freeze) when the reading has been frozen long enough while the command
+    /// moved.
+    #[inline]
+    fn observe(&mut self, reading_m: f32, commanded_v: f32, policy: &StuckPolicy) -> bool {
+        let bits = reading_m.to_bits();
+        if bits == self.last_bits {
+            self.same_ticks = self.same_ticks.saturating_add(1);
+        } else {
+            *self = Self {
+                last_bits: bits,
+                same_ticks: 0,
+                volts_at_freeze: commanded_v,
+                reported: false,
+            };
+        }
+        let stuck = self.same_ticks >= policy.ticks
+            && (commanded_v - self.volts_at_freeze).abs() >= policy.min_motion_v;
+        let first = stuck && !self.reported;
+        self.reported |= stuck;
+        first
+    }
+}
+
+/// What one tick did.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TickReport {
+    /// Setpoints used (the last ones while safe) [m].
+    pub reference_m: [f32; 2],
+    /// Sensor readings at the start of the tick [m] (NaN where the read failed).
+    pub measured_m: [f32; 2],
+    /// Voltages written (or attempted) [V].
+    pub applied_v: [f32; 2],
+    /// Mode at the end of the tick.
+    pub mode: Mode,
+}
+
+/// The loop: settings, per-axis compensator and guard state, reference, faults, frames.
+pub struct TwoAxisLoop {
+    settings: LoopSettings,
+    feedforward: Feedforward,
+    compensator: [CompensatorState; 2],
+    guard: [GuardState; 2],
+    stuck: [StuckDetector; 2],
+    mode: Mode,
+    counters: LoopCounters,
+    last_reference_m: [f32; 2],
+    /// The reference generator (public: push streamed setpoints, switch programs).
+    pub reference: ReferenceGenerator,
+    /// Outgoing sample frames (public: the sender drains them).
+    pub frames: FrameQueue,
+}
+
+impl TwoAxisLoop {
+    /// A running loop whose actuators are at `initial_v` (the voltages the DACs hold now).
+    pub fn new(
+        settings: LoopSettings,
+        feedforward: Feedforward,
+        reference: ReferenceGenerator,
+        initial_v: [f32; 2],
+    ) -> Self {
+        let guard = [
+            settings.axes[0].limits.state(initial_v[0]),
+            settings.axes[1].limits.state(initial_v[1]),
+        ];
+        Self {
+            compensator: [
+                CompensatorState::at_rest(guard[0].last_safe_volts()),
+                CompensatorState::at_rest(guard[1].last_safe_volts()),
+            ],
+            guard,
+            stuck: [StuckDetector::default(); 2],
+            mode: Mode::Running,
+            counters: LoopCounters::default(),
+            last_reference_m: [f32::NAN; 2],
+            frames: FrameQueue::new(settings.frame_decimation),
+            reference,
+            feedforward,
+            settings,
+        }
+    }
+
+    /// Running or safe.
+    pub fn mode(&self) -> Mode {
+        self.mode
+    }
+
+    /// Event counters.
+    pub fn counters(&self) -> LoopCounters {
+        self.counters
+    }
+
+    /// An axis's guard state (last output and the guard's fault counters).
+    pub fn guard(&self, axis: Axis) -> &GuardState {
+        &self.guard[axis.index()]
+    }
+
+    /// The settings.
+    pub fn settings(&self) -> &LoopSettings {
+        &self.settings
+    }
+
+    /// Leaves the safe state (after the cause is cleared): tracking resumes from the held
+    /// voltages; stuck detection starts afresh.
+    pub fn rearm(&mut self) {
+        self.mode = Mode::Running;
+        self.stuck = [StuckDetector::default(); 2];
+    }
+
+    #[inline]
+    fn trip(&mut self, fault: Fault) {
+        if self.mode == Mode::Running {
+            self.mode = Mode::Safe(fault);
+            self.counters.safe_entries = self.counters.safe_entries.saturating_add(1);
+        }
+    }
+
+    /// One tick (see the module docs). Never panics.
+    #[inline]
+    pub fn tick<D, S>(&mut self, io: &mut XyIo<D, S>, deadline_missed: bool) -> TickReport
+    where
+        D: DacWrite,
+        S: PositionSensor,
+    {
+        let c = &mut self.counters;
+        c.ticks = c.ticks.saturating_add(1);
+        if deadline_missed {
+            c.overruns = c.overruns.saturating_add(1);
+            self.trip(Fault::Overrun);
+        }
+
+        // 1. Sensors, every tick.
+        let mut measured_m = [f32::NAN; 2];
+        for axis in Axis::ALL {
+            let i = axis.index();
+            match io.sensor.read_m(axis) {
+                Ok(m) if m.is_finite() => {
+                    measured_m[i] = m;
+                    let commanded = self.guard[i].last_safe_volts();
+                    if self.stuck[i].observe(m, commanded, &self.settings.stuck) {
+                        let c = &mut self.counters;
+                        c.stuck_readings = c.stuck_readings.saturating_add(1);
+                        self.trip(Fault::StuckReading(axis));
+                    }
+                }
+                Ok(_) => {
+                    let c = &mut self.counters;
+                    c.non_finite_readings = c.non_finite_readings.saturating_add(1);
+                    self.trip(Fault::NonFiniteReading(axis));
+                }
+                Err(_) => {
+                    let c = &mut self.counters;
+                    c.sensor_errors = c.sensor_errors.saturating_add(1);
+                    self.trip(Fault::SensorError(axis));
+                }
+            }
+        }
+
+        // 2. Commands.
+        let before_compensator = self.compensator;
+        let before_guard = self.guard;
+        let mut applied_v = [
+            self.guard[0].last_safe_volts(),
+            self.guard[1].last_safe_volts(),
+        ];
+        if self.mode == Mode::Running {
+            let reference = self.reference.next_setpoint();
+            self.last_reference_m = reference;
+            for i in 0..2 {
+                let axis = &self.settings.axes[i];
+                let requested = match self.feedforward {
+                    Feedforward::Compensator => {
+                        let command = axis
+                            .compensator
+                            .compensate(&mut self.compensator[i], reference[i]);
+                        let c = &mut self.counters;
+                        match command.status {
+                            CommandStatus::Tracking => {}
+                            CommandStatus::Limited => {
+                                c.compensator_limited = c.compensator_limited.saturating_add(1)
+                            }
+                            CommandStatus::HeldInvalidReference => {
+                                c.held_references = c.held_references.saturating_add(1)
+                            }
+                        }
+                        command.voltage_v
+                    }
+                    Feedforward::Linear => {
+                        axis.min_v + (reference[i] - axis.rest_output_m) / axis.linear_gain_m_per_v
+                    }
+                };
+                let u = axis.limits.apply(&mut self.guard[i], requested);
+                if u != requested && self.feedforward == Feedforward::Compensator {
+                    // The guard overrode the compensator: advance its model by what is applied.
+                    let mut state = before_compensator[i].model;
+                    axis.compensator.model().step(&mut state, u);
+                    self.compensator[i].model = state;
+                }
+                applied_v[i] = u;
+            }
+        }
+
+        // 3. DAC.
+        let gain = self.settings.amplifier_gain_v_per_v;
+        for axis in Axis::ALL {
+            let i = axis.index();
+            let code = DacCode::from_volts(applied_v[i] / gain);
+            if io.dac.write_code(io.dac_channels[i], code).is_err() {
+                let c = &mut self.counters;
+                c.dac_errors = c.dac_errors.saturating_add(1);
+                if self.mode == Mode::Running {
+                    self.trip(Fault::DacError(axis));
+                    // This axis's DAC kept its previous code; so does the model.
+                    self.compensator[i] = before_compensator[i];
+                    self.guard[i] = before_guard[i];
+                    applied_v[i] = before_guard[i].last_safe_volts();
+                    // Axes after it have not been written yet: hold them too.
+                    for j in (i + 1)..2 {
+                        self.compensator[j] = before_compensator[j];
+                        self.guard[j] = before_guard[j];
+                        applied_v[j] = before_guard[j].last_safe_volts();
+                    }
+                }
+            }
+        }
+
+        // 4. Frame.
+        let reference_m = self.last_reference_m;
+        self.frames.offer(|| {
+            [0, 1].map(|i| AxisSample {
+                reference_m: reference_m[i],
+                commanded_v: applied_v[i],
+                sensor_m: measured_m[i],
+            })
+        });
+        TickReport {
+            reference_m,
+            measured_m,
+            applied_v,
+            mode: self.mode,
+        }
+    }
+}
