@@ -350,8 +350,13 @@ impl BoucWen {
     /// `(min, max)`. (BW-u) is monotone in |h|^n on each branch, so the extremes lie at |h| = 0 and
     /// |h| = bound on the loading and unloading branches.
     pub fn slope_range(&self) -> (f32, f32) {
+        self.slope_range_within(self.state_bound)
+    }
+
+    /// The extreme path slopes dh/du over |h| ≤ `bound` and both directions: `(min, max)`.
+    pub fn slope_range_within(&self, bound: f32) -> (f32, f32) {
         let BoucWenParams { a, beta, gamma, n } = self.params;
-        let hn = libm::powf(self.state_bound, n);
+        let hn = libm::powf(bound, n);
         let candidates = [a, a - (beta + gamma) * hn, a - (gamma - beta) * hn];
         let mut lo = f32::INFINITY;
         let mut hi = f32::NEG_INFINITY;

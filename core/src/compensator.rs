@@ -13,8 +13,9 @@
 //! map is strictly monotone (checked when built, below), and the derivative of the exact path integral
 //! is known in closed form, `dy/dΔu = k1 + k2·dh/du(h(Δu))`, so the solve is a safeguarded Newton
 //! iteration on Δu inside `[0, Δu_limit]` in the direction that reduces the error: a first guess from
-//! the slope at the current state, then at most four corrections, stopping as soon as one moves the
-//! voltage by less than 1e-7 of the window (quadratic convergence: one suffices in a loop at a normal
+//! the slope at the current state, then corrections that keep a bracket around the root and bisect
+//! when Newton would leave it, stopping as soon as one moves the voltage by less than 1e-7 of the
+//! window (quadratic convergence in the smooth case: one correction suffices in a loop at a normal
 //! rate; for n = 1 the
 //! equation is the monotone scalar equation `k1·Δu + k2·(A − κh)·Δu·g(κΔu) = e`). The hysteresis state
 //! is always advanced by the voltage actually commanded (after the window and slew limits).
@@ -126,7 +127,9 @@ impl CompensatorState {
 }
 
 /// Newton corrections after the first guess.
-const NEWTON_CORRECTIONS: usize = 4;
+/// Largest number of bracketed Newton corrections after the first guess (one or two in the smooth
+/// case; the rest is room for bisection on kinked maps).
+const NEWTON_CORRECTIONS: usize = 12;
 
 impl Compensator {
     /// A compensator for a static or asymmetric static model (output y in metres).
@@ -333,8 +336,12 @@ impl Compensator {
         }
     }
 
-    /// The general solve: Newton on Δu ∈ \[0, limit\] with the exact path derivative of the one-step
-    /// map as slope. Returns the state reached and Δu.
+    /// The general solve, a bracketed Newton iteration in the progress p = Δu·direction ∈ \[0, |limit|\],
+    /// on the error `F(p) = (y(p) − y_d)·sign(dy/du)·direction`, which increases with p and is
+    /// negative at p = 0. Each evaluation narrows the bracket \[lo, hi\] that holds the root; the
+    /// step is Newton's with the exact path derivative of the one-step map, replaced by the
+    /// bracket's midpoint when it would leave the bracket (the asymmetric model's δ-term and its
+    /// safety clamp make the map kinked). Returns the state reached and Δu.
     #[allow(clippy::too_many_arguments)]
     fn solve_newton(
         &self,
@@ -353,26 +360,32 @@ impl Compensator {
         } = self.settings;
         let model = &self.model;
         let map = model.map();
-        let mut du = toward(
-            -error_at_hold / model.step_slope(from, hold, direction),
-            direction,
-            limit,
-        );
-        let mut reached = model.next_state(from, clamp(u0 + du, min, max));
+        let orient = self.slope_sign * direction;
+        let (mut lo, mut hi) = (0.0f32, limit.abs());
+        let first = -error_at_hold * orient / model.step_slope(from, hold, direction).abs();
+        let mut progress = clamp(first, lo, hi);
+        let mut reached = model.next_state(from, clamp(u0 + direction * progress, min, max));
         for _ in 0..NEWTON_CORRECTIONS {
-            let error = map.output(reached.input_v, reached.hysteresis.h) - target;
-            let corrected = toward(
-                du - error / model.step_slope(from, &reached, direction),
-                direction,
-                limit,
-            );
-            if (corrected - du).abs() <= self.voltage_tolerance_v || corrected.is_nan() {
+            let error = (map.output(reached.input_v, reached.hysteresis.h) - target) * orient;
+            if error < 0.0 {
+                lo = progress;
+            } else {
+                hi = progress;
+            }
+            let slope = model.step_slope(from, &reached, direction).abs();
+            let newton = progress - error / slope;
+            let next = if newton >= lo && newton <= hi {
+                newton
+            } else {
+                0.5 * (lo + hi)
+            };
+            if (next - progress).abs() <= self.voltage_tolerance_v {
                 break;
             }
-            du = corrected;
-            reached = model.next_state(from, clamp(u0 + du, min, max));
+            progress = next;
+            reached = model.next_state(from, clamp(u0 + direction * progress, min, max));
         }
-        (reached, du)
+        (reached, direction * progress)
     }
 
     /// The fast solve for n = 1 without asymmetric terms. Along an increment that does not cross

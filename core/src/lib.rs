@@ -26,4 +26,4 @@ pub use bouc_wen::{max_input_span, BoucWen, BoucWenParams, BoundClass, Hysteresi
 pub use compensator::{Command, CommandStatus, Compensator, CompensatorSettings, CompensatorState};
 pub use dynamic_model::{DynamicModel, DynamicState, MassSpringDamperParams};
 pub use error::{ParamError, MIN_SLOPE_RATIO};
-pub use static_model::{Asymmetry, ModelState, StaticMap, StaticModel};
+pub use static_model::{Asymmetry, ModelState, StaticMap, StaticModel, ASYMMETRIC_STATE_FACTOR};

@@ -22,11 +22,20 @@
 //! (the trapezoidal integral of u over the sample, exact for a linear ramp), half before and half after
 //! the Bouc-Wen increment (Strang splitting). With δ = 0 and φ = 0 this is exactly the standard model.
 //! Note what the literal reading implies: the δ-term is rate-dependent (it acts per second, not per
-//! volt) and is discontinuous at u̇ = 0; over one period of a time-symmetric input it integrates to
-//! zero, over an input with unequal rise and fall times it drifts until the state bound clamps it.
+//! volt) and is discontinuous at u̇ = 0; it can carry h past the Bouc-Wen bound H (seed 001's Case II
+//! reaches 1.04·H), so the asymmetric model clamps h only at 1.25·H (and the inverse checks
+//! monotonicity up to there). Over one period of a time-symmetric
+//! input the δ-term integrates to zero; over an input with unequal rise and fall times it drifts
+//! until that clamp holds it.
 
 use crate::bouc_wen::{BoucWen, HysteresisState};
 use crate::error::{finite, positive, ParamError};
+use crate::math::clamp;
+
+/// With δ ≠ 0 the state is clamped at this multiple of the Bouc-Wen bound H, and the inverse's
+/// monotonicity check covers states up to it: the δ-term may carry h past H (seed 001 Case II reaches
+/// 1.04·H), and over inputs with unequal rise and fall times it drifts until this clamp holds it.
+pub const ASYMMETRIC_STATE_FACTOR: f32 = 1.25;
 
 /// The linear part of the static map: y = k1·u + k2·h + y0.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -199,10 +208,22 @@ impl StaticModel {
         } else {
             0.0
         };
-        h = self
-            .hysteresis
-            .advance(h + half, shifted - state.hysteresis.input_v);
-        h = self.hysteresis.clamp_state(h + half);
+        if self.delta_half_step == 0.0 {
+            h = self
+                .hysteresis
+                .advance(h, shifted - state.hysteresis.input_v);
+        } else {
+            // The δ-term carries h past the Bouc-Wen bound H (seed 001 Case II reaches 1.04·H):
+            // integrate unclamped and clamp only at the wider safety bound.
+            let moved = self
+                .hysteresis
+                .advance_unclamped(h + half, shifted - state.hysteresis.input_v)
+                + half;
+            let bound = self.state_limit();
+            if moved.is_finite() {
+                h = clamp(moved, -bound, bound);
+            }
+        }
         ModelState {
             input_v: u,
             hysteresis: HysteresisState {
@@ -229,15 +250,31 @@ impl StaticModel {
         } else {
             direction * (1.0 - self.shift_fraction)
         };
-        let dh_du = self.hysteresis.slope(reached.hysteresis.h, branch);
+        // On the asymmetric model's safety clamp h no longer moves with u.
+        let dh_du =
+            if self.delta_half_step != 0.0 && reached.hysteresis.h.abs() >= self.state_limit() {
+                0.0
+            } else {
+                self.hysteresis.slope(reached.hysteresis.h, branch)
+            };
         let s = if direction < 0.0 { -1.0 } else { 1.0 };
         self.map.k1_m_per_v
             + self.map.k2_m_per_h * ((1.0 - self.shift_fraction) * dh_du + self.delta_half_step * s)
     }
 
+    /// The largest |h| the model's state can take: the Bouc-Wen bound, times
+    /// [`ASYMMETRIC_STATE_FACTOR`] when δ ≠ 0.
+    pub fn state_limit(&self) -> f32 {
+        if self.delta_half_step != 0.0 {
+            ASYMMETRIC_STATE_FACTOR * self.hysteresis.state_bound()
+        } else {
+            self.hysteresis.state_bound()
+        }
+    }
+
     /// The extreme one-step slopes dy/du over all reachable states and both directions.
     pub fn slope_range(&self) -> (f32, f32) {
-        let (lo, hi) = self.hysteresis.slope_range();
+        let (lo, hi) = self.hysteresis.slope_range_within(self.state_limit());
         let w = 1.0 - self.shift_fraction;
         let k2 = self.map.k2_m_per_h;
         let spread = (k2 * self.delta_half_step).abs();

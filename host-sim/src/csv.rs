@@ -212,6 +212,9 @@ pub fn write_csv(path: &Path, table: &Table) -> Result<(), CsvError> {
             });
         }
     }
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        fs::create_dir_all(dir).map_err(io)?;
+    }
     let mut out = std::io::BufWriter::new(fs::File::create(path).map_err(io)?);
     writeln!(out, "{}", table.names.join(",")).map_err(io)?;
     for r in 0..table.rows() {

@@ -16,13 +16,11 @@
 //! and the static gain G of the flexure (platform displacement per unit of free stack elongation,
 //! ≈ 1.68). Output window 0–120 V, no slew limit.
 //!
-//! **A limit of the core found here.** `piezo-core` checks invertibility over every state a bounded
-//! set can reach for *any* input, |h| ≤ H = α/(β + γ) (≈ 20.9 V for x), where the unloading slope
-//! α + (β − γ)·H exceeds 1 and dy/du changes sign; it then refuses the set (`NotInvertible`), even
-//! though inside the 0–120 V window |h| stays below the loading reach L(120 V) ≈ 13.7 V, where dy/du > 0.
-//! Until the core bounds a bounded set by its declared input range, the demo falls back to the nearest
-//! set the core accepts: α and β + γ kept (same loading branch and bound), β − γ lowered until the
-//! unloading slope at H is 0.98. The JSON summary and the table say which set was used.
+//! The core is given the output window as the model's input range
+//! ([`piezo_core::BoucWen::with_input_range`]): over all states of the bounded class the unloading
+//! slope at |h| = α/(β + γ) (≈ 20.9 V for x) would exceed 1 and dy/du change sign, but inside 0–120 V
+//! |h| stays below the loading reach L(120 V) ≈ 13.7 V, where the map is monotone, so the core accepts
+//! the plant's true set.
 //!
 //! Metrics skip the first `settle_s` (ringing of the first DAC step from rest).
 
@@ -151,17 +149,13 @@ pub struct ModeRun {
     pub errors: [ErrorStats; 2],
 }
 
-/// Which Bouc-Wen set the compensator of an axis was built from.
+/// The set the compensator of an axis was built from (the plant's own).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct CompensatorSet {
     /// k1 = G·d, m/V.
     pub k1_m_per_v: f64,
-    /// The set the core was given.
-    pub used: BoucWenParams,
-    /// The plant's set.
-    pub plant: BoucWenParams,
-    /// Why the plant's set was not used (the core's refusal), if it was not.
-    pub refusal: Option<ParamError>,
+    /// The plant's Bouc-Wen set, given to the core.
+    pub bouc_wen: BoucWenParams,
 }
 
 /// Everything the demo measured.
@@ -212,7 +206,10 @@ pub fn run_xy_stage(
     }
 }
 
-/// The compensator of one axis from the plant's parameters (see the module doc for the fallback).
+/// Largest |h| the core may assume for the stack sets (never reached: they are bounded).
+const STATE_LIMIT: f32 = 1e3;
+
+/// The compensator of one axis from the plant's parameters, valid over the 0–120 V window.
 pub fn axis_compensator(
     stage: &XyStage,
     axis: usize,
@@ -221,7 +218,7 @@ pub fn axis_compensator(
     let (ax, ay) = stage.axes();
     let a = if axis == 0 { ax } else { ay };
     let k1 = stage.static_gain()[axis] * stage.stack_gain_m_per_v()[axis];
-    let plant = BoucWenParams {
+    let bouc_wen = BoucWenParams {
         a: a.hysteresis.a as f32,
         beta: a.hysteresis.beta as f32,
         gamma: a.hysteresis.gamma as f32,
@@ -233,8 +230,13 @@ pub fn axis_compensator(
         slew_limit_v_per_s: f32::INFINITY,
         sample_period_s: (1.0 / loop_rate_hz) as f32,
     };
-    let build = |p: BoucWenParams| -> Result<Compensator, ParamError> {
-        let bw = BoucWen::new(p)?;
+    let build = || -> Result<Compensator, ParamError> {
+        let bw = BoucWen::with_input_range(
+            bouc_wen,
+            OUTPUT_MIN_V as f32,
+            OUTPUT_MAX_V as f32,
+            STATE_LIMIT,
+        )?;
         let map = StaticMap {
             k1_m_per_v: k1 as f32,
             k2_m_per_h: -k1 as f32,
@@ -242,44 +244,15 @@ pub fn axis_compensator(
         };
         Compensator::new(StaticModel::new(bw, map)?, settings)
     };
-    match build(plant) {
-        Ok(c) => Ok((
-            c,
-            CompensatorSet {
-                k1_m_per_v: k1,
-                used: plant,
-                plant,
-                refusal: None,
-            },
-        )),
-        Err(refusal @ ParamError::NotInvertible { .. }) => {
-            // Keep α and β + γ; lower β − γ so that the unloading slope at the bound H is 0.98.
-            let (alpha, sum) = (f64::from(plant.a), f64::from(plant.beta + plant.gamma));
-            let bound = alpha / sum;
-            let diff = f64::from(plant.beta - plant.gamma).min((0.98 - alpha) / bound);
-            let used = BoucWenParams {
-                a: plant.a,
-                beta: (0.5 * (sum + diff)) as f32,
-                gamma: (0.5 * (sum - diff)) as f32,
-                n: 1.0,
-            };
-            let c = build(used)
-                .map_err(|e| format!("piezo-core refused the {} axis set: {e}", AXES[axis]))?;
-            Ok((
-                c,
-                CompensatorSet {
-                    k1_m_per_v: k1,
-                    used,
-                    plant,
-                    refusal: Some(refusal),
-                },
-            ))
-        }
-        Err(e) => Err(format!(
-            "piezo-core refused the {} axis set: {e}",
-            AXES[axis]
-        )),
-    }
+    let compensator =
+        build().map_err(|e| format!("piezo-core refused the {} axis set: {e}", AXES[axis]))?;
+    Ok((
+        compensator,
+        CompensatorSet {
+            k1_m_per_v: k1,
+            bouc_wen,
+        },
+    ))
 }
 
 fn error_stats(reference: &[f64], measured: &[f64], skip: usize) -> ErrorStats {
@@ -443,15 +416,6 @@ impl DemoResult {
                 ));
             }
         }
-        for (axis, set) in self.compensator_sets.iter().enumerate() {
-            if let Some(refusal) = &set.refusal {
-                s.push_str(&format!(
-                    "note: {} axis: piezo-core refused the plant's set (β = {}, γ = {}): {refusal}; \
-                     compensated with β = {}, γ = {} (α, β + γ kept; see `host_sim::demo`)\n",
-                    AXES[axis], set.plant.beta, set.plant.gamma, set.used.beta, set.used.gamma
-                ));
-            }
-        }
         s
     }
 
@@ -480,9 +444,7 @@ impl DemoResult {
                 "compensator": {
                     "k1_m_per_v": set.k1_m_per_v,
                     "k2_m_per_h": -set.k1_m_per_v,
-                    "bouc_wen_used": p(&set.used),
-                    "bouc_wen_plant": p(&set.plant),
-                    "core_refused_plant_set": set.refusal.as_ref().map(|e| e.to_string()),
+                    "bouc_wen": p(&set.bouc_wen),
                 },
             })
         };

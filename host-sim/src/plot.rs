@@ -101,6 +101,7 @@ pub fn plot_panels(path: &Path, panels: &[Panel]) -> Result<(), PlotError> {
         path: path.display().to_string(),
         message: e.to_string(),
     };
+    create_parent(path).map_err(|e| err(&e))?;
     let size = (1000, 380 * panels.len().max(1) as u32);
     let is_png = path
         .extension()
@@ -214,6 +215,7 @@ pub fn plot_svg(path: &Path, out: &SimOutput, title: &str) -> Result<(), PlotErr
         message: e.to_string(),
     };
     ensure_fonts();
+    create_parent(path).map_err(|e| err(&e))?;
     let root = SVGBackend::new(path, (900, 900)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(&e))?;
     let (top, bottom) = root.split_vertically(450);
@@ -275,4 +277,12 @@ pub fn plot_svg(path: &Path, out: &SimOutput, title: &str) -> Result<(), PlotErr
     }
     root.present().map_err(|e| err(&e))?;
     Ok(())
+}
+
+/// Creates the directory a plot goes into, if it has one and it is missing.
+fn create_parent(path: &Path) -> std::io::Result<()> {
+    match path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        Some(dir) => std::fs::create_dir_all(dir),
+        None => Ok(()),
+    }
 }

@@ -61,6 +61,39 @@ pub mod reference {
         out
     }
 
+    /// h at every sample for seed 001's asymmetric law read literally, with φ = 0:
+    /// ḣ = A·u̇ − β·|u̇|·|h|^(n−1)·h − γ·u̇·|h|^n + δ·u·sgn(u̇), from h = 0 at the first sample.
+    pub fn asymmetric_states(
+        bw: BoucWen64,
+        delta: f64,
+        inputs: &[f64],
+        period: f64,
+        substeps: usize,
+    ) -> Vec<f64> {
+        let mut h = 0.0;
+        let mut out = Vec::with_capacity(inputs.len());
+        out.push(h);
+        let dt = period / substeps as f64;
+        for w in inputs.windows(2) {
+            let du_dt = (w[1] - w[0]) / period;
+            let rate = |t: f64, h: f64| {
+                let u = w[0] + du_dt * t;
+                bw.rate(h, du_dt) + delta * u * du_dt.signum()
+            };
+            let mut t = 0.0;
+            for _ in 0..substeps {
+                let k1 = rate(t, h);
+                let k2 = rate(t + 0.5 * dt, h + 0.5 * dt * k1);
+                let k3 = rate(t + 0.5 * dt, h + 0.5 * dt * k2);
+                let k4 = rate(t + dt, h + dt * k3);
+                h += dt / 6.0 * (k1 + 2.0 * (k2 + k3) + k4);
+                t += dt;
+            }
+            out.push(h);
+        }
+        out
+    }
+
     /// x at every sample for the dynamic model, starting at rest (x = x0 + k1·u0/k, ẋ = 0, h = 0).
     pub fn dynamic_positions(
         bw: BoucWen64,

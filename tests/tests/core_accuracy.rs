@@ -257,3 +257,58 @@ fn nac2024_dynamic_model_matches_at_a_quasi_static_rate() {
     println!("accuracy dynamic NAC2024 1 kHz sine at 100 kHz relative RMS error {error:.2e}");
     assert!(error <= TOLERANCE, "relative RMS error {error:.3e}");
 }
+
+#[test]
+fn seed001_asymmetric_model_matches_the_f64_reference() {
+    // Case II: δ = −1.95e-2 (φ = 0), the published input. The δ-term carries h past the plain
+    // Bouc-Wen bound (|h| = 0.4245); the model must follow it there.
+    let params = BoucWenParams {
+        a: -7.02182e-2,
+        beta: 4.45753,
+        gamma: 3.49259,
+        n: 3.05869,
+    };
+    let map = StaticMap {
+        k1_m_per_v: -3.51711e-7,
+        k2_m_per_h: -1.94566e-6,
+        offset_m: 0.0,
+    };
+    let delta = -1.95e-2;
+    let period = 1e-4;
+    let inputs: Vec<f64> = (0..10_000)
+        .map(|k| 10.0 - 10.0 * (4.0 * PI * k as f64 * period).cos())
+        .collect();
+    let model = StaticModel::asymmetric(
+        BoucWen::new(params).unwrap(),
+        map,
+        piezo_core::Asymmetry {
+            delta_per_v_s: delta,
+            input_shift_s: 0.0,
+        },
+        period as f32,
+    )
+    .unwrap();
+    let core = run_static(&model, &inputs);
+    let bw = BoucWen64 {
+        a: f64::from(params.a),
+        beta: f64::from(params.beta),
+        gamma: f64::from(params.gamma),
+        n: f64::from(params.n),
+    };
+    let h = reference::asymmetric_states(bw, f64::from(delta), &inputs, period, 64);
+    let peak = h.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let reference: Vec<f64> = inputs
+        .iter()
+        .zip(&h)
+        .map(|(&u, &h)| f64::from(map.k1_m_per_v) * u + f64::from(map.k2_m_per_h) * h)
+        .collect();
+    let error = reference::relative_rms_error(&core, &reference);
+    println!(
+        "accuracy asymmetric seed-001-II 2 Hz cosine relative RMS error {error:.2e} (reference peak |h| {peak:.4})"
+    );
+    assert!(
+        peak > 0.4245,
+        "the reference should pass the plain bound: {peak}"
+    );
+    assert!(error <= TOLERANCE, "relative RMS error {error:.3e}");
+}

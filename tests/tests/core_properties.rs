@@ -100,7 +100,13 @@ fn invertible_model(
     asymmetry: Asymmetry,
 ) -> StaticModel {
     let bw = BoucWen::new(p).unwrap();
-    let (lo, hi) = bw.slope_range();
+    // With δ ≠ 0 the state may pass the Bouc-Wen bound (up to ASYMMETRIC_STATE_FACTOR·H).
+    let limit = if asymmetry.delta_per_v_s != 0.0 {
+        piezo_core::ASYMMETRIC_STATE_FACTOR * bw.state_bound()
+    } else {
+        bw.state_bound()
+    };
+    let (lo, hi) = bw.slope_range_within(limit);
     let k1 = 0.4e-6f32;
     // The input shift scales dh/du by (1 − φ/T) ∈ [0, 2].
     let shift_gain = 1.0 + (asymmetry.input_shift_s / 1e-4).abs();
