@@ -43,22 +43,7 @@ pub mod reference {
         period: f64,
         substeps: usize,
     ) -> Vec<f64> {
-        let mut h = 0.0;
-        let mut out = Vec::with_capacity(inputs.len());
-        out.push(h);
-        let dt = period / substeps as f64;
-        for w in inputs.windows(2) {
-            let du_dt = (w[1] - w[0]) / period;
-            for _ in 0..substeps {
-                let k1 = bw.rate(h, du_dt);
-                let k2 = bw.rate(h + 0.5 * dt * k1, du_dt);
-                let k3 = bw.rate(h + 0.5 * dt * k2, du_dt);
-                let k4 = bw.rate(h + dt * k3, du_dt);
-                h += dt / 6.0 * (k1 + 2.0 * (k2 + k3) + k4);
-            }
-            out.push(h);
-        }
-        out
+        asymmetric_states(bw, 0.0, inputs, period, substeps)
     }
 
     /// h at every sample for seed 001's asymmetric law read literally, with φ = 0:
@@ -136,6 +121,25 @@ pub mod reference {
         out
     }
 
+    /// The NAC2024 actuator of seed 000, Table 1 (k1 = 1 N/V, x0 = 0).
+    pub fn nac2024() -> (BoucWen64, Msd64) {
+        (
+            BoucWen64 {
+                a: 0.192,
+                beta: 0.034,
+                gamma: -0.0463,
+                n: 1.419,
+            },
+            Msd64 {
+                mass: 3.419e-4,
+                damping: 491.03,
+                stiffness: 3.725e8,
+                rest: 0.0,
+                k1: 1.0,
+            },
+        )
+    }
+
     /// RMS of `a − b` divided by the span (max − min) of `b`.
     pub fn relative_rms_error(a: &[f64], b: &[f64]) -> f64 {
         assert_eq!(a.len(), b.len(), "series lengths differ");
@@ -143,5 +147,29 @@ pub mod reference {
         let max = b.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
         let min = b.iter().cloned().fold(f64::INFINITY, f64::min);
         (sse / a.len() as f64).sqrt() / (max - min)
+    }
+}
+
+/// The same published parameter sets in the core's types.
+pub mod fixtures {
+    use piezo_core::{BoucWenParams, MassSpringDamperParams};
+
+    /// The NAC2024 actuator of seed 000, Table 1 (k1 = 1 N/V, x0 = 0).
+    pub fn nac2024() -> (BoucWenParams, MassSpringDamperParams) {
+        (
+            BoucWenParams {
+                a: 0.192,
+                beta: 0.034,
+                gamma: -0.0463,
+                n: 1.419,
+            },
+            MassSpringDamperParams {
+                mass_kg: 3.419e-4,
+                damping_n_s_per_m: 491.03,
+                stiffness_n_per_m: 3.725e8,
+                rest_position_m: 0.0,
+                force_per_volt_n_per_v: 1.0,
+            },
+        )
     }
 }

@@ -1,10 +1,11 @@
 //! The inverse compensator against the independent f64 reference (tests/src/lib.rs), and the
 //! build-time checks that decide which parameter sets it accepts.
 
-use integration_tests::reference::{self, BoucWen64, Msd64};
+use integration_tests::fixtures;
+use integration_tests::reference::{self, BoucWen64};
 use piezo_core::{
     BoucWen, BoucWenParams, CommandStatus, Compensator, CompensatorSettings, CompensatorState,
-    DynamicModel, MassSpringDamperParams, ParamError, StaticMap, StaticModel,
+    DynamicModel, ParamError, StaticMap, StaticModel,
 };
 use std::f64::consts::PI;
 
@@ -153,27 +154,9 @@ fn seed001_set_is_a_valid_model_but_not_invertible() {
     );
 }
 
-fn nac2024() -> (BoucWenParams, MassSpringDamperParams) {
-    (
-        BoucWenParams {
-            a: 0.192,
-            beta: 0.034,
-            gamma: -0.0463,
-            n: 1.419,
-        },
-        MassSpringDamperParams {
-            mass_kg: 3.419e-4,
-            damping_n_s_per_m: 491.03,
-            stiffness_n_per_m: 3.725e8,
-            rest_position_m: 0.0,
-            force_per_volt_n_per_v: 1.0,
-        },
-    )
-}
-
 #[test]
 fn nac2024_published_set_is_refused_unbounded_and_accepted_range_limited() {
-    let (params, msd) = nac2024();
+    let (params, msd) = fixtures::nac2024();
     assert!(matches!(
         BoucWen::new(params),
         Err(ParamError::UnboundedWithoutRange { .. })
@@ -206,7 +189,7 @@ fn nac2024_published_set_is_refused_unbounded_and_accepted_range_limited() {
 
 #[test]
 fn nac2024_inverse_dynamics_track_a_50_khz_sine_on_the_independent_plant() {
-    let (params, msd) = nac2024();
+    let (params, msd) = fixtures::nac2024();
     let period = 1.0 / 2.56e6;
     let bw = BoucWen::with_input_range(params, -10.0, 10.0, 10.0).unwrap();
     let model = DynamicModel::new(bw, msd, period as f32).unwrap();
@@ -249,19 +232,7 @@ fn nac2024_inverse_dynamics_track_a_50_khz_sine_on_the_independent_plant() {
         ));
     }
     let linear: Vec<f64> = desired.iter().map(|&x| x * 3.725e8).collect();
-    let bw64 = BoucWen64 {
-        a: 0.192,
-        beta: 0.034,
-        gamma: -0.0463,
-        n: 1.419,
-    };
-    let msd64 = Msd64 {
-        mass: 3.419e-4,
-        damping: 491.03,
-        stiffness: 3.725e8,
-        rest: 0.0,
-        k1: 1.0,
-    };
+    let (bw64, msd64) = reference::nac2024();
     let skip = samples / 4;
     let error = |volts: &[f64]| {
         let x = reference::dynamic_positions(bw64, msd64, volts, period, 50);

@@ -5,11 +5,9 @@
 //! 1.5, 2, 3 and for the dynamic NAC2024 model sampled at 2.56 MHz with 10–200 kHz sines.
 //! Run with `-- --nocapture` to see the measured figures (the README quotes them).
 
-use integration_tests::reference::{self, BoucWen64, Msd64};
-use piezo_core::{
-    BoucWen, BoucWenParams, DynamicModel, MassSpringDamperParams, ModelState, StaticMap,
-    StaticModel,
-};
+use integration_tests::fixtures;
+use integration_tests::reference::{self, BoucWen64};
+use piezo_core::{BoucWen, BoucWenParams, DynamicModel, ModelState, StaticMap, StaticModel};
 use std::f64::consts::PI;
 
 const TOLERANCE: f64 = 1e-4;
@@ -159,44 +157,14 @@ fn seed001_case1_matches_the_f64_reference() {
     assert!(error <= TOLERANCE, "relative RMS error {error:.3e}");
 }
 
-fn nac2024_params() -> (BoucWenParams, MassSpringDamperParams) {
-    (
-        BoucWenParams {
-            a: 0.192,
-            beta: 0.034,
-            gamma: -0.0463,
-            n: 1.419,
-        },
-        MassSpringDamperParams {
-            mass_kg: 3.419e-4,
-            damping_n_s_per_m: 491.03,
-            stiffness_n_per_m: 3.725e8,
-            rest_position_m: 0.0,
-            force_per_volt_n_per_v: 1.0,
-        },
-    )
-}
-
 #[test]
 fn nac2024_dynamic_model_matches_the_f64_reference_at_2_56_mhz() {
-    let (bw_params, msd) = nac2024_params();
+    let (bw_params, msd) = fixtures::nac2024();
     let period = 1.0 / 2.56e6;
     // The published set has β + γ < 0: valid over ±10 V, where |h| stays below 10.
     let bw = BoucWen::with_input_range(bw_params, -10.0, 10.0, 10.0).unwrap();
     let model = DynamicModel::new(bw, msd, period as f32).unwrap();
-    let bw64 = BoucWen64 {
-        a: 0.192,
-        beta: 0.034,
-        gamma: -0.0463,
-        n: 1.419,
-    };
-    let msd64 = Msd64 {
-        mass: 3.419e-4,
-        damping: 491.03,
-        stiffness: 3.725e8,
-        rest: 0.0,
-        k1: 1.0,
-    };
+    let (bw64, msd64) = reference::nac2024();
     let mut worst = 0.0f64;
     for f_khz in [
         10.0f64, 20.0, 40.0, 60.0, 80.0, 100.0, 120.0, 140.0, 160.0, 180.0, 200.0,
@@ -226,7 +194,7 @@ fn nac2024_dynamic_model_matches_the_f64_reference_at_2_56_mhz() {
 #[test]
 fn nac2024_dynamic_model_matches_at_a_quasi_static_rate() {
     // 1 kHz sine sampled at 100 kHz: ωn·T ≈ 10, far from the 2.56 MHz regime.
-    let (bw_params, msd) = nac2024_params();
+    let (bw_params, msd) = fixtures::nac2024();
     let period = 1e-5;
     let bw = BoucWen::with_input_range(bw_params, -10.0, 10.0, 10.0).unwrap();
     let model = DynamicModel::new(bw, msd, period as f32).unwrap();
@@ -238,19 +206,7 @@ fn nac2024_dynamic_model_matches_at_a_quasi_static_rate() {
         .iter()
         .map(|&u| f64::from(model.step(&mut state, u as f32)))
         .collect();
-    let bw64 = BoucWen64 {
-        a: 0.192,
-        beta: 0.034,
-        gamma: -0.0463,
-        n: 1.419,
-    };
-    let msd64 = Msd64 {
-        mass: 3.419e-4,
-        damping: 491.03,
-        stiffness: 3.725e8,
-        rest: 0.0,
-        k1: 1.0,
-    };
+    let (bw64, msd64) = reference::nac2024();
     // 2000 reference steps per sample keep ωn·dt ≈ 0.005.
     let reference = reference::dynamic_positions(bw64, msd64, &inputs, period, 2000);
     let error = reference::relative_rms_error(&core, &reference);
