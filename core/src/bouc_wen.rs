@@ -590,7 +590,7 @@ pub(crate) fn relax_factor(z: f32) -> f32 {
 /// The 5-term series of g(z) = (1 − e^(−z))/z: 1 − z/2 + z²/6 − z³/24 + z⁴/120 (for |z| < 0.1).
 #[inline]
 pub(crate) fn relax_series(z: f32) -> f32 {
-    1.0 - 0.5 * z * (1.0 - z / 3.0 * (1.0 - 0.25 * z * (1.0 - 0.2 * z)))
+    1.0 - 0.5 * z * (1.0 - z * (1.0 / 3.0) * (1.0 - 0.25 * z * (1.0 - 0.2 * z)))
 }
 
 /// ln(1 + x)/x, 1 at x = 0. Series below |x| = 0.01, libm `log1pf` above.

@@ -103,6 +103,8 @@ pub struct Compensator {
     /// Newton stops when a correction is below this: 1e-7 of the window (10 µV on 100 V, far
     /// below one step of a 16-bit DAC).
     voltage_tolerance_v: f32,
+    /// n = 1, no asymmetric terms, position target: [`Compensator::compensate_small_n1`] applies.
+    small_n1: bool,
 }
 
 /// The compensator's state: the model state at the last commanded voltage.
@@ -215,6 +217,9 @@ impl Compensator {
             max_step_v: (slew * period).min(max - min),
             slope_sign: if lo > 0.0 { 1.0 } else { -1.0 },
             voltage_tolerance_v: 1e-7 * (max - min),
+            small_n1: model.hysteresis().is_exponent_one()
+                && !model.is_asymmetric()
+                && target == Target::Position,
         })
     }
 
@@ -231,7 +236,93 @@ impl Compensator {
     /// The voltage for the desired position `desired_m` \[m\] (quasi-static for the dynamic model).
     #[inline]
     pub fn compensate(&self, state: &mut CompensatorState, desired_m: f32) -> Command {
+        if self.small_n1 {
+            if let Some(command) = self.compensate_small_n1(state, desired_m) {
+                return command;
+            }
+        }
         self.compensate_with_derivatives(state, desired_m, 0.0, 0.0)
+    }
+
+    /// The common case of a loop at a normal rate, in few instructions: n = 1, no asymmetric terms,
+    /// a consistent state inside the window, a finite reference and a small step that the window
+    /// and the slew limit leave alone. With the error e = y_d − y(u₀), the branch's κ and
+    /// q = A − κ·h₀, S₀ = k1 + k2·q, x₀ = e/S₀, kx = κ·x₀ and w = (k2·q/S₀)·kx, the one-step inverse
+    /// is the series reversion to fourth order
+    /// `Δu = x₀·(1 + w/2 + w²/2 − w·kx/6 + 5w³/8 − 5w²·kx/12 + w·kx²/24)` (error ~w⁴·Δu, ≤ ~6e-6·Δu
+    /// for |kx| < 0.01, |w| < 0.05; up to |kx| < 0.1, |w| < 0.2 it is the start of one Newton step on
+    /// the closed form), and `h₁ = h₀ + q·Δu·g(κΔu)` exactly. `None` hands every other case to the
+    /// general solve, which gives the same result there (tested).
+    #[inline]
+    fn compensate_small_n1(&self, state: &mut CompensatorState, desired_m: f32) -> Option<Command> {
+        let u0 = state.model.input_v;
+        let h0 = state.model.hysteresis.h;
+        let CompensatorSettings {
+            output_min_v: min,
+            output_max_v: max,
+            ..
+        } = self.settings;
+        if !(u0 >= min && u0 <= max) || state.model.hysteresis.input_v != u0 {
+            return None;
+        }
+        let StaticMap {
+            k1_m_per_v: k1,
+            k2_m_per_h: k2,
+            offset_m,
+        } = self.model.map();
+        let error = desired_m - (k1 * u0 + k2 * h0 + offset_m);
+        // NaN and ±∞ references fail this test too.
+        if !(error.abs() > 0.0 && error.abs() < f32::INFINITY) {
+            return None;
+        }
+        let direction = if error * self.slope_sign > 0.0 {
+            1.0
+        } else {
+            -1.0
+        };
+        let (q, kappa, sigma) = self.model.hysteresis().n1_branch(h0, direction);
+        let k2q = k2 * q;
+        let inverse_slope = 1.0 / (k1 + k2q);
+        let x0 = error * inverse_slope;
+        let kx = kappa * x0;
+        let w = k2q * inverse_slope * kx;
+        if !(kx.abs() < 0.1 && w.abs() < 0.2) {
+            return None;
+        }
+        // Fourth-order reversion: 1 + w/2 + (w²/2 − w·kx/6) + (5w³/8 − 5w²·kx/12 + w·kx²/24).
+        let series = 0.5
+            + w * (0.5 + w * (0.625 - kx * (5.0 / 12.0)))
+            + kx * (kx * (1.0 / 24.0) - 1.0 / 6.0);
+        let mut du = x0 * (1.0 + w * series);
+        if !(kx.abs() < 0.01 && w.abs() < 0.05) {
+            // Beyond the reversion's accuracy: one Newton step on the closed form from it, with
+            // the exact slope k1 + k2·q·e^(−z) at the end state.
+            let z = kappa * du;
+            if !(z.abs() < 0.1) {
+                return None;
+            }
+            let residual = du * (k1 + k2q * relax_series(z)) - error;
+            du -= residual / (k1 + k2q * exp_neg_series(z));
+        }
+        let u = u0 + du;
+        if !(du.abs() <= self.max_step_v && u >= min && u <= max) {
+            return None;
+        }
+        let h1 = h0 + q * du * relax_series(kappa * du);
+        if h1 * sigma < 0.0 {
+            return None;
+        }
+        state.model = ModelState {
+            input_v: u,
+            hysteresis: HysteresisState {
+                input_v: u,
+                h: self.model.hysteresis().clamp_state(h1),
+            },
+        };
+        Some(Command {
+            voltage_v: u,
+            status: CommandStatus::Tracking,
+        })
     }
 
     /// The voltage for the desired position with its known velocity \[m/s\] and acceleration \[m/s²\]
@@ -391,8 +482,9 @@ impl Compensator {
     /// The fast solve for n = 1 without asymmetric terms. Along an increment that does not cross
     /// h = 0 the one-step map is `y(Δu) = y_hold + Δu·(k1 + k2·q·g(κΔu))`, q = A − κ·h₀
     /// ([`crate::bouc_wen`]), with the exact derivative `k1 + k2·q·e^(−κΔu)` (the slope at the end
-    /// state, whose sign the build-time check fixes). Two Newton steps on this closed form from
-    /// `Δu = e/(k1 + k2·q)`, g and e^(−z) from their series: no libm call and no full forward step.
+    /// state, whose sign the build-time check fixes). Small steps use the series reversion of this
+    /// equation to third order; larger ones two Newton steps on it from `Δu = e/(k1 + k2·q)`, g and
+    /// e^(−z) from their series: no libm call and no full forward step.
     /// Taken when |κΔu| < 0.1 and h does not cross zero; otherwise `None` hands over to
     /// [`Compensator::solve_newton`].
     fn solve_n1_fast(
@@ -416,7 +508,26 @@ impl Compensator {
         let h0 = from.hysteresis.h;
         let (q, kappa, sigma) = bw.n1_branch(h0, direction);
         let k2q = k2 * q;
-        let mut du = toward(error / (k1 + k2q), direction, limit);
+        let slope_at_start = k1 + k2q;
+        let linear = error / slope_at_start;
+        // Small steps (the common case in a loop): series reversion of
+        // Δu·(1 − (a·κ/2)·Δu + (a·κ²/6)·Δu² − …) = x₀, a = k2·q/S₀, x₀ = e/S₀:
+        // Δu = x₀·(1 + w/2 + w²/2 − w·κx₀/6) with w = a·κ·x₀, error O(z³)·Δu ≤ ~1e-6·Δu here.
+        let kx = kappa * linear;
+        let w = k2q / slope_at_start * kx;
+        if kx.abs() < 0.01 && w.abs() < 0.01 {
+            let du = toward(
+                linear * (1.0 + w * (0.5 + 0.5 * w - kx / 6.0)),
+                direction,
+                limit,
+            );
+            let h1 = h0 + q * du * relax_series(kappa * du);
+            if h1 * sigma >= 0.0 {
+                return Some(self.n1_commit(u0, du, h1));
+            }
+            return None;
+        }
+        let mut du = toward(linear, direction, limit);
         for _ in 0..2 {
             let z = kappa * du;
             if z.abs() >= 0.1 {
@@ -434,28 +545,34 @@ impl Compensator {
         if h1 * sigma < 0.0 {
             return None;
         }
+        Some(self.n1_commit(u0, du, h1))
+    }
+
+    /// The state after a fast n = 1 step of `du` from `u0` that reached `h1`.
+    #[inline]
+    fn n1_commit(&self, u0: f32, du: f32, h1: f32) -> (ModelState, f32) {
         let u = clamp(
             u0 + du,
             self.settings.output_min_v,
             self.settings.output_max_v,
         );
-        Some((
+        (
             ModelState {
                 input_v: u,
                 hysteresis: HysteresisState {
                     input_v: u,
-                    h: bw.clamp_state(h1),
+                    h: self.model.hysteresis().clamp_state(h1),
                 },
             },
             du,
-        ))
+        )
     }
 }
 
 /// e^(−z) by its 5-term series 1 − z + z²/2 − z³/6 + z⁴/24 (|z| < 0.1: truncation < 1e-7).
 #[inline]
 fn exp_neg_series(z: f32) -> f32 {
-    1.0 - z * (1.0 - 0.5 * z * (1.0 - z / 3.0 * (1.0 - 0.25 * z)))
+    1.0 - z * (1.0 - 0.5 * z * (1.0 - z * (1.0 / 3.0) * (1.0 - 0.25 * z)))
 }
 
 /// Clamps a voltage step into \[0, limit\] (direction > 0) or \[limit, 0\] (direction < 0).
