@@ -298,7 +298,8 @@ impl Compensator {
             // Beyond the reversion's accuracy: one Newton step on the closed form from it, with
             // the exact slope k1 + k2·q·e^(−z) at the end state.
             let z = kappa * du;
-            if !(z.abs() < 0.1) {
+            let in_range = z.abs() < 0.1;
+            if !in_range {
                 return None;
             }
             let residual = du * (k1 + k2q * relax_series(z)) - error;
