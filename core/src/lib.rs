@@ -18,7 +18,7 @@ pub mod bouc_wen;
 pub mod compensator;
 pub mod dynamic_model;
 pub mod error;
-mod math;
+pub mod math;
 pub mod metrics;
 pub mod static_model;
 

@@ -53,3 +53,25 @@ fn libm_functions_used_by_the_core_are_accurate() {
     worst = worst.max(sweep("sqrtf", 0.0, 1e4, libm::sqrtf, f64::sqrt));
     assert!(worst <= 4.0, "a libm function is off by {worst} ulp");
 }
+
+/// The core's own f32 power (`piezo_core::math::pow_nonnegative`), used on the per-sample path in
+/// place of libm's f64-based `powf`: relative error against f64.
+#[test]
+fn f32_power_of_the_core_is_accurate() {
+    let samples = 400_000;
+    for n in [1.419f32, 1.5, 2.5, 3.05869, 4.0] {
+        let mut worst = 0.0f64;
+        for i in 0..=samples {
+            // Log-spaced over [1e-4, 1e4].
+            let x = 10f32.powf(-4.0 + 8.0 * i as f32 / samples as f32);
+            let exact = f64::from(x).powf(f64::from(n));
+            let got = f64::from(piezo_core::math::pow_nonnegative(x, n));
+            worst = worst.max(((got - exact) / exact).abs());
+        }
+        println!("core pow_nonnegative x^{n} on [1e-4, 1e4]: max relative error {worst:.2e}");
+        assert!(
+            worst <= 1.5e-7 * f64::from(n),
+            "x^{n}: relative error {worst:e}"
+        );
+    }
+}
