@@ -7,6 +7,17 @@
 //! [`SampleFrame::to_bytes`]. The sequence number counts every frame the loop *produced*,
 //! including those dropped because the queue was full, so a receiver ([`SequenceChecker`]) sees a
 //! gap exactly where frames were lost, in the link or in the queue.
+//!
+//! **Text form** (what the images print, and what `host-sim capture` reads), one frame per line,
+//! [`SampleFrame`]'s `Display` (QEMU, semihosting) and `defmt::Format` (board, defmt over RTT):
+//!
+//! ```text
+//! frame 2000: x ref 0.000018998257 m cmd 58.12863 V sensor 0.000018887498 m | y ref 0.000004001112 m cmd 1.7004242 V sensor 0.0000040718746 m
+//! ```
+//!
+//! The images' boot line gives what turns sequence numbers into time:
+//! `parameters <version> (<file>), fnv1a32 0x<hash>, loop <rate> Hz, one frame every <n> ticks`,
+//! so frame `k` was produced at t = k·n / rate after boot.
 
 use heapless::Deque;
 
@@ -25,9 +36,8 @@ pub struct AxisSample {
     pub sensor_m: f32,
 }
 
-/// One frame.
+/// One frame. `Display` and (board) `defmt::Format` give the one-line text form of the module doc.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
-#[cfg_attr(all(target_os = "none", feature = "board"), derive(defmt::Format))]
 pub struct SampleFrame {
     /// Frame number, +1 per produced frame (wraps at 2³²).
     pub sequence: u32,
@@ -73,6 +83,42 @@ impl SampleFrame {
             sequence: words[0],
             axes: [axis(0), axis(1)],
         }
+    }
+}
+
+impl core::fmt::Display for SampleFrame {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        let [x, y] = &self.axes;
+        write!(
+            f,
+            "frame {}: x ref {} m cmd {} V sensor {} m | y ref {} m cmd {} V sensor {} m",
+            self.sequence,
+            x.reference_m,
+            x.commanded_v,
+            x.sensor_m,
+            y.reference_m,
+            y.commanded_v,
+            y.sensor_m
+        )
+    }
+}
+
+/// Same text as `Display` (host-sim capture parses either).
+#[cfg(all(target_os = "none", feature = "board"))]
+impl defmt::Format for SampleFrame {
+    fn format(&self, f: defmt::Formatter<'_>) {
+        let [x, y] = &self.axes;
+        defmt::write!(
+            f,
+            "frame {=u32}: x ref {=f32} m cmd {=f32} V sensor {=f32} m | y ref {=f32} m cmd {=f32} V sensor {=f32} m",
+            self.sequence,
+            x.reference_m,
+            x.commanded_v,
+            x.sensor_m,
+            y.reference_m,
+            y.commanded_v,
+            y.sensor_m
+        );
     }
 }
 
@@ -221,6 +267,21 @@ mod tests {
         assert_eq!(back.to_bytes(), bytes);
         assert_eq!(back.sequence, f.sequence);
         assert!(back.axes[0].sensor_m.is_nan());
+    }
+
+    #[test]
+    fn text_form_is_the_one_host_sim_capture_reads() {
+        // host-sim/src/capture.rs parses this line; change both together.
+        let f = SampleFrame {
+            sequence: 2000,
+            axes: axes(1.5e-5),
+        };
+        let mut s = heapless::String::<160>::new();
+        core::fmt::write(&mut s, format_args!("{f}")).unwrap();
+        assert_eq!(
+            s.as_str(),
+            "frame 2000: x ref 0.000015 m cmd 0.00003 V sensor NaN m | y ref -0.000015 m cmd 3 V sensor 0.000001 m"
+        );
     }
 
     #[test]

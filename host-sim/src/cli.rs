@@ -41,6 +41,10 @@ Both command one sample ahead. Output window 0-120 V."
         after_help = "Sections:\n  xy_stage  loop openings at 120 V and 12 V staircases and maximum displacement (seed 002)\n  nac2024   R^2 and MRD of the core DynamicModel (Table 1, f32, 2.56 MHz, range +-10 V, state limit 10) against the plant with a second mode and a 10 % heavier mass, 10-200 kHz sines of 9.738 V, next to Table 2 (seed 000)\n  stage     RAE and AFV of the standard and asymmetric core models on the stage plant, Cases I-III (seed 001)"
     )]
     Reproduce(ReproduceArgs),
+    /// Decoded firmware log (QEMU output, or defmt from probe-rs run / defmt-print) to the CSV
+    /// that `identify` reads; sequence gaps stop it (--allow-gaps: kept and marked).
+    #[command(after_help = crate::capture::HELP)]
+    Capture(crate::capture::CaptureArgs),
 }
 
 /// Plot formats.
@@ -133,6 +137,7 @@ pub fn run(cli: Cli) -> Result<String, String> {
         Command::Simulate(a) => simulate_cmd(&a),
         Command::Demo(a) => demo_cmd(&a),
         Command::Reproduce(a) => reproduce_cmd(&a),
+        Command::Capture(a) => crate::capture::run(&a, &mut progress),
     }
 }
 

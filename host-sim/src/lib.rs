@@ -10,6 +10,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod bouc_wen;
+pub mod capture;
 pub mod cli;
 pub mod csv;
 pub mod demo;

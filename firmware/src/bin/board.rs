@@ -6,8 +6,10 @@
 //! Build: `cd firmware && cargo build --release --features board --bin board`.
 //! Flash and run (probe-rs, the runner in `firmware/.cargo/config.toml`):
 //! `cd firmware && cargo run --release --features board --bin board`. Logs are defmt over RTT:
-//! at boot the parameter set (version, FNV-1a of the file), then sample frames (one every 10th
-//! tick) in batches of 8, and the loop's counters once a second. A fault puts the loop in its safe state
+//! at boot the parameter set (version, FNV-1a of the file, loop rate, frame decimation), then
+//! sample frames (one every 10th tick) in batches of 8, one record per frame
+//! (`frame <n>: x ref … m cmd … V sensor … m | y ref …`, see `piezo_firmware::frames`), and the
+//! loop's counters once a second. `host-sim capture` turns that log into CSV (firmware/README.md). A fault puts the loop in its safe state
 //! (outputs held, logged once); it stays there (rearm needs a command link, not built yet).
 //!
 //! On the host this file builds to a stub `main` (only with `--features board`).
@@ -35,12 +37,14 @@ mod image {
 
     #[entry]
     fn main() -> ! {
+        // `host-sim capture` reads the loop rate and the decimation from this line.
         defmt::info!(
-            "parameters {=str} ({=str}), fnv1a32 {=u32:#010x}, loop {} Hz",
+            "parameters {=str} ({=str}), fnv1a32 {=u32:#010x}, loop {} Hz, one frame every {} ticks",
             params::VERSION,
             params::SOURCE,
             params::FNV1A32,
-            params::LOOP_RATE_HZ
+            params::LOOP_RATE_HZ,
+            FRAME_DECIMATION
         );
         let Some(dp) = pac::Peripherals::take() else {
             defmt::panic!("peripherals already taken");
@@ -92,11 +96,14 @@ mod image {
                     report.applied_v
                 );
             }
-            // Send frames in batches of 8 (one defmt record per 80 ticks); a full queue drops
-            // frames, which the receiver sees as a sequence gap.
+            // Send frames in batches of 8 (every 80 ticks), one defmt record per frame in the
+            // text form `host-sim capture` reads; a full queue drops frames, which the receiver
+            // sees as a sequence gap.
             if lp.frames.len() >= batch.capacity() {
                 lp.frames.drain_into(&mut batch);
-                defmt::info!("frames {}", batch.as_slice());
+                for f in &batch {
+                    defmt::info!("{}", f);
+                }
             }
             if k.is_multiple_of(board::LOOP_RATE_HZ) {
                 defmt::info!("counters {}", defmt::Debug2Format(&lp.counters()));

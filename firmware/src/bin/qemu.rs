@@ -5,6 +5,12 @@
 //! peak error of both runs, a few sample frames, and exits QEMU with success only if the
 //! compensated RMS error is below 0.2 × the uncompensated one and below the absolute limits.
 //!
+//! With the feature `frames-all` it prints every frame of the compensated run instead of four
+//! (4 000 lines, one per tick, in the text form of `piezo_firmware::frames`), for
+//! `host-sim capture`: `cargo build --release --features qemu,frames-all --bin qemu`, then
+//! `./run-qemu.sh $CARGO_TARGET_DIR/thumbv7em-none-eabihf/release/qemu > qemu.log` and
+//! `host-sim capture --log qemu.log --out qemu.csv`.
+//!
 //! Build and run (from `firmware/`): `cargo qemu`, or `./ci.sh`, or
 //! `cargo build --release --features qemu --bin qemu` then
 //! `./run-qemu.sh $CARGO_TARGET_DIR/thumbv7em-none-eabihf/release/qemu`.
@@ -34,15 +40,19 @@ mod image {
     const PRINT_FRAMES_AT_TICK: u32 = 2_000;
     /// Frames in the printed batch.
     const PRINT_FRAMES: usize = 4;
+    /// Print every frame of the compensated run as it is drained (feature `frames-all`).
+    const PRINT_ALL_FRAMES: bool = cfg!(feature = "frames-all");
 
     #[entry]
     fn main() -> ! {
+        let frame_decimation = demo::settings().map_or(1, |s| s.frame_decimation);
         hprintln!(
-            "piezo-firmware qemu: parameters {} ({}), fnv1a32 {:#010x}, loop {} Hz",
+            "piezo-firmware qemu: parameters {} ({}), fnv1a32 {:#010x}, loop {} Hz, one frame every {} ticks",
             params::VERSION,
             params::SOURCE,
             params::FNV1A32,
-            params::LOOP_RATE_HZ
+            params::LOOP_RATE_HZ,
+            frame_decimation
         );
         let mut receiver = SequenceChecker::default();
         let mut received: u32 = 0;
@@ -54,7 +64,9 @@ mod image {
             for f in &batch {
                 receiver.accept(f.sequence);
                 received += 1;
-                if k >= PRINT_FRAMES_AT_TICK && printed.len() < PRINT_FRAMES {
+                if PRINT_ALL_FRAMES {
+                    hprintln!("{}", f);
+                } else if k >= PRINT_FRAMES_AT_TICK && printed.len() < PRINT_FRAMES {
                     let _ = printed.push(*f);
                 }
             }
@@ -65,17 +77,7 @@ mod image {
             (Err(e), _) | (_, Err(e)) => fail(format_args!("parameter set refused at boot: {e:?}")),
         };
         for f in &printed {
-            hprintln!(
-                "frame {}: x ref {} m cmd {} V sensor {} m | y ref {} m cmd {} V sensor {} m | wire {:02x?}",
-                f.sequence,
-                f.axes[0].reference_m,
-                f.axes[0].commanded_v,
-                f.axes[0].sensor_m,
-                f.axes[1].reference_m,
-                f.axes[1].commanded_v,
-                f.axes[1].sensor_m,
-                &f.to_bytes()[..8]
-            );
+            hprintln!("{} | wire {:02x?}", f, &f.to_bytes()[..8]);
         }
         hprintln!(
             "frames: {} received, {} gaps ({} lost)",
