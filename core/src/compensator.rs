@@ -255,17 +255,11 @@ impl Compensator {
         }
     }
 
-    /// The common case of a loop at a normal rate, in few instructions: n = 1, no asymmetric terms,
-    /// a consistent state inside the window, a finite reference and a small step that the window
-    /// and the slew limit leave alone. With the error e = y_d − y(u₀), the branch's κ and
-    /// q = A − κ·h₀, S₀ = k1 + k2·q, x₀ = e/S₀, kx = κ·x₀ and w = (k2·q/S₀)·kx, the one-step inverse
-    /// is the series reversion to fourth order
-    /// `Δu = x₀·(1 + w/2 + w²/2 − w·kx/6 + 5w³/8 − 5w²·kx/12 + w·kx²/24)` (error ~w⁴·Δu, ≤ ~6e-6·Δu
-    /// for |kx| < 0.01, |w| < 0.05; up to |kx| < 0.1, |w| < 0.2 it is the start of one Newton step on
-    /// the closed form), and `h₁ = h₀ + q·Δu·g(κΔu)` exactly. `None` hands every other case to the
-    /// general solve, which gives the same result there (tested).
-    #[inline]
-    fn compensate_small_n1(&self, state: &mut CompensatorState, desired_m: f32) -> Option<Command> {
+    /// What both small-step paths start from: the state (consistent and inside the window), the
+    /// output error e = y_d − y(u₀) (finite and nonzero: NaN and ±∞ references fail here too), the
+    /// direction that reduces it, and the map. `None` leaves the sample to the general solve.
+    #[inline(always)]
+    fn small_step(&self, state: &CompensatorState, desired_m: f32) -> Option<SmallStep> {
         let u0 = state.model.input_v;
         let h0 = state.model.hysteresis.h;
         let CompensatorSettings {
@@ -282,7 +276,6 @@ impl Compensator {
             offset_m,
         } = self.model.map();
         let error = desired_m - (k1 * u0 + k2 * h0 + offset_m);
-        // NaN and ±∞ references fail this test too.
         if !(error.abs() > 0.0 && error.abs() < f32::INFINITY) {
             return None;
         }
@@ -291,6 +284,39 @@ impl Compensator {
         } else {
             -1.0
         };
+        Some(SmallStep {
+            u0,
+            h0,
+            error,
+            direction,
+            k1,
+            k2,
+            min,
+            max,
+        })
+    }
+
+    /// The common case of a loop at a normal rate, in few instructions: n = 1, no asymmetric terms,
+    /// a consistent state inside the window, a finite reference and a small step that the window
+    /// and the slew limit leave alone. With the error e = y_d − y(u₀), the branch's κ and
+    /// q = A − κ·h₀, S₀ = k1 + k2·q, x₀ = e/S₀, kx = κ·x₀ and w = (k2·q/S₀)·kx, the one-step inverse
+    /// is the series reversion to fourth order
+    /// `Δu = x₀·(1 + w/2 + w²/2 − w·kx/6 + 5w³/8 − 5w²·kx/12 + w·kx²/24)` (error ~w⁴·Δu, ≤ ~6e-6·Δu
+    /// for |kx| < 0.01, |w| < 0.05; up to |kx| < 0.1, |w| < 0.2 it is the start of one Newton step on
+    /// the closed form), and `h₁ = h₀ + q·Δu·g(κΔu)` exactly. `None` hands every other case to the
+    /// general solve, which gives the same result there (tested).
+    #[inline]
+    fn compensate_small_n1(&self, state: &mut CompensatorState, desired_m: f32) -> Option<Command> {
+        let SmallStep {
+            u0,
+            h0,
+            error,
+            direction,
+            k1,
+            k2,
+            min,
+            max,
+        } = self.small_step(state, desired_m)?;
         let (q, kappa, sigma) = self.model.hysteresis().n1_branch(h0, direction);
         let k2q = k2 * q;
         let inverse_slope = 1.0 / (k1 + k2q);
@@ -353,30 +379,19 @@ impl Compensator {
         state: &mut CompensatorState,
         desired_m: f32,
     ) -> Option<Command> {
-        let u0 = state.model.input_v;
-        let h0 = state.model.hysteresis.h;
-        let CompensatorSettings {
-            output_min_v: min,
-            output_max_v: max,
-            ..
-        } = self.settings;
-        if !(u0 >= min && u0 <= max) || state.model.hysteresis.input_v != u0 || h0 == 0.0 {
+        let SmallStep {
+            u0,
+            h0,
+            error,
+            direction,
+            k1,
+            k2,
+            min,
+            max,
+        } = self.small_step(state, desired_m)?;
+        if h0 == 0.0 {
             return None;
         }
-        let StaticMap {
-            k1_m_per_v: k1,
-            k2_m_per_h: k2,
-            offset_m,
-        } = self.model.map();
-        let error = desired_m - (k1 * u0 + k2 * h0 + offset_m);
-        if !(error.abs() > 0.0 && error.abs() < f32::INFINITY) {
-            return None;
-        }
-        let direction = if error * self.slope_sign > 0.0 {
-            1.0
-        } else {
-            -1.0
-        };
         let bw = self.model.hysteresis();
         let BoucWenParams { a, beta, gamma, n } = bw.params();
         let sigma = if h0 > 0.0 { 1.0 } else { -1.0 };
@@ -662,6 +677,18 @@ impl Compensator {
 #[inline]
 fn exp_neg_series(z: f32) -> f32 {
     1.0 - z * (1.0 - 0.5 * z * (1.0 - z * (1.0 / 3.0) * (1.0 - 0.25 * z)))
+}
+
+/// The common start of the small-step solves ([`Compensator::small_step`]).
+struct SmallStep {
+    u0: f32,
+    h0: f32,
+    error: f32,
+    direction: f32,
+    k1: f32,
+    k2: f32,
+    min: f32,
+    max: f32,
 }
 
 /// Clamps a voltage step into \[0, limit\] (direction > 0) or \[limit, 0\] (direction < 0).
