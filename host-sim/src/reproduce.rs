@@ -95,6 +95,9 @@ pub struct Report {
     pub xy_120v: [LoopFigures; 2],
     /// [x, y] at 12 V.
     pub xy_12v: [LoopFigures; 2],
+    /// [x, y] at 120 V and at 12 V for [`XyStage::paper_opening_at_80v`] (stack gain rising with
+    /// voltage): the default plant's largest opening sits at u0/2 < 60 V (see `plant::xy_stage`).
+    pub xy_gain_variant: [[LoopFigures; 2]; 2],
     /// NAC2024 rows.
     pub nac: Vec<NacRow>,
     /// Stage: core models (I standard, II δ, III δ+φ) against the Case III plant.
@@ -146,15 +149,14 @@ fn loop_figures(out: &SimOutput, axis: usize, levels: usize) -> LoopFigures {
     }
 }
 
-fn xy_staircase(high_v: f64, step_v: f64) -> Result<[LoopFigures; 2], String> {
-    let stage = XyStage::default();
+fn xy_staircase(stage: &XyStage, high_v: f64, step_v: f64) -> Result<[LoopFigures; 2], String> {
     let levels = 2 * (high_v / step_v).round() as usize + 1;
     let mut signals: Vec<Box<dyn Signal>> = Vec::new();
     for _ in 0..2 {
         let s = staircase(0.0, high_v, step_v, HOLD_S).map_err(|e| e.to_string())?;
         signals.push(Box::new(s));
     }
-    let out = run(&stage, signals, XY_RATE_HZ, levels as f64 * HOLD_S)?;
+    let out = run(stage, signals, XY_RATE_HZ, levels as f64 * HOLD_S)?;
     Ok([loop_figures(&out, 0, levels), loop_figures(&out, 1, levels)])
 }
 
@@ -342,14 +344,21 @@ fn stage_results() -> Result<StageResults, String> {
 /// Runs all three sections; `progress` receives one line per step.
 pub fn run_reproduce(progress: &mut dyn FnMut(&str)) -> Result<Report, String> {
     progress("reproduce [1/3] xy_stage staircases 0-120-0 V and 0-12-0 V");
-    let xy_120v = xy_staircase(120.0, 10.0)?;
-    let xy_12v = xy_staircase(12.0, 1.0)?;
+    let stage = XyStage::default();
+    let xy_120v = xy_staircase(&stage, 120.0, 10.0)?;
+    let xy_12v = xy_staircase(&stage, 12.0, 1.0)?;
+    let variant = XyStage::paper_opening_at_80v();
+    let xy_gain_variant = [
+        xy_staircase(&variant, 120.0, 10.0)?,
+        xy_staircase(&variant, 12.0, 1.0)?,
+    ];
     let nac = nac_rows(progress)?;
     progress("reproduce [3/3] stage Cases I-III");
     let (stage_vs_case3, stage_matched, stage_traces) = stage_results()?;
     Ok(Report {
         xy_120v,
         xy_12v,
+        xy_gain_variant,
         nac,
         stage_vs_case3,
         stage_matched,
@@ -395,6 +404,17 @@ impl Report {
                 "loop_opening_x_at_V_120V": vp(self.xy_120v[0].opening_at_v, 80.0),
                 "loop_opening_y_at_V_120V": vp(self.xy_120v[1].opening_at_v, 80.0),
                 "method": "settled output at the end of each 30 ms level, 10 kHz; opening = max |descending - ascending| at equal voltage",
+            },
+            "xy_stage_gain_variant": {
+                "loop_opening_x_um_120V": vp(self.xy_gain_variant[0][0].opening_m * um, 7.91),
+                "loop_opening_y_um_120V": vp(self.xy_gain_variant[0][1].opening_m * um, 7.55),
+                "loop_opening_x_um_12V": vp(self.xy_gain_variant[1][0].opening_m * um, 0.344),
+                "loop_opening_y_um_12V": vp(self.xy_gain_variant[1][1].opening_m * um, 0.264),
+                "max_displacement_um": vp(self.xy_gain_variant[0][0].max_m * um, XY_PAPER_MAX_UM),
+                "max_displacement_y_um": vp(self.xy_gain_variant[0][1].max_m * um, XY_PAPER_MAX_UM),
+                "loop_opening_x_at_V_120V": vp(self.xy_gain_variant[0][0].opening_at_v, 80.0),
+                "loop_opening_y_at_V_120V": vp(self.xy_gain_variant[0][1].opening_at_v, 80.0),
+                "method": "XyStage::paper_opening_at_80v: the same mechanism with a stack gain rising with voltage, d(u) = d0*(1 + 0.002/V*u); with y = d*(u - h) and n = 1 the default plant's largest opening lies at u0/2 < 60 V",
             },
             "nac2024": {
                 "method": "core DynamicModel (Table 1, f32, 2.56 MHz, BoucWen range +-10 V, state limit 10) vs plant with second mode (480 kHz, zeta 0.05, 5 %) and mass 1.1*m0; sine 9.738 V, 10 periods from rest, metrics over the last 5; baseline = plant with Table 1 only",
@@ -446,6 +466,26 @@ impl Report {
         for (name, v, p) in rows {
             s.push_str(&format!("  {name:<28}{:>7.3}  {p:>7.3}\n", v * 1e6));
         }
+        s.push_str(&format!(
+            "  largest opening at [V]       {:>3.0} / {:<3.0}  {:>7.0}   (x / y)\n",
+            self.xy_120v[0].opening_at_v, self.xy_120v[1].opening_at_v, 80.0
+        ));
+        let [v120, v12] = &self.xy_gain_variant;
+        s.push_str("xy_stage, stack gain rising with voltage (XyStage::paper_opening_at_80v)\n");
+        for (name, v, p) in [
+            ("loop opening x, 120 V [µm]", v120[0].opening_m, 7.91),
+            ("loop opening y, 120 V [µm]", v120[1].opening_m, 7.55),
+            ("loop opening x, 12 V [µm]", v12[0].opening_m, 0.344),
+            ("loop opening y, 12 V [µm]", v12[1].opening_m, 0.264),
+            ("max displacement x [µm]", v120[0].max_m, XY_PAPER_MAX_UM),
+            ("max displacement y [µm]", v120[1].max_m, XY_PAPER_MAX_UM),
+        ] {
+            s.push_str(&format!("  {name:<28}{:>7.3}  {p:>7.3}\n", v * 1e6));
+        }
+        s.push_str(&format!(
+            "  largest opening at [V]       {:>3.0} / {:<3.0}  {:>7.0}   (x / y)\n",
+            v120[0].opening_at_v, v120[1].opening_at_v, 80.0
+        ));
         s.push_str("nac2024  f[kHz]   R²      paper   MRD[%]  paper   | baseline R²  MRD[%]\n");
         for (i, r) in self.nac.iter().enumerate() {
             s.push_str(&format!(
