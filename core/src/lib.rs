@@ -4,7 +4,8 @@
 //! identification all call: the rate-independent Bouc-Wen operator stepped in input increments
 //! ([`bouc_wen`]), its output maps — the static map of seed 001 with its asymmetric variant
 //! ([`static_model`]) and the mass–spring–damper of seed 000 ([`dynamic_model`]) — the inverse
-//! feedforward compensator ([`compensator`]) and the error measures of the seeds ([`metrics`]).
+//! feedforward compensator ([`compensator`]), the error measures of the seeds ([`metrics`]), and the
+//! hysteretic oscillator of the Bouc-Wen benchmark ([`oscillator`]).
 //!
 //! `no_std`, no allocation, `unsafe` forbidden, f32 on the per-sample path, SI units (volts, metres,
 //! seconds, newtons). Parameters are validated once, when built, into types that cannot hold an invalid
@@ -20,10 +21,12 @@ pub mod dynamic_model;
 pub mod error;
 pub mod math;
 pub mod metrics;
+pub mod oscillator;
 pub mod static_model;
 
 pub use bouc_wen::{max_input_span, BoucWen, BoucWenParams, BoundClass, HysteresisState};
 pub use compensator::{Command, CommandStatus, Compensator, CompensatorSettings, CompensatorState};
 pub use dynamic_model::{DynamicModel, DynamicState, MassSpringDamperParams};
 pub use error::{ParamError, MIN_SLOPE_RATIO};
+pub use oscillator::{HystereticOscillator, OscillatorParams, OscillatorState};
 pub use static_model::{Asymmetry, ModelState, StaticMap, StaticModel, ASYMMETRIC_STATE_FACTOR};

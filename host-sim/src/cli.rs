@@ -45,6 +45,10 @@ Both command one sample ahead. Output window 0-120 V."
     /// that `identify` reads; sequence gaps stop it (--allow-gaps: kept and marked).
     #[command(after_help = crate::capture::HELP)]
     Capture(crate::capture::CaptureArgs),
+    /// Fits a piezo-core model to a record; writes the parameter file and a summary JSON.
+    Identify(crate::identify::IdentifyArgs),
+    /// Simulates an identified model on a record (it sees only u) and reports the fit.
+    Predict(crate::identify::PredictArgs),
 }
 
 /// Plot formats.
@@ -138,6 +142,8 @@ pub fn run(cli: Cli) -> Result<String, String> {
         Command::Demo(a) => demo_cmd(&a),
         Command::Reproduce(a) => reproduce_cmd(&a),
         Command::Capture(a) => crate::capture::run(&a, &mut progress),
+        Command::Identify(a) => crate::identify::identify_cmd(&a),
+        Command::Predict(a) => crate::identify::predict_cmd(&a),
     }
 }
 

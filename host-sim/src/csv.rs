@@ -8,7 +8,9 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 /// Units accepted as column suffixes.
-pub const UNITS: &[&str] = &["s", "V", "m", "N", "Hz", "V_per_s", "m_per_s", "1"];
+pub const UNITS: &[&str] = &[
+    "s", "V", "m", "mm", "um", "nm", "N", "Hz", "V_per_s", "m_per_s", "1",
+];
 
 /// CSV errors.
 #[derive(Debug, Clone, PartialEq)]

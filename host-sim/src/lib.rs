@@ -15,6 +15,10 @@ pub mod cli;
 pub mod csv;
 pub mod demo;
 pub mod effects;
+#[allow(dead_code, missing_docs)]
+#[path = "../../firmware/build/params.rs"]
+mod firmware_params;
+pub mod identify;
 pub mod ode;
 pub mod plant;
 pub mod plot;

@@ -1,0 +1,790 @@
+//! The objective and the optimisers: variable projection, differential evolution,
+//! Levenberg–Marquardt, and seed 001's genetic algorithm.
+//!
+//! # Objective (variable projection)
+//! For the static models the output is linear in (k1, k2, y0) once h is known:
+//! `y = k1·u + k2·h(θ) + y0`. One evaluation simulates the core model with the map (0, 1, 0), so that
+//! its output *is* h(θ), accumulates the 3×3 normal equations of the basis (u, h, 1) in f64 while it
+//! runs, and solves them: the SSE at the best linear parameters for θ, without storing the record
+//! (memory per evaluation is constant). For the dynamic model the basis is (x₁, 1), where x₁ is the core
+//! `DynamicModel` with k0 = 1 N/m and k1 = 1 N/V, so the linear parameters are the compliance 1/k0 and x0.
+//!
+//! The Bouc-Wen scale is redundant with k2 (h → c·h, A → c·A, β → β/|c|^(n−1), γ → γ·sgn c/|c|^(n−1),
+//! k2 → k2/c leaves y unchanged), so the static models fix A = 1 and search
+//! θ = (log10(H/U), r, n[, d, p]) with H = (1/(β+γ))^(1/n) the state bound, U the input span,
+//! r = (β − γ)/(β + γ) ≥ −1 (β ≥ 0), d = δ·U·T_rec/H and p = φ/T. This keeps β + γ > 0 (the bounded class).
+//!
+//! # Method `vp-de-lm`
+//! 1. Differential evolution (DE/current-to-best/1/bin, F = 0.6, CR = 0.9, seeded ChaCha8, so
+//!    deterministic for a given `--seed`) on the record decimated to at most 2500 samples (the
+//!    hysteresis is rate-independent, so the decimated input path gives nearly the same h), each
+//!    generation evaluated in parallel (rayon).
+//! 2. Levenberg–Marquardt on the full record from the DE optimum: forward-difference Jacobian of the
+//!    projected residual (each column one core simulation, in parallel, into buffers allocated once per
+//!    run), Marquardt scaling, every trial point evaluated by the same projected objective.
+
+// Small dense linear algebra reads best with index loops.
+#![allow(clippy::needless_range_loop)]
+
+use super::model::{bouc_wen, CoreModel, Identified, ModelKind};
+use piezo_core::{
+    Asymmetry, BoucWenParams, Compensator, CompensatorSettings, DynamicModel,
+    MassSpringDamperParams, StaticMap, StaticModel,
+};
+use rand_chacha::ChaCha8Rng;
+use rand_core::{RngCore, SeedableRng};
+use rayon::prelude::*;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+/// A record prepared for fitting.
+pub struct Problem {
+    /// Model family.
+    pub kind: ModelKind,
+    /// Input (f32, as the core sees it).
+    pub u: Vec<f32>,
+    /// Measured output \[m\].
+    pub y: Vec<f64>,
+    /// First sample that is scored (earlier samples only warm the state up).
+    pub score_from: usize,
+    /// Sample period \[s\].
+    pub sample_period_s: f64,
+    /// Input range the sets are validated over \[V\].
+    pub input_range_v: (f32, f32),
+    /// Asymmetric model: fit the input shift φ too (Case III) or keep it 0 (Case II).
+    pub fit_shift: bool,
+    /// Require the compensator to accept the set (what the firmware build checks).
+    pub invertible: bool,
+    y_mean: f64,
+    y_scale: f64,
+    evaluations: AtomicU64,
+}
+
+/// Result of one projected evaluation.
+#[derive(Debug, Clone, Copy)]
+pub struct Eval {
+    /// Sum of squared errors over the scored samples \[m²\] (∞ when infeasible).
+    pub sse: f64,
+    /// Linear parameters in normalised units.
+    lin: [f64; 3],
+}
+
+fn uniform(rng: &mut ChaCha8Rng) -> f64 {
+    (rng.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+}
+
+impl Problem {
+    /// Prepares a record; `score_from` is the first scored sample.
+    pub fn new(
+        kind: ModelKind,
+        u: &[f64],
+        y: &[f64],
+        score_from: usize,
+        sample_period_s: f64,
+    ) -> Self {
+        let u32s: Vec<f32> = u.iter().map(|&v| v as f32).collect();
+        let lo = u32s.iter().copied().fold(f32::INFINITY, f32::min);
+        let hi = u32s.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+        let scored = &y[score_from.min(y.len())..];
+        let n = scored.len().max(1) as f64;
+        let mean = scored.iter().sum::<f64>() / n;
+        let var = scored.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>() / n;
+        Self {
+            kind,
+            u: u32s,
+            y: y.to_vec(),
+            score_from,
+            sample_period_s,
+            input_range_v: (lo, if hi > lo { hi } else { lo + 1.0 }),
+            fit_shift: true,
+            invertible: false,
+            y_mean: mean,
+            y_scale: if var > 0.0 { var.sqrt() } else { 1.0 },
+            evaluations: AtomicU64::new(0),
+        }
+    }
+
+    /// Core simulations run so far.
+    pub fn evaluations(&self) -> u64 {
+        self.evaluations.load(Ordering::Relaxed)
+    }
+
+    fn span(&self) -> f64 {
+        f64::from(self.input_range_v.1 - self.input_range_v.0)
+    }
+
+    /// Search box of θ for the projected methods.
+    pub fn bounds(&self) -> Vec<(f64, f64)> {
+        let mut b = vec![(-1.5, 1.0), (-1.0, 30.0), (1.0, 5.0)];
+        match self.kind {
+            ModelKind::Asymmetric => {
+                b.push((-1.0, 1.0));
+                if self.fit_shift {
+                    b.push((-1.0, 1.0));
+                }
+            }
+            ModelKind::Dynamic => {
+                // A relative to k1 = 1, natural frequency / sample rate, damping ratio.
+                b.push((-2.0, 2.0));
+                b.push((-2.5, -0.31));
+                b.push((-2.0, 0.5));
+            }
+            _ => {}
+        }
+        b
+    }
+
+    fn bouc_wen_of(&self, theta: &[f64], a: f64) -> BoucWenParams {
+        let n = theta[2];
+        let h = self.span() * 10f64.powf(theta[0]);
+        let b = a.abs() * h.powf(-n);
+        BoucWenParams {
+            a: a as f32,
+            beta: (b * (1.0 + theta[1]) / 2.0) as f32,
+            gamma: (a.signum() * b * (1.0 - theta[1]) / 2.0) as f32,
+            n: n as f32,
+        }
+    }
+
+    fn asymmetry_of(&self, theta: &[f64], stride: usize) -> Asymmetry {
+        if self.kind != ModelKind::Asymmetric {
+            return Asymmetry::default();
+        }
+        let h = self.span() * 10f64.powf(theta[0]);
+        let duration = self.sample_period_s * self.u.len() as f64;
+        let t = self.sample_period_s * stride as f64;
+        Asymmetry {
+            delta_per_v_s: (theta[3] * h / (self.span() * duration)) as f32,
+            input_shift_s: if self.fit_shift {
+                (theta[4] * t) as f32
+            } else {
+                0.0
+            },
+        }
+    }
+
+    /// The core model with the linear parameters set to the basis ((0, 1, 0) or k0 = k1 = 1).
+    fn basis_model(&self, theta: &[f64], stride: usize) -> Option<CoreModel> {
+        let t = (self.sample_period_s * stride as f64) as f32;
+        match self.kind {
+            ModelKind::Symmetric | ModelKind::Asymmetric => {
+                let bw = bouc_wen(self.bouc_wen_of(theta, 1.0), self.input_range_v).ok()?;
+                let map = StaticMap {
+                    k1_m_per_v: 0.0,
+                    k2_m_per_h: 1.0,
+                    offset_m: 0.0,
+                };
+                let asym = self.asymmetry_of(theta, stride);
+                let m = if asym == Asymmetry::default() {
+                    StaticModel::new(bw, map).ok()?
+                } else {
+                    StaticModel::asymmetric(bw, map, asym, t).ok()?
+                };
+                Some(CoreModel::Static(m))
+            }
+            ModelKind::Dynamic => {
+                let bw = bouc_wen(self.bouc_wen_of(theta, theta[3]), self.input_range_v).ok()?;
+                let wn = 2.0 * std::f64::consts::PI * 10f64.powf(theta[4]) / self.sample_period_s;
+                let zeta = 10f64.powf(theta[5]);
+                let mech = MassSpringDamperParams {
+                    mass_kg: (1.0 / (wn * wn)) as f32,
+                    damping_n_s_per_m: (2.0 * zeta / wn) as f32,
+                    stiffness_n_per_m: 1.0,
+                    rest_position_m: 0.0,
+                    force_per_volt_n_per_v: 1.0,
+                };
+                Some(CoreModel::Dynamic(DynamicModel::new(bw, mech, t).ok()?))
+            }
+            ModelKind::Oscillator => None,
+        }
+    }
+
+    fn basis_len(&self) -> usize {
+        if self.kind == ModelKind::Dynamic {
+            2
+        } else {
+            3
+        }
+    }
+
+    /// Projected evaluation on every `stride`-th sample; with `resid`, the normalised residuals of
+    /// the scored samples are written there (and `scratch` holds the basis; both of record length).
+    fn evaluate(
+        &self,
+        theta: &[f64],
+        stride: usize,
+        mut buffers: Option<(&mut [f64], &mut [[f64; 3]])>,
+    ) -> Eval {
+        self.evaluations.fetch_add(1, Ordering::Relaxed);
+        let bad = Eval {
+            sse: f64::INFINITY,
+            lin: [0.0; 3],
+        };
+        let Some(model) = self.basis_model(theta, stride) else {
+            return bad;
+        };
+        let nb = self.basis_len();
+        let mut g = [[0.0f64; 3]; 3];
+        let mut rhs = [0.0f64; 3];
+        let mut yy = 0.0;
+        let (mean, scale) = (self.y_mean, self.y_scale);
+        let mut finite = true;
+        let decimated = self.u.iter().copied().step_by(stride);
+        let mut k_scored = 0usize;
+        // The decimated input is fed through an iterator adapter without copying the record.
+        let mut visit = |k: usize, v: f32| {
+            let i = k * stride;
+            if i < self.score_from {
+                return;
+            }
+            if !v.is_finite() {
+                finite = false;
+            }
+            let phi = if nb == 3 {
+                [f64::from(self.u[i]), f64::from(v), 1.0]
+            } else {
+                [f64::from(v), 1.0, 0.0]
+            };
+            let yn = (self.y[i] - mean) / scale;
+            for a in 0..nb {
+                rhs[a] += phi[a] * yn;
+                for b in 0..nb {
+                    g[a][b] += phi[a] * phi[b];
+                }
+            }
+            yy += yn * yn;
+            if let Some((_, basis)) = buffers.as_mut() {
+                basis[k_scored] = phi;
+            }
+            k_scored += 1;
+        };
+        simulate_iter(&model, decimated, &mut visit);
+        if !finite {
+            return bad;
+        }
+        let Some(lin) = solve(&g, &rhs, nb) else {
+            return bad;
+        };
+        let sse_n: f64 = yy - (0..nb).map(|a| lin[a] * rhs[a]).sum::<f64>();
+        if let Some((resid, basis)) = buffers {
+            let mut i = self.score_from.div_ceil(stride) * stride;
+            for (r, phi) in resid.iter_mut().zip(basis.iter()).take(k_scored) {
+                let yn = (self.y[i] - mean) / scale;
+                *r = yn - (0..nb).map(|a| lin[a] * phi[a]).sum::<f64>();
+                i += stride;
+            }
+        }
+        let out = Eval {
+            sse: sse_n.max(0.0) * scale * scale,
+            lin,
+        };
+        if self.invertible && self.kind != ModelKind::Dynamic {
+            match self.identified(theta, &out) {
+                Some(set) if self.compensator_accepts(&set) => {}
+                _ => return bad,
+            }
+        }
+        out
+    }
+
+    fn compensator_accepts(&self, set: &Identified) -> bool {
+        let Ok(CoreModel::Static(m)) = set.build() else {
+            return false;
+        };
+        let settings = CompensatorSettings {
+            output_min_v: self.input_range_v.0,
+            output_max_v: self.input_range_v.1,
+            slew_limit_v_per_s: 1e5,
+            sample_period_s: 1e-4,
+        };
+        Compensator::new(m, settings).is_ok()
+    }
+
+    /// SSE of θ with its projected linear parameters, on every `stride`-th sample.
+    pub fn sse(&self, theta: &[f64], stride: usize) -> f64 {
+        self.evaluate(theta, stride, None).sse
+    }
+
+    /// The parameter set of θ (with its projected linear parameters), in SI.
+    pub fn identified(&self, theta: &[f64], e: &Eval) -> Option<Identified> {
+        let s = self.y_scale;
+        let t = self.sample_period_s as f32;
+        match self.kind {
+            ModelKind::Symmetric | ModelKind::Asymmetric => Some(Identified::Static {
+                bouc_wen: self.bouc_wen_of(theta, 1.0),
+                map: StaticMap {
+                    k1_m_per_v: (s * e.lin[0]) as f32,
+                    k2_m_per_h: (s * e.lin[1]) as f32,
+                    offset_m: (s * e.lin[2] + self.y_mean) as f32,
+                },
+                asymmetry: self.asymmetry_of(theta, 1),
+                sample_period_s: t,
+                input_range_v: self.input_range_v,
+            }),
+            ModelKind::Dynamic => {
+                // x = x0 + s·G*(u + h); a negative compliance flips the sign of the forcing.
+                let compliance = s * e.lin[0];
+                let flip = compliance.signum();
+                let a = theta[3] * flip;
+                let mut bw = self.bouc_wen_of(theta, theta[3]);
+                bw.a = a as f32;
+                bw.gamma *= flip as f32;
+                let k0 = 1.0 / compliance.abs();
+                let wn = 2.0 * std::f64::consts::PI * 10f64.powf(theta[4]) / self.sample_period_s;
+                let zeta = 10f64.powf(theta[5]);
+                Some(Identified::Dynamic {
+                    bouc_wen: bw,
+                    mechanics: MassSpringDamperParams {
+                        mass_kg: (k0 / (wn * wn)) as f32,
+                        damping_n_s_per_m: (2.0 * zeta * k0 / wn) as f32,
+                        stiffness_n_per_m: k0 as f32,
+                        rest_position_m: (s * e.lin[1] + self.y_mean) as f32,
+                        force_per_volt_n_per_v: flip as f32,
+                    },
+                    sample_period_s: t,
+                    input_range_v: self.input_range_v,
+                })
+            }
+            ModelKind::Oscillator => None,
+        }
+    }
+
+    /// The full evaluation of θ on the whole record.
+    pub fn eval_full(&self, theta: &[f64]) -> Eval {
+        self.evaluate(theta, 1, None)
+    }
+
+    /// SSE of a complete parameter set (no projection), as seed 001's GA scores it.
+    pub fn sse_direct(&self, set: &Identified) -> f64 {
+        self.evaluations.fetch_add(1, Ordering::Relaxed);
+        let Ok(model) = set.build() else {
+            return f64::INFINITY;
+        };
+        if self.invertible && !self.compensator_accepts(set) {
+            return f64::INFINITY;
+        }
+        let mut sse = 0.0;
+        model.simulate(&self.u, |k, v| {
+            if k >= self.score_from {
+                let e = f64::from(v) - self.y[k];
+                sse += e * e;
+            }
+        });
+        if sse.is_finite() {
+            sse
+        } else {
+            f64::INFINITY
+        }
+    }
+
+    fn scored(&self) -> usize {
+        self.u.len().saturating_sub(self.score_from)
+    }
+}
+
+fn simulate_iter(
+    model: &CoreModel,
+    u: impl Iterator<Item = f32>,
+    visit: &mut impl FnMut(usize, f32),
+) {
+    // The decimated record is consumed lazily through a small fixed buffer (no per-evaluation copy).
+    let mut chunk = [0.0f32; 256];
+    let mut model_state = SimState::new(model);
+    let mut k = 0;
+    let mut filled = 0;
+    for v in u {
+        chunk[filled] = v;
+        filled += 1;
+        if filled == chunk.len() {
+            model_state.run(model, &chunk, &mut k, visit);
+            filled = 0;
+        }
+    }
+    model_state.run(model, &chunk[..filled], &mut k, visit);
+}
+
+enum SimState {
+    Fresh,
+    Static(piezo_core::ModelState),
+    Dynamic(piezo_core::DynamicState),
+    Oscillator(piezo_core::OscillatorState),
+}
+
+impl SimState {
+    fn new(_: &CoreModel) -> Self {
+        Self::Fresh
+    }
+
+    fn run(
+        &mut self,
+        model: &CoreModel,
+        u: &[f32],
+        k: &mut usize,
+        visit: &mut impl FnMut(usize, f32),
+    ) {
+        let Some(&u0) = u.first() else { return };
+        if let Self::Fresh = self {
+            *self = match model {
+                CoreModel::Static(_) => Self::Static(piezo_core::ModelState::at_rest(u0)),
+                CoreModel::Dynamic(m) => Self::Dynamic(m.at_rest(u0)),
+                CoreModel::Oscillator(_) => Self::Oscillator(Default::default()),
+            };
+        }
+        for &v in u {
+            let y = match (model, &mut *self) {
+                (CoreModel::Static(m), Self::Static(s)) => m.step(s, v),
+                (CoreModel::Dynamic(m), Self::Dynamic(s)) => m.step(s, v),
+                (CoreModel::Oscillator(m), Self::Oscillator(s)) => m.step(s, v),
+                _ => f32::NAN,
+            };
+            visit(*k, y);
+            *k += 1;
+        }
+    }
+}
+
+/// Solves the symmetric positive (semi)definite system g·x = b of size `n` ≤ 3 (Gaussian elimination
+/// with partial pivoting and a tiny ridge).
+fn solve(g: &[[f64; 3]; 3], b: &[f64; 3], n: usize) -> Option<[f64; 3]> {
+    let mut a: Vec<Vec<f64>> = (0..n)
+        .map(|i| {
+            let mut row: Vec<f64> = g[i][..n].to_vec();
+            row[i] += 1e-12 * g[i][i].abs() + 1e-300;
+            row.push(b[i]);
+            row
+        })
+        .collect();
+    let mut x = [0.0f64; 3];
+    solve_dense(&mut a, n).map(|s| {
+        x[..n].copy_from_slice(&s);
+        x
+    })
+}
+
+/// Gaussian elimination on an augmented n×(n+1) matrix (for the oscillator's LM).
+pub fn solve_dense_pub(a: &mut [Vec<f64>], n: usize) -> Option<Vec<f64>> {
+    solve_dense(a, n)
+}
+
+/// Gaussian elimination on an augmented n×(n+1) matrix.
+fn solve_dense(a: &mut [Vec<f64>], n: usize) -> Option<Vec<f64>> {
+    for c in 0..n {
+        let p = (c..n).max_by(|&i, &j| a[i][c].abs().total_cmp(&a[j][c].abs()))?;
+        if a[p][c].abs() < 1e-300 || !a[p][c].is_finite() {
+            return None;
+        }
+        a.swap(c, p);
+        for r in c + 1..n {
+            let f = a[r][c] / a[c][c];
+            for k in c..=n {
+                a[r][k] -= f * a[c][k];
+            }
+        }
+    }
+    let mut x = vec![0.0; n];
+    for r in (0..n).rev() {
+        let s: f64 = (r + 1..n).map(|k| a[r][k] * x[k]).sum();
+        x[r] = (a[r][n] - s) / a[r][r];
+    }
+    x.iter().all(|v| v.is_finite()).then_some(x)
+}
+
+/// Progress reporting (an indicatif bar on stderr, hidden when stderr is not a terminal).
+pub type Progress = indicatif::ProgressBar;
+
+/// Differential evolution (DE/current-to-best/1/bin) on the decimated record; returns the best θ.
+pub fn differential_evolution(
+    problem: &Problem,
+    bounds: &[(f64, f64)],
+    seed: u64,
+    generations: usize,
+    progress: &Progress,
+) -> (Vec<f64>, f64) {
+    let stride = problem.u.len().div_ceil(2500).max(1);
+    let dim = bounds.len();
+    let pop = (5 * dim).max(15);
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut x: Vec<Vec<f64>> = (0..pop)
+        .map(|_| {
+            bounds
+                .iter()
+                .map(|&(lo, hi)| lo + (hi - lo) * uniform(&mut rng))
+                .collect()
+        })
+        .collect();
+    let mut f: Vec<f64> = x.par_iter().map(|t| problem.sse(t, stride)).collect();
+    let mut stall = 0;
+    for _ in 0..generations {
+        let best = (0..pop).min_by(|&a, &b| f[a].total_cmp(&f[b])).unwrap_or(0);
+        let trials: Vec<Vec<f64>> = (0..pop)
+            .map(|i| {
+                let pick = |rng: &mut ChaCha8Rng| (rng.next_u64() % pop as u64) as usize;
+                let (mut r1, mut r2) = (pick(&mut rng), pick(&mut rng));
+                while r1 == i {
+                    r1 = pick(&mut rng);
+                }
+                while r2 == i || r2 == r1 {
+                    r2 = pick(&mut rng);
+                }
+                let jrand = (rng.next_u64() % dim as u64) as usize;
+                (0..dim)
+                    .map(|j| {
+                        let (lo, hi) = bounds[j];
+                        if j == jrand || uniform(&mut rng) < 0.9 {
+                            let v = x[i][j]
+                                + 0.6 * (x[best][j] - x[i][j])
+                                + 0.6 * (x[r1][j] - x[r2][j]);
+                            if v < lo {
+                                lo + (x[i][j] - lo) * uniform(&mut rng)
+                            } else if v > hi {
+                                hi - (hi - x[i][j]) * uniform(&mut rng)
+                            } else {
+                                v
+                            }
+                        } else {
+                            x[i][j]
+                        }
+                    })
+                    .collect()
+            })
+            .collect();
+        let ft: Vec<f64> = trials.par_iter().map(|t| problem.sse(t, stride)).collect();
+        let before = f[best];
+        for (i, (t, v)) in trials.into_iter().zip(ft).enumerate() {
+            if v <= f[i] {
+                x[i] = t;
+                f[i] = v;
+            }
+        }
+        let after = f.iter().copied().fold(f64::INFINITY, f64::min);
+        progress.inc(1);
+        stall = if after < before * (1.0 - 1e-4) {
+            0
+        } else {
+            stall + 1
+        };
+        let worst = f.iter().copied().fold(0.0f64, f64::max);
+        if stall >= 5 || (worst.is_finite() && worst <= after * 1.001) {
+            break;
+        }
+    }
+    let best = (0..pop).min_by(|&a, &b| f[a].total_cmp(&f[b])).unwrap_or(0);
+    (x[best].clone(), f[best])
+}
+
+/// Levenberg–Marquardt on the full record from `theta` (forward-difference Jacobian of the projected
+/// residual, columns in parallel).
+pub fn levenberg_marquardt(
+    problem: &Problem,
+    bounds: &[(f64, f64)],
+    mut theta: Vec<f64>,
+    iterations: usize,
+    progress: &Progress,
+) -> (Vec<f64>, f64) {
+    let dim = theta.len();
+    let m = problem.scored();
+    // Buffers for the base point and every column: allocated once per run, reused every iteration.
+    let mut resid: Vec<Vec<f64>> = vec![vec![0.0; m]; dim + 1];
+    let mut basis: Vec<Vec<[f64; 3]>> = vec![vec![[0.0; 3]; m]; dim + 1];
+    let clampv = |t: &mut Vec<f64>| {
+        for (v, &(lo, hi)) in t.iter_mut().zip(bounds) {
+            *v = v.clamp(lo, hi);
+        }
+    };
+    clampv(&mut theta);
+    let mut f = problem.sse(&theta, 1);
+    let mut lambda = 1e-3;
+    for _ in 0..iterations {
+        progress.inc(1);
+        let steps: Vec<f64> = theta
+            .iter()
+            .zip(bounds)
+            .map(|(&v, &(_, hi))| {
+                let h = 1e-4 * (1.0 + v.abs());
+                if v + h > hi {
+                    -h
+                } else {
+                    h
+                }
+            })
+            .collect();
+        let base_f: Vec<f64> = resid
+            .par_iter_mut()
+            .zip(basis.par_iter_mut())
+            .enumerate()
+            .map(|(j, (r, b))| {
+                let mut t = theta.clone();
+                if j > 0 {
+                    t[j - 1] += steps[j - 1];
+                }
+                problem.evaluate(&t, 1, Some((r, b))).sse
+            })
+            .collect();
+        if base_f.iter().any(|v| !v.is_finite()) {
+            break;
+        }
+        // J_j = (r_j − r_0)/h_j; normal equations.
+        let mut jtj = vec![vec![0.0f64; dim]; dim];
+        let mut jtr = vec![0.0f64; dim];
+        for k in 0..m {
+            let r0 = resid[0][k];
+            let mut col = [0.0f64; 8];
+            for j in 0..dim {
+                col[j] = (resid[j + 1][k] - r0) / steps[j];
+            }
+            for a in 0..dim {
+                jtr[a] += col[a] * r0;
+                for b in a..dim {
+                    jtj[a][b] += col[a] * col[b];
+                }
+            }
+        }
+        for a in 0..dim {
+            for b in 0..a {
+                jtj[a][b] = jtj[b][a];
+            }
+        }
+        let mut improved = false;
+        for _ in 0..10 {
+            let mut aug: Vec<Vec<f64>> = (0..dim)
+                .map(|a| {
+                    let mut row = jtj[a].clone();
+                    row[a] += lambda * jtj[a][a].max(1e-12);
+                    row.push(-jtr[a]);
+                    row
+                })
+                .collect();
+            let Some(delta) = solve_dense(&mut aug, dim) else {
+                lambda *= 10.0;
+                continue;
+            };
+            let mut trial: Vec<f64> = theta.iter().zip(&delta).map(|(a, b)| a + b).collect();
+            clampv(&mut trial);
+            let ft = problem.sse(&trial, 1);
+            if ft < f {
+                let gain = (f - ft) / f;
+                theta = trial;
+                f = ft;
+                lambda = (lambda / 3.0).max(1e-9);
+                improved = gain > 1e-10;
+                break;
+            }
+            lambda *= 4.0;
+        }
+        if !improved {
+            break;
+        }
+    }
+    (theta, f)
+}
+
+/// Seed 001's genetic algorithm as published: population 30, 100 generations, crossover 0.7,
+/// mutation 0.2, RMS fitness, its search ranges (in its units: mm and mm/V, converted here to m),
+/// stop at fitness 1e-7 mm. Real-coded: binary tournament selection, arithmetic crossover of a pair
+/// with probability 0.7, uniform re-draw of each gene with probability 0.2, the best individual kept
+/// (elitism). `genes` names which of (k1, k2, A, β, γ, n, δ, φ) are free; the others come from `base`.
+pub fn genetic_algorithm(
+    problem: &Problem,
+    base: &[f64; 8],
+    free: &[usize],
+    seed: u64,
+    progress: &Progress,
+) -> ([f64; 8], f64) {
+    const RANGES: [(f64, f64); 8] = [
+        (-1e-3, 1e-3),
+        (-1.0, 1.0),
+        (-1.0, 1.0),
+        (-10.0, 10.0),
+        (0.0, 10.0),
+        (2.0, 5.0),
+        (-1.0, 1.0),
+        (-1e-4, 1e-4),
+    ];
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let rms = |g: &[f64; 8]| -> f64 {
+        let set = ga_set(problem, g);
+        let sse = problem.sse_direct(&set);
+        (sse / problem.scored().max(1) as f64).sqrt()
+    };
+    let mut pop: Vec<[f64; 8]> = (0..30)
+        .map(|_| {
+            let mut g = *base;
+            for &j in free {
+                g[j] = RANGES[j].0 + (RANGES[j].1 - RANGES[j].0) * uniform(&mut rng);
+            }
+            g
+        })
+        .collect();
+    let mut fit: Vec<f64> = pop.par_iter().map(rms).collect();
+    for _ in 0..100 {
+        progress.inc(1);
+        let best = (0..30)
+            .min_by(|&a, &b| fit[a].total_cmp(&fit[b]))
+            .unwrap_or(0);
+        if fit[best] <= 1e-10 {
+            break;
+        }
+        let mut next = vec![pop[best]];
+        let tournament = |rng: &mut ChaCha8Rng| {
+            let a = (rng.next_u64() % 30) as usize;
+            let b = (rng.next_u64() % 30) as usize;
+            if fit[a] <= fit[b] {
+                a
+            } else {
+                b
+            }
+        };
+        while next.len() < 30 {
+            let (p1, p2) = (pop[tournament(&mut rng)], pop[tournament(&mut rng)]);
+            let (mut c1, mut c2) = (p1, p2);
+            if uniform(&mut rng) < 0.7 {
+                let w = uniform(&mut rng);
+                for &j in free {
+                    c1[j] = w * p1[j] + (1.0 - w) * p2[j];
+                    c2[j] = (1.0 - w) * p1[j] + w * p2[j];
+                }
+            }
+            for c in [&mut c1, &mut c2] {
+                for &j in free {
+                    if uniform(&mut rng) < 0.2 {
+                        c[j] = RANGES[j].0 + (RANGES[j].1 - RANGES[j].0) * uniform(&mut rng);
+                    }
+                }
+            }
+            next.push(c1);
+            if next.len() < 30 {
+                next.push(c2);
+            }
+        }
+        let mut nf: Vec<f64> = next[1..].par_iter().map(rms).collect();
+        nf.insert(0, fit[best]);
+        pop = next;
+        fit = nf;
+    }
+    let best = (0..30)
+        .min_by(|&a, &b| fit[a].total_cmp(&fit[b]))
+        .unwrap_or(0);
+    (pop[best], fit[best])
+}
+
+/// The parameter set of a GA genome (k1 \[mm/V\], k2 \[mm\], A, β, γ, n, δ, φ \[s\]) in SI.
+pub fn ga_set(problem: &Problem, g: &[f64; 8]) -> Identified {
+    Identified::Static {
+        bouc_wen: BoucWenParams {
+            a: g[2] as f32,
+            beta: g[3] as f32,
+            gamma: g[4] as f32,
+            n: g[5] as f32,
+        },
+        map: StaticMap {
+            k1_m_per_v: (g[0] * 1e-3) as f32,
+            k2_m_per_h: (g[1] * 1e-3) as f32,
+            offset_m: 0.0,
+        },
+        asymmetry: Asymmetry {
+            delta_per_v_s: g[6] as f32,
+            input_shift_s: g[7] as f32,
+        },
+        sample_period_s: problem.sample_period_s as f32,
+        input_range_v: problem.input_range_v,
+    }
+}

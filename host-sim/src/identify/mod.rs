@@ -1,0 +1,507 @@
+//! `identify` and `predict`: fit a piezo-core model to a recorded (u, y) and validate it on new data.
+//!
+//! Records are CSV files with unit-suffixed columns (`t_s`, `u_V` or `u_N`, `y_m`, `y_um`, `y_nm`);
+//! values are converted to SI on reading. The model always starts at rest at the first sample and is
+//! simulated over the whole record (it sees only u); the fit and the reported measures use the samples
+//! from `--start` on, so that a start-up transient warms the state up without being scored.
+//!
+//! Methods ([`fit`]): `vp-de-lm` (the default: variable projection, differential evolution,
+//! Levenberg–Marquardt) and `ga` (seed 001's genetic algorithm as published: Case I for the symmetric
+//! model; Case I, then δ (Case II, `--no-shift`) or δ and φ (Case III) with the six held, for the
+//! asymmetric model).
+
+pub mod fit;
+pub mod model;
+pub mod oscillator;
+
+use crate::csv::{read_csv, Table};
+use fit::{Problem, Progress};
+use model::{from_toml, to_toml, Identified, ModelKind};
+use serde_json::json;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Identification methods.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Method {
+    /// Variable projection + differential evolution + Levenberg–Marquardt (default).
+    VpDeLm,
+    /// Seed 001's genetic algorithm as published.
+    Ga,
+}
+
+impl Method {
+    /// Name in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::VpDeLm => "vp-de-lm",
+            Self::Ga => "ga",
+        }
+    }
+}
+
+/// A record in SI units.
+#[derive(Debug, Clone)]
+pub struct Record {
+    /// Source file.
+    pub path: PathBuf,
+    /// Times \[s\].
+    pub t_s: Vec<f64>,
+    /// Input \[V\] or \[N\].
+    pub u: Vec<f64>,
+    /// Output \[m\].
+    pub y_m: Vec<f64>,
+}
+
+/// SI factor of a column's unit suffix.
+pub fn unit_factor(name: &str) -> Option<f64> {
+    let unit = name.rsplit('_').next()?;
+    Some(match unit {
+        "s" | "V" | "m" | "N" => 1.0,
+        "mm" => 1e-3,
+        "um" => 1e-6,
+        "nm" => 1e-9,
+        _ => return None,
+    })
+}
+
+fn pick(table: &Table, given: Option<&str>, prefix: &str, flag: &str) -> Result<String, String> {
+    if let Some(name) = given {
+        table.column(name).map_err(|e| format!("{flag}: {e}"))?;
+        return Ok(name.to_string());
+    }
+    table
+        .names
+        .iter()
+        .find(|n| n.starts_with(prefix))
+        .cloned()
+        .ok_or_else(|| {
+            format!(
+                "{}: no `{prefix}*` column (columns: {}); name one with {flag}",
+                table.path.display(),
+                table.names.join(", ")
+            )
+        })
+}
+
+impl Record {
+    /// Reads a CSV; columns default to the first `t_*`, `u_*` and `y_*` of the header.
+    pub fn read(
+        path: &Path,
+        t: Option<&str>,
+        u: Option<&str>,
+        y: Option<&str>,
+    ) -> Result<Self, String> {
+        let table = read_csv(path).map_err(|e| e.to_string())?;
+        let names = [
+            pick(&table, t, "t_", "--t")?,
+            pick(&table, u, "u_", "--u")?,
+            pick(&table, y, "y_", "--y")?,
+        ];
+        let mut cols = Vec::new();
+        for (name, flag) in names.iter().zip(["--t", "--u", "--y"]) {
+            let f = unit_factor(name).ok_or_else(|| {
+                format!(
+                    "{flag}: {}: column `{name}` has no SI-convertible unit (s, V, N, m, mm, um, nm)",
+                    path.display()
+                )
+            })?;
+            cols.push(
+                table
+                    .column(name)
+                    .map_err(|e| e.to_string())?
+                    .iter()
+                    .map(|v| v * f)
+                    .collect::<Vec<f64>>(),
+            );
+        }
+        if cols[0].len() < 10 {
+            return Err(format!("{}: fewer than 10 samples", path.display()));
+        }
+        let y_m = cols.pop().unwrap_or_default();
+        let u = cols.pop().unwrap_or_default();
+        let t_s = cols.pop().unwrap_or_default();
+        Ok(Self {
+            path: path.into(),
+            t_s,
+            u,
+            y_m,
+        })
+    }
+
+    /// Mean sample period \[s\].
+    pub fn sample_period_s(&self) -> f64 {
+        (self.t_s[self.t_s.len() - 1] - self.t_s[0]) / (self.t_s.len() - 1) as f64
+    }
+
+    /// Index of the first sample at or after `start_s`.
+    pub fn index_at(&self, start_s: f64) -> usize {
+        self.t_s
+            .iter()
+            .position(|&t| t >= start_s)
+            .unwrap_or(self.t_s.len())
+    }
+}
+
+/// Settings of one identification.
+#[derive(Debug, Clone)]
+pub struct IdentifySettings {
+    /// Model family.
+    pub model: ModelKind,
+    /// Method.
+    pub method: Method,
+    /// Seed of the random generators.
+    pub seed: u64,
+    /// First scored time \[s\].
+    pub start_s: f64,
+    /// Asymmetric model: keep φ = 0 (seed 001's Case II).
+    pub no_shift: bool,
+    /// Require the firmware's compensator to accept the set.
+    pub invertible: bool,
+    /// Show a progress bar.
+    pub progress: bool,
+}
+
+/// The fit block of the reports (SI).
+pub fn fit_block(measured: &[f64], predicted: &[f64]) -> serde_json::Value {
+    use piezo_core::metrics;
+    let (lo, hi) = metrics::rae(measured, predicted).unwrap_or((f64::NAN, f64::NAN));
+    json!({
+        "rms": metrics::rms(measured, predicted),
+        "max_abs": lo.abs().max(hi.abs()),
+        "r2": metrics::r_squared(measured, predicted),
+        "mrd_percent": metrics::mrd_percent(measured, predicted),
+        "rae_min": lo,
+        "rae_max": hi,
+    })
+}
+
+/// Simulates a set on a record and returns the fit block over the samples from `from`.
+pub fn score(set: &Identified, record: &Record, from: usize) -> Result<serde_json::Value, String> {
+    if set.kind() == ModelKind::Oscillator {
+        return oscillator::score(set, record, from);
+    }
+    let model = set
+        .build()
+        .map_err(|e| format!("parameter set refused by piezo-core: {e}"))?;
+    let u: Vec<f32> = record.u.iter().map(|&v| v as f32).collect();
+    let mut predicted = vec![0.0f64; u.len()];
+    model.simulate(&u, |k, v| predicted[k] = f64::from(v));
+    Ok(fit_block(&record.y_m[from..], &predicted[from..]))
+}
+
+/// Result of `identify`.
+#[derive(Debug, Clone)]
+pub struct Identification {
+    /// The set.
+    pub set: Identified,
+    /// Summary JSON (schema of issue 5).
+    pub summary: serde_json::Value,
+}
+
+fn bar(len: u64, show: bool) -> Progress {
+    if show {
+        let pb = indicatif::ProgressBar::new(len);
+        if let Ok(style) = indicatif::ProgressStyle::with_template(
+            "{spinner} {msg} [{bar:30}] {pos}/{len} {elapsed_precise}",
+        ) {
+            pb.set_style(style);
+        }
+        pb
+    } else {
+        indicatif::ProgressBar::hidden()
+    }
+}
+
+/// Runs one identification on a record.
+pub fn identify(record: &Record, s: &IdentifySettings) -> Result<Identification, String> {
+    if s.model == ModelKind::Oscillator {
+        return oscillator::identify(record, s);
+    }
+    let started = Instant::now();
+    let from = record.index_at(s.start_s);
+    if record.u.len() - from < 10 {
+        return Err(format!(
+            "--start {}: fewer than 10 samples left to fit",
+            s.start_s
+        ));
+    }
+    let mut problem = Problem::new(
+        s.model,
+        &record.u,
+        &record.y_m,
+        from,
+        record.sample_period_s(),
+    );
+    problem.fit_shift = !s.no_shift;
+    problem.invertible = s.invertible;
+    let set = match s.method {
+        Method::VpDeLm => {
+            let bounds = problem.bounds();
+            let pb = bar(100, s.progress);
+            pb.set_message(format!("{} DE", s.model.name()));
+            let (theta, _) = fit::differential_evolution(&problem, &bounds, s.seed, 12, &pb);
+            if std::env::var_os("PIEZO_ID_DEBUG").is_some() {
+                eprintln!(
+                    "DE: {} evaluations, {:.3} s",
+                    problem.evaluations(),
+                    started.elapsed().as_secs_f64()
+                );
+            }
+            pb.set_message(format!("{} LM", s.model.name()));
+            let (theta, _) = fit::levenberg_marquardt(&problem, &bounds, theta, 40, &pb);
+            pb.finish_and_clear();
+            let e = problem.eval_full(&theta);
+            problem.identified(&theta, &e).ok_or(
+                "no feasible parameter set found (every candidate was refused by piezo-core)",
+            )?
+        }
+        Method::Ga => {
+            if s.model == ModelKind::Dynamic {
+                return Err("--method ga: seed 001's GA fits the static models only (symmetric, asymmetric)".into());
+            }
+            let pb = bar(
+                if s.model == ModelKind::Asymmetric {
+                    200
+                } else {
+                    100
+                },
+                s.progress,
+            );
+            pb.set_message("GA case I");
+            let base = [0.0; 8];
+            let (g, _) = fit::genetic_algorithm(&problem, &base, &[0, 1, 2, 3, 4, 5], s.seed, &pb);
+            let g = if s.model == ModelKind::Asymmetric {
+                pb.set_message("GA case II/III");
+                let free: &[usize] = if s.no_shift { &[6] } else { &[6, 7] };
+                fit::genetic_algorithm(&problem, &g, free, s.seed + 1, &pb).0
+            } else {
+                g
+            };
+            pb.finish_and_clear();
+            fit::ga_set(&problem, &g)
+        }
+    };
+    let fit = score(&set, record, from)?;
+    let summary = json!({
+        "model": s.model.name(),
+        "method": s.method.name(),
+        "params": set.to_json(),
+        "fit": fit,
+        "evaluations": problem.evaluations(),
+        "seconds": started.elapsed().as_secs_f64(),
+    });
+    Ok(Identification { set, summary })
+}
+
+/// Writes the parameter file and the summary; returns a one-line description.
+pub fn write_outputs(
+    id: &Identification,
+    method: &str,
+    record: &Record,
+    start_s: f64,
+    out: &Path,
+    report: &Path,
+) -> Result<String, String> {
+    let text = to_toml(&id.set, method, &record.path.display().to_string(), start_s);
+    for p in [out, report] {
+        if let Some(dir) = p.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+        }
+    }
+    std::fs::write(out, &text).map_err(|e| format!("--out {}: {e}", out.display()))?;
+    let json = serde_json::to_string_pretty(&id.summary).map_err(|e| e.to_string())?;
+    std::fs::write(report, json).map_err(|e| format!("--report {}: {e}", report.display()))?;
+    let firmware = if id.set.kind() == ModelKind::Oscillator {
+        "not a firmware model (force input)".to_string()
+    } else {
+        match firmware_check(&out.display().to_string(), text.as_bytes()) {
+            Ok(()) => "accepted by the firmware's parameter check".to_string(),
+            Err(e) => format!("REFUSED by the firmware's parameter check: {e}"),
+        }
+    };
+    Ok(format!(
+        "{} {}: rms {:.4e} m, r2 {}, {} evaluations, {:.2} s; {} written ({firmware}), {}",
+        id.summary["model"].as_str().unwrap_or(""),
+        id.summary["method"].as_str().unwrap_or(""),
+        id.summary["fit"]["rms"].as_f64().unwrap_or(f64::NAN),
+        id.summary["fit"]["r2"],
+        id.summary["evaluations"],
+        id.summary["seconds"].as_f64().unwrap_or(f64::NAN),
+        out.display(),
+        report.display()
+    ))
+}
+
+/// Runs the firmware's own parameter-file check (`firmware/build/params.rs`, the code its build runs).
+pub fn firmware_check(file: &str, bytes: &[u8]) -> Result<(), String> {
+    crate::firmware_params::load(file, bytes).map(|_| ())
+}
+
+/// `predict`: simulates the set of a parameter file on a record.
+pub fn predict(params: &Path, record: &Record, start_s: f64) -> Result<serde_json::Value, String> {
+    let text = std::fs::read_to_string(params)
+        .map_err(|e| format!("--params {}: {e}", params.display()))?;
+    let set = from_toml(&params.display().to_string(), &text)?;
+    let from = record.index_at(start_s);
+    if record.u.len() - from < 1 {
+        return Err(format!("--start {start_s}: no samples left"));
+    }
+    let fit = score(&set, record, from)?;
+    Ok(json!({
+        "model": set.kind().name(),
+        "params_file": params.display().to_string(),
+        "data": record.path.display().to_string(),
+        "start_s": start_s,
+        "fit": fit,
+    }))
+}
+
+/// Arguments of `identify`.
+#[derive(Debug, clap::Args)]
+#[command(
+    after_help = "Methods:\n  vp-de-lm  default: variable projection (k1, k2, offset by least squares in every evaluation), differential evolution on the decimated record, then Levenberg-Marquardt on the full record; deterministic for a given --seed, parallel over cores\n  ga        seed 001's genetic algorithm as published (population 30, 100 generations, crossover 0.7, mutation 0.2, RMS fitness, its search ranges); asymmetric: Case I, then delta (Case II, --no-shift) or delta and phi (Case III)\nThe model simulated is piezo-core's f32 model; sets the core refuses are infeasible. The parameter file is the firmware's format (both axes hold the identified set) and is checked with the firmware's own parser."
+)]
+pub struct IdentifyArgs {
+    /// Record to fit (CSV with unit-suffixed columns).
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Model family.
+    #[arg(long, value_enum)]
+    pub model: ModelKind,
+    /// Method.
+    #[arg(long, value_enum, default_value_t = Method::VpDeLm)]
+    pub method: Method,
+    /// Time column (default: first `t_*`).
+    #[arg(long)]
+    pub t: Option<String>,
+    /// Input column (default: first `u_*`).
+    #[arg(long)]
+    pub u: Option<String>,
+    /// Output column (default: first `y_*`).
+    #[arg(long)]
+    pub y: Option<String>,
+    /// First scored time [s]; earlier samples only warm the model state up.
+    #[arg(long, default_value_t = 0.0)]
+    pub start: f64,
+    /// Last time used [s] (the record is cut there; later samples can be scored by `predict --start`).
+    #[arg(long)]
+    pub end: Option<f64>,
+    /// Seed of the random generators.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Asymmetric model: keep the input shift phi at 0 (seed 001's Case II).
+    #[arg(long)]
+    pub no_shift: bool,
+    /// Only sets the firmware's compensator accepts (strictly monotone map) are feasible.
+    #[arg(long)]
+    pub invertible: bool,
+    /// Parameter file to write (TOML, firmware format).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Summary JSON to write.
+    #[arg(long)]
+    pub report: PathBuf,
+}
+
+/// Arguments of `predict`.
+#[derive(Debug, clap::Args)]
+pub struct PredictArgs {
+    /// Parameter file written by `identify`.
+    #[arg(long)]
+    pub params: PathBuf,
+    /// Record to simulate (the model sees only u).
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Time column (default: first `t_*`).
+    #[arg(long)]
+    pub t: Option<String>,
+    /// Input column (default: first `u_*`).
+    #[arg(long)]
+    pub u: Option<String>,
+    /// Output column (default: first `y_*`).
+    #[arg(long)]
+    pub y: Option<String>,
+    /// First scored time [s].
+    #[arg(long, default_value_t = 0.0)]
+    pub start: f64,
+    /// For a record that is one period of a periodic steady state (the benchmark's test multisine):
+    /// simulate its input this many times first, so the model starts the scored period in its own
+    /// steady state (the model still sees only u).
+    #[arg(long, default_value_t = 0)]
+    pub periodic_warmup: usize,
+    /// Report JSON to write.
+    #[arg(long)]
+    pub report: PathBuf,
+}
+
+/// Runs `identify`.
+pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
+    let mut record = Record::read(&a.data, a.t.as_deref(), a.u.as_deref(), a.y.as_deref())
+        .map_err(|e| format!("--data: {e}"))?;
+    if let Some(end) = a.end {
+        let n = record
+            .t_s
+            .iter()
+            .position(|&t| t > end)
+            .unwrap_or(record.t_s.len());
+        if n < 10 {
+            return Err(format!("--end {end}: fewer than 10 samples before it"));
+        }
+        record.t_s.truncate(n);
+        record.u.truncate(n);
+        record.y_m.truncate(n);
+    }
+    let settings = IdentifySettings {
+        model: a.model,
+        method: a.method,
+        seed: a.seed,
+        start_s: a.start,
+        no_shift: a.no_shift,
+        invertible: a.invertible,
+        progress: true,
+    };
+    let id = identify(&record, &settings)?;
+    write_outputs(&id, a.method.name(), &record, a.start, &a.out, &a.report)
+}
+
+/// Runs `predict`.
+pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
+    let mut record = Record::read(&a.data, a.t.as_deref(), a.u.as_deref(), a.y.as_deref())
+        .map_err(|e| format!("--data: {e}"))?;
+    let mut start = a.start;
+    if a.periodic_warmup > 0 {
+        let n = record.u.len();
+        let period = record.sample_period_s() * n as f64;
+        let t0 = record.t_s[0];
+        let copies = a.periodic_warmup + 1;
+        record.t_s = (0..n * copies)
+            .map(|i| t0 + i as f64 * period / n as f64)
+            .collect();
+        record.u = record.u.iter().copied().cycle().take(n * copies).collect();
+        record.y_m = record
+            .y_m
+            .iter()
+            .copied()
+            .cycle()
+            .take(n * copies)
+            .collect();
+        start += a.periodic_warmup as f64 * period;
+    }
+    let mut r = predict(&a.params, &record, start)?;
+    r["periodic_warmup"] = json!(a.periodic_warmup);
+    if let Some(dir) = a.report.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+    }
+    let text = serde_json::to_string_pretty(&r).map_err(|e| e.to_string())?;
+    std::fs::write(&a.report, text).map_err(|e| format!("--report {}: {e}", a.report.display()))?;
+    Ok(format!(
+        "{} on {}: rms {:.4e} m, r2 {}, mrd {} %; {} written",
+        r["model"].as_str().unwrap_or(""),
+        a.data.display(),
+        r["fit"]["rms"].as_f64().unwrap_or(f64::NAN),
+        r["fit"]["r2"],
+        r["fit"]["mrd_percent"],
+        a.report.display()
+    ))
+}

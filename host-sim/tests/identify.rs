@@ -1,0 +1,179 @@
+//! `identify` and `predict`: recovery of a known set from a noisy simulated record (host-sim's f64
+//! stage plant, seed 001 Case I, not the core), the identify → predict round trip through the parameter
+//! file, the firmware's own check of that file, and CSV errors that name file, line and column.
+
+use clap::Parser;
+use host_sim::cli::{run, Cli};
+use host_sim::identify::model::{from_toml, Identified};
+use host_sim::identify::{identify, predict, write_outputs, IdentifySettings, Method, Record};
+use std::path::PathBuf;
+
+fn temp(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("host_sim_identify_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir.join(name)
+}
+
+/// Seed 001's Case I stage with 10 nm white sensor noise, 2 Hz cosine 0–20 V, 0.5 s at 10 kHz.
+fn stage_record(name: &str, plant: &str) -> PathBuf {
+    let out = temp(name);
+    let cli = Cli::try_parse_from([
+        "host-sim",
+        "simulate",
+        "--plant",
+        plant,
+        "--signal",
+        "sine:amp=10,offset=10,freq=2,phase_deg=-90,duration=0.5,rate=10000",
+        "--effect",
+        "noise:rms_m=1e-8,seed=3",
+        "--out",
+        out.to_str().unwrap(),
+    ])
+    .unwrap();
+    run(cli).unwrap();
+    out
+}
+
+fn settings(model: host_sim::identify::model::ModelKind) -> IdentifySettings {
+    IdentifySettings {
+        model,
+        method: Method::VpDeLm,
+        seed: 1,
+        start_s: 0.0,
+        no_shift: false,
+        invertible: false,
+        progress: false,
+    }
+}
+
+#[test]
+fn recovers_the_stage_case1_set_at_the_noise_floor() {
+    let path = stage_record("case1.csv", "stage-case1");
+    let record = Record::read(&path, None, None, None).unwrap();
+    let id = identify(
+        &record,
+        &settings(host_sim::identify::model::ModelKind::Symmetric),
+    )
+    .unwrap();
+    let rms = id.summary["fit"]["rms"].as_f64().unwrap();
+    // Within 10 % of the 10 nm noise floor.
+    assert!(rms < 1.1e-8, "rms {rms}");
+    let Identified::Static { bouc_wen, map, .. } = id.set else {
+        panic!("static set expected")
+    };
+    // The truth normalised to A = 1 (h → h/A): β' = β·|A|^(n−1), γ' = γ·sgn A·|A|^(n−1).
+    let (a, beta, gamma, n) = (-7.02182e-2f64, 4.45753f64, 3.49259f64, 3.05869f64);
+    let scale = a.abs().powf(n - 1.0);
+    let rel = |x: f64, truth: f64| ((x - truth) / truth).abs();
+    assert!(rel(f64::from(bouc_wen.n), n) < 0.02, "n {}", bouc_wen.n);
+    assert!(
+        rel(f64::from(bouc_wen.beta), beta * scale) < 0.05,
+        "beta {}",
+        bouc_wen.beta
+    );
+    assert!(
+        rel(f64::from(bouc_wen.gamma), -gamma * scale) < 0.05,
+        "gamma {}",
+        bouc_wen.gamma
+    );
+    assert!(
+        rel(f64::from(map.k1_m_per_v), -3.51711e-7) < 0.01,
+        "k1 {}",
+        map.k1_m_per_v
+    );
+    assert!(
+        rel(f64::from(map.k2_m_per_h), -1.94566e-6 * a) < 0.05,
+        "k2 {}",
+        map.k2_m_per_h
+    );
+    for key in ["model", "method", "params", "fit", "evaluations", "seconds"] {
+        assert!(id.summary.get(key).is_some(), "summary lacks {key}");
+    }
+    for key in ["rms", "max_abs", "r2", "mrd_percent", "rae_min", "rae_max"] {
+        assert!(id.summary["fit"].get(key).is_some(), "fit lacks {key}");
+    }
+}
+
+#[test]
+fn identify_then_predict_round_trip_and_firmware_check() {
+    let path = stage_record("case3.csv", "stage");
+    let record = Record::read(&path, None, None, None).unwrap();
+    for model in [
+        host_sim::identify::model::ModelKind::Symmetric,
+        host_sim::identify::model::ModelKind::Asymmetric,
+    ] {
+        let mut s = settings(model);
+        s.invertible = model == host_sim::identify::model::ModelKind::Symmetric;
+        let id = identify(&record, &s).unwrap();
+        let (toml, report) = (temp("p.toml"), temp("s.json"));
+        let msg = write_outputs(&id, "vp-de-lm", &record, 0.0, &toml, &report).unwrap();
+        if s.invertible {
+            assert!(msg.contains("accepted by the firmware"), "{msg}");
+        }
+        let text = std::fs::read_to_string(&toml).unwrap();
+        let back = from_toml("p.toml", &text).unwrap();
+        assert_eq!(back.kind(), model);
+        let r = predict(&toml, &record, 0.0).unwrap();
+        let (a, b) = (
+            r["fit"]["rms"].as_f64().unwrap(),
+            id.summary["fit"]["rms"].as_f64().unwrap(),
+        );
+        assert!((a - b).abs() <= 1e-3 * b, "{a} vs {b}");
+    }
+}
+
+#[test]
+fn bad_csv_errors_name_file_line_and_column() {
+    let path = temp("bad.csv");
+    std::fs::write(&path, "t_s,u_V,y_um\n0,1,2\n0.1,x,3\n").unwrap();
+    let e = Record::read(&path, None, None, None).unwrap_err();
+    assert!(
+        e.contains("bad.csv:3") && e.contains("column 2") && e.contains("u_V"),
+        "{e}"
+    );
+    std::fs::write(&path, "t_s,v_V,y_um\n0,1,2\n").unwrap();
+    let e = Record::read(&path, None, None, None).unwrap_err();
+    assert!(e.contains("u_*") && e.contains("--u"), "{e}");
+}
+
+#[test]
+fn units_convert_to_si() {
+    let path = temp("um.csv");
+    let mut text = String::from("t_ms_s,u_V,y_um\n");
+    for k in 0..20 {
+        text.push_str(&format!("{},{},{}\n", k as f64 * 1e-3, k, 2 * k));
+    }
+    std::fs::write(&path, text).unwrap();
+    let r = Record::read(&path, None, None, None).unwrap();
+    assert_eq!(r.y_m[3], 6e-6);
+    assert!((r.sample_period_s() - 1e-3).abs() < 1e-12);
+}
+
+#[test]
+fn band_limited_upsampling_is_exact_for_a_periodic_multisine() {
+    use host_sim::identify::oscillator::upsample;
+    let n = 64;
+    let f = |t: f64| {
+        3.0 * (2.0 * std::f64::consts::PI * 5.0 * t).sin()
+            + (2.0 * std::f64::consts::PI * 17.0 * t + 0.3).cos()
+    };
+    let u: Vec<f64> = (0..n).map(|k| f(k as f64 / n as f64)).collect();
+    let fine = upsample(&u, 8);
+    assert_eq!(fine.len(), 8 * n);
+    for (i, v) in fine.iter().enumerate() {
+        let exact = f(i as f64 / (8 * n) as f64);
+        assert!((v - exact).abs() < 1e-9, "{i}: {v} vs {exact}");
+    }
+}
+
+#[test]
+fn oscillator_parameter_file_round_trip() {
+    use piezo_core::OscillatorParams;
+    let set = Identified::Oscillator {
+        params: OscillatorParams::BENCHMARK,
+        sample_period_s: 1.0 / 750.0,
+        substeps: 20,
+    };
+    let text = host_sim::identify::model::to_toml(&set, "vp-de-lm", "train.csv", 0.0);
+    assert_eq!(from_toml("osc.toml", &text).unwrap(), set);
+}
