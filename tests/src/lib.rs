@@ -152,7 +152,24 @@ pub mod reference {
 
 /// The same published parameter sets in the core's types.
 pub mod fixtures {
-    use piezo_core::{BoucWenParams, MassSpringDamperParams};
+    use piezo_core::{BoucWenParams, MassSpringDamperParams, StaticMap};
+
+    /// The asymmetric stage of seed 001, Case I (y in metres: the paper's mm × 1e-3).
+    pub fn seed001_case1() -> (BoucWenParams, StaticMap) {
+        (
+            BoucWenParams {
+                a: -7.02182e-2,
+                beta: 4.45753,
+                gamma: 3.49259,
+                n: 3.05869,
+            },
+            StaticMap {
+                k1_m_per_v: -3.51711e-7,
+                k2_m_per_h: -1.94566e-6,
+                offset_m: 0.0,
+            },
+        )
+    }
 
     /// The NAC2024 actuator of seed 000, Table 1 (k1 = 1 N/V, x0 = 0).
     pub fn nac2024() -> (BoucWenParams, MassSpringDamperParams) {

@@ -103,17 +103,7 @@ fn compensated_stage_tracks_the_independent_plant() {
 #[test]
 fn seed001_set_is_a_valid_model_but_not_invertible() {
     // Seed 001, Case I: A < 0 is valid and accepted as a forward model ...
-    let params = BoucWenParams {
-        a: -7.02182e-2,
-        beta: 4.45753,
-        gamma: 3.49259,
-        n: 3.05869,
-    };
-    let map = StaticMap {
-        k1_m_per_v: -3.51711e-7,
-        k2_m_per_h: -1.94566e-6,
-        offset_m: 0.0,
-    };
+    let (params, map) = fixtures::seed001_case1();
     let model = StaticModel::new(BoucWen::new(params).unwrap(), map).unwrap();
     // ... but its output is not monotone in u right after a reversal: on unloading at the bound,
     // dh/du·k2 = +1.26e-6 m/V outweighs k1 = −0.35e-6 m/V, so y(u) turns back. No inverse exists there.

@@ -131,19 +131,11 @@ fn static_models_match_the_f64_reference_at_the_loop_period() {
 #[test]
 fn seed001_case1_matches_the_f64_reference() {
     // Seed 001: u = 10 − 10·cos(4πt), N = 10 000 samples over 1 s, Case I parameters (y in metres).
+    let (params, map) = fixtures::seed001_case1();
     let case = StaticCase {
         name: "seed 001 I",
-        params: BoucWenParams {
-            a: -7.02182e-2,
-            beta: 4.45753,
-            gamma: 3.49259,
-            n: 3.05869,
-        },
-        map: StaticMap {
-            k1_m_per_v: -3.51711e-7,
-            k2_m_per_h: -1.94566e-6,
-            offset_m: 0.0,
-        },
+        params,
+        map,
     };
     let period = 1e-4;
     let inputs: Vec<f64> = (0..10_000)
@@ -218,17 +210,7 @@ fn nac2024_dynamic_model_matches_at_a_quasi_static_rate() {
 fn seed001_asymmetric_model_matches_the_f64_reference() {
     // Case II: δ = −1.95e-2 (φ = 0), the published input. The δ-term carries h past the plain
     // Bouc-Wen bound (|h| = 0.4245); the model must follow it there.
-    let params = BoucWenParams {
-        a: -7.02182e-2,
-        beta: 4.45753,
-        gamma: 3.49259,
-        n: 3.05869,
-    };
-    let map = StaticMap {
-        k1_m_per_v: -3.51711e-7,
-        k2_m_per_h: -1.94566e-6,
-        offset_m: 0.0,
-    };
+    let (params, map) = fixtures::seed001_case1();
     let delta = -1.95e-2;
     let period = 1e-4;
     let inputs: Vec<f64> = (0..10_000)
