@@ -357,6 +357,33 @@ pub fn predict(params: &Path, record: &Record, start_s: f64) -> Result<serde_jso
     }))
 }
 
+/// The `--t/--u/--y` column choice shared by `identify` and `predict`.
+#[derive(Debug, clap::Args)]
+pub struct Columns {
+    /// Time column (default: first `t_*`).
+    #[arg(long)]
+    pub t: Option<String>,
+    /// Input column (default: first `u_*`).
+    #[arg(long)]
+    pub u: Option<String>,
+    /// Output column (default: first `y_*`).
+    #[arg(long)]
+    pub y: Option<String>,
+}
+
+impl Columns {
+    /// Reads `data` with these columns; the error names `--data`.
+    fn read(&self, data: &std::path::Path) -> Result<Record, String> {
+        Record::read(
+            data,
+            self.t.as_deref(),
+            self.u.as_deref(),
+            self.y.as_deref(),
+        )
+        .map_err(|e| format!("--data: {e}"))
+    }
+}
+
 /// Arguments of `identify`.
 #[derive(Debug, clap::Args)]
 #[command(
@@ -372,15 +399,9 @@ pub struct IdentifyArgs {
     /// Method.
     #[arg(long, value_enum, default_value_t = Method::VpDeLm)]
     pub method: Method,
-    /// Time column (default: first `t_*`).
-    #[arg(long)]
-    pub t: Option<String>,
-    /// Input column (default: first `u_*`).
-    #[arg(long)]
-    pub u: Option<String>,
-    /// Output column (default: first `y_*`).
-    #[arg(long)]
-    pub y: Option<String>,
+    /// Column choice.
+    #[command(flatten)]
+    pub columns: Columns,
     /// First scored time [s]; earlier samples only warm the model state up.
     #[arg(long, default_value_t = 0.0)]
     pub start: f64,
@@ -413,15 +434,9 @@ pub struct PredictArgs {
     /// Record to simulate (the model sees only u).
     #[arg(long)]
     pub data: PathBuf,
-    /// Time column (default: first `t_*`).
-    #[arg(long)]
-    pub t: Option<String>,
-    /// Input column (default: first `u_*`).
-    #[arg(long)]
-    pub u: Option<String>,
-    /// Output column (default: first `y_*`).
-    #[arg(long)]
-    pub y: Option<String>,
+    /// Column choice.
+    #[command(flatten)]
+    pub columns: Columns,
     /// First scored time [s].
     #[arg(long, default_value_t = 0.0)]
     pub start: f64,
@@ -437,8 +452,7 @@ pub struct PredictArgs {
 
 /// Runs `identify`.
 pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
-    let mut record = Record::read(&a.data, a.t.as_deref(), a.u.as_deref(), a.y.as_deref())
-        .map_err(|e| format!("--data: {e}"))?;
+    let mut record = a.columns.read(&a.data)?;
     if let Some(end) = a.end {
         let n = record
             .t_s
@@ -467,8 +481,7 @@ pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
 
 /// Runs `predict`.
 pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
-    let mut record = Record::read(&a.data, a.t.as_deref(), a.u.as_deref(), a.y.as_deref())
-        .map_err(|e| format!("--data: {e}"))?;
+    let mut record = a.columns.read(&a.data)?;
     let mut start = a.start;
     if a.periodic_warmup > 0 {
         let n = record.u.len();
