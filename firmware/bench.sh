@@ -3,7 +3,8 @@
 # counted exactly under QEMU (mps2-an386, Cortex-M4F) with the shared qemu-insn-count tool on the
 # `check` image (src/bin/check.rs):
 #   window 0: BENCH_STEPS two-axis steps of Compensator::compensate + SafetyLimits::apply, n = 1
-#             (the parameter file's set)
+#             (the parameter file's set); the references are computed before the window, the
+#             two axes are written out (no axis-index loop), so only compensator + guard are counted
 #   window 1: the same with n = GENERAL_N (general-n RK4 path of the core)
 #   window 2: BENCH_TICKS full ticks of TwoAxisLoop::tick (sensor, compensator, guard, DAC code,
 #             frame) plus the simulated stage's DAC/ADC and its Euler step

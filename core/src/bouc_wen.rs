@@ -278,6 +278,13 @@ impl BoucWen {
         self.state_bound
     }
 
+    /// The bound [`BoucWen::clamp_state`] clamps |h| to: the state bound with a margin of 1e-5
+    /// for rounding.
+    #[inline]
+    pub(crate) fn clamp_bound(&self) -> f32 {
+        self.clamp_bound
+    }
+
     /// Clamps an input into the validated range; a non-finite input is replaced by `hold_v`.
     #[inline]
     pub fn sanitize_input(&self, input_v: f32, hold_v: f32) -> f32 {

@@ -20,6 +20,12 @@
 //! equation is the monotone scalar equation `k1·Δu + k2·(A − κh)·Δu·g(κΔu) = e`). The hysteresis state
 //! is always advanced by the voltage actually commanded (after the window and slew limits).
 //!
+//! Per sample, [`Compensator::compensate`] first tries a small-step path chosen once when built
+//! (n = 1: series reversion of the closed form; general n: series reversion of the Taylor flow
+//! with one power per sample; both documented with their equations and error estimates on the
+//! private functions `compensate_small_n1` / `compensate_small_general`), inlined, with the
+//! per-parameter-set constants precomputed; every sample it refuses goes to the solve above.
+//!
 //! For the dynamic model of seed 000 the map is the force balance: the compensator commands
 //!
 //! ```text
@@ -103,11 +109,103 @@ pub struct Compensator {
     /// Newton stops when a correction is below this: 1e-7 of the window (10 µV on 100 V, far
     /// below one step of a 16-bit DAC).
     voltage_tolerance_v: f32,
-    /// n = 1, no asymmetric terms, position target: [`Compensator::compensate_small_n1`] applies.
-    small_n1: bool,
-    /// n ≠ 1, no asymmetric terms, position target: [`Compensator::compensate_small_general`]
-    /// applies.
-    small_general: bool,
+    /// Which per-sample fast path applies, and its constants, derived once when built.
+    fast: FastPath,
+}
+
+/// Which small-step path [`Compensator::compensate`] tries before the general solve; chosen once,
+/// when the compensator is built.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum FastKind {
+    /// Asymmetric terms or the force target: always the general solve.
+    None,
+    /// n = 1: [`Compensator::compensate_small_n1`].
+    N1,
+    /// n ≠ 1: [`Compensator::compensate_small_general`].
+    General,
+}
+
+/// Per-parameter-set constants of the small-step paths, computed when the compensator is built so
+/// that the per-sample code only loads them.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct FastPath {
+    kind: FastKind,
+    k1: f32,
+    k2: f32,
+    offset_m: f32,
+    min_v: f32,
+    max_v: f32,
+    max_step_v: f32,
+    a: f32,
+    /// Per branch, indexed by `2·[e < 0] + [h₀ < 0]` (sign bits of the output error e and of h₀),
+    /// with the direction s = sgn(e)·sgn(dy/du) and σ = sgn h₀: κ = β·s + γ·σ (n = 1) or
+    /// c = β·s·σ + γ (general n).
+    branch: [f32; 4],
+    /// The bit pattern of the Bouc-Wen state clamp: a step ending beyond it (or across h = 0)
+    /// is left to the general solve.
+    clamp_bound_bits: u32,
+    /// General n: n, n − 1.
+    n: f32,
+    n_minus_1: f32,
+    /// General n: coefficients of the flow's error estimate, (n−1)|n−2|/24, 4(n−1)/24 and 1/24
+    /// (see [`Compensator::compensate_small_general`]).
+    err_rho2: f32,
+    err_rho: f32,
+    err_nu: f32,
+    /// General n: largest relative move |f·Δu/h₀| of h the Taylor flow is used for.
+    rho_max: f32,
+}
+
+impl FastPath {
+    fn new(
+        model: &StaticModel,
+        target: Target,
+        settings: &CompensatorSettings,
+        max_step_v: f32,
+        slope_sign: f32,
+    ) -> Self {
+        let bw = model.hysteresis();
+        let BoucWenParams { a, beta, gamma, n } = bw.params();
+        let StaticMap {
+            k1_m_per_v: k1,
+            k2_m_per_h: k2,
+            offset_m,
+        } = model.map();
+        let kind = if model.is_asymmetric() || target != Target::Position {
+            FastKind::None
+        } else if bw.is_exponent_one() {
+            FastKind::N1
+        } else {
+            FastKind::General
+        };
+        // (sgn e, σ) = (+,+), (+,−), (−,+), (−,−); s = sgn(e)·sgn(dy/du).
+        let branch = [(1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)].map(|(e, sigma)| {
+            let s = e * slope_sign;
+            if kind == FastKind::N1 {
+                beta * s + gamma * sigma
+            } else {
+                beta * s * sigma + gamma
+            }
+        });
+        Self {
+            kind,
+            k1,
+            k2,
+            offset_m,
+            min_v: settings.output_min_v,
+            max_v: settings.output_max_v,
+            max_step_v,
+            a,
+            branch,
+            clamp_bound_bits: bw.clamp_bound().to_bits(),
+            n,
+            n_minus_1: n - 1.0,
+            err_rho2: (n - 1.0) * (n - 2.0).abs() / 24.0,
+            err_rho: 4.0 * (n - 1.0) / 24.0,
+            err_nu: 1.0 / 24.0,
+            rho_max: math::min(0.5, 1.5 / math::max(n - 1.0, 1e-3)),
+        }
+    }
 }
 
 /// The compensator's state: the model state at the last commanded voltage.
@@ -131,10 +229,14 @@ impl CompensatorState {
     }
 }
 
-/// Newton corrections after the first guess.
 /// Largest number of bracketed Newton corrections after the first guess (one or two in the smooth
 /// case; the rest is room for bisection on kinked maps).
 const NEWTON_CORRECTIONS: usize = 12;
+
+/// Largest estimated relative error of a small step (of Δu, and of the move of h) that the
+/// small-step paths accept; beyond it the sample goes to the general solve. 1e-5 of a step is far
+/// below one f32 ulp of the output y for a step at a normal loop rate.
+const SMALL_STEP_TOLERANCE: f32 = 1e-5;
 
 impl Compensator {
     /// A compensator for a static or asymmetric static model (output y in metres).
@@ -213,19 +315,16 @@ impl Compensator {
                 max_slope: hi,
             });
         }
+        let max_step_v = (slew * period).min(max - min);
+        let slope_sign = if lo > 0.0 { 1.0 } else { -1.0 };
         Ok(Self {
             model,
             target,
             settings,
-            max_step_v: (slew * period).min(max - min),
-            slope_sign: if lo > 0.0 { 1.0 } else { -1.0 },
+            max_step_v,
+            slope_sign,
             voltage_tolerance_v: 1e-7 * (max - min),
-            small_n1: model.hysteresis().is_exponent_one()
-                && !model.is_asymmetric()
-                && target == Target::Position,
-            small_general: !model.hysteresis().is_exponent_one()
-                && !model.is_asymmetric()
-                && target == Target::Position,
+            fast: FastPath::new(&model, target, &settings, max_step_v, slope_sign),
         })
     }
 
@@ -240,59 +339,80 @@ impl Compensator {
     }
 
     /// The voltage for the desired position `desired_m` \[m\] (quasi-static for the dynamic model).
-    #[inline]
+    ///
+    /// The small-step path chosen when built is inlined here; every sample it does not take goes
+    /// to the general solve (out of line).
+    #[inline(always)]
     pub fn compensate(&self, state: &mut CompensatorState, desired_m: f32) -> Command {
-        let small = if self.small_n1 {
+        let small = if self.fast.kind == FastKind::N1 {
             self.compensate_small_n1(state, desired_m)
-        } else if self.small_general {
+        } else if self.fast.kind == FastKind::General {
             self.compensate_small_general(state, desired_m)
         } else {
             None
         };
         match small {
             Some(command) => command,
-            None => self.compensate_with_derivatives(state, desired_m, 0.0, 0.0),
+            None => self.compensate_general(state, desired_m),
         }
     }
 
-    /// What both small-step paths start from: the state (consistent and inside the window), the
-    /// output error e = y_d − y(u₀) (finite and nonzero: NaN and ±∞ references fail here too), the
-    /// direction that reduces it, and the map. `None` leaves the sample to the general solve.
+    /// [`Compensator::compensate`] without the small-step paths (kept out of line).
+    #[inline(never)]
+    fn compensate_general(&self, state: &mut CompensatorState, desired_m: f32) -> Command {
+        self.compensate_with_derivatives(state, desired_m, 0.0, 0.0)
+    }
+
+    /// What both small-step paths start from: `None` unless the state is consistent (the
+    /// hysteresis input equals the voltage) and inside the window; otherwise `(u₀, h₀, e, i)` with
+    /// the output error e = y_d − y(u₀) and the branch index `i = 2·[e < 0] + [h₀ < 0]` (sign
+    /// bits): the direction that reduces the error is s = sgn(e)·sgn(dy/du), and the branch is
+    /// that of σ = sgn h₀. At h₀ = ±0 the state leaves zero with the sign of A·s; when the sign
+    /// bit of h₀ says otherwise, the step ends on the other side of zero and
+    /// [`Compensator::small_commit`] refuses it. A non-finite e is caught by the callers' checks.
     #[inline(always)]
-    fn small_step(&self, state: &CompensatorState, desired_m: f32) -> Option<SmallStep> {
+    fn small_step(
+        &self,
+        state: &CompensatorState,
+        desired_m: f32,
+    ) -> Option<(f32, f32, f32, usize)> {
+        let p = &self.fast;
         let u0 = state.model.input_v;
         let h0 = state.model.hysteresis.h;
-        let CompensatorSettings {
-            output_min_v: min,
-            output_max_v: max,
-            ..
-        } = self.settings;
-        if !(u0 >= min && u0 <= max) || state.model.hysteresis.input_v != u0 {
+        if !(state.model.hysteresis.input_v == u0 && u0 >= p.min_v && u0 <= p.max_v) {
             return None;
         }
-        let StaticMap {
-            k1_m_per_v: k1,
-            k2_m_per_h: k2,
-            offset_m,
-        } = self.model.map();
-        let error = desired_m - (k1 * u0 + k2 * h0 + offset_m);
-        if !(error.abs() > 0.0 && error.abs() < f32::INFINITY) {
+        let error = desired_m - (p.k1 * u0 + p.k2 * h0 + p.offset_m);
+        let index = (error.to_bits() >> 31) << 1 | h0.to_bits() >> 31;
+        Some((u0, h0, error, index as usize & 3))
+    }
+
+    /// Commits a small step: `Some` when Δu is inside the slew limit, u = u₀ + Δu inside the
+    /// window, and h₁ on the side of zero of h₀ (or zero) and inside the state clamp — the last
+    /// two as one integer comparison of the bits of h₁·sgn h₀ with those of the clamp — all
+    /// false for NaN; else `None` (general solve).
+    #[inline(always)]
+    fn small_commit(
+        &self,
+        state: &mut CompensatorState,
+        u0: f32,
+        h0: f32,
+        du: f32,
+        h1: f32,
+    ) -> Option<Command> {
+        let p = &self.fast;
+        let u = u0 + du;
+        let h1_on_branch = (h1.to_bits() ^ (h0.to_bits() & 0x8000_0000)) <= p.clamp_bound_bits;
+        if !(du.abs() <= p.max_step_v && u >= p.min_v && u <= p.max_v && h1_on_branch) {
             return None;
         }
-        let direction = if error * self.slope_sign > 0.0 {
-            1.0
-        } else {
-            -1.0
+        state.model = ModelState {
+            input_v: u,
+            hysteresis: HysteresisState { input_v: u, h: h1 },
         };
-        Some(SmallStep {
-            u0,
-            h0,
-            error,
-            direction,
-            k1,
-            k2,
-            min,
-            max,
+        Some(Command {
+            voltage_v: u,
+            status: CommandStatus::Tracking,
         })
     }
 
@@ -300,133 +420,112 @@ impl Compensator {
     /// a consistent state inside the window, a finite reference and a small step that the window
     /// and the slew limit leave alone. With the error e = y_d − y(u₀), the branch's κ and
     /// q = A − κ·h₀, S₀ = k1 + k2·q, x₀ = e/S₀, kx = κ·x₀ and w = (k2·q/S₀)·kx, the one-step inverse
-    /// is the series reversion to fourth order
-    /// `Δu = x₀·(1 + w/2 + w²/2 − w·kx/6 + 5w³/8 − 5w²·kx/12 + w·kx²/24)` (error ~w⁴·Δu, ≤ ~6e-6·Δu
-    /// for |kx| < 0.01, |w| < 0.05; up to |kx| < 0.1, |w| < 0.2 it is the start of one Newton step on
-    /// the closed form), and `h₁ = h₀ + q·Δu·g(κΔu)` exactly. `None` hands every other case to the
+    /// is the series reversion
+    /// `Δu = x₀·(1 + w/2 + w²/2 − w·kx/6 + 5w³/8 − 5w²·kx/12 + w·kx²/24)`, whose first neglected
+    /// term, `x₀·(−w·kx³/120 + 5w²kx²/24 − 7w³kx/8 + 7w⁴/8)`, is below `(7/8)·|w|·(|kx| + |w|)³·|x₀|`:
+    /// taken when `|kx| + |w| < 0.055`, so that this is below 0.875·0.055⁴ ≈ 8e-6 of the step
+    /// ([`SMALL_STEP_TOLERANCE`]) and the series of g below is exact to 1e-10. Otherwise,
+    /// up to |kx| < 0.1 and |w| < 0.2, one Newton step on the closed form follows, with the exact
+    /// slope k1 + k2·q·e^(−κΔu) at the end state. Then `h₁ = h₀ + q·Δu·g(κΔu)` exactly (g by its
+    /// series to z⁴, in Horner form, |κΔu| < 0.1: truncation < 1.4e-8). `None` hands every other case (h crossing zero included) to the
     /// general solve, which gives the same result there (tested).
-    #[inline]
+    #[inline(always)]
     fn compensate_small_n1(&self, state: &mut CompensatorState, desired_m: f32) -> Option<Command> {
-        let SmallStep {
-            u0,
-            h0,
-            error,
-            direction,
-            k1,
-            k2,
-            min,
-            max,
-        } = self.small_step(state, desired_m)?;
-        let (q, kappa, sigma) = self.model.hysteresis().n1_branch(h0, direction);
-        let k2q = k2 * q;
-        let inverse_slope = 1.0 / (k1 + k2q);
+        let p = &self.fast;
+        let (u0, h0, error, branch) = self.small_step(state, desired_m)?;
+        let kappa = p.branch[branch];
+        let q = p.a - kappa * h0;
+        let k2q = p.k2 * q;
+        let inverse_slope = 1.0 / (p.k1 + k2q);
         let x0 = error * inverse_slope;
         let kx = kappa * x0;
         let w = k2q * inverse_slope * kx;
-        if !(kx.abs() < 0.1 && w.abs() < 0.2) {
-            return None;
-        }
-        // Fourth-order reversion: 1 + w/2 + (w²/2 − w·kx/6) + (5w³/8 − 5w²·kx/12 + w·kx²/24).
+        // Reversion to third order: 1 + w/2 + (w²/2 − w·kx/6) + (5w³/8 − 5w²·kx/12 + w·kx²/24).
         let series = 0.5
             + w * (0.5 + w * (0.625 - kx * (5.0 / 12.0)))
             + kx * (kx * (1.0 / 24.0) - 1.0 / 6.0);
         let mut du = x0 * (1.0 + w * series);
-        if !(kx.abs() < 0.01 && w.abs() < 0.05) {
-            // Beyond the reversion's accuracy: one Newton step on the closed form from it, with
-            // the exact slope k1 + k2·q·e^(−z) at the end state.
-            let z = kappa * du;
-            let in_range = z.abs() < 0.1;
-            if !in_range {
-                return None;
-            }
-            let residual = du * (k1 + k2q * relax_series(z)) - error;
-            du -= residual / (k1 + k2q * exp_neg_series(z));
+        // NaN (a non-finite reference) fails this and goes to the Newton step, which refuses it.
+        let reversion_ok = kx.abs() + w.abs() < 0.055;
+        if !reversion_ok {
+            du = self.n1_newton_step(du, error, kappa, k2q)?;
         }
-        let u = u0 + du;
-        if !(du.abs() <= self.max_step_v && u >= min && u <= max) {
+        let z = kappa * du;
+        // g(z) = 1 − z/2 + z²/6 − z³/24 + z⁴/120.
+        let g = 1.0 + z * (-0.5 + z * (1.0 / 6.0 + z * (-1.0 / 24.0 + z * (1.0 / 120.0))));
+        let h1 = h0 + q * du * g;
+        self.small_commit(state, u0, h0, du, h1)
+    }
+
+    /// One Newton step on `Δu·(k1 + k2·q·g(κΔu)) = e` from `du` (|κ·Δu| < 0.1, |kx| < 0.1,
+    /// |w| < 0.2, else `None`).
+    #[inline(never)]
+    fn n1_newton_step(&self, du: f32, error: f32, kappa: f32, k2q: f32) -> Option<f32> {
+        let p = &self.fast;
+        let inverse_slope = 1.0 / (p.k1 + k2q);
+        let kx = kappa * error * inverse_slope;
+        let w = k2q * inverse_slope * kx;
+        let z = kappa * du;
+        if !(kx.abs() < 0.1 && w.abs() < 0.2 && z.abs() < 0.1) {
             return None;
         }
-        let h1 = h0 + q * du * relax_series(kappa * du);
-        if h1 * sigma < 0.0 {
-            return None;
-        }
-        state.model = ModelState {
-            input_v: u,
-            hysteresis: HysteresisState {
-                input_v: u,
-                h: self.model.hysteresis().clamp_state(h1),
-            },
-        };
-        Some(Command {
-            voltage_v: u,
-            status: CommandStatus::Tracking,
-        })
+        let residual = du * (p.k1 + k2q * relax_series(z)) - error;
+        Some(du - residual / (p.k1 + k2q * exp_neg_series(z)))
     }
 
     /// The common case for n ≠ 1, with one power per sample: n ≠ 1, no asymmetric terms, a
     /// consistent state inside the window away from h = 0, a finite reference and a small step.
     /// Along the branch of h₀ (σ = sgn h₀, s the direction, c = β·s·σ + γ) the flow of (BW-u) is
     /// the Taylor series `h(d) = h₀ + f·d + f·f′·d²/2 + (f″·f² + f′²·f)·d³/6` with
-    /// f = A − c·|h₀|^n, f′ = −c·n·|h₀|^(n−1)·σ, f″ = −c·n·(n−1)·|h₀|^(n−2). The output equation
+    /// f = A − c·|h₀|^n, f′ = −c·n·|h₀|^n/h₀, f″ = f′·(n−1)/h₀. The output equation
     /// `d·(1 + p₂·d + p₃·d²) = x₀` (S₀ = k1 + k2·f, x₀ = e/S₀, p₂ = k2·f·f′/(2S₀),
     /// p₃ = k2·(f″f² + f′²f)/(6S₀)) is inverted by series reversion,
-    /// `d = x₀·(1 − p₂x₀ + (2p₂² − p₃)·x₀²)`. Taken when |f′·d|, |f·d/h₀| and |p₂x₀| are below
-    /// 0.05 (neglected terms of third order in them, ≲ 1e-5 of the step, checked against the
-    /// forward model in the tests); otherwise `None` hands over to the general solve.
-    #[inline]
+    /// `d = x₀·(1 − P + (2P² − Q) + (5P·Q − 5P³))` with P = p₂x₀, Q = p₃x₀².
+    ///
+    /// Error estimate: with ν = |f′·d|, ρ = |f·d/h₀| and μ = c·|h₀|^n/f (so f′d = −nμ·f·d/h₀), the
+    /// flow's first neglected term relative to f·d, `(f‴f² + 4f″f′f + f′³)·d³/24`, has size
+    /// `E₄ = ν·((n−1)|n−2|·ρ² + 4(n−1)·νρ + ν²)/24`; it enters d through p₄x₀³ ≈ (k2·f/S₀)·E₄,
+    /// and the reversion's next terms, `14P⁴ − 21P²Q + 3Q²`, are below `21·(P² + |Q|)²`. The path
+    /// is taken when `(1 + |k2·f/S₀|)·E₄ + 21·(P² + |Q|)²` is below [`SMALL_STEP_TOLERANCE`] and
+    /// ρ < min(0.5, 1.5/(n − 1)) (well inside the series' radius |h₀|, where h would reach zero);
+    /// otherwise `None` hands over to the general solve.
+    #[inline(always)]
     fn compensate_small_general(
         &self,
         state: &mut CompensatorState,
         desired_m: f32,
     ) -> Option<Command> {
-        let SmallStep {
-            u0,
-            h0,
-            error,
-            direction,
-            k1,
-            k2,
-            min,
-            max,
-        } = self.small_step(state, desired_m)?;
-        if h0 == 0.0 {
-            return None;
-        }
-        let bw = self.model.hysteresis();
-        let BoucWenParams { a, beta, gamma, n } = bw.params();
-        let sigma = if h0 > 0.0 { 1.0 } else { -1.0 };
-        let c = beta * direction * sigma + gamma;
-        let magnitude = h0.abs();
-        let power = crate::math::pow_nonnegative(magnitude, n);
-        let f = a - c * power;
-        let f1 = -c * n * power / magnitude * sigma;
-        let f2 = -c * n * (n - 1.0) * power / (magnitude * magnitude);
-        let inverse_slope = 1.0 / (k1 + k2 * f);
+        let p = &self.fast;
+        let (u0, h0, error, branch) = self.small_step(state, desired_m)?;
+        let c = p.branch[branch];
+        let power = math::pow_nonnegative_inline(h0.abs(), p.n);
+        // h₀ = 0 gives ∞ here and NaN below, which the checks refuse.
+        let inverse_h = 1.0 / h0;
+        let f = p.a - c * power;
+        let f1 = -c * p.n * power * inverse_h;
+        let f2 = f1 * p.n_minus_1 * inverse_h;
+        let k2f = p.k2 * f;
+        let inverse_slope = 1.0 / (p.k1 + k2f);
         let x0 = error * inverse_slope;
-        let p2 = 0.5 * k2 * f * f1 * inverse_slope;
-        let p3 = (1.0 / 6.0) * k2 * (f2 * f * f + f1 * f1 * f) * inverse_slope;
-        let px = p2 * x0;
-        let du = x0 * (1.0 - px + (2.0 * px * px - p3 * x0 * x0));
+        let lambda = k2f * inverse_slope;
+        let curvature = f2 * f + f1 * f1;
+        let px = 0.5 * lambda * f1 * x0;
+        let p3xx = (1.0 / 6.0) * lambda * curvature * x0 * x0;
+        let px2 = px * px;
+        let du = x0 * (1.0 - px + (2.0 * px2 - p3xx) + 5.0 * px * (p3xx - px2));
         let moved = f * du;
-        if !(px.abs() < 0.05 && (f1 * du).abs() < 0.05 && moved.abs() < 0.05 * magnitude) {
+        let nu = (f1 * du).abs();
+        let rho = (moved * inverse_h).abs();
+        let reversion = px2 + p3xx.abs();
+        let estimate = (1.0 + lambda.abs())
+            * nu
+            * (p.err_rho2 * rho * rho + nu * (p.err_rho * rho + p.err_nu * nu))
+            + 21.0 * reversion * reversion;
+        if !(rho < p.rho_max && estimate < SMALL_STEP_TOLERANCE) {
             return None;
         }
-        let u = u0 + du;
-        if !(du.abs() <= self.max_step_v && u >= min && u <= max) {
-            return None;
-        }
-        let h1 = h0 + moved * (1.0 + du * (0.5 * f1 + du * (1.0 / 6.0) * (f2 * f + f1 * f1)));
-        state.model = ModelState {
-            input_v: u,
-            hysteresis: HysteresisState {
-                input_v: u,
-                h: bw.clamp_state(h1),
-            },
-        };
-        Some(Command {
-            voltage_v: u,
-            status: CommandStatus::Tracking,
-        })
+        let h1 = h0 + moved * (1.0 + du * (0.5 * f1 + du * (1.0 / 6.0) * curvature));
+        self.small_commit(state, u0, h0, du, h1)
     }
 
     /// The voltage for the desired position with its known velocity \[m/s\] and acceleration \[m/s²\]
@@ -677,18 +776,6 @@ impl Compensator {
 #[inline]
 fn exp_neg_series(z: f32) -> f32 {
     1.0 - z * (1.0 - 0.5 * z * (1.0 - z * (1.0 / 3.0) * (1.0 - 0.25 * z)))
-}
-
-/// The common start of the small-step solves ([`Compensator::small_step`]).
-struct SmallStep {
-    u0: f32,
-    h0: f32,
-    error: f32,
-    direction: f32,
-    k1: f32,
-    k2: f32,
-    min: f32,
-    max: f32,
 }
 
 /// Clamps a voltage step into \[0, limit\] (direction > 0) or \[limit, 0\] (direction < 0).

@@ -49,6 +49,12 @@ pub(crate) fn clamp(x: f32, lo: f32, hi: f32) -> f32 {
 /// `x ≤ 1e-30` (and NaN) gives 0; results beyond f32 range give +∞ or 0.
 #[inline]
 pub fn pow_nonnegative(x: f32, n: f32) -> f32 {
+    pow_nonnegative_inline(x, n)
+}
+
+/// [`pow_nonnegative`], always inlined (for the compensator's per-sample fast path).
+#[inline(always)]
+pub(crate) fn pow_nonnegative_inline(x: f32, n: f32) -> f32 {
     if x.is_nan() || x <= 1e-30 {
         return 0.0;
     }

@@ -125,8 +125,28 @@ impl SafetyLimits {
     /// The output to apply for a requested voltage (see module docs). Never panics; the result
     /// is always in `[min_volts, max_volts]` provided `state` came from [`SafetyLimits::state`]
     /// of limits with the same window (a state from another window is pulled into this one).
-    #[inline]
+    ///
+    /// Fast path (inlined): a request inside the window and within `max_step_volts` of the last
+    /// output passes unchanged, exactly what the full rules give (clamping the last output into
+    /// the window can only bring it closer to a request inside the window); every other request
+    /// (and NaN, which fails the comparisons) takes the full rules out of line.
+    #[inline(always)]
     pub fn apply(&self, state: &mut GuardState, requested_volts: f32) -> f32 {
+        let delta = requested_volts - state.last_safe_volts;
+        if requested_volts >= self.min_volts
+            && requested_volts <= self.max_volts
+            && delta.abs() <= self.max_step_volts
+        {
+            state.last_safe_volts = requested_volts;
+            return requested_volts;
+        }
+        self.apply_limited(state, requested_volts)
+    }
+
+    /// The full rules of [`SafetyLimits::apply`] (module docs), for requests the fast path does
+    /// not let through.
+    #[inline(never)]
+    fn apply_limited(&self, state: &mut GuardState, requested_volts: f32) -> f32 {
         let counters = &mut state.counters;
         // Also repairs a state built for another window.
         let last = into_window(state.last_safe_volts, self.min_volts, self.max_volts);
