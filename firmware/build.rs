@@ -5,7 +5,8 @@
 //! The parameter file is `firmware/params/xy-stage.toml`, or the file named by the environment
 //! variable `PIEZO_PARAMS` (absolute, or relative to `firmware/`). It is parsed (`toml`),
 //! validated with `piezo-core`'s own constructors (`BoucWen::with_input_range`,
-//! `StaticModel::new`, `Compensator::new`: see `build/params.rs`) and written to
+//! `StaticModel::new`, `Compensator::new`, and `effects::Effects::new` for the optional
+//! `[x.effects]`/`[y.effects]` tables: see `build/params.rs`) and written to
 //! `OUT_DIR/params.rs`, which `src/params.rs` includes. A refused file stops the build with a
 //! message naming the file and the field. The version string (`name version`) and an FNV-1a
 //! checksum of the file's bytes are part of the consts and are logged at boot.

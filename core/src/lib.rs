@@ -18,6 +18,7 @@
 pub mod bouc_wen;
 pub mod compensator;
 pub mod dynamic_model;
+pub mod effects;
 pub mod error;
 pub mod math;
 pub mod metrics;

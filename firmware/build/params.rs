@@ -15,16 +15,55 @@
 //! [x.bouc_wen]                 # a, beta, gamma, n            (and the same for y)
 //! [x.static_map]               # k1_m_per_v, k2_m_per_h, offset_m
 //! [x.limits]                   # output_min_v, output_max_v, slew_limit_v_per_s
+//! [x.effects]                  # optional (absent: no effect), see below
 //! ```
 //!
 //! Validation per axis, in this order: `BoucWen::with_input_range(bouc_wen, output_min_v,
 //! output_max_v, 1e6)` (the window is the only input the model will see), `StaticModel::new`,
-//! `Compensator::new` with the limits and `sample_period_s = 1 / loop_rate_hz`.
+//! `Compensator::new` with the limits and `sample_period_s = 1 / loop_rate_hz`, then
+//! `piezo_core::effects::Effects::new(effects, 1 / loop_rate_hz, w_range)` with w_range the output
+//! range of the first loading over the window, `[y_rest, y_rest + g_lin·(u_max − u_min)]` sorted.
+//!
+//! # Effects (`[x.effects]`, `[y.effects]`, optional)
+//!
+//! The effect chain of `piezo_core::effects` around the hysteresis model (written by
+//! `host-sim close-loop`); the firmware inverts it each tick (`firmware/src/inverse_chain.rs`):
+//!
+//! ```toml
+//! [x.effects]
+//! creep_gain_m_per_v = [g1, g2, g3]     # gᵢ [m/V], up to 3 elements (shorter arrays allowed)
+//! creep_time_constant_s = [t1, t2, t3]  # τᵢ [s], > 0 where gᵢ ≠ 0
+//! even_coefficient_m_per_v2 = 0.0       # e [m/V²]: e·(u[j−1] − u_c)² on the previous command
+//! even_center_v = 0.0                   # u_c [V]
+//! mode_frequency_hz = 0.0               # f_mode [Hz]: 0 (none) or in (0, 0.45·loop_rate_hz)
+//! mode_damping = 0.0                    # ζ [1], > 0 with a mode
+//! delay_s = 0.0                         # D·T [s], 0 ≤ D ≤ 64 samples
+//! drift_rate_m_per_s = 0.0              # r_d [m/s]
+//! coupling = 0.0                        # κ [1], |κ| < 0.5: part of the other axis's z
+//! ```
+//!
+//! An absent table, or an absent key in it, is zero; all zero is the identity (the loop then runs
+//! exactly as without effects). Unknown keys are refused with the list of valid ones; a value the
+//! core refuses is reported as `x.effects.<field>` (array elements as `creep_gain_m_per_v[1]`).
 
+use piezo_core::effects::{EffectParams, Effects, MAX_CREEP_ELEMENTS};
 use piezo_core::{
     BoucWen, BoucWenParams, Compensator, CompensatorSettings, HysteresisState, ParamError,
     StaticMap, StaticModel,
 };
+
+/// The keys of an `[x.effects]` table.
+pub const EFFECT_KEYS: [&str; 9] = [
+    "creep_gain_m_per_v",
+    "creep_time_constant_s",
+    "even_coefficient_m_per_v2",
+    "even_center_v",
+    "mode_frequency_hz",
+    "mode_damping",
+    "delay_s",
+    "drift_rate_m_per_s",
+    "coupling",
+];
 
 /// Axis names in the order of the generated `AXES` array.
 pub const AXIS_NAMES: [&str; 2] = ["x", "y"];
@@ -52,6 +91,25 @@ pub struct AxisSet {
     pub linear_gain_m_per_v: f32,
     /// Output at `output_min_v` at rest [m].
     pub rest_output_m: f32,
+    /// The effect chain (all zero: none), validated by `Effects::new`.
+    pub effects: EffectParams,
+}
+
+/// The hysteresis output range the effects are validated over: the first loading's
+/// `[y_rest, y_rest + g_lin·(u_max − u_min)]`, sorted [m] (the same formula the firmware uses at
+/// boot).
+pub fn w_range_m(
+    rest_output_m: f32,
+    linear_gain_m_per_v: f32,
+    output_min_v: f32,
+    output_max_v: f32,
+) -> (f32, f32) {
+    let top = rest_output_m + linear_gain_m_per_v * (output_max_v - output_min_v);
+    if top < rest_output_m {
+        (top, rest_output_m)
+    } else {
+        (rest_output_m, top)
+    }
 }
 
 /// A validated parameter file.
@@ -157,6 +215,99 @@ fn core_error(file: &str, axis: &str, section: &str, e: ParamError) -> String {
     format!("{file}: `{field}` refused by piezo-core: {e}")
 }
 
+/// A number or an array of at most [`MAX_CREEP_ELEMENTS`] numbers (missing elements 0).
+fn creep_array(
+    file: &str,
+    t: &toml::Table,
+    key: &str,
+    path: &str,
+) -> Result<[f32; MAX_CREEP_ELEMENTS], String> {
+    let mut out = [0.0f32; MAX_CREEP_ELEMENTS];
+    let Some(value) = t.get(key) else {
+        return Ok(out);
+    };
+    let toml::Value::Array(items) = value else {
+        return Err(format!(
+            "{file}: `{path}.{key}` must be an array of at most {MAX_CREEP_ELEMENTS} numbers"
+        ));
+    };
+    if items.len() > MAX_CREEP_ELEMENTS {
+        return Err(format!(
+            "{file}: `{path}.{key}` has {} elements, at most {MAX_CREEP_ELEMENTS} allowed",
+            items.len()
+        ));
+    }
+    for (i, item) in items.iter().enumerate() {
+        let value = match item {
+            toml::Value::Float(f) => *f,
+            toml::Value::Integer(n) => *n as f64,
+            _ => return Err(format!("{file}: `{path}.{key}[{i}]` must be a number")),
+        };
+        let narrowed = value as f32;
+        if !narrowed.is_finite() {
+            return Err(format!(
+                "{file}: `{path}.{key}[{i}]` = {value} is not a finite f32"
+            ));
+        }
+        out[i] = narrowed;
+    }
+    Ok(out)
+}
+
+/// A number, 0 when absent.
+fn optional_number(file: &str, t: &toml::Table, key: &str, path: &str) -> Result<f32, String> {
+    if t.contains_key(key) {
+        number(file, t, key, path)
+    } else {
+        Ok(0.0)
+    }
+}
+
+/// The optional `[name.effects]` table (absent: all zero).
+fn effects(file: &str, axis_table: &toml::Table, name: &str) -> Result<EffectParams, String> {
+    let path = format!("{name}.effects");
+    let t = match axis_table.get("effects") {
+        None => return Ok(EffectParams::default()),
+        Some(toml::Value::Table(t)) => t,
+        Some(_) => return Err(format!("{file}: `{path}` must be a table")),
+    };
+    if let Some(unknown) = t.keys().find(|k| !EFFECT_KEYS.contains(&k.as_str())) {
+        return Err(format!(
+            "{file}: unknown key `{path}.{unknown}`; valid keys: {}",
+            EFFECT_KEYS.join(", ")
+        ));
+    }
+    Ok(EffectParams {
+        creep_gain_m_per_v: creep_array(file, t, "creep_gain_m_per_v", &path)?,
+        creep_time_constant_s: creep_array(file, t, "creep_time_constant_s", &path)?,
+        even_coefficient_m_per_v2: optional_number(file, t, "even_coefficient_m_per_v2", &path)?,
+        even_center_v: optional_number(file, t, "even_center_v", &path)?,
+        mode_frequency_hz: optional_number(file, t, "mode_frequency_hz", &path)?,
+        mode_damping: optional_number(file, t, "mode_damping", &path)?,
+        delay_s: optional_number(file, t, "delay_s", &path)?,
+        drift_rate_m_per_s: optional_number(file, t, "drift_rate_m_per_s", &path)?,
+        coupling: optional_number(file, t, "coupling", &path)?,
+    })
+}
+
+/// The message for an effect set the core refused (`x.effects.delay_s`).
+fn effects_error(file: &str, axis: &str, e: ParamError) -> String {
+    match e {
+        ParamError::NonFinite { field } | ParamError::OutOfRange { field, .. } => match field {
+            "sample_period_s" => format!("{file}: `loop_rate_hz` refused by piezo-core: {e}"),
+            "w_range_m" => {
+                format!("{file}: `{axis}` gives no valid output range for the effects: {e}")
+            }
+            _ => format!("{file}: `{axis}.effects.{field}` refused by piezo-core: {e}"),
+        },
+        ParamError::Discretisation { .. } => format!(
+            "{file}: `{axis}.effects.mode_frequency_hz` (with mode_damping) refused by \
+             piezo-core: {e}"
+        ),
+        _ => format!("{file}: `{axis}.effects` refused by piezo-core: {e}"),
+    }
+}
+
 fn axis(
     file: &str,
     root: &toml::Table,
@@ -213,6 +364,13 @@ fn axis(
             "{file}: `{name}` gives no stroke over the window (first-loading gain {linear_gain_m_per_v} m/V)"
         ));
     }
+    let effects = effects(file, t, name)?;
+    Effects::new(
+        effects,
+        sample_period_s,
+        w_range_m(rest_output_m, linear_gain_m_per_v, u0, u1),
+    )
+    .map_err(|e| effects_error(file, name, e))?;
     Ok(AxisSet {
         bouc_wen,
         static_map,
@@ -221,6 +379,7 @@ fn axis(
         slew_limit_v_per_s: settings.slew_limit_v_per_s,
         linear_gain_m_per_v,
         rest_output_m,
+        effects,
     })
 }
 
@@ -266,11 +425,11 @@ pub fn generate(set: &ParamSet, file: &str) -> String {
          pub const VERSION: &str = {:?};\n\
          /// FNV-1a (32 bit) of the parameter file's bytes.\n\
          pub const FNV1A32: u32 = {:#010x};\n\
-         /// Loop rate [Hz].\n\
+         /// Loop rate \\[Hz\\].\n\
          pub const LOOP_RATE_HZ: f32 = {:?};\n\
-         /// Piezo amplifier gain [V/V].\n\
+         /// Piezo amplifier gain \\[V/V\\].\n\
          pub const AMPLIFIER_GAIN_V_PER_V: f32 = {:?};\n\
-         /// Displacement sensor gain [m/V].\n\
+         /// Displacement sensor gain \\[m/V\\].\n\
          pub const SENSOR_M_PER_V: f32 = {:?};\n\
          /// Per axis, x then y (validated by piezo-core when built).\n\
          pub const AXES: [AxisParams; 2] = [\n",
@@ -297,12 +456,24 @@ pub fn generate(set: &ParamSet, file: &str) -> String {
              \x20       slew_limit_v_per_s: {:?},\n\
              \x20       linear_gain_m_per_v: {:?},\n\
              \x20       rest_output_m: {:?},\n\
+             \x20       effects: EffectParams {{ creep_gain_m_per_v: {:?}, creep_time_constant_s: {:?}, \
+             even_coefficient_m_per_v2: {:?}, even_center_v: {:?}, mode_frequency_hz: {:?}, \
+             mode_damping: {:?}, delay_s: {:?}, drift_rate_m_per_s: {:?}, coupling: {:?} }},\n\
              \x20   }},\n",
             a.output_min_v,
             a.output_max_v,
             a.slew_limit_v_per_s,
             a.linear_gain_m_per_v,
-            a.rest_output_m
+            a.rest_output_m,
+            a.effects.creep_gain_m_per_v,
+            a.effects.creep_time_constant_s,
+            a.effects.even_coefficient_m_per_v2,
+            a.effects.even_center_v,
+            a.effects.mode_frequency_hz,
+            a.effects.mode_damping,
+            a.effects.delay_s,
+            a.effects.drift_rate_m_per_s,
+            a.effects.coupling,
         ));
     }
     out.push_str("];\n");

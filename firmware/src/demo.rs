@@ -28,17 +28,17 @@ use crate::xy_loop::{
 pub const DEMO_TICKS: u32 = 4_000;
 /// Ticks excluded from the error statistics (start-up transient).
 pub const SETTLE_TICKS: u32 = 1_000;
-/// Reference centre [m].
+/// Reference centre \[m\].
 pub const REFERENCE_OFFSET_M: f32 = 19.0e-6;
-/// Reference amplitude [m].
+/// Reference amplitude \[m\].
 pub const REFERENCE_AMPLITUDE_M: f32 = 15.0e-6;
-/// Reference frequency [Hz].
+/// Reference frequency \[Hz\].
 pub const REFERENCE_FREQUENCY_HZ: f32 = 10.0;
 /// Compensated RMS error must be below this fraction of the uncompensated one.
 pub const RATIO_LIMIT: f32 = 0.2;
-/// Compensated RMS error limit [m].
+/// Compensated RMS error limit \[m\].
 pub const RMS_ERROR_LIMIT_M: f32 = 50e-9;
-/// Compensated peak error limit [m].
+/// Compensated peak error limit \[m\].
 pub const MAX_ERROR_LIMIT_M: f32 = 100e-9;
 
 /// The demo reference program.

@@ -28,11 +28,11 @@ pub const FRAME_QUEUE_CAPACITY: usize = 32;
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 #[cfg_attr(all(target_os = "none", feature = "board"), derive(defmt::Format))]
 pub struct AxisSample {
-    /// Setpoint of the tick [m].
+    /// Setpoint of the tick \[m\].
     pub reference_m: f32,
-    /// Voltage applied to the actuator (after the safety guard) [V].
+    /// Voltage applied to the actuator (after the safety guard) \[V\].
     pub commanded_v: f32,
-    /// Sensor reading at the start of the tick [m] (NaN if the read failed).
+    /// Sensor reading at the start of the tick \[m\] (NaN if the read failed).
     pub sensor_m: f32,
 }
 

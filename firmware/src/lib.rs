@@ -9,10 +9,12 @@
 //! - [`safety`]: output window, slew limit, NaN hold, fault counters;
 //! - [`control`]: the single-axis loop body [`control::tick`] and [`control::TrackingStats`];
 //! - [`params`]: the parameter set built in by `build.rs` from `firmware/params/*.toml`;
-//! - [`reference`]: waveform generator (sine, triangle, steps, raster, streamed setpoints);
+//! - [`mod@reference`]: waveform generator (sine, triangle, steps, raster, streamed setpoints);
 //! - [`xy_loop`]: the two-axis loop (reference → `piezo_core::Compensator` → guard → DAC, sensor
 //!   every tick, fault detection and safe state, overrun count);
 //! - [`frames`]: sample frames out, with sequence numbers and gap detection;
+//! - [`inverse_chain`]: the inverse of the effect chain (creep, even term, mode, delay, drift,
+//!   coupling) the loop runs around the compensator when the parameter file has effects;
 //! - [`plant`], [`demo`]: a simulated two-axis stage (independent f32 Bouc-Wen + lag) and the
 //!   fixed run the QEMU image checks itself with.
 //!
@@ -28,6 +30,7 @@ pub mod converter;
 pub mod dac8563;
 pub mod demo;
 pub mod frames;
+pub mod inverse_chain;
 pub mod params;
 pub mod plant;
 pub mod reference;

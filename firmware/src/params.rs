@@ -4,7 +4,13 @@
 //!
 //! [`VERSION`] (`name version` from the file) and [`FNV1A32`] (FNV-1a of the file's bytes) are
 //! logged at boot, so a log says which parameters a run used.
+//!
+//! Each axis also carries its effect chain ([`AxisParams::effects`], from the optional
+//! `[x.effects]` table; all zero when absent), validated at build time and again at boot by
+//! [`AxisParams::effect_chain`] (`piezo_core::effects::Effects::new` at the loop period, over the
+//! output range [`AxisParams::w_range_m`]).
 
+use piezo_core::effects::{EffectParams, Effects};
 use piezo_core::{
     BoucWen, BoucWenParams, Compensator, CompensatorSettings, ParamError, StaticMap, StaticModel,
 };
@@ -16,17 +22,20 @@ pub struct AxisParams {
     pub bouc_wen: BoucWenParams,
     /// Output map y = k1·u + k2·h + y0.
     pub static_map: StaticMap,
-    /// Lowest actuator voltage [V].
+    /// Lowest actuator voltage \[V\].
     pub output_min_v: f32,
-    /// Highest actuator voltage [V].
+    /// Highest actuator voltage \[V\].
     pub output_max_v: f32,
-    /// Largest rate of change of the actuator voltage [V/s].
+    /// Largest rate of change of the actuator voltage \[V/s\].
     pub slew_limit_v_per_s: f32,
-    /// Secant gain of the first loading over the window [m/V], computed by `build.rs` with the
+    /// Secant gain of the first loading over the window \[m/V\], computed by `build.rs` with the
     /// core: the gain of the uncompensated (linear) baseline.
     pub linear_gain_m_per_v: f32,
-    /// Output at `output_min_v` at rest [m].
+    /// Output at `output_min_v` at rest \[m\].
     pub rest_output_m: f32,
+    /// The effects around the hysteresis model (creep, even term, mode, delay, drift, coupling);
+    /// all zero: none.
+    pub effects: EffectParams,
 }
 
 /// Largest |h| accepted for a range-limited Bouc-Wen set over the window (as in `build.rs`).
@@ -34,7 +43,7 @@ pub const STATE_LIMIT: f32 = 1e6;
 
 include!(concat!(env!("OUT_DIR"), "/params.rs"));
 
-/// Loop period [s].
+/// Loop period \[s\].
 pub const SAMPLE_PERIOD_S: f32 = 1.0 / LOOP_RATE_HZ;
 
 impl AxisParams {
@@ -57,6 +66,23 @@ impl AxisParams {
             STATE_LIMIT,
         )?;
         StaticModel::new(hysteresis, self.static_map)
+    }
+
+    /// The hysteresis output range the effects are validated over: the first loading's
+    /// `[y_rest, y_rest + g_lin·(u_max − u_min)]`, sorted \[m\] (as in `build.rs`).
+    pub fn w_range_m(&self) -> (f32, f32) {
+        let top =
+            self.rest_output_m + self.linear_gain_m_per_v * (self.output_max_v - self.output_min_v);
+        if top < self.rest_output_m {
+            (top, self.rest_output_m)
+        } else {
+            (self.rest_output_m, top)
+        }
+    }
+
+    /// The core's effect chain of this axis at the loop period `sample_period_s` \[s\].
+    pub fn effect_chain(&self, sample_period_s: f32) -> Result<Effects, ParamError> {
+        Effects::new(self.effects, sample_period_s, self.w_range_m())
     }
 
     /// The core's inverse compensator for this axis at the loop rate of the file.
@@ -91,6 +117,7 @@ mod tests {
             axis.compensator().unwrap();
             // The general-n variant the check image benches must be valid too.
             axis.with_exponent(1.5).compensator().unwrap();
+            assert!(axis.effect_chain(SAMPLE_PERIOD_S).unwrap().is_identity());
         }
         assert!(SAMPLE_PERIOD_S.is_finite());
         assert!(VERSION.starts_with("xy-stage"));

@@ -29,11 +29,11 @@ use crate::codes::{AdcCode, DacCode, SensorScale};
 use crate::converter::{AdcRead, DacWrite, ErrorType};
 use crate::xy_loop::Axis;
 
-/// Largest input change per Euler sub-step [V].
+/// Largest input change per Euler sub-step \[V\].
 pub const MAX_SUBSTEP_V: f32 = 0.05;
 /// Most Euler sub-steps in one tick.
 pub const MAX_SUBSTEPS: u32 = 512;
-/// Lag time constant of the simulated stage mechanics [s] (first mode ≈ 3.2 kHz: 1/(2π·3.2 kHz)).
+/// Lag time constant of the simulated stage mechanics \[s\] (first mode ≈ 3.2 kHz: 1/(2π·3.2 kHz)).
 pub const LAG_TIME_CONSTANT_S: f32 = 50e-6;
 
 /// One axis of the simulated stage.
@@ -65,7 +65,7 @@ impl StackPlant {
         self.h
     }
 
-    /// Displacement [m] (after the lag).
+    /// Displacement \[m\] (after the lag).
     pub fn displacement_m(&self) -> f32 {
         self.displacement_m
     }

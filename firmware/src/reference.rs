@@ -24,34 +24,34 @@ pub const STREAM_CAPACITY: usize = 64;
 pub enum Waveform {
     /// `offset_m`.
     Constant {
-        /// Value [m].
+        /// Value \[m\].
         offset_m: f32,
     },
     /// `offset + amplitude · sin(2πφ)`.
     Sine {
-        /// Centre [m].
+        /// Centre \[m\].
         offset_m: f32,
-        /// Amplitude [m].
+        /// Amplitude \[m\].
         amplitude_m: f32,
-        /// Frequency [Hz].
+        /// Frequency \[Hz\].
         frequency_hz: f32,
     },
     /// `offset + amplitude · tri(φ)`, rising from −1 at φ = 0 to +1 at φ = ½.
     Triangle {
-        /// Centre [m].
+        /// Centre \[m\].
         offset_m: f32,
-        /// Amplitude [m].
+        /// Amplitude \[m\].
         amplitude_m: f32,
-        /// Frequency [Hz].
+        /// Frequency \[Hz\].
         frequency_hz: f32,
     },
     /// `offset − amplitude` for φ < ½, `offset + amplitude` after.
     Steps {
-        /// Centre [m].
+        /// Centre \[m\].
         offset_m: f32,
-        /// Half the step height [m].
+        /// Half the step height \[m\].
         amplitude_m: f32,
-        /// Frequency [Hz].
+        /// Frequency \[Hz\].
         frequency_hz: f32,
     },
 }
@@ -111,13 +111,13 @@ pub enum Program {
     PerAxis([Waveform; 2]),
     /// Raster scan (see module docs).
     Raster {
-        /// Left end of a line [m].
+        /// Left end of a line \[m\].
         x_min_m: f32,
-        /// Right end of a line [m].
+        /// Right end of a line \[m\].
         x_max_m: f32,
-        /// First row [m].
+        /// First row \[m\].
         y_min_m: f32,
-        /// Last row [m].
+        /// Last row \[m\].
         y_max_m: f32,
         /// Rows (≥ 2).
         lines: u16,

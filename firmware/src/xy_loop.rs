@@ -12,14 +12,29 @@
 //!                                                       non-finite → fault NonFiniteReading
 //!                                                       frozen → fault StuckReading
 //! 2. running: [r_x, r_y] = reference.next()
-//!    per axis: u_req = compensator.compensate(state, r)  (or the linear baseline
-//!                                                       u_min + (r − y_rest)/g_lin)
+//!              (with effects: r = r[j], w* = inverse chain, see below)
+//!    per axis: u_req = compensator.compensate(state, r)  (w* with effects; or the linear
+//!                                                       baseline u_min + (r − y_rest)/g_lin)
 //!              u     = guard.apply(u_req)               window, slew, non-finite → hold
 //!    safe:     u     = last guarded output (hold); reference paused, compensator frozen
 //! 3. per axis: DAC code = u / G_amp                     Err → fault DacError; axes not yet
 //!                                                       written this tick get their hold value
+//! 3b. with effects, per axis: commit(u, w)              u applied (or held), w the
+//!                                                       compensator's model output
 //! 4. frame {sequence, per axis: r, u, x_meas}           every `decimation`-th tick
 //! ```
+//!
+//! # Effects
+//! When the parameter file has effects (`[x.effects]`, `[y.effects]`: creep, even term, mode,
+//! delay, drift, coupling; [`AxisConfig::effects`]) and the feed-forward is the compensator, the
+//! loop runs the inverse of the effect chain around the compensator
+//! ([`crate::inverse_chain::InverseChain`]): the reference generator is sampled
+//! `L = M + max ⌈D⌉` ticks ahead (L ticks of added latency for streamed setpoints and program
+//! switches), the desired z of both axes is decoupled, and the compensator is given
+//! `w* = Effects::inverse_target_w(…)` instead of r; after the DAC write each axis's effects state
+//! is advanced with the voltage applied and the w the compensator's model reached (also while
+//! safe). When both axes' effects are the identity, or with [`Feedforward::Linear`] (the
+//! uncompensated baseline ignores them), the tick is exactly the one without effects.
 //!
 //! A fault latches the safe state *in the tick that detects it* (the DAC codes written in that
 //! tick are already the hold values, except for axes whose new code was written before a later
@@ -38,11 +53,13 @@
 //!
 //! Never panics (checked mechanically by the `check` image, see `firmware/ci.sh`), no allocation.
 
+use piezo_core::effects::Effects;
 use piezo_core::{CommandStatus, Compensator, CompensatorState, ParamError};
 
 use crate::codes::{DacCode, SensorScale};
 use crate::converter::{AdcRead, DacWrite, Error, ErrorKind, ErrorType};
 use crate::frames::{AxisSample, FrameQueue};
+use crate::inverse_chain::InverseChain;
 use crate::params::AxisParams;
 use crate::reference::ReferenceGenerator;
 use crate::safety::{GuardState, LimitsError, SafetyLimits};
@@ -72,7 +89,7 @@ impl Axis {
 
 /// Something that measures each axis's displacement in metres.
 pub trait PositionSensor: ErrorType {
-    /// The displacement of `axis` now [m].
+    /// The displacement of `axis` now \[m\].
     fn read_m(&mut self, axis: Axis) -> Result<f32, Self::Error>;
 }
 
@@ -170,7 +187,7 @@ pub enum Feedforward {
 pub struct StuckPolicy {
     /// Consecutive ticks with a bit-identical reading.
     pub ticks: u32,
-    /// Least change of the commanded voltage since the reading froze [V].
+    /// Least change of the commanded voltage since the reading froze \[V\].
     pub min_motion_v: f32,
 }
 
@@ -187,6 +204,7 @@ impl StuckPolicy {
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct AxisConfig {
     compensator: Compensator,
+    effects: Effects,
     limits: SafetyLimits,
     linear_gain_m_per_v: f32,
     rest_output_m: f32,
@@ -209,12 +227,14 @@ pub enum ConfigError {
 pub const GUARD_SLEW_MARGIN: f32 = 1.001;
 
 impl AxisConfig {
-    /// An axis from the parameter file, at loop period `sample_period_s`: the core's compensator
-    /// and a guard with the same window and slew limit (plus [`GUARD_SLEW_MARGIN`]).
+    /// An axis from the parameter file, at loop period `sample_period_s`: the core's compensator,
+    /// its effect chain, and a guard with the same window and slew limit (plus
+    /// [`GUARD_SLEW_MARGIN`]).
     pub fn from_params(p: &AxisParams, sample_period_s: f32) -> Result<Self, ConfigError> {
         let model = p.model().map_err(ConfigError::Core)?;
         let compensator =
             Compensator::new(model, p.settings(sample_period_s)).map_err(ConfigError::Core)?;
+        let effects = p.effect_chain(sample_period_s).map_err(ConfigError::Core)?;
         let max_step_v = p.slew_limit_v_per_s * sample_period_s * GUARD_SLEW_MARGIN;
         let limits = SafetyLimits::new(p.output_min_v, p.output_max_v, max_step_v)
             .map_err(ConfigError::Limits)?;
@@ -223,6 +243,7 @@ impl AxisConfig {
         }
         Ok(Self {
             compensator,
+            effects,
             limits,
             linear_gain_m_per_v: p.linear_gain_m_per_v,
             rest_output_m: p.rest_output_m,
@@ -238,6 +259,18 @@ impl AxisConfig {
     /// The guard's limits.
     pub fn limits(&self) -> &SafetyLimits {
         &self.limits
+    }
+
+    /// The effect chain (the identity when the parameter file has none).
+    pub fn effects(&self) -> &Effects {
+        &self.effects
+    }
+
+    /// This axis with another effect chain (e.g. [`Effects`] identity: the loop ignores the
+    /// stage's effects). `effects` must be validated for the same loop period.
+    pub fn with_effects(mut self, effects: Effects) -> Self {
+        self.effects = effects;
+        self
     }
 }
 
@@ -369,11 +402,11 @@ impl StuckDetector {
 /// What one tick did.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TickReport {
-    /// Setpoints used (the last ones while safe) [m].
+    /// Setpoints used (the last ones while safe) \[m\].
     pub reference_m: [f32; 2],
-    /// Sensor readings at the start of the tick [m] (NaN where the read failed).
+    /// Sensor readings at the start of the tick \[m\] (NaN where the read failed).
     pub measured_m: [f32; 2],
-    /// Voltages written (or attempted) [V].
+    /// Voltages written (or attempted) \[V\].
     pub applied_v: [f32; 2],
     /// Mode at the end of the tick.
     pub mode: Mode,
@@ -389,7 +422,10 @@ pub struct TwoAxisLoop {
     mode: Mode,
     counters: LoopCounters,
     last_reference_m: [f32; 2],
-    /// The reference generator (public: push streamed setpoints, switch programs).
+    /// The inverse effect chain (`None`: no effects, or the linear baseline).
+    chain: Option<InverseChain>,
+    /// The reference generator (public: push streamed setpoints, switch programs; with effects
+    /// they take effect [`TwoAxisLoop::lead_ticks`] ticks later).
     pub reference: ReferenceGenerator,
     /// Outgoing sample frames (public: the sender drains them).
     pub frames: FrameQueue,
@@ -407,11 +443,18 @@ impl TwoAxisLoop {
             settings.axes[0].limits.state(initial_v[0]),
             settings.axes[1].limits.state(initial_v[1]),
         ];
+        let chain = match feedforward {
+            Feedforward::Compensator => {
+                InverseChain::new([settings.axes[0].effects, settings.axes[1].effects])
+            }
+            Feedforward::Linear => None,
+        };
         Self {
             compensator: [
                 CompensatorState::at_rest(guard[0].last_safe_volts()),
                 CompensatorState::at_rest(guard[1].last_safe_volts()),
             ],
+            chain,
             guard,
             stuck: [StuckDetector::default(); 2],
             mode: Mode::Running,
@@ -444,6 +487,17 @@ impl TwoAxisLoop {
         &self.settings
     }
 
+    /// The inverse effect chain, if the loop runs one.
+    pub fn inverse_chain(&self) -> Option<&InverseChain> {
+        self.chain.as_ref()
+    }
+
+    /// Ticks the reference generator runs ahead of the tick's reference (0 without effects): the
+    /// latency added to streamed setpoints and program switches.
+    pub fn lead_ticks(&self) -> u32 {
+        self.chain.as_ref().map_or(0, InverseChain::lead_ticks)
+    }
+
     /// Leaves the safe state (after the cause is cleared): tracking resumes from the held
     /// voltages; stuck detection starts afresh.
     pub fn rearm(&mut self) {
@@ -462,6 +516,24 @@ impl TwoAxisLoop {
     /// One tick (see the module docs). Never panics.
     #[inline]
     pub fn tick<D, S>(&mut self, io: &mut XyIo<D, S>, deadline_missed: bool) -> TickReport
+    where
+        D: DacWrite,
+        S: PositionSensor,
+    {
+        // Two copies of the body: without effects it is exactly the tick without the chain.
+        if self.chain.is_none() {
+            self.tick_body::<false, D, S>(io, deadline_missed)
+        } else {
+            self.tick_body::<true, D, S>(io, deadline_missed)
+        }
+    }
+
+    #[inline(always)]
+    fn tick_body<const EFFECTS: bool, D, S>(
+        &mut self,
+        io: &mut XyIo<D, S>,
+        deadline_missed: bool,
+    ) -> TickReport
     where
         D: DacWrite,
         S: PositionSensor,
@@ -508,7 +580,13 @@ impl TwoAxisLoop {
             self.guard[1].last_safe_volts(),
         ];
         if self.mode == Mode::Running {
-            let reference = self.reference.next_setpoint();
+            let (reference, target) = match self.chain.as_mut() {
+                Some(chain) if EFFECTS => chain.next_targets(&mut self.reference),
+                _ => {
+                    let r = self.reference.next_setpoint();
+                    (r, r)
+                }
+            };
             self.last_reference_m = reference;
             for i in 0..2 {
                 let axis = &self.settings.axes[i];
@@ -516,7 +594,7 @@ impl TwoAxisLoop {
                     Feedforward::Compensator => {
                         let command = axis
                             .compensator
-                            .compensate(&mut self.compensator[i], reference[i]);
+                            .compensate(&mut self.compensator[i], target[i]);
                         let c = &mut self.counters;
                         match command.status {
                             CommandStatus::Tracking => {}
@@ -564,6 +642,23 @@ impl TwoAxisLoop {
                         self.guard[j] = before_guard[j];
                         applied_v[j] = before_guard[j].last_safe_volts();
                     }
+                }
+            }
+        }
+
+        // 3b. Effects: the stage saw `applied_v` this tick (the held value if safe or if the
+        // write failed); the compensator's model is at the w it gives.
+        if EFFECTS {
+            if let Some(chain) = self.chain.as_mut() {
+                for (i, (axis, state)) in self
+                    .settings
+                    .axes
+                    .iter()
+                    .zip(self.compensator.iter())
+                    .enumerate()
+                {
+                    let w = axis.compensator.model().output(&state.model);
+                    chain.commit(i, applied_v[i], w);
                 }
             }
         }

@@ -130,3 +130,150 @@ fn refusals_name_the_file_and_the_field() {
         assert!(e.contains(expected), "{to:?}: {e}");
     }
 }
+
+const WITH_EFFECTS: &str = "params/xy-stage-effects.toml";
+
+/// `WITH_EFFECTS` with `from` replaced by `to` (exactly once).
+fn edited_effects(from: &str, to: &str) -> Vec<u8> {
+    let text = String::from_utf8(read(WITH_EFFECTS)).unwrap();
+    assert_eq!(text.matches(from).count(), 1, "{from}");
+    text.replacen(from, to, 1).into_bytes()
+}
+
+#[test]
+fn effects_tables_are_parsed_validated_and_emitted() {
+    // The default file has none: all zero.
+    let plain = params::load(DEFAULT, &read(DEFAULT)).unwrap();
+    for a in &plain.axes {
+        assert_eq!(a.effects, piezo_core::effects::EffectParams::default());
+    }
+    let set = params::load(WITH_EFFECTS, &read(WITH_EFFECTS)).unwrap();
+    let [x, y] = set.axes.map(|a| a.effects);
+    // Shorter creep arrays are padded with 0; absent keys (y's mode) are 0.
+    assert_eq!(x.creep_gain_m_per_v, [1.0721817e-8, 0.0, 0.0]);
+    assert_eq!(x.creep_time_constant_s, [0.2, 0.0, 0.0]);
+    assert_eq!(y.creep_gain_m_per_v, [1.066826e-8, 0.0, 0.0]);
+    assert_eq!(
+        (x.even_coefficient_m_per_v2, x.even_center_v),
+        (1.0e-10, 60.0)
+    );
+    assert_eq!((x.delay_s, x.drift_rate_m_per_s), (2.0e-4, -2.0e-7));
+    assert_eq!((x.coupling, y.coupling), (0.02, -0.015));
+    assert_eq!((y.mode_frequency_hz, y.mode_damping), (0.0, 0.0));
+    // The same validation as the firmware's boot: the core accepts them at the loop period.
+    for a in &set.axes {
+        let range = params::w_range_m(
+            a.rest_output_m,
+            a.linear_gain_m_per_v,
+            a.output_min_v,
+            a.output_max_v,
+        );
+        assert!(range.0 < range.1 && range.1 > 37e-6, "{range:?}");
+        let e =
+            piezo_core::effects::Effects::new(a.effects, 1.0 / set.loop_rate_hz, range).unwrap();
+        assert!(!e.is_identity());
+        assert_eq!(e.lead_samples(), 2);
+    }
+    // Emitted into the consts, exactly (f32 `{:?}` round-trips).
+    let source = params::generate(&set, WITH_EFFECTS);
+    assert!(
+        source.contains(
+            "effects: EffectParams { creep_gain_m_per_v: [1.0721817e-8, 0.0, 0.0], \
+             creep_time_constant_s: [0.2, 0.0, 0.0], even_coefficient_m_per_v2: 1e-10, \
+             even_center_v: 60.0, mode_frequency_hz: 0.0, mode_damping: 0.0, delay_s: 0.0002, \
+             drift_rate_m_per_s: -2e-7, coupling: 0.02 }"
+        ),
+        "{source}"
+    );
+    // The default file's consts carry all-zero effects.
+    for axis in piezo_firmware::params::AXES {
+        assert_eq!(axis.effects, piezo_core::effects::EffectParams::default());
+    }
+}
+
+#[test]
+fn bad_effects_are_refused_naming_the_file_and_the_field() {
+    let cases = [
+        // The core's validation, mapped to the table path.
+        (
+            "coupling = 0.02",
+            "coupling = 0.6",
+            "`x.effects.coupling` refused",
+        ),
+        (
+            "delay_s = 2.0e-4\ndrift_rate_m_per_s = -2.0e-7\ncoupling = -0.015",
+            "delay_s = 1.0\ndrift_rate_m_per_s = -2.0e-7\ncoupling = -0.015",
+            "`y.effects.delay_s` refused",
+        ),
+        (
+            "creep_time_constant_s = [0.2]",
+            "creep_time_constant_s = [-0.2]",
+            "`x.effects.creep_time_constant_s[0]` refused",
+        ),
+        (
+            "creep_time_constant_s = [0.2, 0.0, 0.0]",
+            "creep_time_constant_s = [0.2]",
+            "",
+        ),
+        (
+            "mode_frequency_hz = 0.0",
+            "mode_frequency_hz = 6000.0",
+            "`x.effects.mode_frequency_hz` refused",
+        ),
+        (
+            "mode_frequency_hz = 0.0\nmode_damping = 0.0",
+            "mode_frequency_hz = 500.0\nmode_damping = 0.0",
+            "`x.effects.mode_damping` refused",
+        ),
+        // The parser's own checks.
+        (
+            "even_center_v = 60.0\nmode",
+            "even_centre_v = 60.0\nmode",
+            "unknown key `x.effects.even_centre_v`; valid keys: creep_gain_m_per_v, \
+             creep_time_constant_s, even_coefficient_m_per_v2, even_center_v, mode_frequency_hz, \
+             mode_damping, delay_s, drift_rate_m_per_s, coupling",
+        ),
+        (
+            "creep_gain_m_per_v = [1.066826e-8, 0.0, 0.0]",
+            "creep_gain_m_per_v = [1.066826e-8, 0.0, 0.0, 1e-9]",
+            "`y.effects.creep_gain_m_per_v` has 4 elements, at most 3 allowed",
+        ),
+        (
+            "creep_gain_m_per_v = [1.0721817e-8]",
+            "creep_gain_m_per_v = 1.0721817e-8",
+            "`x.effects.creep_gain_m_per_v` must be an array",
+        ),
+        (
+            "creep_gain_m_per_v = [1.0721817e-8]",
+            "creep_gain_m_per_v = [\"a\"]",
+            "`x.effects.creep_gain_m_per_v[0]` must be a number",
+        ),
+        (
+            "coupling = 0.02",
+            "coupling = \"0.02\"",
+            "`x.effects.coupling` must be a number",
+        ),
+        (
+            "even_coefficient_m_per_v2 = 1.0e-10\neven_center_v = 60.0\nmode",
+            "even_coefficient_m_per_v2 = 1.0e99\neven_center_v = 60.0\nmode",
+            "is not a finite f32",
+        ),
+    ];
+    for (from, to, expected) in cases {
+        let bytes = edited_effects(from, to);
+        if expected.is_empty() {
+            // A shorter array that is still valid.
+            params::load("test.toml", &bytes).unwrap();
+            continue;
+        }
+        let e = refusal(&bytes);
+        assert!(e.starts_with("test.toml: "), "{e}");
+        assert!(e.contains(expected), "{to:?}: {e}");
+        if expected == "is not a finite f32" {
+            assert!(e.contains("`x.effects.even_coefficient_m_per_v2`"), "{e}");
+        }
+    }
+    // Not a table.
+    let e = refusal(&edited("[x.bouc_wen]", "[x]\neffects = 3\n\n[x.bouc_wen]"));
+    assert!(e.contains("`x.effects` must be a table"), "{e}");
+}

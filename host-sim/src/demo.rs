@@ -1,37 +1,39 @@
-//! `host-sim demo`: the XY flexure stage of seed 002 tracking a triangle on both axes, with and without the
-//! inverse compensator of `piezo-core`.
+//! `host-sim demo`: the whole story on the XY flexure stage of seed 002 carrying creep that no model
+//! declares — identify, compensate, find the residual, add the effect, compensate again.
+//!
+//! 1. **Identification experiment.** Both axes are driven with a raised cosine 0–120 V (1 Hz on x,
+//!    0.7 Hz on y) for `identify_s`; the plant (f64 [`crate::plant::XyStage`], with creep and sensor
+//!    noise as host-sim effects) is recorded.
+//! 2. **close-loop** ([`crate::close_loop`]) fits the symmetric Bouc-Wen model per axis (firmware-
+//!    invertible sets only), diagnoses its residual, adds the effects it finds and refits.
+//! 3. **Tracking** a triangle per axis, three ways: the best linear feed-forward; piezo-core's
+//!    compensator with the identified base model; the same with the effects close-loop added (their
+//!    inverse chain, [`piezo_core::effects`], before the compensator). The plant is the truth.
 //!
 //! **Loop.** At the loop rate f_s (10 kHz) a voltage u[k] is computed per axis and held by the DAC
-//! (zero-order hold) over [k/f_s, (k+1)/f_s); the plant ([`crate::plant::XyStage`], f64 Dormand–Prince,
-//! its hysteresis state moved along each DAC step) is sampled at k/f_s. Both modes command one sample
-//! ahead, u[k] for the reference r[k+1], since u[k] acts over the period that ends at (k+1)/f_s; the error is
-//! e[k] = y[k] − r[k].
+//! (zero-order hold) over [k/f_s, (k+1)/f_s); the plant is sampled at k/f_s. The identification record
+//! pairs u[k] with y[k+1] (the sample its hold reaches), and every mode commands one sample ahead, u[k]
+//! for the reference r[k+1]; the error is e[k] = y[k] − r[k].
 //!
 //! **Uncompensated** (best linear feed-forward): u[k] = (r[k+1] − c)/g with the affine gain (g, c)
 //! fitted by least squares to the plant's own response over the same motion (one extra run driven
-//! with r/g0, g0 = stroke/120 V); it removes gain and offset error, so what is left is hysteresis.
+//! with r/g0, g0 = stroke/120 V); it removes gain and offset error, so what is left is hysteresis
+//! and creep.
 //!
-//! **Compensated**: per axis a [`piezo_core::Compensator`] on the static n = 1 model of the stack,
-//! y = G·d·(u − h), i.e. k1 = G·d, k2 = −G·d, with the plant's own stack gain d, its Bouc-Wen α, β, γ
-//! and the static gain G of the flexure (platform displacement per unit of free stack elongation,
-//! ≈ 1.68). Output window 0–120 V, no slew limit.
-//!
-//! The core is given the output window as the model's input range
-//! ([`piezo_core::BoucWen::with_input_range`]): over all states of the bounded class the unloading
-//! slope at |h| = α/(β + γ) (≈ 20.9 V for x) would exceed 1 and dy/du change sign, but inside 0–120 V
-//! |h| stays below the loading reach L(120 V) ≈ 13.7 V, where the map is monotone, so the core accepts
-//! the plant's true set.
-//!
-//! Metrics skip the first `settle_s` (ringing of the first DAC step from rest).
+//! Output window 0–120 V, no slew limit. Metrics skip the first `settle_s`.
 
 #![allow(clippy::needless_range_loop)] // axis indices run over parallel per-axis arrays
 
+use crate::close_loop::full::AxisModel;
+use crate::close_loop::{close_loop, CloseLoopSettings, Outcome};
 use crate::csv::{write_csv, Table};
 use crate::effects::Effects;
+use crate::identify::Record;
 use crate::plant::XyStage;
 use crate::plot::{plot_panels, Panel, Series};
 use crate::signal::{Piecewise, Signal};
 use crate::sim::{simulate, SimSettings};
+use piezo_core::effects::{decouple, Effects as CoreEffects, EffectsState};
 use piezo_core::{
     BoucWen, BoucWenParams, Compensator, CompensatorSettings, CompensatorState, ParamError,
     StaticMap, StaticModel,
@@ -39,13 +41,19 @@ use piezo_core::{
 use std::path::Path;
 use std::time::Instant;
 
-/// Voltage window of the P-887 stacks used by both modes, V.
+/// Voltage window of the P-887 stacks used by every mode, V.
 pub const OUTPUT_MIN_V: f64 = 0.0;
 /// Upper end of the window (rated voltage), V.
 pub const OUTPUT_MAX_V: f64 = 120.0;
 
+/// The effects the demo's plant carries and no model declares (host-sim effect specs).
+pub const DEFAULT_PLANT_EFFECTS: [&str; 2] = [
+    "creep:tau=0.1/1,weight=0.02/0.02",
+    "noise:rms_m=2e-9,seed=11",
+];
+
 /// Demo settings.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct DemoSettings {
     /// Triangle frequency of the x axis, Hz.
     pub x_frequency_hz: f64,
@@ -61,6 +69,10 @@ pub struct DemoSettings {
     pub loop_rate_hz: f64,
     /// Time skipped at the start of the metrics, s.
     pub settle_s: f64,
+    /// Length of the identification experiment, s.
+    pub identify_s: f64,
+    /// Effects of the plant (host-sim specs), undeclared to every model.
+    pub plant_effects: Vec<String>,
 }
 
 impl Default for DemoSettings {
@@ -73,6 +85,11 @@ impl Default for DemoSettings {
             high_fraction: 0.9,
             loop_rate_hz: 10_000.0,
             settle_s: 0.01,
+            identify_s: 3.0,
+            plant_effects: DEFAULT_PLANT_EFFECTS
+                .iter()
+                .map(|s| s.to_string())
+                .collect(),
         }
     }
 }
@@ -91,6 +108,7 @@ impl DemoSettings {
         pos("--y-freq", self.y_frequency_hz)?;
         pos("--duration", self.duration_s)?;
         pos("--rate", self.loop_rate_hz)?;
+        pos("--identify", self.identify_s)?;
         if !(self.settle_s >= 0.0 && self.settle_s < self.duration_s) {
             return Err(format!(
                 "--settle: must be in [0, duration), got {}",
@@ -106,11 +124,26 @@ impl DemoSettings {
                 self.low_fraction, self.high_fraction
             ));
         }
-        let n = (self.duration_s * self.loop_rate_hz).round();
-        if !(10.0..=5e7).contains(&n) {
-            return Err(format!("--duration × --rate: {n} samples, need 10 .. 5e7"));
+        for (name, seconds) in [
+            ("--duration", self.duration_s),
+            ("--identify", self.identify_s),
+        ] {
+            let n = (seconds * self.loop_rate_hz).round();
+            if !(10.0..=5e7).contains(&n) {
+                return Err(format!("{name} × --rate: {n} samples, need 10 .. 5e7"));
+            }
         }
+        self.effects()?;
         Ok(())
+    }
+
+    fn effects(&self) -> Result<Effects, String> {
+        let mut e = Effects::default();
+        for spec in &self.plant_effects {
+            e.add_spec(spec)
+                .map_err(|err| format!("--plant-effect {spec}: {err}"))?;
+        }
+        Ok(e)
     }
 
     fn samples(&self) -> usize {
@@ -149,17 +182,8 @@ pub struct ModeRun {
     pub errors: [ErrorStats; 2],
 }
 
-/// The set the compensator of an axis was built from (the plant's own).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct CompensatorSet {
-    /// k1 = G·d, m/V.
-    pub k1_m_per_v: f64,
-    /// The plant's Bouc-Wen set, given to the core.
-    pub bouc_wen: BoucWenParams,
-}
-
 /// Everything the demo measured.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone)]
 pub struct DemoResult {
     /// Settings used.
     pub settings: DemoSettings,
@@ -173,21 +197,25 @@ pub struct DemoResult {
     pub linear_fit: [(f64, f64); 2],
     /// Uncompensated run.
     pub linear: ModeRun,
-    /// Compensated run.
-    pub compensated: ModeRun,
-    /// Compensator parameter sets per axis.
-    pub compensator_sets: [CompensatorSet; 2],
-    /// Wall-clock seconds of the three plant runs.
-    pub plant_seconds: f64,
+    /// Compensated with the identified base model.
+    pub base: ModeRun,
+    /// Compensated with the base model and the effects close-loop added.
+    pub closed: ModeRun,
+    /// The close-loop outcome on the identification record.
+    pub close_loop: Outcome,
+    /// Wall-clock seconds of the whole demo.
+    pub seconds: f64,
 }
 
 const AXES: [&str; 2] = ["x", "y"];
 
-/// Runs the XY stage under per-axis ZOH voltages; returns the sampled platform positions.
+/// Runs the XY stage under per-axis ZOH voltages with `effects`; returns the sampled platform
+/// positions.
 pub fn run_xy_stage(
     stage: &XyStage,
     voltages_v: &[Vec<f64>; 2],
     loop_rate_hz: f64,
+    effects: &Effects,
 ) -> Result<[Vec<f64>; 2], String> {
     let n = voltages_v[0].len();
     let times: Vec<f64> = (0..n).map(|k| k as f64 / loop_rate_hz).collect();
@@ -197,8 +225,7 @@ pub fn run_xy_stage(
         signals.push(Box::new(zoh));
     }
     let settings = SimSettings::new(loop_rate_hz, n as f64 / loop_rate_hz);
-    let out =
-        simulate(stage, signals, &Effects::default(), &settings).map_err(|e| e.to_string())?;
+    let out = simulate(stage, signals, effects, &settings).map_err(|e| e.to_string())?;
     let mut it = out.outputs_m.into_iter();
     match (it.next(), it.next()) {
         (Some(x), Some(y)) => Ok([x, y]),
@@ -209,12 +236,13 @@ pub fn run_xy_stage(
 /// Largest |h| the core may assume for the stack sets (never reached: they are bounded).
 const STATE_LIMIT: f32 = 1e3;
 
-/// The compensator of one axis from the plant's parameters, valid over the 0–120 V window.
+/// The compensator of one axis from the plant's own stack parameters, valid over 0–120 V (used by the
+/// benches: the model-matched case).
 pub fn axis_compensator(
     stage: &XyStage,
     axis: usize,
     loop_rate_hz: f64,
-) -> Result<(Compensator, CompensatorSet), String> {
+) -> Result<(Compensator, BoucWenParams), String> {
     let (ax, ay) = stage.axes();
     let a = if axis == 0 { ax } else { ay };
     let k1 = stage.static_gain()[axis] * stage.stack_gain_m_per_v()[axis];
@@ -223,12 +251,6 @@ pub fn axis_compensator(
         beta: a.hysteresis.beta as f32,
         gamma: a.hysteresis.gamma as f32,
         n: 1.0,
-    };
-    let settings = CompensatorSettings {
-        output_min_v: OUTPUT_MIN_V as f32,
-        output_max_v: OUTPUT_MAX_V as f32,
-        slew_limit_v_per_s: f32::INFINITY,
-        sample_period_s: (1.0 / loop_rate_hz) as f32,
     };
     let build = || -> Result<Compensator, ParamError> {
         let bw = BoucWen::with_input_range(
@@ -242,17 +264,91 @@ pub fn axis_compensator(
             k2_m_per_h: -k1 as f32,
             offset_m: 0.0,
         };
-        Compensator::new(StaticModel::new(bw, map)?, settings)
+        Compensator::new(StaticModel::new(bw, map)?, window(loop_rate_hz))
     };
     let compensator =
         build().map_err(|e| format!("piezo-core refused the {} axis set: {e}", AXES[axis]))?;
-    Ok((
-        compensator,
-        CompensatorSet {
-            k1_m_per_v: k1,
-            bouc_wen,
-        },
-    ))
+    Ok((compensator, bouc_wen))
+}
+
+fn window(loop_rate_hz: f64) -> CompensatorSettings {
+    CompensatorSettings {
+        output_min_v: OUTPUT_MIN_V as f32,
+        output_max_v: OUTPUT_MAX_V as f32,
+        slew_limit_v_per_s: f32::INFINITY,
+        sample_period_s: (1.0 / loop_rate_hz) as f32,
+    }
+}
+
+/// The compensator of an identified axis model (its hysteresis part) over 0–120 V.
+fn model_compensator(m: &AxisModel, loop_rate_hz: f64) -> Result<Compensator, String> {
+    let (model, _) = m.build()?;
+    Compensator::new(model, window(loop_rate_hz))
+        .map_err(|e| format!("piezo-core's compensator refused the identified set: {e}"))
+}
+
+/// Feed-forward voltages for the references `r[k+1]` of both axes with the identified models:
+/// with `effects`, the core's inverse chain (coupling by the exact 2×2 inverse on the references,
+/// then per axis delay, drift, mode, creep and even term) before the compensator.
+fn compensate(
+    models: [&AxisModel; 2],
+    reference_m: &[Vec<f64>; 2],
+    loop_rate_hz: f64,
+    effects: bool,
+) -> Result<[Vec<f64>; 2], String> {
+    let n = reference_m[0].len();
+    // u[k] is for r[k+1]: the reference one sample ahead, its last sample held.
+    let ahead: [Vec<f64>; 2] =
+        std::array::from_fn(|a| (0..n).map(|k| reference_m[a][(k + 1).min(n - 1)]).collect());
+    let mut out: [Vec<f64>; 2] = [Vec::new(), Vec::new()];
+    if !effects {
+        for a in 0..2 {
+            let comp = model_compensator(models[a], loop_rate_hz)?;
+            let mut state = CompensatorState::at_rest(OUTPUT_MIN_V as f32);
+            out[a] = ahead[a]
+                .iter()
+                .map(|&r| f64::from(comp.compensate(&mut state, r as f32).voltage_v))
+                .collect();
+        }
+        return Ok(out);
+    }
+    let (cx, cy) = (models[0].effects.coupling, models[1].effects.coupling);
+    let targets: [Vec<f32>; 2] = {
+        let mut tx = Vec::with_capacity(n);
+        let mut ty = Vec::with_capacity(n);
+        for k in 0..n {
+            let (x, y) = decouple(cx, cy, ahead[0][k] as f32, ahead[1][k] as f32);
+            tx.push(x);
+            ty.push(y);
+        }
+        [tx, ty]
+    };
+    for a in 0..2 {
+        let m = models[a];
+        let comp = model_compensator(m, loop_rate_hz)?;
+        let fx = CoreEffects::new(m.effects, m.sample_period_s, m.w_range_m)
+            .map_err(|e| format!("piezo-core refused the {} axis effects: {e}", AXES[a]))?;
+        // The plant rests at 0 V before the run: the chain starts there too (one committed sample
+        // at rest, so that creep counts from 0 V, as it did in the identification record).
+        let mut cs = CompensatorState::at_rest(OUTPUT_MIN_V as f32);
+        let mut es = EffectsState::new();
+        let w_rest = comp.model().output(&cs.model);
+        fx.commit_command(&mut es, OUTPUT_MIN_V as f32, w_rest);
+        let r = &targets[a];
+        out[a] = (0..n)
+            .map(|j| {
+                let z_prev = fx.desired_z_m(r, j.saturating_sub(1));
+                let z_now = fx.desired_z_m(r, j);
+                let z_next = fx.desired_z_m(r, j + 1);
+                let target = fx.inverse_target_w(&es, z_prev, z_now, z_next);
+                let command = comp.compensate(&mut cs, target);
+                let w = comp.model().output(&cs.model);
+                fx.commit_command(&mut es, command.voltage_v, w);
+                f64::from(command.voltage_v)
+            })
+            .collect();
+    }
+    Ok(out)
 }
 
 fn error_stats(reference: &[f64], measured: &[f64], skip: usize) -> ErrorStats {
@@ -291,6 +387,7 @@ pub fn run_demo(
     progress: &mut dyn FnMut(&str),
 ) -> Result<DemoResult, String> {
     settings.validate()?;
+    let plant_effects = settings.effects()?;
     let stage = XyStage::default();
     let fs = settings.loop_rate_hz;
     let n = settings.samples();
@@ -312,53 +409,109 @@ pub fn run_demo(
         std::array::from_fn(|axis| (0..n).map(|k| reference_at(axis, k)).collect());
     let clamp = |u: f64| u.clamp(OUTPUT_MIN_V, OUTPUT_MAX_V);
     let started = Instant::now();
+    let elapsed = |started: &Instant| started.elapsed().as_secs_f64();
 
-    // 1. Linear gain fit.
+    // 1. Identification experiment (and, alongside, the probe of the linear feed-forward).
+    let n_id = (settings.identify_s * fs).round() as usize;
     progress(&format!(
-        "demo [1/3] fitting the linear feed-forward ({n} samples at {fs} Hz)"
+        "demo [1/5] identification experiment: raised cosines 0-120 V, {} s at {fs} Hz, plant with {}",
+        settings.identify_s,
+        settings.plant_effects.join(" and ")
     ));
+    let id_freqs = [1.0, 0.7];
+    let id_u: [Vec<f64>; 2] = std::array::from_fn(|a| {
+        (0..n_id)
+            .map(|k| {
+                let t = k as f64 / fs;
+                60.0 - 60.0 * (2.0 * std::f64::consts::PI * id_freqs[a] * t).cos()
+            })
+            .collect()
+    });
     let probe: [Vec<f64>; 2] = std::array::from_fn(|axis| {
         let g0 = stroke_m[axis] / OUTPUT_MAX_V;
         (0..n)
             .map(|k| clamp(reference_at(axis, k + 1) / g0))
             .collect()
     });
-    let probe_y = run_xy_stage(&stage, &probe, fs)?;
+    let (id_y, probe_y) = std::thread::scope(|s| {
+        let id = s.spawn(|| run_xy_stage(&stage, &id_u, fs, &plant_effects));
+        let pr = run_xy_stage(&stage, &probe, fs, &plant_effects);
+        (
+            id.join()
+                .unwrap_or_else(|_| Err("identification run panicked".into())),
+            pr,
+        )
+    });
+    let (id_y, probe_y) = (id_y?, probe_y?);
+
+    // 2. close-loop on the record: u[k] paired with y[k+1], the sample its hold reaches.
+    progress(&format!(
+        "demo [2/5] close-loop: identify the base model, diagnose the residual, add effects ({:.1} s so far)",
+        elapsed(&started)
+    ));
+    let records: Vec<Record> = (0..2)
+        .map(|a| Record {
+            path: format!("demo identification record, {} axis", AXES[a]).into(),
+            t_s: (0..n_id - 1).map(|k| k as f64 / fs).collect(),
+            u: id_u[a][..n_id - 1].to_vec(),
+            y_m: id_y[a][1..].to_vec(),
+        })
+        .collect();
+    let outcome = close_loop(
+        &records,
+        &CloseLoopSettings {
+            invertible: true,
+            ..Default::default()
+        },
+    )?;
+    for a in &outcome.axes {
+        progress(&format!(
+            "demo       {} axis: effects added [{}]",
+            a.name,
+            a.model
+                .added
+                .iter()
+                .map(|e| e.name())
+                .collect::<Vec<_>>()
+                .join(", ")
+        ));
+    }
+
+    // 3. Uncompensated.
+    progress(&format!(
+        "demo [3/5] uncompensated run ({:.1} s so far)",
+        elapsed(&started)
+    ));
     let linear_fit: [(f64, f64); 2] =
         std::array::from_fn(|axis| affine_fit(&probe[axis], &probe_y[axis], skip));
-
-    // 2. Uncompensated.
-    progress(&format!(
-        "demo [2/3] uncompensated run ({:.1} s so far)",
-        started.elapsed().as_secs_f64()
-    ));
     let linear_v: [Vec<f64>; 2] = std::array::from_fn(|axis| {
         let (g, c) = linear_fit[axis];
         (0..n)
             .map(|k| clamp((reference_at(axis, k + 1) - c) / g))
             .collect()
     });
-    let linear_y = run_xy_stage(&stage, &linear_v, fs)?;
-
-    // 3. Compensated: the core computes the voltages; the plant is the truth.
+    // 4 and 5. Compensated with the base model, then with the effects added.
     progress(&format!(
-        "demo [3/3] compensated run ({:.1} s so far)",
-        started.elapsed().as_secs_f64()
+        "demo [4/5] compensated runs: identified base model, and base model + effects ({:.1} s so far)",
+        elapsed(&started)
     ));
-    let mut compensator_sets = Vec::with_capacity(2);
-    let mut comp_v: [Vec<f64>; 2] = [Vec::with_capacity(n), Vec::with_capacity(n)];
-    for (axis, volts) in comp_v.iter_mut().enumerate() {
-        let (comp, set) = axis_compensator(&stage, axis, fs)?;
-        compensator_sets.push(set);
-        let mut state = CompensatorState::at_rest(0.0);
-        for k in 0..n {
-            let cmd = comp.compensate(&mut state, reference_at(axis, k + 1) as f32);
-            volts.push(f64::from(cmd.voltage_v));
-        }
-    }
-    let comp_y = run_xy_stage(&stage, &comp_v, fs)?;
-    let plant_seconds = started.elapsed().as_secs_f64();
-    progress(&format!("demo: plant runs done in {plant_seconds:.1} s"));
+    let bases = [&outcome.axes[0].base, &outcome.axes[1].base];
+    let finals = [&outcome.axes[0].model, &outcome.axes[1].model];
+    let base_v = compensate(bases, &reference_m, fs, false)?;
+    let closed_v = compensate(finals, &reference_m, fs, true)?;
+    let (linear_y, base_y, closed_y) = std::thread::scope(|s| {
+        let l = s.spawn(|| run_xy_stage(&stage, &linear_v, fs, &plant_effects));
+        let b = s.spawn(|| run_xy_stage(&stage, &base_v, fs, &plant_effects));
+        let c = run_xy_stage(&stage, &closed_v, fs, &plant_effects);
+        let join = |h: std::thread::ScopedJoinHandle<'_, Result<[Vec<f64>; 2], String>>| {
+            h.join()
+                .unwrap_or_else(|_| Err("plant run panicked".into()))
+        };
+        (join(l), join(b), c)
+    });
+    let (linear_y, base_y, closed_y) = (linear_y?, base_y?, closed_y?);
+    let seconds = elapsed(&started);
+    progress(&format!("demo [5/5] done in {seconds:.1} s"));
 
     let run = |voltage_v: [Vec<f64>; 2], measured_m: [Vec<f64>; 2]| {
         let errors = std::array::from_fn(|a| error_stats(&reference_m[a], &measured_m[a], skip));
@@ -368,27 +521,58 @@ pub fn run_demo(
             errors,
         }
     };
-    let linear = run(linear_v, linear_y);
-    let compensated = run(comp_v, comp_y);
     Ok(DemoResult {
-        settings: *settings,
+        settings: settings.clone(),
         t_s,
         reference_m: reference_m.clone(),
         stroke_m,
         linear_fit,
-        linear,
-        compensated,
-        compensator_sets: [compensator_sets[0], compensator_sets[1]],
-        plant_seconds,
+        linear: run(linear_v, linear_y),
+        base: run(base_v, base_y),
+        closed: run(closed_v, closed_y),
+        close_loop: outcome,
+        seconds,
     })
 }
 
 impl DemoResult {
+    fn modes(&self) -> [(&'static str, &ModeRun); 3] {
+        [
+            ("uncompensated (linear)", &self.linear),
+            ("compensated, base model", &self.base),
+            ("compensated, + effects", &self.closed),
+        ]
+    }
+
+    fn effects_of(&self, axis: usize) -> String {
+        let names: Vec<&str> = self.close_loop.axes[axis]
+            .model
+            .added
+            .iter()
+            .map(|e| e.name())
+            .collect();
+        if names.is_empty() {
+            "none".into()
+        } else {
+            names.join(", ")
+        }
+    }
+
     /// The table printed by `host-sim demo`.
     pub fn table(&self) -> String {
         let mut s = String::new();
+        let r = &self.close_loop.report;
         s.push_str(&format!(
-            "XY stage, triangle {:.0}–{:.0} % of stroke, x {} Hz, y {} Hz, {} s at {} Hz (metrics after {} s)\n",
+            "XY stage with undeclared {}\n\
+             close-loop on the identification record: model RMS {:.4} -> {:.4} µm; effects added: x [{}], y [{}]\n",
+            self.settings.plant_effects.join(" and "),
+            r["before"]["rms"].as_f64().unwrap_or(f64::NAN) * 1e6,
+            r["after"]["rms"].as_f64().unwrap_or(f64::NAN) * 1e6,
+            self.effects_of(0),
+            self.effects_of(1),
+        ));
+        s.push_str(&format!(
+            "tracking: triangle {:.0}–{:.0} % of stroke, x {} Hz, y {} Hz, {} s at {} Hz (metrics after {} s)\n",
             100.0 * self.settings.low_fraction,
             100.0 * self.settings.high_fraction,
             self.settings.x_frequency_hz,
@@ -397,16 +581,13 @@ impl DemoResult {
             self.settings.loop_rate_hz,
             self.settings.settle_s
         ));
-        s.push_str("axis  mode                      RMS [µm]  RMS [%]  max [µm]  max [%]\n");
+        s.push_str("axis  mode                       RMS [µm]  RMS [%]  max [µm]  max [%]\n");
         for axis in 0..2 {
-            for (name, run) in [
-                ("uncompensated (linear)", &self.linear),
-                ("compensated (piezo-core)", &self.compensated),
-            ] {
+            for (name, run) in self.modes() {
                 let e = run.errors[axis];
                 let pct = 100.0 / self.stroke_m[axis];
                 s.push_str(&format!(
-                    "{:<5} {:<25} {:>8.3}  {:>7.3}  {:>8.3}  {:>7.3}\n",
+                    "{:<5} {:<25} {:>9.4}  {:>7.3}  {:>8.3}  {:>7.3}\n",
                     AXES[axis],
                     name,
                     e.rms_m * 1e6,
@@ -432,24 +613,22 @@ impl DemoResult {
                     "max_percent_of_stroke": 100.0 * e.max_abs_m / self.stroke_m[a],
                 })
             };
-            let set = &self.compensator_sets[a];
-            let p = |b: &BoucWenParams| json!({"alpha": b.a, "beta": b.beta, "gamma": b.gamma, "n": b.n});
             json!({
                 "stroke_um": self.stroke_m[a] * 1e6,
                 "uncompensated": st(&self.linear),
-                "compensated": st(&self.compensated),
-                "rms_ratio_compensated_over_uncompensated":
-                    self.compensated.errors[a].rms_m / self.linear.errors[a].rms_m,
+                "compensated_base_model": st(&self.base),
+                "compensated_with_effects": st(&self.closed),
+                "rms_ratio_with_effects_over_base":
+                    self.closed.errors[a].rms_m / self.base.errors[a].rms_m,
+                "rms_ratio_base_over_uncompensated":
+                    self.base.errors[a].rms_m / self.linear.errors[a].rms_m,
                 "linear_feedforward": {"gain_um_per_v": self.linear_fit[a].0 * 1e6, "offset_um": self.linear_fit[a].1 * 1e6},
-                "compensator": {
-                    "k1_m_per_v": set.k1_m_per_v,
-                    "k2_m_per_h": -set.k1_m_per_v,
-                    "bouc_wen": p(&set.bouc_wen),
-                },
+                "effects_added": self.close_loop.axes[a].model.added.iter().map(|e| e.name()).collect::<Vec<_>>(),
             })
         };
         json!({
             "plant": "xy-stage",
+            "plant_effects": self.settings.plant_effects,
             "settings": {
                 "x_frequency_hz": self.settings.x_frequency_hz,
                 "y_frequency_hz": self.settings.y_frequency_hz,
@@ -458,16 +637,19 @@ impl DemoResult {
                 "high_fraction_of_stroke": self.settings.high_fraction,
                 "loop_rate_hz": self.settings.loop_rate_hz,
                 "settle_s": self.settings.settle_s,
+                "identify_s": self.settings.identify_s,
                 "output_window_v": [OUTPUT_MIN_V, OUTPUT_MAX_V],
             },
             "x": axis(0),
             "y": axis(1),
-            "plant_seconds": self.plant_seconds,
+            "close_loop": self.close_loop.report,
+            "seconds": self.seconds,
         })
     }
 
-    /// Writes `demo.csv`, `summary.json` and the plots (`tracking`, `error`, `loops`, in each of
-    /// `formats`, e.g. `["svg", "png"]`) into `dir`. Returns the files written.
+    /// Writes `summary.json`, `demo.csv`, `demo-params.toml` (the final model in the firmware's
+    /// format) and the plots (`tracking`, `error`, `loops`, in each of `formats`, e.g.
+    /// `["svg", "png"]`) into `dir`. Returns the files written.
     pub fn write(&self, dir: &Path, formats: &[&str]) -> Result<Vec<String>, String> {
         std::fs::create_dir_all(dir).map_err(|e| format!("--out {}: {e}", dir.display()))?;
         let mut written = Vec::new();
@@ -476,26 +658,28 @@ impl DemoResult {
         std::fs::write(&json_path, text + "\n")
             .map_err(|e| format!("--out {}: {e}", json_path.display()))?;
         written.push(json_path.display().to_string());
+        let params_path = dir.join("demo-params.toml");
+        let params =
+            crate::close_loop::parameter_file(&self.close_loop, "demo identification record", 0.0);
+        std::fs::write(&params_path, params)
+            .map_err(|e| format!("--out {}: {e}", params_path.display()))?;
+        written.push(params_path.display().to_string());
 
         let mut names = vec!["t_s".to_string()];
         let mut columns = vec![self.t_s.clone()];
         for a in 0..2 {
             let ax = AXES[a];
-            for (name, col) in [
-                (format!("r{ax}_m"), &self.reference_m[a]),
-                (format!("u{ax}_linear_V"), &self.linear.voltage_v[a]),
-                (format!("{ax}_linear_m"), &self.linear.measured_m[a]),
-                (
-                    format!("u{ax}_compensated_V"),
-                    &self.compensated.voltage_v[a],
-                ),
-                (
-                    format!("{ax}_compensated_m"),
-                    &self.compensated.measured_m[a],
-                ),
+            names.push(format!("r{ax}_m"));
+            columns.push(self.reference_m[a].clone());
+            for (mode, run) in [
+                ("linear", &self.linear),
+                ("base", &self.base),
+                ("effects", &self.closed),
             ] {
-                names.push(name);
-                columns.push(col.clone());
+                names.push(format!("u{ax}_{mode}_V"));
+                columns.push(run.voltage_v[a].clone());
+                names.push(format!("{ax}_{mode}_m"));
+                columns.push(run.measured_m[a].clone());
             }
         }
         let csv_path = dir.join("demo.csv");
@@ -519,20 +703,25 @@ impl DemoResult {
                 4000,
             )
         };
+        let labels = ["uncompensated", "base model", "base model + effects"];
+        let runs = [&self.linear, &self.base, &self.closed];
         let mut tracking = Vec::new();
         let mut error = Vec::new();
         let mut loops = Vec::new();
         for a in 0..2 {
             let ax = AXES[a];
+            let mut series = vec![series_t("reference", &self.reference_m[a], um)];
+            series.extend(
+                labels
+                    .iter()
+                    .zip(runs)
+                    .map(|(l, r)| series_t(l, &r.measured_m[a], um)),
+            );
             tracking.push(Panel {
                 title: format!("{ax} axis: reference and measured platform position"),
                 x_label: "t [s]".into(),
                 y_label: format!("{ax} [µm]"),
-                series: vec![
-                    series_t("reference", &self.reference_m[a], um),
-                    series_t("uncompensated", &self.linear.measured_m[a], um),
-                    series_t("compensated", &self.compensated.measured_m[a], um),
-                ],
+                series,
             });
             let err = |run: &ModeRun| -> Vec<f64> {
                 run.measured_m[a]
@@ -541,13 +730,23 @@ impl DemoResult {
                     .map(|(y, r)| y - r)
                     .collect()
             };
+            // The compensated errors in their own panel: next to the linear one they are flat.
             error.push(Panel {
-                title: format!("{ax} axis: tracking error (measured − reference)"),
+                title: format!("{ax} axis: tracking error, uncompensated"),
+                x_label: "t [s]".into(),
+                y_label: "error [µm]".into(),
+                series: vec![series_t("uncompensated", &err(&self.linear), um)],
+            });
+            error.push(Panel {
+                title: format!(
+                    "{ax} axis: tracking error, compensated (effects added: {})",
+                    self.effects_of(a)
+                ),
                 x_label: "t [s]".into(),
                 y_label: "error [µm]".into(),
                 series: vec![
-                    series_t("uncompensated", &err(&self.linear), um),
-                    series_t("compensated", &err(&self.compensated), um),
+                    series_t("base model", &err(&self.base), um),
+                    series_t("base model + effects", &err(&self.closed), um),
                 ],
             });
             let pairs = |xs: &[f64], ys: &[f64], sx: f64, sy: f64| -> Vec<(f64, f64)> {
@@ -557,45 +756,33 @@ impl DemoResult {
                 title: format!("{ax} axis: measured against reference"),
                 x_label: "reference [µm]".into(),
                 y_label: "measured [µm]".into(),
-                series: vec![
-                    Series::line(
-                        "uncompensated",
-                        pairs(&self.reference_m[a], &self.linear.measured_m[a], um, um),
-                        6000,
-                    ),
-                    Series::line(
-                        "compensated",
-                        pairs(
-                            &self.reference_m[a],
-                            &self.compensated.measured_m[a],
-                            um,
-                            um,
-                        ),
-                        6000,
-                    ),
-                ],
+                series: labels
+                    .iter()
+                    .zip(runs)
+                    .map(|(l, r)| {
+                        Series::line(
+                            *l,
+                            pairs(&self.reference_m[a], &r.measured_m[a], um, um),
+                            6000,
+                        )
+                    })
+                    .collect(),
             });
             loops.push(Panel {
                 title: format!("{ax} axis: drive voltage against reference"),
                 x_label: "reference [µm]".into(),
                 y_label: "voltage [V]".into(),
-                series: vec![
-                    Series::line(
-                        "uncompensated",
-                        pairs(&self.reference_m[a], &self.linear.voltage_v[a], um, 1.0),
-                        6000,
-                    ),
-                    Series::line(
-                        "compensated",
-                        pairs(
-                            &self.reference_m[a],
-                            &self.compensated.voltage_v[a],
-                            um,
-                            1.0,
-                        ),
-                        6000,
-                    ),
-                ],
+                series: labels
+                    .iter()
+                    .zip(runs)
+                    .map(|(l, r)| {
+                        Series::line(
+                            *l,
+                            pairs(&self.reference_m[a], &r.voltage_v[a], um, 1.0),
+                            6000,
+                        )
+                    })
+                    .collect(),
             });
         }
         for format in formats {

@@ -12,6 +12,7 @@
 pub mod bouc_wen;
 pub mod capture;
 pub mod cli;
+pub mod close_loop;
 pub mod csv;
 pub mod demo;
 pub mod effects;

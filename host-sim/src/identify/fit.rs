@@ -5,8 +5,9 @@
 //! For the static models the output is linear in (k1, k2, y0) once h is known:
 //! `y = k1·u + k2·h(θ) + y0`. One evaluation simulates the core model with the map (0, 1, 0), so that
 //! its output *is* h(θ), accumulates the 3×3 normal equations of the basis (u, h, 1) in f64 while it
-//! runs, and solves them: the SSE at the best linear parameters for θ, without storing the record
-//! (memory per evaluation is constant). For the dynamic model the basis is (x₁, 1), where x₁ is the core
+//! runs, and solves them on the stack: the SSE at the best linear parameters for θ, without storing
+//! or copying the record (an evaluation makes no heap allocation; `benches/identify.rs` checks that
+//! memory stays flat in N). For the dynamic model the basis is (x₁, 1), where x₁ is the core
 //! `DynamicModel` with k0 = 1 N/m and k1 = 1 N/V, so the linear parameters are the compliance 1/k0 and x0.
 //!
 //! The Bouc-Wen scale is redundant with k2 (h → c·h, A → c·A, β → β/|c|^(n−1), γ → γ·sgn c/|c|^(n−1),
@@ -443,21 +444,33 @@ impl SimState {
 }
 
 /// Solves the symmetric positive (semi)definite system g·x = b of size `n` ≤ 3 (Gaussian elimination
-/// with partial pivoting and a tiny ridge).
+/// with partial pivoting and a tiny ridge). On the stack: an evaluation makes no heap allocation.
 fn solve(g: &[[f64; 3]; 3], b: &[f64; 3], n: usize) -> Option<[f64; 3]> {
-    let mut a: Vec<Vec<f64>> = (0..n)
-        .map(|i| {
-            let mut row: Vec<f64> = g[i][..n].to_vec();
-            row[i] += 1e-12 * g[i][i].abs() + 1e-300;
-            row.push(b[i]);
-            row
-        })
-        .collect();
+    let mut a = [[0.0f64; 4]; 3];
+    for i in 0..n {
+        a[i][..n].copy_from_slice(&g[i][..n]);
+        a[i][i] += 1e-12 * g[i][i].abs() + 1e-300;
+        a[i][n] = b[i];
+    }
+    for c in 0..n {
+        let p = (c..n).max_by(|&i, &j| a[i][c].abs().total_cmp(&a[j][c].abs()))?;
+        if a[p][c].abs() < 1e-300 || !a[p][c].is_finite() {
+            return None;
+        }
+        a.swap(c, p);
+        for r in c + 1..n {
+            let f = a[r][c] / a[c][c];
+            for k in c..=n {
+                a[r][k] -= f * a[c][k];
+            }
+        }
+    }
     let mut x = [0.0f64; 3];
-    solve_dense(&mut a, n).map(|s| {
-        x[..n].copy_from_slice(&s);
-        x
-    })
+    for r in (0..n).rev() {
+        let s: f64 = (r + 1..n).map(|k| a[r][k] * x[k]).sum();
+        x[r] = (a[r][n] - s) / a[r][r];
+    }
+    x.iter().all(|v| v.is_finite()).then_some(x)
 }
 
 /// Gaussian elimination on an augmented n×(n+1) matrix (for the oscillator's LM).

@@ -8,11 +8,14 @@
 //! Methods ([`fit`]): `vp-de-lm` (the default: variable projection, differential evolution,
 //! Levenberg–Marquardt) and `ga` (seed 001's genetic algorithm as published: Case I for the symmetric
 //! model; Case I, then δ (Case II, `--no-shift`) or δ and φ (Case III) with the six held, for the
-//! asymmetric model).
+//! asymmetric model) and `two-step` (seed 000's two-step method for the dynamic model, [`two_step`]:
+//! mechanics from a ramp-edged square wave `--mech-data`, then the hysteresis from the sine `--data`;
+//! it falls back to `vp-de-lm` when the data leave its β + γ < 0 assumption).
 
 pub mod fit;
 pub mod model;
 pub mod oscillator;
+pub mod two_step;
 
 use crate::csv::{read_csv, Table};
 use fit::{Problem, Progress};
@@ -28,6 +31,8 @@ pub enum Method {
     VpDeLm,
     /// Seed 001's genetic algorithm as published.
     Ga,
+    /// Seed 000's two-step method (dynamic model; needs `--mech-data`).
+    TwoStep,
 }
 
 impl Method {
@@ -36,6 +41,7 @@ impl Method {
         match self {
             Self::VpDeLm => "vp-de-lm",
             Self::Ga => "ga",
+            Self::TwoStep => "two-step",
         }
     }
 }
@@ -281,6 +287,9 @@ pub fn identify(record: &Record, s: &IdentifySettings) -> Result<Identification,
             pb.finish_and_clear();
             fit::ga_set(&problem, &g)
         }
+        Method::TwoStep => {
+            return Err("--method two-step needs the square-wave record too: give --mech-data (library: identify::two_step::identify)".into());
+        }
     };
     let fit = score(&set, record, from)?;
     let summary = json!({
@@ -387,12 +396,15 @@ impl Columns {
 /// Arguments of `identify`.
 #[derive(Debug, clap::Args)]
 #[command(
-    after_help = "Methods:\n  vp-de-lm  default: variable projection (k1, k2, offset by least squares in every evaluation), differential evolution on the decimated record, then Levenberg-Marquardt on the full record; deterministic for a given --seed, parallel over cores\n  ga        seed 001's genetic algorithm as published (population 30, 100 generations, crossover 0.7, mutation 0.2, RMS fitness, its search ranges); asymmetric: Case I, then delta (Case II, --no-shift) or delta and phi (Case III)\nThe model simulated is piezo-core's f32 model; sets the core refuses are infeasible. The parameter file is the firmware's format (both axes hold the identified set) and is checked with the firmware's own parser."
+    after_help = "Methods:\n  vp-de-lm  default: variable projection (k1, k2, offset by least squares in every evaluation), differential evolution on the decimated record, then Levenberg-Marquardt on the full record; deterministic for a given --seed, parallel over cores\n  ga        seed 001's genetic algorithm as published (population 30, 100 generations, crossover 0.7, mutation 0.2, RMS fitness, its search ranges); asymmetric: Case I, then delta (Case II, --no-shift) or delta and phi (Case III)\n  two-step  seed 000's two-step method (--model dynamic only): step 1 takes k0, c0, m0 (k1 = 1 N/V) from the steady-state integrals K0, K1, K2 of the response to a ramp-edged square wave (--mech-data, e.g. `simulate --plant nac2024 --signal square:duration=1e-4`); step 2 takes A, beta, gamma, n from the sine --data by the log-linear least squares of eq. 15-24 on the 25-75 % band of each stroke, derivatives by CWT-TRT (gaus1, s = 4); step 2b (not in the paper) fixes the scale of k0, c0, m0 that step 1 cannot see (it measures (k1 + h(B)/B)/k0). Needs beta + gamma < 0: otherwise (or when ill-posed) it says why in the summary's notes and on stderr and runs vp-de-lm instead\nThe model simulated is piezo-core's f32 model; sets the core refuses are infeasible. The parameter file is the firmware's format (both axes hold the identified set) and is checked with the firmware's own parser."
 )]
 pub struct IdentifyArgs {
     /// Record to fit (CSV with unit-suffixed columns).
     #[arg(long)]
     pub data: PathBuf,
+    /// `--method two-step`: the ramp-edged square-wave record for step 1 (same columns as --data).
+    #[arg(long)]
+    pub mech_data: Option<PathBuf>,
     /// Model family.
     #[arg(long, value_enum)]
     pub model: ModelKind,
@@ -475,8 +487,27 @@ pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
         invertible: a.invertible,
         progress: true,
     };
-    let id = identify(&record, &settings)?;
-    write_outputs(&id, a.method.name(), &record, a.start, &a.out, &a.report)
+    let id = if a.method == Method::TwoStep {
+        let path = a
+            .mech_data
+            .as_ref()
+            .ok_or("--method two-step: give the square-wave record with --mech-data")?;
+        let mech = a
+            .columns
+            .read(path)
+            .map_err(|e| e.replacen("--data", "--mech-data", 1))?;
+        two_step::identify(&mech, &record, &settings)?
+    } else {
+        if a.mech_data.is_some() {
+            return Err("--mech-data is used by --method two-step only".into());
+        }
+        identify(&record, &settings)?
+    };
+    let method = id.summary["method"]
+        .as_str()
+        .unwrap_or(a.method.name())
+        .to_string();
+    write_outputs(&id, &method, &record, a.start, &a.out, &a.report)
 }
 
 /// Runs `predict`.

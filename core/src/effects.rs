@@ -1,0 +1,831 @@
+//! Effects added around the hysteresis model: creep, an even-order term of the previous command, a
+//! second-order mode, an input delay, linear drift and cross-axis coupling — each with its inverse
+//! or its place in the inverse chain.
+//!
+//! # The forward chain (per axis, command sample j, sample period T)
+//! ```text
+//! u[j]                      command [V]
+//! w[j] = H(u[j])            the hysteresis model's output [m] (StaticModel, computed by the caller)
+//! c[j] = Σᵢ gᵢ·xᵢ[j]        creep bank, at most MAX_CREEP_ELEMENTS elements:
+//!        xᵢ[j] = aᵢ·xᵢ[j−1] + (1 − aᵢ)·(u[j−1] − u_ref),  aᵢ = exp(−T/τᵢ),  xᵢ[0] = 0
+//! s[j] = w[j] + e·(u[j−1] − u_c)² + c[j],   u[−1] := u_c                 even-order term
+//! z[j] = M(s)[j]            second-order mode  z̈ + 2ζω·ż + ω²·z = ω²·s,  ω = 2π·f_mode
+//! y[k] = z(k − D) + r_d·k·T + κ·z_other(k − D)                           output sample k
+//! ```
+//!
+//! Signs and units: gᵢ \[m/V\] (positive: the output keeps moving in the direction of a command
+//! change), τᵢ \[s\]; e \[m/V²\], u_c \[V\] (e > 0 adds upwards on both sides of u_c); f_mode \[Hz\],
+//! ζ \[1\] (unit DC gain: a constant s gives z = s); D = delay_s/T \[samples\] (the output lags);
+//! drift r_d \[m/s\] from t = 0 at the first output sample; κ \[1\] the part of the *other* axis's
+//! z that appears on this axis. All zero is the identity: y\[k\] = w\[k\].
+//!
+//! * **Creep** is the exact solution of `τᵢ·ẋᵢ = −xᵢ + (u − u_ref)` for a command held from
+//!   t_{j−1} to t_j; u_ref is the first command (the state starts relaxed there). c\[j\] depends
+//!   only on u up to j−1. The state is updated in the delta form `xᵢ += (1 − aᵢ)·(Δu − xᵢ)` with
+//!   `1 − aᵢ = −expm1(−T/τᵢ)` from f64, exact in f32 also for τᵢ ≫ T.
+//! * **Even term** `e·(u[j−1] − u_c)²` on the *previous* command u\[j−1\] (the last command the
+//!   state has seen, the same one the creep uses; u\[−1\] := u_c, so the term is 0 at the first
+//!   sample). Electrostriction is an even function of the drive voltage; evaluated at the previous
+//!   command it is known before u\[j\] is chosen, so its inverse is exact and explicit, like the
+//!   creep's, and the per-sample map u\[j\] → y\[j\] that the compensator inverts is unchanged (no
+//!   monotonicity condition: e and u_c only need to be finite). The cost of the one-sample lag
+//!   against an even term on u\[j\] is `e·((u[j] − u_c)² − (u[j−1] − u_c)²) ≈ 2e·(u − u_c)·Δu`
+//!   per sample \[m\] (Δu = u\[j\] − u\[j−1\]): negligible at loop rates (e.g. e = 1e-10 m/V²,
+//!   u − u_c = 60 V, Δu = 0.05 V gives 6e-10 m).
+//! * **Mode**, state `[z − s, ż/ω]`, discretised exactly (matrix exponential, f64, scaling and
+//!   squaring, kept as `Φ − I` so that the static gain stays exact in f32) for an input that is
+//!   piecewise constant, **held over the interval centred on its sample instant**:
+//!   s(t) = s\[j\] for t ∈ \[t_j − T/2, t_j + T/2). Each sample is two half steps: the first gives
+//!   z\[j\] = z(t_j), the second carries the state to t_j + T/2. The centred hold adds no half-sample
+//!   lag (a converter's zero-order-hold lag of T/2 belongs to the delay D), so the sampled mode
+//!   differs from the continuous one by O((ωT)²) only. Stable for every T (|λ| = e^(−ζωT/2) per
+//!   half step). Requires 0 < f_mode < 0.45/T and ζ > 0; absent when f_mode = 0 (then z = s).
+//! * **Delay**: D may be fractional (0 ≤ D ≤ MAX_DELAY_SAMPLES; within 1e-4 of a whole number it is
+//!   taken as that number). `z(k − D)` interpolates linearly between the two z samples around it;
+//!   z before the first sample is z\[0\]. The z samples are kept in a fixed ring of
+//!   MAX_DELAY_SAMPLES + 2 values inside [`EffectsState`].
+//! * **Drift** adds `r_d·t_k`, t_k = k·T, k counted from the first sample.
+//! * **Coupling** (two axes, each axis's κ in its own parameters): with both axes' delayed z,
+//!   `y_x = zx_d + drift_x + κ_x·zy_d`, `y_y = zy_d + drift_y + κ_y·zx_d` ([`couple`]); the other
+//!   axis's z is delayed by *this* axis's D: `effects_x.delayed_z(&state_y)`. |κ| < 0.5.
+//!
+//! # The inverse chain (controller side, never fails)
+//! For the reference y* at output samples, the command u\[j\] is chosen to reach, at output time
+//! j + D:
+//! 1. **delay**: take y*(j + D), interpolated linearly from the integer reference samples
+//!    ([`Effects::interpolate_reference`], [`Effects::reference_index_offset`]); the controller
+//!    needs the reference [`Effects::lead_samples`] samples ahead of the current command;
+//! 2. **drift**: subtract `r_d·(j + D)·T` ([`Effects::drift_for_command_m`]); steps 1 and 2 for one
+//!    axis: [`Effects::desired_z_m`];
+//! 3. **coupling**: for two axes, `(zx*, zy*) = decouple(κ_x, κ_y, ·, ·)` (exact 2×2 inverse);
+//! 4. **mode**: the continuous-time inverse with central differences over T,
+//!    `s* = z*[j] + (2ζ/ω)·(z*[j+1] − z*[j−1])/(2T) + (z*[j+1] − 2z*[j] + z*[j−1])/(ωT)²`;
+//!    truncation error `(ζ/(3ω))·T²·z⃛ + T²·z⁗/(12ω²)`, second order in T, plus the O((ωT)²)
+//!    difference between the sampled and the continuous mode; s* = z*\[j\] without a mode;
+//! 5. **creep and even term**: `w* = s* − c[j] − e·(u[j−1] − u_c)²`, exact and explicit (both
+//!    terms depend only on commands before u\[j\]: [`Effects::creep_m`], [`Effects::even_term_m`]);
+//! 6. the inverse compensator gives u\[j\] for w*, and [`Effects::commit_command`] advances the
+//!    effects state with the u\[j\] actually commanded and the w\[j\] it reaches.
+//!
+//! [`compensate_axis`] and [`simulate_axis`] run the two chains over a whole single-axis record.
+//!
+//! # Safety of the per-sample path
+//! Never panics, no allocation. For finite inputs every result is finite: internal signals are
+//! held within ±1e30 m (far beyond any stage). A non-finite command or w holds the previous one in
+//! [`Effects::forward_z`]; a non-finite reference sample makes [`Effects::inverse_target_w`] return
+//! NaN, which the compensator answers by holding the last voltage.
+
+use crate::compensator::{Compensator, CompensatorState};
+use crate::error::{finite, positive, ParamError};
+use crate::math::clamp;
+use crate::static_model::{ModelState, StaticModel};
+
+/// Largest number of creep elements.
+pub const MAX_CREEP_ELEMENTS: usize = 3;
+/// Largest input delay, in sample periods.
+pub const MAX_DELAY_SAMPLES: usize = 64;
+/// Largest accepted mode frequency, as a fraction of the sample rate.
+pub const MAX_MODE_FREQUENCY_RATIO: f32 = 0.45;
+/// Bound on |coupling| (the 2×2 coupling matrix keeps det > 0.75).
+pub const MAX_COUPLING: f32 = 0.5;
+
+/// Length of the ring of past z samples: the delay reads z\[k − n\] and z\[k − n − 1\], n ≤ 64.
+const RING_LEN: usize = MAX_DELAY_SAMPLES + 2;
+/// Internal signals are held within ±this \[m\] (or V) so that finite inputs give finite results.
+const SIGNAL_LIMIT: f32 = 1.0e30;
+
+const CREEP_GAIN_FIELDS: [&str; MAX_CREEP_ELEMENTS] = [
+    "creep_gain_m_per_v[0]",
+    "creep_gain_m_per_v[1]",
+    "creep_gain_m_per_v[2]",
+];
+const CREEP_TIME_FIELDS: [&str; MAX_CREEP_ELEMENTS] = [
+    "creep_time_constant_s[0]",
+    "creep_time_constant_s[1]",
+    "creep_time_constant_s[2]",
+];
+
+/// The effect parameters of one axis. All zero (the default) is no effect.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct EffectParams {
+    /// Creep gains gᵢ \[m/V\]; an element with gain 0 is absent.
+    pub creep_gain_m_per_v: [f32; MAX_CREEP_ELEMENTS],
+    /// Creep time constants τᵢ \[s\], > 0 for every present element (ignored, but finite, otherwise).
+    pub creep_time_constant_s: [f32; MAX_CREEP_ELEMENTS],
+    /// e in the even term e·(u\[j−1\] − u_c)² \[m/V²\] (any finite value).
+    pub even_coefficient_m_per_v2: f32,
+    /// u_c in the even term e·(u\[j−1\] − u_c)² \[V\] (any finite value).
+    pub even_center_v: f32,
+    /// f_mode \[Hz\]: 0 for no mode, else 0 < f_mode < 0.45 / sample period.
+    pub mode_frequency_hz: f32,
+    /// ζ \[1\]: damping ratio of the mode, > 0 when the mode is present.
+    pub mode_damping: f32,
+    /// Input delay \[s\], 0 ≤ delay ≤ 64 sample periods.
+    pub delay_s: f32,
+    /// Linear drift of the output \[m/s\], from t = 0 at the first sample.
+    pub drift_rate_m_per_s: f32,
+    /// κ \[1\]: the part of the other axis's z added to this axis's output, |κ| < 0.5.
+    pub coupling: f32,
+}
+
+/// The precomputed mode: Φ − I of one half step, and the inverse's difference coefficients.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Mode {
+    /// exp(ω·T/2·\[\[0, 1\], \[−1, −2ζ\]\]) − I, row-major, acting on \[z − s, ż/ω\].
+    half_step_minus_identity: [[f32; 2]; 2],
+    /// ζ/(ω·T): multiplies z*\[j+1\] − z*\[j−1\] (= (2ζ/ω)·ż* by central differences).
+    velocity_coefficient: f32,
+    /// 1/(ω·T)²: multiplies z*\[j+1\] − 2z*\[j\] + z*\[j−1\] (= z̈*/ω²).
+    curvature_coefficient: f32,
+}
+
+impl Mode {
+    /// One half step from (z, v = ż/ω) with the input s held.
+    #[inline(always)]
+    fn half_step(&self, z: f32, v: f32, s: f32) -> (f32, f32) {
+        let d = &self.half_step_minus_identity;
+        let e = z - s;
+        (z + d[0][0] * e + d[0][1] * v, v + d[1][0] * e + d[1][1] * v)
+    }
+}
+
+/// Validated effect settings of one axis at one sample period. State lives in [`EffectsState`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Effects {
+    params: EffectParams,
+    sample_period_s: f32,
+    /// 1 − aᵢ = 1 − exp(−T/τᵢ) (0 for an absent element).
+    creep_rate: [f32; MAX_CREEP_ELEMENTS],
+    /// gᵢ \[m/V\] (0 for an absent element).
+    creep_gain: [f32; MAX_CREEP_ELEMENTS],
+    mode: Option<Mode>,
+    /// D = delay_s / T \[samples\].
+    delay_samples: f32,
+    /// ⌊D⌋.
+    delay_whole: usize,
+    /// D − ⌊D⌋ ∈ \[0, 1).
+    delay_fraction: f32,
+}
+
+/// The state of the effects of one axis (creep, mode, delay line, sample counter).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EffectsState {
+    /// xᵢ for the next sample \[V\].
+    creep_v: [f32; MAX_CREEP_ELEMENTS],
+    /// u_ref: the first command \[V\].
+    input_reference_v: f32,
+    /// The last command u\[j−1\] \[V\] (held for a non-finite one; meaningless before the first).
+    previous_input_v: f32,
+    /// The last w \[m\] (held for a non-finite one).
+    previous_w_m: f32,
+    /// Whether a first sample has been processed.
+    started: bool,
+    /// Mode output z at t_j + T/2 \[m\].
+    mode_z_m: f32,
+    /// Mode scaled velocity ż/ω at t_j + T/2 \[m\].
+    mode_scaled_velocity_m: f32,
+    /// The last RING_LEN z samples; `ring[head]` is the newest.
+    ring: [f32; RING_LEN],
+    head: usize,
+    /// Number of samples processed (saturating).
+    samples: u32,
+}
+
+impl Default for EffectsState {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl EffectsState {
+    /// Before the first sample: creep relaxed, mode at rest (at the first s), empty delay line.
+    pub const fn new() -> Self {
+        Self {
+            creep_v: [0.0; MAX_CREEP_ELEMENTS],
+            input_reference_v: 0.0,
+            previous_input_v: 0.0,
+            previous_w_m: 0.0,
+            started: false,
+            mode_z_m: 0.0,
+            mode_scaled_velocity_m: 0.0,
+            ring: [0.0; RING_LEN],
+            head: 0,
+            samples: 0,
+        }
+    }
+
+    /// Number of samples processed so far; the current output sample is k = this − 1.
+    pub fn samples(&self) -> u32 {
+        self.samples
+    }
+
+    /// The newest z \[m\] (z\[k\]; 0 before the first sample).
+    pub fn latest_z_m(&self) -> f32 {
+        self.z_back(0)
+    }
+
+    /// z\[k − back\] (back < RING_LEN), z\[0\] before the first sample.
+    #[inline(always)]
+    fn z_back(&self, back: usize) -> f32 {
+        self.ring[(self.head + RING_LEN - back % RING_LEN) % RING_LEN]
+    }
+}
+
+/// Holds a value within ±[`SIGNAL_LIMIT`] (NaN gives the lower limit).
+#[inline(always)]
+fn bounded(x: f32) -> f32 {
+    clamp(x, -SIGNAL_LIMIT, SIGNAL_LIMIT)
+}
+
+impl Effects {
+    /// Validates `params` for the sample period `sample_period_s` \[s\]. `w_range_m = (w_min,
+    /// w_max)` \[m\], the hysteresis model's output range, is only checked (finite, max ≥ min): no
+    /// effect constrains it any more (the even term is on the previous command).
+    pub fn new(
+        params: EffectParams,
+        sample_period_s: f32,
+        w_range_m: (f32, f32),
+    ) -> Result<Self, ParamError> {
+        let t = positive("sample_period_s", sample_period_s)?;
+        let (w_min, w_max) = w_range_m;
+        finite("w_range_m", w_min)?;
+        finite("w_range_m", w_max)?;
+        if w_max < w_min {
+            return Err(ParamError::OutOfRange {
+                field: "w_range_m",
+                value: w_max,
+                requirement: "max >= min",
+            });
+        }
+
+        let mut creep_rate = [0.0f32; MAX_CREEP_ELEMENTS];
+        let mut creep_gain = [0.0f32; MAX_CREEP_ELEMENTS];
+        for i in 0..MAX_CREEP_ELEMENTS {
+            let g = finite(CREEP_GAIN_FIELDS[i], params.creep_gain_m_per_v[i])?;
+            let tau = finite(CREEP_TIME_FIELDS[i], params.creep_time_constant_s[i])?;
+            if g != 0.0 {
+                positive(CREEP_TIME_FIELDS[i], tau)?;
+                creep_rate[i] = -libm::expm1(-f64::from(t) / f64::from(tau)) as f32;
+                creep_gain[i] = g;
+            }
+        }
+
+        finite(
+            "even_coefficient_m_per_v2",
+            params.even_coefficient_m_per_v2,
+        )?;
+        finite("even_center_v", params.even_center_v)?;
+
+        let f = finite("mode_frequency_hz", params.mode_frequency_hz)?;
+        let zeta = finite("mode_damping", params.mode_damping)?;
+        let mode = if f == 0.0 {
+            None
+        } else {
+            if !(f > 0.0 && f64::from(f) * f64::from(t) < f64::from(MAX_MODE_FREQUENCY_RATIO)) {
+                return Err(ParamError::OutOfRange {
+                    field: "mode_frequency_hz",
+                    value: f,
+                    requirement: "0 (no mode) or in (0, 0.45 / sample_period_s)",
+                });
+            }
+            if zeta <= 0.0 {
+                return Err(ParamError::OutOfRange {
+                    field: "mode_damping",
+                    value: zeta,
+                    requirement: "> 0",
+                });
+            }
+            Some(discretise_mode(f, zeta, t)?)
+        };
+
+        let delay = finite("delay_s", params.delay_s)?;
+        let mut d = f64::from(delay) / f64::from(t);
+        let nearest = libm::round(d);
+        if libm::fabs(d - nearest) < 1e-4 {
+            d = nearest;
+        }
+        if !(d >= 0.0 && d <= MAX_DELAY_SAMPLES as f64) {
+            return Err(ParamError::OutOfRange {
+                field: "delay_s",
+                value: delay,
+                requirement: "in [0, 64 sample periods] (MAX_DELAY_SAMPLES)",
+            });
+        }
+        let delay_whole = libm::floor(d) as usize;
+        let delay_fraction = (d - delay_whole as f64) as f32;
+
+        finite("drift_rate_m_per_s", params.drift_rate_m_per_s)?;
+        let coupling = finite("coupling", params.coupling)?;
+        if libm::fabsf(coupling) >= MAX_COUPLING {
+            return Err(ParamError::OutOfRange {
+                field: "coupling",
+                value: coupling,
+                requirement: "|coupling| < 0.5",
+            });
+        }
+
+        Ok(Self {
+            params,
+            sample_period_s: t,
+            creep_rate,
+            creep_gain,
+            mode,
+            delay_samples: d as f32,
+            delay_whole,
+            delay_fraction,
+        })
+    }
+
+    /// The parameters as given.
+    pub fn params(&self) -> &EffectParams {
+        &self.params
+    }
+
+    /// The sample period \[s\].
+    pub fn sample_period_s(&self) -> f32 {
+        self.sample_period_s
+    }
+
+    /// Whether the chain is the identity (no creep, no even term, no mode, no delay, no drift, no
+    /// coupling): then y\[k\] = w\[k\].
+    pub fn is_identity(&self) -> bool {
+        let p = &self.params;
+        self.creep_gain.iter().all(|&g| g == 0.0)
+            && p.even_coefficient_m_per_v2 == 0.0
+            && self.mode.is_none()
+            && self.delay_samples == 0.0
+            && p.drift_rate_m_per_s == 0.0
+            && p.coupling == 0.0
+    }
+
+    /// Whether the second-order mode is present.
+    pub fn has_mode(&self) -> bool {
+        self.mode.is_some()
+    }
+
+    /// D = delay_s / T \[samples\].
+    pub fn delay_samples(&self) -> f32 {
+        self.delay_samples
+    }
+
+    /// ⌊D⌋: z*\[j\] is the reference interpolated between output samples j + ⌊D⌋ and j + ⌊D⌋ + 1.
+    pub fn reference_index_offset(&self) -> usize {
+        self.delay_whole
+    }
+
+    /// D − ⌊D⌋ ∈ \[0, 1): the weight of the later of the two reference samples.
+    pub fn delay_fraction(&self) -> f32 {
+        self.delay_fraction
+    }
+
+    /// How many output samples ahead of the current command the inverse needs the reference:
+    /// ⌈D⌉, plus 1 for the mode's central difference (nothing extra without a mode).
+    pub fn lead_samples(&self) -> usize {
+        let ceil = self.delay_whole + usize::from(self.delay_fraction > 0.0);
+        ceil + usize::from(self.mode.is_some())
+    }
+
+    /// The reference at the fractional output time j + D, from the samples at j + ⌊D⌋
+    /// (`at_offset_m`) and j + ⌊D⌋ + 1 (`after_offset_m`) \[m\].
+    #[inline]
+    pub fn interpolate_reference(&self, at_offset_m: f32, after_offset_m: f32) -> f32 {
+        if self.delay_fraction == 0.0 {
+            at_offset_m
+        } else {
+            at_offset_m + self.delay_fraction * (after_offset_m - at_offset_m)
+        }
+    }
+
+    /// The drift r_d·(j + D)·T \[m\] at the output time of command j.
+    #[inline]
+    pub fn drift_for_command_m(&self, command_index: usize) -> f32 {
+        let t = (command_index as f32 + self.delay_samples) * self.sample_period_s;
+        bounded(self.params.drift_rate_m_per_s * t)
+    }
+
+    /// Single-axis steps 1 and 2 of the inverse: z*\[j\] = y*(j + D) − r_d·(j + D)·T \[m\], from the
+    /// reference at the output samples (`reference_m[k]` = y*\[k\]; indices past the end hold the
+    /// last sample). NaN for an empty reference.
+    pub fn desired_z_m(&self, reference_m: &[f32], command_index: usize) -> f32 {
+        let Some(last) = reference_m.len().checked_sub(1) else {
+            return f32::NAN;
+        };
+        let i0 = command_index.saturating_add(self.delay_whole);
+        let at = reference_m[i0.min(last)];
+        let after = reference_m[i0.saturating_add(1).min(last)];
+        self.interpolate_reference(at, after) - self.drift_for_command_m(command_index)
+    }
+
+    /// The even term e·(u\[j−1\] − u_c)² \[m\] of the next sample to process, u\[j−1\] the last
+    /// command the state has seen (0 before the first sample: u\[−1\] := u_c). Held within ±1e30.
+    #[inline]
+    pub fn even_term_m(&self, state: &EffectsState) -> f32 {
+        let e = self.params.even_coefficient_m_per_v2;
+        if e == 0.0 || !state.started {
+            return 0.0;
+        }
+        let d = state.previous_input_v - self.params.even_center_v;
+        bounded(e * d * d)
+    }
+
+    /// The creep c\[j\] = Σ gᵢ·xᵢ\[j\] \[m\] of the next sample to process.
+    #[inline]
+    pub fn creep_m(&self, state: &EffectsState) -> f32 {
+        let mut c = 0.0;
+        for (g, x) in self.creep_gain.iter().zip(state.creep_v.iter()) {
+            c += g * x;
+        }
+        bounded(c)
+    }
+
+    /// Forward, one command sample: given the command u\[j\] \[V\] and w\[j\] = H(u\[j\]) \[m\] from the
+    /// hysteresis model, advances the state and returns z\[j\] \[m\] (before delay, drift and
+    /// coupling). A non-finite u or w holds the previous one.
+    #[inline]
+    pub fn forward_z(&self, state: &mut EffectsState, u_v: f32, w_m: f32) -> f32 {
+        let u = if u_v.is_finite() {
+            u_v
+        } else {
+            state.previous_input_v
+        };
+        let w = if w_m.is_finite() {
+            w_m
+        } else {
+            state.previous_w_m
+        };
+        if !state.started {
+            state.input_reference_v = u;
+            state.creep_v = [0.0; MAX_CREEP_ELEMENTS];
+        }
+        let s = bounded(w + self.even_term_m(state) + self.creep_m(state));
+        let z = match &self.mode {
+            None => s,
+            Some(mode) => {
+                if !state.started {
+                    // At rest at the first s.
+                    state.mode_z_m = s;
+                    state.mode_scaled_velocity_m = 0.0;
+                }
+                let (z_mid, v_mid) =
+                    mode.half_step(state.mode_z_m, state.mode_scaled_velocity_m, s);
+                let (z_mid, v_mid) = (bounded(z_mid), bounded(v_mid));
+                let (z_end, v_end) = mode.half_step(z_mid, v_mid, s);
+                state.mode_z_m = bounded(z_end);
+                state.mode_scaled_velocity_m = bounded(v_end);
+                z_mid
+            }
+        };
+        if state.started {
+            state.head = (state.head + 1) % RING_LEN;
+            state.ring[state.head] = z;
+        } else {
+            state.ring = [z; RING_LEN];
+            state.head = 0;
+        }
+        state.samples = state.samples.saturating_add(1);
+        let du = bounded(u - state.input_reference_v);
+        for (x, rate) in state.creep_v.iter_mut().zip(self.creep_rate.iter()) {
+            *x += rate * (du - *x);
+        }
+        state.previous_input_v = u;
+        state.previous_w_m = w;
+        state.started = true;
+        z
+    }
+
+    /// z(k − D) \[m\] at the current output sample k (the last one processed), interpolated between
+    /// the stored z samples; z\[0\] before the first sample, 0 before any. Called with the *other*
+    /// axis's state it gives that axis's z delayed by this axis's D, as the coupling needs.
+    #[inline]
+    pub fn delayed_z(&self, state: &EffectsState) -> f32 {
+        let at = state.z_back(self.delay_whole);
+        if self.delay_fraction == 0.0 {
+            at
+        } else {
+            let before = state.z_back(self.delay_whole + 1);
+            at + self.delay_fraction * (before - at)
+        }
+    }
+
+    /// The drift r_d·t_k \[m\] at the current output sample k (0 before any sample).
+    #[inline]
+    pub fn drift_m(&self, state: &EffectsState) -> f32 {
+        let k = state.samples.saturating_sub(1) as f32;
+        bounded(self.params.drift_rate_m_per_s * (k * self.sample_period_s))
+    }
+
+    /// Single-axis output y\[k\] = z(k − D) + r_d·t_k \[m\] at the current output sample (no coupling).
+    #[inline]
+    pub fn output_m(&self, state: &EffectsState) -> f32 {
+        self.delayed_z(state) + self.drift_m(state)
+    }
+
+    /// Inverse, one command sample: from the desired z at command samples j − 1, j and j + 1 \[m\]
+    /// (drift removed, decoupled and shifted by the delay: [`Effects::desired_z_m`], [`decouple`]),
+    /// the target w\*\[j\] \[m\] for the hysteresis model's inverse (mode inverse by central
+    /// differences, then w\* = s\* − c\[j\] − e·(u\[j−1\] − u_c)²; see the module doc). Call before
+    /// [`Effects::commit_command`] for sample j. NaN if a reference sample is not finite (the
+    /// compensator then holds its voltage); finite otherwise.
+    #[inline]
+    pub fn inverse_target_w(
+        &self,
+        state: &EffectsState,
+        z_prev_m: f32,
+        z_now_m: f32,
+        z_next_m: f32,
+    ) -> f32 {
+        if !(z_prev_m.is_finite() && z_now_m.is_finite() && z_next_m.is_finite()) {
+            return f32::NAN;
+        }
+        let s = match &self.mode {
+            None => z_now_m,
+            Some(mode) => {
+                let ahead = z_next_m - z_now_m;
+                let behind = z_now_m - z_prev_m;
+                z_now_m
+                    + mode.velocity_coefficient * (ahead + behind)
+                    + mode.curvature_coefficient * (ahead - behind)
+            }
+        };
+        let w = s - self.creep_m(state) - self.even_term_m(state);
+        if w.is_finite() {
+            w
+        } else {
+            z_now_m
+        }
+    }
+
+    /// After the compensator chose u\[j\] \[V\] for the target, with w\[j\] \[m\] the hysteresis
+    /// output it reaches: advances the state exactly as [`Effects::forward_z`] does (it *is*
+    /// `forward_z`). Calling `forward_z` on the plant side and `commit_command` on the controller
+    /// side with the same u and w keeps the two states — creep, mode, delay line, sample count —
+    /// identical, so c\[j\] and the even term in the inverse are the plant's.
+    #[inline]
+    pub fn commit_command(&self, state: &mut EffectsState, u_v: f32, w_m: f32) {
+        let _ = self.forward_z(state, u_v, w_m);
+    }
+}
+
+/// Φ_half − I for the mode and the inverse's coefficients; f64, 2×2 matrix exponential.
+fn discretise_mode(
+    frequency_hz: f32,
+    damping: f32,
+    sample_period_s: f32,
+) -> Result<Mode, ParamError> {
+    let omega = 2.0 * core::f64::consts::PI * f64::from(frequency_hz);
+    let zeta = f64::from(damping);
+    let t = f64::from(sample_period_s);
+    let half = 0.5 * omega * t;
+    let x = [[0.0, half], [-half, -2.0 * zeta * half]];
+    let e = expm_minus_identity2(&x).ok_or(ParamError::Discretisation { sample_period_s })?;
+    let mut half_step_minus_identity = [[0.0f32; 2]; 2];
+    for r in 0..2 {
+        for c in 0..2 {
+            half_step_minus_identity[r][c] = e[r][c] as f32;
+        }
+    }
+    let mode = Mode {
+        half_step_minus_identity,
+        velocity_coefficient: (zeta / (omega * t)) as f32,
+        curvature_coefficient: (1.0 / ((omega * t) * (omega * t))) as f32,
+    };
+    let coefficients = [mode.velocity_coefficient, mode.curvature_coefficient];
+    if !half_step_minus_identity
+        .iter()
+        .flatten()
+        .chain(coefficients.iter())
+        .all(|v| v.is_finite())
+    {
+        return Err(ParamError::Discretisation { sample_period_s });
+    }
+    Ok(mode)
+}
+
+/// exp(X) − I of a 2×2 matrix, f64: scaling, an 18-term Taylor series of exp − I, and squaring in
+/// the form (I + E)² − I = 2E + E² (no cancellation when X is small).
+fn expm_minus_identity2(x: &[[f64; 2]; 2]) -> Option<[[f64; 2]; 2]> {
+    let norm = libm::fmax(
+        libm::fabs(x[0][0]) + libm::fabs(x[1][0]),
+        libm::fabs(x[0][1]) + libm::fabs(x[1][1]),
+    );
+    if !norm.is_finite() {
+        return None;
+    }
+    let mut squarings = 0u32;
+    let mut scale = 1.0f64;
+    while norm * scale > 0.25 {
+        scale *= 0.5;
+        squarings += 1;
+        if squarings > 200 {
+            return None;
+        }
+    }
+    let a = [
+        [x[0][0] * scale, x[0][1] * scale],
+        [x[1][0] * scale, x[1][1] * scale],
+    ];
+    let mut term = a;
+    let mut e = a;
+    for j in 2..=18 {
+        term = mul2(&term, &a);
+        for row in term.iter_mut() {
+            for v in row.iter_mut() {
+                *v /= f64::from(j);
+            }
+        }
+        for r in 0..2 {
+            for c in 0..2 {
+                e[r][c] += term[r][c];
+            }
+        }
+    }
+    for _ in 0..squarings {
+        let sq = mul2(&e, &e);
+        for r in 0..2 {
+            for c in 0..2 {
+                e[r][c] = 2.0 * e[r][c] + sq[r][c];
+            }
+        }
+    }
+    if e.iter().flatten().all(|v| v.is_finite()) {
+        Some(e)
+    } else {
+        None
+    }
+}
+
+fn mul2(a: &[[f64; 2]; 2], b: &[[f64; 2]; 2]) -> [[f64; 2]; 2] {
+    [
+        [
+            a[0][0] * b[0][0] + a[0][1] * b[1][0],
+            a[0][0] * b[0][1] + a[0][1] * b[1][1],
+        ],
+        [
+            a[1][0] * b[0][0] + a[1][1] * b[1][0],
+            a[1][0] * b[0][1] + a[1][1] * b[1][1],
+        ],
+    ]
+}
+
+/// Two-axis coupling of the delayed z's \[m\]: `(zx + κxy·zy, zy + κyx·zx)` (add each axis's drift
+/// separately). Exact for the outputs when both axes have the same delay; otherwise each axis adds
+/// the other's z delayed by its own D: `y_x = ex.delayed_z(&sx) + ex.drift_m(&sx) + κxy·ex.delayed_z(&sy)`. κ's are taken within \[−0.5, 0.5\], the validated range (NaN gives −0.5).
+/// Results are finite for finite inputs (held within ±f32::MAX).
+#[inline]
+pub fn couple(c_xy: f32, c_yx: f32, zx: f32, zy: f32) -> (f32, f32) {
+    let (a, b) = (clamp_coupling(c_xy), clamp_coupling(c_yx));
+    (finite_or_max(zx + a * zy), finite_or_max(zy + b * zx))
+}
+
+/// The exact inverse of [`couple`]: `zx = (yx − κxy·yy)/det`, `zy = (yy − κyx·yx)/det`,
+/// det = 1 − κxy·κyx > 0.75 (κ's within \[−0.5, 0.5\]; NaN gives −0.5).
+/// Results are finite for finite inputs (held within ±f32::MAX).
+#[inline]
+pub fn decouple(c_xy: f32, c_yx: f32, yx: f32, yy: f32) -> (f32, f32) {
+    let (a, b) = (clamp_coupling(c_xy), clamp_coupling(c_yx));
+    let inverse_det = 1.0 / (1.0 - a * b);
+    (
+        finite_or_max((yx - a * yy) * inverse_det),
+        finite_or_max((yy - b * yx) * inverse_det),
+    )
+}
+
+#[inline(always)]
+fn clamp_coupling(c: f32) -> f32 {
+    clamp(c, -MAX_COUPLING, MAX_COUPLING)
+}
+
+#[inline(always)]
+fn finite_or_max(x: f32) -> f32 {
+    clamp(x, -f32::MAX, f32::MAX)
+}
+
+/// Simulates the single-axis chain (hysteresis model, then effects; no coupling) over a record:
+/// the model starts from `initial` (usually `ModelState::at_rest(0.0)`), the effects from
+/// [`EffectsState::new`]; `y_out_m[k]` = y\[k\] \[m\] for each command `u_v[k]` \[V\] (output sample
+/// times = input sample times). The creep sees the input as the model applied it (clamped into its
+/// range, a non-finite one held), and so does the even term. Processes `min(u_v.len(), y_out_m.len())` samples.
+pub fn simulate_axis(
+    model: &StaticModel,
+    initial: ModelState,
+    effects: &Effects,
+    u_v: &[f32],
+    y_out_m: &mut [f32],
+) {
+    let mut model_state = initial;
+    let mut state = EffectsState::new();
+    for (&u, y) in u_v.iter().zip(y_out_m.iter_mut()) {
+        let w = model.step(&mut model_state, u);
+        effects.forward_z(&mut state, model_state.input_v, w);
+        *y = effects.output_m(&state);
+    }
+}
+
+/// Runs the single-axis inverse chain (no coupling) over a reference record `reference_m[k]` = y*\[k\]
+/// \[m\] at the output samples: for each command j, z* at j − 1, j, j + 1 by
+/// [`Effects::desired_z_m`] (z* before the first sample = z*\[0\]), the target by
+/// [`Effects::inverse_target_w`], the voltage by `compensator` (from `initial`), then
+/// [`Effects::commit_command`] with the voltage commanded and the w it reaches. Writes the commands
+/// \[V\] to `u_out_v`; processes `min(reference_m.len(), u_out_v.len())` samples.
+pub fn compensate_axis(
+    compensator: &Compensator,
+    initial: CompensatorState,
+    effects: &Effects,
+    reference_m: &[f32],
+    u_out_v: &mut [f32],
+) {
+    let mut compensator_state = initial;
+    let mut state = EffectsState::new();
+    for (j, u) in u_out_v.iter_mut().enumerate().take(reference_m.len()) {
+        let z_prev = effects.desired_z_m(reference_m, j.saturating_sub(1));
+        let z_now = effects.desired_z_m(reference_m, j);
+        let z_next = effects.desired_z_m(reference_m, j + 1);
+        let target = effects.inverse_target_w(&state, z_prev, z_now, z_next);
+        let command = compensator.compensate(&mut compensator_state, target);
+        let w = compensator.model().output(&compensator_state.model);
+        effects.commit_command(&mut state, command.voltage_v, w);
+        *u = command.voltage_v;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn period() -> f32 {
+        1e-4
+    }
+
+    #[test]
+    fn default_is_identity() {
+        let effects = Effects::new(EffectParams::default(), period(), (0.0, 1e-5)).unwrap();
+        assert!(effects.is_identity());
+        assert_eq!(effects.lead_samples(), 0);
+        let mut state = EffectsState::new();
+        for k in 0..100 {
+            let w = 1e-7 * k as f32;
+            assert_eq!(effects.forward_z(&mut state, 0.3 * k as f32, w), w);
+            assert_eq!(effects.output_m(&state), w);
+            assert_eq!(effects.inverse_target_w(&state, w, w, w), w);
+        }
+    }
+
+    #[test]
+    fn mode_discretisation_has_unit_static_gain_and_the_right_poles() {
+        let effects = Effects::new(
+            EffectParams {
+                mode_frequency_hz: 500.0,
+                mode_damping: 0.05,
+                ..EffectParams::default()
+            },
+            period(),
+            (0.0, 1e-5),
+        )
+        .unwrap();
+        let mode = effects.mode.unwrap();
+        let d = mode.half_step_minus_identity;
+        let det = (1.0 + f64::from(d[0][0])) * (1.0 + f64::from(d[1][1]))
+            - f64::from(d[0][1]) * f64::from(d[1][0]);
+        // det Φ_half = exp(trace·T/2) = exp(−2ζω·T/2).
+        let omega = 2.0 * core::f64::consts::PI * 500.0;
+        let expected = libm::exp(-0.05 * omega * 1e-4);
+        assert!((det - expected).abs() < 1e-6, "{det} vs {expected}");
+        let mut state = EffectsState::new();
+        let mut z = 0.0;
+        for _ in 0..20_000 {
+            z = effects.forward_z(&mut state, 1.0, 1e-5);
+        }
+        assert!((z - 1e-5).abs() < 1e-11, "{z}");
+    }
+
+    #[test]
+    fn even_term_uses_the_previous_command_and_inverts() {
+        let (e, center) = (2e-10f32, 60.0f32);
+        let effects = Effects::new(
+            EffectParams {
+                even_coefficient_m_per_v2: e,
+                even_center_v: center,
+                ..EffectParams::default()
+            },
+            period(),
+            (0.0, 4e-5),
+        )
+        .unwrap();
+        assert!(!effects.is_identity());
+        let mut plant = EffectsState::new();
+        let mut controller = EffectsState::new();
+        let mut previous: Option<f32> = None;
+        for k in 0..=40 {
+            let u = (k * 37 % 121) as f32;
+            let w = 1e-7 * u;
+            let term = previous.map_or(0.0, |p| e * (p - center) * (p - center));
+            assert_eq!(effects.even_term_m(&plant), term);
+            let target = effects.inverse_target_w(&controller, w + term, w + term, w + term);
+            assert!((target - w).abs() < 1e-12, "{k}: {target} vs {w}");
+            effects.commit_command(&mut controller, u, w);
+            let z = effects.forward_z(&mut plant, u, w);
+            assert!((z - (w + term)).abs() < 1e-12, "{k}: {z}");
+            previous = Some(u);
+        }
+    }
+}
