@@ -5,7 +5,7 @@
 
 use clap::Parser;
 use host_sim::cli::{run, Cli};
-use host_sim::close_loop::{close_loop, read_records, CloseLoopSettings, Outcome};
+use host_sim::close_loop::{close_loop, parameter_file, read_records, CloseLoopSettings, Outcome};
 use std::path::PathBuf;
 
 fn temp(name: &str) -> PathBuf {
@@ -164,6 +164,16 @@ fn coupling_is_named_and_removed() {
         &["coupling:xy=0.03,yx=0.03", "noise:rms_m=2e-9,seed=4"],
     );
     let records = read_records(&path, None, Some("ux_V,uy_V"), Some("x_m,y_m"), None).unwrap();
-    let o = close_loop(&records, &CloseLoopSettings::default()).unwrap();
+    // Firmware-invertible base sets, so that the parameter file is one the firmware builds.
+    let settings = CloseLoopSettings {
+        invertible: true,
+        ..Default::default()
+    };
+    let o = close_loop(&records, &settings).unwrap();
     check_single(&o, "coupling");
+    // The final model's parameter file, with its [x.effects]/[y.effects] tables, passes the
+    // firmware's own check.
+    let text = parameter_file(&o, "coupling.csv", 0.0);
+    assert!(text.contains("[y.effects]"), "{text}");
+    host_sim::identify::firmware_check("coupling.toml", text.as_bytes()).unwrap();
 }

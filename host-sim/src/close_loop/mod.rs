@@ -459,7 +459,7 @@ pub fn validate(outcome: &Outcome, records: &[Record], start_s: f64) -> Result<V
 }
 
 /// The parameter file of the final model: the firmware format (both axes; a one-axis record writes its
-/// model to both) with an `[x.effects]` table per axis.
+/// model to both) with an `[x.effects]` table per axis, and the record's sample rate as the loop rate.
 pub fn parameter_file(outcome: &Outcome, data: &str, start_s: f64) -> String {
     let a0 = &outcome.axes[0];
     let set = Identified::Static {
@@ -470,6 +470,16 @@ pub fn parameter_file(outcome: &Outcome, data: &str, start_s: f64) -> String {
         input_range_v: a0.model.input_range_v,
     };
     let mut text = to_toml(&set, "close-loop", data, start_s);
+    // The effects are discretised at the loop rate; the record's rate is the one they were identified
+    // at (and a delay must fit in 64 loop periods).
+    let rate_hz = (1e3 / f64::from(a0.model.sample_period_s)).round() / 1e3;
+    text = text.replacen(
+        "loop_rate_hz = 10000.0\n",
+        &format!(
+            "# close-loop: the record's sample rate, at which the effects were identified\nloop_rate_hz = {rate_hz:?}\n"
+        ),
+        1,
+    );
     if outcome.axes.len() > 1 {
         // Replace the y axis tables with the second axis's model.
         let a1 = &outcome.axes[1];

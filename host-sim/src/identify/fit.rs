@@ -22,7 +22,12 @@
 //!    generation evaluated in parallel (rayon).
 //! 2. Levenberg–Marquardt on the full record from the DE optimum: forward-difference Jacobian of the
 //!    projected residual (each column one core simulation, in parallel, into buffers allocated once per
-//!    run), Marquardt scaling, every trial point evaluated by the same projected objective.
+//!    run), Marquardt scaling, every trial point evaluated by the same projected objective; it stops
+//!    when an iteration fails to improve or two in a row gain less than 0.1·SSE/N (a tenth of the
+//!    residual variance: below the parameters' one-σ significance).
+//!
+//! The optimisers record their best θ after every DE generation and LM iteration
+//! ([`Problem::trace`]), so that `benches/identify.rs` can report the time to fitness.
 
 // Small dense linear algebra reads best with index loops.
 #![allow(clippy::needless_range_loop)]
@@ -36,6 +41,25 @@ use rand_chacha::ChaCha8Rng;
 use rand_core::{RngCore, SeedableRng};
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Mutex;
+use std::time::Instant;
+
+/// One point of an optimiser's progress: the best θ after a DE generation or an LM iteration.
+#[derive(Debug, Clone)]
+pub struct TracePoint {
+    /// `"de"` (after the initial population or a generation) or `"lm"` (after an iteration).
+    pub stage: &'static str,
+    /// Seconds since the problem was prepared.
+    pub seconds: f64,
+    /// Core simulations run so far.
+    pub evaluations: u64,
+    /// The optimiser's best θ so far.
+    pub theta: Vec<f64>,
+    /// Its SSE \[m²\] on every `stride`-th sample (DE works on the decimated record).
+    pub sse: f64,
+    /// Decimation of `sse` (1: the full record).
+    pub stride: usize,
+}
 
 /// A record prepared for fitting.
 pub struct Problem {
@@ -58,6 +82,8 @@ pub struct Problem {
     y_mean: f64,
     y_scale: f64,
     evaluations: AtomicU64,
+    started: Instant,
+    trace: Mutex<Vec<TracePoint>>,
 }
 
 /// Result of one projected evaluation.
@@ -101,7 +127,34 @@ impl Problem {
             y_mean: mean,
             y_scale: if var > 0.0 { var.sqrt() } else { 1.0 },
             evaluations: AtomicU64::new(0),
+            started: Instant::now(),
+            trace: Mutex::new(Vec::new()),
         }
+    }
+
+    /// Records the optimiser's best θ so far (a few per run: after each DE generation, LM iteration).
+    fn record(&self, stage: &'static str, theta: &[f64], sse: f64, stride: usize) {
+        let point = TracePoint {
+            stage,
+            seconds: self.started.elapsed().as_secs_f64(),
+            evaluations: self.evaluations(),
+            theta: theta.to_vec(),
+            sse,
+            stride,
+        };
+        if let Ok(mut t) = self.trace.lock() {
+            t.push(point);
+        }
+    }
+
+    /// The progress recorded by the optimisers so far (time to fitness).
+    pub fn trace(&self) -> Vec<TracePoint> {
+        self.trace.lock().map(|t| t.clone()).unwrap_or_default()
+    }
+
+    /// Number of scored samples.
+    pub fn scored_len(&self) -> usize {
+        self.scored()
     }
 
     /// Core simulations run so far.
@@ -525,6 +578,11 @@ pub fn differential_evolution(
         })
         .collect();
     let mut f: Vec<f64> = x.par_iter().map(|t| problem.sse(t, stride)).collect();
+    let record = |x: &[Vec<f64>], f: &[f64]| {
+        let best = (0..pop).min_by(|&a, &b| f[a].total_cmp(&f[b])).unwrap_or(0);
+        problem.record("de", &x[best], f[best], stride);
+    };
+    record(&x, &f);
     let mut stall = 0;
     for _ in 0..generations {
         let best = (0..pop).min_by(|&a, &b| f[a].total_cmp(&f[b])).unwrap_or(0);
@@ -569,6 +627,7 @@ pub fn differential_evolution(
             }
         }
         let after = f.iter().copied().fold(f64::INFINITY, f64::min);
+        record(&x, &f);
         progress.inc(1);
         stall = if after < before * (1.0 - 1e-4) {
             0
@@ -605,7 +664,14 @@ pub fn levenberg_marquardt(
     };
     clampv(&mut theta);
     let mut f = problem.sse(&theta, 1);
+    problem.record("lm", &theta, f, 1);
     let mut lambda = 1e-3;
+    // Stop once two iterations in a row gain less than a tenth of the residual variance
+    // (ΔSSE < 0.1·SSE/N): such steps move θ by well under its one-σ uncertainty and are at the level
+    // of the f32 simulation's own rounding, so they only chase noise (and the iteration that then
+    // fails costs a Jacobian plus up to ten trial points).
+    let small_gain = 0.1 / m.max(1) as f64;
+    let mut small_steps = 0;
     for _ in 0..iterations {
         progress.inc(1);
         let steps: Vec<f64> = theta
@@ -679,11 +745,20 @@ pub fn levenberg_marquardt(
                 f = ft;
                 lambda = (lambda / 3.0).max(1e-9);
                 improved = gain > 1e-10;
+                small_steps = if gain < small_gain {
+                    small_steps + 1
+                } else {
+                    0
+                };
+                if std::env::var_os("PIEZO_ID_DEBUG").is_some() {
+                    eprintln!("LM gain {gain:.3e} lambda {lambda:.1e} theta {theta:?}");
+                }
+                problem.record("lm", &theta, f, 1);
                 break;
             }
             lambda *= 4.0;
         }
-        if !improved {
+        if !improved || small_steps >= 2 {
             break;
         }
     }

@@ -18,7 +18,7 @@ pub mod oscillator;
 pub mod two_step;
 
 use crate::csv::{read_csv, Table};
-use fit::{Problem, Progress};
+use fit::{Problem, Progress, TracePoint};
 use model::{from_toml, to_toml, Identified, ModelKind};
 use serde_json::json;
 use std::path::{Path, PathBuf};
@@ -221,8 +221,17 @@ fn bar(len: u64, show: bool) -> Progress {
 
 /// Runs one identification on a record.
 pub fn identify(record: &Record, s: &IdentifySettings) -> Result<Identification, String> {
+    identify_traced(record, s).map(|(id, _)| id)
+}
+
+/// [`identify`], also returning the optimisers' progress (best θ after every DE generation and LM
+/// iteration, with its time and evaluation count; empty for the oscillator model).
+pub fn identify_traced(
+    record: &Record,
+    s: &IdentifySettings,
+) -> Result<(Identification, Vec<TracePoint>), String> {
     if s.model == ModelKind::Oscillator {
-        return oscillator::identify(record, s);
+        return oscillator::identify(record, s).map(|id| (id, Vec::new()));
     }
     let started = Instant::now();
     let from = record.index_at(s.start_s);
@@ -300,7 +309,7 @@ pub fn identify(record: &Record, s: &IdentifySettings) -> Result<Identification,
         "evaluations": problem.evaluations(),
         "seconds": started.elapsed().as_secs_f64(),
     });
-    Ok(Identification { set, summary })
+    Ok((Identification { set, summary }, problem.trace()))
 }
 
 /// Writes the parameter file and the summary; returns a one-line description.
