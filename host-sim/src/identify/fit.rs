@@ -505,25 +505,8 @@ fn solve(g: &[[f64; 3]; 3], b: &[f64; 3], n: usize) -> Option<[f64; 3]> {
         a[i][i] += 1e-12 * g[i][i].abs() + 1e-300;
         a[i][n] = b[i];
     }
-    for c in 0..n {
-        let p = (c..n).max_by(|&i, &j| a[i][c].abs().total_cmp(&a[j][c].abs()))?;
-        if a[p][c].abs() < 1e-300 || !a[p][c].is_finite() {
-            return None;
-        }
-        a.swap(c, p);
-        for r in c + 1..n {
-            let f = a[r][c] / a[c][c];
-            for k in c..=n {
-                a[r][k] -= f * a[c][k];
-            }
-        }
-    }
     let mut x = [0.0f64; 3];
-    for r in (0..n).rev() {
-        let s: f64 = (r + 1..n).map(|k| a[r][k] * x[k]).sum();
-        x[r] = (a[r][n] - s) / a[r][r];
-    }
-    x.iter().all(|v| v.is_finite()).then_some(x)
+    eliminate(&mut a[..n], n, &mut x[..n]).then_some(x)
 }
 
 /// Gaussian elimination on an augmented n×(n+1) matrix (for the oscillator's LM).
@@ -533,25 +516,39 @@ pub fn solve_dense_pub(a: &mut [Vec<f64>], n: usize) -> Option<Vec<f64>> {
 
 /// Gaussian elimination on an augmented n×(n+1) matrix.
 fn solve_dense(a: &mut [Vec<f64>], n: usize) -> Option<Vec<f64>> {
+    let mut x = vec![0.0; n];
+    eliminate(&mut a[..n], n, &mut x).then_some(x)
+}
+
+/// Gaussian elimination with partial pivoting on the augmented rows `a` (n×(n+1), as stack arrays
+/// or vectors); writes the solution into `x` and says whether it is finite.
+fn eliminate<R: AsRef<[f64]> + AsMut<[f64]>>(a: &mut [R], n: usize, x: &mut [f64]) -> bool {
     for c in 0..n {
-        let p = (c..n).max_by(|&i, &j| a[i][c].abs().total_cmp(&a[j][c].abs()))?;
-        if a[p][c].abs() < 1e-300 || !a[p][c].is_finite() {
-            return None;
+        let Some(p) =
+            (c..n).max_by(|&i, &j| a[i].as_ref()[c].abs().total_cmp(&a[j].as_ref()[c].abs()))
+        else {
+            return false;
+        };
+        let pivot = a[p].as_ref()[c];
+        if pivot.abs() < 1e-300 || !pivot.is_finite() {
+            return false;
         }
         a.swap(c, p);
         for r in c + 1..n {
-            let f = a[r][c] / a[c][c];
+            let (upper, lower) = a.split_at_mut(r);
+            let (top, row) = (upper[c].as_ref(), lower[0].as_mut());
+            let f = row[c] / top[c];
             for k in c..=n {
-                a[r][k] -= f * a[c][k];
+                row[k] -= f * top[k];
             }
         }
     }
-    let mut x = vec![0.0; n];
     for r in (0..n).rev() {
-        let s: f64 = (r + 1..n).map(|k| a[r][k] * x[k]).sum();
-        x[r] = (a[r][n] - s) / a[r][r];
+        let row = a[r].as_ref();
+        let s: f64 = (r + 1..n).map(|k| row[k] * x[k]).sum();
+        x[r] = (row[n] - s) / row[r];
     }
-    x.iter().all(|v| v.is_finite()).then_some(x)
+    x.iter().all(|v| v.is_finite())
 }
 
 /// Progress reporting (an indicatif bar on stderr, hidden when stderr is not a terminal).
