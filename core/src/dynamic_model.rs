@@ -227,66 +227,14 @@ impl DynamicModel {
     }
 }
 
-/// exp(X) of a 5×5 matrix by scaling and squaring with an 18-term Taylor series, f64.
+/// exp(X) of a 5×5 matrix: [`crate::math::expm_minus_identity`] (scaling, 18-term Taylor series,
+/// squaring) plus I, f64.
 fn expm5(x: &[[f64; 5]; 5]) -> Option<[[f64; 5]; 5]> {
-    let norm = (0..5)
-        .map(|c| (0..5).map(|r| x[r][c].abs()).sum::<f64>())
-        .fold(0.0f64, f64::max);
-    if !norm.is_finite() {
-        return None;
+    let mut e = crate::math::expm_minus_identity(x)?;
+    for (i, row) in e.iter_mut().enumerate() {
+        row[i] += 1.0;
     }
-    let mut squarings = 0u32;
-    let mut scale = 1.0f64;
-    while norm * scale > 0.25 {
-        scale *= 0.5;
-        squarings += 1;
-        if squarings > 200 {
-            return None;
-        }
-    }
-    let mut a = [[0.0f64; 5]; 5];
-    for r in 0..5 {
-        for c in 0..5 {
-            a[r][c] = x[r][c] * scale;
-        }
-    }
-    let mut result = identity5();
-    let mut term = identity5();
-    for j in 1..=18 {
-        term = mul5(&term, &a);
-        for row in term.iter_mut() {
-            for v in row.iter_mut() {
-                *v /= j as f64;
-            }
-        }
-        for r in 0..5 {
-            for c in 0..5 {
-                result[r][c] += term[r][c];
-            }
-        }
-    }
-    for _ in 0..squarings {
-        result = mul5(&result, &result);
-    }
-    Some(result)
-}
-
-fn identity5() -> [[f64; 5]; 5] {
-    let mut m = [[0.0; 5]; 5];
-    for (i, row) in m.iter_mut().enumerate() {
-        row[i] = 1.0;
-    }
-    m
-}
-
-fn mul5(a: &[[f64; 5]; 5], b: &[[f64; 5]; 5]) -> [[f64; 5]; 5] {
-    let mut m = [[0.0; 5]; 5];
-    for r in 0..5 {
-        for c in 0..5 {
-            m[r][c] = (0..5).map(|k| a[r][k] * b[k][c]).sum();
-        }
-    }
-    m
+    Some(e)
 }
 
 #[cfg(test)]

@@ -577,7 +577,8 @@ fn discretise_mode(
     let t = f64::from(sample_period_s);
     let half = 0.5 * omega * t;
     let x = [[0.0, half], [-half, -2.0 * zeta * half]];
-    let e = expm_minus_identity2(&x).ok_or(ParamError::Discretisation { sample_period_s })?;
+    let e = crate::math::expm_minus_identity(&x)
+        .ok_or(ParamError::Discretisation { sample_period_s })?;
     let mut half_step_minus_identity = [[0.0f32; 2]; 2];
     for r in 0..2 {
         for c in 0..2 {
@@ -599,72 +600,6 @@ fn discretise_mode(
         return Err(ParamError::Discretisation { sample_period_s });
     }
     Ok(mode)
-}
-
-/// exp(X) − I of a 2×2 matrix, f64: scaling, an 18-term Taylor series of exp − I, and squaring in
-/// the form (I + E)² − I = 2E + E² (no cancellation when X is small).
-fn expm_minus_identity2(x: &[[f64; 2]; 2]) -> Option<[[f64; 2]; 2]> {
-    let norm = libm::fmax(
-        libm::fabs(x[0][0]) + libm::fabs(x[1][0]),
-        libm::fabs(x[0][1]) + libm::fabs(x[1][1]),
-    );
-    if !norm.is_finite() {
-        return None;
-    }
-    let mut squarings = 0u32;
-    let mut scale = 1.0f64;
-    while norm * scale > 0.25 {
-        scale *= 0.5;
-        squarings += 1;
-        if squarings > 200 {
-            return None;
-        }
-    }
-    let a = [
-        [x[0][0] * scale, x[0][1] * scale],
-        [x[1][0] * scale, x[1][1] * scale],
-    ];
-    let mut term = a;
-    let mut e = a;
-    for j in 2..=18 {
-        term = mul2(&term, &a);
-        for row in term.iter_mut() {
-            for v in row.iter_mut() {
-                *v /= f64::from(j);
-            }
-        }
-        for r in 0..2 {
-            for c in 0..2 {
-                e[r][c] += term[r][c];
-            }
-        }
-    }
-    for _ in 0..squarings {
-        let sq = mul2(&e, &e);
-        for r in 0..2 {
-            for c in 0..2 {
-                e[r][c] = 2.0 * e[r][c] + sq[r][c];
-            }
-        }
-    }
-    if e.iter().flatten().all(|v| v.is_finite()) {
-        Some(e)
-    } else {
-        None
-    }
-}
-
-fn mul2(a: &[[f64; 2]; 2], b: &[[f64; 2]; 2]) -> [[f64; 2]; 2] {
-    [
-        [
-            a[0][0] * b[0][0] + a[0][1] * b[1][0],
-            a[0][0] * b[0][1] + a[0][1] * b[1][1],
-        ],
-        [
-            a[1][0] * b[0][0] + a[1][1] * b[1][0],
-            a[1][0] * b[0][1] + a[1][1] * b[1][1],
-        ],
-    ]
 }
 
 /// Two-axis coupling of the delayed z's \[m\]: `(zx + κxy·zy, zy + κyx·zx)` (add each axis's drift

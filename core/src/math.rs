@@ -101,6 +101,65 @@ pub(crate) fn pow_nonnegative_inline(x: f32, n: f32) -> f32 {
     e_r * f32::from_bits(((k + 127) as u32) << 23)
 }
 
+/// exp(X) − I of an N×N matrix in f64: scaling until ‖X·2⁻ˢ‖₁ ≤ 1/4, an 18-term Taylor series of
+/// exp − I, then s squarings in the form (I + E)² − I = 2E + E², which keeps the small entries of
+/// exp(X) − I exact when X is small (no cancellation against I). `None` for a non-finite X or result.
+/// Used at build time only (discretisations), never per sample.
+pub(crate) fn expm_minus_identity<const N: usize>(x: &[[f64; N]; N]) -> Option<[[f64; N]; N]> {
+    let norm = (0..N)
+        .map(|c| (0..N).map(|r| libm::fabs(x[r][c])).sum::<f64>())
+        .fold(0.0f64, libm::fmax);
+    if !norm.is_finite() {
+        return None;
+    }
+    let mut squarings = 0u32;
+    let mut scale = 1.0f64;
+    while norm * scale > 0.25 {
+        scale *= 0.5;
+        squarings += 1;
+        if squarings > 200 {
+            return None;
+        }
+    }
+    let mut a = [[0.0f64; N]; N];
+    for (row_a, row_x) in a.iter_mut().zip(x) {
+        for (v, &xv) in row_a.iter_mut().zip(row_x) {
+            *v = xv * scale;
+        }
+    }
+    let mut term = a;
+    let mut e = a;
+    for j in 2..=18u32 {
+        term = mat_mul(&term, &a);
+        for (row_e, row_t) in e.iter_mut().zip(term.iter_mut()) {
+            for (ev, tv) in row_e.iter_mut().zip(row_t.iter_mut()) {
+                *tv /= f64::from(j);
+                *ev += *tv;
+            }
+        }
+    }
+    for _ in 0..squarings {
+        let sq = mat_mul(&e, &e);
+        for (row_e, row_s) in e.iter_mut().zip(&sq) {
+            for (ev, &sv) in row_e.iter_mut().zip(row_s) {
+                *ev = 2.0 * *ev + sv;
+            }
+        }
+    }
+    e.iter().flatten().all(|v| v.is_finite()).then_some(e)
+}
+
+/// A·B of two N×N matrices.
+fn mat_mul<const N: usize>(a: &[[f64; N]; N], b: &[[f64; N]; N]) -> [[f64; N]; N] {
+    let mut m = [[0.0; N]; N];
+    for (row_m, row_a) in m.iter_mut().zip(a) {
+        for (c, v) in row_m.iter_mut().enumerate() {
+            *v = (0..N).map(|k| row_a[k] * b[k][c]).sum();
+        }
+    }
+    m
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
