@@ -138,10 +138,6 @@ fn min_max(v: &[f64]) -> (f64, f64) {
         })
 }
 
-fn rms(a: &[f64], b: &[f64]) -> f64 {
-    (a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f64>() / a.len().max(1) as f64).sqrt()
-}
-
 /// Runs the loop on one axis; `other_zd` is the other axis's delayed output (two-axis records).
 fn close_axis(
     name: &str,
@@ -164,7 +160,8 @@ fn close_axis(
     let before = first.y.clone();
     let mut sim = first;
     let mut steps = Vec::new();
-    let mut current_rms = rms(&record.y_m[from..], &sim.y[from..]);
+    let mut current_rms =
+        piezo_core::metrics::rms(&record.y_m[from..], &sim.y[from..]).unwrap_or(f64::INFINITY);
     log(
         s.progress,
         format!("{name}: base model rms {:.4e} m", current_rms),
@@ -429,20 +426,24 @@ pub fn validate(outcome: &Outcome, records: &[Record], start_s: f64) -> Result<V
         .iter()
         .map(|r| r.u.iter().map(|&v| v as f32).collect())
         .collect();
-    let base_zd: Vec<Vec<f64>> = outcome
-        .axes
-        .iter()
-        .zip(&us)
-        .map(|(a, u)| a.base.simulate(u, None).map(|s| s.zd))
-        .collect::<Result<_, _>>()?;
-    let final_zd: Vec<Vec<f64>> = outcome
-        .axes
-        .iter()
-        .zip(&us)
-        .map(|(a, u)| a.model.simulate(u, None).map(|s| s.zd))
-        .collect::<Result<_, _>>()?;
+    // Two axes: each axis's model couples to the other axis's delayed output of the same model kind.
+    let delayed = |final_model: bool| -> Result<Vec<Vec<f64>>, String> {
+        if records.len() < 2 {
+            return Ok(Vec::new());
+        }
+        outcome
+            .axes
+            .iter()
+            .zip(&us)
+            .map(|(a, u)| {
+                let m = if final_model { &a.model } else { &a.base };
+                m.simulate(u, None).map(|s| s.zd)
+            })
+            .collect()
+    };
+    let (base_zd, final_zd) = (delayed(false)?, delayed(true)?);
     for (i, a) in outcome.axes.iter().enumerate() {
-        let other = |z: &[Vec<f64>]| (records.len() > 1).then(|| z[1 - i].clone());
+        let other = |z: &[Vec<f64>]| (z.len() > 1).then(|| z[1 - i].clone());
         let b = a.base.simulate(&us[i], other(&base_zd).as_deref())?;
         let f = a.model.simulate(&us[i], other(&final_zd).as_deref())?;
         meas.extend_from_slice(&records[i].y_m[from..]);
@@ -717,13 +718,7 @@ pub fn read_records(
         let mut r = Record::read(data, t, u.as_deref(), y.as_deref())
             .map_err(|e| format!("--data: {e}"))?;
         if let Some(end) = end {
-            let n = r.t_s.iter().position(|&t| t > end).unwrap_or(r.t_s.len());
-            if n < 10 {
-                return Err(format!("--end {end}: fewer than 10 samples before it"));
-            }
-            r.t_s.truncate(n);
-            r.u.truncate(n);
-            r.y_m.truncate(n);
+            r.cut_after(end)?;
         }
         out.push(r);
     }

@@ -140,6 +140,22 @@ impl Record {
         (self.t_s[self.t_s.len() - 1] - self.t_s[0]) / (self.t_s.len() - 1) as f64
     }
 
+    /// Cuts the record after `end_s` (`--end`); an error if fewer than 10 samples remain.
+    pub fn cut_after(&mut self, end_s: f64) -> Result<(), String> {
+        let n = self
+            .t_s
+            .iter()
+            .position(|&t| t > end_s)
+            .unwrap_or(self.t_s.len());
+        if n < 10 {
+            return Err(format!("--end {end_s}: fewer than 10 samples before it"));
+        }
+        self.t_s.truncate(n);
+        self.u.truncate(n);
+        self.y_m.truncate(n);
+        Ok(())
+    }
+
     /// Index of the first sample at or after `start_s`.
     pub fn index_at(&self, start_s: f64) -> usize {
         self.t_s
@@ -475,17 +491,7 @@ pub struct PredictArgs {
 pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
     let mut record = a.columns.read(&a.data)?;
     if let Some(end) = a.end {
-        let n = record
-            .t_s
-            .iter()
-            .position(|&t| t > end)
-            .unwrap_or(record.t_s.len());
-        if n < 10 {
-            return Err(format!("--end {end}: fewer than 10 samples before it"));
-        }
-        record.t_s.truncate(n);
-        record.u.truncate(n);
-        record.y_m.truncate(n);
+        record.cut_after(end)?;
     }
     let settings = IdentifySettings {
         model: a.model,
