@@ -57,6 +57,8 @@ use crate::math::{clamp, max, min, pow_nonnegative};
 
 /// Raw Bouc-Wen parameters as identified or published (not yet validated).
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(feature = "serde", serde(deny_unknown_fields))]
 pub struct BoucWenParams {
     /// A: gain of the hysteretic state on the input \[h per V\]. Must be nonzero; may be negative.
     pub a: f32,

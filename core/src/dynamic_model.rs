@@ -33,6 +33,8 @@ use crate::error::{finite, positive, ParamError};
 
 /// Mechanical parameters of the mass–spring–damper (seed 000 Table 1 units).
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(feature = "serde", serde(deny_unknown_fields))]
 pub struct MassSpringDamperParams {
     /// m0 \[kg\], > 0.
     pub mass_kg: f32,

@@ -106,11 +106,18 @@ const CREEP_TIME_FIELDS: [&str; MAX_CREEP_ELEMENTS] = [
 ];
 
 /// The effect parameters of one axis. All zero (the default) is no effect.
+///
+/// With the `serde` feature, every field is optional when read (absent: 0), unknown fields are
+/// refused, and the creep arrays may be shorter than [`MAX_CREEP_ELEMENTS`] (missing elements 0).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(feature = "serde", serde(default, deny_unknown_fields))]
 pub struct EffectParams {
     /// Creep gains gᵢ \[m/V\]; an element with gain 0 is absent.
+    #[cfg_attr(feature = "serde", serde(deserialize_with = "up_to_creep_elements"))]
     pub creep_gain_m_per_v: [f32; MAX_CREEP_ELEMENTS],
     /// Creep time constants τᵢ \[s\], > 0 for every present element (ignored, but finite, otherwise).
+    #[cfg_attr(feature = "serde", serde(deserialize_with = "up_to_creep_elements"))]
     pub creep_time_constant_s: [f32; MAX_CREEP_ELEMENTS],
     /// e in the even term e·(u\[j−1\] − u_c)² \[m/V²\] (any finite value).
     pub even_coefficient_m_per_v2: f32,
@@ -126,6 +133,34 @@ pub struct EffectParams {
     pub drift_rate_m_per_s: f32,
     /// κ \[1\]: the part of the other axis's z added to this axis's output, |κ| < 0.5.
     pub coupling: f32,
+}
+
+/// Reads a sequence of at most [`MAX_CREEP_ELEMENTS`] numbers (missing elements 0).
+#[cfg(feature = "serde")]
+fn up_to_creep_elements<'de, D>(deserializer: D) -> Result<[f32; MAX_CREEP_ELEMENTS], D::Error>
+where
+    D: serde::Deserializer<'de>,
+{
+    struct UpTo;
+    impl<'de> serde::de::Visitor<'de> for UpTo {
+        type Value = [f32; MAX_CREEP_ELEMENTS];
+        fn expecting(&self, f: &mut core::fmt::Formatter) -> core::fmt::Result {
+            write!(f, "an array of at most {MAX_CREEP_ELEMENTS} numbers")
+        }
+        fn visit_seq<A: serde::de::SeqAccess<'de>>(self, mut seq: A) -> Result<Self::Value, A::Error> {
+            let mut out = [0.0f32; MAX_CREEP_ELEMENTS];
+            let mut len = 0;
+            while let Some(v) = seq.next_element::<f32>()? {
+                if len == MAX_CREEP_ELEMENTS {
+                    return Err(serde::de::Error::invalid_length(len + 1, &self));
+                }
+                out[len] = v;
+                len += 1;
+            }
+            Ok(out)
+        }
+    }
+    deserializer.deserialize_seq(UpTo)
 }
 
 /// The precomputed mode: Φ − I of one half step, and the inverse's difference coefficients.
@@ -180,6 +215,8 @@ pub struct EffectsState {
     previous_w_m: f32,
     /// Whether a first sample has been processed.
     started: bool,
+    /// Whether the state was built at rest at a known input ([`EffectsState::at_rest`]).
+    rested: bool,
     /// Mode output z at t_j + T/2 \[m\].
     mode_z_m: f32,
     /// Mode scaled velocity ż/ω at t_j + T/2 \[m\].
@@ -206,12 +243,27 @@ impl EffectsState {
             previous_input_v: 0.0,
             previous_w_m: 0.0,
             started: false,
+            rested: false,
             mode_z_m: 0.0,
             mode_scaled_velocity_m: 0.0,
             ring: [0.0; RING_LEN],
             head: 0,
             samples: 0,
         }
+    }
+
+    /// At rest at the input `input_v` \[V\]: the stage has been held at `input_v` long enough for
+    /// the creep to relax there (u_ref = `input_v`, not the first command) and the even term of the
+    /// first sample is `e·(input_v − u_c)²`. The mode starts at rest at the first s and the delay
+    /// line holds the first z, as for [`EffectsState::new`]. This is the start every tool uses for
+    /// a record or a run that begins at u0: the model state `ModelState::at_rest(u0)` and this
+    /// state at u0.
+    pub const fn at_rest(input_v: f32) -> Self {
+        let mut state = Self::new();
+        state.input_reference_v = input_v;
+        state.previous_input_v = input_v;
+        state.rested = true;
+        state
     }
 
     /// Number of samples processed so far; the current output sample is k = this − 1.
@@ -421,7 +473,7 @@ impl Effects {
     #[inline]
     pub fn even_term_m(&self, state: &EffectsState) -> f32 {
         let e = self.params.even_coefficient_m_per_v2;
-        if e == 0.0 || !state.started {
+        if e == 0.0 || !(state.started || state.rested) {
             return 0.0;
         }
         let d = state.previous_input_v - self.params.even_center_v;
@@ -453,7 +505,7 @@ impl Effects {
         } else {
             state.previous_w_m
         };
-        if !state.started {
+        if !state.started && !state.rested {
             state.input_reference_v = u;
             state.creep_v = [0.0; MAX_CREEP_ELEMENTS];
         }
@@ -636,8 +688,8 @@ fn finite_or_max(x: f32) -> f32 {
 }
 
 /// Simulates the single-axis chain (hysteresis model, then effects; no coupling) over a record:
-/// the model starts from `initial` (usually `ModelState::at_rest(0.0)`), the effects from
-/// [`EffectsState::new`]; `y_out_m[k]` = y\[k\] \[m\] for each command `u_v[k]` \[V\] (output sample
+/// the model starts from `initial` (`ModelState::at_rest(u0)` for a record that starts at rest at
+/// u0), the effects from [`EffectsState::at_rest`] at `initial.input_v`; `y_out_m[k]` = y\[k\] \[m\] for each command `u_v[k]` \[V\] (output sample
 /// times = input sample times). The creep sees the input as the model applied it (clamped into its
 /// range, a non-finite one held), and so does the even term. Processes `min(u_v.len(), y_out_m.len())` samples.
 pub fn simulate_axis(
@@ -648,7 +700,7 @@ pub fn simulate_axis(
     y_out_m: &mut [f32],
 ) {
     let mut model_state = initial;
-    let mut state = EffectsState::new();
+    let mut state = EffectsState::at_rest(initial.input_v);
     for (&u, y) in u_v.iter().zip(y_out_m.iter_mut()) {
         let w = model.step(&mut model_state, u);
         effects.forward_z(&mut state, model_state.input_v, w);
@@ -670,7 +722,7 @@ pub fn compensate_axis(
     u_out_v: &mut [f32],
 ) {
     let mut compensator_state = initial;
-    let mut state = EffectsState::new();
+    let mut state = EffectsState::at_rest(initial.model.input_v);
     for (j, u) in u_out_v.iter_mut().enumerate().take(reference_m.len()) {
         let z_prev = effects.desired_z_m(reference_m, j.saturating_sub(1));
         let z_now = effects.desired_z_m(reference_m, j);

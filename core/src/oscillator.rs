@@ -25,6 +25,8 @@ use crate::error::{finite, positive, ParamError};
 
 /// Raw parameters of the hysteretic oscillator (benchmark notation, SI units).
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(feature = "serde", serde(deny_unknown_fields))]
 pub struct OscillatorParams {
     /// m \[kg\].
     pub mass_kg: f32,

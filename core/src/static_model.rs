@@ -39,6 +39,8 @@ pub const ASYMMETRIC_STATE_FACTOR: f32 = 1.25;
 
 /// The linear part of the static map: y = k1·u + k2·h + y0.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(feature = "serde", serde(deny_unknown_fields))]
 pub struct StaticMap {
     /// k1: direct gain \[m/V\].
     pub k1_m_per_v: f32,
@@ -72,6 +74,8 @@ impl StaticMap {
 
 /// The asymmetric terms of seed 001 (both zero for the standard model).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(feature = "serde", serde(deny_unknown_fields))]
 pub struct Asymmetry {
     /// δ: asymmetric factor, ΔE = δ·u·sgn(u̇) added to ḣ \[h per V·s\].
     pub delta_per_v_s: f32,

@@ -1,0 +1,356 @@
+//! # piezo-stage: the stage file
+//!
+//! One TOML file says everything about a stage that the tools and the firmware need: its name and
+//! loop rate, the converter and amplifier chain, and per axis the model, the effects around it, the
+//! output limits and where the set came from. It is defined once here (serde derive), read and
+//! written by this crate only, and validated with piezo-core's own constructors, called the same
+//! way by every consumer: `host-sim identify|close-loop` write it, `host-sim predict|compensate`
+//! and the firmware's build read it.
+//!
+//! ```toml
+//! [stage]
+//! name = "xy-stage"                  # with `version`: the version string the firmware logs
+//! version = "1"
+//! loop_rate_hz = 10000.0             # the firmware's control rate; effects are discretised at it
+//!
+//! [io]                               # the chain DAC → amplifier → stack, sensor → ADC
+//! placeholder = false                # true: not measured, written by a tool without a stage file
+//! dac_part = "DAC8563"
+//! dac_range_v = [0.0, 5.0]           # DAC output span [V]
+//! amplifier_gain_v_per_v = 24.0      # stack volts per DAC volt
+//! adc_part = "ADS8681"
+//! adc_range_v = [-10.24, 10.24]      # ADC input span [V]
+//! sensor_range_v = [0.0, 10.0]       # sensor output span [V], within the ADC's
+//! sensor_m_per_v = 1.0e-5            # displacement per sensor volt [m/V]
+//!
+//! [x]
+//! model = "symmetric"                # symmetric | asymmetric | dynamic | oscillator
+//! [x.bouc_wen]                       # a, beta, gamma, n
+//! [x.static_map]                     # k1_m_per_v, k2_m_per_h, offset_m (symmetric, asymmetric)
+//! [x.asymmetry]                      # delta_per_v_s, input_shift_s (asymmetric)
+//! [x.mass_spring_damper]             # mass_kg, damping_n_s_per_m, ... (dynamic)
+//! [x.oscillator]                     # the benchmark oscillator (oscillator; substeps below)
+//! [x.effects]                        # optional: creep, even term, mode, delay, drift, coupling
+//! [x.limits]                         # output_min_v, output_max_v, slew_limit_v_per_s
+//! [x.identified]                     # optional: data, window_s, method, fit_rms_m,
+//!                                    # input_range_v, sample_period_s
+//! [y]                                # optional second axis, same tables
+//! ```
+//!
+//! Units are SI throughout (V, m, s, Hz). The parameter tables are piezo-core's own structs
+//! (`BoucWenParams`, `StaticMap`, `Asymmetry`, `MassSpringDamperParams`, `OscillatorParams`,
+//! `effects::EffectParams`), so their keys are the core's field names and a new core field is a
+//! new key. Unknown keys are refused with the list of valid ones; every error names the file, the
+//! line and column, and the key path (`x.bouc_wen.gamma`): [`StageError`].
+//!
+//! # Validation ([`StageFile::validate`])
+//! Per axis, in this order: `BoucWen::with_input_range(bouc_wen, output_min_v, output_max_v,
+//! STATE_LIMIT)` (the output window is the only input the stage will see), the model constructor
+//! of its family, `Compensator::new` with the limits and `sample_period_s = 1 / loop_rate_hz`
+//! (static models), then `effects::Effects::new(effects, 1 / loop_rate_hz, w_range)` with
+//! `w_range` the output range of the first loading over the window. The io chain: the output
+//! window within `dac_range_v × amplifier_gain_v_per_v`, the sensor span within the ADC's.
+//!
+//! # Initial state
+//! Every consumer starts a record or a run that begins at u0 at rest there:
+//! `ModelState::at_rest(u0)` and `effects::EffectsState::at_rest(u0)` ([`AxisChain::simulate`]).
+
+#![forbid(unsafe_code)]
+
+mod error;
+mod validate;
+
+pub use error::{StageError, StageErrorKind};
+pub use validate::{simulate_pair, w_range, AxisChain, ValidAxis, ValidStage};
+
+use piezo_core::effects::EffectParams;
+use piezo_core::{Asymmetry, BoucWenParams, MassSpringDamperParams, OscillatorParams, StaticMap};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// Largest |h| accepted for a range-limited Bouc-Wen set (β + γ ≤ 0) over the output window.
+pub const STATE_LIMIT: f32 = 1e6;
+
+/// A whole stage file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StageFile {
+    /// Name, version and loop rate.
+    pub stage: Stage,
+    /// The converter and amplifier chain.
+    pub io: Io,
+    /// The first axis.
+    pub x: Axis,
+    /// The second axis of a two-axis stage.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub y: Option<Axis>,
+}
+
+/// `[stage]`: what the stage is called and how fast its loop runs.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Stage {
+    /// Name (with `version`: the version string the firmware logs at boot).
+    pub name: String,
+    /// Version of this set.
+    #[serde(default = "default_version")]
+    pub version: String,
+    /// Control loop rate \[Hz\]; effects are discretised at 1 / this.
+    pub loop_rate_hz: f32,
+}
+
+fn default_version() -> String {
+    "1".to_string()
+}
+
+/// `[io]`: the drive and sensing chain, from DAC volts to stack volts and from metres to ADC volts.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Io {
+    /// True when the section was not measured (written by a tool that had no stage file to carry
+    /// it from): a reminder to set it to the real amplifier and sensor.
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub placeholder: bool,
+    /// DAC part name (the firmware drives `DAC8563`).
+    pub dac_part: String,
+    /// DAC output span \[V\].
+    pub dac_range_v: [f32; 2],
+    /// Piezo amplifier gain: stack volts per DAC volt \[V/V\].
+    pub amplifier_gain_v_per_v: f32,
+    /// ADC part name (the firmware drives `ADS8681`).
+    pub adc_part: String,
+    /// ADC input span \[V\].
+    pub adc_range_v: [f32; 2],
+    /// Displacement sensor output span \[V\]; within `adc_range_v`.
+    pub sensor_range_v: [f32; 2],
+    /// Displacement sensor gain \[m/V\].
+    pub sensor_m_per_v: f32,
+}
+
+fn is_false(b: &bool) -> bool {
+    !*b
+}
+
+impl Io {
+    /// The firmware board's chain (DAC8563 0–5 V, 24 V/V amplifier, ADS8681 ±10.24 V, a 0–10 V
+    /// sensor of 10 µm/V), marked as a placeholder: what a tool writes when it has no stage file
+    /// to carry the section from.
+    pub fn placeholder() -> Self {
+        Self {
+            placeholder: true,
+            dac_part: "DAC8563".into(),
+            dac_range_v: [0.0, 5.0],
+            amplifier_gain_v_per_v: 24.0,
+            adc_part: "ADS8681".into(),
+            adc_range_v: [-10.24, 10.24],
+            sensor_range_v: [0.0, 10.0],
+            sensor_m_per_v: 1.0e-5,
+        }
+    }
+}
+
+/// The model family of an axis.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ModelKind {
+    /// y = k1·u + k2·h + y0 (seed 001 eq. 1): `[x.static_map]`.
+    Symmetric,
+    /// Seed 001's asymmetric reading (δ-term and input shift φ): `[x.static_map]`, `[x.asymmetry]`.
+    Asymmetric,
+    /// Seed 000: m0·ẍ + c0·ẋ + k0·(x − x0) = k1·u + h: `[x.mass_spring_damper]`.
+    Dynamic,
+    /// The Bouc-Wen benchmark's hysteretic oscillator (force input): `[x.oscillator]`.
+    Oscillator,
+}
+
+impl ModelKind {
+    /// Name as written in files and reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Symmetric => "symmetric",
+            Self::Asymmetric => "asymmetric",
+            Self::Dynamic => "dynamic",
+            Self::Oscillator => "oscillator",
+        }
+    }
+
+    /// Whether the firmware's chain (static model, compensator, effects) can run this family.
+    pub fn runs_on_firmware(self) -> bool {
+        matches!(self, Self::Symmetric | Self::Asymmetric)
+    }
+}
+
+/// `[x.limits]`: what the stage may be commanded.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Limits {
+    /// Lowest stack voltage \[V\] (the oscillator: lowest force \[N\]).
+    pub output_min_v: f32,
+    /// Highest stack voltage \[V\].
+    pub output_max_v: f32,
+    /// Largest rate of change of the stack voltage \[V/s\].
+    pub slew_limit_v_per_s: f32,
+}
+
+/// `[x.identified]`: where the set came from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Provenance {
+    /// The record the set was fitted to.
+    pub data: String,
+    /// The scored window of that record \[s\].
+    pub window_s: [f64; 2],
+    /// The method (`vp-de-lm`, `ga`, `two-step`, `close-loop`).
+    pub method: String,
+    /// RMS of the fit over the window \[m\].
+    pub fit_rms_m: f64,
+    /// The input range the record covered \[V\]: the set is known to hold inside it.
+    pub input_range_v: [f32; 2],
+    /// The record's sample period \[s\] (the rate δ, φ and the dynamics were identified at).
+    pub sample_period_s: f32,
+}
+
+/// One axis: model, effects, limits and provenance.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Axis {
+    /// The model family.
+    pub model: ModelKind,
+    /// Bouc-Wen parameters (symmetric, asymmetric, dynamic).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub bouc_wen: Option<BoucWenParams>,
+    /// y = k1·u + k2·h + y0 (symmetric, asymmetric).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub static_map: Option<StaticMap>,
+    /// δ and φ (asymmetric).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub asymmetry: Option<Asymmetry>,
+    /// Mechanics (dynamic).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mass_spring_damper: Option<MassSpringDamperParams>,
+    /// The benchmark oscillator (oscillator).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub oscillator: Option<OscillatorParams>,
+    /// Oscillator: RK4 sub-steps per sample on the interpolated input.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub substeps: Option<u32>,
+    /// The effects around the hysteresis model (all zero: none).
+    #[serde(default, skip_serializing_if = "is_identity")]
+    pub effects: EffectParams,
+    /// Output limits.
+    pub limits: Limits,
+    /// Where the set came from.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub identified: Option<Provenance>,
+}
+
+fn is_identity(e: &EffectParams) -> bool {
+    *e == EffectParams::default()
+}
+
+impl Axis {
+    /// A static axis (symmetric, or asymmetric when `asymmetry` is nonzero).
+    pub fn static_model(
+        bouc_wen: BoucWenParams,
+        static_map: StaticMap,
+        asymmetry: Asymmetry,
+        limits: Limits,
+    ) -> Self {
+        let asymmetric = asymmetry != Asymmetry::default();
+        Self {
+            model: if asymmetric {
+                ModelKind::Asymmetric
+            } else {
+                ModelKind::Symmetric
+            },
+            bouc_wen: Some(bouc_wen),
+            static_map: Some(static_map),
+            asymmetry: asymmetric.then_some(asymmetry),
+            mass_spring_damper: None,
+            oscillator: None,
+            substeps: None,
+            effects: EffectParams::default(),
+            limits,
+            identified: None,
+        }
+    }
+}
+
+/// The axis names, in file order.
+pub const AXIS_NAMES: [&str; 2] = ["x", "y"];
+
+impl StageFile {
+    /// The axes present, with their names.
+    pub fn axes(&self) -> Vec<(&'static str, &Axis)> {
+        let mut v = vec![(AXIS_NAMES[0], &self.x)];
+        if let Some(y) = &self.y {
+            v.push((AXIS_NAMES[1], y));
+        }
+        v
+    }
+
+    /// Parses `text` (the contents of `file`, named in errors) without validating it.
+    pub fn parse(file: &str, text: &str) -> Result<Self, StageError> {
+        let deserializer =
+            toml::Deserializer::parse(text).map_err(|e| StageError::toml(file, text, &e, None))?;
+        serde_path_to_error::deserialize(deserializer).map_err(|e| {
+            let path = e.path().to_string();
+            let inner = e.into_inner();
+            StageError::toml(file, text, &inner, Some(path))
+        })
+    }
+
+    /// Reads, parses and validates a stage file.
+    pub fn load(path: &Path) -> Result<(Self, ValidStage), StageError> {
+        let file = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|e| StageError::io(&file, e))?;
+        let stage = Self::parse(&file, &text)?;
+        let valid = stage.validate().map_err(|e| e.located(&file, &text))?;
+        Ok((stage, valid))
+    }
+
+    /// The file's text: a comment header, then the TOML of the tables.
+    pub fn to_toml(&self, header: &str) -> String {
+        let mut out = String::new();
+        for line in header.lines() {
+            out.push_str("# ");
+            out.push_str(line);
+            out.push('\n');
+        }
+        if self.io.placeholder {
+            out.push_str(
+                "# [io] is a placeholder (the board's chain): set it to your DAC, amplifier, ADC \
+                 and sensor,\n# or pass --stage FILE to carry it from your stage file.\n",
+            );
+        }
+        if !header.is_empty() || self.io.placeholder {
+            out.push('\n');
+        }
+        // Serialising plain data (strings, numbers, arrays, tables) cannot fail.
+        out.push_str(&toml::to_string(self).unwrap_or_default());
+        out
+    }
+
+    /// Writes the file (creating its folder), then reads it back and checks it is the same.
+    pub fn write(&self, path: &Path, header: &str) -> Result<(), StageError> {
+        let file = path.display().to_string();
+        let text = self.to_toml(header);
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).map_err(|e| StageError::io(&file, e))?;
+        }
+        std::fs::write(path, &text).map_err(|e| StageError::io(&file, e))?;
+        let back = Self::parse(&file, &text)?;
+        if back != *self {
+            return Err(StageError::new(
+                &file,
+                StageErrorKind::Invalid,
+                "",
+                "the written file does not read back to the same set (please report)".into(),
+            ));
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,391 @@
+//! Validation: the core's constructors, called the same way for every consumer, and the chain
+//! they build.
+//!
+//! Forward chain of a static axis (piezo-core `StaticModel` then `effects::Effects`), per sample k
+//! at the sample period T it was built for:
+//! `w[k] = k1·u[k] + k2·h[k] + y0`, `z[k] = M(w + e·(u[k−1] − u_c)² + creep)[k]`,
+//! `y[k] = z(k − D) + drift(t_k) + κ·z_other(k − D)`; see `piezo_core::effects` for each term.
+
+use crate::error::{StageError, StageErrorKind};
+use crate::{Axis, Io, ModelKind, StageFile, STATE_LIMIT};
+use piezo_core::effects::{couple, Effects, EffectsState};
+use piezo_core::{
+    Asymmetry, BoucWen, Compensator, CompensatorSettings, DynamicModel, HystereticOscillator,
+    ModelState, OscillatorState, ParamError, StaticModel,
+};
+
+/// Volts per step of the virgin loading sweep that gives the linear (uncompensated) gain.
+const SWEEP_STEP_V: f32 = 0.01;
+
+/// The built model of one axis at one sample period.
+#[derive(Debug, Clone, Copy)]
+pub enum AxisChain {
+    /// A static (symmetric or asymmetric) model followed by the effect chain: what the firmware runs.
+    Static {
+        /// The hysteresis model.
+        model: StaticModel,
+        /// The effects around it.
+        effects: Effects,
+    },
+    /// The mass–spring–damper model (no effects).
+    Dynamic(DynamicModel),
+    /// The benchmark oscillator (no effects).
+    Oscillator(HystereticOscillator),
+}
+
+/// One validated axis.
+#[derive(Debug, Clone, Copy)]
+pub struct ValidAxis {
+    /// `x` or `y`.
+    pub name: &'static str,
+    /// The model family.
+    pub kind: ModelKind,
+    /// The chain at the sample period it was built for.
+    pub chain: AxisChain,
+    /// The inverse compensator (static models whose map is invertible, built by
+    /// [`StageFile::validate`]).
+    pub compensator: Option<Compensator>,
+    /// Secant gain of the first loading over the output window \[m/V\] (static models; the
+    /// uncompensated baseline).
+    pub linear_gain_m_per_v: f32,
+    /// Output at `output_min_v` at rest \[m\].
+    pub rest_output_m: f32,
+    /// The Bouc-Wen input range the model was built over \[V\].
+    pub input_range_v: (f32, f32),
+}
+
+/// A validated stage file at its loop rate: what the firmware runs.
+#[derive(Debug, Clone)]
+pub struct ValidStage {
+    /// Loop period \[s\].
+    pub sample_period_s: f32,
+    /// The axes, x first.
+    pub axes: Vec<ValidAxis>,
+}
+
+fn located(key: String, e: ParamError) -> StageError {
+    StageError::core(&key, e)
+}
+
+/// The key path a core error names, for an axis `name`.
+fn core_key(name: &str, e: &ParamError, section: &str) -> String {
+    match e {
+        ParamError::NonFinite { field } | ParamError::OutOfRange { field, .. } => {
+            let section = match *field {
+                "output_min_v" | "output_max_v" | "slew_limit_v_per_s" => "limits",
+                "input_min_v" | "input_max_v" => "limits",
+                "k1_m_per_v" | "k2_m_per_h" | "offset_m" => "static_map",
+                "delta_per_v_s" | "input_shift_s" => "asymmetry",
+                "sample_period_s" => return "stage.loop_rate_hz".into(),
+                _ => section,
+            };
+            format!("{name}.{section}.{field}")
+        }
+        ParamError::UnboundableClass { .. } => format!("{name}.bouc_wen.beta"),
+        ParamError::UnboundedWithoutRange { .. } | ParamError::StateLimitExceeded { .. } => {
+            format!("{name}.bouc_wen")
+        }
+        ParamError::NotInvertible { .. } => format!("{name}.static_map"),
+        ParamError::Discretisation { .. } => format!("{name}.{section}"),
+    }
+}
+
+fn missing(name: &str, table: &str, kind: ModelKind) -> StageError {
+    StageError::new(
+        "",
+        StageErrorKind::Invalid,
+        &format!("{name}.{table}"),
+        format!("missing table: model \"{}\" needs it", kind.name()),
+    )
+}
+
+impl Axis {
+    /// Builds this axis's chain (axis `name`) for the sample period `sample_period_s` \[s\] with
+    /// the Bouc-Wen state validated over the input range `input_range_v` \[V\]. No compensator.
+    pub fn build(
+        &self,
+        name: &'static str,
+        sample_period_s: f32,
+        input_range_v: (f32, f32),
+    ) -> Result<ValidAxis, StageError> {
+        let bouc_wen = || -> Result<BoucWen, StageError> {
+            let params = self
+                .bouc_wen
+                .ok_or_else(|| missing(name, "bouc_wen", self.model))?;
+            BoucWen::with_input_range(params, input_range_v.0, input_range_v.1, STATE_LIMIT)
+                .map_err(|e| located(core_key(name, &e, "bouc_wen"), e))
+        };
+        let (mut linear_gain_m_per_v, mut rest_output_m) = (0.0, 0.0);
+        let chain =         match self.model {
+            ModelKind::Symmetric | ModelKind::Asymmetric => {
+                let hysteresis = bouc_wen()?;
+                let map = self
+                    .static_map
+                    .ok_or_else(|| missing(name, "static_map", self.model))?;
+                let model = if self.model == ModelKind::Asymmetric {
+                    let asymmetry = self
+                        .asymmetry
+                        .ok_or_else(|| missing(name, "asymmetry", self.model))?;
+                    StaticModel::asymmetric(hysteresis, map, asymmetry, sample_period_s)
+                } else {
+                    if self.asymmetry.is_some_and(|a| a != Asymmetry::default()) {
+                        return Err(StageError::new(
+                            "",
+                            StageErrorKind::Invalid,
+                            &format!("{name}.asymmetry"),
+                            "given for model \"symmetric\": set model = \"asymmetric\" or remove it"
+                                .into(),
+                        ));
+                    }
+                    StaticModel::new(hysteresis, map)
+                }
+                .map_err(|e| located(core_key(name, &e, "static_map"), e))?;
+                let (u0, u1) = (self.limits.output_min_v, self.limits.output_max_v);
+                let (rest, gain) = first_loading(&model, u0, u1);
+                if !(gain.is_finite() && gain != 0.0) {
+                    return Err(StageError::new(
+                        "",
+                        StageErrorKind::Invalid,
+                        &format!("{name}.limits"),
+                        format!("the model gives no stroke over the output window (first-loading gain {gain} m/V)"),
+                    ));
+                }
+                let effects = Effects::new(self.effects, sample_period_s, w_range(rest, gain, u0, u1))
+                    .map_err(|e| {
+                        let key = match e {
+                            ParamError::NonFinite { field } | ParamError::OutOfRange { field, .. }
+                                if field == "sample_period_s" =>
+                            {
+                                "stage.loop_rate_hz".to_string()
+                            }
+                            ParamError::NonFinite { field } | ParamError::OutOfRange { field, .. } => {
+                                format!("{name}.effects.{field}")
+                            }
+                            _ => format!("{name}.effects.mode_frequency_hz"),
+                        };
+                        located(key, e)
+                    })?;
+                linear_gain_m_per_v = gain;
+                rest_output_m = rest;
+                AxisChain::Static { model, effects }
+            }
+            ModelKind::Dynamic => {
+                let mechanics = self
+                    .mass_spring_damper
+                    .ok_or_else(|| missing(name, "mass_spring_damper", self.model))?;
+                let model = DynamicModel::new(bouc_wen()?, mechanics, sample_period_s)
+                    .map_err(|e| located(core_key(name, &e, "mass_spring_damper"), e))?;
+                AxisChain::Dynamic(model)
+            }
+            ModelKind::Oscillator => {
+                let params = self
+                    .oscillator
+                    .ok_or_else(|| missing(name, "oscillator", self.model))?;
+                let substeps = self.substeps.unwrap_or(1);
+                AxisChain::Oscillator(
+                    HystereticOscillator::new(params, sample_period_s, substeps)
+                        .map_err(|e| located(core_key(name, &e, "oscillator"), e))?,
+                )
+            }
+        };
+        if !matches!(chain, AxisChain::Static { .. }) && self.effects != Default::default() {
+            return Err(StageError::new(
+                "",
+                StageErrorKind::Invalid,
+                &format!("{name}.effects"),
+                "effects run around the static models only (symmetric, asymmetric)".into(),
+            ));
+        }
+        Ok(ValidAxis {
+            name,
+            kind: self.model,
+            chain,
+            compensator: None,
+            linear_gain_m_per_v,
+            rest_output_m,
+            input_range_v,
+        })
+    }
+}
+
+/// Rest output at u0 and the secant gain of the first loading u0 → u1 \[m/V\].
+fn first_loading(model: &StaticModel, u0: f32, u1: f32) -> (f32, f32) {
+    let mut state = ModelState::at_rest(u0);
+    let rest = model.output(&state);
+    let steps = ((u1 - u0) / SWEEP_STEP_V).ceil().clamp(1.0, 1e7) as u32;
+    let mut top = rest;
+    for k in 1..=steps {
+        top = model.step(&mut state, (u0 + k as f32 * SWEEP_STEP_V).min(u1));
+    }
+    (rest, (top - rest) / (u1 - u0))
+}
+
+/// The hysteresis output range the effects are validated over: the first loading's
+/// `[y_rest, y_rest + g_lin·(u_max − u_min)]`, sorted \[m\].
+pub fn w_range(rest_m: f32, gain_m_per_v: f32, u0: f32, u1: f32) -> (f32, f32) {
+    let top = rest_m + gain_m_per_v * (u1 - u0);
+    (rest_m.min(top), rest_m.max(top))
+}
+
+fn invalid(key: &str, message: String) -> StageError {
+    StageError::new("", StageErrorKind::Invalid, key, message)
+}
+
+impl Io {
+    /// The chain's own consistency: finite positive gains, ordered spans, the sensor span inside
+    /// the ADC's.
+    pub fn check(&self) -> Result<(), StageError> {
+        for (key, v) in [
+            ("io.amplifier_gain_v_per_v", self.amplifier_gain_v_per_v),
+            ("io.sensor_m_per_v", self.sensor_m_per_v),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(invalid(key, format!("{v} must be finite and > 0")));
+            }
+        }
+        for (key, [lo, hi]) in [
+            ("io.dac_range_v", self.dac_range_v),
+            ("io.adc_range_v", self.adc_range_v),
+            ("io.sensor_range_v", self.sensor_range_v),
+        ] {
+            if !(lo.is_finite() && hi.is_finite() && lo < hi) {
+                return Err(invalid(key, format!("[{lo}, {hi}] must be finite with min < max")));
+            }
+        }
+        let [s0, s1] = self.sensor_range_v;
+        let [a0, a1] = self.adc_range_v;
+        if s0 < a0 || s1 > a1 {
+            return Err(invalid(
+                "io.sensor_range_v",
+                format!("the sensor span [{s0}, {s1}] V exceeds the ADC's input span [{a0}, {a1}] V"),
+            ));
+        }
+        Ok(())
+    }
+
+    /// The stack voltage span the DAC and amplifier can produce \[V\].
+    pub fn drive_range_v(&self) -> (f32, f32) {
+        let g = self.amplifier_gain_v_per_v;
+        (self.dac_range_v[0] * g, self.dac_range_v[1] * g)
+    }
+}
+
+impl StageFile {
+    /// Validates the whole file at its loop rate, as the firmware runs it: every axis built over its
+    /// output window with its compensator, the io chain checked and the output windows inside
+    /// what the DAC and amplifier can drive. Errors carry the key path; [`StageFile::load`] adds
+    /// the file, line and column.
+    pub fn validate(&self) -> Result<ValidStage, StageError> {
+        let rate = self.stage.loop_rate_hz;
+        if !(rate.is_finite() && rate > 0.0) {
+            return Err(invalid("stage.loop_rate_hz", format!("{rate} must be finite and > 0")));
+        }
+        let sample_period_s = 1.0 / rate;
+        self.io.check()?;
+        let (d0, d1) = self.io.drive_range_v();
+        let mut axes = Vec::new();
+        for (name, axis) in self.axes() {
+            let l = axis.limits;
+            if !(l.output_min_v.is_finite() && l.output_max_v.is_finite() && l.output_min_v < l.output_max_v) {
+                return Err(invalid(
+                    &format!("{name}.limits"),
+                    format!("output window [{}, {}] V must be finite with min < max", l.output_min_v, l.output_max_v),
+                ));
+            }
+            let mut valid = axis.build(name, sample_period_s, (l.output_min_v, l.output_max_v))?;
+            if let AxisChain::Static { model, .. } = valid.chain {
+                let settings = CompensatorSettings {
+                    output_min_v: l.output_min_v,
+                    output_max_v: l.output_max_v,
+                    slew_limit_v_per_s: l.slew_limit_v_per_s,
+                    sample_period_s,
+                };
+                valid.compensator = Some(
+                    Compensator::new(model, settings)
+                        .map_err(|e| located(core_key(name, &e, "limits"), e))?,
+                );
+                if l.output_min_v < d0 - 1e-3 || l.output_max_v > d1 + 1e-3 {
+                    return Err(invalid(
+                        &format!("{name}.limits.output_max_v"),
+                        format!(
+                            "the output window [{}, {}] V exceeds what the DAC and amplifier drive: \
+                             io.dac_range_v [{}, {}] V × io.amplifier_gain_v_per_v {} = [{d0}, {d1}] V",
+                            l.output_min_v,
+                            l.output_max_v,
+                            self.io.dac_range_v[0],
+                            self.io.dac_range_v[1],
+                            self.io.amplifier_gain_v_per_v
+                        ),
+                    ));
+                }
+            }
+            axes.push(valid);
+        }
+        Ok(ValidStage {
+            sample_period_s,
+            axes,
+        })
+    }
+}
+
+impl AxisChain {
+    /// Simulates one axis (no coupling) from rest at `u_v[0]`: `visit(k, y_k)` per sample.
+    pub fn simulate(&self, u_v: &[f32], mut visit: impl FnMut(usize, f32)) {
+        let Some(&u0) = u_v.first() else { return };
+        match self {
+            Self::Static { model, effects } => {
+                let mut s = ModelState::at_rest(u0);
+                let mut e = EffectsState::at_rest(u0);
+                for (k, &u) in u_v.iter().enumerate() {
+                    let w = model.step(&mut s, u);
+                    effects.forward_z(&mut e, s.input_v, w);
+                    visit(k, effects.output_m(&e));
+                }
+            }
+            Self::Dynamic(m) => {
+                let mut s = m.at_rest(u0);
+                for (k, &u) in u_v.iter().enumerate() {
+                    visit(k, m.step(&mut s, u));
+                }
+            }
+            Self::Oscillator(m) => {
+                let mut s = OscillatorState::default();
+                for (k, &u) in u_v.iter().enumerate() {
+                    visit(k, m.step(&mut s, u));
+                }
+            }
+        }
+    }
+}
+
+/// Simulates two static axes with their coupling, each from rest at its first input:
+/// `y_x = z_x(k − D_x) + drift_x + κ_x·z_y(k − D_x)` and the same for y (`piezo_core::effects`).
+/// Writes `min` of the lengths samples into `y_out`.
+pub fn simulate_pair(
+    x: (&StaticModel, &Effects),
+    y: (&StaticModel, &Effects),
+    u_v: [&[f32]; 2],
+    y_out: [&mut [f32]; 2],
+) {
+    let n = u_v[0].len().min(u_v[1].len()).min(y_out[0].len()).min(y_out[1].len());
+    if n == 0 {
+        return;
+    }
+    let [ox, oy] = y_out;
+    let mut sx = ModelState::at_rest(u_v[0][0]);
+    let mut sy = ModelState::at_rest(u_v[1][0]);
+    let mut ex = EffectsState::at_rest(u_v[0][0]);
+    let mut ey = EffectsState::at_rest(u_v[1][0]);
+    for k in 0..n {
+        let wx = x.0.step(&mut sx, u_v[0][k]);
+        let wy = y.0.step(&mut sy, u_v[1][k]);
+        x.1.forward_z(&mut ex, sx.input_v, wx);
+        y.1.forward_z(&mut ey, sy.input_v, wy);
+        let kx = x.1.params().coupling;
+        let ky = y.1.params().coupling;
+        let (cx, _) = couple(kx, 0.0, x.1.delayed_z(&ex), x.1.delayed_z(&ey));
+        let (_, cy) = couple(0.0, ky, y.1.delayed_z(&ex), y.1.delayed_z(&ey));
+        ox[k] = cx + x.1.drift_m(&ex);
+        oy[k] = cy + y.1.drift_m(&ey);
+    }
+}
