@@ -26,3 +26,4 @@ pub mod plot;
 pub mod reproduce;
 pub mod signal;
 pub mod sim;
+pub mod stage_file;
