@@ -2,13 +2,12 @@
 //! linker search path (thumb targets only).
 //!
 //! # Parameters
-//! The parameter file is `firmware/params/xy-stage.toml`, or the file named by the environment
-//! variable `PIEZO_PARAMS` (absolute, or relative to `firmware/`). It is parsed (`toml`),
-//! validated with `piezo-core`'s own constructors (`BoucWen::with_input_range`,
-//! `StaticModel::new`, `Compensator::new`, and `effects::Effects::new` for the optional
-//! `[x.effects]`/`[y.effects]` tables: see `build/params.rs`) and written to
-//! `OUT_DIR/params.rs`, which `src/params.rs` includes. A refused file stops the build with a
-//! message naming the file and the field. The version string (`name version`) and an FNV-1a
+//! The stage file is `firmware/params/xy-stage.toml`, or the file named by the environment
+//! variable `PIEZO_PARAMS` (absolute, or relative to `firmware/`). It is read and validated by
+//! `piezo-stage` (the reader every tool uses, with `piezo-core`'s own constructors), checked
+//! against what this firmware drives (`build/params.rs`) and written to `OUT_DIR/params.rs`,
+//! which `src/params.rs` includes. A refused file stops the build with a message naming the
+//! file, line, column and key. The version string (`name version`) and an FNV-1a
 //! checksum of the file's bytes are part of the consts and are logged at boot.
 //!
 //! # Memory layout
@@ -93,6 +92,9 @@ fn generate_params(manifest_dir: &std::path::Path, out_dir: &std::path::Path) {
         eprintln!("error: {message}");
         std::process::exit(1);
     });
+    for warning in &set.warnings {
+        println!("cargo:warning={warning}");
+    }
     fs::write(out_dir.join("params.rs"), params::generate(&set, &given))
         .unwrap_or_else(|e| panic!("cannot write OUT_DIR/params.rs: {e}"));
 }

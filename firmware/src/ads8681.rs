@@ -106,6 +106,29 @@ impl InputRange {
         self.bits() & 0b1000 == 0
     }
 
+    /// The range whose input span is `range_v` \[V\] (the stage file's `io.adc_range_v`, checked
+    /// by `build.rs` to be one of these); the default ±10.24 V for any other.
+    pub fn from_range_v(range_v: [f32; 2]) -> Self {
+        const ALL: [InputRange; 9] = [
+            InputRange::Bipolar3x,
+            InputRange::Bipolar2_5x,
+            InputRange::Bipolar1_5x,
+            InputRange::Bipolar1_25x,
+            InputRange::Bipolar0_625x,
+            InputRange::Unipolar3x,
+            InputRange::Unipolar2_5x,
+            InputRange::Unipolar1_5x,
+            InputRange::Unipolar1_25x,
+        ];
+        let unipolar = range_v[0] >= 0.0;
+        ALL.into_iter()
+            .find(|r| {
+                r.is_bipolar() != unipolar
+                    && (r.span_volts() - (range_v[1] - range_v[0])).abs() < 1e-3
+            })
+            .unwrap_or(InputRange::Bipolar2_5x)
+    }
+
     /// Input span in volts (full scale minus zero scale): the multiple of V_REF times V_REF.
     pub fn span_volts(self) -> f32 {
         match self {

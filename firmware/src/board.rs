@@ -29,9 +29,10 @@
 //! Clocks: 8 MHz HSE crystal → PLL → SYSCLK 168 MHz, AHB 168 MHz, APB2 84 MHz, APB1 42 MHz
 //! (TIM2 kernel clock 84 MHz).
 //!
-//! Loop timer: TIM2 counts at [`LOOP_RATE_HZ`] = 10 kHz; the main loop polls its update flag
-//! ([`wait_for_tick`]) and runs one [`crate::xy_loop::TwoAxisLoop::tick`] per period. Deadline:
-//! a tick must finish within 100 µs; if the update flag is already set when the loop comes back
+//! Loop timer: TIM2 updates at [`LOOP_RATE_HZ`], the stage file's loop rate (10 kHz for the
+//! default file); the main loop polls its update flag ([`wait_for_tick`]) and runs one
+//! [`crate::xy_loop::TwoAxisLoop::tick`] per period. Deadline: a tick must finish within one
+//! period (100 µs at 10 kHz); if the update flag is already set when the loop comes back
 //! to wait, the deadline was missed and the next tick is told so (safe state, counted). Cost:
 //! two 32-bit ADC frames (1.5 µs each at 21 MHz), two 24-bit DAC frames (1.1 µs each) and the
 //! loop body (2 × 781 instructions of compensator + guard with n = 1 under QEMU, see
@@ -49,8 +50,9 @@ use crate::ads8681::{Ads8681, InputRange};
 use crate::converter::DriverError;
 use crate::dac8563::Dac8563;
 
-/// Loop rate, hertz (TIM2 update rate).
-pub const LOOP_RATE_HZ: u32 = 10_000;
+/// Loop rate, hertz (TIM2 update rate): the stage file's `stage.loop_rate_hz`, a whole number of
+/// hertz checked by `build.rs`.
+pub const LOOP_RATE_HZ: u32 = crate::params::LOOP_RATE_HZ as u32;
 
 /// The ADS8681 as an SPI device on SPI1 with CS on PE7.
 pub type AdcSpi = ExclusiveDevice<Spi<pac::SPI1>, PE7<Output>, NoDelay>;
@@ -154,9 +156,10 @@ impl Board {
 
         let mut dac = Dac8563::new(dac_spi);
         dac.init().map_err(BoardError::Dac)?;
-        let mut adc = Ads8681::new(adc_spi, InputRange::Bipolar2_5x);
+        let range = InputRange::from_range_v(crate::params::ADC_RANGE_V);
+        let mut adc = Ads8681::new(adc_spi, range);
         adc.init().map_err(BoardError::Adc)?;
-        let mut adc_y = Ads8681::new(adc_y_spi, InputRange::Bipolar2_5x);
+        let mut adc_y = Ads8681::new(adc_y_spi, range);
         adc_y.init().map_err(BoardError::AdcY)?;
 
         let mut loop_timer = dp.TIM2.counter_hz(&mut rcc);

