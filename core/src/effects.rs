@@ -1,6 +1,7 @@
-//! Effects added around the hysteresis model: creep, an even-order term of the previous command, a
-//! second-order mode, an input delay, linear drift and cross-axis coupling — each with its inverse
-//! or its place in the inverse chain.
+//! Effects added around the hysteresis model: creep (a Kelvin–Voigt bank and a logarithmic creep),
+//! an even-order term of the previous command, a second-order mode, an input delay, drift (linear
+//! and exponential settling) and cross-axis coupling — each with its inverse or its place in the
+//! inverse chain.
 //!
 //! # The forward chain (per axis, command sample j, sample period T)
 //! ```text
@@ -8,21 +9,43 @@
 //! w[j] = H(u[j])            the hysteresis model's output [m] (StaticModel, computed by the caller)
 //! c[j] = Σᵢ gᵢ·xᵢ[j]        creep bank, at most MAX_CREEP_ELEMENTS elements:
 //!        xᵢ[j] = aᵢ·xᵢ[j−1] + (1 − aᵢ)·(u[j−1] − u_ref),  aᵢ = exp(−T/τᵢ),  xᵢ[0] = 0
+//!      + g_log·½·Σₗ xₗ[j]   logarithmic creep: the same elements with τₗ = t₀·10^((l+1)/2),
+//!                           l = 0 … LOG_CREEP_ELEMENTS − 1 (half a decade apart, 6 decades)
 //! s[j] = w[j] + e·(u[j−1] − u_c)² + c[j],   u[−1] := u_c                 even-order term
 //! z[j] = M(s)[j]            second-order mode  z̈ + 2ζω·ż + ω²·z = ω²·s,  ω = 2π·f_mode
-//! y[k] = z(k − D) + r_d·k·T + κ·z_other(k − D)                           output sample k
+//! y[k] = z(k − D) + d(k·T) + κ·z_other(k − D)                           output sample k
+//! d(t) = r_d·t + A_d·(1 − exp(−t/τ_d))                                  drift
 //! ```
 //!
 //! Signs and units: gᵢ \[m/V\] (positive: the output keeps moving in the direction of a command
 //! change), τᵢ \[s\]; e \[m/V²\], u_c \[V\] (e > 0 adds upwards on both sides of u_c); f_mode \[Hz\],
 //! ζ \[1\] (unit DC gain: a constant s gives z = s); D = delay_s/T \[samples\] (the output lags);
-//! drift r_d \[m/s\] from t = 0 at the first output sample; κ \[1\] the part of the *other* axis's
-//! z that appears on this axis. All zero is the identity: y\[k\] = w\[k\].
+//! drift r_d \[m/s\] from t = 0 at the first output sample; A_d \[m\] (positive: the output settles
+//! upwards), τ_d \[s\]; g_log \[m/V per decade of time\] (positive: the output keeps moving in the
+//! direction of a command change), t₀ \[s\]; κ \[1\] the part of the *other* axis's z that appears on
+//! this axis. All zero is the identity: y\[k\] = w\[k\].
+//!
+//! | effect | fields | equation | inverse |
+//! |---|---|---|---|
+//! | creep (Kelvin–Voigt) | `creep_gain_m_per_v`, `creep_time_constant_s` | Σᵢ gᵢ·xᵢ | exact, in [`Effects::creep_m`] |
+//! | creep (logarithmic) | `log_creep_gain_m_per_v`, `log_creep_time_s` | g_log·½·Σₗ xₗ ≈ g_log·Δu·log₁₀(1 + t/t₀) after a step | exact, in [`Effects::creep_m`] |
+//! | even term | `even_coefficient_m_per_v2`, `even_center_v` | e·(u\[j−1\] − u_c)² | exact, [`Effects::even_term_m`] |
+//! | mode | `mode_frequency_hz`, `mode_damping` | z̈ + 2ζω·ż + ω²·z = ω²·s | central differences |
+//! | delay | `delay_s` | z(k − D) | reference taken ahead |
+//! | drift (linear) | `drift_rate_m_per_s` | r_d·t | subtracted, [`Effects::drift_for_command_m`] |
+//! | drift (settling) | `drift_settling_m`, `drift_settling_time_constant_s` | A_d·(1 − e^(−t/τ_d)) | subtracted, [`Effects::drift_for_command_m`] |
+//! | coupling | `coupling` | κ·z_other(k − D) | exact 2×2, [`decouple`] |
 //!
 //! * **Creep** is the exact solution of `τᵢ·ẋᵢ = −xᵢ + (u − u_ref)` for a command held from
 //!   t_{j−1} to t_j; u_ref is the first command (the state starts relaxed there). c\[j\] depends
 //!   only on u up to j−1. The state is updated in the delta form `xᵢ += (1 − aᵢ)·(Δu − xᵢ)` with
 //!   `1 − aᵢ = −expm1(−T/τᵢ)` from f64, exact in f32 also for τᵢ ≫ T.
+//! * **Logarithmic creep**: the creep of a piezo stack after a step Δu grows as
+//!   g_log·Δu·log₁₀(t/t₀) over decades. It is run as a fixed bank of LOG_CREEP_ELEMENTS elements
+//!   of the creep's form (same input u\[j−1\] − u_ref, same update), τₗ = t₀·10^((l+1)/2), each of
+//!   weight g_log/2: after a step its response is g_log·Δu·log₁₀(1 + t/t₀) within ±0.11·g_log·Δu for
+//!   t ≤ 10^5.5·t₀, and it levels off at 6·g_log·Δu beyond 10^6·t₀. Superposed over every
+//!   command change; it depends only on u up to j−1, so it enters the inverse with the creep.
 //! * **Even term** `e·(u[j−1] − u_c)²` on the *previous* command u\[j−1\] (the last command the
 //!   state has seen, the same one the creep uses; u\[−1\] := u_c, so the term is 0 at the first
 //!   sample). Electrostriction is an even function of the drive voltage; evaluated at the previous
@@ -44,7 +67,10 @@
 //!   taken as that number). `z(k − D)` interpolates linearly between the two z samples around it;
 //!   z before the first sample is z\[0\]. The z samples are kept in a fixed ring of
 //!   MAX_DELAY_SAMPLES + 2 values inside [`EffectsState`].
-//! * **Drift** adds `r_d·t_k`, t_k = k·T, k counted from the first sample.
+//! * **Drift** adds `d(t_k) = r_d·t_k + A_d·(1 − e^(−t_k/τ_d))`, t_k = k·T, k counted from the first
+//!   sample: a slow function of time that does not depend on u (linear drift and exponential
+//!   settling, e.g. thermal; a constant offset is the static map's `offset_m`). Computed as
+//!   `−A_d·expm1(−t/τ_d)`.
 //! * **Coupling** (two axes, each axis's κ in its own parameters): with both axes' delayed z,
 //!   `y_x = zx_d + drift_x + κ_x·zy_d`, `y_y = zy_d + drift_y + κ_y·zx_d` ([`couple`]); the other
 //!   axis's z is delayed by *this* axis's D: `effects_x.delayed_z(&state_y)`. |κ| < 0.5.
@@ -55,7 +81,7 @@
 //! 1. **delay**: take y*(j + D), interpolated linearly from the integer reference samples
 //!    ([`Effects::interpolate_reference`], [`Effects::reference_index_offset`]); the controller
 //!    needs the reference [`Effects::lead_samples`] samples ahead of the current command;
-//! 2. **drift**: subtract `r_d·(j + D)·T` ([`Effects::drift_for_command_m`]); steps 1 and 2 for one
+//! 2. **drift**: subtract `d((j + D)·T)` ([`Effects::drift_for_command_m`]); steps 1 and 2 for one
 //!    axis: [`Effects::desired_z_m`];
 //! 3. **coupling**: for two axes, `(zx*, zy*) = decouple(κ_x, κ_y, ·, ·)` (exact 2×2 inverse);
 //! 4. **mode**: the continuous-time inverse with central differences over T,
@@ -82,6 +108,8 @@ use crate::static_model::{ModelState, StaticModel};
 
 /// Largest number of creep elements.
 pub const MAX_CREEP_ELEMENTS: usize = 3;
+/// Number of elements of the logarithmic creep's fixed bank (half a decade apart: 6 decades).
+pub const LOG_CREEP_ELEMENTS: usize = 12;
 /// Largest input delay, in sample periods.
 pub const MAX_DELAY_SAMPLES: usize = 64;
 /// Largest accepted mode frequency, as a fraction of the sample rate.
@@ -133,6 +161,18 @@ pub struct EffectParams {
     pub drift_rate_m_per_s: f32,
     /// κ \[1\]: the part of the other axis's z added to this axis's output, |κ| < 0.5.
     pub coupling: f32,
+    /// A_d in the settling drift A_d·(1 − exp(−t/τ_d)) \[m\], from t = 0 at the first sample
+    /// (positive: the output settles upwards; any finite value, 0: none).
+    pub drift_settling_m: f32,
+    /// τ_d of the settling drift \[s\], > 0 when `drift_settling_m` ≠ 0 (ignored, but finite,
+    /// otherwise).
+    pub drift_settling_time_constant_s: f32,
+    /// g_log \[m/V per decade of time\]: after a command step Δu the logarithmic creep adds about
+    /// g_log·Δu·log₁₀(1 + t/t₀) (positive: in the direction of the step; any finite value, 0: none).
+    pub log_creep_gain_m_per_v: f32,
+    /// t₀ of the logarithmic creep \[s\], > 0 when `log_creep_gain_m_per_v` ≠ 0: the shortest of
+    /// its time constants is √10·t₀ (ignored, but finite, otherwise).
+    pub log_creep_time_s: f32,
 }
 
 /// Reads a sequence of at most [`MAX_CREEP_ELEMENTS`] numbers (missing elements 0).
@@ -147,7 +187,10 @@ where
         fn expecting(&self, f: &mut core::fmt::Formatter) -> core::fmt::Result {
             write!(f, "an array of at most {MAX_CREEP_ELEMENTS} numbers")
         }
-        fn visit_seq<A: serde::de::SeqAccess<'de>>(self, mut seq: A) -> Result<Self::Value, A::Error> {
+        fn visit_seq<A: serde::de::SeqAccess<'de>>(
+            self,
+            mut seq: A,
+        ) -> Result<Self::Value, A::Error> {
             let mut out = [0.0f32; MAX_CREEP_ELEMENTS];
             let mut len = 0;
             while let Some(v) = seq.next_element::<f32>()? {
@@ -200,6 +243,12 @@ pub struct Effects {
     delay_whole: usize,
     /// D − ⌊D⌋ ∈ \[0, 1).
     delay_fraction: f32,
+    /// 1 − exp(−T/τₗ) of the logarithmic creep's elements (0 without it).
+    log_creep_rate: [f32; LOG_CREEP_ELEMENTS],
+    /// g_log/2: the weight of each logarithmic creep element \[m/V\].
+    log_creep_weight: f32,
+    /// 1/τ_d \[1/s\] (0 without a settling drift).
+    drift_settling_rate_per_s: f32,
 }
 
 /// The state of the effects of one axis (creep, mode, delay line, sample counter).
@@ -207,6 +256,8 @@ pub struct Effects {
 pub struct EffectsState {
     /// xᵢ for the next sample \[V\].
     creep_v: [f32; MAX_CREEP_ELEMENTS],
+    /// xₗ of the logarithmic creep for the next sample \[V\].
+    log_creep_v: [f32; LOG_CREEP_ELEMENTS],
     /// u_ref: the first command \[V\].
     input_reference_v: f32,
     /// The last command u\[j−1\] \[V\] (held for a non-finite one; meaningless before the first).
@@ -239,6 +290,7 @@ impl EffectsState {
     pub const fn new() -> Self {
         Self {
             creep_v: [0.0; MAX_CREEP_ELEMENTS],
+            log_creep_v: [0.0; LOG_CREEP_ELEMENTS],
             input_reference_v: 0.0,
             previous_input_v: 0.0,
             previous_w_m: 0.0,
@@ -367,6 +419,26 @@ impl Effects {
         let delay_fraction = (d - delay_whole as f64) as f32;
 
         finite("drift_rate_m_per_s", params.drift_rate_m_per_s)?;
+        let settling = finite("drift_settling_m", params.drift_settling_m)?;
+        let settling_tau = finite(
+            "drift_settling_time_constant_s",
+            params.drift_settling_time_constant_s,
+        )?;
+        let mut drift_settling_rate_per_s = 0.0;
+        if settling != 0.0 {
+            positive("drift_settling_time_constant_s", settling_tau)?;
+            drift_settling_rate_per_s = (1.0 / f64::from(settling_tau)) as f32;
+        }
+        let log_gain = finite("log_creep_gain_m_per_v", params.log_creep_gain_m_per_v)?;
+        let log_t0 = finite("log_creep_time_s", params.log_creep_time_s)?;
+        let mut log_creep_rate = [0.0f32; LOG_CREEP_ELEMENTS];
+        if log_gain != 0.0 {
+            positive("log_creep_time_s", log_t0)?;
+            for (l, rate) in log_creep_rate.iter_mut().enumerate() {
+                let tau = f64::from(log_t0) * libm::pow(10.0, 0.5 * (l + 1) as f64);
+                *rate = -libm::expm1(-f64::from(t) / tau) as f32;
+            }
+        }
         let coupling = finite("coupling", params.coupling)?;
         if libm::fabsf(coupling) >= MAX_COUPLING {
             return Err(ParamError::OutOfRange {
@@ -385,6 +457,9 @@ impl Effects {
             delay_samples: d as f32,
             delay_whole,
             delay_fraction,
+            log_creep_rate,
+            log_creep_weight: 0.5 * log_gain,
+            drift_settling_rate_per_s,
         })
     }
 
@@ -398,8 +473,8 @@ impl Effects {
         self.sample_period_s
     }
 
-    /// Whether the chain is the identity (no creep, no even term, no mode, no delay, no drift, no
-    /// coupling): then y\[k\] = w\[k\].
+    /// Whether the chain is the identity (no creep of either kind, no even term, no mode, no delay,
+    /// no drift of either kind, no coupling): then y\[k\] = w\[k\].
     pub fn is_identity(&self) -> bool {
         let p = &self.params;
         self.creep_gain.iter().all(|&g| g == 0.0)
@@ -408,6 +483,8 @@ impl Effects {
             && self.delay_samples == 0.0
             && p.drift_rate_m_per_s == 0.0
             && p.coupling == 0.0
+            && p.drift_settling_m == 0.0
+            && self.log_creep_weight == 0.0
     }
 
     /// Whether the second-order mode is present.
@@ -448,11 +525,24 @@ impl Effects {
         }
     }
 
-    /// The drift r_d·(j + D)·T \[m\] at the output time of command j.
+    /// The drift d(t) = r_d·t + A_d·(1 − e^(−t/τ_d)) \[m\] at t = (j + D)·T, the output time of
+    /// command j.
     #[inline]
     pub fn drift_for_command_m(&self, command_index: usize) -> f32 {
         let t = (command_index as f32 + self.delay_samples) * self.sample_period_s;
-        bounded(self.params.drift_rate_m_per_s * t)
+        self.drift_at(t)
+    }
+
+    /// d(t) = r_d·t + A_d·(1 − e^(−t/τ_d)) \[m\], t ≥ 0 \[s\] from the first sample.
+    #[inline]
+    fn drift_at(&self, t_s: f32) -> f32 {
+        let linear = self.params.drift_rate_m_per_s * t_s;
+        let settling = if self.drift_settling_rate_per_s == 0.0 {
+            0.0
+        } else {
+            -self.params.drift_settling_m * libm::expm1f(-t_s * self.drift_settling_rate_per_s)
+        };
+        bounded(bounded(linear) + bounded(settling))
     }
 
     /// Single-axis steps 1 and 2 of the inverse: z*\[j\] = y*(j + D) − r_d·(j + D)·T \[m\], from the
@@ -480,12 +570,20 @@ impl Effects {
         bounded(e * d * d)
     }
 
-    /// The creep c\[j\] = Σ gᵢ·xᵢ\[j\] \[m\] of the next sample to process.
+    /// The creep c\[j\] = Σ gᵢ·xᵢ\[j\] + g_log·½·Σₗ xₗ\[j\] \[m\] of the next sample to process (the
+    /// Kelvin–Voigt bank and the logarithmic creep).
     #[inline]
     pub fn creep_m(&self, state: &EffectsState) -> f32 {
         let mut c = 0.0;
         for (g, x) in self.creep_gain.iter().zip(state.creep_v.iter()) {
             c += g * x;
+        }
+        if self.log_creep_weight != 0.0 {
+            let mut sum = 0.0;
+            for x in state.log_creep_v.iter() {
+                sum += x;
+            }
+            c += self.log_creep_weight * bounded(sum);
         }
         bounded(c)
     }
@@ -508,6 +606,7 @@ impl Effects {
         if !state.started && !state.rested {
             state.input_reference_v = u;
             state.creep_v = [0.0; MAX_CREEP_ELEMENTS];
+            state.log_creep_v = [0.0; LOG_CREEP_ELEMENTS];
         }
         let s = bounded(w + self.even_term_m(state) + self.creep_m(state));
         let z = match &self.mode {
@@ -539,6 +638,11 @@ impl Effects {
         for (x, rate) in state.creep_v.iter_mut().zip(self.creep_rate.iter()) {
             *x += rate * (du - *x);
         }
+        if self.log_creep_weight != 0.0 {
+            for (x, rate) in state.log_creep_v.iter_mut().zip(self.log_creep_rate.iter()) {
+                *x += rate * (du - *x);
+            }
+        }
         state.previous_input_v = u;
         state.previous_w_m = w;
         state.started = true;
@@ -559,14 +663,15 @@ impl Effects {
         }
     }
 
-    /// The drift r_d·t_k \[m\] at the current output sample k (0 before any sample).
+    /// The drift d(t_k) = r_d·t_k + A_d·(1 − e^(−t_k/τ_d)) \[m\] at the current output sample k
+    /// (0 before any sample).
     #[inline]
     pub fn drift_m(&self, state: &EffectsState) -> f32 {
         let k = state.samples.saturating_sub(1) as f32;
-        bounded(self.params.drift_rate_m_per_s * (k * self.sample_period_s))
+        self.drift_at(k * self.sample_period_s)
     }
 
-    /// Single-axis output y\[k\] = z(k − D) + r_d·t_k \[m\] at the current output sample (no coupling).
+    /// Single-axis output y\[k\] = z(k − D) + d(t_k) \[m\] at the current output sample (no coupling).
     #[inline]
     pub fn output_m(&self, state: &EffectsState) -> f32 {
         self.delayed_z(state) + self.drift_m(state)
