@@ -1,5 +1,6 @@
-//! Two jobs: turn the parameter file into Rust consts, and put the right `memory.x` on the
-//! linker search path (thumb targets only).
+//! Three jobs: turn the parameter file into Rust consts, turn the reference record of the
+//! `replay` image into a const table, and put the right `memory.x` on the linker search path
+//! (thumb targets only).
 //!
 //! # Parameters
 //! The stage file is `firmware/params/xy-stage.toml`, or the file named by the environment
@@ -9,6 +10,12 @@
 //! which `src/params.rs` includes. A refused file stops the build with a message naming the
 //! file, line, column and key. The version string (`name version`) and an FNV-1a
 //! checksum of the file's bytes are part of the consts and are logged at boot.
+//!
+//! # Reference table
+//! The record named by the environment variable `PIEZO_REFERENCE` (a CSV with `t_s` and `r_m`,
+//! or `rx_m` and `ry_m`, at the stage file's loop rate; path absolute or relative to
+//! `firmware/`; `build/reference.rs`) is written to `OUT_DIR/reference.rs`, which the `replay`
+//! image includes. Unset: an empty table.
 //!
 //! # Memory layout
 //!
@@ -33,6 +40,8 @@ use std::path::PathBuf;
 
 #[path = "build/params.rs"]
 mod params;
+#[path = "build/reference.rs"]
+mod reference;
 
 /// Default parameter file, relative to `firmware/`.
 const DEFAULT_PARAMS: &str = "params/xy-stage.toml";
@@ -41,7 +50,8 @@ fn main() {
     let manifest_dir =
         PathBuf::from(env::var("CARGO_MANIFEST_DIR").expect("cargo sets CARGO_MANIFEST_DIR"));
     let out_dir = PathBuf::from(env::var("OUT_DIR").expect("cargo sets OUT_DIR"));
-    generate_params(&manifest_dir, &out_dir);
+    let loop_rate_hz = generate_params(&manifest_dir, &out_dir);
+    generate_reference(&manifest_dir, &out_dir, loop_rate_hz);
     let board_layout = manifest_dir.join("..").join("memory.x");
     let qemu_layout = manifest_dir.join("memory-mps2-an386.x");
     println!("cargo:rerun-if-changed=build.rs");
@@ -74,8 +84,8 @@ fn main() {
 }
 
 /// Parses and validates the parameter file and writes `OUT_DIR/params.rs`; exits with a message
-/// naming the file and field if the file is refused.
-fn generate_params(manifest_dir: &std::path::Path, out_dir: &std::path::Path) {
+/// naming the file and field if the file is refused. Returns the loop rate \[Hz\].
+fn generate_params(manifest_dir: &std::path::Path, out_dir: &std::path::Path) -> f32 {
     println!("cargo:rerun-if-env-changed=PIEZO_PARAMS");
     println!("cargo:rerun-if-changed=build/params.rs");
     let given = env::var("PIEZO_PARAMS").unwrap_or_else(|_| DEFAULT_PARAMS.to_string());
@@ -97,4 +107,42 @@ fn generate_params(manifest_dir: &std::path::Path, out_dir: &std::path::Path) {
     }
     fs::write(out_dir.join("params.rs"), params::generate(&set, &given))
         .unwrap_or_else(|e| panic!("cannot write OUT_DIR/params.rs: {e}"));
+    set.loop_rate_hz
+}
+
+/// Reads the record named by `PIEZO_REFERENCE` (if set) and writes `OUT_DIR/reference.rs`;
+/// exits with a message naming the file, line and column if it is refused.
+fn generate_reference(manifest_dir: &std::path::Path, out_dir: &std::path::Path, rate_hz: f32) {
+    println!("cargo:rerun-if-env-changed=PIEZO_REFERENCE");
+    println!("cargo:rerun-if-changed=build/reference.rs");
+    let (table, given) = match env::var("PIEZO_REFERENCE") {
+        Ok(given) if !given.is_empty() => {
+            let path = manifest_dir.join(&given);
+            println!("cargo:rerun-if-changed={}", path.display());
+            let text = fs::read_to_string(&path).unwrap_or_else(|e| {
+                eprintln!(
+                    "error: reference record {} (PIEZO_REFERENCE={given}): {e}",
+                    path.display()
+                );
+                std::process::exit(1);
+            });
+            let table = reference::parse(&given, &text, rate_hz).unwrap_or_else(|message| {
+                eprintln!("error: {message}");
+                std::process::exit(1);
+            });
+            (table, given)
+        }
+        _ => (
+            reference::Table {
+                samples_m: Vec::new(),
+                axes: 1,
+            },
+            String::new(),
+        ),
+    };
+    fs::write(
+        out_dir.join("reference.rs"),
+        reference::generate(&table, &given),
+    )
+    .unwrap_or_else(|e| panic!("cannot write OUT_DIR/reference.rs: {e}"));
 }

@@ -4,7 +4,8 @@
 //! identification all call: the rate-independent Bouc-Wen operator stepped in input increments
 //! ([`bouc_wen`]), its output maps — the static map of seed 001 with its asymmetric variant
 //! ([`static_model`]) and the mass–spring–damper of seed 000 ([`dynamic_model`]) — the inverse
-//! feedforward compensator ([`compensator`]), the error measures of the seeds ([`metrics`]), and the
+//! feedforward compensator ([`compensator`]), the two-axis inverse of the effect chain around it
+//! ([`inverse_chain`]), the error measures of the seeds ([`metrics`]), and the
 //! hysteretic oscillator of the Bouc-Wen benchmark ([`oscillator`]).
 //!
 //! `no_std`, no allocation, `unsafe` forbidden, f32 on the per-sample path, SI units (volts, metres,
@@ -20,6 +21,7 @@ pub mod compensator;
 pub mod dynamic_model;
 pub mod effects;
 pub mod error;
+pub mod inverse_chain;
 pub mod math;
 pub mod metrics;
 pub mod oscillator;
@@ -29,5 +31,8 @@ pub use bouc_wen::{max_input_span, BoucWen, BoucWenParams, BoundClass, Hysteresi
 pub use compensator::{Command, CommandStatus, Compensator, CompensatorSettings, CompensatorState};
 pub use dynamic_model::{DynamicModel, DynamicState, MassSpringDamperParams};
 pub use error::{ParamError, MIN_SLOPE_RATIO};
+pub use inverse_chain::{
+    compensate_pair, compensate_single, FeedforwardAxis, FeedforwardCounts, InverseChain,
+};
 pub use oscillator::{HystereticOscillator, OscillatorParams, OscillatorState};
 pub use static_model::{Asymmetry, ModelState, StaticMap, StaticModel, ASYMMETRIC_STATE_FACTOR};

@@ -28,7 +28,9 @@
 //! When the parameter file has effects (`[x.effects]`, `[y.effects]`: creep, even term, mode,
 //! delay, drift, coupling; [`AxisConfig::effects`]) and the feed-forward is the compensator, the
 //! loop runs the inverse of the effect chain around the compensator
-//! ([`crate::inverse_chain::InverseChain`]): the reference generator is sampled
+//! (`piezo_core::inverse_chain::InverseChain`, re-exported as
+//! [`crate::inverse_chain::InverseChain`]; both axes' effects states start at rest at the initial
+//! voltages, `EffectsState::at_rest`, as the compensators do): the reference generator is sampled
 //! `L = M + max ⌈D⌉` ticks ahead (L ticks of added latency for streamed setpoints and program
 //! switches), the desired z of both axes is decoupled, and the compensator is given
 //! `w* = Effects::inverse_target_w(…)` instead of r; after the DAC write each axis's effects state
@@ -432,7 +434,9 @@ pub struct TwoAxisLoop {
 }
 
 impl TwoAxisLoop {
-    /// A running loop whose actuators are at `initial_v` (the voltages the DACs hold now).
+    /// A running loop whose actuators are at `initial_v` (the voltages the DACs hold now): the
+    /// compensators and the effect chain start at rest there (the stage's rest voltage, the lower
+    /// end of the window, for a stage that was left unpowered).
     pub fn new(
         settings: LoopSettings,
         feedforward: Feedforward,
@@ -444,9 +448,10 @@ impl TwoAxisLoop {
             settings.axes[1].limits.state(initial_v[1]),
         ];
         let chain = match feedforward {
-            Feedforward::Compensator => {
-                InverseChain::new([settings.axes[0].effects, settings.axes[1].effects])
-            }
+            Feedforward::Compensator => InverseChain::new(
+                [settings.axes[0].effects, settings.axes[1].effects],
+                [guard[0].last_safe_volts(), guard[1].last_safe_volts()],
+            ),
             Feedforward::Linear => None,
         };
         Self {
@@ -581,7 +586,10 @@ impl TwoAxisLoop {
         ];
         if self.mode == Mode::Running {
             let (reference, target) = match self.chain.as_mut() {
-                Some(chain) if EFFECTS => chain.next_targets(&mut self.reference),
+                Some(chain) if EFFECTS => {
+                    let reference = &mut self.reference;
+                    chain.next_targets(|| reference.next_setpoint())
+                }
                 _ => {
                     let r = self.reference.next_setpoint();
                     (r, r)

@@ -50,7 +50,11 @@ impl Stage {
                 axes[0].effect_chain(SAMPLE_PERIOD_S).unwrap(),
                 axes[1].effect_chain(SAMPLE_PERIOD_S).unwrap(),
             ],
-            state: [EffectsState::new(); 2],
+            // At rest at the rest voltage, as the loop assumes (the start rule of every tool).
+            state: [
+                EffectsState::at_rest(axes[0].output_min_v),
+                EffectsState::at_rest(axes[1].output_min_v),
+            ],
         }
     }
 

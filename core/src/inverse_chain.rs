@@ -1,0 +1,615 @@
+//! The inverse of the effect chain ([`crate::effects`]) around the compensator, per tick, for two
+//! axes: what the firmware's loop runs when the stage file has effects, and what
+//! [`compensate_pair`] / [`compensate_single`] run over a whole reference record on the host.
+//!
+//! # The forward chain it inverts (per axis, command sample j, loop period T)
+//! ```text
+//! w[j] = H(u[j])                                   hysteresis model (the compensator's)  [m]
+//! s[j] = w[j] + e·(u[j−1] − u_c)² + Σᵢ gᵢ·xᵢ[j]    even term and creep (known before u[j])
+//! z[j] = M(s)[j]                                   second-order mode (unit DC gain)
+//! y[k] = z(k − D) + d(k·T) + κ·z_other(k − D)      delay D [samples], drift d [m], coupling κ
+//! ```
+//!
+//! # One tick ([`InverseChain::next_targets`], then [`InverseChain::commit`])
+//! The reference is a function of the tick index that the chain samples
+//! `L = M + max_axes ⌈D⌉` ticks ahead (M = 1 if either axis has a mode, for the mode inverse's
+//! central difference; L ≤ 65) into a ring of [`REFERENCE_RING`] samples: at reference tick j the
+//! ring holds r\[0..=j + L\] (the last [`REFERENCE_RING`] of them). Where the samples come from is
+//! the caller's: a closure that yields the next reference sample pair \[m\] each time it is
+//! called (the firmware's waveform generator or setpoint stream, a record on the host). With
+//! q = j + M, per axis (c = the command index, the number of commands committed so far):
+//!
+//! 1. delay and drift: `d[q] = y*(q + D) − d((c + M + D)·T)` (linear interpolation between the
+//!    ring samples q + ⌊D⌋ and q + ⌊D⌋ + 1: [`Effects::interpolate_reference`],
+//!    [`Effects::drift_for_command_m`]);
+//! 2. coupling: `(z*_x[q], z*_y[q]) = decouple(κ_x, κ_y, d_x[q], d_y[q])` — exact also for
+//!    different delays, since each axis's output at q + D is `z[q] + κ·z_other[q]`
+//!    (skipped, κ = 0, for a single axis: [`InverseChain::single`]);
+//! 3. the last three z\* per axis, `z*[q−2], z*[q−1], z*[q]`, give (z\*\[j−1\], z\*\[j\],
+//!    z\*\[j+1\]) to [`Effects::inverse_target_w`] (mode, creep, even term): the target w\*\[j\]
+//!    for the compensator;
+//! 4. after the voltage is applied, [`InverseChain::commit`] advances each axis's effects state
+//!    with the voltage actually applied and the w the compensator's model reached — every tick,
+//!    so that the creep, mode, delay line and drift clock follow the stage (a caller that holds
+//!    its output, e.g. in a safe state, commits the held voltage).
+//!
+//! At the first tick the ring is filled with r\[0..=L\] and z\* before the first sample is
+//! z\*\[0\] (as [`crate::effects::compensate_axis`]). The reference reported for tick j is r\[j\]:
+//! the stage output the command of tick j aims at appears at sample j (after the delay).
+//!
+//! # Start
+//! A run starts at rest at the stage's rest voltage u0 (the lower end of the output window):
+//! each axis's effects state is [`EffectsState::at_rest`]`(u0)` (the creep relaxed at u0, the
+//! even term of the first sample at u0) and its compensator state
+//! [`CompensatorState::at_rest`]`(u0)`.
+//!
+//! Never panics, no allocation: ring indices are masked with a power of two, history indices are
+//! constants. A non-finite reference sample gives a NaN target, and the compensator holds its
+//! voltage for the up to three ticks that sample is in the history.
+
+use crate::compensator::{CommandStatus, Compensator, CompensatorState};
+use crate::effects::{decouple, Effects, EffectsState};
+
+/// Reference samples kept: a power of two above the largest lead (1 + 64 samples) + 1.
+pub const REFERENCE_RING: usize = 128;
+const RING_MASK: u32 = REFERENCE_RING as u32 - 1;
+
+/// The inverse effect chain of two axes: settings, effect states, desired-z history and the
+/// reference samples taken ahead.
+#[derive(Clone, Debug)]
+pub struct InverseChain {
+    effects: [Effects; 2],
+    state: [EffectsState; 2],
+    /// κ_x, κ_y used by the decoupling (0 for a single axis).
+    coupling: [f32; 2],
+    /// Per axis z\*\[q − 2\], z\*\[q − 1\], z\*\[q\] \[m\], q = j + M.
+    desired_z_m: [[f32; 3]; 2],
+    /// `ring[s & RING_MASK]` = reference sample s (both axes) \[m\].
+    ring: [[f32; 2]; REFERENCE_RING],
+    /// Reference samples taken from the source (wrapping).
+    pulled: u32,
+    /// Reference index j of the next tick (wrapping).
+    index: u32,
+    /// L: how far ahead of tick j the reference is sampled.
+    lead: u32,
+    /// M: 1 if either axis has a mode (z\*\[j + 1\] is needed), else 0.
+    mode_lead: u32,
+    primed: bool,
+}
+
+impl InverseChain {
+    /// The chain of two coupled axes (x, y) whose runs start at rest at `rest_v` \[V\]; `None`
+    /// when both effects are the identity (then the reference is the compensator's target).
+    pub fn new(effects: [Effects; 2], rest_v: [f32; 2]) -> Option<Self> {
+        let coupling = [effects[0].params().coupling, effects[1].params().coupling];
+        Self::build(effects, rest_v, coupling)
+    }
+
+    /// The chain of one axis, starting at rest at `rest_v` \[V\]: its coupling is not applied
+    /// (there is no other axis). It runs in both lanes: yield `[r, r]` and use lane 0 (the
+    /// targets of lane 1 are the same). `None` when the effects are the identity.
+    pub fn single(effects: Effects, rest_v: f32) -> Option<Self> {
+        Self::build([effects; 2], [rest_v; 2], [0.0; 2])
+    }
+
+    fn build(effects: [Effects; 2], rest_v: [f32; 2], coupling: [f32; 2]) -> Option<Self> {
+        if effects.iter().all(Effects::is_identity) {
+            return None;
+        }
+        let mode_lead = u32::from(effects.iter().any(Effects::has_mode));
+        // ⌈D⌉ per axis: the lead without the mode's extra sample.
+        let delay_lead = effects
+            .iter()
+            .map(|e| e.lead_samples() - usize::from(e.has_mode()))
+            .max()
+            .unwrap_or(0) as u32;
+        Some(Self {
+            effects,
+            state: [
+                EffectsState::at_rest(rest_v[0]),
+                EffectsState::at_rest(rest_v[1]),
+            ],
+            coupling,
+            desired_z_m: [[0.0; 3]; 2],
+            ring: [[0.0; 2]; REFERENCE_RING],
+            pulled: 0,
+            index: 0,
+            lead: mode_lead + delay_lead,
+            mode_lead,
+            primed: false,
+        })
+    }
+
+    /// L: ticks the reference is sampled ahead of the reference of the current tick.
+    pub fn lead_ticks(&self) -> u32 {
+        self.lead
+    }
+
+    /// The effects of the two lanes (x, y).
+    pub fn effects(&self) -> &[Effects; 2] {
+        &self.effects
+    }
+
+    /// The effects states (x, y): the controller's copy of the stage's creep, mode, delay line
+    /// and drift clock.
+    pub fn states(&self) -> &[EffectsState; 2] {
+        &self.state
+    }
+
+    #[inline(always)]
+    fn push(&mut self, sample: [f32; 2]) {
+        self.ring[(self.pulled & RING_MASK) as usize] = sample;
+        self.pulled = self.pulled.wrapping_add(1);
+    }
+
+    #[inline(always)]
+    fn sample(&self, index: u32, axis: usize) -> f32 {
+        let s = &self.ring[(index & RING_MASK) as usize];
+        if axis == 0 {
+            s[0]
+        } else {
+            s[1]
+        }
+    }
+
+    /// Step 1 for axis `axis` at reference index `q` (command index `command`): y\*(q + D) minus
+    /// the drift at that output time.
+    #[inline(always)]
+    fn delayed_reference(&self, axis: usize, q: u32, command: u32) -> f32 {
+        let e = if axis == 0 {
+            &self.effects[0]
+        } else {
+            &self.effects[1]
+        };
+        let at = q.wrapping_add(e.reference_index_offset() as u32);
+        let after = if e.delay_fraction() > 0.0 {
+            at.wrapping_add(1)
+        } else {
+            at
+        };
+        e.interpolate_reference(self.sample(at, axis), self.sample(after, axis))
+            - e.drift_for_command_m(command as usize)
+    }
+
+    /// Steps 1 and 2 for both axes at reference index `q`, `ahead` = q − j command samples after
+    /// the current command.
+    #[inline(always)]
+    fn desired(&self, q: u32, ahead: u32) -> (f32, f32) {
+        let command = self.state[0].samples().wrapping_add(ahead);
+        let dx = self.delayed_reference(0, q, command);
+        let dy = self.delayed_reference(1, q, command);
+        let [kx, ky] = self.coupling;
+        let (zx, zy) = decouple(kx, ky, dx, dy);
+        // `decouple` holds its results finite; a non-finite reference must reach the compensator
+        // as NaN (hold), on its own axis and on the axis that couples it in.
+        let (x_ok, y_ok) = (dx.is_finite(), dy.is_finite());
+        (
+            if x_ok && (y_ok || kx == 0.0) {
+                zx
+            } else {
+                f32::NAN
+            },
+            if y_ok && (x_ok || ky == 0.0) {
+                zy
+            } else {
+                f32::NAN
+            },
+        )
+    }
+
+    /// One tick: takes the next reference sample pair from `next_reference` (the first time,
+    /// the L + 1 first ones), and returns the reference of this tick r\[j\] \[m\] and the targets
+    /// w\*\[j\] \[m\] for the compensators (NaN where a reference sample is not finite).
+    #[inline]
+    pub fn next_targets(
+        &mut self,
+        mut next_reference: impl FnMut() -> [f32; 2],
+    ) -> ([f32; 2], [f32; 2]) {
+        let j = self.index;
+        let q = j.wrapping_add(self.mode_lead);
+        if self.primed {
+            self.push(next_reference());
+            let (zx, zy) = self.desired(q, self.mode_lead);
+            for (history, z) in self.desired_z_m.iter_mut().zip([zx, zy]) {
+                *history = [history[1], history[2], z];
+            }
+        } else {
+            for _ in 0..=self.lead {
+                self.push(next_reference());
+            }
+            // z* before the first sample is z*[0].
+            let (x0, y0) = self.desired(j, 0);
+            let (x1, y1) = self.desired(q, self.mode_lead);
+            self.desired_z_m = if self.mode_lead == 1 {
+                [[x0, x0, x1], [y0, y0, y1]]
+            } else {
+                [[x0, x0, x0], [y0, y0, y0]]
+            };
+            self.primed = true;
+        }
+        let now = [self.sample(j, 0), self.sample(j, 1)];
+        let mut target = [0.0; 2];
+        for ((t, (e, s)), h) in target
+            .iter_mut()
+            .zip(self.effects.iter().zip(self.state.iter()))
+            .zip(self.desired_z_m.iter())
+        {
+            let (previous, current, next) = if self.mode_lead == 1 {
+                (h[0], h[1], h[2])
+            } else {
+                (h[1], h[2], h[2])
+            };
+            *t = e.inverse_target_w(s, previous, current, next);
+        }
+        self.index = j.wrapping_add(1);
+        (now, target)
+    }
+
+    /// Advances axis `axis`'s effects state with the voltage applied this tick `applied_v` \[V\]
+    /// and the hysteresis output the compensator's model reached `w_m` \[m\]. Call every tick for
+    /// each axis, also while the output is held. An axis index above 1 is ignored.
+    #[inline]
+    pub fn commit(&mut self, axis: usize, applied_v: f32, w_m: f32) {
+        if let (Some(e), Some(s)) = (self.effects.get(axis), self.state.get_mut(axis)) {
+            e.commit_command(s, applied_v, w_m);
+        }
+    }
+}
+
+/// One axis of a feed-forward run over a record: the compensator (its window and slew limit),
+/// the effects around the model, and the voltage the stage rests at before the run \[V\]
+/// (the lower end of the window for the firmware and the stage file's tools).
+#[derive(Clone, Copy, Debug)]
+pub struct FeedforwardAxis {
+    /// The inverse hysteresis compensator.
+    pub compensator: Compensator,
+    /// The effects around the model, at the compensator's sample period.
+    pub effects: Effects,
+    /// u0: the run starts at rest here \[V\].
+    pub rest_v: f32,
+}
+
+/// What the compensators did over a run, summed over the axes.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct FeedforwardCounts {
+    /// Ticks run.
+    pub ticks: usize,
+    /// Samples where the window or the slew limit stopped the voltage short of the target.
+    pub limited: usize,
+    /// Samples with a non-finite target, held at the last voltage.
+    pub held: usize,
+}
+
+/// The reference sample `k` of a record, its last sample past the end (NaN if empty).
+#[inline]
+fn held_sample(reference_m: &[f32], k: usize) -> f32 {
+    reference_m
+        .get(k)
+        .or(reference_m.last())
+        .copied()
+        .unwrap_or(f32::NAN)
+}
+
+/// The per-tick chain over `ticks` ticks for `lanes` (1 or 2) axes of `axes`: the targets from
+/// `chain` (or the reference itself without one), each lane's compensator, then the commit.
+fn run(
+    axes: [&FeedforwardAxis; 2],
+    lanes: usize,
+    mut chain: Option<InverseChain>,
+    ticks: usize,
+    mut next_reference: impl FnMut() -> [f32; 2],
+    mut write: impl FnMut(usize, [f32; 2]),
+) -> FeedforwardCounts {
+    let mut state = axes.map(|a| CompensatorState::at_rest(a.rest_v));
+    let mut counts = FeedforwardCounts {
+        ticks,
+        ..FeedforwardCounts::default()
+    };
+    for j in 0..ticks {
+        let (_, target) = match chain.as_mut() {
+            Some(c) => c.next_targets(&mut next_reference),
+            None => {
+                let r = next_reference();
+                (r, r)
+            }
+        };
+        let mut u = [f32::NAN; 2];
+        for (i, ((axis, state), (target, u))) in axes
+            .iter()
+            .zip(state.iter_mut())
+            .zip(target.iter().zip(u.iter_mut()))
+            .enumerate()
+            .take(lanes)
+        {
+            let command = axis.compensator.compensate(state, *target);
+            match command.status {
+                CommandStatus::Tracking => {}
+                CommandStatus::Limited => counts.limited += 1,
+                CommandStatus::HeldInvalidReference => counts.held += 1,
+            }
+            if let Some(c) = chain.as_mut() {
+                c.commit(
+                    i,
+                    command.voltage_v,
+                    axis.compensator.model().output(&state.model),
+                );
+            }
+            *u = command.voltage_v;
+        }
+        write(j, u);
+    }
+    counts
+}
+
+/// Runs the firmware's per-tick feed-forward of two coupled axes over a reference record:
+/// tick j takes r\[j\] of both axes (`reference_m` \[m\], held at its last sample past the end,
+/// which the chain's lead reads), [`InverseChain`] (lead ring, drift, decoupling, mode inverse,
+/// creep and even term), each axis's compensator (window and slew limit) from rest at its
+/// `rest_v`, and the commit; writes the commanded voltages \[V\] to `u_out_v`. Runs
+/// `min` of the four lengths ticks. Without effects the target is the reference (as in the
+/// firmware).
+pub fn compensate_pair(
+    axes: [&FeedforwardAxis; 2],
+    reference_m: [&[f32]; 2],
+    u_out_v: [&mut [f32]; 2],
+) -> FeedforwardCounts {
+    let [rx, ry] = reference_m;
+    let [ux, uy] = u_out_v;
+    let ticks = rx.len().min(ry.len()).min(ux.len()).min(uy.len());
+    let chain = InverseChain::new(
+        [axes[0].effects, axes[1].effects],
+        [axes[0].rest_v, axes[1].rest_v],
+    );
+    let mut k = 0;
+    let next = || {
+        let s = [held_sample(rx, k), held_sample(ry, k)];
+        k += 1;
+        s
+    };
+    run(axes, 2, chain, ticks, next, |j, u| {
+        if let (Some(x), Some(y)) = (ux.get_mut(j), uy.get_mut(j)) {
+            (*x, *y) = (u[0], u[1]);
+        }
+    })
+}
+
+/// [`compensate_pair`] for one axis (no coupling): `min(reference_m.len(), u_out_v.len())` ticks.
+pub fn compensate_single(
+    axis: &FeedforwardAxis,
+    reference_m: &[f32],
+    u_out_v: &mut [f32],
+) -> FeedforwardCounts {
+    let ticks = reference_m.len().min(u_out_v.len());
+    let chain = InverseChain::single(axis.effects, axis.rest_v);
+    let mut k = 0;
+    let next = || {
+        let r = held_sample(reference_m, k);
+        k += 1;
+        [r, r]
+    };
+    run([axis, axis], 1, chain, ticks, next, |j, u| {
+        if let Some(x) = u_out_v.get_mut(j) {
+            *x = u[0];
+        }
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::effects::{compensate_axis, EffectParams};
+    use crate::{BoucWen, BoucWenParams, CompensatorSettings, StaticMap, StaticModel};
+
+    const T: f32 = 1e-4;
+
+    fn effects(p: EffectParams) -> Effects {
+        Effects::new(p, T, (0.0, 40e-6)).unwrap()
+    }
+
+    /// A rising ramp of 1e-8 m per tick from −`amplitude` \[m\].
+    fn ramp(amplitude: f32) -> impl FnMut() -> [f32; 2] {
+        let mut k = 0;
+        move || {
+            let r = [amplitude, 2.0 * amplitude].map(|a| -a + 2.0 * a * T * k as f32);
+            k += 1;
+            r
+        }
+    }
+
+    #[test]
+    fn identity_gives_no_chain() {
+        let id = effects(EffectParams::default());
+        assert!(InverseChain::new([id, id], [0.0; 2]).is_none());
+        assert!(InverseChain::single(id, 0.0).is_none());
+    }
+
+    #[test]
+    fn pure_delay_targets_the_reference_ahead_and_reports_the_current_one() {
+        // x: 2.5 samples; y: none (but the chain runs for both).
+        let dx = effects(EffectParams {
+            delay_s: 2.5 * T,
+            ..EffectParams::default()
+        });
+        let id = effects(EffectParams::default());
+        let mut chain = InverseChain::new([dx, id], [0.0; 2]).unwrap();
+        assert_eq!(chain.lead_ticks(), 3);
+        let mut source = ramp(1e-5);
+        let r = |k: f32, amplitude: f32| -amplitude + 2.0 * amplitude * T * k;
+        for j in 0..50 {
+            let (now, target) = chain.next_targets(&mut source);
+            let jf = j as f32;
+            assert!((now[0] - r(jf, 1e-5)).abs() < 1e-11, "{j}: {now:?}");
+            assert!((now[1] - r(jf, 2e-5)).abs() < 1e-11, "{j}: {now:?}");
+            assert!(
+                (target[0] - r(jf + 2.5, 1e-5)).abs() < 1e-11,
+                "{j}: {target:?}"
+            );
+            assert!((target[1] - r(jf, 2e-5)).abs() < 1e-11, "{j}: {target:?}");
+            chain.commit(0, 10.0, target[0]);
+            chain.commit(1, 10.0, target[1]);
+        }
+    }
+
+    #[test]
+    fn non_finite_reference_gives_nan_targets_and_never_panics() {
+        let e = effects(EffectParams {
+            mode_frequency_hz: 300.0,
+            mode_damping: 0.1,
+            delay_s: 64.0 * T,
+            coupling: 0.2,
+            ..EffectParams::default()
+        });
+        let mut chain = InverseChain::new([e, e], [5.0; 2]).unwrap();
+        assert_eq!(chain.lead_ticks(), 65);
+        let mut pulled = 0;
+        let mut source = || {
+            pulled += 1;
+            // Sample 165 (the 166th pulled) is NaN on x.
+            if pulled == 166 {
+                [f32::NAN, 1e-6]
+            } else {
+                [1e-6, 1e-6]
+            }
+        };
+        let mut held = [0; 2];
+        for k in 0..400 {
+            let (now, target) = chain.next_targets(&mut source);
+            for (i, t) in target.iter().enumerate() {
+                chain.commit(i, 5.0, if t.is_finite() { *t } else { 0.0 });
+                held[i] += usize::from(t.is_nan());
+            }
+            // The first tick took samples 0..=L (L = 65), tick k takes sample k + L: the bad one is
+            // taken at tick 100 and is the reference of tick 165. It enters the history as
+            // z*[101] = y*(101 + 64) at tick 100 and stays there for three ticks.
+            assert_eq!(now[0].is_nan(), k == 165, "{k}");
+            assert_eq!(target[0].is_nan(), (100..103).contains(&k), "{k}");
+        }
+        // x's NaN reaches y through the coupling (κ_y = 0.2 ≠ 0).
+        assert_eq!(held, [3, 3]);
+        chain.commit(7, 1.0, 1.0);
+    }
+
+    fn compensator() -> Compensator {
+        let bw = BoucWen::with_input_range(
+            BoucWenParams {
+                a: 0.18522,
+                beta: 0.029586,
+                gamma: -0.020710,
+                n: 1.0,
+            },
+            0.0,
+            120.0,
+            1e6,
+        )
+        .unwrap();
+        let map = StaticMap {
+            k1_m_per_v: 3.574e-7,
+            k2_m_per_h: -3.574e-7,
+            offset_m: 0.0,
+        };
+        let settings = CompensatorSettings {
+            output_min_v: 0.0,
+            output_max_v: 120.0,
+            slew_limit_v_per_s: 1e5,
+            sample_period_s: T,
+        };
+        Compensator::new(StaticModel::new(bw, map).unwrap(), settings).unwrap()
+    }
+
+    fn triangle(n: usize) -> [f32; 600] {
+        let mut r = [0.0; 600];
+        for (k, r) in r.iter_mut().enumerate().take(n) {
+            let p = (k % 200) as f32 / 200.0;
+            let tri = if p < 0.5 { 2.0 * p } else { 2.0 - 2.0 * p };
+            *r = 4e-6 + 25e-6 * tri;
+        }
+        r
+    }
+
+    #[test]
+    fn single_axis_run_is_the_record_chain_of_the_effects_module() {
+        // Two independent ways to read the reference ahead: the ring here, slices in
+        // `compensate_axis`. Same voltages, bit for bit.
+        for p in [
+            EffectParams::default(),
+            EffectParams {
+                creep_gain_m_per_v: [1e-8, 0.0, 0.0],
+                creep_time_constant_s: [0.2, 0.0, 0.0],
+                even_coefficient_m_per_v2: 1e-10,
+                even_center_v: 60.0,
+                delay_s: 2.5 * T,
+                drift_rate_m_per_s: -2e-7,
+                mode_frequency_hz: 800.0,
+                mode_damping: 0.2,
+                ..EffectParams::default()
+            },
+        ] {
+            let axis = FeedforwardAxis {
+                compensator: compensator(),
+                effects: effects(p),
+                rest_v: 0.0,
+            };
+            let reference = triangle(600);
+            let mut u = [0.0; 600];
+            let counts = compensate_single(&axis, &reference, &mut u);
+            let mut expected = [0.0; 600];
+            compensate_axis(
+                &axis.compensator,
+                CompensatorState::at_rest(0.0),
+                &axis.effects,
+                &reference,
+                &mut expected,
+            );
+            assert_eq!(counts.ticks, 600);
+            assert_eq!(counts.held, 0);
+            assert_eq!(u, expected);
+        }
+    }
+
+    #[test]
+    fn pair_without_coupling_runs_each_axis_alone() {
+        let e = effects(EffectParams {
+            creep_gain_m_per_v: [1e-8, 0.0, 0.0],
+            creep_time_constant_s: [0.2, 0.0, 0.0],
+            delay_s: 2.0 * T,
+            ..EffectParams::default()
+        });
+        let axis = FeedforwardAxis {
+            compensator: compensator(),
+            effects: e,
+            rest_v: 0.0,
+        };
+        let (rx, ry) = (triangle(600), triangle(300));
+        let (mut ux, mut uy) = ([0.0; 600], [0.0; 600]);
+        let counts = compensate_pair([&axis, &axis], [&rx, &ry], [&mut ux, &mut uy]);
+        assert_eq!(counts.ticks, 600);
+        let (mut sx, mut sy) = ([0.0; 600], [0.0; 600]);
+        compensate_single(&axis, &rx, &mut sx);
+        compensate_single(&axis, &ry, &mut sy);
+        assert_eq!((ux, uy), (sx, sy));
+    }
+
+    #[test]
+    fn coupling_is_inverted_by_the_pair() {
+        // With coupling on both axes, y's command must differ from its uncoupled command by the
+        // part of x's motion it has to take out.
+        let coupled = |kappa: f32| FeedforwardAxis {
+            compensator: compensator(),
+            effects: effects(EffectParams {
+                coupling: kappa,
+                ..EffectParams::default()
+            }),
+            rest_v: 0.0,
+        };
+        let (x, y) = (coupled(0.02), coupled(-0.015));
+        let rx = triangle(600);
+        let ry = [15e-6; 600];
+        let (mut ux, mut uy) = ([0.0; 600], [0.0; 600]);
+        compensate_pair([&x, &y], [&rx, &ry], [&mut ux, &mut uy]);
+        let mut alone = [0.0; 600];
+        compensate_single(&y, &ry, &mut alone);
+        // y* = z_y − 0.015·z_x: where x is high, y must be driven higher than alone.
+        let k = 100; // the triangle's peak (29 µm)
+        assert!(uy[k] > alone[k] + 0.5, "{} vs {}", uy[k], alone[k]);
+    }
+}
