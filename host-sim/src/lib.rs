@@ -13,12 +13,10 @@ pub mod bouc_wen;
 pub mod capture;
 pub mod cli;
 pub mod close_loop;
+pub mod compensate;
 pub mod csv;
 pub mod demo;
 pub mod effects;
-#[allow(dead_code, missing_docs)]
-#[path = "../../firmware/build/params.rs"]
-mod firmware_params;
 pub mod identify;
 pub mod ode;
 pub mod plant;

@@ -4,12 +4,17 @@
 
 use clap::Parser;
 use host_sim::cli::{run, Cli};
-use host_sim::identify::model::{from_toml, Identified};
-use host_sim::identify::{identify, predict, write_outputs, IdentifySettings, Method, Record};
+use host_sim::identify::model::{from_axis, to_axis, Identified};
+use host_sim::identify::{identify, provenance, IdentifySettings, Method, Record};
 use std::path::PathBuf;
 
+/// This test binary's own temporary folder.
+fn temp_dir() -> PathBuf {
+    std::env::temp_dir().join(format!("host_sim_identify_{}", std::process::id()))
+}
+
 fn temp(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("host_sim_identify_{}", std::process::id()));
+    let dir = temp_dir();
     std::fs::create_dir_all(&dir).unwrap();
     dir.join(name)
 }
@@ -94,32 +99,81 @@ fn recovers_the_stage_case1_set_at_the_noise_floor() {
     }
 }
 
+fn cli(args: &[&str]) -> Result<String, String> {
+    let mut v = vec!["host-sim"];
+    v.extend_from_slice(args);
+    run(Cli::try_parse_from(v).map_err(|e| e.to_string())?)
+}
+
+fn json(path: &std::path::Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
 #[test]
-fn identify_then_predict_round_trip_and_firmware_check() {
+fn identify_then_predict_round_trip_through_the_stage_file() {
     let path = stage_record("case3.csv", "stage");
-    let record = Record::read(&path, None, None, None).unwrap();
-    for model in [
-        host_sim::identify::model::ModelKind::Symmetric,
-        host_sim::identify::model::ModelKind::Asymmetric,
-    ] {
-        let mut s = settings(model);
-        s.invertible = model == host_sim::identify::model::ModelKind::Symmetric;
-        let id = identify(&record, &s).unwrap();
-        let (toml, report) = (temp("p.toml"), temp("s.json"));
-        let msg = write_outputs(&id, "vp-de-lm", &record, 0.0, &toml, &report).unwrap();
-        if s.invertible {
+    let data = path.to_str().unwrap();
+    for (model, invertible) in [("symmetric", true), ("asymmetric", false)] {
+        let (stage, report) = (temp(&format!("{model}.toml")), temp("s.json"));
+        let mut args = vec![
+            "identify", "--data", data, "--model", model, "--out", stage.to_str().unwrap(),
+            "--report", report.to_str().unwrap(),
+        ];
+        if invertible {
+            args.push("--invertible");
+        } else {
+            args.push("--allow-refused");
+        }
+        let msg = cli(&args).unwrap();
+        if invertible {
             assert!(msg.contains("accepted by the firmware"), "{msg}");
         }
-        let text = std::fs::read_to_string(&toml).unwrap();
-        let back = from_toml("p.toml", &text).unwrap();
-        assert_eq!(back.kind(), model);
-        let r = predict(&toml, &record, 0.0).unwrap();
-        let (a, b) = (
-            r["fit"]["rms"].as_f64().unwrap(),
-            id.summary["fit"]["rms"].as_f64().unwrap(),
+        let fitted = json(&report)["fit"]["rms"].as_f64().unwrap();
+        let (file, _) = piezo_stage::StageFile::load(&stage)
+            .map(|(f, v)| (f, v.axes.len()))
+            .or_else(|_| {
+                // An asymmetric set need not be invertible: parse without the firmware's checks.
+                let text = std::fs::read_to_string(&stage).unwrap();
+                piezo_stage::StageFile::parse("s.toml", &text).map(|f| (f, 1))
+            })
+            .unwrap();
+        assert_eq!(file.x.model.name(), model);
+        assert!(file.y.is_none());
+        assert!(file.io.placeholder);
+        let prov = file.x.identified.as_ref().unwrap();
+        assert!((prov.fit_rms_m - fitted).abs() <= 1e-12);
+        let (series, predicted) = (temp("series.csv"), temp("p.json"));
+        cli(&[
+            "predict", "--params", stage.to_str().unwrap(), "--data", data, "--report",
+            predicted.to_str().unwrap(), "--out", series.to_str().unwrap(),
+        ])
+        .unwrap();
+        let r = json(&predicted);
+        let a = r["axes"][0]["fit"]["rms"].as_f64().unwrap();
+        assert!((a - fitted).abs() <= 1e-3 * fitted, "{a} vs {fitted}");
+        assert_eq!(r["axes"][0]["outside_identified_range"]["samples"], 0);
+        let table = host_sim::csv::read_csv(&series).unwrap();
+        assert_eq!(
+            table.names,
+            ["t_s", "u_V", "measured_m", "predicted_m", "residual_m"]
         );
-        assert!((a - b).abs() <= 1e-3 * b, "{a} vs {b}");
     }
+    std::fs::remove_file(&path).ok();
+}
+
+#[test]
+fn a_refused_set_is_written_and_identify_fails() {
+    // The asymmetric stage set of seed 001 turns back after reversals: not invertible.
+    let path = stage_record("refused.csv", "stage");
+    let (stage, report) = (temp("refused.toml"), temp("refused.json"));
+    let e = cli(&[
+        "identify", "--data", path.to_str().unwrap(), "--model", "symmetric", "--out",
+        stage.to_str().unwrap(), "--report", report.to_str().unwrap(),
+    ]);
+    let e = e.expect_err("the seed 001 stage's symmetric set is not invertible");
+    assert!(e.contains("would be refused by the firmware"), "{e}");
+    assert!(e.contains("--allow-refused"), "{e}");
+    assert!(stage.exists(), "the set is written all the same");
 }
 
 #[test]
@@ -167,13 +221,19 @@ fn band_limited_upsampling_is_exact_for_a_periodic_multisine() {
 }
 
 #[test]
-fn oscillator_parameter_file_round_trip() {
+fn oscillator_stage_axis_round_trip() {
     use piezo_core::OscillatorParams;
     let set = Identified::Oscillator {
         params: OscillatorParams::BENCHMARK,
         sample_period_s: 1.0 / 750.0,
         substeps: 20,
     };
-    let text = host_sim::identify::model::to_toml(&set, "vp-de-lm", "train.csv", 0.0);
-    assert_eq!(from_toml("osc.toml", &text).unwrap(), set);
+    let record = Record {
+        path: "train.csv".into(),
+        t_s: (0..20).map(|k| k as f64 / 750.0).collect(),
+        u: (0..20).map(|k| k as f64).collect(),
+        y_m: vec![0.0; 20],
+    };
+    let axis = to_axis(&set, provenance(&record, 0, "vp-de-lm", 1e-7));
+    assert_eq!(from_axis(&axis, 1.0 / 750.0, (0.0, 0.0)).unwrap(), set);
 }

@@ -15,11 +15,12 @@
 pub mod fit;
 pub mod model;
 pub mod oscillator;
+pub mod predict;
 pub mod two_step;
 
 use crate::csv::{read_csv, Table};
 use fit::{Problem, Progress, TracePoint};
-use model::{from_toml, to_toml, Identified, ModelKind};
+use model::{to_axis, Identified, ModelKind};
 use serde_json::json;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -266,6 +267,7 @@ pub fn identify_traced(
     );
     problem.fit_shift = !s.no_shift;
     problem.invertible = s.invertible;
+    let mut at_bounds = Vec::new();
     let set = match s.method {
         Method::VpDeLm => {
             let bounds = problem.bounds();
@@ -282,6 +284,7 @@ pub fn identify_traced(
             pb.set_message(format!("{} LM", s.model.name()));
             let (theta, _) = fit::levenberg_marquardt(&problem, &bounds, theta, 40, &pb);
             pb.finish_and_clear();
+            at_bounds = at_search_bounds(s.model, &theta, &bounds);
             let e = problem.eval_full(&theta);
             problem.identified(&theta, &e).ok_or(
                 "no feasible parameter set found (every candidate was refused by piezo-core)",
@@ -324,104 +327,141 @@ pub fn identify_traced(
         "fit": fit,
         "evaluations": problem.evaluations(),
         "seconds": started.elapsed().as_secs_f64(),
+        "at_bounds": at_bounds,
     });
     Ok((Identification { set, summary }, problem.trace()))
 }
 
-/// Writes the parameter file and the summary; returns a one-line description.
-pub fn write_outputs(
-    id: &Identification,
-    method: &str,
-    record: &Record,
-    start_s: f64,
-    out: &Path,
-    report: &Path,
-) -> Result<String, String> {
-    let text = to_toml(&id.set, method, &record.path.display().to_string(), start_s);
-    for p in [out, report] {
-        if let Some(dir) = p.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+/// The names of the search coordinates that ended within 0.1 % of the box's width of a bound.
+fn at_search_bounds(model: ModelKind, theta: &[f64], bounds: &[(f64, f64)]) -> Vec<&'static str> {
+    let mut names = vec![
+        "the saturation level log10(H / input span)",
+        "the loop shape (beta - gamma) / (beta + gamma)",
+        "the exponent n",
+    ];
+    match model {
+        ModelKind::Asymmetric => names.extend(["the asymmetric factor delta", "the input shift phi"]),
+        ModelKind::Dynamic => names.extend([
+            "the hysteresis gain A / k1",
+            "the natural frequency",
+            "the damping ratio",
+        ]),
+        _ => {}
+    }
+    theta
+        .iter()
+        .zip(bounds)
+        .zip(names)
+        .filter(|((&t, &(lo, hi)), name)| {
+            let tol = 1e-3 * (hi - lo);
+            // n = 1 (the lower bound) is a common, exact value, not a sign of trouble.
+            (t - lo < tol && !name.contains("exponent")) || hi - t < tol
+        })
+        .map(|(_, name)| name)
+        .collect()
+}
+
+/// Data warnings for an identified set on `record` from sample `from`: an input that barely moves,
+/// a fit that explains nothing (R² ≈ 0), optimiser parameters at their search bounds.
+pub fn data_warnings(record: &Record, from: usize, id: &Identification) -> Vec<String> {
+    let mut out = Vec::new();
+    let u = &record.u[from..];
+    let (lo, hi) = u
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+    if !(hi - lo > 1e-6 * hi.abs().max(lo.abs()).max(1e-12)) {
+        out.push(format!(
+            "the input is constant ({lo} V) over the fitted window: it cannot identify a hysteresis model"
+        ));
+    }
+    if let Some(r2) = id.summary["fit"]["r2"].as_f64() {
+        if r2 < 0.1 {
+            out.push(format!(
+                "R² = {r2:.3}: the model explains almost none of the output (wrong columns, or no response to u?)"
+            ));
         }
     }
-    std::fs::write(out, &text).map_err(|e| format!("--out {}: {e}", out.display()))?;
-    let json = serde_json::to_string_pretty(&id.summary).map_err(|e| e.to_string())?;
-    std::fs::write(report, json).map_err(|e| format!("--report {}: {e}", report.display()))?;
-    let firmware = if id.set.kind() == ModelKind::Oscillator {
-        "not a firmware model (force input)".to_string()
-    } else {
-        match firmware_check(&out.display().to_string(), text.as_bytes()) {
-            Ok(()) => "accepted by the firmware's parameter check".to_string(),
-            Err(e) => format!("REFUSED by the firmware's parameter check: {e}"),
+    if let Some(at) = id.summary["at_bounds"].as_array() {
+        for name in at.iter().filter_map(|v| v.as_str()) {
+            out.push(format!(
+                "{name} ended at its search bound: the data do not pin it down (or the model family does not fit)"
+            ));
         }
-    };
-    Ok(format!(
-        "{} {}: rms {:.4e} m, r2 {}, {} evaluations, {:.2} s; {} written ({firmware}), {}",
-        id.summary["model"].as_str().unwrap_or(""),
-        id.summary["method"].as_str().unwrap_or(""),
-        id.summary["fit"]["rms"].as_f64().unwrap_or(f64::NAN),
-        id.summary["fit"]["r2"],
-        id.summary["evaluations"],
-        id.summary["seconds"].as_f64().unwrap_or(f64::NAN),
-        out.display(),
-        report.display()
-    ))
-}
-
-/// Runs the firmware's own parameter-file check (`firmware/build/params.rs`, the code its build runs).
-pub fn firmware_check(file: &str, bytes: &[u8]) -> Result<(), String> {
-    crate::firmware_params::load(file, bytes).map(|_| ())
-}
-
-/// `predict`: simulates the set of a parameter file on a record.
-pub fn predict(params: &Path, record: &Record, start_s: f64) -> Result<serde_json::Value, String> {
-    let text = std::fs::read_to_string(params)
-        .map_err(|e| format!("--params {}: {e}", params.display()))?;
-    let set = from_toml(&params.display().to_string(), &text)?;
-    let from = record.index_at(start_s);
-    if record.u.len() - from < 1 {
-        return Err(format!("--start {start_s}: no samples left"));
     }
-    let fit = score(&set, record, from)?;
-    Ok(json!({
-        "model": set.kind().name(),
-        "params_file": params.display().to_string(),
-        "data": record.path.display().to_string(),
-        "start_s": start_s,
-        "fit": fit,
-    }))
+    out
 }
 
-/// The `--t/--u/--y` column choice shared by `identify` and `predict`.
+/// The `[x.identified]` provenance of a set fitted to `record` from sample `from`.
+pub fn provenance(record: &Record, from: usize, method: &str, fit_rms_m: f64) -> piezo_stage::Provenance {
+    let (lo, hi) = record
+        .u
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+    piezo_stage::Provenance {
+        data: record.path.display().to_string(),
+        window_s: [record.t_s[from.min(record.t_s.len() - 1)], record.t_s[record.t_s.len() - 1]],
+        method: method.to_string(),
+        fit_rms_m,
+        input_range_v: [lo as f32, hi as f32],
+        sample_period_s: record.sample_period_s() as f32,
+    }
+}
+
+/// The `--t/--u/--y` column choice shared by `identify` and `predict`: one axis, or two with
+/// comma lists (`--u ux_V,uy_V --y x_m,y_m`).
 #[derive(Debug, clap::Args)]
 pub struct Columns {
     /// Time column (default: first `t_*`).
     #[arg(long)]
     pub t: Option<String>,
-    /// Input column (default: first `u_*`).
+    /// Input column, or two comma-separated for a two-axis record (default: first `u_*`).
     #[arg(long)]
     pub u: Option<String>,
-    /// Output column (default: first `y_*`).
+    /// Output column, or two comma-separated for a two-axis record (default: first `y_*`).
     #[arg(long)]
     pub y: Option<String>,
 }
 
 impl Columns {
-    /// Reads `data` with these columns; the error names `--data`.
+    /// Reads `data` with these columns: one record per axis; errors name `--data`.
+    pub fn read_axes(&self, data: &std::path::Path) -> Result<Vec<Record>, String> {
+        let split = |v: &Option<String>| -> Vec<Option<String>> {
+            match v {
+                None => vec![None],
+                Some(s) => s.split(',').map(|p| Some(p.trim().to_string())).collect(),
+            }
+        };
+        let (us, ys) = (split(&self.u), split(&self.y));
+        if us.len() != ys.len() || us.len() > 2 {
+            return Err(format!(
+                "--u and --y: give one column each, or two comma-separated each for a two-axis record \
+                 (got {} and {})",
+                us.len(),
+                ys.len()
+            ));
+        }
+        us.iter()
+            .zip(&ys)
+            .map(|(u, y)| {
+                Record::read(data, self.t.as_deref(), u.as_deref(), y.as_deref())
+                    .map_err(|e| format!("--data: {e}"))
+            })
+            .collect()
+    }
+
     fn read(&self, data: &std::path::Path) -> Result<Record, String> {
-        Record::read(
-            data,
-            self.t.as_deref(),
-            self.u.as_deref(),
-            self.y.as_deref(),
-        )
-        .map_err(|e| format!("--data: {e}"))
+        let mut records = self.read_axes(data)?;
+        if records.len() != 1 {
+            return Err("--mech-data: one axis only".into());
+        }
+        Ok(records.remove(0))
     }
 }
 
 /// Arguments of `identify`.
 #[derive(Debug, clap::Args)]
 #[command(
-    after_help = "Methods:\n  vp-de-lm  default: variable projection (k1, k2, offset by least squares in every evaluation), differential evolution on the decimated record, then Levenberg-Marquardt on the full record; deterministic for a given --seed, parallel over cores\n  ga        seed 001's genetic algorithm as published (population 30, 100 generations, crossover 0.7, mutation 0.2, RMS fitness, its search ranges); asymmetric: Case I, then delta (Case II, --no-shift) or delta and phi (Case III)\n  two-step  seed 000's two-step method (--model dynamic only): step 1 takes k0, c0, m0 (k1 = 1 N/V) from the steady-state integrals K0, K1, K2 of the response to a ramp-edged square wave (--mech-data, e.g. `simulate --plant nac2024 --signal square:duration=1e-4`); step 2 takes A, beta, gamma, n from the sine --data by the log-linear least squares of eq. 15-24 on the 25-75 % band of each stroke, derivatives by CWT-TRT (gaus1, s = 4); step 2b (not in the paper) fixes the scale of k0, c0, m0 that step 1 cannot see (it measures (k1 + h(B)/B)/k0). Needs beta + gamma < 0: otherwise (or when ill-posed) it says why in the summary's notes and on stderr and runs vp-de-lm instead\nThe model simulated is piezo-core's f32 model; sets the core refuses are infeasible. The parameter file is the firmware's format (both axes hold the identified set) and is checked with the firmware's own parser."
+    after_help = "Methods:\n  vp-de-lm  default: variable projection (k1, k2, offset by least squares in every evaluation), differential evolution on the decimated record, then Levenberg-Marquardt on the full record; deterministic for a given --seed, parallel over cores\n  ga        seed 001's genetic algorithm as published (population 30, 100 generations, crossover 0.7, mutation 0.2, RMS fitness, its search ranges); asymmetric: Case I, then delta (Case II, --no-shift) or delta and phi (Case III)\n  two-step  seed 000's two-step method (--model dynamic only): step 1 takes k0, c0, m0 (k1 = 1 N/V) from the steady-state integrals K0, K1, K2 of the response to a ramp-edged square wave (--mech-data, e.g. `simulate --plant nac2024 --signal square:duration=1e-4`); step 2 takes A, beta, gamma, n from the sine --data by the log-linear least squares of eq. 15-24 on the 25-75 % band of each stroke, derivatives by CWT-TRT (gaus1, s = 4); step 2b (not in the paper) fixes the scale of k0, c0, m0 that step 1 cannot see (it measures (k1 + h(B)/B)/k0). Needs beta + gamma < 0: otherwise (or when ill-posed) it says why in the summary's notes and on stderr and runs vp-de-lm instead\nThe model simulated is piezo-core's f32 model, from rest at the record's first input; sets the core refuses are infeasible. Two-axis records: --u ux_V,uy_V --y x_m,y_m fits each axis and writes both. The stage file written (--out) is validated as the firmware's build validates it: a set the firmware would refuse makes identify exit non-zero after writing it, unless --allow-refused."
 )]
 pub struct IdentifyArgs {
     /// Record to fit (CSV with unit-suffixed columns).
@@ -454,7 +494,14 @@ pub struct IdentifyArgs {
     /// Only sets the firmware's compensator accepts (strictly monotone map) are feasible.
     #[arg(long)]
     pub invertible: bool,
-    /// Parameter file to write (TOML, firmware format).
+    /// An existing stage file whose [stage] and [io] sections are carried into --out (without it:
+    /// the record's rate and a placeholder io chain).
+    #[arg(long)]
+    pub stage: Option<PathBuf>,
+    /// Write and exit 0 also when the firmware would refuse the set.
+    #[arg(long)]
+    pub allow_refused: bool,
+    /// Stage file to write (TOML).
     #[arg(long)]
     pub out: PathBuf,
     /// Summary JSON to write.
@@ -462,16 +509,123 @@ pub struct IdentifyArgs {
     pub report: PathBuf,
 }
 
+/// Identifies one axis's record.
+fn identify_axis(a: &IdentifyArgs, record: &Record, settings: &IdentifySettings) -> Result<Identification, String> {
+    if a.method == Method::TwoStep {
+        let path = a
+            .mech_data
+            .as_ref()
+            .ok_or("--method two-step: give the square-wave record with --mech-data")?;
+        let mech = a
+            .columns
+            .read(path)
+            .map_err(|e| e.replacen("--data", "--mech-data", 1))?;
+        two_step::identify(&mech, record, settings)
+    } else {
+        if a.mech_data.is_some() {
+            return Err("--mech-data is used by --method two-step only".into());
+        }
+        identify(record, settings)
+    }
+}
+
+fn write_json(path: &Path, value: &serde_json::Value, flag: &str) -> Result<(), String> {
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+    }
+    let text = serde_json::to_string_pretty(value).map_err(|e| e.to_string())?;
+    std::fs::write(path, text).map_err(|e| format!("{flag} {}: {e}", path.display()))
+}
+
+/// Runs `identify`: one set per axis, one stage file.
+pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
+    let mut records = a.columns.read_axes(&a.data)?;
+    if let Some(end) = a.end {
+        for r in &mut records {
+            r.cut_after(end)?;
+        }
+    }
+    let settings = IdentifySettings {
+        model: a.model,
+        method: a.method,
+        seed: a.seed,
+        start_s: a.start,
+        no_shift: a.no_shift,
+        invertible: a.invertible,
+        progress: true,
+    };
+    let names = ["x", "y"];
+    let mut axes = Vec::new();
+    let mut summaries = Vec::new();
+    let mut lines = Vec::new();
+    for (i, record) in records.iter().enumerate() {
+        if records.len() > 1 {
+            eprintln!("identify: axis {} ({})", names[i], record.path.display());
+        }
+        let mut id = identify_axis(a, record, &settings)?;
+        let from = record.index_at(a.start);
+        let warnings = data_warnings(record, from, &id);
+        for w in &warnings {
+            eprintln!("warning: {}: {w}", names[i]);
+        }
+        id.summary["warnings"] = json!(warnings);
+        let method = id.summary["method"].as_str().unwrap_or(a.method.name()).to_string();
+        let rms = id.summary["fit"]["rms"].as_f64().unwrap_or(f64::NAN);
+        lines.push(format!(
+            "{}: {} {}: rms {:.4e} m, r2 {}, {} evaluations, {:.2} s",
+            names[i],
+            id.summary["model"].as_str().unwrap_or(""),
+            method,
+            rms,
+            id.summary["fit"]["r2"],
+            id.summary["evaluations"],
+            id.summary["seconds"].as_f64().unwrap_or(f64::NAN),
+        ));
+        axes.push(to_axis(&id.set, provenance(record, from, &method, rms)));
+        let mut summary = id.summary.clone();
+        summary["axis"] = json!(names[i]);
+        summaries.push(summary);
+    }
+    let report = if summaries.len() == 1 {
+        summaries.remove(0)
+    } else {
+        json!({"axes": summaries})
+    };
+    write_json(&a.report, &report, "--report")?;
+    let (stage, io) = crate::stage_file::stage_and_io(
+        a.stage.as_deref(),
+        &format!("identified-{}", a.model.name()),
+        1.0 / records[0].sample_period_s(),
+    )?;
+    let header = format!(
+        "Identified by `host-sim identify` ({} model, method {}) from {}, scored from t = {} s.\nSI units.",
+        a.model.name(),
+        a.method.name(),
+        a.data.display(),
+        a.start
+    );
+    let verdict = crate::stage_file::write_stage(&a.out, &header, stage, io, axes, a.allow_refused)?;
+    Ok(format!(
+        "{}\n{} written ({verdict}), {}",
+        lines.join("\n"),
+        a.out.display(),
+        a.report.display()
+    ))
+}
+
 /// Arguments of `predict`.
 #[derive(Debug, clap::Args)]
+#[command(
+    after_help = "Runs the stage file's chain exactly as the firmware runs it (piezo-core's model and effects, two axes with their coupling), at the record's sample period, from rest at the record's first input; the model sees only u. Inputs outside the identified range are counted and reported; a bounded set is not clamped to that range."
+)]
 pub struct PredictArgs {
-    /// Parameter file written by `identify`.
+    /// Stage file written by `identify` or `close-loop` (or any stage file).
     #[arg(long)]
     pub params: PathBuf,
     /// Record to simulate (the model sees only u).
     #[arg(long)]
     pub data: PathBuf,
-    /// Column choice.
+    /// Column choice (two comma-separated per flag for a two-axis stage).
     #[command(flatten)]
     pub columns: Columns,
     /// First scored time [s].
@@ -485,82 +639,108 @@ pub struct PredictArgs {
     /// Report JSON to write.
     #[arg(long)]
     pub report: PathBuf,
+    /// The predicted series: t_s, then per axis input, measured, predicted, residual (CSV).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Folder for the plots (measured against predicted, loops, residual; SVG and PNG).
+    #[arg(long)]
+    pub plots: Option<PathBuf>,
 }
 
-/// Runs `identify`.
-pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
-    let mut record = a.columns.read(&a.data)?;
-    if let Some(end) = a.end {
-        record.cut_after(end)?;
+/// Repeats a record `copies` times (one period of a periodic steady state).
+fn repeated(record: &Record, copies: usize) -> Record {
+    let n = record.u.len();
+    let period = record.sample_period_s() * n as f64;
+    let t0 = record.t_s[0];
+    let cycle = |v: &[f64]| v.iter().copied().cycle().take(n * copies).collect();
+    Record {
+        path: record.path.clone(),
+        t_s: (0..n * copies)
+            .map(|i| t0 + i as f64 * period / n as f64)
+            .collect(),
+        u: cycle(&record.u),
+        y_m: cycle(&record.y_m),
     }
-    let settings = IdentifySettings {
-        model: a.model,
-        method: a.method,
-        seed: a.seed,
-        start_s: a.start,
-        no_shift: a.no_shift,
-        invertible: a.invertible,
-        progress: true,
-    };
-    let id = if a.method == Method::TwoStep {
-        let path = a
-            .mech_data
-            .as_ref()
-            .ok_or("--method two-step: give the square-wave record with --mech-data")?;
-        let mech = a
-            .columns
-            .read(path)
-            .map_err(|e| e.replacen("--data", "--mech-data", 1))?;
-        two_step::identify(&mech, &record, &settings)?
-    } else {
-        if a.mech_data.is_some() {
-            return Err("--mech-data is used by --method two-step only".into());
-        }
-        identify(&record, &settings)?
-    };
-    let method = id.summary["method"]
-        .as_str()
-        .unwrap_or(a.method.name())
-        .to_string();
-    write_outputs(&id, &method, &record, a.start, &a.out, &a.report)
 }
 
 /// Runs `predict`.
 pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
-    let mut record = a.columns.read(&a.data)?;
+    let file = predict::read_stage(&a.params)?;
+    let mut records = a.columns.read_axes(&a.data)?;
     let mut start = a.start;
     if a.periodic_warmup > 0 {
-        let n = record.u.len();
-        let period = record.sample_period_s() * n as f64;
-        let t0 = record.t_s[0];
-        let copies = a.periodic_warmup + 1;
-        record.t_s = (0..n * copies)
-            .map(|i| t0 + i as f64 * period / n as f64)
-            .collect();
-        record.u = record.u.iter().copied().cycle().take(n * copies).collect();
-        record.y_m = record
-            .y_m
+        let period = records[0].sample_period_s() * records[0].u.len() as f64;
+        records = records
             .iter()
-            .copied()
-            .cycle()
-            .take(n * copies)
+            .map(|r| repeated(r, a.periodic_warmup + 1))
             .collect();
         start += a.periodic_warmup as f64 * period;
     }
-    let mut r = predict(&a.params, &record, start)?;
-    r["periodic_warmup"] = json!(a.periodic_warmup);
-    if let Some(dir) = a.report.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+    let from = records[0].index_at(start);
+    if records[0].u.len() - from < 1 {
+        return Err(format!("--start {}: no samples left", a.start));
     }
-    let text = serde_json::to_string_pretty(&r).map_err(|e| e.to_string())?;
-    std::fs::write(&a.report, text).map_err(|e| format!("--report {}: {e}", a.report.display()))?;
-    Ok(format!(
-        "{} on {}: rms {:.4e} m, r2 {}, mrd {} %; {} written",
-        r["model"].as_str().unwrap_or(""),
-        a.data.display(),
-        r["fit"]["rms"].as_f64().unwrap_or(f64::NAN),
-        r["fit"]["r2"],
-        r["fit"]["mrd_percent"],
-        a.report.display()
-    ))
+    let axes = predict::predict_axes(&file, &records, from)?;
+    let mut lines = Vec::new();
+    for p in &axes {
+        let e = &p.excursion;
+        if e.samples > 0 {
+            let msg = format!(
+                "{}: the input leaves the identified range [{:.4}, {:.4}] V on {} samples ({:.1} %), by up to {:.4} V{}",
+                p.axis,
+                e.identified_v.0,
+                e.identified_v.1,
+                e.samples,
+                100.0 * e.fraction,
+                e.max_v,
+                if e.clamped {
+                    "; the set is bounded only over its range, so the model clamps the input there"
+                } else {
+                    " (the model is not clamped: it extrapolates)"
+                }
+            );
+            eprintln!("warning: {msg}");
+        }
+        lines.push(format!(
+            "{}: {} on {}: rms {:.4e} m, r2 {}, mrd {} %",
+            p.axis,
+            p.model.name(),
+            a.data.display(),
+            p.fit["rms"].as_f64().unwrap_or(f64::NAN),
+            p.fit["r2"],
+            p.fit["mrd_percent"],
+        ));
+    }
+    let mut report = json!({
+        "params_file": a.params.display().to_string(),
+        "data": a.data.display().to_string(),
+        "start_s": a.start,
+        "periodic_warmup": a.periodic_warmup,
+        "axes": axes.iter().map(predict::axis_json).collect::<Vec<_>>(),
+    });
+    if axes.len() == 1 {
+        // One axis: its blocks also at the top level.
+        report["model"] = json!(axes[0].model.name());
+        report["fit"] = axes[0].fit.clone();
+    }
+    write_json(&a.report, &report, "--report")?;
+    let mut written = vec![a.report.display().to_string()];
+    if let Some(out) = &a.out {
+        predict::write_series(out, &records, &axes)?;
+        written.push(out.display().to_string());
+    }
+    if let Some(dir) = &a.plots {
+        written.extend(predict::write_plots(dir, &records, &axes, from)?);
+    }
+    Ok(format!("{}\nwritten: {}", lines.join("\n"), written.join(", ")))
+}
+
+/// Checks a stage file's text as the firmware's build does (piezo-stage validation).
+pub fn firmware_check(file: &str, bytes: &[u8]) -> Result<(), String> {
+    let text = std::str::from_utf8(bytes).map_err(|e| format!("{file}: {e}"))?;
+    let stage = piezo_stage::StageFile::parse(file, text).map_err(|e| e.to_string())?;
+    stage
+        .validate()
+        .map(|_| ())
+        .map_err(|e| e.located(file, text).to_string())
 }

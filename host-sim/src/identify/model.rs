@@ -2,23 +2,21 @@
 //!
 //! Every model simulated here — while fitting and while predicting — is piezo-core's f32 model
 //! (`StaticModel`, `StaticModel::asymmetric`, `DynamicModel`), the one the firmware runs. Each set is
-//! validated by the core exactly as the firmware's `build/params.rs` validates it:
-//! `BoucWen::with_input_range(params, u_min, u_max, 1e6)` over the input range of the record, then the
-//! model constructor. A set the core refuses is infeasible.
+//! validated by the core as the stage file validates it: `BoucWen::with_input_range(params, u_min,
+//! u_max, STATE_LIMIT)` over the input range of the record, then the model constructor. A set the
+//! core refuses is infeasible.
 //!
-//! The parameter file is the firmware's format (`firmware/params/xy-stage.toml`: `[x.bouc_wen]`,
-//! `[x.static_map]`, `[x.limits]` and the same for `y`, both axes holding the one identified set) plus
-//! tables the firmware ignores: `[identification]` (model, method, record), `[x.asymmetry]` and
-//! `[x.mass_spring_damper]`. For the dynamic model, `[x.static_map]` holds its quasi-static map
-//! (k1/k0, 1/k0, x0), which is what the firmware's static compensator can use.
+//! A set becomes one axis of the stage file (`piezo_stage::Axis`, [`to_axis`]): the model's tables,
+//! the identified input range as the output window, and the provenance (`[x.identified]`).
 
 use piezo_core::{
     Asymmetry, BoucWen, BoucWenParams, DynamicModel, MassSpringDamperParams, ModelState,
     ParamError, StaticMap, StaticModel,
 };
+use piezo_stage::{Axis, Limits, ModelKind as StageModel, Provenance};
 
-/// Largest |h| accepted for a range-limited Bouc-Wen set (β + γ ≤ 0), as in the firmware's build.
-pub const STATE_LIMIT: f32 = 1e6;
+/// Largest |h| accepted for a range-limited Bouc-Wen set (β + γ ≤ 0): the stage file's.
+pub const STATE_LIMIT: f32 = piezo_stage::STATE_LIMIT;
 
 /// The model families `identify` fits.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -228,225 +226,141 @@ impl CoreModel {
     }
 }
 
-fn num(v: f32) -> String {
-    format!("{v:?}")
-}
-
-/// The parameter file text (firmware format plus the tables described in the module doc).
-pub fn to_toml(set: &Identified, method: &str, data: &str, start_s: f64) -> String {
-    let mut out = String::new();
-    out.push_str(&format!(
-        "# Identified by `host-sim identify` ({} model, method {method}) from {data},\n\
-         # fitted from t = {start_s} s. SI units. Both axes hold the one identified set.\n\
-         # [io] is not identified: set it to your amplifier and sensor.\n\
-         name = \"identified-{}\"\nversion = \"{method}\"\nloop_rate_hz = 10000.0\n\n\
-         [io]\namplifier_gain_v_per_v = 1.0\nsensor_m_per_v = 1.0e-5\n\n\
-         [identification]\nmodel = \"{}\"\nmethod = \"{method}\"\ndata = {data:?}\nstart_s = {start_s:?}\n",
-        set.kind().name(),
-        set.kind().name(),
-        set.kind().name()
-    ));
-    match *set {
+/// The stage-file axis of a set: its model tables, limits = the validated input range (the
+/// window the firmware may drive; the oscillator: the force range), slew 1e5 V/s, and where it came
+/// from.
+pub fn to_axis(set: &Identified, provenance: Provenance) -> Axis {
+    let limits = |range: (f32, f32)| Limits {
+        output_min_v: range.0,
+        output_max_v: range.1,
+        slew_limit_v_per_s: 1.0e5,
+    };
+    let mut axis = match *set {
         Identified::Static {
-            sample_period_s, ..
-        }
-        | Identified::Dynamic {
-            sample_period_s, ..
-        } => out.push_str(&format!("sample_period_s = {}\n", num(sample_period_s))),
-        Identified::Oscillator {
-            params: p,
-            sample_period_s,
-            substeps,
+            bouc_wen,
+            map,
+            asymmetry,
+            input_range_v,
+            ..
+        } => Axis::static_model(bouc_wen, map, asymmetry, limits(input_range_v)),
+        Identified::Dynamic {
+            bouc_wen,
+            mechanics,
+            input_range_v,
+            ..
         } => {
-            out.push_str(&format!(
-                "sample_period_s = {}\nsubsteps = {substeps}\n\n[oscillator]\nmass_kg = {}\n\
-                 damping_n_s_per_m = {}\nstiffness_n_per_m = {}\nalpha_n_per_m = {}\nbeta_per_m = {}\n\
-                 gamma = {}\ndelta = {}\nnu = {}\n",
-                num(sample_period_s),
-                num(p.mass_kg),
-                num(p.damping_n_s_per_m),
-                num(p.stiffness_n_per_m),
-                num(p.alpha_n_per_m),
-                num(p.beta_per_m),
-                num(p.gamma),
-                num(p.delta),
-                num(p.nu)
-            ));
-            return out;
-        }
-    }
-    for axis in ["x", "y"] {
-        let (bw, map, range) = match *set {
-            Identified::Static {
-                bouc_wen,
-                map,
-                input_range_v,
-                ..
-            } => (bouc_wen, map, input_range_v),
-            Identified::Dynamic {
-                bouc_wen,
-                mechanics: m,
-                input_range_v,
-                ..
-            } => (
+            let mut axis = Axis::static_model(
                 bouc_wen,
                 StaticMap {
-                    k1_m_per_v: m.force_per_volt_n_per_v / m.stiffness_n_per_m,
-                    k2_m_per_h: 1.0 / m.stiffness_n_per_m,
-                    offset_m: m.rest_position_m,
+                    k1_m_per_v: 1.0,
+                    k2_m_per_h: 0.0,
+                    offset_m: 0.0,
                 },
-                input_range_v,
-            ),
-            Identified::Oscillator { .. } => unreachable!("returned above"),
-        };
-        out.push_str(&format!(
-            "\n[{axis}.bouc_wen]\na = {}\nbeta = {}\ngamma = {}\nn = {}\n\n[{axis}.static_map]\n\
-             k1_m_per_v = {}\nk2_m_per_h = {}\noffset_m = {}\n\n[{axis}.limits]\noutput_min_v = {}\n\
-             output_max_v = {}\nslew_limit_v_per_s = 1.0e5\n",
-            num(bw.a),
-            num(bw.beta),
-            num(bw.gamma),
-            num(bw.n),
-            num(map.k1_m_per_v),
-            num(map.k2_m_per_h),
-            num(map.offset_m),
-            num(range.0),
-            num(range.1)
-        ));
-        match *set {
-            Identified::Static { asymmetry, .. } if asymmetry != Asymmetry::default() => out
-                .push_str(&format!(
-                    "\n[{axis}.asymmetry]\ndelta_per_v_s = {}\ninput_shift_s = {}\n",
-                    num(asymmetry.delta_per_v_s),
-                    num(asymmetry.input_shift_s)
-                )),
-            Identified::Dynamic { mechanics: m, .. } => out.push_str(&format!(
-                "\n[{axis}.mass_spring_damper]\nmass_kg = {}\ndamping_n_s_per_m = {}\n\
-                 stiffness_n_per_m = {}\nrest_position_m = {}\nforce_per_volt_n_per_v = {}\n",
-                num(m.mass_kg),
-                num(m.damping_n_s_per_m),
-                num(m.stiffness_n_per_m),
-                num(m.rest_position_m),
-                num(m.force_per_volt_n_per_v)
-            )),
-            _ => {}
+                Asymmetry::default(),
+                limits(input_range_v),
+            );
+            axis.model = StageModel::Dynamic;
+            axis.static_map = None;
+            axis.mass_spring_damper = Some(mechanics);
+            axis
         }
-    }
-    out
-}
-
-fn field(file: &str, t: &toml::Table, path: &str, key: &str) -> Result<f32, String> {
-    match t.get(key) {
-        Some(toml::Value::Float(f)) => Ok(*f as f32),
-        Some(toml::Value::Integer(i)) => Ok(*i as f32),
-        Some(_) => Err(format!("{file}: `{path}.{key}` must be a number")),
-        None => Err(format!("{file}: missing field `{path}.{key}`")),
-    }
-}
-
-fn sub<'a>(
-    file: &str,
-    t: &'a toml::Table,
-    path: &str,
-    key: &str,
-) -> Result<&'a toml::Table, String> {
-    match t.get(key) {
-        Some(toml::Value::Table(s)) => Ok(s),
-        _ => Err(format!("{file}: missing table `{path}{key}`")),
-    }
-}
-
-/// Reads a parameter file written by [`to_toml`] (the x axis for two-axis files) and validates it
-/// with the core.
-pub fn from_toml(file: &str, text: &str) -> Result<Identified, String> {
-    let root: toml::Table = text
-        .parse()
-        .map_err(|e| format!("{file}: not a valid TOML file: {e}"))?;
-    let id = sub(file, &root, "", "identification")?;
-    let model = match id.get("model") {
-        Some(toml::Value::String(s)) => s.as_str(),
-        _ => return Err(format!("{file}: missing `identification.model`")),
-    };
-    let t = field(file, id, "identification", "sample_period_s")?;
-    let set = if model == "oscillator" {
-        let o = sub(file, &root, "", "oscillator")?;
-        let f = |k| field(file, o, "oscillator", k);
-        let substeps = field(file, id, "identification", "substeps")? as u32;
         Identified::Oscillator {
-            params: piezo_core::OscillatorParams {
-                mass_kg: f("mass_kg")?,
-                damping_n_s_per_m: f("damping_n_s_per_m")?,
-                stiffness_n_per_m: f("stiffness_n_per_m")?,
-                alpha_n_per_m: f("alpha_n_per_m")?,
-                beta_per_m: f("beta_per_m")?,
-                gamma: f("gamma")?,
-                delta: f("delta")?,
-                nu: f("nu")?,
-            },
-            sample_period_s: t,
-            substeps,
-        }
-    } else {
-        let x = sub(file, &root, "", "x")?;
-        let bw = sub(file, x, "x.", "bouc_wen")?;
-        let bouc_wen = BoucWenParams {
-            a: field(file, bw, "x.bouc_wen", "a")?,
-            beta: field(file, bw, "x.bouc_wen", "beta")?,
-            gamma: field(file, bw, "x.bouc_wen", "gamma")?,
-            n: field(file, bw, "x.bouc_wen", "n")?,
-        };
-        let lim = sub(file, x, "x.", "limits")?;
-        let range = (
-            field(file, lim, "x.limits", "output_min_v")?,
-            field(file, lim, "x.limits", "output_max_v")?,
-        );
-        match model {
-            "symmetric" | "asymmetric" => {
-                let m = sub(file, x, "x.", "static_map")?;
-                let map = StaticMap {
-                    k1_m_per_v: field(file, m, "x.static_map", "k1_m_per_v")?,
-                    k2_m_per_h: field(file, m, "x.static_map", "k2_m_per_h")?,
-                    offset_m: field(file, m, "x.static_map", "offset_m")?,
-                };
-                let asymmetry = match x.get("asymmetry") {
-                    Some(toml::Value::Table(a)) => Asymmetry {
-                        delta_per_v_s: field(file, a, "x.asymmetry", "delta_per_v_s")?,
-                        input_shift_s: field(file, a, "x.asymmetry", "input_shift_s")?,
-                    },
-                    _ => Asymmetry::default(),
-                };
-                Identified::Static {
-                    bouc_wen,
-                    map,
-                    asymmetry,
-                    sample_period_s: t,
-                    input_range_v: range,
-                }
-            }
-            "dynamic" => {
-                let m = sub(file, x, "x.", "mass_spring_damper")?;
-                let p = "x.mass_spring_damper";
-                Identified::Dynamic {
-                    bouc_wen,
-                    mechanics: MassSpringDamperParams {
-                        mass_kg: field(file, m, p, "mass_kg")?,
-                        damping_n_s_per_m: field(file, m, p, "damping_n_s_per_m")?,
-                        stiffness_n_per_m: field(file, m, p, "stiffness_n_per_m")?,
-                        rest_position_m: field(file, m, p, "rest_position_m")?,
-                        force_per_volt_n_per_v: field(file, m, p, "force_per_volt_n_per_v")?,
-                    },
-                    sample_period_s: t,
-                    input_range_v: range,
-                }
-            }
-            other => {
-                return Err(format!(
-                    "{file}: `identification.model` = {other:?}: expected symmetric, asymmetric, dynamic or oscillator"
-                ))
-            }
+            params, substeps, ..
+        } => {
+            let range = (provenance.input_range_v[0], provenance.input_range_v[1]);
+            let mut axis = Axis::static_model(
+                BoucWenParams {
+                    a: 1.0,
+                    beta: 0.0,
+                    gamma: 0.0,
+                    n: 1.0,
+                },
+                StaticMap {
+                    k1_m_per_v: 1.0,
+                    k2_m_per_h: 0.0,
+                    offset_m: 0.0,
+                },
+                Asymmetry::default(),
+                limits(range),
+            );
+            axis.model = StageModel::Oscillator;
+            axis.bouc_wen = None;
+            axis.static_map = None;
+            axis.oscillator = Some(params);
+            axis.substeps = Some(substeps);
+            axis
         }
     };
-    set.build()
-        .map_err(|e| format!("{file}: refused by piezo-core: {e}"))?;
-    Ok(set)
+    axis.identified = Some(provenance);
+    axis
+}
+
+/// The set of a stage-file axis, with the sample period `sample_period_s` \[s\] of the record it
+/// will simulate and its Bouc-Wen input range `input_range_v` \[V\].
+pub fn from_axis(
+    axis: &Axis,
+    sample_period_s: f32,
+    input_range_v: (f32, f32),
+) -> Result<Identified, String> {
+    let need = |what: &str| format!("model \"{}\" without `{what}`", axis.model.name());
+    Ok(match axis.model {
+        StageModel::Symmetric | StageModel::Asymmetric => Identified::Static {
+            bouc_wen: axis.bouc_wen.ok_or_else(|| need("bouc_wen"))?,
+            map: axis.static_map.ok_or_else(|| need("static_map"))?,
+            asymmetry: axis.asymmetry.unwrap_or_default(),
+            sample_period_s,
+            input_range_v,
+        },
+        StageModel::Dynamic => Identified::Dynamic {
+            bouc_wen: axis.bouc_wen.ok_or_else(|| need("bouc_wen"))?,
+            mechanics: axis
+                .mass_spring_damper
+                .ok_or_else(|| need("mass_spring_damper"))?,
+            sample_period_s,
+            input_range_v,
+        },
+        StageModel::Oscillator => Identified::Oscillator {
+            params: axis.oscillator.ok_or_else(|| need("oscillator"))?,
+            sample_period_s,
+            substeps: axis.substeps.unwrap_or(1),
+        },
+    })
+}
+
+/// A one-axis stage file's text for `set` (placeholder io, the set's sample rate as loop rate).
+pub fn to_toml(set: &Identified, method: &str, data: &str, start_s: f64) -> String {
+    let (sample_period_s, range) = match *set {
+        Identified::Static {
+            sample_period_s,
+            input_range_v,
+            ..
+        }
+        | Identified::Dynamic {
+            sample_period_s,
+            input_range_v,
+            ..
+        } => (sample_period_s, input_range_v),
+        Identified::Oscillator {
+            sample_period_s, ..
+        } => (sample_period_s, (0.0, 0.0)),
+    };
+    let provenance = Provenance {
+        data: data.into(),
+        window_s: [start_s, start_s],
+        method: method.into(),
+        fit_rms_m: f64::NAN,
+        input_range_v: [range.0, range.1],
+        sample_period_s,
+    };
+    let file = piezo_stage::StageFile {
+        stage: piezo_stage::Stage {
+            name: format!("identified-{}", set.kind().name()),
+            version: "1".into(),
+            loop_rate_hz: crate::stage_file::rate_of(1.0 / f64::from(sample_period_s)),
+        },
+        io: piezo_stage::Io::placeholder(),
+        x: to_axis(set, provenance),
+        y: None,
+    };
+    file.to_toml("")
 }

@@ -322,6 +322,12 @@ pub fn identify(record: &Record, s: &IdentifySettings) -> Result<Identification,
 
 /// Simulates an oscillator set on a record (input upsampled as in fitting) and scores it from `from`.
 pub fn score(set: &Identified, record: &Record, from: usize) -> Result<serde_json::Value, String> {
+    let predicted = predict(set, record)?;
+    Ok(fit_block(&record.y_m[from..], &predicted[from..]))
+}
+
+/// The oscillator's output per sample of `record` \[m\] (input upsampled by `substeps`).
+pub fn predict(set: &Identified, record: &Record) -> Result<Vec<f64>, String> {
     let Identified::Oscillator {
         params, substeps, ..
     } = *set
@@ -340,7 +346,7 @@ pub fn score(set: &Identified, record: &Record, from: usize) -> Result<serde_jso
         }
     })
     .map_err(|e| format!("parameter set refused by piezo-core: {e}"))?;
-    Ok(fit_block(&record.y_m[from..], &predicted[from..]))
+    Ok(predicted)
 }
 
 /// Spectral derivatives of a periodic record: returns (x, ẋ, ẍ, x⃛) band-limited to `f_max_hz`.

@@ -1,0 +1,304 @@
+//! `predict`: runs a stage file's model on a record, exactly as the firmware runs it, and scores it.
+//!
+//! Per axis the chain is piezo-stage's (`AxisChain`: piezo-core's `StaticModel` then
+//! `effects::Effects`, or the dynamic model), built at the record's sample period, from rest at the
+//! record's first input (`ModelState::at_rest(u0)`, `EffectsState::at_rest(u0)`); two static axes
+//! run together with their coupling (`piezo_stage::simulate_pair`). The model sees only u.
+//!
+//! Input range: the Bouc-Wen state is validated over the hull of the output window, the
+//! identified input range and the record's input range, so a bounded set (β + γ > 0) is never
+//! clamped to the range it was identified on. A set that is only bounded over a finite range
+//! (β + γ ≤ 0) and cannot be extended to the record's range is built over its own range and the
+//! input is clamped there; either way the report says how many samples leave the identified range
+//! and how far (`outside_identified_range`).
+
+use super::model::from_axis;
+use super::{fit_block, oscillator, Record};
+use crate::csv::{write_csv, Table};
+use crate::plot::{plot_panels, Panel, Series};
+use piezo_stage::{simulate_pair, Axis, AxisChain, ModelKind, StageFile};
+use serde_json::{json, Value};
+use std::path::Path;
+
+/// Where an axis's input left the identified range.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RangeExcursion {
+    /// The identified input range \[V\].
+    pub identified_v: (f64, f64),
+    /// Samples outside it.
+    pub samples: usize,
+    /// Share of the samples outside it.
+    pub fraction: f64,
+    /// Largest distance outside it \[V\].
+    pub max_v: f64,
+    /// Whether the model had to clamp the input (a set bounded only over its range).
+    pub clamped: bool,
+}
+
+/// One axis's prediction.
+#[derive(Debug, Clone)]
+pub struct AxisPrediction {
+    /// `x` or `y`.
+    pub axis: &'static str,
+    /// The model family.
+    pub model: ModelKind,
+    /// Predicted output per sample \[m\].
+    pub predicted_m: Vec<f64>,
+    /// The fit block over the scored samples.
+    pub fit: Value,
+    /// Where the input left the identified range.
+    pub excursion: RangeExcursion,
+}
+
+fn range_of(v: &[f64]) -> (f64, f64) {
+    v.iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
+            (a.min(x), b.max(x))
+        })
+}
+
+fn identified_range(axis: &Axis) -> (f64, f64) {
+    match &axis.identified {
+        Some(p) => (f64::from(p.input_range_v[0]), f64::from(p.input_range_v[1])),
+        None => (
+            f64::from(axis.limits.output_min_v),
+            f64::from(axis.limits.output_max_v),
+        ),
+    }
+}
+
+/// Builds `axis` for `record`: over the hull of window, identified and record ranges when the core
+/// accepts it, else over its own ranges (the input is then clamped there).
+fn build_for(
+    name: &'static str,
+    axis: &Axis,
+    record: &Record,
+) -> Result<(piezo_stage::ValidAxis, bool), String> {
+    let t = record.sample_period_s() as f32;
+    let (ilo, ihi) = identified_range(axis);
+    let own = (
+        ilo.min(f64::from(axis.limits.output_min_v)) as f32,
+        ihi.max(f64::from(axis.limits.output_max_v)) as f32,
+    );
+    let (rlo, rhi) = range_of(&record.u);
+    let hull = (own.0.min(rlo as f32), own.1.max(rhi as f32));
+    match axis.build(name, t, hull) {
+        Ok(v) => Ok((v, false)),
+        Err(_) => axis
+            .build(name, t, own)
+            .map(|v| (v, hull != own))
+            .map_err(|e| format!("--params: {e}")),
+    }
+}
+
+/// Predicts every axis of `file` on `records` (one per axis, same length), scored from `from`.
+pub fn predict_axes(
+    file: &StageFile,
+    records: &[Record],
+    from: usize,
+) -> Result<Vec<AxisPrediction>, String> {
+    let axes = file.axes();
+    if records.len() != axes.len() {
+        return Err(format!(
+            "--params has {} axis(es), the record {}: give one --u/--y column per axis",
+            axes.len(),
+            records.len()
+        ));
+    }
+    let mut built = Vec::new();
+    for ((name, axis), record) in axes.iter().zip(records) {
+        let (valid, clamped) = build_for(name, axis, record)?;
+        let (ilo, ihi) = identified_range(axis);
+        let outside: Vec<f64> = record
+            .u
+            .iter()
+            .map(|&u| (ilo - u).max(u - ihi).max(0.0))
+            .filter(|&d| d > 1e-9 * (ihi - ilo).abs().max(1e-12))
+            .collect();
+        let excursion = RangeExcursion {
+            identified_v: (ilo, ihi),
+            samples: outside.len(),
+            fraction: outside.len() as f64 / record.u.len() as f64,
+            max_v: outside.iter().copied().fold(0.0, f64::max),
+            clamped,
+        };
+        built.push((*name, axis, valid, excursion));
+    }
+    let us: Vec<Vec<f32>> = records
+        .iter()
+        .map(|r| r.u.iter().map(|&v| v as f32).collect())
+        .collect();
+    let n = us[0].len();
+    let mut predicted: Vec<Vec<f64>> = vec![vec![0.0; n]; us.len()];
+    let pair = match (built.first(), built.get(1)) {
+        (
+            Some((_, _, a, _)),
+            Some((_, _, b, _)),
+        ) => match (a.chain, b.chain) {
+            (
+                AxisChain::Static {
+                    model: mx,
+                    effects: ex,
+                },
+                AxisChain::Static {
+                    model: my,
+                    effects: ey,
+                },
+            ) => Some(((mx, ex), (my, ey))),
+            _ => None,
+        },
+        _ => None,
+    };
+    if let Some(((mx, ex), (my, ey))) = pair {
+        if us[1].len() != n {
+            return Err("the two axes' records differ in length".into());
+        }
+        let mut ox = vec![0.0f32; n];
+        let mut oy = vec![0.0f32; n];
+        simulate_pair((&mx, &ex), (&my, &ey), [&us[0], &us[1]], [&mut ox, &mut oy]);
+        predicted[0] = ox.iter().map(|&v| f64::from(v)).collect();
+        predicted[1] = oy.iter().map(|&v| f64::from(v)).collect();
+    } else {
+        for (i, (_, axis, valid, _)) in built.iter().enumerate() {
+            if axis.model == ModelKind::Oscillator {
+                let r = &records[i];
+                let set = from_axis(axis, r.sample_period_s() as f32, (0.0, 0.0))?;
+                predicted[i] = oscillator::predict(&set, r)?;
+            } else {
+                let p = &mut predicted[i];
+                valid.chain.simulate(&us[i], |k, y| p[k] = f64::from(y));
+            }
+        }
+    }
+    Ok(built
+        .into_iter()
+        .zip(predicted)
+        .zip(records)
+        .map(|(((axis, a, _, excursion), predicted_m), r)| AxisPrediction {
+            axis,
+            model: a.model,
+            fit: fit_block(&r.y_m[from..], &predicted_m[from..]),
+            predicted_m,
+            excursion,
+        })
+        .collect())
+}
+
+/// JSON of one axis's prediction.
+pub fn axis_json(p: &AxisPrediction) -> Value {
+    let e = &p.excursion;
+    json!({
+        "axis": p.axis,
+        "model": p.model.name(),
+        "fit": p.fit,
+        "outside_identified_range": {
+            "identified_v": [e.identified_v.0, e.identified_v.1],
+            "samples": e.samples,
+            "fraction": e.fraction,
+            "max_v": e.max_v,
+            "clamped": e.clamped,
+        },
+    })
+}
+
+/// Writes `t_s`, then per axis input, measured, predicted and residual (`u_V,measured_m,…` for one
+/// axis; `ux_V,x_measured_m,…,uy_V,y_measured_m,…` for two).
+pub fn write_series(path: &Path, records: &[Record], axes: &[AxisPrediction]) -> Result<(), String> {
+    let mut names = vec!["t_s".to_string()];
+    let mut columns = vec![records[0].t_s.clone()];
+    for (r, p) in records.iter().zip(axes) {
+        let (u, prefix) = if axes.len() == 1 {
+            ("u_V".to_string(), String::new())
+        } else {
+            (format!("u{}_V", p.axis), format!("{}_", p.axis))
+        };
+        names.extend([
+            u,
+            format!("{prefix}measured_m"),
+            format!("{prefix}predicted_m"),
+            format!("{prefix}residual_m"),
+        ]);
+        columns.extend([
+            r.u.clone(),
+            r.y_m.clone(),
+            p.predicted_m.clone(),
+            r.y_m.iter().zip(&p.predicted_m).map(|(y, q)| y - q).collect(),
+        ]);
+    }
+    let table = Table {
+        path: path.into(),
+        names,
+        columns,
+    };
+    write_csv(path, &table).map_err(|e| format!("--out: {e}"))
+}
+
+/// Measured against predicted in time and as loops, and the residual, per axis (µm).
+pub fn write_plots(
+    dir: &Path,
+    records: &[Record],
+    axes: &[AxisPrediction],
+    from: usize,
+) -> Result<Vec<String>, String> {
+    std::fs::create_dir_all(dir).map_err(|e| format!("--plots {}: {e}", dir.display()))?;
+    let mut panels = Vec::new();
+    for (r, p) in records.iter().zip(axes) {
+        let um = 1e6;
+        let time = |v: &[f64]| -> Vec<(f64, f64)> {
+            r.t_s[from..].iter().zip(&v[from..]).map(|(&t, &y)| (t, y * um)).collect()
+        };
+        let residual: Vec<f64> = r.y_m.iter().zip(&p.predicted_m).map(|(y, q)| y - q).collect();
+        let label = format!("{} [µm]", p.axis);
+        panels.push(Panel {
+            title: format!("{}: measured and predicted", p.axis),
+            x_label: "t [s]".into(),
+            y_label: label.clone(),
+            series: vec![
+                Series::line("measured", time(&r.y_m), 4000),
+                Series::line("predicted", time(&p.predicted_m), 4000),
+            ],
+        });
+        panels.push(Panel {
+            title: format!("{}: loops", p.axis),
+            x_label: "u [V]".into(),
+            y_label: label.clone(),
+            series: vec![
+                Series::line(
+                    "measured",
+                    r.u[from..].iter().zip(&r.y_m[from..]).map(|(&u, &y)| (u, y * um)).collect(),
+                    4000,
+                ),
+                Series::line(
+                    "predicted",
+                    r.u[from..]
+                        .iter()
+                        .zip(&p.predicted_m[from..])
+                        .map(|(&u, &y)| (u, y * um))
+                        .collect(),
+                    4000,
+                ),
+            ],
+        });
+        panels.push(Panel {
+            title: format!("{}: residual (measured − predicted)", p.axis),
+            x_label: "t [s]".into(),
+            y_label: format!("{} residual [µm]", p.axis),
+            series: vec![Series::line("residual", time(&residual), 4000)],
+        });
+    }
+    let mut written = Vec::new();
+    for ext in ["svg", "png"] {
+        let path = dir.join(format!("predict.{ext}"));
+        plot_panels(&path, &panels).map_err(|e| e.to_string())?;
+        written.push(path.display().to_string());
+    }
+    Ok(written)
+}
+
+/// Reads and validates a stage file for prediction (the firmware's io and window checks are not
+/// needed to predict: every axis is built for the record in [`predict_axes`]).
+pub fn read_stage(path: &Path) -> Result<StageFile, String> {
+    let name = path.display().to_string();
+    let text = std::fs::read_to_string(path).map_err(|e| format!("--params {name}: {e}"))?;
+    StageFile::parse(&name, &text).map_err(|e| format!("--params: {e}"))
+}
