@@ -1,6 +1,6 @@
 //! Diagnosis of a residual: one candidate regressor family per physical effect, ranked by the share of
-//! the residual variance each explains when fitted (an error-reduction-ratio style term selection), and
-//! a whiteness test of what is left.
+//! the residual variance each explains when fitted (an error-reduction-ratio style term selection), a
+//! whiteness test of what is left, and an estimate of the sensor noise.
 //!
 //! For the current model prediction ŷ, its hysteresis state h and the residual r = y − ŷ on the scored
 //! samples, every candidate is fitted by linear least squares together with the nuisance basis
@@ -10,8 +10,10 @@
 //!
 //! with X, per effect (Ts the sample period, grids over the nonlinear parameter, best grid point kept):
 //! - creep: x_τ[k] = a·x_τ[k−1] + (1 − a)·(u[k−1] − u[0]), a = e^(−Ts/τ), τ on a log grid from 3·Ts to
-//!   the record length (one or two elements, greedy) — the core's creep bank driven by the input;
-//! - drift: t;
+//!   a third of the record (one or two elements, greedy) — the core's creep bank driven by the input;
+//!   and the logarithmic creep, the sum of twelve such elements half a decade apart from √10·Ts;
+//! - drift, a function of time alone: t (linear) and 1 − e^(−t/τ) (settling, τ on a log grid from
+//!   two input periods to three records);
 //! - delay: the prediction replaced by ŷ(t − D) (what adding the delay does; no free coefficient), D on
 //!   a grid of 0.25–64 samples;
 //! - asymmetry: (u[k−1] − u_mid)², u_mid the middle of the input range over the scored samples
@@ -21,10 +23,13 @@
 //!   ζ ∈ {0.05, 0.1, 0.2, 0.4, 0.7, 1, 1.5, 2.5};
 //! - coupling: the other axis's prediction (two-axis records only).
 //!
-//! A candidate is accepted when it explains at least `min_share` of the residual variance and its
-//! Bayesian information criterion improves: ΔBIC = N·ln(SSE₁/SSE₀) + p·ln N < −10 (p = parameters the
-//! effect adds). The search stops when nothing is accepted, or when the residual is white: the
-//! Ljung–Box statistic Q = N(N+2)·Σ_{l=1..20} ρ_l²/(N−l) below the χ²₂₀ 95 % point 31.41.
+//! The screening only ranks and initialises candidates (its ΔBIC = N·ln(SSE₁/SSE₀) + p·ln N is
+//! reported): whether an effect is added is decided on data the fit did not see (`select`).
+//! The Ljung–Box statistic Q = N(N+2)·Σ_{l=1..20} ρ_l²/(N−l) (χ²₂₀ 95 % point 31.41) is reported too.
+//!
+//! Sensor noise: σ = 1.4826·median|Δ²r − median Δ²r| / √6 over the residual's second differences
+//! (white noise of σ gives Var Δ²r = 6σ²; a smooth model error adds little, and the median ignores the
+//! few samples around input steps).
 
 // Small dense linear algebra reads best with index loops.
 #![allow(clippy::needless_range_loop)]
@@ -34,9 +39,9 @@ use serde_json::{json, Value};
 /// The effects `close-loop` can add (names as in the report).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum EffectKind {
-    /// Creep: bank of first-order elements driven by the input.
+    /// Creep: first-order elements driven by the input (Kelvin–Voigt or logarithmic).
     Creep,
-    /// Linear drift in time.
+    /// Drift: a slow function of time that does not depend on u (linear or settling).
     Drift,
     /// Input (or sensor) delay.
     Delay,
@@ -82,10 +87,22 @@ pub enum EffectInit {
         /// Time constants \[s\].
         time_constants_s: [f64; 2],
     },
+    /// Logarithmic creep, t₀ = one sample period.
+    LogCreep {
+        /// g_log \[m/V per decade\].
+        gain_m_per_v: f64,
+    },
     /// Drift rate \[m/s\].
     Drift {
         /// Rate.
         rate_m_per_s: f64,
+    },
+    /// Settling drift A·(1 − e^(−t/τ)).
+    Settling {
+        /// A \[m\].
+        amplitude_m: f64,
+        /// τ \[s\].
+        time_constant_s: f64,
     },
     /// Delay \[s\].
     Delay {
@@ -113,6 +130,31 @@ pub enum EffectInit {
     },
 }
 
+impl EffectInit {
+    /// The effect these values belong to.
+    pub fn kind(&self) -> EffectKind {
+        match self {
+            Self::Creep { .. } | Self::LogCreep { .. } => EffectKind::Creep,
+            Self::Drift { .. } | Self::Settling { .. } => EffectKind::Drift,
+            Self::Delay { .. } => EffectKind::Delay,
+            Self::Asymmetry { .. } => EffectKind::Asymmetry,
+            Self::Dynamics { .. } => EffectKind::Dynamics,
+            Self::Coupling { .. } => EffectKind::Coupling,
+        }
+    }
+
+    /// The form in words.
+    pub fn form(&self) -> &'static str {
+        match self {
+            Self::Creep { .. } => "Kelvin-Voigt",
+            Self::LogCreep { .. } => "logarithmic",
+            Self::Drift { .. } => "linear",
+            Self::Settling { .. } => "exponential settling",
+            _ => "",
+        }
+    }
+}
+
 /// What the model currently predicts, on the whole record (the scored part starts at `from`).
 pub struct Signals<'a> {
     /// Times \[s\].
@@ -125,7 +167,7 @@ pub struct Signals<'a> {
     pub y_hat: &'a [f64],
     /// Current hysteresis state.
     pub h: &'a [f64],
-    /// The other axis's prediction (two-axis records).
+    /// The other axis's z (two-axis records).
     pub other_y_hat: Option<&'a [f64]>,
     /// First scored sample.
     pub from: usize,
@@ -144,15 +186,10 @@ pub struct Candidate {
     pub delta_bic: f64,
     /// Initial parameters.
     pub init: EffectInit,
-    /// Evidence (JSON) for the report.
-    pub evidence: Value,
-}
-
-impl Candidate {
-    /// Accepted under the rule of the module doc.
-    pub fn accepted(&self, min_share: f64) -> bool {
-        self.share >= min_share && self.delta_bic < -10.0
-    }
+    /// What was tested, in words.
+    pub test: &'static str,
+    /// The screening's figures (name, value), for the report.
+    pub figures: Vec<(&'static str, f64)>,
 }
 
 /// Least squares of `r` on the columns `basis` (all of length N): returns (SSE, coefficients).
@@ -313,28 +350,58 @@ pub fn ljung_box(r: &[f64], lags: usize) -> f64 {
 /// χ²₂₀ 95 % point.
 pub const LJUNG_BOX_LIMIT_20: f64 = 31.41;
 
-/// Noise estimate √(var(Δr)/2): exact for white noise, small for a smooth model error.
+/// Sensor noise estimate σ from the residual's second differences (module doc): robust to a smooth
+/// model error and to the few samples around input steps.
 pub fn noise_estimate(r: &[f64]) -> f64 {
-    if r.len() < 3 {
+    if r.len() < 4 {
         return 0.0;
     }
-    let d: Vec<f64> = r.windows(2).map(|w| w[1] - w[0]).collect();
-    let m = d.iter().sum::<f64>() / d.len() as f64;
-    (d.iter().map(|v| (v - m).powi(2)).sum::<f64>() / d.len() as f64 / 2.0).sqrt()
+    let mut d: Vec<f64> = r.windows(3).map(|w| w[2] - 2.0 * w[1] + w[0]).collect();
+    let med = median(&mut d);
+    let mut dev: Vec<f64> = d.iter().map(|v| (v - med).abs()).collect();
+    1.4826 * median(&mut dev) / 6f64.sqrt()
 }
 
-/// The residual's whiteness and noise figures (JSON).
-pub fn residual_figures(r: &[f64]) -> Value {
-    let rms = (r.iter().map(|v| v * v).sum::<f64>() / r.len().max(1) as f64).sqrt();
-    let q = ljung_box(r, 20);
-    let noise = noise_estimate(r);
-    json!({
-        "rms": rms,
-        "noise_estimate": noise,
-        "ljung_box_q20": q,
-        "ljung_box_limit": LJUNG_BOX_LIMIT_20,
-        "white": q < LJUNG_BOX_LIMIT_20,
-    })
+fn median(v: &mut [f64]) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    let mid = v.len() / 2;
+    let (_, m, _) = v.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
+    *m
+}
+
+/// The residual's whiteness and noise figures.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ResidualFigures {
+    /// RMS \[m\].
+    pub rms: f64,
+    /// Sensor noise estimate σ \[m\] ([`noise_estimate`]).
+    pub noise: f64,
+    /// Ljung–Box Q over 20 lags.
+    pub ljung_box_q20: f64,
+}
+
+impl ResidualFigures {
+    /// The figures of residual `r`.
+    pub fn of(r: &[f64]) -> Self {
+        Self {
+            rms: (r.iter().map(|v| v * v).sum::<f64>() / r.len().max(1) as f64).sqrt(),
+            noise: noise_estimate(r),
+            ljung_box_q20: ljung_box(r, 20),
+        }
+    }
+
+    /// JSON for the report.
+    pub fn to_json(&self) -> Value {
+        json!({
+            "rms": self.rms,
+            "noise_estimate": self.noise,
+            "ljung_box_q20": self.ljung_box_q20,
+            "ljung_box_limit": LJUNG_BOX_LIMIT_20,
+            "white": self.ljung_box_q20 < LJUNG_BOX_LIMIT_20,
+        })
+    }
 }
 
 fn log_grid(lo: f64, hi: f64, n: usize) -> Vec<f64> {
@@ -379,9 +446,9 @@ pub fn screen(sig: &Signals, candidates: &[EffectKind]) -> Vec<Candidate> {
     let f_dom = dominant_frequency_hz(u_s, ts);
     let mut out: Vec<Candidate> = candidates
         .par_iter()
-        .filter_map(|&effect| match effect {
+        .filter_map(|&effect| -> Option<Vec<Candidate>> { match effect {
             EffectKind::Creep => {
-                let taus = log_grid(3.0 * ts, record_s, 16);
+                let taus = log_grid(3.0 * ts, record_s / 3.0, 16);
                 let cols: Vec<Vec<f64>> = taus
                     .iter()
                     .map(|&tau| creep_element(sig.u, tau, ts)[from..].to_vec())
@@ -406,10 +473,6 @@ pub fn screen(sig: &Signals, candidates: &[EffectKind]) -> Vec<Candidate> {
                         (sse, coef, j)
                     })
                     .min_by(|a, b| a.0.total_cmp(&b.0));
-                let grid: Vec<Value> = singles
-                    .iter()
-                    .map(|(sse, g, i)| json!({"tau_s": taus[*i], "share": share(*sse), "gain_m_per_v": g}))
-                    .collect();
                 let (sse, init, p) = match pair {
                     Some((sse2, coef, j)) if share(sse2) - share(best.0) >= 0.01 => (
                         sse2,
@@ -428,32 +491,80 @@ pub fn screen(sig: &Signals, candidates: &[EffectKind]) -> Vec<Candidate> {
                         2,
                     ),
                 };
-                Some(Candidate {
+                let figures = match init {
+                    EffectInit::Creep {
+                        gains_m_per_v,
+                        time_constants_s,
+                    } => vec![
+                        ("gain_m_per_v[0]", gains_m_per_v[0]),
+                        ("time_constant_s[0]", time_constants_s[0]),
+                        ("gain_m_per_v[1]", gains_m_per_v[1]),
+                        ("time_constant_s[1]", time_constants_s[1]),
+                    ],
+                    _ => Vec::new(),
+                };
+                Some(vec![Candidate {
                     effect,
                     share: share(sse),
                     delta_bic: bic(sse, p),
                     init,
-                    evidence: json!({
-                        "test": "residual against first-order low-pass histories of u (tau grid)",
-                        "grid": grid,
-                    }),
-                })
+                    test: "residual against first-order low-pass histories of u (time-constant grid)",
+                    figures,
+                },
+                {
+                    // The logarithmic creep: twelve elements half a decade apart, t0 = Ts.
+                    let mut col = vec![0.0; n];
+                    for l in 0..12 {
+                        let tau = ts * 10f64.powf(0.5 * (l + 1) as f64);
+                        for (c, x) in col.iter_mut().zip(&creep_element(sig.u, tau, ts)[from..]) {
+                            *c += 0.5 * x;
+                        }
+                    }
+                    let (sse, coef) = score(&[&col]);
+                    Candidate {
+                        effect,
+                        share: share(sse),
+                        delta_bic: bic(sse, 1),
+                        init: EffectInit::LogCreep { gain_m_per_v: coef[0] },
+                        test: "residual against the logarithmic creep of u (g_log·log10(1 + t/Ts) per step)",
+                        figures: vec![("gain_m_per_v_per_decade", coef[0])],
+                    }
+                }])
             }
             EffectKind::Drift => {
                 let t: Vec<f64> = sig.t_s[from..].iter().map(|t| t - sig.t_s[0]).collect();
                 let (sse, coef) = score(&[&t]);
-                Some(Candidate {
+                let linear = Candidate {
                     effect,
                     share: share(sse),
                     delta_bic: bic(sse, 1),
                     init: EffectInit::Drift {
                         rate_m_per_s: coef[0],
                     },
-                    evidence: json!({
-                        "test": "residual against time",
-                        "rate_m_per_s": coef[0],
-                    }),
-                })
+                    test: "residual against time (linear drift)",
+                    figures: vec![("rate_m_per_s", coef[0])],
+                };
+                let taus = log_grid((2.0 / f_dom).max(20.0 * ts), 3.0 * record_s, 16);
+                let settling = taus
+                    .iter()
+                    .map(|&tau| {
+                        let col: Vec<f64> = t.iter().map(|t| -(-t / tau).exp_m1()).collect();
+                        let (sse, coef) = score(&[&col]);
+                        (sse, coef[0], tau)
+                    })
+                    .min_by(|a, b| a.0.total_cmp(&b.0))?;
+                let settling = Candidate {
+                    effect,
+                    share: share(settling.0),
+                    delta_bic: bic(settling.0, 2),
+                    init: EffectInit::Settling {
+                        amplitude_m: settling.1,
+                        time_constant_s: settling.2,
+                    },
+                    test: "residual against 1 - exp(-t/tau) (settling drift, tau grid)",
+                    figures: vec![("amplitude_m", settling.1), ("time_constant_s", settling.2)],
+                };
+                Some(vec![linear, settling])
             }
             EffectKind::Delay => {
                 let grid = [
@@ -481,18 +592,14 @@ pub fn screen(sig: &Signals, candidates: &[EffectKind]) -> Vec<Candidate> {
                     .collect();
                 let corr = correlation(&r, &rate);
                 let d_s = best.0 * ts;
-                Some(Candidate {
+                Some(vec![Candidate {
                     effect,
                     share: share(best.1),
                     delta_bic: bic(best.1, 1),
                     init: EffectInit::Delay { delay_s: d_s },
-                    evidence: json!({
-                        "test": "the prediction delayed by D against the measurement (D grid); correlation of the residual with the predicted rate",
-                        "correlation_with_rate": corr,
-                        "delay_s": d_s,
-                        "grid": rows.iter().map(|(d, sse)| json!({"delay_samples": d, "share": share(*sse)})).collect::<Vec<_>>(),
-                    }),
-                })
+                    test: "the prediction delayed by D against the measurement (D grid); correlation of the residual with the predicted rate",
+                    figures: vec![("delay_s", d_s), ("correlation_with_rate", corr)],
+                }])
             }
             EffectKind::Asymmetry => {
                 let (u_lo, u_hi) = sig.u[from..]
@@ -511,7 +618,7 @@ pub fn screen(sig: &Signals, candidates: &[EffectKind]) -> Vec<Candidate> {
                     .map(|k| (sig.u[k] - sig.u[k.saturating_sub(1)]).signum() * sig.u[k])
                     .collect();
                 let (sse_su, _) = score(&[&su]);
-                Some(Candidate {
+                Some(vec![Candidate {
                     effect,
                     share: share(sse),
                     delta_bic: bic(sse, 1),
@@ -519,17 +626,17 @@ pub fn screen(sig: &Signals, candidates: &[EffectKind]) -> Vec<Candidate> {
                         coefficient_m_per_v2: coef[0],
                         center_v: mid,
                     },
-                    evidence: json!({
-                        "test": "residual against the even function (u[k-1] - u_mid)^2; and against sign(du/dt)*u",
-                        "coefficient_m_per_v2": coef[0],
-                        "center_v": mid,
-                        "share_sign_rate_times_u": share(sse_su),
-                    }),
-                })
+                    test: "residual against the even function (u[k-1] - u_mid)^2; and against sign(du/dt)*u",
+                    figures: vec![
+                        ("coefficient_m_per_v2", coef[0]),
+                        ("center_v", mid),
+                        ("share_sign_rate_times_u", share(sse_su)),
+                    ],
+                }])
             }
             EffectKind::Dynamics => {
-                let f_hi = 0.45 / ts;
-                let f_lo = (3.0 * f_dom).min(f_hi / 4.0);
+                let f_hi = 0.85 * 0.5 / ts;
+                let f_lo = (10.0 * f_dom).min(0.1 / ts);
                 let freqs = log_grid(f_lo, f_hi, 20);
                 let zetas = [0.05, 0.1, 0.2, 0.4, 0.7, 1.0, 1.5, 2.5];
                 let grid: Vec<(f64, f64)> = freqs
@@ -550,7 +657,7 @@ pub fn screen(sig: &Signals, candidates: &[EffectKind]) -> Vec<Candidate> {
                     .iter()
                     .copied()
                     .min_by(|a, b| a.2.total_cmp(&b.2))?;
-                Some(Candidate {
+                Some(vec![Candidate {
                     effect,
                     share: share(best.2),
                     delta_bic: bic(best.2, 2),
@@ -558,33 +665,34 @@ pub fn screen(sig: &Signals, candidates: &[EffectKind]) -> Vec<Candidate> {
                         frequency_hz: best.0,
                         damping: best.1,
                     },
-                    evidence: json!({
-                        "test": "the prediction through a second-order mode against the measurement (frequency x damping grid); residual spectrum",
-                        "dominant_input_frequency_hz": f_dom,
-                        "frequency_hz": best.0, "damping": best.1,
-                        "residual_spectrum_peak_hz": spectrum_peak_hz(&r, ts),
-                    }),
-                })
+                    test: "the prediction through a second-order mode against the measurement (frequency x damping grid)",
+                    figures: vec![
+                        ("dominant_input_frequency_hz", f_dom),
+                        ("frequency_hz", best.0),
+                        ("damping", best.1),
+                    ],
+                }])
             }
             EffectKind::Coupling => {
                 let other = sig.other_y_hat?;
                 let col = &other[from..];
                 let (sse, coef) = score(&[col]);
-                Some(Candidate {
+                Some(vec![Candidate {
                     effect,
                     share: share(sse),
                     delta_bic: bic(sse, 1),
                     init: EffectInit::Coupling {
                         coefficient: coef[0],
                     },
-                    evidence: json!({
-                        "test": "residual against the other axis's prediction",
-                        "coefficient": coef[0],
-                        "correlation": correlation(&r, col),
-                    }),
-                })
+                    test: "residual against the other axis's z",
+                    figures: vec![
+                        ("coefficient", coef[0]),
+                        ("correlation", correlation(&r, col)),
+                    ],
+                }])
             }
-        })
+        }})
+        .flatten()
         .collect();
     out.sort_by(|a, b| b.share.total_cmp(&a.share));
     out
@@ -645,16 +753,6 @@ pub fn spectrum(r: &[f64], ts: f64) -> Vec<(f64, f64)> {
         .collect()
 }
 
-/// Frequency of the largest spectral line above the tenth bin \[Hz\].
-pub fn spectrum_peak_hz(r: &[f64], ts: f64) -> f64 {
-    spectrum(r, ts)
-        .into_iter()
-        .skip(10)
-        .max_by(|a, b| a.1.total_cmp(&b.1))
-        .map(|p| p.0)
-        .unwrap_or(0.0)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -694,13 +792,28 @@ mod tests {
             (x >> 11) as f64 / (1u64 << 53) as f64 - 0.5
         };
         let white: Vec<f64> = (0..5000).map(|_| next()).collect();
+        // Gaussian (Box-Muller) for the noise estimate, which assumes it.
+        let gauss: Vec<f64> = (0..20000)
+            .map(|_| {
+                let (a, b) = (next() + 0.5, next() + 0.5);
+                (-2.0 * a.max(1e-300).ln()).sqrt() * (2.0 * std::f64::consts::PI * b).cos()
+            })
+            .collect();
         assert!(ljung_box(&white, 20) < LJUNG_BOX_LIMIT_20 * 1.5);
         let mut ar = vec![0.0; 5000];
         for k in 1..5000 {
             ar[k] = 0.8 * ar[k - 1] + white[k];
         }
         assert!(ljung_box(&ar, 20) > 10.0 * LJUNG_BOX_LIMIT_20);
-        let est = noise_estimate(&white);
-        assert!((est / (1.0 / 12f64.sqrt()) - 1.0).abs() < 0.05, "{est}");
+        let est = noise_estimate(&gauss);
+        assert!((est - 1.0).abs() < 0.05, "{est}");
+        // A smooth model error on top hardly moves it.
+        let with_error: Vec<f64> = gauss
+            .iter()
+            .enumerate()
+            .map(|(k, v)| v + 5.0 * (k as f64 * 0.01).sin())
+            .collect();
+        let est = noise_estimate(&with_error);
+        assert!((est - 1.0).abs() < 0.05, "{est}");
     }
 }

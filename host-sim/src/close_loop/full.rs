@@ -1,14 +1,21 @@
 //! The model `close-loop` refits: piezo-core's static Bouc-Wen model followed by the core's effect chain
-//! ([`piezo_core::effects`]), one per axis, and a Levenberg–Marquardt fit of all its parameters at once.
+//! ([`piezo_core::effects`]), one per axis, and a Levenberg–Marquardt fit of all its parameters at once
+//! on a chosen set of samples (the whole scored record, or all but one held-out block).
 //!
 //! Per axis and command sample j (the chain of `piezo_core::effects`):
-//! w = k1·u + k2·h + y0 (h the Bouc-Wen state, A = 1), s = w + e·(u_{j−1} − u_c)² + Σ g_i·x_i (creep),
-//! z = M(s) (second-order mode), y(t_j + D) = z_j + drift·t + c·z_other. The simulation is the core's f32
-//! code; only the optimiser runs in f64.
+//! w = k1·u + k2·h + y0 (h the Bouc-Wen state, A = 1), s = w + e·(u_{j−1} − u_c)² + c (creep: a
+//! Kelvin–Voigt bank Σ g_i·x_i or the logarithmic bank g_log·½·Σ x_l with t₀ = one sample period),
+//! z = M(s) (second-order mode), y(t_j) = z(j − D) + d(t_j) + κ·z_other(j − D) with the drift
+//! d(t) = r·t (linear) or A·(1 − e^(−t/τ)) (settling). The coupling follows the core's convention:
+//! the other axis's z delayed by *this* axis's D. The simulation is the core's f32 code, started at
+//! rest at the first input (`ModelState::at_rest(u0)`, `EffectsState::at_rest(u0)`); only the
+//! optimiser runs in f64.
 //!
-//! Parameter vector θ: (β, γ, n, k1, k2, y0), then per added effect: creep (g_i, ln τ_i) per element,
-//! drift (rate), delay (D \[s\], used as max(D, 0)), asymmetry (e \[m/V²\]; u_c held), dynamics (ln f, ln ζ),
-//! coupling (c). The Jacobian is by forward differences (one core simulation per column, in parallel),
+//! Parameter vector θ: (β, γ, n, k1, k2, y0), then per added effect: creep (g_i, ln τ_i) per element
+//! or g_log, drift r or (A, ln τ), delay D \[s\], asymmetry e \[m/V²\] (u_c held), dynamics (ln f, ln ζ),
+//! coupling κ. Every effect parameter has a range that makes it that effect ([`EffectBounds`]);
+//! [`AxisModel::decode`] holds θ inside it and [`AxisModel::at_bounds`] names the parameters a fit
+//! ran to. The Jacobian is by forward differences (one core simulation per column, in parallel),
 //! steps Marquardt-scaled; a set the core refuses scores an infinite SSE and the step is rejected.
 
 // Small dense linear algebra reads best with index loops.
@@ -21,6 +28,104 @@ use piezo_core::effects::{EffectParams, Effects, EffectsState};
 use piezo_core::{BoucWenParams, ModelState, StaticMap, StaticModel};
 use rayon::prelude::*;
 
+/// The form of the creep term.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CreepForm {
+    /// Kelvin–Voigt elements (gains and time constants fitted).
+    KelvinVoigt,
+    /// Logarithmic creep g_log·log₁₀(1 + t/t₀) per step, t₀ = one sample period (gain fitted).
+    Logarithmic,
+}
+
+/// The form of the drift term.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DriftForm {
+    /// r·t.
+    Linear,
+    /// A·(1 − e^(−t/τ)).
+    Settling,
+}
+
+impl CreepForm {
+    /// Name in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::KelvinVoigt => "Kelvin-Voigt",
+            Self::Logarithmic => "logarithmic",
+        }
+    }
+}
+
+impl DriftForm {
+    /// Name in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Linear => "linear",
+            Self::Settling => "exponential settling",
+        }
+    }
+}
+
+/// The ranges that make each effect that effect (physical plausibility), from the record.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EffectBounds {
+    /// Creep time constants: a few sample periods to a third of the scored record \[s\].
+    pub creep_tau_s: (f64, f64),
+    /// Largest total creep gain (Kelvin–Voigt), a share of the linear gain \[m/V\]; gains ≥ 0.
+    pub creep_max_gain_m_per_v: f64,
+    /// Largest logarithmic creep per decade \[m/V\]; ≥ 0.
+    pub log_creep_max_gain_m_per_v: f64,
+    /// Settling drift time constants: several input periods to a few records \[s\].
+    pub settling_tau_s: (f64, f64),
+    /// Largest settling amplitude or linear drift over the record \[m\].
+    pub drift_max_m: f64,
+    /// Scored record duration \[s\].
+    pub record_s: f64,
+    /// Delay: 0 to a fraction of the input period (at most 64 samples) \[s\].
+    pub delay_max_s: f64,
+    /// Largest |e|: the even term may move the output by a quarter of the stroke \[m/V²\].
+    pub even_max_m_per_v2: f64,
+    /// Mode frequency: above the excitation band, below Nyquist \[Hz\].
+    pub mode_frequency_hz: (f64, f64),
+    /// Mode damping ratio.
+    pub mode_damping: (f64, f64),
+    /// Largest |κ|.
+    pub coupling_max: f64,
+    /// Sample period \[s\].
+    pub sample_period_s: f64,
+}
+
+impl EffectBounds {
+    /// The ranges for a record: sample period `ts`, scored duration `record_s`, dominant input
+    /// frequency `f_dom`, output stroke `stroke_m`, linear gain `gain_m_per_v`, input span `span_v`.
+    pub fn for_record(
+        ts: f64,
+        record_s: f64,
+        f_dom: f64,
+        stroke_m: f64,
+        gain_m_per_v: f64,
+        span_v: f64,
+    ) -> Self {
+        let gain = gain_m_per_v.abs().max(1e-30);
+        let half = (0.5 * span_v).max(1e-9);
+        let nyquist = 0.5 / ts;
+        Self {
+            creep_tau_s: (3.0 * ts, (record_s / 3.0).max(4.0 * ts)),
+            creep_max_gain_m_per_v: 0.5 * gain,
+            log_creep_max_gain_m_per_v: 0.1 * gain,
+            settling_tau_s: ((2.0 / f_dom).max(20.0 * ts), 3.0 * record_s),
+            drift_max_m: 0.5 * stroke_m.max(1e-12),
+            record_s,
+            delay_max_s: (64.0 * ts).min(0.05 / f_dom).max(ts),
+            even_max_m_per_v2: 0.25 * stroke_m.max(1e-12) / (half * half),
+            mode_frequency_hz: ((10.0 * f_dom).min(0.2 * nyquist), 0.85 * nyquist),
+            mode_damping: (0.005, 2.0),
+            coupling_max: 0.3,
+            sample_period_s: ts,
+        }
+    }
+}
+
 /// One axis's complete model, in SI.
 #[derive(Debug, Clone, PartialEq)]
 pub struct AxisModel {
@@ -32,12 +137,20 @@ pub struct AxisModel {
     pub effects: EffectParams,
     /// Effects in the order they were added.
     pub added: Vec<EffectKind>,
+    /// The creep's form (when added).
+    pub creep_form: CreepForm,
+    /// Number of Kelvin–Voigt elements (1 or 2).
+    pub creep_elements: usize,
+    /// The drift's form (when added).
+    pub drift_form: DriftForm,
     /// Input range the Bouc-Wen set is validated over \[V\].
     pub input_range_v: (f32, f32),
     /// Range of the hysteresis output w (the measured range widened by a quarter each side) \[m\].
     pub w_range_m: (f32, f32),
     /// Sample period \[s\].
     pub sample_period_s: f32,
+    /// The plausible ranges of the effect parameters.
+    pub bounds: EffectBounds,
 }
 
 /// A simulation of the whole record.
@@ -47,9 +160,69 @@ pub struct Simulation {
     pub y: Vec<f64>,
     /// Bouc-Wen state.
     pub h: Vec<f64>,
-    /// The axis output delayed, before drift and coupling (what the other axis couples to) \[m\].
-    pub zd: Vec<f64>,
+    /// The axis's z before delay, drift and coupling (what the other axis couples to) \[m\].
+    pub z: Vec<f64>,
 }
+
+/// One entry of θ: its name, its range (infinite: free) and whether it is a logarithm.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ParamSpec {
+    /// Name in reports.
+    pub name: &'static str,
+    /// Lower end (in θ's coordinate).
+    pub lo: f64,
+    /// Upper end (in θ's coordinate).
+    pub hi: f64,
+    /// θ is the natural logarithm of the parameter.
+    pub log: bool,
+    /// The effect it belongs to (None: base model).
+    pub effect: Option<EffectKind>,
+}
+
+impl ParamSpec {
+    fn free(name: &'static str) -> Self {
+        Self {
+            name,
+            lo: f64::NEG_INFINITY,
+            hi: f64::INFINITY,
+            log: false,
+            effect: None,
+        }
+    }
+    fn within(name: &'static str, effect: EffectKind, lo: f64, hi: f64) -> Self {
+        Self {
+            name,
+            lo,
+            hi,
+            log: false,
+            effect: Some(effect),
+        }
+    }
+    fn log_within(name: &'static str, effect: EffectKind, lo: f64, hi: f64) -> Self {
+        Self {
+            name,
+            lo: lo.max(1e-300).ln(),
+            hi: hi.max(1e-300).ln(),
+            log: true,
+            effect: Some(effect),
+        }
+    }
+    /// The parameter's value for θ entry `t`.
+    pub fn value(&self, t: f64) -> f64 {
+        if self.log {
+            t.exp()
+        } else {
+            t
+        }
+    }
+    /// The range in the parameter's own units.
+    pub fn range(&self) -> (f64, f64) {
+        (self.value(self.lo), self.value(self.hi))
+    }
+}
+
+/// Share of a range within which a fitted value counts as having run to the bound.
+pub const AT_BOUND_SHARE: f64 = 0.01;
 
 impl AxisModel {
     /// Builds the core objects (validation).
@@ -63,26 +236,27 @@ impl AxisModel {
         Ok((model, effects))
     }
 
-    /// Simulates the record (the model sees only u, and the other axis's delayed output for coupling).
-    pub fn simulate(&self, u: &[f32], other_zd: Option<&[f64]>) -> Result<Simulation, String> {
+    /// Simulates the record (the model sees only u, and the other axis's z for coupling).
+    pub fn simulate(&self, u: &[f32], other_z: Option<&[f64]>) -> Result<Simulation, String> {
         let mut out = Simulation {
             y: Vec::with_capacity(u.len()),
             h: Vec::with_capacity(u.len()),
-            zd: Vec::with_capacity(u.len()),
+            z: Vec::with_capacity(u.len()),
         };
-        self.simulate_into(u, other_zd, |_, y, h, zd| {
+        self.simulate_into(u, other_z, |_, y, h, z| {
             out.y.push(y);
             out.h.push(h);
-            out.zd.push(zd);
+            out.z.push(z);
         })?;
         Ok(out)
     }
 
-    /// Simulates and calls `visit(k, y, h, zd)` per sample, without allocating.
+    /// Simulates from rest at u\[0\] and calls `visit(k, y, h, z)` per sample, without allocating.
+    /// `other_z`: the other axis's z (undelayed); it is delayed by this axis's D, as in the core.
     pub fn simulate_into(
         &self,
         u: &[f32],
-        other_zd: Option<&[f64]>,
+        other_z: Option<&[f64]>,
         mut visit: impl FnMut(usize, f64, f64, f64),
     ) -> Result<(), String> {
         let (model, effects) = self.build()?;
@@ -90,66 +264,93 @@ impl AxisModel {
             return Ok(());
         };
         let mut s = ModelState::at_rest(u0);
-        let mut es = EffectsState::new();
-        let c = f64::from(self.effects.coupling);
+        let mut es = EffectsState::at_rest(u0);
+        let c = self.effects.coupling;
+        let whole = effects.reference_index_offset();
+        let frac = effects.delay_fraction();
         for (k, &v) in u.iter().enumerate() {
             let w = model.step(&mut s, v);
-            effects.forward_z(&mut es, v, w);
-            let zd = f64::from(effects.delayed_z(&es));
-            let other = other_zd.map_or(0.0, |o| o[k]);
-            let y = zd + f64::from(effects.drift_m(&es)) + c * other;
-            visit(k, y, f64::from(s.hysteresis.h), zd);
+            let z = effects.forward_z(&mut es, s.input_v, w);
+            let mut y = effects.output_m(&es);
+            if let (Some(o), true) = (other_z, c != 0.0) {
+                // z_other(k − D), linear interpolation, z_other[0] before the start (the core's ring).
+                let at = o[k.saturating_sub(whole)] as f32;
+                let before = o[k.saturating_sub(whole + 1)] as f32;
+                let delayed = if frac == 0.0 {
+                    at
+                } else {
+                    at + frac * (before - at)
+                };
+                y += c * delayed;
+            }
+            visit(k, f64::from(y), f64::from(s.hysteresis.h), f64::from(z));
         }
         Ok(())
     }
 
-    /// Adds an effect with its screening values (the model keeps its other parameters).
+    /// Adds an effect with its screening values (the model keeps its other parameters); the values
+    /// are held inside the plausible ranges.
     pub fn with_effect(&self, init: EffectInit) -> Self {
-        let mut m = self.clone();
+        let mut m = self.without_effect(init.kind());
+        let b = self.bounds;
         let e = &mut m.effects;
-        let kind = match init {
+        let clamp_log = |v: f64, (lo, hi): (f64, f64)| v.clamp(lo, hi) as f32;
+        match init {
             EffectInit::Creep {
                 gains_m_per_v,
                 time_constants_s,
             } => {
-                for i in 0..2 {
-                    e.creep_gain_m_per_v[i] = gains_m_per_v[i] as f32;
-                    e.creep_time_constant_s[i] = time_constants_s[i] as f32;
+                let n = if gains_m_per_v[1] != 0.0 { 2 } else { 1 };
+                for i in 0..n {
+                    e.creep_gain_m_per_v[i] =
+                        gains_m_per_v[i].clamp(0.0, b.creep_max_gain_m_per_v) as f32;
+                    e.creep_time_constant_s[i] = clamp_log(time_constants_s[i], b.creep_tau_s);
                 }
-                EffectKind::Creep
+                m.creep_form = CreepForm::KelvinVoigt;
+                m.creep_elements = n;
+            }
+            EffectInit::LogCreep { gain_m_per_v } => {
+                e.log_creep_gain_m_per_v =
+                    gain_m_per_v.clamp(0.0, b.log_creep_max_gain_m_per_v) as f32;
+                e.log_creep_time_s = m.sample_period_s;
+                m.creep_form = CreepForm::Logarithmic;
             }
             EffectInit::Drift { rate_m_per_s } => {
-                e.drift_rate_m_per_s = rate_m_per_s as f32;
-                EffectKind::Drift
+                let max = b.drift_max_m / b.record_s;
+                e.drift_rate_m_per_s = rate_m_per_s.clamp(-max, max) as f32;
+                m.drift_form = DriftForm::Linear;
+            }
+            EffectInit::Settling {
+                amplitude_m,
+                time_constant_s,
+            } => {
+                e.drift_settling_m = amplitude_m.clamp(-b.drift_max_m, b.drift_max_m) as f32;
+                e.drift_settling_time_constant_s = clamp_log(time_constant_s, b.settling_tau_s);
+                m.drift_form = DriftForm::Settling;
             }
             EffectInit::Delay { delay_s } => {
-                e.delay_s = delay_s as f32;
-                EffectKind::Delay
+                e.delay_s = delay_s.clamp(0.0, b.delay_max_s) as f32;
             }
             EffectInit::Asymmetry {
                 coefficient_m_per_v2,
                 center_v,
             } => {
-                e.even_coefficient_m_per_v2 = coefficient_m_per_v2 as f32;
+                e.even_coefficient_m_per_v2 =
+                    coefficient_m_per_v2.clamp(-b.even_max_m_per_v2, b.even_max_m_per_v2) as f32;
                 e.even_center_v = center_v as f32;
-                EffectKind::Asymmetry
             }
             EffectInit::Dynamics {
                 frequency_hz,
                 damping,
             } => {
-                e.mode_frequency_hz = frequency_hz as f32;
-                e.mode_damping = damping as f32;
-                EffectKind::Dynamics
+                e.mode_frequency_hz = clamp_log(frequency_hz, b.mode_frequency_hz);
+                e.mode_damping = clamp_log(damping, b.mode_damping);
             }
             EffectInit::Coupling { coefficient } => {
-                e.coupling = coefficient as f32;
-                EffectKind::Coupling
+                e.coupling = coefficient.clamp(-b.coupling_max, b.coupling_max) as f32;
             }
-        };
-        if !m.added.contains(&kind) {
-            m.added.push(kind);
         }
+        m.added.push(init.kind());
         m
     }
 
@@ -162,8 +363,14 @@ impl AxisModel {
             EffectKind::Creep => {
                 e.creep_gain_m_per_v = Default::default();
                 e.creep_time_constant_s = Default::default();
+                e.log_creep_gain_m_per_v = 0.0;
+                e.log_creep_time_s = 0.0;
             }
-            EffectKind::Drift => e.drift_rate_m_per_s = 0.0,
+            EffectKind::Drift => {
+                e.drift_rate_m_per_s = 0.0;
+                e.drift_settling_m = 0.0;
+                e.drift_settling_time_constant_s = 0.0;
+            }
             EffectKind::Delay => e.delay_s = 0.0,
             EffectKind::Asymmetry => {
                 e.even_coefficient_m_per_v2 = 0.0;
@@ -178,21 +385,22 @@ impl AxisModel {
         m
     }
 
-    fn creep_elements(&self) -> usize {
-        if !self.added.contains(&EffectKind::Creep) {
-            return 0;
+    /// The form of an added effect, in words ("Kelvin-Voigt, 2 elements", "exponential settling").
+    pub fn form(&self, kind: EffectKind) -> String {
+        match kind {
+            EffectKind::Creep if self.creep_form == CreepForm::KelvinVoigt => format!(
+                "Kelvin-Voigt, {} element{}",
+                self.creep_elements,
+                if self.creep_elements > 1 { "s" } else { "" }
+            ),
+            EffectKind::Creep => self.creep_form.name().into(),
+            EffectKind::Drift => self.drift_form.name().into(),
+            _ => String::new(),
         }
-        self.effects
-            .creep_gain_m_per_v
-            .iter()
-            .take(2)
-            .filter(|g| **g != 0.0)
-            .count()
-            .max(1)
     }
 
-    /// θ and the typical size of each entry (for difference steps).
-    pub fn encode(&self) -> (Vec<f64>, Vec<f64>) {
+    /// θ, the typical size of each entry (for difference steps) and what each entry is.
+    pub fn encode(&self) -> (Vec<f64>, Vec<f64>, Vec<ParamSpec>) {
         let b = self.bouc_wen;
         let m = self.map;
         let k = f64::from(m.k1_m_per_v)
@@ -210,47 +418,130 @@ impl AxisModel {
             f64::from(m.offset_m),
         ];
         let mut typ = vec![bg, bg, 1.0, k, k, stroke];
+        let mut spec = ["beta", "gamma", "n", "k1_m_per_v", "k2_m_per_h", "offset_m"]
+            .map(ParamSpec::free)
+            .to_vec();
         let e = &self.effects;
+        let bd = &self.bounds;
         let ts = f64::from(self.sample_period_s);
-        for kind in &self.added {
+        let mut push = |t: f64, ty: f64, s: ParamSpec| {
+            th.push(t);
+            typ.push(ty);
+            spec.push(s);
+        };
+        for &kind in &self.added {
             match kind {
+                EffectKind::Creep if self.creep_form == CreepForm::Logarithmic => push(
+                    f64::from(e.log_creep_gain_m_per_v),
+                    0.01 * k,
+                    ParamSpec::within(
+                        "log_creep_gain_m_per_v",
+                        kind,
+                        0.0,
+                        bd.log_creep_max_gain_m_per_v,
+                    ),
+                ),
                 EffectKind::Creep => {
-                    for i in 0..self.creep_elements() {
-                        th.push(f64::from(e.creep_gain_m_per_v[i]));
-                        typ.push(0.01 * k);
-                        th.push(f64::from(e.creep_time_constant_s[i]).max(1e-9).ln());
-                        typ.push(10.0);
+                    const G: [&str; 2] = ["creep_gain_m_per_v[0]", "creep_gain_m_per_v[1]"];
+                    const T: [&str; 2] = ["creep_time_constant_s[0]", "creep_time_constant_s[1]"];
+                    for i in 0..self.creep_elements {
+                        push(
+                            f64::from(e.creep_gain_m_per_v[i]),
+                            0.01 * k,
+                            ParamSpec::within(G[i], kind, 0.0, bd.creep_max_gain_m_per_v),
+                        );
+                        push(
+                            f64::from(e.creep_time_constant_s[i]).max(1e-9).ln(),
+                            10.0,
+                            ParamSpec::log_within(T[i], kind, bd.creep_tau_s.0, bd.creep_tau_s.1),
+                        );
                     }
                 }
+                EffectKind::Drift if self.drift_form == DriftForm::Settling => {
+                    push(
+                        f64::from(e.drift_settling_m),
+                        0.01 * stroke,
+                        ParamSpec::within(
+                            "drift_settling_m",
+                            kind,
+                            -bd.drift_max_m,
+                            bd.drift_max_m,
+                        ),
+                    );
+                    push(
+                        f64::from(e.drift_settling_time_constant_s).max(1e-9).ln(),
+                        10.0,
+                        ParamSpec::log_within(
+                            "drift_settling_time_constant_s",
+                            kind,
+                            bd.settling_tau_s.0,
+                            bd.settling_tau_s.1,
+                        ),
+                    );
+                }
                 EffectKind::Drift => {
-                    th.push(f64::from(e.drift_rate_m_per_s));
-                    typ.push(0.01 * stroke);
+                    let max = bd.drift_max_m / bd.record_s;
+                    push(
+                        f64::from(e.drift_rate_m_per_s),
+                        0.01 * stroke,
+                        ParamSpec::within("drift_rate_m_per_s", kind, -max, max),
+                    );
                 }
-                EffectKind::Delay => {
-                    th.push(f64::from(e.delay_s));
-                    typ.push(10.0 * ts);
-                }
-                EffectKind::Asymmetry => {
-                    th.push(f64::from(e.even_coefficient_m_per_v2));
-                    typ.push(0.01 * f64::from(m.k1_m_per_v).abs() / span);
-                }
+                EffectKind::Delay => push(
+                    f64::from(e.delay_s),
+                    10.0 * ts,
+                    ParamSpec::within("delay_s", kind, 0.0, bd.delay_max_s),
+                ),
+                EffectKind::Asymmetry => push(
+                    f64::from(e.even_coefficient_m_per_v2),
+                    0.01 * f64::from(m.k1_m_per_v).abs() / span,
+                    ParamSpec::within(
+                        "even_coefficient_m_per_v2",
+                        kind,
+                        -bd.even_max_m_per_v2,
+                        bd.even_max_m_per_v2,
+                    ),
+                ),
                 EffectKind::Dynamics => {
-                    th.push(f64::from(e.mode_frequency_hz).max(1e-9).ln());
-                    typ.push(10.0);
-                    th.push(f64::from(e.mode_damping).max(1e-9).ln());
-                    typ.push(10.0);
+                    push(
+                        f64::from(e.mode_frequency_hz).max(1e-9).ln(),
+                        10.0,
+                        ParamSpec::log_within(
+                            "mode_frequency_hz",
+                            kind,
+                            bd.mode_frequency_hz.0,
+                            bd.mode_frequency_hz.1,
+                        ),
+                    );
+                    push(
+                        f64::from(e.mode_damping).max(1e-9).ln(),
+                        10.0,
+                        ParamSpec::log_within(
+                            "mode_damping",
+                            kind,
+                            bd.mode_damping.0,
+                            bd.mode_damping.1,
+                        ),
+                    );
                 }
-                EffectKind::Coupling => {
-                    th.push(f64::from(e.coupling));
-                    typ.push(0.1);
-                }
+                EffectKind::Coupling => push(
+                    f64::from(e.coupling),
+                    0.1,
+                    ParamSpec::within("coupling", kind, -bd.coupling_max, bd.coupling_max),
+                ),
             }
         }
-        (th, typ)
+        (th, typ, spec)
     }
 
-    /// The model of θ (inverse of [`Self::encode`]).
+    /// The model of θ (inverse of [`Self::encode`]); every entry is held inside its range.
     pub fn decode(&self, th: &[f64]) -> Self {
+        let (_, _, spec) = self.encode();
+        let th: Vec<f64> = th
+            .iter()
+            .zip(&spec)
+            .map(|(t, s)| t.clamp(s.lo, s.hi))
+            .collect();
         let mut m = self.clone();
         m.bouc_wen.beta = th[0] as f32;
         m.bouc_wen.gamma = th[1] as f32;
@@ -258,42 +549,45 @@ impl AxisModel {
         m.map.k1_m_per_v = th[3] as f32;
         m.map.k2_m_per_h = th[4] as f32;
         m.map.offset_m = th[5] as f32;
-        let mut i = 6;
-        let creep = self.creep_elements();
-        for kind in &self.added {
-            let e = &mut m.effects;
-            match kind {
-                EffectKind::Creep => {
-                    for c in 0..creep {
-                        e.creep_gain_m_per_v[c] = th[i] as f32;
-                        e.creep_time_constant_s[c] = th[i + 1].exp() as f32;
-                        i += 2;
-                    }
-                }
-                EffectKind::Drift => {
-                    e.drift_rate_m_per_s = th[i] as f32;
-                    i += 1;
-                }
-                EffectKind::Delay => {
-                    e.delay_s = th[i].max(0.0) as f32;
-                    i += 1;
-                }
-                EffectKind::Asymmetry => {
-                    e.even_coefficient_m_per_v2 = th[i] as f32;
-                    i += 1;
-                }
-                EffectKind::Dynamics => {
-                    e.mode_frequency_hz = th[i].exp() as f32;
-                    e.mode_damping = th[i + 1].exp() as f32;
-                    i += 2;
-                }
-                EffectKind::Coupling => {
-                    e.coupling = th[i] as f32;
-                    i += 1;
-                }
+        let e = &mut m.effects;
+        for (s, &t) in spec.iter().zip(&th).skip(6) {
+            let v = s.value(t) as f32;
+            match s.name {
+                "log_creep_gain_m_per_v" => e.log_creep_gain_m_per_v = v,
+                "creep_gain_m_per_v[0]" => e.creep_gain_m_per_v[0] = v,
+                "creep_gain_m_per_v[1]" => e.creep_gain_m_per_v[1] = v,
+                "creep_time_constant_s[0]" => e.creep_time_constant_s[0] = v,
+                "creep_time_constant_s[1]" => e.creep_time_constant_s[1] = v,
+                "drift_settling_m" => e.drift_settling_m = v,
+                "drift_settling_time_constant_s" => e.drift_settling_time_constant_s = v,
+                "drift_rate_m_per_s" => e.drift_rate_m_per_s = v,
+                "delay_s" => e.delay_s = v,
+                "even_coefficient_m_per_v2" => e.even_coefficient_m_per_v2 = v,
+                "mode_frequency_hz" => e.mode_frequency_hz = v,
+                "mode_damping" => e.mode_damping = v,
+                "coupling" => e.coupling = v,
+                _ => {}
             }
         }
         m
+    }
+
+    /// The fitted parameters of `kind`: (name, value, plausible range, ran to a bound).
+    pub fn effect_parameters(
+        &self,
+        kind: EffectKind,
+    ) -> Vec<(&'static str, f64, (f64, f64), bool)> {
+        let (th, _, spec) = self.encode();
+        spec.iter()
+            .zip(&th)
+            .filter(|(s, _)| s.effect == Some(kind))
+            .map(|(s, &t)| {
+                let width = s.hi - s.lo;
+                let at = width.is_finite()
+                    && (t - s.lo <= AT_BOUND_SHARE * width || s.hi - t <= AT_BOUND_SHARE * width);
+                (s.name, s.value(t), s.range(), at)
+            })
+            .collect()
     }
 }
 
@@ -303,17 +597,39 @@ pub struct FitData<'a> {
     pub u: &'a [f32],
     /// Measured \[m\].
     pub y: &'a [f64],
-    /// The other axis's delayed output, for coupling.
-    pub other_zd: Option<&'a [f64]>,
+    /// The other axis's z, for coupling.
+    pub other_z: Option<&'a [f64]>,
     /// First scored sample.
     pub from: usize,
+    /// A block of scored samples left out of the fit (held out), as a range of sample indices.
+    pub held_out: Option<(usize, usize)>,
 }
 
-/// SSE of a model on the scored samples (∞ when the core refuses it).
+impl FitData<'_> {
+    /// Whether sample `k` is fitted.
+    pub fn fitted(&self, k: usize) -> bool {
+        k >= self.from && !matches!(self.held_out, Some((a, b)) if k >= a && k < b)
+    }
+
+    /// Number of fitted samples.
+    pub fn fitted_count(&self) -> usize {
+        let n = self.u.len().saturating_sub(self.from);
+        n - self
+            .held_out
+            .map_or(0, |(a, b)| b.min(self.u.len()) - a.max(self.from))
+    }
+}
+
+/// SSE of a model on the fitted samples (∞ when the core refuses it).
 pub fn sse(model: &AxisModel, d: &FitData) -> f64 {
+    sse_where(model, d, |k| d.fitted(k))
+}
+
+/// SSE of a model over the samples `k` with `keep(k)` (∞ when the core refuses it).
+pub fn sse_where(model: &AxisModel, d: &FitData, keep: impl Fn(usize) -> bool) -> f64 {
     let mut acc = 0.0;
-    let ok = model.simulate_into(d.u, d.other_zd, |k, y, _, _| {
-        if k >= d.from {
+    let ok = model.simulate_into(d.u, d.other_z, |k, y, _, _| {
+        if keep(k) {
             acc += (d.y[k] - y).powi(2);
         }
     });
@@ -324,31 +640,29 @@ pub fn sse(model: &AxisModel, d: &FitData) -> f64 {
     }
 }
 
-/// Levenberg–Marquardt on every parameter of `model`; returns the refitted model, its SSE and the
-/// number of model evaluations. `progress(iteration, sse)` is called once per iteration.
-pub fn refit(
-    model: &AxisModel,
-    d: &FitData,
-    max_iterations: usize,
-    mut progress: impl FnMut(usize, f64),
-) -> (AxisModel, f64, u64) {
-    let (mut th, typ) = model.encode();
+/// Levenberg–Marquardt on every parameter of `model` over the fitted samples of `d`; returns the
+/// refitted model, its SSE and the number of model evaluations.
+pub fn refit(model: &AxisModel, d: &FitData, max_iterations: usize) -> (AxisModel, f64, u64) {
+    let (th0, typ, spec) = model.encode();
+    let mut th: Vec<f64> = th0
+        .iter()
+        .zip(&spec)
+        .map(|(t, s)| t.clamp(s.lo, s.hi))
+        .collect();
     let p = th.len();
-    let n = d.u.len() - d.from;
+    let idx: Vec<usize> = (0..d.u.len()).filter(|&k| d.fitted(k)).collect();
+    let n = idx.len();
     let mut evals = 1u64;
-    let mut best = sse(model, d);
-    if !best.is_finite() {
-        return (model.clone(), best, evals);
+    let mut best = sse(&model.decode(&th), d);
+    if !best.is_finite() || n == 0 {
+        return (model.decode(&th), best, evals);
     }
     let predict = |th: &[f64]| -> Option<Vec<f64>> {
         let m = model.decode(th);
-        let mut out = vec![0.0; n];
-        m.simulate_into(d.u, d.other_zd, |k, y, _, _| {
-            if k >= d.from {
-                out[k - d.from] = y;
-            }
-        })
-        .ok()?;
+        let mut out = vec![0.0; d.u.len()];
+        m.simulate_into(d.u, d.other_z, |k, y, _, _| out[k] = y)
+            .ok()?;
+        let out: Vec<f64> = idx.iter().map(|&k| out[k]).collect();
         out.iter().all(|v| v.is_finite()).then_some(out)
     };
     let mut lambda = 1e-3;
@@ -363,7 +677,13 @@ pub fn refit(
         let steps: Vec<f64> = (0..p)
             .map(|i| {
                 let rel = step_scale * if typ[i] >= 10.0 { 1e-3 } else { 1e-4 };
-                (rel * th[i].abs()).max(rel * typ[i] * 0.1).max(1e-300)
+                let h = (rel * th[i].abs()).max(rel * typ[i] * 0.1).max(1e-300);
+                // Step inwards at an upper bound, so that the column is not zero.
+                if th[i] + h > spec[i].hi {
+                    -h
+                } else {
+                    h
+                }
             })
             .collect();
         let cols: Vec<Option<Vec<f64>>> = (0..p)
@@ -385,7 +705,7 @@ pub fn refit(
             .into_iter()
             .map(|c| c.unwrap_or_else(|| vec![0.0; n]))
             .collect();
-        let r: Vec<f64> = (0..n).map(|k| d.y[d.from + k] - base[k]).collect();
+        let r: Vec<f64> = idx.iter().zip(&base).map(|(&k, b)| d.y[k] - b).collect();
         let mut jtj = vec![vec![0.0; p]; p];
         let mut jtr = vec![0.0; p];
         for i in 0..p {
@@ -410,7 +730,12 @@ pub fn refit(
                 lambda *= 4.0;
                 continue;
             };
-            let trial: Vec<f64> = th.iter().zip(&delta).map(|(a, b)| a + b).collect();
+            let trial: Vec<f64> = th
+                .iter()
+                .zip(&delta)
+                .zip(&spec)
+                .map(|((a, b), s)| (a + b).clamp(s.lo, s.hi))
+                .collect();
             let s = sse(&model.decode(&trial), d);
             evals += 1;
             if s < best {
@@ -424,7 +749,6 @@ pub fn refit(
             }
             lambda *= 4.0;
         }
-        progress(it, best);
         if !improved && step_scale < 100.0 {
             step_scale *= 10.0;
             lambda = 1e-3;

@@ -1,41 +1,60 @@
-//! `close-loop`: fit the base model, read its residual, name the effect it lacks, add it, refit, repeat;
-//! report the error before and after (and on held-out data with `--validate`).
+//! `close-loop`: fit the base model, read its residual, name the effect it lacks, keep it only if it
+//! holds on data the fit did not see and is physically that effect, refit, repeat; report the error
+//! before and after, in sample, on held-out blocks and on another run (`--validate`).
 //!
 //! 1. Base model: the symmetric Bouc-Wen model y = k1·u + k2·h + y0 fitted by `identify`'s default
-//!    method (`vp-de-lm`), per axis.
-//! 2. Diagnosis ([`diagnose`]): every effect not yet in the model is screened on the residual (its
-//!    regressors fitted by least squares: the share of the residual variance each explains, and initial
-//!    values). The (up to four) candidates explaining at least a quarter of `--min-share` are then fitted
-//!    for real: the whole model with the effect added, refitted by a short Levenberg–Marquardt run
-//!    ([`full`]). The fit with the best Bayesian information criterion
-//!    ΔBIC = N·ln(SSE₁/SSE₀) + p·ln N is added if it explains at least `--min-share` of the residual
-//!    variance, has ΔBIC < −10 and, after a full refit, lowers the RMS by at least 2 %. Then every
-//!    effect added earlier is tried out again: if the model refitted without it is within 2 % of the
-//!    RMS, it was a stand-in for the new one and is removed (reported as a `removed` step).
-//! 3. Stop when no candidate is accepted or the residual is white (Ljung–Box).
+//!    method (`vp-de-lm`), per axis. The sensor noise σ is estimated from its residual
+//!    ([`diagnose::noise_estimate`]: second differences, median absolute deviation).
+//! 2. Each step: stop when the residual RMS is within [`select::NOISE_FLOOR_FACTOR`]·σ. Otherwise
+//!    every effect not yet in the model is screened on the residual ([`diagnose`]: creep, Kelvin–Voigt
+//!    or logarithmic; drift, linear or settling, a function of time alone; delay; asymmetry, an even
+//!    term; dynamics, a second-order mode; coupling), and the best [`MAX_TRIALS`] are fitted for real
+//!    (the whole model refitted by Levenberg–Marquardt, [`full`]). A candidate is refused if a
+//!    parameter ran to the bound of the range that makes it that effect, if its gain does not hold
+//!    on held-out blocks of the record (blocked cross-validation over time, state carried through),
+//!    or if it makes the prediction of a `--validate` record worse ([`select`]). Of those that hold,
+//!    the one with the largest held-out gain is added. An effect added earlier that the model no
+//!    longer needs (refitted without it, within 1 % RMS) is removed.
+//! 3. Stop when nothing holds. The decisions, with their evidence, are typed ([`report`]) and turned
+//!    into JSON last.
 //!
-//! The model simulated everywhere is piezo-core's (`StaticModel` + `effects::Effects`), which the
-//! firmware runs too; the parameter file written is the firmware's format with an `[x.effects]` table.
+//! The final models are stage-file axes ([`stage`]); the in-sample, held-out and validation
+//! predictions run through piezo-stage's chain, the code `predict` and the firmware run.
 
+mod cli;
 pub mod diagnose;
 pub mod full;
+mod plots;
+pub mod report;
+pub mod select;
+pub mod stage;
 
-use crate::identify::model::{to_toml, Identified};
-use crate::identify::{fit_block, identify, IdentifySettings, Method, Record};
-use crate::plot::{plot_panels, Panel, Series};
-use diagnose::{residual_figures, screen, EffectKind, Signals};
-use full::{refit, AxisModel, FitData};
-use piezo_core::effects::EffectParams;
+pub use cli::{close_loop_cmd, read_records, CloseLoopArgs};
+pub use plots::write_plots;
+pub use stage::{parameter_file, validate, write_stage_file, Fit, Validation};
+
+use crate::identify::{identify, IdentifySettings, Method, Record};
+use diagnose::{noise_estimate, screen, Candidate, EffectKind, ResidualFigures, Signals};
+use full::{refit, sse, AxisModel, EffectBounds, FitData, Simulation};
+use report::{Step, StepOutcome, Trial};
+use select::{
+    folds, held_out_sse, Decision, Floor, OutOfSample, Plausibility, Refusal, RunGain, Stop,
+};
 use serde_json::{json, Value};
-use std::path::{Path, PathBuf};
 use std::time::Instant;
+
+/// Most candidates fitted per step (the best by screening share).
+pub const MAX_TRIALS: usize = 4;
+/// Levenberg–Marquardt iterations of a candidate's fit on the whole record.
+const TRIAL_ITERATIONS: usize = 20;
 
 /// Settings of one run.
 #[derive(Debug, Clone)]
 pub struct CloseLoopSettings {
     /// First scored time \[s\].
     pub start_s: f64,
-    /// Smallest share of the residual variance a candidate must explain.
+    /// Smallest screening share of the residual variance for a candidate to be fitted (a quarter
+    /// of it).
     pub min_share: f64,
     /// Seed of the base identification.
     pub seed: u64,
@@ -60,21 +79,58 @@ impl Default for CloseLoopSettings {
     }
 }
 
+/// Another run of the same axis that candidates must not predict worse (`--validate`).
+#[derive(Debug, Clone)]
+pub struct OtherRun {
+    /// Input (f32).
+    pub u: Vec<f32>,
+    /// Measured \[m\].
+    pub y: Vec<f64>,
+    /// First scored sample.
+    pub from: usize,
+    /// The other axis's z on this run (two-axis records).
+    pub other_z: Option<Vec<f64>>,
+}
+
+impl OtherRun {
+    /// RMS of `model`'s prediction with one offset re-estimated (∞ if the core refuses it).
+    pub fn rms_zeroed(&self, model: &AxisModel) -> f64 {
+        match model.simulate(&self.u, self.other_z.as_deref()) {
+            Ok(sim) => {
+                let n = sim.y.len().min(self.y.len());
+                let from = self.from.min(n);
+                Fit::of(&self.y[from..n], &sim.y[from..n]).rms_zeroed
+            }
+            Err(_) => f64::INFINITY,
+        }
+    }
+}
+
 /// One axis's outcome.
 #[derive(Debug, Clone)]
 pub struct AxisOutcome {
-    /// Axis name (the output column).
+    /// Axis name (`x`, `y`).
     pub name: String,
     /// The base model.
     pub base: AxisModel,
     /// The final model.
     pub model: AxisModel,
-    /// Decision log (JSON steps).
-    pub steps: Vec<Value>,
-    /// Base prediction and final prediction on the fitted record.
+    /// The decision log.
+    pub steps: Vec<Step>,
+    /// Sensor noise estimate \[m\].
+    pub noise_m: f64,
+    /// The record's input range \[V\].
+    pub input_range_v: (f64, f64),
+    /// Base model's prediction of the fitted record (piezo-stage's chain) \[m\].
     pub before: Vec<f64>,
-    /// Final prediction.
+    /// Final model's prediction \[m\].
     pub after: Vec<f64>,
+    /// Scores of `before` over the scored samples.
+    pub fit_before: Fit,
+    /// Scores of `after`.
+    pub fit_after: Fit,
+    /// Held-out RMS (cross-validation) of the base and the final model \[m\].
+    pub held_out_rms: (f64, f64),
 }
 
 /// The outcome of a run.
@@ -84,14 +140,88 @@ pub struct Outcome {
     pub axes: Vec<AxisOutcome>,
     /// First scored sample.
     pub from: usize,
-    /// The report (schema of issue 6).
+    /// The scored window \[s\].
+    pub window_s: (f64, f64),
+    /// The fitted record.
+    pub data: String,
+    /// All axes together, base model.
+    pub before: Fit,
+    /// All axes together, final model.
+    pub after: Fit,
+    /// The prediction of `--validate` (when given).
+    pub validation: Option<Validation>,
+    /// The report, built from the fields above by [`Outcome::to_json`].
     pub report: Value,
+}
+
+impl Outcome {
+    /// The effects added on any axis, in order.
+    pub fn effects_added(&self) -> Vec<&'static str> {
+        let mut v: Vec<&'static str> = Vec::new();
+        for a in &self.axes {
+            for e in &a.model.added {
+                if !v.contains(&e.name()) {
+                    v.push(e.name());
+                }
+            }
+        }
+        v
+    }
+
+    /// The report.
+    pub fn to_json(&self) -> Value {
+        let mut r = json!({
+            "unit": "m",
+            "data": self.data,
+            "window_s": [self.window_s.0, self.window_s.1],
+            "samples": self.axes.first().map_or(0, |a| a.before.len() - self.from),
+            "base_model": "symmetric Bouc-Wen y = k1*u + k2*h + y0 (vp-de-lm)",
+            "before": self.before.to_json(),
+            "after": self.after.to_json(),
+            "effects_added": self.effects_added(),
+            "steps": self.axes.iter().flat_map(|a| a.steps.iter().map(Step::to_json)).collect::<Vec<_>>(),
+            "words": self.axes.iter().flat_map(|a| a.steps.iter().map(Step::words)).collect::<Vec<_>>(),
+            "axes": self.axes.iter().map(|a| json!({
+                "axis": a.name,
+                "effects_added": a.model.added.iter().map(|e| json!({"effect": e.name(), "form": a.model.form(*e)})).collect::<Vec<_>>(),
+                "noise_estimate_m": a.noise_m,
+                "before": a.fit_before.to_json(),
+                "after": a.fit_after.to_json(),
+                "held_out": {"rms_before": a.held_out_rms.0, "rms_after": a.held_out_rms.1,
+                    "method": "blocked cross-validation over time: each block predicted by the model refitted on the others"},
+                "base_params": params_json(&a.base),
+                "params": params_json(&a.model),
+            })).collect::<Vec<_>>(),
+        });
+        if let Some(v) = &self.validation {
+            r["validation"] = v.to_json();
+        }
+        r
+    }
+}
+
+/// Parameters of an axis model (JSON, SI).
+pub fn params_json(m: &AxisModel) -> Value {
+    json!({
+        "bouc_wen": {"a": m.bouc_wen.a, "beta": m.bouc_wen.beta, "gamma": m.bouc_wen.gamma, "n": m.bouc_wen.n},
+        "static_map": {"k1_m_per_v": m.map.k1_m_per_v, "k2_m_per_h": m.map.k2_m_per_h, "offset_m": m.map.offset_m},
+        "effects": serde_json::to_value(m.effects).unwrap_or(Value::Null),
+        "input_range_v": [m.input_range_v.0, m.input_range_v.1],
+        "sample_period_s": m.sample_period_s,
+    })
 }
 
 fn log(show: bool, msg: impl AsRef<str>) {
     if show {
         eprintln!("close-loop: {}", msg.as_ref());
     }
+}
+
+fn min_max(v: &[f64]) -> (f64, f64) {
+    v.iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
+            (a.min(x), b.max(x))
+        })
 }
 
 fn base_model(record: &Record, s: &CloseLoopSettings) -> Result<AxisModel, String> {
@@ -107,7 +237,7 @@ fn base_model(record: &Record, s: &CloseLoopSettings) -> Result<AxisModel, Strin
             progress: s.progress,
         },
     )?;
-    let Identified::Static {
+    let crate::identify::model::Identified::Static {
         bouc_wen,
         map,
         sample_period_s,
@@ -117,60 +247,158 @@ fn base_model(record: &Record, s: &CloseLoopSettings) -> Result<AxisModel, Strin
     else {
         return Err("base identification did not give a static model".into());
     };
-    // The range of w given to the effects: the measured range widened by a quarter on each side.
-    let (lo, hi) = min_max(&record.y_m);
-    let pad = 0.25 * (hi - lo).max(1e-12);
-    Ok(AxisModel {
+    let from = record.index_at(s.start_s);
+    let (lo, hi) = min_max(&record.y_m[from..]);
+    let stroke = (hi - lo).max(1e-12);
+    let pad = 0.25 * stroke;
+    let (u_lo, u_hi) = min_max(&record.u);
+    let ts = record.sample_period_s();
+    let record_s = ts * (record.u.len() - from) as f64;
+    let f_dom = diagnose::dominant_frequency_hz(&record.u[from..], ts);
+    let gain = stroke / (u_hi - u_lo).max(1e-12);
+    let window = stage::output_window(&record.u);
+    let mut model = AxisModel {
         bouc_wen,
         map,
-        effects: EffectParams::default(),
+        effects: Default::default(),
         added: Vec::new(),
-        input_range_v,
+        creep_form: full::CreepForm::KelvinVoigt,
+        creep_elements: 1,
+        drift_form: full::DriftForm::Linear,
+        input_range_v: window,
         w_range_m: ((lo - pad) as f32, (hi + pad) as f32),
         sample_period_s,
-    })
+        bounds: EffectBounds::for_record(ts, record_s, f_dom, stroke, gain, u_hi - u_lo),
+    };
+    // The stage file's output window is the record's range rounded outwards; the Bouc-Wen set must
+    // hold over it (else the record's own range is kept).
+    if model.build().is_err() {
+        model.input_range_v = input_range_v;
+    }
+    Ok(model)
 }
 
-fn min_max(v: &[f64]) -> (f64, f64) {
-    v.iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
-            (a.min(x), b.max(x))
-        })
+/// Fits, judges and decides one candidate.
+#[allow(clippy::too_many_arguments)]
+fn try_candidate(
+    model: &AxisModel,
+    cand: &Candidate,
+    data: &FitData,
+    blocks: &[(usize, usize)],
+    held_without: &[f64],
+    sse0: f64,
+    run: Option<&OtherRun>,
+    t_s: &[f64],
+) -> Trial {
+    let n = data.fitted_count() as f64;
+    let (fitted, sse1, _) = refit(&model.with_effect(cand.init), data, TRIAL_ITERATIONS);
+    let kind = cand.effect;
+    let p_new = (fitted.encode().0.len() - model.encode().0.len()) as f64;
+    let plausibility = Plausibility::of(&fitted, kind);
+    let mut trial = Trial {
+        effect: kind,
+        form: fitted.form(kind),
+        screening: cand.clone(),
+        parameters: plausibility
+            .checks
+            .iter()
+            .map(|c| (c.parameter, c.value))
+            .collect(),
+        rms_before: (sse0 / n).sqrt(),
+        rms_after: (sse1 / n).sqrt(),
+        delta_bic: n * (sse1.max(1e-300) / sse0.max(1e-300)).ln() + p_new * n.ln(),
+        plausibility,
+        out_of_sample: None,
+        another_run: None,
+        decision: Decision::HoldsNotBest,
+        model: fitted,
+        sse: sse1,
+    };
+    let refuse = |r| Decision::Refused(r);
+    if !sse1.is_finite() {
+        trial.decision = refuse(Refusal::FitFailed);
+    } else if !trial.plausibility.plausible() {
+        trial.decision = refuse(Refusal::Implausible);
+    } else if sse1 >= sse0 {
+        trial.decision = refuse(Refusal::NoInSampleGain);
+    } else {
+        let with = held_out_sse(&trial.model, data, blocks);
+        let oos = OutOfSample::new(held_without, &with, blocks, t_s);
+        let holds = oos.holds();
+        trial.out_of_sample = Some(oos);
+        if !holds {
+            trial.decision = refuse(Refusal::NotOutOfSample);
+        } else if let Some(run) = run {
+            let gain = RunGain {
+                rms_zeroed_without: run.rms_zeroed(model),
+                rms_zeroed_with: run.rms_zeroed(&trial.model),
+            };
+            trial.another_run = Some(gain);
+            if !gain.holds() {
+                trial.decision = refuse(Refusal::WorseOnAnotherRun);
+            }
+        }
+    }
+    trial
 }
 
-/// Runs the loop on one axis; `other_zd` is the other axis's delayed output (two-axis records).
+/// Runs the search on one axis; `other_z` is the other axis's z (two-axis records).
 fn close_axis(
     name: &str,
     record: &Record,
-    other_zd: Option<&[f64]>,
+    other_z: Option<&[f64]>,
     s: &CloseLoopSettings,
     base: AxisModel,
-) -> Result<AxisOutcome, String> {
+    run: Option<&OtherRun>,
+) -> Result<(AxisModel, Vec<Step>, f64, (f64, f64)), String> {
     let from = record.index_at(s.start_s);
     let u: Vec<f32> = record.u.iter().map(|&v| v as f32).collect();
     let data = FitData {
         u: &u,
         y: &record.y_m,
-        other_zd,
+        other_z,
         from,
+        held_out: None,
     };
+    let blocks = folds(from, u.len());
     let ts = record.sample_period_s();
+    let n_scored = (u.len() - from) as f64;
+    let residual = |sim: &Simulation| -> Vec<f64> {
+        (from..u.len()).map(|k| record.y_m[k] - sim.y[k]).collect()
+    };
     let mut model = base.clone();
-    let first = model.simulate(&u, other_zd)?;
-    let before = first.y.clone();
-    let mut sim = first;
+    let mut sim = model.simulate(&u, other_z)?;
+    let noise_m = noise_estimate(&residual(&sim));
+    let mut current_sse = sse(&model, &data);
+    let base_held = held_out_sse(&model, &data, &blocks);
+    let mut held = Some(base_held.clone());
     let mut steps = Vec::new();
-    let mut current_rms =
-        piezo_core::metrics::rms(&record.y_m[from..], &sim.y[from..]).unwrap_or(f64::INFINITY);
     log(
         s.progress,
-        format!("{name}: base model rms {:.4e} m", current_rms),
+        format!(
+            "{name}: base model rms {:.4e} m, sensor noise estimate {noise_m:.4e} m",
+            (current_sse / n_scored).sqrt()
+        ),
     );
     loop {
-        let residual: Vec<f64> = (from..u.len()).map(|k| record.y_m[k] - sim.y[k]).collect();
-        let figures = residual_figures(&residual);
-        if figures["white"].as_bool() == Some(true) {
-            steps.push(json!({"effect": null, "rms": current_rms, "evidence": {"stop": "residual is white (Ljung-Box)", "residual": figures}}));
+        let r = residual(&sim);
+        let floor = Floor {
+            residual: ResidualFigures::of(&r),
+            noise_m,
+        };
+        let rms_before = (current_sse / n_scored).sqrt();
+        let mut step = Step {
+            axis: name.into(),
+            number: steps.len() + 1,
+            rms_before,
+            floor,
+            screened: Vec::new(),
+            trials: Vec::new(),
+            outcome: StepOutcome::Stopped(Stop::NoiseFloor),
+        };
+        if floor.reached() {
+            log(s.progress, format!("{name}: {}", step.words()));
+            steps.push(step);
             break;
         }
         let remaining: Vec<EffectKind> = s
@@ -178,634 +406,236 @@ fn close_axis(
             .iter()
             .copied()
             .filter(|e| !model.added.contains(e))
-            .filter(|e| *e != EffectKind::Coupling || other_zd.is_some())
+            .filter(|e| *e != EffectKind::Coupling || other_z.is_some())
             .collect();
-        if remaining.is_empty() {
-            break;
-        }
         let signals = Signals {
             t_s: &record.t_s,
             u: &record.u,
             y: &record.y_m,
             y_hat: &sim.y,
             h: &sim.h,
-            other_y_hat: other_zd,
+            other_y_hat: other_z,
             from,
             sample_period_s: ts,
         };
-        let candidates = screen(&signals, &remaining);
-        let ranking: Vec<Value> = candidates
+        let candidates = if remaining.is_empty() {
+            Vec::new()
+        } else {
+            screen(&signals, &remaining)
+        };
+        step.screened = candidates
             .iter()
-            .map(|c| json!({"effect": c.effect.name(), "share": c.share, "delta_bic": c.delta_bic, "accepted": c.accepted(s.min_share)}))
+            .map(|c| (c.effect, c.init.form(), c.share, c.delta_bic))
             .collect();
-        // Every candidate the screening does not rule out is fitted for real: the whole model with the
-        // effect added, refitted by a short Levenberg-Marquardt run; the decision is on those fits.
-        let n_scored = (u.len() - from) as f64;
-        let sse0 = current_rms * current_rms * n_scored;
-        let mut trials = Vec::new();
-        for cand in candidates
+        let chosen: Vec<&Candidate> = candidates
             .iter()
             .filter(|c| c.share >= 0.25 * s.min_share)
-            .take(4)
-        {
-            let trial = model.with_effect(cand.init);
-            let started = Instant::now();
-            let (fitted, sse, evals) = refit(&trial, &data, 20, |_, _| {});
-            let p_new = (fitted.encode().0.len() - model.encode().0.len()) as f64;
-            let share = if sse.is_finite() {
-                (1.0 - sse / sse0).max(0.0)
-            } else {
-                0.0
-            };
-            let bic = n_scored * (sse.max(1e-300) / sse0.max(1e-300)).ln() + p_new * n_scored.ln();
-            log(
-                s.progress,
-                format!(
-                    "{name}: candidate {}: screening share {:.1} %, refit rms {:.4e} m, share {:.1} %, dBIC {:.0} ({evals} evaluations, {:.1} s)",
-                    cand.effect.name(),
-                    100.0 * cand.share,
-                    (sse / n_scored).sqrt(),
-                    100.0 * share,
-                    bic,
-                    started.elapsed().as_secs_f64()
-                ),
-            );
-            trials.push((cand, fitted, sse, share, bic));
-        }
-        let trial_log: Vec<Value> = trials
-            .iter()
-            .map(|(c, _, sse, share, bic)| json!({"effect": c.effect.name(), "refit_rms": (sse / n_scored).sqrt(), "share": share, "delta_bic": bic}))
+            .take(MAX_TRIALS)
             .collect();
-        let mut added = false;
-        if let Some((cand, fitted, _, share, bic)) = trials
-            .into_iter()
-            .filter(|t| t.3 >= s.min_share && t.4 < -10.0 && t.2.is_finite())
-            .min_by(|a, b| a.4.total_cmp(&b.4))
-        {
-            let started = Instant::now();
-            let (fitted, sse, evals) = refit(&fitted, &data, 40, |_, _| {});
-            let new_rms = (sse / n_scored).sqrt();
-            log(
-                s.progress,
-                format!(
-                    "{name}: added {}: rms {:.4e} -> {:.4e} m ({evals} evaluations, {:.1} s)",
-                    cand.effect.name(),
-                    current_rms,
-                    new_rms,
-                    started.elapsed().as_secs_f64()
-                ),
-            );
-            if new_rms.is_finite() && new_rms < 0.98 * current_rms {
-                steps.push(json!({
-                    "effect": cand.effect.name(),
-                    "rms": new_rms,
-                    "evidence": {
-                        "rms_before_step": current_rms,
-                        "share_explained": share,
-                        "delta_bic": bic,
-                        "screening": cand.evidence,
-                        "screening_ranking": ranking,
-                        "trial_fits": trial_log.clone(),
-                        "residual_before_step": figures,
-                    }
-                }));
-                model = fitted;
-                current_rms = new_rms;
-                added = true;
-                // Backward check: an effect added earlier that the new one makes redundant (its
-                // removal, refitted, costs less than 2 % of the RMS) is taken out again.
-                let earlier: Vec<EffectKind> = model
-                    .added
-                    .iter()
-                    .copied()
-                    .filter(|k| *k != cand.effect)
-                    .collect();
-                for kind in earlier {
-                    let (pruned, sse, evals) =
-                        refit(&model.without_effect(kind), &data, 20, |_, _| {});
-                    let pruned_rms = (sse / n_scored).sqrt();
-                    if pruned_rms.is_finite() && pruned_rms < 1.02 * current_rms {
-                        log(
-                            s.progress,
-                            format!(
-                                "{name}: removed {}: redundant after {} (rms {:.4e} m without it)",
-                                kind.name(),
-                                cand.effect.name(),
-                                pruned_rms
-                            ),
-                        );
-                        steps.push(json!({
-                            "effect": kind.name(),
-                            "removed": true,
-                            "rms": pruned_rms,
-                            "evidence": {"reason": format!("redundant after adding {}: without it the refitted RMS is within 2 %", cand.effect.name()), "rms_with": current_rms, "refit_evaluations": evals}
-                        }));
-                        model = pruned;
-                        current_rms = pruned_rms;
-                    }
-                }
-                sim = model.simulate(&u, other_zd)?;
-            }
-        }
-        if !added {
-            steps.push(json!({"effect": null, "rms": current_rms, "evidence": {"stop": format!("no candidate, fitted, explains {:.0} % of the residual variance with a better BIC (dBIC < -10) and lowers the RMS by 2 %", 100.0 * s.min_share), "screening_ranking": ranking, "trial_fits": trial_log, "residual": figures}}));
+        if chosen.is_empty() {
+            step.outcome = StepOutcome::Stopped(Stop::NoCandidates);
+            steps.push(step);
             break;
         }
+        let held_without = held
+            .get_or_insert_with(|| held_out_sse(&model, &data, &blocks))
+            .clone();
+        for cand in chosen {
+            let started = Instant::now();
+            let trial = try_candidate(
+                &model,
+                cand,
+                &data,
+                &blocks,
+                &held_without,
+                current_sse,
+                run,
+                &record.t_s,
+            );
+            log(
+                s.progress,
+                format!(
+                    "{name}: {} ({:.1} s)",
+                    trial.words(),
+                    started.elapsed().as_secs_f64()
+                ),
+            );
+            step.trials.push(trial);
+        }
+        let best = step
+            .trials
+            .iter()
+            .enumerate()
+            .filter(|(_, t)| t.decision == Decision::HoldsNotBest)
+            .max_by(|a, b| {
+                let g = |t: &Trial| t.out_of_sample.as_ref().map_or(0.0, |o| o.relative_gain);
+                g(a.1).total_cmp(&g(b.1))
+            })
+            .map(|(i, _)| i);
+        let Some(best) = best else {
+            step.outcome = StepOutcome::Stopped(Stop::NothingHolds);
+            log(s.progress, format!("{name}: nothing holds"));
+            steps.push(step);
+            break;
+        };
+        step.trials[best].decision = Decision::Added;
+        let chosen = &step.trials[best];
+        model = chosen.model.clone();
+        current_sse = chosen.sse;
+        held = None;
+        step.outcome = StepOutcome::Added {
+            effect: chosen.effect,
+            form: chosen.form.clone(),
+            rms_after: (current_sse / n_scored).sqrt(),
+        };
+        let added = chosen.effect;
+        log(s.progress, format!("{name}: added {}", chosen.label()));
+        steps.push(step);
+        // An effect added earlier that the new one makes redundant is taken out again.
+        for kind in model.added.clone().into_iter().filter(|k| *k != added) {
+            let (pruned, sse_p, _) = refit(&model.without_effect(kind), &data, TRIAL_ITERATIONS);
+            let rms_p = (sse_p / n_scored).sqrt();
+            if rms_p.is_finite() && rms_p < 1.01 * (current_sse / n_scored).sqrt() {
+                steps.push(Step {
+                    axis: name.into(),
+                    number: steps.len() + 1,
+                    rms_before: (current_sse / n_scored).sqrt(),
+                    floor,
+                    screened: Vec::new(),
+                    trials: Vec::new(),
+                    outcome: StepOutcome::Removed {
+                        effect: kind,
+                        rms_without: rms_p,
+                    },
+                });
+                log(s.progress, format!("{name}: removed {}", kind.name()));
+                model = pruned;
+                current_sse = sse_p;
+            }
+        }
+        sim = model.simulate(&u, other_z)?;
     }
-    Ok(AxisOutcome {
-        name: name.into(),
-        base,
-        model,
-        steps,
-        before,
-        after: sim.y,
-    })
-}
-
-/// Metrics block (rms, max_abs, r2, mrd_percent) over `from..`.
-fn metrics(y: &[f64], p: &[f64]) -> Value {
-    let f = fit_block(y, p);
-    json!({"rms": f["rms"], "max_abs": f["max_abs"], "r2": f["r2"], "mrd_percent": f["mrd_percent"]})
-}
-
-/// Concatenates per-axis series for the combined metrics of a two-axis record.
-fn joined(parts: &[&[f64]]) -> Vec<f64> {
-    parts.iter().flat_map(|p| p.iter().copied()).collect()
+    let held_final = held.unwrap_or_else(|| held_out_sse(&model, &data, &blocks));
+    let rms_of = |v: &[f64]| (v.iter().sum::<f64>() / n_scored).sqrt();
+    let held_out_rms = (rms_of(&base_held), rms_of(&held_final));
+    Ok((model, steps, noise_m, held_out_rms))
 }
 
 /// Runs `close-loop` on one record per axis (same times).
 pub fn close_loop(records: &[Record], s: &CloseLoopSettings) -> Result<Outcome, String> {
+    close_loop_validated(records, s, None)
+}
+
+/// [`close_loop`] with another run (`--validate`: one record per axis and its first scored time)
+/// that no added effect may predict worse.
+pub fn close_loop_validated(
+    records: &[Record],
+    s: &CloseLoopSettings,
+    other: Option<(&[Record], f64)>,
+) -> Result<Outcome, String> {
     let from = records[0].index_at(s.start_s);
+    if records[0].u.len() < from + 10 * select::FOLDS {
+        return Err(format!(
+            "--start {}: too few samples left to fit and cross-validate",
+            s.start_s
+        ));
+    }
     let mut bases = Vec::new();
     for (i, r) in records.iter().enumerate() {
         log(s.progress, format!("axis {i}: identifying the base model"));
         bases.push(base_model(r, s)?);
     }
-    let mut axes = Vec::new();
-    if records.len() == 1 {
-        axes.push(close_axis("y", &records[0], None, s, bases[0].clone())?);
-    } else {
-        let u1: Vec<f32> = records[1].u.iter().map(|&v| v as f32).collect();
-        let other = bases[1].simulate(&u1, None)?.zd;
-        let x = close_axis("x", &records[0], Some(&other), s, bases[0].clone())?;
-        let u0: Vec<f32> = records[0].u.iter().map(|&v| v as f32).collect();
-        let other = x.model.simulate(&u0, None)?.zd;
-        let y = close_axis("y", &records[1], Some(&other), s, bases[1].clone())?;
-        axes.push(x);
-        axes.push(y);
-    }
-    let meas: Vec<&[f64]> = records.iter().map(|r| &r.y_m[from..]).collect();
-    let bef: Vec<&[f64]> = axes.iter().map(|a| &a.before[from..]).collect();
-    let aft: Vec<&[f64]> = axes.iter().map(|a| &a.after[from..]).collect();
-    let mut effects_added: Vec<&str> = Vec::new();
-    for a in &axes {
-        for e in &a.model.added {
-            if !effects_added.contains(&e.name()) {
-                effects_added.push(e.name());
-            }
-        }
-    }
-    let steps: Vec<Value> = axes
-        .iter()
-        .flat_map(|a| {
-            a.steps.iter().map(move |st| {
-                let mut st = st.clone();
-                if records.len() > 1 {
-                    st["axis"] = json!(a.name);
-                }
-                st
-            })
+    let f32s = |r: &Record| -> Vec<f32> { r.u.iter().map(|&v| v as f32).collect() };
+    let run_of = |i: usize, other_z: Option<Vec<f64>>| -> Option<OtherRun> {
+        let (recs, start) = other?;
+        let r = recs.get(i)?;
+        Some(OtherRun {
+            u: f32s(r),
+            y: r.y_m.clone(),
+            from: r.index_at(start),
+            other_z,
         })
-        .collect();
-    let report = json!({
-        "unit": "m",
-        "samples": records[0].u.len() - from,
-        "base_model": "symmetric Bouc-Wen y = k1*u + k2*h + y0 (vp-de-lm)",
-        "before": metrics(&joined(&meas), &joined(&bef)),
-        "after": metrics(&joined(&meas), &joined(&aft)),
-        "effects_added": effects_added,
-        "steps": steps,
-        "axes": axes.iter().enumerate().map(|(i, a)| json!({
-            "axis": a.name,
-            "effects_added": a.model.added.iter().map(|e| e.name()).collect::<Vec<_>>(),
-            "before": metrics(&records[i].y_m[from..], &a.before[from..]),
-            "after": metrics(&records[i].y_m[from..], &a.after[from..]),
-            "base_params": params_json(&a.base),
-            "params": params_json(&a.model),
-        })).collect::<Vec<_>>(),
-        "data": records[0].path.display().to_string(),
-        "start_s": s.start_s,
-    });
-    Ok(Outcome { axes, from, report })
-}
-
-/// Parameters of an axis model (JSON, SI).
-pub fn params_json(m: &AxisModel) -> Value {
-    let e = &m.effects;
-    json!({
-        "bouc_wen": {"a": m.bouc_wen.a, "beta": m.bouc_wen.beta, "gamma": m.bouc_wen.gamma, "n": m.bouc_wen.n},
-        "static_map": {"k1_m_per_v": m.map.k1_m_per_v, "k2_m_per_h": m.map.k2_m_per_h, "offset_m": m.map.offset_m},
-        "effects": {
-            "creep_gain_m_per_v": e.creep_gain_m_per_v, "creep_time_constant_s": e.creep_time_constant_s,
-            "even_coefficient_m_per_v2": e.even_coefficient_m_per_v2, "even_center_v": e.even_center_v,
-            "mode_frequency_hz": e.mode_frequency_hz, "mode_damping": e.mode_damping,
-            "delay_s": e.delay_s, "drift_rate_m_per_s": e.drift_rate_m_per_s, "coupling": e.coupling,
-        },
-        "input_range_v": [m.input_range_v.0, m.input_range_v.1],
-        "sample_period_s": m.sample_period_s,
-    })
-}
-
-/// Validation: both models predict `records` (the model sees only u), scored from `from`.
-pub fn validate(outcome: &Outcome, records: &[Record], start_s: f64) -> Result<Value, String> {
-    let from = records[0].index_at(start_s);
-    let mut meas = Vec::new();
-    let mut bef = Vec::new();
-    let mut aft = Vec::new();
-    let us: Vec<Vec<f32>> = records
-        .iter()
-        .map(|r| r.u.iter().map(|&v| v as f32).collect())
-        .collect();
-    // Two axes: each axis's model couples to the other axis's delayed output of the same model kind.
-    let delayed = |final_model: bool| -> Result<Vec<Vec<f64>>, String> {
-        if records.len() < 2 {
-            return Ok(Vec::new());
-        }
-        outcome
-            .axes
-            .iter()
-            .zip(&us)
-            .map(|(a, u)| {
-                let m = if final_model { &a.model } else { &a.base };
-                m.simulate(u, None).map(|s| s.zd)
-            })
-            .collect()
     };
-    let (base_zd, final_zd) = (delayed(false)?, delayed(true)?);
-    for (i, a) in outcome.axes.iter().enumerate() {
-        let other = |z: &[Vec<f64>]| (z.len() > 1).then(|| z[1 - i].clone());
-        let b = a.base.simulate(&us[i], other(&base_zd).as_deref())?;
-        let f = a.model.simulate(&us[i], other(&final_zd).as_deref())?;
-        meas.extend_from_slice(&records[i].y_m[from..]);
-        bef.extend_from_slice(&b.y[from..]);
-        aft.extend_from_slice(&f.y[from..]);
+    let names = ["x", "y"];
+    let mut finals: Vec<(AxisModel, Vec<Step>, f64, (f64, f64))> = Vec::new();
+    if records.len() == 1 {
+        finals.push(close_axis(
+            names[0],
+            &records[0],
+            None,
+            s,
+            bases[0].clone(),
+            run_of(0, None).as_ref(),
+        )?);
+    } else {
+        // x couples to y's base model, then y to x's final model.
+        let z_y = bases[1].simulate(&f32s(&records[1]), None)?.z;
+        let other_run = |i: usize, m: &AxisModel| -> Option<Vec<f64>> {
+            let (recs, _) = other?;
+            m.simulate(&f32s(recs.get(i)?), None).ok().map(|s| s.z)
+        };
+        let run = run_of(0, other_run(1, &bases[1]));
+        finals.push(close_axis(
+            names[0],
+            &records[0],
+            Some(&z_y),
+            s,
+            bases[0].clone(),
+            run.as_ref(),
+        )?);
+        let z_x = finals[0].0.simulate(&f32s(&records[0]), None)?.z;
+        let run = run_of(1, other_run(0, &finals[0].0));
+        finals.push(close_axis(
+            names[1],
+            &records[1],
+            Some(&z_x),
+            s,
+            bases[1].clone(),
+            run.as_ref(),
+        )?);
     }
-    Ok(json!({
-        "data": records[0].path.display().to_string(),
-        "start_s": start_s,
-        "samples": records[0].u.len() - from,
-        "before": metrics(&meas, &bef),
-        "after": metrics(&meas, &aft),
-    }))
-}
-
-/// The parameter file of the final model: the firmware format (both axes; a one-axis record writes its
-/// model to both) with an `[x.effects]` table per axis, and the record's sample rate as the loop rate.
-pub fn parameter_file(outcome: &Outcome, data: &str, start_s: f64) -> String {
-    let a0 = &outcome.axes[0];
-    let set = Identified::Static {
-        bouc_wen: a0.model.bouc_wen,
-        map: a0.model.map,
-        asymmetry: Default::default(),
-        sample_period_s: a0.model.sample_period_s,
-        input_range_v: a0.model.input_range_v,
-    };
-    let mut text = to_toml(&set, "close-loop", data, start_s);
-    // The effects are discretised at the loop rate; the record's rate is the one they were identified
-    // at (and a delay must fit in 64 loop periods).
-    let rate_hz = (1e3 / f64::from(a0.model.sample_period_s)).round() / 1e3;
-    text = text.replacen(
-        "loop_rate_hz = 10000.0\n",
-        &format!(
-            "# close-loop: the record's sample rate, at which the effects were identified\nloop_rate_hz = {rate_hz:?}\n"
+    // The predictions of the fitted record through piezo-stage's chain.
+    let us: Vec<Vec<f32>> = records.iter().map(f32s).collect();
+    let before = stage::predict(&bases.iter().collect::<Vec<_>>(), &us)?;
+    let after = stage::predict(&finals.iter().map(|f| &f.0).collect::<Vec<_>>(), &us)?;
+    let mut axes = Vec::new();
+    let (mut all_y, mut all_b, mut all_a) = (Vec::new(), Vec::new(), Vec::new());
+    for (i, (((model, steps, noise_m, held_out_rms), base), r)) in
+        finals.into_iter().zip(bases).zip(records).enumerate()
+    {
+        all_y.extend_from_slice(&r.y_m[from..]);
+        all_b.extend_from_slice(&before[i][from..]);
+        all_a.extend_from_slice(&after[i][from..]);
+        axes.push(AxisOutcome {
+            name: names[i].into(),
+            fit_before: Fit::of(&r.y_m[from..], &before[i][from..]),
+            fit_after: Fit::of(&r.y_m[from..], &after[i][from..]),
+            base,
+            model,
+            steps,
+            noise_m,
+            input_range_v: min_max(&r.u),
+            before: before[i].clone(),
+            after: after[i].clone(),
+            held_out_rms,
+        });
+    }
+    let mut outcome = Outcome {
+        axes,
+        from,
+        window_s: (
+            records[0].t_s[from],
+            records[0].t_s[records[0].t_s.len() - 1],
         ),
-        1,
-    );
-    if outcome.axes.len() > 1 {
-        // Replace the y axis tables with the second axis's model.
-        let a1 = &outcome.axes[1];
-        let set1 = Identified::Static {
-            bouc_wen: a1.model.bouc_wen,
-            map: a1.model.map,
-            asymmetry: Default::default(),
-            sample_period_s: a1.model.sample_period_s,
-            input_range_v: a1.model.input_range_v,
-        };
-        let t1 = to_toml(&set1, "close-loop", data, start_s);
-        if let (Some(i0), Some(i1)) = (text.find("[y.bouc_wen]"), t1.find("[y.bouc_wen]")) {
-            text.truncate(i0);
-            text.push_str(&t1[i1..]);
-        }
-    }
-    for (i, axis) in ["x", "y"].iter().enumerate() {
-        let m = &outcome.axes[i.min(outcome.axes.len() - 1)].model;
-        let e = &m.effects;
-        let list = |v: &[f32]| {
-            v.iter()
-                .map(|x| format!("{x:?}"))
-                .collect::<Vec<_>>()
-                .join(", ")
-        };
-        text.push_str(&format!(
-            "\n[{axis}.effects]\n# added by close-loop: {}\ncreep_gain_m_per_v = [{}]\ncreep_time_constant_s = [{}]\n\
-             even_coefficient_m_per_v2 = {:?}\neven_center_v = {:?}\nmode_frequency_hz = {:?}\nmode_damping = {:?}\n\
-             delay_s = {:?}\ndrift_rate_m_per_s = {:?}\ncoupling = {:?}\n",
-            m.added.iter().map(|e| e.name()).collect::<Vec<_>>().join(", "),
-            list(&e.creep_gain_m_per_v),
-            list(&e.creep_time_constant_s),
-            e.even_coefficient_m_per_v2,
-            e.even_center_v,
-            e.mode_frequency_hz,
-            e.mode_damping,
-            e.delay_s,
-            e.drift_rate_m_per_s,
-            e.coupling,
-        ));
-    }
-    text
-}
-
-/// Writes the plots of the residual before and after (time, against u, spectrum) and the loops.
-pub fn write_plots(
-    outcome: &Outcome,
-    records: &[Record],
-    dir: &Path,
-    formats: &[&str],
-) -> Result<Vec<String>, String> {
-    std::fs::create_dir_all(dir).map_err(|e| format!("--plots {}: {e}", dir.display()))?;
-    let from = outcome.from;
-    let mut written = Vec::new();
-    for (i, a) in outcome.axes.iter().enumerate() {
-        let r = &records[i];
-        let ts = r.sample_period_s();
-        let res =
-            |p: &[f64]| -> Vec<f64> { (from..p.len()).map(|k| (r.y_m[k] - p[k]) * 1e6).collect() };
-        let rb = res(&a.before);
-        let ra = res(&a.after);
-        let t: Vec<f64> = r.t_s[from..].to_vec();
-        let u: Vec<f64> = r.u[from..].to_vec();
-        let pts =
-            |x: &[f64], y: &[f64]| x.iter().copied().zip(y.iter().copied()).collect::<Vec<_>>();
-        let spec = |v: &[f64]| -> Vec<(f64, f64)> {
-            diagnose::spectrum(v, ts)
-                .into_iter()
-                .filter(|p| p.1 > 0.0)
-                .map(|(f, m)| (f.log10(), m.log10()))
-                .collect()
-        };
-        let effects = a
-            .model
-            .added
-            .iter()
-            .map(|e| e.name())
-            .collect::<Vec<_>>()
-            .join(" + ");
-        let after_name = format!(
-            "after (+ {})",
-            if effects.is_empty() {
-                "nothing"
-            } else {
-                &effects
-            }
-        );
-        let panels = vec![
-            Panel {
-                title: format!("{}: residual in time", a.name),
-                x_label: "t [s]".into(),
-                y_label: "residual [um]".into(),
-                series: vec![
-                    Series::line("before (base model)", pts(&t, &rb), 4000),
-                    Series::line(after_name.clone(), pts(&t, &ra), 4000),
-                ],
-            },
-            Panel {
-                title: format!("{}: residual against the input", a.name),
-                x_label: "u [V]".into(),
-                y_label: "residual [um]".into(),
-                series: vec![
-                    Series::line("before", pts(&u, &rb), 4000),
-                    Series::line(after_name.clone(), pts(&u, &ra), 4000),
-                ],
-            },
-            Panel {
-                title: format!("{}: residual amplitude spectrum", a.name),
-                x_label: "log10 f [Hz]".into(),
-                y_label: "log10 amplitude [um]".into(),
-                series: vec![
-                    Series::line("before", spec(&rb), 1000),
-                    Series::line(after_name.clone(), spec(&ra), 1000),
-                ],
-            },
-            Panel {
-                title: format!("{}: loops", a.name),
-                x_label: "u [V]".into(),
-                y_label: "y [um]".into(),
-                series: vec![
-                    Series::line(
-                        "measured",
-                        pts(
-                            &u,
-                            &r.y_m[from..].iter().map(|v| v * 1e6).collect::<Vec<_>>(),
-                        ),
-                        4000,
-                    ),
-                    Series::line(
-                        "base model",
-                        pts(
-                            &u,
-                            &a.before[from..].iter().map(|v| v * 1e6).collect::<Vec<_>>(),
-                        ),
-                        4000,
-                    ),
-                    Series::line(
-                        after_name.clone(),
-                        pts(
-                            &u,
-                            &a.after[from..].iter().map(|v| v * 1e6).collect::<Vec<_>>(),
-                        ),
-                        4000,
-                    ),
-                ],
-            },
-        ];
-        for ext in formats {
-            let path = dir.join(format!("close-loop-{}.{ext}", a.name));
-            plot_panels(&path, &panels).map_err(|e| e.to_string())?;
-            written.push(path.display().to_string());
-        }
-    }
-    Ok(written)
-}
-
-/// Arguments of `close-loop`.
-#[derive(Debug, clap::Args)]
-#[command(after_help = "\
-Fits the symmetric Bouc-Wen model (identify's vp-de-lm), then repeatedly screens the residual for the \
-effects creep, drift, delay, asymmetry, dynamics and (two-axis records) coupling, adds the one explaining \
-the largest share of the residual variance (at least --min-share, with a better BIC), refits the whole \
-model by Levenberg-Marquardt, and stops when nothing is accepted or the residual is white. Every decision \
-and its evidence goes into the report. Two-axis records: --u ux_V,uy_V --y x_m,y_m.")]
-pub struct CloseLoopArgs {
-    /// Record to fit (CSV with unit-suffixed columns).
-    #[arg(long)]
-    pub data: PathBuf,
-    /// Time column (default: first `t_*`).
-    #[arg(long)]
-    pub t: Option<String>,
-    /// Input column(s), comma-separated for two axes (default: first `u_*`).
-    #[arg(long)]
-    pub u: Option<String>,
-    /// Output column(s), comma-separated for two axes (default: first `y_*`).
-    #[arg(long)]
-    pub y: Option<String>,
-    /// First scored time [s]; earlier samples only warm the model up.
-    #[arg(long, default_value_t = 0.0)]
-    pub start: f64,
-    /// Last time used for the fit [s].
-    #[arg(long)]
-    pub end: Option<f64>,
-    /// Held-out record both models predict (same columns); may be the same file with --validate-start.
-    #[arg(long)]
-    pub validate: Option<PathBuf>,
-    /// First scored time of the validation record [s].
-    #[arg(long, default_value_t = 0.0)]
-    pub validate_start: f64,
-    /// Smallest share of the residual variance an effect must explain to be added.
-    #[arg(long, default_value_t = 0.05)]
-    pub min_share: f64,
-    /// Seed of the base identification.
-    #[arg(long, default_value_t = 1)]
-    pub seed: u64,
-    /// Only base sets the firmware's compensator accepts (strictly monotone map).
-    #[arg(long)]
-    pub invertible: bool,
-    /// Report JSON to write.
-    #[arg(long)]
-    pub report: PathBuf,
-    /// Parameter file of the final model (default: the report's path with .toml).
-    #[arg(long)]
-    pub out: Option<PathBuf>,
-    /// Directory for the plots (SVG and PNG).
-    #[arg(long)]
-    pub plots: Option<PathBuf>,
-}
-
-/// Reads one record per axis.
-pub fn read_records(
-    data: &Path,
-    t: Option<&str>,
-    u: Option<&str>,
-    y: Option<&str>,
-    end: Option<f64>,
-) -> Result<Vec<Record>, String> {
-    let split = |s: Option<&str>| -> Vec<Option<String>> {
-        match s {
-            None => vec![None],
-            Some(s) => s.split(',').map(|c| Some(c.trim().to_string())).collect(),
-        }
+        data: records[0].path.display().to_string(),
+        before: Fit::of(&all_y, &all_b),
+        after: Fit::of(&all_y, &all_a),
+        validation: None,
+        report: Value::Null,
     };
-    let us = split(u);
-    let ys = split(y);
-    if us.len() != ys.len() || us.len() > 2 {
-        return Err(format!(
-            "--u and --y must name the same number of columns (1 or 2); got {} and {}",
-            us.len(),
-            ys.len()
-        ));
+    if let Some((recs, start)) = other {
+        outcome.validation = Some(validate(&outcome, recs, start)?);
     }
-    let mut out = Vec::new();
-    for (u, y) in us.iter().zip(&ys) {
-        let mut r = Record::read(data, t, u.as_deref(), y.as_deref())
-            .map_err(|e| format!("--data: {e}"))?;
-        if let Some(end) = end {
-            r.cut_after(end)?;
-        }
-        out.push(r);
-    }
-    Ok(out)
-}
-
-/// Runs `close-loop`.
-pub fn close_loop_cmd(a: &CloseLoopArgs) -> Result<String, String> {
-    if !(a.min_share > 0.0 && a.min_share < 1.0) {
-        return Err(format!("--min-share {}: must be in (0, 1)", a.min_share));
-    }
-    let records = read_records(
-        &a.data,
-        a.t.as_deref(),
-        a.u.as_deref(),
-        a.y.as_deref(),
-        a.end,
-    )?;
-    let settings = CloseLoopSettings {
-        start_s: a.start,
-        min_share: a.min_share,
-        seed: a.seed,
-        invertible: a.invertible,
-        progress: true,
-        ..Default::default()
-    };
-    let started = Instant::now();
-    let mut outcome = close_loop(&records, &settings)?;
-    if let Some(v) = &a.validate {
-        let vr = read_records(v, a.t.as_deref(), a.u.as_deref(), a.y.as_deref(), None)
-            .map_err(|e| e.replace("--data", "--validate"))?;
-        outcome.report["validation"] = validate(&outcome, &vr, a.validate_start)?;
-    }
-    outcome.report["seconds"] = json!(started.elapsed().as_secs_f64());
-    let out = a
-        .out
-        .clone()
-        .unwrap_or_else(|| a.report.with_extension("toml"));
-    for p in [&a.report, &out] {
-        if let Some(dir) = p.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
-        }
-    }
-    let text = parameter_file(&outcome, &a.data.display().to_string(), a.start);
-    std::fs::write(&out, &text).map_err(|e| format!("--out {}: {e}", out.display()))?;
-    outcome.report["params_file"] = json!(out.display().to_string());
-    let firmware =
-        match crate::identify::firmware_check(&out.display().to_string(), text.as_bytes()) {
-            Ok(()) => "accepted by the firmware's parameter check".to_string(),
-            Err(e) => format!("REFUSED by the firmware's parameter check: {e}"),
-        };
-    outcome.report["params_file_firmware_check"] = json!(firmware);
-    let json = serde_json::to_string_pretty(&outcome.report).map_err(|e| e.to_string())?;
-    std::fs::write(&a.report, json).map_err(|e| format!("--report {}: {e}", a.report.display()))?;
-    let mut plots = Vec::new();
-    if let Some(dir) = &a.plots {
-        plots = write_plots(&outcome, &records, dir, &["svg", "png"])?;
-    }
-    let r = &outcome.report;
-    let mut line = format!(
-        "close-loop {}: rms {:.4e} -> {:.4e} m, effects added: [{}]",
-        a.data.display(),
-        r["before"]["rms"].as_f64().unwrap_or(f64::NAN),
-        r["after"]["rms"].as_f64().unwrap_or(f64::NAN),
-        r["effects_added"]
-            .as_array()
-            .map(|v| v
-                .iter()
-                .filter_map(|e| e.as_str())
-                .collect::<Vec<_>>()
-                .join(", "))
-            .unwrap_or_default()
-    );
-    if let Some(v) = r.get("validation") {
-        line.push_str(&format!(
-            "; validation rms {:.4e} -> {:.4e} m",
-            v["before"]["rms"].as_f64().unwrap_or(f64::NAN),
-            v["after"]["rms"].as_f64().unwrap_or(f64::NAN)
-        ));
-    }
-    line.push_str(&format!(
-        "; {} and {} written ({firmware})",
-        a.report.display(),
-        out.display()
-    ));
-    if !plots.is_empty() {
-        line.push_str(&format!(", {} plots", plots.len()));
-    }
-    Ok(line)
+    outcome.report = outcome.to_json();
+    Ok(outcome)
 }

@@ -1,0 +1,256 @@
+//! The `close-loop` command: its arguments, the records it reads (only the selected columns are
+//! parsed; the others are ignored, whatever their names), and the files it writes (report JSON,
+//! stage file, plots).
+
+use super::{close_loop_validated, stage, write_plots, CloseLoopSettings};
+use crate::identify::{unit_factor, Record};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Arguments of `close-loop`.
+#[derive(Debug, clap::Args)]
+#[command(after_help = "\
+Fits the symmetric Bouc-Wen model (identify's vp-de-lm), then repeatedly screens the residual for the \
+effects creep (Kelvin-Voigt or logarithmic), drift (linear or settling, independent of u), delay, \
+asymmetry, dynamics and (two-axis records) coupling, fits the best candidates, and adds one only if its \
+parameters stay inside the range that makes it that effect, its gain holds on held-out blocks of the \
+record (blocked cross-validation over time) and on the --validate record, and the residual is not yet \
+at the sensor noise estimated from the data. Every decision and its evidence goes into the report. \
+Two-axis records: --u ux_V,uy_V --y x_m,y_m.")]
+pub struct CloseLoopArgs {
+    /// Record to fit (CSV with unit-suffixed columns).
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Time column (default: first `t_*`).
+    #[arg(long)]
+    pub t: Option<String>,
+    /// Input column(s), comma-separated for two axes (default: first `u_*`).
+    #[arg(long)]
+    pub u: Option<String>,
+    /// Output column(s), comma-separated for two axes (default: first `y_*`).
+    #[arg(long)]
+    pub y: Option<String>,
+    /// First scored time [s]; earlier samples only warm the model up.
+    #[arg(long, default_value_t = 0.0)]
+    pub start: f64,
+    /// Last time used for the fit [s].
+    #[arg(long)]
+    pub end: Option<f64>,
+    /// Another record (another run, or the same file with --validate-start) both models predict
+    /// from its first sample, seeing only u; an effect that predicts it worse is not added.
+    #[arg(long)]
+    pub validate: Option<PathBuf>,
+    /// First scored time of the validation record [s].
+    #[arg(long, default_value_t = 0.0)]
+    pub validate_start: f64,
+    /// Smallest share of the residual variance a candidate's screening must explain (a quarter of
+    /// it) to be fitted.
+    #[arg(long, default_value_t = 0.05)]
+    pub min_share: f64,
+    /// Seed of the base identification.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Only base sets the firmware's compensator accepts (strictly monotone map).
+    #[arg(long)]
+    pub invertible: bool,
+    /// Report JSON to write.
+    #[arg(long)]
+    pub report: PathBuf,
+    /// Stage file of the final model (default: the report's path with .toml).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Stage file to carry [stage] and [io] from (default: the record's rate and a placeholder io).
+    #[arg(long)]
+    pub stage: Option<PathBuf>,
+    /// Write the stage file even if the firmware would refuse it (reported), instead of failing.
+    #[arg(long)]
+    pub allow_refused: bool,
+    /// Directory for the plots (SVG and PNG).
+    #[arg(long)]
+    pub plots: Option<PathBuf>,
+}
+
+/// Reads one record per axis: `t`, `u` and `y` name the columns (defaults: the first `t_*`, `u_*`,
+/// `y_*`; `u` and `y` comma-separated for two axes). Only these columns are parsed.
+pub fn read_records(
+    data: &Path,
+    t: Option<&str>,
+    u: Option<&str>,
+    y: Option<&str>,
+    end: Option<f64>,
+) -> Result<Vec<Record>, String> {
+    let split = |s: Option<&str>| -> Vec<Option<String>> {
+        match s {
+            None => vec![None],
+            Some(s) => s.split(',').map(|c| Some(c.trim().to_string())).collect(),
+        }
+    };
+    let us = split(u);
+    let ys = split(y);
+    if us.len() != ys.len() || us.len() > 2 {
+        return Err(format!(
+            "--u and --y must name the same number of columns (1 or 2); got {} and {}",
+            us.len(),
+            ys.len()
+        ));
+    }
+    let text = std::fs::read_to_string(data).map_err(|e| format!("{}: {e}", data.display()))?;
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty() && !l.starts_with('#'));
+    let (_, header) = lines
+        .next()
+        .ok_or_else(|| format!("{}: empty", data.display()))?;
+    let names: Vec<&str> = header.split(',').map(str::trim).collect();
+    let pick = |given: &Option<String>, prefix: &str, flag: &str| -> Result<usize, String> {
+        let found = match given {
+            Some(g) => names.iter().position(|n| n == g),
+            None => names.iter().position(|n| n.starts_with(prefix)),
+        };
+        found.ok_or_else(|| {
+            format!(
+                "{flag}: {}: no column {} (columns: {})",
+                data.display(),
+                given
+                    .as_deref()
+                    .map_or(format!("`{prefix}*`"), |g| format!("`{g}`")),
+                names.join(", ")
+            )
+        })
+    };
+    let t_col = pick(&t.map(str::to_string), "t_", "--t")?;
+    let mut wanted = vec![t_col];
+    for (u, y) in us.iter().zip(&ys) {
+        wanted.push(pick(u, "u_", "--u")?);
+        wanted.push(pick(y, "y_", "--y")?);
+    }
+    let factors: Vec<f64> = wanted
+        .iter()
+        .map(|&c| {
+            unit_factor(names[c]).ok_or_else(|| {
+                format!(
+                    "{}: column `{}` has no SI-convertible unit (s, V, N, m, mm, um, nm)",
+                    data.display(),
+                    names[c]
+                )
+            })
+        })
+        .collect::<Result<_, _>>()?;
+    let mut cols: Vec<Vec<f64>> = vec![Vec::new(); wanted.len()];
+    for (line_no, line) in lines {
+        let cells: Vec<&str> = line.split(',').collect();
+        for (i, &c) in wanted.iter().enumerate() {
+            let v = cells
+                .get(c)
+                .and_then(|s| s.trim().parse::<f64>().ok())
+                .filter(|v| v.is_finite())
+                .ok_or_else(|| {
+                    format!(
+                        "{}:{}: column `{}`: not a finite number",
+                        data.display(),
+                        line_no + 1,
+                        names[c]
+                    )
+                })?;
+            cols[i].push(v * factors[i]);
+        }
+    }
+    if cols[0].len() < 10 {
+        return Err(format!("{}: fewer than 10 samples", data.display()));
+    }
+    let mut out = Vec::new();
+    for a in 0..us.len() {
+        let mut r = Record {
+            path: data.into(),
+            t_s: cols[0].clone(),
+            u: cols[1 + 2 * a].clone(),
+            y_m: cols[2 + 2 * a].clone(),
+        };
+        if let Some(end) = end {
+            r.cut_after(end)?;
+        }
+        out.push(r);
+    }
+    Ok(out)
+}
+
+/// Runs `close-loop`.
+pub fn close_loop_cmd(a: &CloseLoopArgs) -> Result<String, String> {
+    if !(a.min_share > 0.0 && a.min_share < 1.0) {
+        return Err(format!("--min-share {}: must be in (0, 1)", a.min_share));
+    }
+    let records = read_records(
+        &a.data,
+        a.t.as_deref(),
+        a.u.as_deref(),
+        a.y.as_deref(),
+        a.end,
+    )
+    .map_err(|e| format!("--data: {e}"))?;
+    let validation = match &a.validate {
+        Some(v) => Some(
+            read_records(v, a.t.as_deref(), a.u.as_deref(), a.y.as_deref(), None)
+                .map_err(|e| format!("--validate: {e}"))?,
+        ),
+        None => None,
+    };
+    let settings = CloseLoopSettings {
+        start_s: a.start,
+        min_share: a.min_share,
+        seed: a.seed,
+        invertible: a.invertible,
+        progress: true,
+        ..Default::default()
+    };
+    let started = Instant::now();
+    let mut outcome = close_loop_validated(
+        &records,
+        &settings,
+        validation.as_deref().map(|v| (v, a.validate_start)),
+    )?;
+    let out = a
+        .out
+        .clone()
+        .unwrap_or_else(|| a.report.with_extension("toml"));
+    for p in [&a.report, &out] {
+        if let Some(dir) = p.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+        }
+    }
+    let data = a.data.display().to_string();
+    let verdict =
+        stage::write_stage_file(&outcome, &out, &data, a.stage.as_deref(), a.allow_refused)?;
+    let mut report = outcome.to_json();
+    report["stage_file"] = serde_json::json!(out.display().to_string());
+    report["stage_file_check"] = serde_json::json!(verdict);
+    report["seconds"] = serde_json::json!(started.elapsed().as_secs_f64());
+    outcome.report = report;
+    let json = serde_json::to_string_pretty(&outcome.report).map_err(|e| e.to_string())?;
+    std::fs::write(&a.report, json).map_err(|e| format!("--report {}: {e}", a.report.display()))?;
+    let mut plots = Vec::new();
+    if let Some(dir) = &a.plots {
+        plots = write_plots(&outcome, &records, dir, &["svg", "png"])?;
+    }
+    let mut line = format!(
+        "close-loop {data}: rms {:.4e} -> {:.4e} m, effects added: [{}]",
+        outcome.before.rms,
+        outcome.after.rms,
+        outcome.effects_added().join(", ")
+    );
+    if let Some(v) = &outcome.validation {
+        line.push_str(&format!(
+            "; validation rms {:.4e} -> {:.4e} m, zeroed {:.4e} -> {:.4e} m",
+            v.before.rms, v.after.rms, v.before.rms_zeroed, v.after.rms_zeroed
+        ));
+    }
+    line.push_str(&format!(
+        "; {} and {} written ({verdict})",
+        a.report.display(),
+        out.display()
+    ));
+    if !plots.is_empty() {
+        line.push_str(&format!(", {} plots", plots.len()));
+    }
+    Ok(line)
+}

@@ -1,0 +1,157 @@
+//! Plots of a `close-loop` run, per axis: the residual of the base and the final model over the fit
+//! window (in time, against u, its amplitude spectrum) and the loops; with `--validate`, the same
+//! models' prediction of the validation window (measured and predicted in time, and the residuals).
+
+use super::{diagnose, Outcome};
+use crate::identify::Record;
+use crate::plot::{plot_panels, Panel, Series};
+use std::path::Path;
+
+fn pts(x: &[f64], y: &[f64]) -> Vec<(f64, f64)> {
+    x.iter().copied().zip(y.iter().copied()).collect()
+}
+
+fn um(v: &[f64]) -> Vec<f64> {
+    v.iter().map(|x| x * 1e6).collect()
+}
+
+/// Writes the plots into `dir` in each of `formats` (e.g. `["svg", "png"]`); returns the files.
+pub fn write_plots(
+    outcome: &Outcome,
+    records: &[Record],
+    dir: &Path,
+    formats: &[&str],
+) -> Result<Vec<String>, String> {
+    std::fs::create_dir_all(dir).map_err(|e| format!("--plots {}: {e}", dir.display()))?;
+    let from = outcome.from;
+    let mut written = Vec::new();
+    for (i, a) in outcome.axes.iter().enumerate() {
+        let r = &records[i];
+        let ts = r.sample_period_s();
+        let res =
+            |p: &[f64]| -> Vec<f64> { (from..p.len()).map(|k| (r.y_m[k] - p[k]) * 1e6).collect() };
+        let rb = res(&a.before);
+        let ra = res(&a.after);
+        let t: Vec<f64> = r.t_s[from..].to_vec();
+        let u: Vec<f64> = r.u[from..].to_vec();
+        let spec = |v: &[f64]| -> Vec<(f64, f64)> {
+            diagnose::spectrum(v, ts)
+                .into_iter()
+                .filter(|p| p.1 > 0.0)
+                .map(|(f, m)| (f.log10(), m.log10()))
+                .collect()
+        };
+        let effects: Vec<String> = a
+            .model
+            .added
+            .iter()
+            .map(|e| {
+                let form = a.model.form(*e);
+                if form.is_empty() {
+                    e.name().to_string()
+                } else {
+                    format!("{} ({form})", e.name())
+                }
+            })
+            .collect();
+        let after_name = format!(
+            "after (+ {})",
+            if effects.is_empty() {
+                "nothing".to_string()
+            } else {
+                effects.join(" + ")
+            }
+        );
+        let panels = vec![
+            Panel {
+                title: format!("{}: residual in time (fit window)", a.name),
+                x_label: "t [s]".into(),
+                y_label: "residual [um]".into(),
+                series: vec![
+                    Series::line("before (base model)", pts(&t, &rb), 4000),
+                    Series::line(after_name.clone(), pts(&t, &ra), 4000),
+                ],
+            },
+            Panel {
+                title: format!("{}: residual against the input", a.name),
+                x_label: "u [V]".into(),
+                y_label: "residual [um]".into(),
+                series: vec![
+                    Series::line("before", pts(&u, &rb), 4000),
+                    Series::line(after_name.clone(), pts(&u, &ra), 4000),
+                ],
+            },
+            Panel {
+                title: format!("{}: residual amplitude spectrum", a.name),
+                x_label: "log10 f [Hz]".into(),
+                y_label: "log10 amplitude [um]".into(),
+                series: vec![
+                    Series::line("before", spec(&rb), 1000),
+                    Series::line(after_name.clone(), spec(&ra), 1000),
+                ],
+            },
+            Panel {
+                title: format!("{}: loops", a.name),
+                x_label: "u [V]".into(),
+                y_label: "y [um]".into(),
+                series: vec![
+                    Series::line("measured", pts(&u, &um(&r.y_m[from..])), 4000),
+                    Series::line("base model", pts(&u, &um(&a.before[from..])), 4000),
+                    Series::line(after_name.clone(), pts(&u, &um(&a.after[from..])), 4000),
+                ],
+            },
+        ];
+        for ext in formats {
+            let path = dir.join(format!("close-loop-{}.{ext}", a.name));
+            plot_panels(&path, &panels).map_err(|e| e.to_string())?;
+            written.push(path.display().to_string());
+        }
+        let Some(v) = outcome
+            .validation
+            .as_ref()
+            .and_then(|v| v.axes.get(i).map(|x| (v, x)))
+        else {
+            continue;
+        };
+        let (validation, va) = v;
+        let res =
+            |p: &[f64]| -> Vec<f64> { va.y.iter().zip(p).map(|(y, p)| (y - p) * 1e6).collect() };
+        let panels = vec![
+            Panel {
+                title: format!(
+                    "{}: validation window of {} (from {} s): measured and predicted",
+                    a.name, validation.data, validation.start_s
+                ),
+                x_label: "t [s]".into(),
+                y_label: "y [um]".into(),
+                series: vec![
+                    Series::line("measured", pts(&va.t_s, &um(&va.y)), 4000),
+                    Series::line("base model", pts(&va.t_s, &um(&va.before)), 4000),
+                    Series::line(after_name.clone(), pts(&va.t_s, &um(&va.after)), 4000),
+                ],
+            },
+            Panel {
+                title: format!(
+                    "{}: validation residual (rms {:.4} -> {:.4} um, zeroed {:.4} -> {:.4} um)",
+                    a.name,
+                    validation.before.rms * 1e6,
+                    validation.after.rms * 1e6,
+                    validation.before.rms_zeroed * 1e6,
+                    validation.after.rms_zeroed * 1e6
+                ),
+                x_label: "t [s]".into(),
+                y_label: "residual [um]".into(),
+                series: vec![
+                    Series::line("before (base model)", pts(&va.t_s, &res(&va.before)), 4000),
+                    Series::line(after_name.clone(), pts(&va.t_s, &res(&va.after)), 4000),
+                ],
+            },
+        ];
+        for ext in formats {
+            let path = dir.join(format!("close-loop-{}-validation.{ext}", a.name));
+            plot_panels(&path, &panels).map_err(|e| e.to_string())?;
+            written.push(path.display().to_string());
+        }
+    }
+    Ok(written)
+}

@@ -1,0 +1,262 @@
+//! The decision log of `close-loop` as typed values: per step the residual and the noise floor, the
+//! candidates with their screening, in-sample and out-of-sample gains, plausibility and decision, and
+//! the step's outcome; each in words ([`Step::words`]) and as JSON ([`Step::to_json`]), built last.
+//! In-sample gain: 1 − MSE₁/MSE₀ on the whole scored record; ΔBIC = N·ln(SSE₁/SSE₀) + p·ln N is
+//! reported for reference only (with N in the thousands it favours any effect that lowers the
+//! residual at all).
+
+use super::diagnose::{Candidate, EffectKind};
+use super::full::AxisModel;
+use super::select::{Decision, Floor, OutOfSample, Plausibility, RunGain, Stop};
+use serde_json::{json, Map, Value};
+
+/// One candidate effect, fitted and judged.
+#[derive(Debug, Clone)]
+pub struct Trial {
+    /// The effect.
+    pub effect: EffectKind,
+    /// Its form in words.
+    pub form: String,
+    /// Its screening on the residual.
+    pub screening: Candidate,
+    /// The fitted effect parameters (name, value).
+    pub parameters: Vec<(&'static str, f64)>,
+    /// In-sample RMS before \[m\].
+    pub rms_before: f64,
+    /// In-sample RMS with the effect, whole model refitted \[m\].
+    pub rms_after: f64,
+    /// ΔBIC of the refit.
+    pub delta_bic: f64,
+    /// Plausibility of the fitted parameters.
+    pub plausibility: Plausibility,
+    /// The cross-validated gain (absent when it was refused before).
+    pub out_of_sample: Option<OutOfSample>,
+    /// The gain on the `--validate` record (when given and reached).
+    pub another_run: Option<RunGain>,
+    /// The decision.
+    pub decision: Decision,
+    /// The fitted model with the effect.
+    pub model: AxisModel,
+    /// Its in-sample SSE \[m²\].
+    pub sse: f64,
+}
+
+impl Trial {
+    /// The in-sample gain: share by which the MSE falls.
+    pub fn in_sample_gain(&self) -> f64 {
+        1.0 - (self.rms_after / self.rms_before).powi(2)
+    }
+
+    /// The name with its form ("creep (logarithmic)").
+    pub fn label(&self) -> String {
+        if self.form.is_empty() {
+            self.effect.name().to_string()
+        } else {
+            format!("{} ({})", self.effect.name(), self.form)
+        }
+    }
+
+    /// In words.
+    pub fn words(&self) -> String {
+        let mut s = format!(
+            "{}: screening explains {:.1} % of the residual variance; in sample RMS {:.4e} -> {:.4e} m ({:+.1} % MSE, dBIC {:.0})",
+            self.label(),
+            100.0 * self.screening.share,
+            self.rms_before,
+            self.rms_after,
+            -100.0 * self.in_sample_gain(),
+            self.delta_bic
+        );
+        if let Some(o) = &self.out_of_sample {
+            s.push_str(&format!(
+                "; out of sample held-out MSE {:+.1} % (gain {:.3e} ± {:.3e} m² per block)",
+                -100.0 * o.relative_gain,
+                o.mean_gain,
+                o.standard_error()
+            ));
+        }
+        if let Some(r) = &self.another_run {
+            s.push_str(&format!(
+                "; another run: zeroed RMS {:.4e} -> {:.4e} m",
+                r.rms_zeroed_without, r.rms_zeroed_with
+            ));
+        }
+        s.push_str(&format!(
+            "; plausibility: {}; {}",
+            self.plausibility.words(),
+            self.decision.words()
+        ));
+        s
+    }
+
+    /// JSON for the report.
+    pub fn to_json(&self) -> Value {
+        let mut figures = Map::new();
+        for (k, v) in &self.screening.figures {
+            figures.insert((*k).into(), json!(v));
+        }
+        let mut parameters = Map::new();
+        for (k, v) in &self.parameters {
+            parameters.insert((*k).into(), json!(v));
+        }
+        json!({
+            "effect": self.effect.name(),
+            "form": self.form,
+            "screening": {
+                "test": self.screening.test,
+                "share": self.screening.share,
+                "delta_bic": self.screening.delta_bic,
+                "figures": figures,
+            },
+            "parameters": parameters,
+            "in_sample": {
+                "rms_before": self.rms_before,
+                "rms_after": self.rms_after,
+                "gain": self.in_sample_gain(),
+                "delta_bic": self.delta_bic,
+            },
+            "out_of_sample": self.out_of_sample.as_ref().map(OutOfSample::to_json),
+            "another_run": self.another_run.map(|r| json!({
+                "rms_zeroed_without": r.rms_zeroed_without,
+                "rms_zeroed_with": r.rms_zeroed_with,
+                "holds": r.holds(),
+            })),
+            "plausibility": self.plausibility.to_json(),
+            "decision": self.decision.name(),
+            "words": self.words(),
+        })
+    }
+}
+
+/// What a step did.
+#[derive(Debug, Clone, PartialEq)]
+pub enum StepOutcome {
+    /// An effect was added.
+    Added {
+        /// The effect.
+        effect: EffectKind,
+        /// Its form.
+        form: String,
+        /// In-sample RMS after \[m\].
+        rms_after: f64,
+    },
+    /// An effect added earlier was taken out again: the model refitted without it is within 1 %.
+    Removed {
+        /// The effect.
+        effect: EffectKind,
+        /// In-sample RMS without it \[m\].
+        rms_without: f64,
+    },
+    /// The search stopped.
+    Stopped(Stop),
+}
+
+/// One step of the search on one axis.
+#[derive(Debug, Clone)]
+pub struct Step {
+    /// Axis name.
+    pub axis: String,
+    /// Step number (from 1).
+    pub number: usize,
+    /// In-sample RMS at the start \[m\].
+    pub rms_before: f64,
+    /// Residual and noise floor at the start.
+    pub floor: Floor,
+    /// Every screened candidate (effect, form, share, ΔBIC), best first.
+    pub screened: Vec<(EffectKind, &'static str, f64, f64)>,
+    /// The candidates fitted and judged.
+    pub trials: Vec<Trial>,
+    /// The outcome.
+    pub outcome: StepOutcome,
+}
+
+impl Step {
+    /// The effect the step added, if any.
+    pub fn added(&self) -> Option<EffectKind> {
+        match self.outcome {
+            StepOutcome::Added { effect, .. } => Some(effect),
+            _ => None,
+        }
+    }
+
+    /// In words.
+    pub fn words(&self) -> String {
+        let head = format!(
+            "axis {} step {}: residual RMS {:.4e} m, sensor noise estimate {:.4e} m",
+            self.axis, self.number, self.rms_before, self.floor.noise_m
+        );
+        let outcome = match &self.outcome {
+            StepOutcome::Added {
+                effect,
+                form,
+                rms_after,
+            } => format!(
+                "added {}{} (RMS {:.4e} m)",
+                effect.name(),
+                if form.is_empty() {
+                    String::new()
+                } else {
+                    format!(" ({form})")
+                },
+                rms_after
+            ),
+            StepOutcome::Removed {
+                effect,
+                rms_without,
+            } => format!(
+                "removed {}: the model refitted without it is within 1 % (RMS {:.4e} m)",
+                effect.name(),
+                rms_without
+            ),
+            StepOutcome::Stopped(stop) => format!("stopped: {}", stop.words()),
+        };
+        let mut s = format!("{head}. {outcome}.");
+        for t in &self.trials {
+            s.push_str("\n  - ");
+            s.push_str(&t.words());
+        }
+        s
+    }
+
+    /// JSON for the report.
+    pub fn to_json(&self) -> Value {
+        let (effect, form, outcome) = match &self.outcome {
+            StepOutcome::Added { effect, form, .. } => {
+                (json!(effect.name()), json!(form), json!("added"))
+            }
+            StepOutcome::Removed { effect, .. } => {
+                (json!(effect.name()), json!(null), json!("removed"))
+            }
+            StepOutcome::Stopped(stop) => (
+                json!(null),
+                json!(null),
+                json!(match stop {
+                    Stop::NoiseFloor => "stopped-noise-floor",
+                    Stop::NothingHolds => "stopped-nothing-holds",
+                    Stop::NoCandidates => "stopped-no-candidates",
+                }),
+            ),
+        };
+        let rms = match &self.outcome {
+            StepOutcome::Added { rms_after, .. } => *rms_after,
+            StepOutcome::Removed { rms_without, .. } => *rms_without,
+            StepOutcome::Stopped(_) => self.rms_before,
+        };
+        json!({
+            "axis": self.axis,
+            "step": self.number,
+            "outcome": outcome,
+            "effect": effect,
+            "form": form,
+            "removed": matches!(self.outcome, StepOutcome::Removed { .. }),
+            "rms_before": self.rms_before,
+            "rms": rms,
+            "noise": self.floor.to_json(),
+            "screening": self.screened.iter().map(|(e, f, share, bic)| json!({
+                "effect": e.name(), "form": f, "share": share, "delta_bic": bic,
+            })).collect::<Vec<_>>(),
+            "candidates": self.trials.iter().map(Trial::to_json).collect::<Vec<_>>(),
+            "words": self.words(),
+        })
+    }
+}

@@ -1,0 +1,325 @@
+//! The models `close-loop` found as stage-file axes, and their predictions through piezo-stage's
+//! chain (`AxisChain::simulate`, `piezo_stage::simulate_pair` for two coupled axes): exactly the
+//! code `predict` and the firmware run, from rest at the first input (`ModelState::at_rest(u0)`,
+//! `EffectsState::at_rest(u0)`).
+//!
+//! Scores of a prediction p of a record y over its scored samples: `rms` = √(mean (y − p)²), and
+//! `rms_zeroed` = √(mean (y − p − ō)²) with ō = mean(y − p), one constant offset re-estimated on the
+//! record (a sensor's zero differs between runs).
+
+use super::full::AxisModel;
+use super::Outcome;
+use crate::identify::Record;
+use crate::stage_file::{stage_and_io, write_stage};
+use piezo_core::Asymmetry;
+use piezo_stage::{simulate_pair, Axis, AxisChain, Limits, Provenance, StageFile, AXIS_NAMES};
+use serde_json::{json, Value};
+use std::path::Path;
+
+/// Slew limit written for every axis \[V/s\].
+pub const SLEW_LIMIT_V_PER_S: f32 = 1e5;
+
+/// The output window for a record's input: its range rounded outwards to a tenth of the power of
+/// ten below its span (0–3.6 V stays 0–3.6 V, 0.2–119.7 V gives 0–120 V).
+pub fn output_window(u: &[f64]) -> (f32, f32) {
+    let (lo, hi) = u
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
+            (a.min(v), b.max(v))
+        });
+    let span = (hi - lo).max(1e-9);
+    let step = 10f64.powf(span.log10().floor() - 1.0);
+    let round = |v: f64, f: fn(f64) -> f64| ((f(v / step - 1e-9 * f64::signum(v))) * step) as f32;
+    let (a, b) = (round(lo, f64::floor), round(hi, f64::ceil));
+    if b > a {
+        (a, b)
+    } else {
+        (lo as f32, hi as f32)
+    }
+}
+
+/// The stage-file axis of a model (output window = the model's input range, slew 1e5 V/s).
+pub fn stage_axis(m: &AxisModel, identified: Option<Provenance>) -> Axis {
+    let mut axis = Axis::static_model(
+        m.bouc_wen,
+        m.map,
+        Asymmetry::default(),
+        Limits {
+            output_min_v: m.input_range_v.0,
+            output_max_v: m.input_range_v.1,
+            slew_limit_v_per_s: SLEW_LIMIT_V_PER_S,
+        },
+    );
+    axis.effects = m.effects;
+    axis.identified = identified;
+    axis
+}
+
+/// Predicts the records' outputs \[m\] from their inputs with `models` through piezo-stage's chain
+/// at the models' sample period; two axes run coupled (`simulate_pair`).
+pub fn predict(models: &[&AxisModel], us: &[Vec<f32>]) -> Result<Vec<Vec<f64>>, String> {
+    let ts = models.first().ok_or("no axis")?.sample_period_s;
+    let mut chains = Vec::new();
+    for (m, name) in models.iter().zip(AXIS_NAMES) {
+        let axis = stage_axis(m, None);
+        let valid = axis
+            .build(name, ts, m.input_range_v)
+            .map_err(|e| format!("piezo-stage refused the {name} axis: {e}"))?;
+        chains.push(valid.chain);
+    }
+    let n = us.iter().map(Vec::len).min().unwrap_or(0);
+    let mut out: Vec<Vec<f32>> = vec![vec![0.0; n]; chains.len()];
+    match chains.as_slice() {
+        [chain] => chain.simulate(&us[0][..n], |k, y| out[0][k] = y),
+        [AxisChain::Static {
+            model: mx,
+            effects: ex,
+        }, AxisChain::Static {
+            model: my,
+            effects: ey,
+        }] => {
+            let (ox, oy) = out.split_at_mut(1);
+            simulate_pair(
+                (mx, ex),
+                (my, ey),
+                [&us[0][..n], &us[1][..n]],
+                [&mut ox[0], &mut oy[0]],
+            );
+        }
+        _ => return Err("close-loop predicts one or two static axes".into()),
+    }
+    Ok(out
+        .into_iter()
+        .map(|v| v.into_iter().map(f64::from).collect())
+        .collect())
+}
+
+/// The scores of a prediction (module doc).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Fit {
+    /// RMS \[m\].
+    pub rms: f64,
+    /// RMS with one constant offset re-estimated \[m\].
+    pub rms_zeroed: f64,
+    /// The offset ō = mean(y − p) \[m\].
+    pub offset: f64,
+    /// Largest |y − p| \[m\].
+    pub max_abs: f64,
+    /// Coefficient of determination.
+    pub r2: f64,
+}
+
+impl Fit {
+    /// The scores of `p` against `y`.
+    pub fn of(y: &[f64], p: &[f64]) -> Self {
+        let n = y.len().max(1) as f64;
+        let r: Vec<f64> = y.iter().zip(p).map(|(a, b)| a - b).collect();
+        let offset = r.iter().sum::<f64>() / n;
+        let sse: f64 = r.iter().map(|v| v * v).sum();
+        let mean_y = y.iter().sum::<f64>() / n;
+        let sst: f64 = y.iter().map(|v| (v - mean_y).powi(2)).sum();
+        Self {
+            rms: (sse / n).sqrt(),
+            rms_zeroed: (r.iter().map(|v| (v - offset).powi(2)).sum::<f64>() / n).sqrt(),
+            offset,
+            max_abs: r.iter().fold(0.0, |m, v| m.max(v.abs())),
+            r2: if sst > 0.0 { 1.0 - sse / sst } else { f64::NAN },
+        }
+    }
+
+    /// JSON for the report.
+    pub fn to_json(&self) -> Value {
+        json!({
+            "rms": self.rms,
+            "rms_zeroed": self.rms_zeroed,
+            "offset": self.offset,
+            "max_abs": self.max_abs,
+            "r2": self.r2,
+        })
+    }
+}
+
+/// One axis of a validation record with both predictions.
+#[derive(Debug, Clone)]
+pub struct ValidationAxis {
+    /// Times of the scored samples \[s\].
+    pub t_s: Vec<f64>,
+    /// Input \[V\].
+    pub u: Vec<f64>,
+    /// Measured \[m\].
+    pub y: Vec<f64>,
+    /// Base model's prediction \[m\].
+    pub before: Vec<f64>,
+    /// Final model's prediction \[m\].
+    pub after: Vec<f64>,
+}
+
+/// The prediction of another record by the base and the final model.
+#[derive(Debug, Clone)]
+pub struct Validation {
+    /// The record.
+    pub data: String,
+    /// First scored time \[s\].
+    pub start_s: f64,
+    /// Scored samples per axis.
+    pub samples: usize,
+    /// Base model, all axes together.
+    pub before: Fit,
+    /// Final model, all axes together.
+    pub after: Fit,
+    /// Per axis.
+    pub axes: Vec<ValidationAxis>,
+}
+
+impl Validation {
+    /// JSON for the report.
+    pub fn to_json(&self) -> Value {
+        json!({
+            "data": self.data,
+            "start_s": self.start_s,
+            "samples": self.samples,
+            "before": self.before.to_json(),
+            "after": self.after.to_json(),
+            "ratio_rms": self.after.rms / self.before.rms,
+            "ratio_rms_zeroed": self.after.rms_zeroed / self.before.rms_zeroed,
+        })
+    }
+}
+
+/// Both models predict `records` from their first sample (seeing only u), scored from `start_s`.
+pub fn validate(outcome: &Outcome, records: &[Record], start_s: f64) -> Result<Validation, String> {
+    if records.len() != outcome.axes.len() {
+        return Err(format!(
+            "--validate: {} axes, the fit has {}",
+            records.len(),
+            outcome.axes.len()
+        ));
+    }
+    let from = records[0].index_at(start_s);
+    let us: Vec<Vec<f32>> = records
+        .iter()
+        .map(|r| r.u.iter().map(|&v| v as f32).collect())
+        .collect();
+    let base: Vec<&AxisModel> = outcome.axes.iter().map(|a| &a.base).collect();
+    let last: Vec<&AxisModel> = outcome.axes.iter().map(|a| &a.model).collect();
+    let before = predict(&base, &us)?;
+    let after = predict(&last, &us)?;
+    let mut axes = Vec::new();
+    let (mut y, mut b, mut a) = (Vec::new(), Vec::new(), Vec::new());
+    for (i, r) in records.iter().enumerate() {
+        let n = before[i].len().min(r.y_m.len());
+        let from = from.min(n);
+        y.extend_from_slice(&r.y_m[from..n]);
+        b.extend_from_slice(&before[i][from..n]);
+        a.extend_from_slice(&after[i][from..n]);
+        axes.push(ValidationAxis {
+            t_s: r.t_s[from..n].to_vec(),
+            u: r.u[from..n].to_vec(),
+            y: r.y_m[from..n].to_vec(),
+            before: before[i][from..n].to_vec(),
+            after: after[i][from..n].to_vec(),
+        });
+    }
+    Ok(Validation {
+        data: records[0].path.display().to_string(),
+        start_s,
+        samples: records[0].u.len().saturating_sub(from),
+        before: Fit::of(&y, &b),
+        after: Fit::of(&y, &a),
+        axes,
+    })
+}
+
+/// The final models as stage-file axes with their provenance (x, and y for two-axis records).
+pub fn final_axes(outcome: &Outcome, data: &str) -> Vec<Axis> {
+    outcome
+        .axes
+        .iter()
+        .map(|a| {
+            let (lo, hi) = a.input_range_v;
+            stage_axis(
+                &a.model,
+                Some(Provenance {
+                    data: data.to_string(),
+                    window_s: [outcome.window_s.0, outcome.window_s.1],
+                    method: "close-loop".into(),
+                    fit_rms_m: a.fit_after.rms,
+                    input_range_v: [lo as f32, hi as f32],
+                    sample_period_s: a.model.sample_period_s,
+                }),
+            )
+        })
+        .collect()
+}
+
+fn header(outcome: &Outcome, data: &str) -> String {
+    let effects: Vec<String> = outcome
+        .axes
+        .iter()
+        .map(|a| {
+            format!(
+                "{}: [{}]",
+                a.name,
+                a.model
+                    .added
+                    .iter()
+                    .map(|e| e.name())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )
+        })
+        .collect();
+    format!(
+        "host-sim close-loop on {data} ({:.3}-{:.3} s): effects {}",
+        outcome.window_s.0,
+        outcome.window_s.1,
+        effects.join(", ")
+    )
+}
+
+/// Writes the stage file of the final models: `[stage]` and `[io]` from `given` (or from the record
+/// with a placeholder io), an axis per record axis. Returns the firmware's verdict; refuses a set the
+/// firmware would refuse unless `allow_refused`.
+pub fn write_stage_file(
+    outcome: &Outcome,
+    path: &Path,
+    data: &str,
+    given: Option<&Path>,
+    allow_refused: bool,
+) -> Result<String, String> {
+    let rate = 1.0 / f64::from(outcome.axes[0].model.sample_period_s);
+    let name = Path::new(data)
+        .file_stem()
+        .map_or("stage".into(), |s| s.to_string_lossy().to_string());
+    let (stage, io) = stage_and_io(given, &name, rate)?;
+    write_stage(
+        path,
+        &header(outcome, data),
+        stage,
+        io,
+        final_axes(outcome, data),
+        allow_refused,
+    )
+}
+
+/// The stage file's text of the final models (placeholder io, the record's rate as the loop rate;
+/// the provenance's window is the one the fit scored, whatever `_start_s`).
+pub fn parameter_file(outcome: &Outcome, data: &str, _start_s: f64) -> String {
+    let rate = 1.0 / f64::from(outcome.axes[0].model.sample_period_s);
+    let stage = piezo_stage::Stage {
+        name: "close-loop".into(),
+        version: "1".into(),
+        loop_rate_hz: crate::stage_file::rate_of(rate),
+    };
+    let mut axes = final_axes(outcome, data).into_iter();
+    let Some(x) = axes.next() else {
+        return String::new();
+    };
+    let file = StageFile {
+        stage,
+        io: piezo_stage::Io::placeholder(),
+        x,
+        y: axes.next(),
+    };
+    file.to_toml(&header(outcome, data))
+}
