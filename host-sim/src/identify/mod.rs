@@ -381,6 +381,19 @@ pub fn data_warnings(record: &Record, from: usize, id: &Identification) -> Vec<S
             ));
         }
     }
+    if let Identified::Static { bouc_wen, map, .. } = id.set {
+        // Small-signal gain from rest: dy/du = k1 + k2·A.
+        let net = f64::from(map.k1_m_per_v) + f64::from(map.k2_m_per_h) * f64::from(bouc_wen.a);
+        let k1 = f64::from(map.k1_m_per_v);
+        if k1.abs() > 20.0 * net.abs() {
+            out.push(format!(
+                "k1 = {k1:.4e} m/V and k2·A = {:.4e} m/V nearly cancel (net {net:.3e} m/V): a degenerate set \
+                 whose output is a small difference of large terms; try --start past a start-up \
+                 transient, or --invertible",
+                net - k1
+            ));
+        }
+    }
     if let Some(at) = id.summary["at_bounds"].as_array() {
         for name in at.iter().filter_map(|v| v.as_str()) {
             out.push(format!(
