@@ -747,13 +747,3 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
     }
     Ok(format!("{}\nwritten: {}", lines.join("\n"), written.join(", ")))
 }
-
-/// Checks a stage file's text as the firmware's build does (piezo-stage validation).
-pub fn firmware_check(file: &str, bytes: &[u8]) -> Result<(), String> {
-    let text = std::str::from_utf8(bytes).map_err(|e| format!("{file}: {e}"))?;
-    let stage = piezo_stage::StageFile::parse(file, text).map_err(|e| e.to_string())?;
-    stage
-        .validate()
-        .map(|_| ())
-        .map_err(|e| e.located(file, text).to_string())
-}
