@@ -56,6 +56,10 @@ All modes command one sample ahead. Output window 0-120 V."
     /// Fits the base model, finds the effect its residual lacks (creep, drift, delay, asymmetry,
     /// dynamics, coupling), adds it, refits and repeats; reports the error before and after.
     CloseLoop(crate::close_loop::CloseLoopArgs),
+    /// The voltages the firmware commands for a reference record (stage file + CSV → CSV of
+    /// stack voltages per tick, for a wave table or any DAC).
+    #[command(after_help = crate::compensate::HELP)]
+    Compensate(crate::compensate::CompensateArgs),
 }
 
 /// Plot formats.
@@ -159,6 +163,7 @@ pub fn run(cli: Cli) -> Result<String, String> {
         Command::Identify(a) => crate::identify::identify_cmd(&a),
         Command::Predict(a) => crate::identify::predict_cmd(&a),
         Command::CloseLoop(a) => crate::close_loop::close_loop_cmd(&a),
+        Command::Compensate(a) => crate::compensate::compensate_cmd(&a),
     }
 }
 

@@ -1,0 +1,451 @@
+//! `host-sim compensate`: the voltages the firmware would command for a reference record, computed
+//! on the host with the same core code, for a wave table or any DAC.
+//!
+//! ```text
+//! host-sim compensate --params STAGE.toml --reference REF.csv --out U.csv
+//! ```
+//!
+//! * `STAGE.toml`: a stage file (`piezo_stage::StageFile::load`: parsed and validated with the
+//!   core's constructors at its `loop_rate_hz`); each axis a static model (symmetric or
+//!   asymmetric) with its compensator and effects.
+//! * `REF.csv`: `t_s` and the desired stage output `r_<unit>` (one-axis stage file) or `rx_<unit>`
+//!   and `ry_<unit>` (two axes), unit `m`, `mm`, `um` or `nm`, sampled at the stage file's loop
+//!   period T = 1/`loop_rate_hz` (the mean step within 1e-6 of T, every step within 1 %).
+//! * `U.csv`: `t_s,u_V` or `t_s,ux_V,uy_V`: the stack voltage of each tick \[V\] (the amplifier's
+//!   output; a DAC sample is this / `io.amplifier_gain_v_per_v`).
+//!
+//! Per tick j, exactly the firmware's loop (`piezo_core::inverse_chain`, the code the firmware's
+//! `xy_loop` calls), from rest at each axis's `output_min_v` u0 (`CompensatorState::at_rest(u0)`,
+//! `EffectsState::at_rest(u0)`):
+//!
+//! ```text
+//! r[j + L]                         the reference sampled L = M + max ⌈D⌉ ticks ahead
+//!                                  (its last sample held past the end)
+//! z*[j+M] = decouple(κx, κy, r(j+M+D) − d((j+M+D)·T))      delay, drift, coupling (two axes)
+//! w*[j]   = s*(z*[j−1], z*[j], z*[j+1]) − creep[j] − e·(u[j−1] − u_c)²   mode, creep, even term
+//! u[j]    = compensator(w*[j])     inverse hysteresis model, inside the output window and the
+//!                                  slew limit of the stage file
+//! commit(u[j], w[j])               the effects state follows the voltage commanded
+//! ```
+//!
+//! The stage output of tick j, r\[j\], appears at sample j (after the delay D). Without effects
+//! w\*\[j\] = r\[j\]. The firmware's safety guard (same window and slew limit, plus a margin) never
+//! acts on these voltages, so they are the ones the firmware writes, to f32 rounding
+//! (`tests/tests/qemu_compensate.rs` checks the QEMU image against this command).
+
+use crate::csv::{read_csv, write_csv, Table};
+use crate::identify::unit_factor;
+use piezo_core::{
+    compensate_pair, compensate_single, FeedforwardAxis, FeedforwardCounts, InverseChain,
+};
+use piezo_stage::{AxisChain, StageFile, ValidStage};
+use std::path::{Path, PathBuf};
+
+/// Arguments of `compensate`.
+#[derive(Debug, clap::Args)]
+pub struct CompensateArgs {
+    /// Stage file (TOML): models, effects, limits and loop rate of each axis.
+    #[arg(long)]
+    pub params: PathBuf,
+    /// Reference record (CSV): `t_s` and `r_m` (one axis) or `rx_m`, `ry_m` (two axes); `_um`,
+    /// `_nm`, `_mm` also accepted; sampled at the stage file's loop rate.
+    #[arg(long)]
+    pub reference: PathBuf,
+    /// Output CSV: `t_s,u_V` or `t_s,ux_V,uy_V` (stack voltages per tick; directory created if
+    /// missing).
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// Help text after the options.
+pub const HELP: &str = "Runs the firmware's per-tick chain on the host: the reference sampled \
+ahead by the effects' lead, the inverse effects (delay, drift, coupling, mode, creep, even term), \
+each axis's compensator inside the stage file's output window and slew limit, from rest at \
+output_min_v. The voltages are the stack voltages (divide by io.amplifier_gain_v_per_v for the DAC).";
+
+/// A reference record at the output samples.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Reference {
+    /// Sample times \[s\].
+    pub t_s: Vec<f64>,
+    /// Per axis (1 or 2): the column it came from and the samples \[m\].
+    pub axes: Vec<(String, Vec<f32>)>,
+}
+
+/// Reads a reference record: `t_s` and `r_<unit>` or `rx_<unit>`, `ry_<unit>`; errors name the
+/// file and the column.
+pub fn read_reference(path: &Path) -> Result<Reference, String> {
+    let table = read_csv(path).map_err(|e| e.to_string())?;
+    let t_s = table.column("t_s").map_err(|e| e.to_string())?.to_vec();
+    let find = |prefix: &str| {
+        table
+            .names
+            .iter()
+            .find(|n| n.starts_with(prefix) && unit_factor(n).is_some_and(|_| !n.ends_with("_s")))
+            .cloned()
+    };
+    let names = match (find("rx_"), find("ry_"), find("r_")) {
+        (Some(x), Some(y), _) => vec![x, y],
+        (_, _, Some(r)) => vec![r],
+        _ => {
+            return Err(format!(
+                "{}: no reference column: expected `r_m` (one axis) or `rx_m` and `ry_m` (two \
+                 axes), or the same in mm, um, nm; columns: {}",
+                path.display(),
+                table.names.join(", ")
+            ))
+        }
+    };
+    let axes = names
+        .into_iter()
+        .map(|name| {
+            let factor = unit_factor(&name).unwrap_or(1.0);
+            let column = table.column(&name).map_err(|e| e.to_string())?;
+            let samples = column.iter().map(|&v| (v * factor) as f32).collect();
+            Ok((name, samples))
+        })
+        .collect::<Result<_, String>>()?;
+    Ok(Reference { t_s, axes })
+}
+
+/// Refuses a record whose sample period is not the loop period `period_s` \[s\].
+fn check_period(reference: &Path, t_s: &[f64], params: &Path, rate_hz: f32) -> Result<(), String> {
+    if t_s.len() < 2 {
+        return Err(format!(
+            "{}: {} sample(s): need at least two to know the sample period",
+            reference.display(),
+            t_s.len()
+        ));
+    }
+    let period_s = 1.0 / f64::from(rate_hz);
+    let mean = (t_s[t_s.len() - 1] - t_s[0]) / (t_s.len() - 1) as f64;
+    let uneven = t_s
+        .windows(2)
+        .position(|w| ((w[1] - w[0]) - period_s).abs() > 1e-2 * period_s);
+    if (mean - period_s).abs() > 1e-6 * period_s || uneven.is_some() {
+        let at = uneven.map_or(String::new(), |i| {
+            format!(" (step {} s at t_s = {} s)", t_s[i + 1] - t_s[i], t_s[i])
+        });
+        return Err(format!(
+            "{}: sample period {mean} s (column t_s){at} differs from the loop period {period_s} s \
+             of {} (stage.loop_rate_hz = {rate_hz} Hz): resample the reference at the loop rate",
+            reference.display(),
+            params.display()
+        ));
+    }
+    Ok(())
+}
+
+/// The feed-forward settings of each axis of a validated stage file.
+pub fn feedforward_axes(
+    file: &StageFile,
+    valid: &ValidStage,
+    params: &Path,
+) -> Result<Vec<FeedforwardAxis>, String> {
+    valid
+        .axes
+        .iter()
+        .zip(file.axes())
+        .map(|(axis, (_, given))| match (axis.chain, axis.compensator) {
+            (AxisChain::Static { effects, .. }, Some(compensator)) => Ok(FeedforwardAxis {
+                compensator,
+                effects,
+                rest_v: given.limits.output_min_v,
+            }),
+            _ => Err(format!(
+                "{}: {}.model = \"{}\": the firmware compensates the static models only \
+                 (symmetric, asymmetric)",
+                params.display(),
+                axis.name,
+                axis.kind.name()
+            )),
+        })
+        .collect()
+}
+
+/// What `compensate` computed.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Compensation {
+    /// Sample times \[s\] (the reference's).
+    pub t_s: Vec<f64>,
+    /// Per axis: the column name (`u_V` or `ux_V`, `uy_V`) and the stack voltage per tick \[V\].
+    pub voltages_v: Vec<(String, Vec<f32>)>,
+    /// Ticks, and the samples limited by the window or the slew limit.
+    pub counts: FeedforwardCounts,
+    /// L: ticks the reference is read ahead of the current tick.
+    pub lead_ticks: u32,
+}
+
+impl Compensation {
+    /// As a CSV table: `t_s` and the voltages.
+    pub fn to_table(&self) -> Table {
+        let mut names = vec!["t_s".to_string()];
+        let mut columns = vec![self.t_s.clone()];
+        for (name, u) in &self.voltages_v {
+            names.push(name.clone());
+            columns.push(u.iter().map(|&v| f64::from(v)).collect());
+        }
+        Table {
+            path: PathBuf::new(),
+            names,
+            columns,
+        }
+    }
+}
+
+/// Runs the firmware's chain for the stage file at `params` over the record at `reference`.
+pub fn compensate(params: &Path, reference: &Path) -> Result<Compensation, String> {
+    let (file, valid) = StageFile::load(params).map_err(|e| e.to_string())?;
+    let record = read_reference(reference)?;
+    check_period(reference, &record.t_s, params, file.stage.loop_rate_hz)?;
+    let axes = feedforward_axes(&file, &valid, params)?;
+    let n = record.t_s.len();
+    match (axes.as_slice(), record.axes.as_slice()) {
+        ([x], [(_, r)]) => {
+            let mut u = vec![0.0; n];
+            let counts = compensate_single(x, r, &mut u);
+            Ok(Compensation {
+                t_s: record.t_s,
+                voltages_v: vec![("u_V".into(), u)],
+                counts,
+                lead_ticks: InverseChain::single(x.effects, x.rest_v).map_or(0, |c| c.lead_ticks()),
+            })
+        }
+        ([x, y], [(_, rx), (_, ry)]) => {
+            let (mut ux, mut uy) = (vec![0.0; n], vec![0.0; n]);
+            let counts = compensate_pair([x, y], [rx, ry], [&mut ux, &mut uy]);
+            Ok(Compensation {
+                t_s: record.t_s,
+                voltages_v: vec![("ux_V".into(), ux), ("uy_V".into(), uy)],
+                counts,
+                lead_ticks: InverseChain::new([x.effects, y.effects], [x.rest_v, y.rest_v])
+                    .map_or(0, |c| c.lead_ticks()),
+            })
+        }
+        (stage_axes, columns) => Err(format!(
+            "{} has {} axis(es) but {} has {} reference column(s) ({}): give `r_m` for a \
+             one-axis stage file, `rx_m` and `ry_m` for a two-axis one",
+            params.display(),
+            stage_axes.len(),
+            reference.display(),
+            columns.len(),
+            columns
+                .iter()
+                .map(|(name, _)| name.as_str())
+                .collect::<Vec<_>>()
+                .join(", ")
+        )),
+    }
+}
+
+/// `host-sim compensate`: computes and writes the voltages; returns the summary line.
+pub fn compensate_cmd(a: &CompensateArgs) -> Result<String, String> {
+    let result = compensate(&a.params, &a.reference)?;
+    write_csv(&a.out, &result.to_table()).map_err(|e| format!("--out: {e}"))?;
+    let c = result.counts;
+    Ok(format!(
+        "compensate: {} ticks of {} written to {} (lead {} ticks; limited by the window or slew \
+         limit: {} samples)",
+        c.ticks,
+        result
+            .voltages_v
+            .iter()
+            .map(|(name, _)| name.as_str())
+            .collect::<Vec<_>>()
+            .join(", "),
+        a.out.display(),
+        result.lead_ticks,
+        c.limited
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::demo::run_xy_stage;
+    use crate::effects::Effects;
+    use crate::plant::XyStage;
+
+    fn firmware_params(name: &str) -> PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../firmware/params")
+            .join(name)
+    }
+
+    fn scratch(name: &str) -> PathBuf {
+        let dir =
+            std::env::temp_dir().join(format!("host_sim_compensate_{}_{name}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        dir
+    }
+
+    /// Writes a reference CSV with `columns` (name, f(t)) at `rate_hz` for `n` samples.
+    fn write_reference(
+        path: &Path,
+        rate_hz: f64,
+        n: usize,
+        columns: &[(&str, &dyn Fn(f64) -> f64)],
+    ) {
+        let mut text = String::from("t_s");
+        for (name, _) in columns {
+            text.push(',');
+            text.push_str(name);
+        }
+        text.push('\n');
+        for k in 0..n {
+            let t = k as f64 / rate_hz;
+            text.push_str(&t.to_string());
+            for (_, f) in columns {
+                text.push_str(&format!(",{}", f(t)));
+            }
+            text.push('\n');
+        }
+        std::fs::write(path, text).unwrap();
+    }
+
+    fn triangle(low: f64, high: f64, frequency_hz: f64) -> impl Fn(f64) -> f64 {
+        move |t| crate::demo::triangle(low, high, frequency_hz, t)
+    }
+
+    /// The XY stage's platform model: `firmware/params/xy-stage.toml` (the plant's stacks: their
+    /// exact Bouc-Wen sets and free-elongation gain d, no effects) with the output map scaled by
+    /// the flexure's static gain G, so that it gives the platform position the plant measures.
+    fn platform_stage_file(dir: &Path, gain: [f64; 2]) -> PathBuf {
+        let path = firmware_params("xy-stage.toml");
+        let text = std::fs::read_to_string(&path).unwrap();
+        let mut file = StageFile::parse(&path.display().to_string(), &text).unwrap();
+        for (axis, g) in [Some(&mut file.x), file.y.as_mut()].into_iter().zip(gain) {
+            let map = axis.unwrap().static_map.as_mut().unwrap();
+            map.k1_m_per_v = (f64::from(map.k1_m_per_v) * g) as f32;
+            map.k2_m_per_h = (f64::from(map.k2_m_per_h) * g) as f32;
+        }
+        let out = dir.join("xy-platform.toml");
+        std::fs::write(
+            &out,
+            file.to_toml("xy-stage.toml, output scaled to the platform"),
+        )
+        .unwrap();
+        out
+    }
+
+    #[test]
+    fn voltages_track_the_xy_stage_plant() {
+        // The voltages, applied through a zero-order hold to host-sim's independent f64 XY stage
+        // (Bouc-Wen stacks, flexure mechanics with modes at 3.2 and 2.2 kHz), must put the
+        // platform on the reference: a triangle between 10 % and 90 % of the stroke, faded in
+        // from rest over 5 ms (a step from rest would ring the lightly damped modes).
+        let dir = scratch("track");
+        let plant = XyStage::default();
+        let params = platform_stage_file(&dir, plant.static_gain());
+        // The platform's stroke over 0–120 V (38 µm of free stroke times G).
+        let stroke_m = plant.static_gain().map(|g| g * 38e-6);
+        let (rate, n) = (10_000.0, 4_000);
+        let fade = |t: f64| {
+            if t < 5e-3 {
+                0.5 - 0.5 * (std::f64::consts::PI * t / 5e-3).cos()
+            } else {
+                1.0
+            }
+        };
+        let shape = |i: usize, frequency_hz: f64| {
+            let s = stroke_m[i];
+            move |t: f64| fade(t) * crate::demo::triangle(0.1 * s, 0.9 * s, frequency_hz, t)
+        };
+        let (fx, fy) = (shape(0, 10.0), shape(1, 5.0));
+        let reference = dir.join("ref.csv");
+        write_reference(&reference, rate, n, &[("rx_m", &fx), ("ry_m", &fy)]);
+        let result = compensate(&params, &reference).unwrap();
+        assert_eq!(result.lead_ticks, 0);
+        assert_eq!(result.counts.limited, 0);
+        let out = dir.join("u.csv");
+        write_csv(&out, &result.to_table()).unwrap();
+        let back = read_csv(&out).unwrap();
+        assert_eq!(back.names, ["t_s", "ux_V", "uy_V"]);
+        let voltages = [1, 2].map(|c| back.columns[c].clone());
+        for (c, (_, u)) in result.voltages_v.iter().enumerate() {
+            assert!(u.iter().zip(&voltages[c]).all(|(&a, &b)| a == b as f32));
+        }
+        let y = run_xy_stage(&plant, &voltages, rate, &Effects::default()).unwrap();
+        let settle = 10; // 1 ms
+        for (i, (r, name)) in [(&fx as &dyn Fn(f64) -> f64, "x"), (&fy, "y")]
+            .into_iter()
+            .enumerate()
+        {
+            let sq: f64 = (settle..n)
+                .map(|k| (y[i][k] - r(k as f64 / rate)).powi(2))
+                .sum();
+            let rms = (sq / (n - settle) as f64).sqrt();
+            println!(
+                "{name}: rms {:.1} nm = {:.3} % of the {:.1} µm stroke",
+                rms * 1e9,
+                100.0 * rms / stroke_m[i],
+                stroke_m[i] * 1e6
+            );
+            assert!(rms <= 3e-3 * stroke_m[i], "{name}: rms {rms:e} m");
+        }
+    }
+
+    #[test]
+    fn one_axis_stage_with_effects_and_micrometres() {
+        // A one-axis stage file (the x axis of xy-stage-effects.toml, coupling taken off) and a
+        // reference in µm: the same voltages as the core's single-axis chain in metres.
+        let dir = scratch("one");
+        let text = std::fs::read_to_string(firmware_params("xy-stage-effects.toml")).unwrap();
+        let one_axis = text
+            .split("\n[y]")
+            .next()
+            .unwrap()
+            .replace("coupling = 0.02", "");
+        let params = dir.join("x.toml");
+        std::fs::write(&params, one_axis).unwrap();
+        let reference = dir.join("ref.csv");
+        let f = triangle(5.0, 30.0, 20.0);
+        write_reference(&reference, 10_000.0, 500, &[("r_um", &f)]);
+        let result = compensate(&params, &reference).unwrap();
+        assert_eq!(result.voltages_v.len(), 1);
+        assert_eq!(result.voltages_v[0].0, "u_V");
+        assert_eq!(result.lead_ticks, 2);
+        let (file, valid) = StageFile::load(&params).unwrap();
+        let axis = feedforward_axes(&file, &valid, &params).unwrap()[0];
+        let r: Vec<f32> = (0..500)
+            .map(|k| (f(k as f64 / 1e4) * 1e-6) as f32)
+            .collect();
+        let mut u = vec![0.0; 500];
+        compensate_single(&axis, &r, &mut u);
+        // µm → m in f64, then f32: the same samples, the same voltages.
+        assert_eq!(u, result.voltages_v[0].1);
+    }
+
+    #[test]
+    fn errors_name_the_file_and_the_column() {
+        let dir = scratch("errors");
+        let params = firmware_params("xy-stage-effects.toml");
+        let reference = dir.join("ref.csv");
+        let f = |t: f64| 10e-6 + t;
+        // Wrong rate: names both files and both periods.
+        write_reference(&reference, 5_000.0, 100, &[("rx_m", &f), ("ry_m", &f)]);
+        let e = compensate(&params, &reference).unwrap_err();
+        assert!(
+            e.contains("ref.csv")
+                && e.contains("xy-stage-effects.toml")
+                && e.contains("0.0002")
+                && e.contains("0.0001"),
+            "{e}"
+        );
+        // One column for two axes.
+        write_reference(&reference, 10_000.0, 100, &[("r_m", &f)]);
+        let e = compensate(&params, &reference).unwrap_err();
+        assert!(e.contains("2 axis") && e.contains("r_m"), "{e}");
+        // No reference column.
+        write_reference(&reference, 10_000.0, 100, &[("u_V", &f)]);
+        let e = compensate(&params, &reference).unwrap_err();
+        assert!(e.contains("ref.csv") && e.contains("rx_m"), "{e}");
+        // A bad cell: file, line and column.
+        std::fs::write(&reference, "t_s,r_m\n0,1e-6\n0.0001,oops\n").unwrap();
+        let e = compensate(&params, &reference).unwrap_err();
+        assert!(e.contains("ref.csv:3") && e.contains("r_m"), "{e}");
+        // A stage file that does not exist.
+        let e = compensate(&dir.join("none.toml"), &reference).unwrap_err();
+        assert!(e.contains("none.toml"), "{e}");
+    }
+}
