@@ -21,7 +21,7 @@ pub struct Cli {
 /// Subcommands.
 #[derive(Debug, Subcommand)]
 pub enum Command {
-    /// Simulate a plant under a signal with optional effects; write CSV and optionally an SVG plot.
+    /// Simulate a plant under a signal with optional effects; write CSV and optionally a plot (SVG or PNG).
     #[command(after_help = format!(
         "Plants: {PLANT_NAMES}\n  nac2024   Noliac NAC2024 actuator (seed 000), output y_m, 2.56 MHz default rate\n  stage     asymmetric stage (seed 001, Case III; stage-case1/stage-case2 too), output y_m, 10 kHz\n  xy-stage  two-axis flexure stage (seed 002), inputs ux_V/uy_V, outputs x_m/y_m, 10 kHz\n\n{SIGNAL_HELP}\n\n{EFFECT_HELP}"
     ))]
@@ -148,7 +148,7 @@ pub struct SimulateArgs {
     /// Output CSV file.
     #[arg(long)]
     pub out: PathBuf,
-    /// Optional SVG plot (time series and loop).
+    /// Optional plot (time series and loop): `.svg` or `.png`, as the extension says.
     #[arg(long)]
     pub plot: Option<PathBuf>,
 }
@@ -205,6 +205,10 @@ fn reproduce_cmd(a: &ReproduceArgs) -> Result<String, String> {
 }
 
 fn simulate_cmd(a: &SimulateArgs) -> Result<String, String> {
+    // Refuse an unknown plot format before the simulation runs.
+    if let Some(path) = &a.plot {
+        crate::plot::Format::of_path(path).map_err(|e| format!("--plot: {e}"))?;
+    }
     let mut plant = PlantKind::from_name(&a.plant).map_err(|e| format!("--plant: {e}"))?;
     let spec = SignalSpec::parse(&a.signal).map_err(|e| format!("--signal: {e}"))?;
     let mut effects = Effects::default();
@@ -227,7 +231,7 @@ fn simulate_cmd(a: &SimulateArgs) -> Result<String, String> {
     let out = simulate(p, signals, &effects, &settings).map_err(|e| format!("simulate: {e}"))?;
     write_csv(&a.out, &out.to_table()).map_err(|e| format!("--out: {e}"))?;
     if let Some(path) = &a.plot {
-        crate::plot::plot_svg(path, &out, p.name()).map_err(|e| format!("--plot: {e}"))?;
+        crate::plot::plot_simulation(path, &out, p.name()).map_err(|e| format!("--plot: {e}"))?;
     }
     Ok(format!(
         "{}: {} samples at {} Hz written to {} ({} steps, {} rejected)",
@@ -356,5 +360,32 @@ mod tests {
         assert_eq!(t.rows(), 400);
         let svg = std::fs::read_to_string(dir.join("xy.svg")).unwrap();
         assert!(svg.contains("<svg") && svg.contains("hysteresis loop"));
+    }
+
+    #[test]
+    fn simulate_plots_png_and_refuses_other_extensions() {
+        let dir = std::env::temp_dir().join(format!("host_sim_cli_png_{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let out = dir.join("stage.csv");
+        let cli_with_plot = |plot: &str| {
+            let mut cli = args(
+                "stage",
+                "sine:amp=5,offset=5,freq=5,duration=0.2,rate=5000",
+                &[],
+                &out,
+            );
+            let Command::Simulate(a) = &mut cli.command else {
+                unreachable!()
+            };
+            a.plot = Some(dir.join(plot));
+            cli
+        };
+        run(cli_with_plot("stage.png")).unwrap();
+        let png = std::fs::read(dir.join("stage.png")).unwrap();
+        assert!(png.starts_with(b"\x89PNG\r\n\x1a\n"));
+        let e = run(cli_with_plot("stage.pdf")).unwrap_err();
+        assert!(e.starts_with("--plot") && e.contains(".pdf"), "{e}");
+        assert!(!dir.join("stage.pdf").exists());
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -30,7 +30,7 @@ use crate::csv::{write_csv, Table};
 use crate::effects::Effects;
 use crate::identify::Record;
 use crate::plant::XyStage;
-use crate::plot::{plot_panels, Panel, Series};
+use crate::plot::{plot_grid, Chart, Interval, Legend, Panel, Role, Series};
 use crate::signal::{Piecewise, Signal};
 use crate::sim::{simulate, SimSettings};
 use piezo_core::effects::{decouple, Effects as CoreEffects, EffectsState};
@@ -694,110 +694,174 @@ impl DemoResult {
         .map_err(|e| format!("--out: {e}"))?;
         written.push(csv_path.display().to_string());
 
-        let um = 1e6;
-        let t = &self.t_s;
-        let series_t = |name: &str, v: &[f64], scale: f64| {
-            Series::line(
-                name,
-                t.iter().zip(v).map(|(&t, &y)| (t, y * scale)).collect(),
-                4000,
-            )
-        };
-        let labels = ["uncompensated", "base model", "base model + effects"];
-        let runs = [&self.linear, &self.base, &self.closed];
-        let mut tracking = Vec::new();
-        let mut error = Vec::new();
-        let mut loops = Vec::new();
-        for a in 0..2 {
-            let ax = AXES[a];
-            let mut series = vec![series_t("reference", &self.reference_m[a], um)];
-            series.extend(
-                labels
-                    .iter()
-                    .zip(runs)
-                    .map(|(l, r)| series_t(l, &r.measured_m[a], um)),
-            );
-            tracking.push(Panel {
-                title: format!("{ax} axis: reference and measured platform position"),
-                x_label: "t [s]".into(),
-                y_label: format!("{ax} [µm]"),
-                series,
-            });
-            let err = |run: &ModeRun| -> Vec<f64> {
-                run.measured_m[a]
-                    .iter()
-                    .zip(&self.reference_m[a])
-                    .map(|(y, r)| y - r)
-                    .collect()
-            };
-            // The compensated errors in their own panel: next to the linear one they are flat.
-            error.push(Panel {
-                title: format!("{ax} axis: tracking error, uncompensated"),
-                x_label: "t [s]".into(),
-                y_label: "error [µm]".into(),
-                series: vec![series_t("uncompensated", &err(&self.linear), um)],
-            });
-            error.push(Panel {
-                title: format!(
-                    "{ax} axis: tracking error, compensated (effects added: {})",
-                    self.effects_of(a)
-                ),
-                x_label: "t [s]".into(),
-                y_label: "error [µm]".into(),
-                series: vec![
-                    series_t("base model", &err(&self.base), um),
-                    series_t("base model + effects", &err(&self.closed), um),
-                ],
-            });
-            let pairs = |xs: &[f64], ys: &[f64], sx: f64, sy: f64| -> Vec<(f64, f64)> {
-                xs.iter().zip(ys).map(|(&x, &y)| (x * sx, y * sy)).collect()
-            };
-            loops.push(Panel {
-                title: format!("{ax} axis: measured against reference"),
-                x_label: "reference [µm]".into(),
-                y_label: "measured [µm]".into(),
-                series: labels
-                    .iter()
-                    .zip(runs)
-                    .map(|(l, r)| {
-                        Series::line(
-                            *l,
-                            pairs(&self.reference_m[a], &r.measured_m[a], um, um),
-                            6000,
-                        )
-                    })
-                    .collect(),
-            });
-            loops.push(Panel {
-                title: format!("{ax} axis: drive voltage against reference"),
-                x_label: "reference [µm]".into(),
-                y_label: "voltage [V]".into(),
-                series: labels
-                    .iter()
-                    .zip(runs)
-                    .map(|(l, r)| {
-                        Series::line(
-                            *l,
-                            pairs(&self.reference_m[a], &r.voltage_v[a], um, 1.0),
-                            6000,
-                        )
-                    })
-                    .collect(),
-            });
-        }
+        let figures = self.figures();
         for format in formats {
-            for (name, panels) in [
-                ("tracking", &tracking),
-                ("error", &error),
-                ("loops", &loops),
-            ] {
+            for (name, charts, columns) in &figures {
                 let path = dir.join(format!("{name}.{format}"));
-                plot_panels(&path, panels).map_err(|e| e.to_string())?;
+                plot_grid(&path, charts, *columns).map_err(|e| e.to_string())?;
                 written.push(path.display().to_string());
             }
         }
         Ok(written)
     }
+
+    /// The figures: `tracking` (reference and positions against time), `error` (tracking error against
+    /// time, scaled to the scored window, the unscored transient shaded) and `loops` (per axis: the
+    /// full-stroke loop, the compensated error against the reference, the drive voltage against the
+    /// reference, all over the scored window). Each with its number of columns.
+    fn figures(&self) -> [(&'static str, Vec<Chart>, usize); 3] {
+        const UM: f64 = 1e6;
+        let skip = self
+            .settings
+            .settle_samples()
+            .min(self.t_s.len().saturating_sub(1));
+        let t = &self.t_s;
+        let transient = || {
+            Interval::excluded(
+                "transient (not scored)",
+                t.first().copied().unwrap_or(0.0),
+                t.get(skip).copied().unwrap_or(0.0),
+            )
+        };
+        let modes = [
+            ("uncompensated", &self.linear, Role::OpenLoop),
+            ("base model", &self.base, Role::Other(5)),
+            ("base model + effects", &self.closed, Role::Feedforward),
+        ];
+        let in_time = |name: &str, v: &[f64], role: Role| {
+            let points = t.iter().zip(v).map(|(&t, &y)| (t, y * UM)).collect();
+            Series::line(name, points, 4000).role(role)
+        };
+        // Over the scored window: x and y of each sample from `skip` on.
+        let scored = |name: &str, xs: &[f64], ys: &[f64], sy: f64, role: Role| {
+            let points = xs[skip..]
+                .iter()
+                .zip(&ys[skip..])
+                .map(|(&x, &y)| (x * UM, y * sy))
+                .collect();
+            Series::line(name, points, 6000).role(role)
+        };
+        let mut tracking: Vec<Chart> = Vec::new();
+        let mut error = Vec::new();
+        let mut loops = Vec::new();
+        for a in 0..2 {
+            let ax = AXES[a];
+            let reference = &self.reference_m[a];
+            let err = |run: &ModeRun| -> Vec<f64> {
+                run.measured_m[a]
+                    .iter()
+                    .zip(reference)
+                    .map(|(y, r)| y - r)
+                    .collect()
+            };
+            let mut series: Vec<Series> = modes
+                .iter()
+                .map(|(name, run, role)| in_time(name, &run.measured_m[a], *role))
+                .collect();
+            series.push(in_time("reference", reference, Role::Reference));
+            tracking.push(
+                Panel::new(
+                    format!("{ax} axis: reference and measured platform position"),
+                    "t [s]",
+                    format!("{ax} [µm]"),
+                    series,
+                )
+                .into(),
+            );
+            // The uncompensated error is a hundred times the compensated one: a panel each, both
+            // scaled to the scored window.
+            let error_panel = |title: String, runs: &[(&str, &ModeRun, Role)]| {
+                let errors: Vec<Vec<f64>> = runs.iter().map(|(_, run, _)| err(run)).collect();
+                let (lo, hi) = scored_range(errors.iter().map(|e| &e[skip..]), UM);
+                let series = runs
+                    .iter()
+                    .zip(&errors)
+                    .map(|((name, _, role), e)| in_time(name, e, *role))
+                    .collect();
+                Panel::new(title, "t [s]", "error [µm]", series)
+                    .y_range(lo, hi)
+                    .interval(transient())
+            };
+            error.push(error_panel(
+                format!("{ax} axis: tracking error, uncompensated"),
+                &modes[..1],
+            ));
+            error.push(error_panel(
+                format!(
+                    "{ax} axis: tracking error, compensated (effects added: {})",
+                    self.effects_of(a)
+                ),
+                &modes[1..],
+            ));
+            let mut full_stroke: Vec<Series> = modes
+                .iter()
+                .map(|(name, run, role)| scored(name, reference, &run.measured_m[a], UM, *role))
+                .collect();
+            full_stroke.push(scored(
+                "reference",
+                reference,
+                reference,
+                UM,
+                Role::Reference,
+            ));
+            loops.push(
+                Panel::new(
+                    format!("{ax} axis: measured against reference"),
+                    "reference [µm]",
+                    "measured [µm]",
+                    full_stroke,
+                )
+                .legend(Legend::Below),
+            );
+            let compensated_error = modes[1..]
+                .iter()
+                .map(|(name, run, role)| scored(name, reference, &err(run), UM, *role))
+                .collect();
+            loops.push(
+                Panel::new(
+                    format!("{ax} axis: compensated error against reference"),
+                    "reference [µm]",
+                    "error [µm]",
+                    compensated_error,
+                )
+                .legend(Legend::Below),
+            );
+            let voltage = modes
+                .iter()
+                .map(|(name, run, role)| scored(name, reference, &run.voltage_v[a], 1.0, *role))
+                .collect();
+            loops.push(
+                Panel::new(
+                    format!("{ax} axis: drive voltage against reference"),
+                    "reference [µm]",
+                    "voltage [V]",
+                    voltage,
+                )
+                .legend(Legend::Below),
+            );
+        }
+        [
+            ("tracking", tracking, 1),
+            ("error", error, 1),
+            ("loops", loops, 3),
+        ]
+    }
+}
+
+/// The range of the values of `traces` times `scale`, with 8 % padding.
+fn scored_range<'a>(traces: impl Iterator<Item = &'a [f64]>, scale: f64) -> (f64, f64) {
+    let (lo, hi) = traces
+        .flatten()
+        .map(|v| v * scale)
+        .filter(|v| v.is_finite())
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
+            (a.min(v), b.max(v))
+        });
+    if !(lo <= hi) {
+        return (-1.0, 1.0);
+    }
+    let pad = ((hi - lo) * 0.08).max(1e-9);
+    (lo - pad, hi + pad)
 }
 
 #[cfg(test)]

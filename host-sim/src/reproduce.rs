@@ -20,7 +20,7 @@
 
 use crate::effects::Effects;
 use crate::plant::{AsymmetricStage, Nac2024, Plant, SecondMode, StageCase, XyStage};
-use crate::plot::{plot_panels, Panel, Series};
+use crate::plot::{plot_panels, Panel, Role, Series};
 use crate::signal::{staircase, Signal, Sine};
 use crate::sim::{simulate, SimOutput, SimSettings};
 use piezo_core::metrics::{mrd_percent, r_squared, rae, rms};
@@ -573,9 +573,11 @@ impl Report {
                 x_label: "frequency [kHz]".into(),
                 y_label: "R²".into(),
                 series: vec![
-                    Series::markers("paper (vs measurement)", col(&NAC_PAPER_R2)),
-                    Series::markers("core vs plant + 2nd mode, m0 +10 %", col(&r2)),
-                    Series::markers("core vs published plant", col(&br2)),
+                    Series::markers("paper (vs measurement)", col(&NAC_PAPER_R2))
+                        .role(Role::Measured),
+                    Series::markers("core vs plant + 2nd mode, m0 +10 %", col(&r2))
+                        .role(Role::Model),
+                    Series::markers("core vs published plant", col(&br2)).role(Role::Other(0)),
                 ],
             },
             Panel {
@@ -583,9 +585,11 @@ impl Report {
                 x_label: "frequency [kHz]".into(),
                 y_label: "MRD [%]".into(),
                 series: vec![
-                    Series::markers("paper (vs measurement)", col(&NAC_PAPER_MRD)),
-                    Series::markers("core vs plant + 2nd mode, m0 +10 %", col(&mrd)),
-                    Series::markers("core vs published plant", col(&bmrd)),
+                    Series::markers("paper (vs measurement)", col(&NAC_PAPER_MRD))
+                        .role(Role::Measured),
+                    Series::markers("core vs plant + 2nd mode, m0 +10 %", col(&mrd))
+                        .role(Role::Model),
+                    Series::markers("core vs published plant", col(&bmrd)).role(Role::Other(0)),
                 ],
             },
         ];

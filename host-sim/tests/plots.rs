@@ -8,24 +8,31 @@ use resvg::tiny_skia::Pixmap;
 use std::f64::consts::PI;
 use std::path::{Path, PathBuf};
 
-/// A directory of its own under the system temporary directory, removed when dropped.
-struct TempDir(PathBuf);
+/// A directory of its own under the system temporary directory, removed when dropped; with
+/// `HOST_SIM_PLOT_DIR` set, that directory instead, kept for a look at the figures.
+struct TempDir(PathBuf, bool);
 
 impl TempDir {
     fn new(name: &str) -> Self {
+        if let Some(keep) = std::env::var_os("HOST_SIM_PLOT_DIR") {
+            std::fs::create_dir_all(&keep).unwrap();
+            return Self(PathBuf::from(keep), false);
+        }
         let dir = std::env::temp_dir().join(format!(
             "host-sim-plots-{name}-{}-{:?}",
             std::process::id(),
             std::time::SystemTime::now()
         ));
         std::fs::create_dir_all(&dir).unwrap();
-        Self(dir)
+        Self(dir, true)
     }
 }
 
 impl Drop for TempDir {
     fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
+        if self.1 {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
     }
 }
 
@@ -185,9 +192,9 @@ fn marked_window_and_excluded_transient_with_a_clipped_spike() {
 #[test]
 fn markers_and_svg_of_the_same_figure() {
     let dir = TempDir::new("markers");
-    let staircase: Vec<(f64, f64)> = (0..=24)
+    let staircase: Vec<(f64, f64)> = (0..=24i32)
         .map(|k| {
-            let u = 10.0 * (12 - (12 - k as i32).abs()) as f64;
+            let u = 10.0 * (12 - (12 - k).abs()) as f64;
             (u, 0.15 * u + if k > 12 { 1.0 } else { 0.0 })
         })
         .collect();

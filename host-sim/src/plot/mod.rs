@@ -425,12 +425,15 @@ pub fn plot_panels<P: AsChart>(path: &Path, panels: &[P]) -> Result<(), PlotErro
 /// Draws `panels` row by row in `columns` columns into `path` (`.svg` or `.png`).
 pub fn plot_grid<P: AsChart>(path: &Path, panels: &[P], columns: usize) -> Result<(), PlotError> {
     let format = Format::of_path(path)?;
-    let err = |message: String| PlotError {
+    let svg = render_svg(panels, columns).map_err(|e| failed(path, e))?;
+    write(path, format, &svg).map_err(|e| failed(path, e))
+}
+
+fn failed(path: &Path, message: String) -> PlotError {
+    PlotError {
         path: path.display().to_string(),
-        message,
-    };
-    let svg = render_svg(panels, columns).map_err(err)?;
-    write(path, format, &svg).map_err(err)
+        message: format!("plotting failed: {message}"),
+    }
 }
 
 /// The SVG text of `panels` in `columns` columns.
@@ -464,7 +467,7 @@ pub struct PlotError {
 
 impl fmt::Display for PlotError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "{}: plotting failed: {}", self.path, self.message)
+        write!(f, "{}: {}", self.path, self.message)
     }
 }
 
@@ -528,14 +531,8 @@ pub fn plot_simulation(path: &Path, out: &SimOutput, title: &str) -> Result<(), 
 
 /// Writes a simulation's figure ([`simulation_panels`]) to `path` as SVG, whatever its extension.
 pub fn plot_svg(path: &Path, out: &SimOutput, title: &str) -> Result<(), PlotError> {
-    let svg = render_svg(&simulation_panels(out, title), 1).map_err(|message| PlotError {
-        path: path.display().to_string(),
-        message,
-    })?;
-    write(path, Format::Svg, &svg).map_err(|message| PlotError {
-        path: path.display().to_string(),
-        message,
-    })
+    let svg = render_svg(&simulation_panels(out, title), 1).map_err(|e| failed(path, e))?;
+    write(path, Format::Svg, &svg).map_err(|e| failed(path, e))
 }
 
 #[cfg(test)]

@@ -8,8 +8,10 @@ use plotters::coord::ranged1d::Ranged;
 use plotters::coord::types::RangedCoordf64;
 use plotters::style::RGBColor;
 
-/// Width of one panel's column (axes, labels and data area; the legend is added), px.
+/// Width of a panel (axes, labels and data area; the legend is added) in a figure of one column, px.
 pub const PANEL_WIDTH: u32 = 1500;
+/// Width of a panel in a figure of several columns, px.
+pub const GRID_PANEL_WIDTH: u32 = 1000;
 /// Height of one panel, caption included, px.
 pub const PANEL_HEIGHT: u32 = 560;
 /// Panel caption, px.
@@ -38,6 +40,15 @@ pub const LEGEND_SAMPLE: u32 = 54;
 pub const LEGEND_GAP: u32 = 16;
 /// Narrowest and widest legend column, px.
 pub const LEGEND_WIDTH: (u32, u32) = (180, 560);
+
+/// Width of a panel in a figure of `columns` columns, px.
+pub fn panel_width(columns: usize) -> u32 {
+    if columns > 1 {
+        GRID_PANEL_WIDTH
+    } else {
+        PANEL_WIDTH
+    }
+}
 
 /// Grid lines.
 pub const GRID: RGBColor = RGBColor(222, 222, 222);
