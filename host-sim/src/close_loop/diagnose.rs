@@ -9,17 +9,17 @@
 //! share = 1 − SSE(r | N ∪ X) / SSE(r | N),
 //!
 //! with X, per effect (Ts the sample period, grids over the nonlinear parameter, best grid point kept):
-//! - creep: x_τ[k] = a·x_τ[k−1] + (1 − a)·(u[k−1] − u[0]), a = e^(−Ts/τ), τ on a log grid from 3·Ts to
-//!   a third of the record (one or two elements, greedy) — the core's creep bank driven by the input;
+//! - creep: x_τ[k] = a·x_τ[k−1] + (1 − a)·(u[k−1] − u[0]), a = e^(−Ts/τ), τ on a log grid from 4·Ts to
+//!   a quarter of the record (one or two elements, greedy) — the core's creep bank driven by the input;
 //!   and the logarithmic creep, the sum of twelve such elements half a decade apart from √10·Ts;
 //! - drift, a function of time alone: t (linear) and 1 − e^(−t/τ) (settling, τ on a log grid from
-//!   two input periods to three records);
+//!   2.4 input periods to 2.5 records);
 //! - delay: the prediction replaced by ŷ(t − D) (what adding the delay does; no free coefficient), D on
 //!   a grid of 0.25–64 samples;
 //! - asymmetry: (u[k−1] − u_mid)², u_mid the middle of the input range over the scored samples
 //!   (u[−1] := u_mid; the core's even-order term on the previous command);
 //! - dynamics: the prediction replaced by M_{f,ζ}[ŷ], M the unit-DC-gain second-order mode (no free
-//!   coefficient), f on a log grid from 3× the dominant input frequency to 0.45/Ts,
+//!   coefficient), f on a log grid from 11× the dominant input frequency to 0.4/Ts,
 //!   ζ ∈ {0.05, 0.1, 0.2, 0.4, 0.7, 1, 1.5, 2.5};
 //! - coupling: the other axis's prediction (two-axis records only).
 //!
@@ -448,7 +448,7 @@ pub fn screen(sig: &Signals, candidates: &[EffectKind]) -> Vec<Candidate> {
         .par_iter()
         .filter_map(|&effect| -> Option<Vec<Candidate>> { match effect {
             EffectKind::Creep => {
-                let taus = log_grid(3.0 * ts, record_s / 3.0, 16);
+                let taus = log_grid(4.0 * ts, record_s / 4.0, 16);
                 let cols: Vec<Vec<f64>> = taus
                     .iter()
                     .map(|&tau| creep_element(sig.u, tau, ts)[from..].to_vec())
@@ -544,7 +544,7 @@ pub fn screen(sig: &Signals, candidates: &[EffectKind]) -> Vec<Candidate> {
                     test: "residual against time (linear drift)",
                     figures: vec![("rate_m_per_s", coef[0])],
                 };
-                let taus = log_grid((2.0 / f_dom).max(20.0 * ts), 3.0 * record_s, 16);
+                let taus = log_grid(1.2 * (2.0 / f_dom).max(20.0 * ts), 2.5 * record_s, 16);
                 let settling = taus
                     .iter()
                     .map(|&tau| {
@@ -635,8 +635,9 @@ pub fn screen(sig: &Signals, candidates: &[EffectKind]) -> Vec<Candidate> {
                 }])
             }
             EffectKind::Dynamics => {
-                let f_hi = 0.85 * 0.5 / ts;
-                let f_lo = (10.0 * f_dom).min(0.1 / ts);
+                // Inside the plausible range of the mode (full::EffectBounds).
+                let f_hi = 0.8 * 0.5 / ts;
+                let f_lo = 1.1 * (10.0 * f_dom).min(0.1 / ts);
                 let freqs = log_grid(f_lo, f_hi, 20);
                 let zetas = [0.05, 0.1, 0.2, 0.4, 0.7, 1.0, 1.5, 2.5];
                 let grid: Vec<(f64, f64)> = freqs

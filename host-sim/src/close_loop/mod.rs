@@ -3,7 +3,7 @@
 //! before and after, in sample, on held-out blocks and on another run (`--validate`).
 //!
 //! 1. Base model: the symmetric Bouc-Wen model y = k1·u + k2·h + y0 fitted by `identify`'s default
-//!    method (`vp-de-lm`), per axis. The sensor noise σ is estimated from its residual
+//!    method (`vp-de-lm`), per axis, polished by the Levenberg–Marquardt that fits the candidates. The sensor noise σ is estimated from its residual
 //!    ([`diagnose::noise_estimate`]: second differences, median absolute deviation).
 //! 2. Each step: stop when the residual RMS is within [`select::NOISE_FLOOR_FACTOR`]·σ. Otherwise
 //!    every effect not yet in the model is screened on the residual ([`diagnose`]: creep, Kelvin–Voigt
@@ -34,7 +34,9 @@ pub use plots::write_plots;
 pub use stage::{parameter_file, validate, write_stage_file, Fit, Validation};
 
 use crate::identify::{identify, IdentifySettings, Method, Record};
-use diagnose::{noise_estimate, screen, Candidate, EffectKind, ResidualFigures, Signals};
+use diagnose::{
+    noise_estimate, screen, Candidate, EffectInit, EffectKind, ResidualFigures, Signals,
+};
 use full::{refit, sse, AxisModel, EffectBounds, FitData, Simulation};
 use report::{Step, StepOutcome, Trial};
 use select::{
@@ -275,6 +277,20 @@ fn base_model(record: &Record, s: &CloseLoopSettings) -> Result<AxisModel, Strin
     if model.build().is_err() {
         model.input_range_v = input_range_v;
     }
+    // Polished by the same Levenberg–Marquardt as every candidate (on the core's f32 chain), so
+    // that a candidate's gain is not the base parameters' own.
+    let u: Vec<f32> = record.u.iter().map(|&v| v as f32).collect();
+    let data = FitData {
+        u: &u,
+        y: &record.y_m,
+        other_z: None,
+        from,
+        held_out: None,
+    };
+    let (polished, sse_polished, _) = refit(&model, &data, 2 * TRIAL_ITERATIONS);
+    if sse_polished.is_finite() && sse_polished < sse(&model, &data) {
+        model = polished;
+    }
     Ok(model)
 }
 
@@ -315,6 +331,23 @@ fn try_candidate(
         sse: sse1,
     };
     let refuse = |r| Decision::Refused(r);
+    // Two creep elements where the fit does not need the second: the single element is tried.
+    if let EffectInit::Creep {
+        gains_m_per_v,
+        time_constants_s,
+    } = cand.init
+    {
+        if gains_m_per_v[1] != 0.0 && !trial.plausibility.plausible() {
+            let single = Candidate {
+                init: EffectInit::Creep {
+                    gains_m_per_v: [gains_m_per_v[0], 0.0],
+                    time_constants_s,
+                },
+                ..cand.clone()
+            };
+            return try_candidate(model, &single, data, blocks, held_without, sse0, run, t_s);
+        }
+    }
     if !sse1.is_finite() {
         trial.decision = refuse(Refusal::FitFailed);
     } else if !trial.plausibility.plausible() {

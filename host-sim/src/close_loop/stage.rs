@@ -29,8 +29,11 @@ pub fn output_window(u: &[f64]) -> (f32, f32) {
         });
     let span = (hi - lo).max(1e-9);
     let step = 10f64.powf(span.log10().floor() - 1.0);
-    let round = |v: f64, f: fn(f64) -> f64| ((f(v / step - 1e-9 * f64::signum(v))) * step) as f32;
-    let (a, b) = (round(lo, f64::floor), round(hi, f64::ceil));
+    // A value within 1e-6 of a step is on it (0.0 stays 0, 3.6000001 is 3.6).
+    let (a, b) = (
+        ((lo / step + 1e-6).floor() * step) as f32,
+        ((hi / step - 1e-6).ceil() * step) as f32,
+    );
     if b > a {
         (a, b)
     } else {
