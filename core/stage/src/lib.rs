@@ -56,6 +56,9 @@
 //! `ModelState::at_rest(u0)` and `effects::EffectsState::at_rest(u0)` ([`AxisChain::simulate`]).
 
 #![forbid(unsafe_code)]
+// A stage file is read once, at start-up or build time: an error that carries its file, location,
+// key and message by value is simpler than a boxed one, and its size costs nothing there.
+#![allow(clippy::result_large_err)]
 
 mod error;
 mod validate;
