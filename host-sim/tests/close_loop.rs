@@ -276,7 +276,7 @@ fn dynamics_is_named_and_removed() {
     );
     let records = read_records(&path, None, Some("ux_V"), Some("x_m"), None).unwrap();
     let o = close_loop(&records, &CloseLoopSettings::default()).unwrap();
-    check_single(&o, "dynamics", 0.25);
+    check_single(&o, "dynamics", 0.4);
 }
 
 /// Two-axis raster on the XY stage with cross-axis coupling in the measurement; the stage file of

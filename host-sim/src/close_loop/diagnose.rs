@@ -544,7 +544,8 @@ pub fn screen(sig: &Signals, candidates: &[EffectKind]) -> Vec<Candidate> {
                     test: "residual against time (linear drift)",
                     figures: vec![("rate_m_per_s", coef[0])],
                 };
-                let taus = log_grid(1.2 * (2.0 / f_dom).max(20.0 * ts), 2.5 * record_s, 16);
+                let lo = (2.0 / f_dom).max(20.0 * ts);
+                let taus = log_grid(1.2 * lo, (2.5 * record_s).max(3.0 * lo), 16);
                 let settling = taus
                     .iter()
                     .map(|&tau| {

@@ -109,11 +109,12 @@ impl EffectBounds {
         let gain = gain_m_per_v.abs().max(1e-30);
         let half = (0.5 * span_v).max(1e-9);
         let nyquist = 0.5 / ts;
+        let settling_lo = (2.0 / f_dom).max(20.0 * ts);
         Self {
             creep_tau_s: (3.0 * ts, (record_s / 3.0).max(4.0 * ts)),
             creep_max_gain_m_per_v: 0.5 * gain,
             log_creep_max_gain_m_per_v: 0.1 * gain,
-            settling_tau_s: ((2.0 / f_dom).max(20.0 * ts), 3.0 * record_s),
+            settling_tau_s: (settling_lo, (3.0 * record_s).max(4.0 * settling_lo)),
             drift_max_m: 0.5 * stroke_m.max(1e-12),
             record_s,
             delay_max_s: (64.0 * ts).min(0.05 / f_dom).max(ts),
