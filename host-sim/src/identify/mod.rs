@@ -520,6 +520,9 @@ pub struct IdentifyArgs {
     /// Summary JSON to write.
     #[arg(long)]
     pub report: PathBuf,
+    /// Folder for the plots of the fit (measured against model in time and as loops, residual).
+    #[arg(long)]
+    pub plots: Option<PathBuf>,
 }
 
 /// Identifies one axis's record.
@@ -617,12 +620,22 @@ pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
         a.data.display(),
         a.start
     );
-    let verdict = crate::stage_file::write_stage(&a.out, &header, stage, io, axes, a.allow_refused)?;
+    let verdict = crate::stage_file::write_stage(&a.out, &header, stage, io, axes, a.allow_refused);
+    let mut plots = Vec::new();
+    if let Some(dir) = &a.plots {
+        // The fit as written: the stage file's chain on the fitted record.
+        let file = predict::read_stage(&a.out)?;
+        let from = records[0].index_at(a.start);
+        let predicted = predict::predict_axes(&file, &records, from)?;
+        plots = predict::write_plots(dir, "identify", &records, &predicted, from)?;
+    }
+    let verdict = verdict?;
     Ok(format!(
-        "{}\n{} written ({verdict}), {}",
+        "{}\n{} written ({verdict}), {}{}",
         lines.join("\n"),
         a.out.display(),
-        a.report.display()
+        a.report.display(),
+        plots.iter().map(|p| format!(", {p}")).collect::<String>()
     ))
 }
 
@@ -743,7 +756,7 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
         written.push(out.display().to_string());
     }
     if let Some(dir) = &a.plots {
-        written.extend(predict::write_plots(dir, &records, &axes, from)?);
+        written.extend(predict::write_plots(dir, "predict", &records, &axes, from)?);
     }
     Ok(format!("{}\nwritten: {}", lines.join("\n"), written.join(", ")))
 }

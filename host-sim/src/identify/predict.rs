@@ -15,7 +15,7 @@
 use super::model::from_axis;
 use super::{fit_block, oscillator, Record};
 use crate::csv::{write_csv, Table};
-use crate::plot::{plot_panels, Panel, Series};
+use crate::plot::{plot_grid, Panel, Role, Series};
 use piezo_stage::{simulate_pair, Axis, AxisChain, ModelKind, StageFile};
 use serde_json::{json, Value};
 use std::path::Path;
@@ -233,9 +233,11 @@ pub fn write_series(path: &Path, records: &[Record], axes: &[AxisPrediction]) ->
     write_csv(path, &table).map_err(|e| format!("--out: {e}"))
 }
 
-/// Measured against predicted in time and as loops, and the residual, per axis (µm).
+/// Measured against predicted in time and as loops, and the residual, per axis (µm), scored
+/// samples only, as `DIR/NAME.svg` and `DIR/NAME.png`.
 pub fn write_plots(
     dir: &Path,
+    name: &str,
     records: &[Record],
     axes: &[AxisPrediction],
     from: usize,
@@ -254,8 +256,8 @@ pub fn write_plots(
             x_label: "t [s]".into(),
             y_label: label.clone(),
             series: vec![
-                Series::line("measured", time(&r.y_m), 4000),
-                Series::line("predicted", time(&p.predicted_m), 4000),
+                Series::line("measured", time(&r.y_m), 4000).role(Role::Measured),
+                Series::line("predicted", time(&p.predicted_m), 4000).role(Role::Model),
             ],
         });
         panels.push(Panel {
@@ -267,7 +269,8 @@ pub fn write_plots(
                     "measured",
                     r.u[from..].iter().zip(&r.y_m[from..]).map(|(&u, &y)| (u, y * um)).collect(),
                     4000,
-                ),
+                )
+                .role(Role::Measured),
                 Series::line(
                     "predicted",
                     r.u[from..]
@@ -276,20 +279,21 @@ pub fn write_plots(
                         .map(|(&u, &y)| (u, y * um))
                         .collect(),
                     4000,
-                ),
+                )
+                .role(Role::Model),
             ],
         });
         panels.push(Panel {
             title: format!("{}: residual (measured − predicted)", p.axis),
             x_label: "t [s]".into(),
             y_label: format!("{} residual [µm]", p.axis),
-            series: vec![Series::line("residual", time(&residual), 4000)],
+            series: vec![Series::line("residual", time(&residual), 4000).role(Role::Residual)],
         });
     }
     let mut written = Vec::new();
     for ext in ["svg", "png"] {
-        let path = dir.join(format!("predict.{ext}"));
-        plot_panels(&path, &panels).map_err(|e| e.to_string())?;
+        let path = dir.join(format!("{name}.{ext}"));
+        plot_grid(&path, &panels, 3).map_err(|e| e.to_string())?;
         written.push(path.display().to_string());
     }
     Ok(written)
