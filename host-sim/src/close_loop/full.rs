@@ -71,7 +71,8 @@ impl DriftForm {
 pub struct EffectBounds {
     /// Creep time constants: a few sample periods to a third of the scored record \[s\].
     pub creep_tau_s: (f64, f64),
-    /// Largest total creep gain (Kelvin–Voigt), a share of the linear gain \[m/V\]; gains ≥ 0.
+    /// Largest total creep gain (Kelvin–Voigt), a share of the linear gain \[m/V\]; plausible gains
+    /// are > 0.
     pub creep_max_gain_m_per_v: f64,
     /// Largest logarithmic creep per decade \[m/V\]; ≥ 0.
     pub log_creep_max_gain_m_per_v: f64,
@@ -303,16 +304,18 @@ impl AxisModel {
             } => {
                 let n = if gains_m_per_v[1] != 0.0 { 2 } else { 1 };
                 for i in 0..n {
-                    e.creep_gain_m_per_v[i] =
-                        gains_m_per_v[i].clamp(0.0, b.creep_max_gain_m_per_v) as f32;
+                    e.creep_gain_m_per_v[i] = gains_m_per_v[i]
+                        .clamp(-b.creep_max_gain_m_per_v, b.creep_max_gain_m_per_v)
+                        as f32;
                     e.creep_time_constant_s[i] = clamp_log(time_constants_s[i], b.creep_tau_s);
                 }
                 m.creep_form = CreepForm::KelvinVoigt;
                 m.creep_elements = n;
             }
             EffectInit::LogCreep { gain_m_per_v } => {
-                e.log_creep_gain_m_per_v =
-                    gain_m_per_v.clamp(0.0, b.log_creep_max_gain_m_per_v) as f32;
+                e.log_creep_gain_m_per_v = gain_m_per_v
+                    .clamp(-b.log_creep_max_gain_m_per_v, b.log_creep_max_gain_m_per_v)
+                    as f32;
                 e.log_creep_time_s = m.sample_period_s;
                 m.creep_form = CreepForm::Logarithmic;
             }
@@ -438,7 +441,7 @@ impl AxisModel {
                     ParamSpec::within(
                         "log_creep_gain_m_per_v",
                         kind,
-                        0.0,
+                        -bd.log_creep_max_gain_m_per_v,
                         bd.log_creep_max_gain_m_per_v,
                     ),
                 ),
@@ -449,7 +452,12 @@ impl AxisModel {
                         push(
                             f64::from(e.creep_gain_m_per_v[i]),
                             0.01 * k,
-                            ParamSpec::within(G[i], kind, 0.0, bd.creep_max_gain_m_per_v),
+                            ParamSpec::within(
+                                G[i],
+                                kind,
+                                -bd.creep_max_gain_m_per_v,
+                                bd.creep_max_gain_m_per_v,
+                            ),
                         );
                         push(
                             f64::from(e.creep_time_constant_s[i]).max(1e-9).ln(),
@@ -586,6 +594,9 @@ impl AxisModel {
                 let width = s.hi - s.lo;
                 let at = width.is_finite()
                     && (t - s.lo <= AT_BOUND_SHARE * width || s.hi - t <= AT_BOUND_SHARE * width);
+                // Creep moves the output in the direction of a command change: a gain ≤ 0 (fitted
+                // freely, so that the fit is not stuck at 0) is not creep.
+                let at = at || (s.name.contains("creep_gain") && t <= 0.0);
                 (s.name, s.value(t), s.range(), at)
             })
             .collect()

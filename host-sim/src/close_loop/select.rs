@@ -11,7 +11,7 @@
 //!
 //! **Plausibility.** Every effect parameter is fitted inside the range that makes it that effect
 //! ([`super::full::EffectBounds`]): creep time constants from three sample periods to a third of
-//! the record and gains ≥ 0 (the output keeps moving in the direction of a command change), a
+//! the record and gains > 0 (the output keeps moving in the direction of a command change), a
 //! settling drift slower than two input periods, a delay up to 5 % of the input period (at most
 //! 64 samples), a mode between ten times the dominant input frequency and 85 % of Nyquist. A fit
 //! that ends within [`super::full::AT_BOUND_SHARE`] of such a bound is not that effect and is
