@@ -20,7 +20,7 @@
 
 use piezo_core::effects::EffectParams;
 use piezo_core::{Asymmetry, BoucWenParams, StaticMap};
-use piezo_stage::{AxisChain, StageFile, ValidAxis};
+use piezo_stage::{AxisChain, StageError, StageErrorKind, StageFile, ValidAxis};
 
 /// Lowest loop rate the image runs \[Hz\].
 pub const MIN_LOOP_RATE_HZ: f32 = 10.0;
@@ -130,11 +130,18 @@ pub fn load(file: &str, bytes: &[u8]) -> Result<ParamSet, String> {
     let stage = StageFile::parse(file, text).map_err(|e| e.to_string())?;
     for (name, axis) in stage.axes() {
         if !axis.model.runs_on_firmware() {
-            return Err(format!(
-                "{file}: `{name}.model` = \"{}\": the firmware runs the static models (symmetric, \
-                 asymmetric) only",
+            let message = format!(
+                "\"{}\": the firmware runs the static models (symmetric, asymmetric) only",
                 axis.model.name()
-            ));
+            );
+            return Err(StageError::new(
+                file,
+                StageErrorKind::Invalid,
+                &format!("{name}.model"),
+                message,
+            )
+            .located(file, text)
+            .to_string());
         }
     }
     let valid = stage

@@ -133,12 +133,12 @@ fn refusals_name_the_file_line_and_key() {
             "its input ranges are",
         ),
         ("[y.limits]", "[z.limits]", "`y`: missing field `limits`"),
+        ("name = \"xy-stage\"", "name = xy-stage", "test.toml:"),
         (
-            "name = \"xy-stage\"",
-            "name = xy-stage",
-            "test.toml:",
+            "[x]\nmodel = \"symmetric\"",
+            "[x]\nmodel = \"dynamic\"",
+            "`x.model`: \"dynamic\": the firmware runs the static models",
         ),
-        ("[x]\nmodel = \"symmetric\"", "[x]\nmodel = \"dynamic\"", "`x.mass_spring_damper`"),
     ];
     for (from, to, expected) in cases {
         let e = refusal(&edited(from, to));
@@ -148,7 +148,11 @@ fn refusals_name_the_file_line_and_key() {
     // The line of the refused key.
     let e = refusal(&edited("beta = 0.029586", "beta = -0.029586"));
     let text = String::from_utf8(edited("beta = 0.029586", "beta = -0.029586")).unwrap();
-    let line = text.lines().position(|l| l.starts_with("beta = -0.029586")).unwrap() + 1;
+    let line = text
+        .lines()
+        .position(|l| l.starts_with("beta = -0.029586"))
+        .unwrap()
+        + 1;
     assert!(e.starts_with(&format!("test.toml:{line}:")), "{e}");
 }
 
@@ -158,7 +162,11 @@ fn a_one_axis_file_drives_both_channels_and_says_so() {
     let one = &text[..text.find("[y]").unwrap()];
     let set = params::load("one.toml", one.as_bytes()).unwrap();
     assert_eq!(set.axes[0], set.axes[1]);
-    assert!(set.warnings.iter().any(|w| w.contains("one axis")), "{:?}", set.warnings);
+    assert!(
+        set.warnings.iter().any(|w| w.contains("one axis")),
+        "{:?}",
+        set.warnings
+    );
 }
 
 const WITH_EFFECTS: &str = "params/xy-stage-effects.toml";
