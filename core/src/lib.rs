@@ -25,6 +25,7 @@ pub mod inverse_chain;
 pub mod math;
 pub mod metrics;
 pub mod oscillator;
+pub mod servo;
 pub mod static_model;
 
 pub use bouc_wen::{max_input_span, BoucWen, BoucWenParams, BoundClass, HysteresisState};
@@ -35,4 +36,5 @@ pub use inverse_chain::{
     compensate_pair, compensate_single, FeedforwardAxis, FeedforwardCounts, InverseChain,
 };
 pub use oscillator::{HystereticOscillator, OscillatorParams, OscillatorState};
+pub use servo::{Servo, ServoMode, ServoOutput, ServoParams, ServoState, ServoStatus};
 pub use static_model::{Asymmetry, ModelState, StaticMap, StaticModel, ASYMMETRIC_STATE_FACTOR};

@@ -1,0 +1,997 @@
+//! The feedback servo on the position sensor, on top of the inverse feedforward: the hybrid
+//! controller of a sensor-equipped stage. The feedforward ([`crate::Compensator`], with the
+//! inverse effect chain around it) removes what the model knows — hysteresis, the static gain —
+//! so the stage tracks fast references; the servo removes what no model captures — creep, drift,
+//! load changes, a model that is slightly off — at the frequencies its loop gain reaches.
+//!
+//! # Control law (per axis, per tick k, loop period T)
+//! ```text
+//! e[k]   = r[k] − y[k]                                   error: reference − measured [m]
+//! e_f[k] = N(z)·L(z)·e[k]                                low-pass L, then notch N
+//! c*[k]  = c[k−1] + (kp + ki·T)·e_f[k] − kp·e_f[k−1]      PI, backward Euler [V]
+//! u[k]   = sat_k(u_ff[k] + c*[k])                        the sum, limited
+//! c[k]   = u[k] − u_ff[k]                                stored: anti-windup
+//! ```
+//! `sat_k` limits to the output window `[output_min_v, output_max_v]` and to the slew limit,
+//! `|u[k] − u[k−1]| ≤ S·T` (the window wins when the last output lies outside it). Storing the
+//! *limited* correction as the PI's last output is the anti-windup: at a limit the integrator
+//! holds what was actually applied instead of winding up, so it leaves the limit as soon as the
+//! error changes sign, and a feedforward near the window's edge leaves the servo only the room
+//! that is left. Sign convention: the correction is in volts and is *added* to the feedforward
+//! voltage; for a stage whose displacement rises with voltage (dy/du > 0) the gains are positive,
+//! for dy/du < 0 both are negative.
+//!
+//! # Filters (idsp biquads, direct form I, coefficients computed once in f64)
+//! Biquads `y0 = b0·x0 + b1·x1 + b2·x2 + a1·y1 + a2·y2` (idsp's sign of a1, a2), from the RBJ
+//! cookbook with `w0 = 2π·f/f_s`, `α = sin w0 / (2Q)` (`idsp::iir::coefficients::Filter`):
+//! ```text
+//! low-pass  L(z) = (1 − cos w0)/2 · (1 + 2z⁻¹ + z⁻²) / ((1 + α) − 2cos w0·z⁻¹ + (1 − α)z⁻²)
+//! notch     N(z) = (1 − 2cos w0·z⁻¹ + z⁻²)            / ((1 + α) − 2cos w0·z⁻¹ + (1 − α)z⁻²)
+//! PI        C(z) = ((kp + ki·T) − kp·z⁻¹) / (1 − z⁻¹)   (idsp::iir::pid::Builder, order I)
+//! ```
+//! The notch has zero gain exactly at its frequency and a −3 dB width of f/Q; both filters have
+//! unit gain at DC. A frequency of 0 leaves that filter out (identity).
+//!
+//! # Modes and bumpless switching ([`ServoMode`], [`ServoState::set_mode`])
+//! - open loop and feedforward: `u = sat(u_ff + o)`: the caller's feedforward passes through
+//!   (open loop: the linear map `u_min + (r − y_rest)/g`; feedforward: the compensator), the
+//!   servo only keeps its filters running on the error, so that feedback can take over smoothly;
+//! - feedback: `u_ff = 0`, the PI produces the whole voltage;
+//! - feedforward + feedback: the law above.
+//!
+//! At the first tick after a mode change (and the first tick of a run) the output is the last
+//! output, `c = u[k−1] − u_ff[k]`: with feedback, the PI's output history takes that value (a
+//! direct-form-I filter stores only its inputs and outputs, so this is a complete, jump-free
+//! hand-over, and the error history keeps the proportional term from kicking); without feedback
+//! the difference `o` decays with `transfer_time_constant_s`, `o[k] = o[k−1]·exp(−T/τ)`.
+//!
+//! # Per-sample path
+//! [`Servo::step`] never panics, never allocates, never returns NaN and never leaves the window.
+//! A non-finite feedforward holds the last output; a non-finite reference or measurement holds
+//! the correction (with feedback) and leaves the filter states as they were.
+//!
+//! # Tuning ([`tune`])
+//! From the stage's dynamics — the largest small-signal gain dy/du of its identified model and its
+//! first mode — by loop shaping with a stated phase margin; see [`tune`] for the rule.
+
+use crate::compensator::CompensatorSettings;
+use crate::error::{finite, positive, ParamError};
+use crate::math::{clamp, max, min};
+use crate::static_model::StaticModel;
+use dsp_process::SplitProcess;
+use idsp::iir::{coefficients::Filter, pid, Biquad, DirectForm1};
+use idsp::Build;
+
+/// Highest filter frequency accepted, as a fraction of the loop rate.
+pub const MAX_FILTER_FRACTION: f32 = 0.45;
+
+/// How the tick combines feedforward and feedback.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ServoMode {
+    /// The caller's linear feedforward (no model, no feedback): the uncompensated baseline.
+    OpenLoop,
+    /// The caller's inverse feedforward (the compensator) alone.
+    Feedforward,
+    /// The PI on the sensor alone; the feedforward is ignored.
+    Feedback,
+    /// The inverse feedforward plus the PI's correction.
+    FeedforwardFeedback,
+}
+
+impl ServoMode {
+    /// The four modes, in the order of the benchmark's table.
+    pub const ALL: [Self; 4] = [
+        Self::OpenLoop,
+        Self::Feedforward,
+        Self::Feedback,
+        Self::FeedforwardFeedback,
+    ];
+
+    /// Name as written in reports: `open-loop`, `feedforward`, `feedback`, `feedforward+feedback`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::OpenLoop => "open-loop",
+            Self::Feedforward => "feedforward",
+            Self::Feedback => "feedback",
+            Self::FeedforwardFeedback => "feedforward+feedback",
+        }
+    }
+
+    /// Whether the PI's correction is applied.
+    pub fn feedback(self) -> bool {
+        matches!(self, Self::Feedback | Self::FeedforwardFeedback)
+    }
+
+    /// Whether the caller's feedforward voltage is added.
+    pub fn feedforward(self) -> bool {
+        !matches!(self, Self::Feedback)
+    }
+
+    /// Whether the caller's feedforward should be the inverse model (the compensator) rather than
+    /// the linear map: every mode but open loop.
+    pub fn model_feedforward(self) -> bool {
+        !matches!(self, Self::OpenLoop)
+    }
+}
+
+/// Raw servo parameters: the stage file's `[x.servo]` table (not yet validated).
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(feature = "serde", serde(deny_unknown_fields))]
+pub struct ServoParams {
+    /// kp: proportional gain \[V/m\]; 0, or the sign of `ki_v_per_m_s`.
+    pub kp_v_per_m: f32,
+    /// ki: integral gain \[V/(m·s)\]; nonzero, the sign of the stage's dy/du.
+    pub ki_v_per_m_s: f32,
+    /// Low-pass corner \[Hz\]: 0 for none, else in (0, 0.45 / sample period).
+    pub lowpass_frequency_hz: f32,
+    /// Low-pass Q (1/√2: Butterworth), > 0.
+    pub lowpass_q: f32,
+    /// Notch centre \[Hz\] (the stage's first mode): 0 for none, else in (0, 0.45 / sample period).
+    pub notch_frequency_hz: f32,
+    /// Notch Q (centre / −3 dB width), > 0.
+    pub notch_q: f32,
+    /// τ with which a mode without feedback fades out the difference found at a mode change \[s\], > 0.
+    pub transfer_time_constant_s: f32,
+}
+
+/// The validated servo of one axis: filter and PI coefficients, limits. Settings only; the
+/// run-time values are in [`ServoState`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Servo {
+    params: ServoParams,
+    /// `[b0, b1, b2, a1, a2]`, idsp's sign convention.
+    lowpass: [f32; 5],
+    notch: [f32; 5],
+    pi: [f32; 5],
+    output_min_v: f32,
+    output_max_v: f32,
+    /// S·T \[V\] (+∞: no slew limit).
+    slew_step_v: f32,
+    /// exp(−T/τ_transfer).
+    transfer_decay: f32,
+    sample_period_s: f32,
+}
+
+/// What the servo did with a tick.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ServoStatus {
+    /// The output is the feedforward plus the correction (or the feedforward alone).
+    Tracking,
+    /// The window or the slew limit stopped the sum; the correction was limited (anti-windup).
+    Limited,
+    /// A non-finite input: the last output (non-finite feedforward) or the last correction
+    /// (non-finite reference or measurement, with feedback) is held.
+    Held,
+}
+
+/// One tick's output.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ServoOutput {
+    /// The voltage to apply \[V\]: inside the window and the slew limit.
+    pub voltage_v: f32,
+    /// The part of it that is not feedforward, `u − u_ff` \[V\] (`u` itself in feedback mode).
+    pub correction_v: f32,
+    /// What happened.
+    pub status: ServoStatus,
+}
+
+/// A direct-form-I history: last two inputs, last two outputs.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+struct History {
+    x: [f32; 2],
+    y: [f32; 2],
+}
+
+impl History {
+    #[inline(always)]
+    fn process(&mut self, ba: &[f32; 5], x0: f32) -> f32 {
+        let mut state = DirectForm1 {
+            x: self.x,
+            y: [self.y],
+        };
+        let y0 = Biquad { ba: *ba }.process(&mut state, x0);
+        self.x = state.x;
+        self.y = state.y[0];
+        y0
+    }
+}
+
+/// The servo's run-time state: mode, filter histories, last output.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ServoState {
+    mode: ServoMode,
+    /// The next tick hands over from the last output (a mode change, the first tick).
+    transfer: bool,
+    lowpass: History,
+    notch: History,
+    /// Inputs: filtered errors; outputs: the (limited) corrections.
+    pi: History,
+    output_v: f32,
+}
+
+impl ServoState {
+    /// A run that starts at rest with `voltage_v` applied, in `mode`: the first tick hands over
+    /// from `voltage_v`.
+    pub fn at_rest(voltage_v: f32, mode: ServoMode) -> Self {
+        Self {
+            mode,
+            transfer: true,
+            lowpass: History::default(),
+            notch: History::default(),
+            pi: History::default(),
+            output_v: voltage_v,
+        }
+    }
+
+    /// Switches the mode; the next tick hands over bumplessly from the last output.
+    pub fn set_mode(&mut self, mode: ServoMode) {
+        if mode != self.mode {
+            self.mode = mode;
+            self.transfer = true;
+        }
+    }
+
+    /// The mode in force.
+    pub fn mode(&self) -> ServoMode {
+        self.mode
+    }
+
+    /// The last output \[V\].
+    pub fn output_v(&self) -> f32 {
+        self.output_v
+    }
+
+    /// The last correction `u − u_ff` \[V\].
+    pub fn correction_v(&self) -> f32 {
+        self.pi.y[0]
+    }
+}
+
+/// Checks a filter frequency: 0 (none) or in (0, 0.45·f_s).
+fn filter_frequency(field: &'static str, hz: f32, sample_period_s: f32) -> Result<f32, ParamError> {
+    finite(field, hz)?;
+    if hz == 0.0 || (hz > 0.0 && hz < MAX_FILTER_FRACTION / sample_period_s) {
+        Ok(hz)
+    } else {
+        Err(ParamError::OutOfRange {
+            field,
+            value: hz,
+            requirement: "0 (none) or in (0, 0.45 / sample_period_s)",
+        })
+    }
+}
+
+/// Biquad coefficients `[b0, b1, b2, a1, a2]` of an RBJ filter at `hz` (identity when 0).
+fn rbj(hz: f32, q: f32, sample_period_s: f32, notch: bool) -> [f32; 5] {
+    if hz == 0.0 {
+        return Biquad::<f32>::IDENTITY.ba;
+    }
+    let mut f = Filter::<f64>::default();
+    f.frequency(f64::from(hz), 1.0 / f64::from(sample_period_s))
+        .q(f64::from(q));
+    let ba = if notch { f.notch() } else { f.lowpass() };
+    Biquad::<f32>::from(ba).ba
+}
+
+impl Servo {
+    /// Validates `params` for a loop with the output window, slew limit and sample period of
+    /// `limits` (the compensator's settings of the same axis).
+    pub fn new(params: ServoParams, limits: CompensatorSettings) -> Result<Self, ParamError> {
+        let t = positive("sample_period_s", limits.sample_period_s)?;
+        let lo = finite("output_min_v", limits.output_min_v)?;
+        let hi = finite("output_max_v", limits.output_max_v)?;
+        if !(hi > lo) {
+            return Err(ParamError::OutOfRange {
+                field: "output_max_v",
+                value: hi,
+                requirement: "> output_min_v",
+            });
+        }
+        let slew = limits.slew_limit_v_per_s;
+        if !(slew > 0.0) {
+            return Err(ParamError::OutOfRange {
+                field: "slew_limit_v_per_s",
+                value: slew,
+                requirement: "> 0 (+inf for none)",
+            });
+        }
+        let ki = finite("ki_v_per_m_s", params.ki_v_per_m_s)?;
+        if ki == 0.0 {
+            return Err(ParamError::OutOfRange {
+                field: "ki_v_per_m_s",
+                value: ki,
+                requirement: "!= 0 (the sign of the stage's dy/du)",
+            });
+        }
+        let kp = finite("kp_v_per_m", params.kp_v_per_m)?;
+        if kp != 0.0 && (kp > 0.0) != (ki > 0.0) {
+            return Err(ParamError::OutOfRange {
+                field: "kp_v_per_m",
+                value: kp,
+                requirement: "0 or the sign of ki_v_per_m_s",
+            });
+        }
+        let lp = filter_frequency("lowpass_frequency_hz", params.lowpass_frequency_hz, t)?;
+        let lp_q = positive("lowpass_q", params.lowpass_q)?;
+        let notch = filter_frequency("notch_frequency_hz", params.notch_frequency_hz, t)?;
+        let notch_q = positive("notch_q", params.notch_q)?;
+        let tau = positive("transfer_time_constant_s", params.transfer_time_constant_s)?;
+        let pi: [f32; 5] = pid::Builder::<f64>::default()
+            .kp(f64::from(kp))
+            .ki(f64::from(ki))
+            .build(&f64::from(t));
+        let servo = Self {
+            params,
+            lowpass: rbj(lp, lp_q, t, false),
+            notch: rbj(notch, notch_q, t, true),
+            pi,
+            output_min_v: lo,
+            output_max_v: hi,
+            slew_step_v: slew * t,
+            transfer_decay: libm::exp(-f64::from(t) / f64::from(tau)) as f32,
+            sample_period_s: t,
+        };
+        if servo.coefficients().iter().flatten().all(|c| c.is_finite()) {
+            Ok(servo)
+        } else {
+            Err(ParamError::Discretisation { sample_period_s: t })
+        }
+    }
+
+    /// The parameters it was built from.
+    pub fn params(&self) -> ServoParams {
+        self.params
+    }
+
+    /// Loop period \[s\].
+    pub fn sample_period_s(&self) -> f32 {
+        self.sample_period_s
+    }
+
+    /// Coefficients `[b0, b1, b2, a1, a2]` (idsp's sign of a1, a2) of the low-pass, the notch
+    /// and the PI.
+    pub fn coefficients(&self) -> [[f32; 5]; 3] {
+        [self.lowpass, self.notch, self.pi]
+    }
+
+    /// The servo's transfer function C(e^{jωT}) from error \[m\] to correction \[V\] at `hz`, as
+    /// (re, im) — low-pass, notch and PI, without the limits.
+    pub fn response(&self, hz: f64) -> (f64, f64) {
+        let w = 2.0 * core::f64::consts::PI * hz * f64::from(self.sample_period_s);
+        let c = [self.lowpass, self.notch, self.pi]
+            .iter()
+            .fold(Complex::ONE, |acc, ba| acc.mul(biquad_response(ba, w)));
+        (c.re, c.im)
+    }
+
+    /// Bounds of this tick's output after `last_v`: the window, and the slew limit around
+    /// `last_v` (the window wins when `last_v` lies outside it).
+    #[inline(always)]
+    fn bounds(&self, last_v: f32) -> (f32, f32) {
+        let (lo, hi) = (self.output_min_v, self.output_max_v);
+        if !last_v.is_finite() {
+            return (lo, hi);
+        }
+        (
+            min(max(last_v - self.slew_step_v, lo), hi),
+            max(min(last_v + self.slew_step_v, hi), lo),
+        )
+    }
+
+    /// One tick: reference `reference_m` and measurement `measured_m` \[m\] of the same instant,
+    /// the feedforward voltage `feedforward_v` \[V\] of this tick (ignored in feedback mode).
+    /// Returns the voltage to apply.
+    pub fn step(
+        &self,
+        state: &mut ServoState,
+        reference_m: f32,
+        measured_m: f32,
+        feedforward_v: f32,
+    ) -> ServoOutput {
+        let mode = state.mode;
+        let ff = if mode.feedforward() {
+            feedforward_v
+        } else {
+            0.0
+        };
+        let last = state.output_v;
+        if !ff.is_finite() {
+            return ServoOutput {
+                voltage_v: last,
+                correction_v: state.pi.y[0],
+                status: ServoStatus::Held,
+            };
+        }
+        let error = reference_m - measured_m;
+        let filtered = if error.is_finite() {
+            let e = state.lowpass.process(&self.lowpass, error);
+            Some(state.notch.process(&self.notch, e))
+        } else {
+            None
+        };
+        let mut status = ServoStatus::Tracking;
+        let wanted = if state.transfer {
+            last - ff
+        } else if mode.feedback() {
+            match filtered {
+                Some(e) => {
+                    let mut pi = state.pi;
+                    pi.process(&self.pi, e)
+                }
+                None => {
+                    status = ServoStatus::Held;
+                    state.pi.y[0]
+                }
+            }
+        } else {
+            state.pi.y[0] * self.transfer_decay
+        };
+        let (lo, hi) = self.bounds(last);
+        let sum = ff + wanted;
+        let u = if sum.is_finite() {
+            clamp(sum, lo, hi)
+        } else {
+            clamp(last, lo, hi)
+        };
+        if u != sum && status == ServoStatus::Tracking {
+            status = ServoStatus::Limited;
+        }
+        let correction = u - ff;
+        if let Some(e) = filtered {
+            state.pi.x = [e, state.pi.x[0]];
+        }
+        if filtered.is_some() || !mode.feedback() {
+            state.pi.y = [correction, state.pi.y[0]];
+            state.transfer = false;
+        }
+        state.output_v = u;
+        ServoOutput {
+            voltage_v: u,
+            correction_v: correction,
+            status,
+        }
+    }
+}
+
+/// A complex number for the frequency responses of the tuning (f64, host-side arithmetic).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Complex {
+    re: f64,
+    im: f64,
+}
+
+impl Complex {
+    const ONE: Self = Self { re: 1.0, im: 0.0 };
+
+    fn polar(r: f64, phase: f64) -> Self {
+        Self {
+            re: r * libm::cos(phase),
+            im: r * libm::sin(phase),
+        }
+    }
+    fn add(self, o: Self) -> Self {
+        Self {
+            re: self.re + o.re,
+            im: self.im + o.im,
+        }
+    }
+    fn mul(self, o: Self) -> Self {
+        Self {
+            re: self.re * o.re - self.im * o.im,
+            im: self.re * o.im + self.im * o.re,
+        }
+    }
+    fn div(self, o: Self) -> Self {
+        let d = o.re * o.re + o.im * o.im;
+        Self {
+            re: (self.re * o.re + self.im * o.im) / d,
+            im: (self.im * o.re - self.re * o.im) / d,
+        }
+    }
+    fn abs(self) -> f64 {
+        libm::hypot(self.re, self.im)
+    }
+    fn arg(self) -> f64 {
+        libm::atan2(self.im, self.re)
+    }
+}
+
+/// H(e^{jw}) of `y0 = b0·x0 + b1·x1 + b2·x2 + a1·y1 + a2·y2`, `w = ωT`.
+fn biquad_response(ba: &[f32; 5], w: f64) -> Complex {
+    let z1 = Complex::polar(1.0, -w);
+    let z2 = Complex::polar(1.0, -2.0 * w);
+    let b = |i: usize| f64::from(ba[i]);
+    let num = Complex { re: b(0), im: 0.0 }
+        .add(z1.mul(Complex { re: b(1), im: 0.0 }))
+        .add(z2.mul(Complex { re: b(2), im: 0.0 }));
+    let den = Complex::ONE
+        .add(z1.mul(Complex { re: -b(3), im: 0.0 }))
+        .add(z2.mul(Complex { re: -b(4), im: 0.0 }));
+    num.div(den)
+}
+
+/// What the tuning rule needs to know about one axis.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StageDynamics {
+    /// g: the small-signal gain dy/du of largest magnitude over the reachable states \[m/V\]
+    /// (its sign is the stage's; [`StageDynamics::from_model`]).
+    pub gain_m_per_v: f32,
+    /// f_n: the first mechanical mode \[Hz\].
+    pub mode_frequency_hz: f32,
+    /// ζ: its damping ratio.
+    pub mode_damping: f32,
+    /// τ: sensor-to-actuator latency \[s\]: conversion, computation and the hold's half period.
+    pub latency_s: f32,
+}
+
+impl StageDynamics {
+    /// The dynamics of an identified static model (g: the slope of largest magnitude of
+    /// [`StaticModel::slope_range`]) with its first mode and the loop's latency.
+    pub fn from_model(
+        model: &StaticModel,
+        mode_frequency_hz: f32,
+        mode_damping: f32,
+        latency_s: f32,
+    ) -> Self {
+        let (lo, hi) = model.slope_range();
+        Self {
+            gain_m_per_v: if libm::fabsf(lo) > libm::fabsf(hi) {
+                lo
+            } else {
+                hi
+            },
+            mode_frequency_hz,
+            mode_damping,
+            latency_s,
+        }
+    }
+
+    /// P(jω) = g·ω_n² / (ω_n² − ω² + 2jζω_nω) · e^{−jωτ}, with the mode at `mode_scale`·f_n.
+    fn plant(&self, hz: f64, mode_scale: f64) -> Complex {
+        let w = 2.0 * core::f64::consts::PI * hz;
+        let wn = 2.0 * core::f64::consts::PI * f64::from(self.mode_frequency_hz) * mode_scale;
+        let mode = Complex {
+            re: wn * wn,
+            im: 0.0,
+        }
+        .div(Complex {
+            re: wn * wn - w * w,
+            im: 2.0 * f64::from(self.mode_damping) * wn * w,
+        });
+        Complex::polar(f64::from(self.gain_m_per_v), -w * f64::from(self.latency_s)).mul(mode)
+    }
+}
+
+/// The design goal of [`tune`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TuningGoal {
+    /// φ_m: phase margin at the crossover \[°\].
+    pub phase_margin_deg: f32,
+    /// M_s: largest |1/(1 + L)| allowed at any frequency (2: gain margin ≥ 6 dB).
+    pub sensitivity_peak: f32,
+    /// Relative error of f_n the loop must survive: the margins hold with the mode at
+    /// (1 ± this)·f_n as well.
+    pub mode_uncertainty: f32,
+    /// f_z / f_c: the PI's zero above the crossover (+∞: pure integral action, the default:
+    /// below its mode the stage is a static gain, so an integrator alone falls at −20 dB per
+    /// decade through the crossover, while a proportional part would hold the loop gain flat up
+    /// to the mode, where latency and the mode's peak then cost the margins).
+    pub zero_ratio: f32,
+    /// f_lp / f_n: the low-pass corner relative to the mode.
+    pub lowpass_ratio: f32,
+    /// Q of the notch at f_n.
+    pub notch_q: f32,
+    /// τ of the bumpless hand-over without feedback \[s\].
+    pub transfer_time_constant_s: f32,
+}
+
+impl Default for TuningGoal {
+    /// φ_m = 60°, M_s = 1.6, f_n ± 10 %, pure integral action, f_lp = f_n (Butterworth),
+    /// notch Q = 1, hand-over τ = 20 ms.
+    fn default() -> Self {
+        Self {
+            phase_margin_deg: 60.0,
+            sensitivity_peak: 1.6,
+            mode_uncertainty: 0.1,
+            zero_ratio: f32::INFINITY,
+            lowpass_ratio: 1.0,
+            notch_q: 1.0,
+            transfer_time_constant_s: 0.02,
+        }
+    }
+}
+
+/// The result of [`tune`]: the parameters and the margins the rule found for them.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Tuning {
+    /// The servo parameters (the stage file's `[x.servo]`).
+    pub params: ServoParams,
+    /// f_c: the loop's crossover \[Hz\] (nominal plant).
+    pub crossover_hz: f32,
+    /// Phase margin at f_c \[°\] (nominal plant).
+    pub phase_margin_deg: f32,
+    /// Largest |1/(1 + L)| over the frequency grid and the mode's range.
+    pub sensitivity_peak: f32,
+    /// −3 dB bandwidth of the feedback loop alone, |L/(1 + L)| \[Hz\] (nominal plant).
+    pub closed_loop_bandwidth_hz: f32,
+}
+
+/// Points of the log frequency grid per decade.
+const GRID_PER_DECADE: f64 = 120.0;
+
+/// Margins of one candidate over the grid: (phase margin at the nominal crossover,
+/// crossover, sensitivity peak, closed-loop −3 dB bandwidth); `None` when |L| crosses 1 more
+/// than once or never.
+fn margins(
+    servo: &Servo,
+    dynamics: &StageDynamics,
+    scales: &[f64],
+    low_hz: f64,
+    nyquist_hz: f64,
+) -> Option<(f64, f64, f64, f64)> {
+    let points = (libm::log10(nyquist_hz / low_hz) * GRID_PER_DECADE) as usize;
+    let mut peak: f64 = 0.0;
+    let mut nominal = None;
+    let mut nominal_bandwidth = nyquist_hz;
+    for (i, &scale) in scales.iter().enumerate() {
+        let mut crossings = 0;
+        let mut above = true;
+        let mut bandwidth = nyquist_hz;
+        for k in 0..=points {
+            let f = low_hz * libm::pow(10.0, k as f64 / GRID_PER_DECADE);
+            let (re, im) = servo.response(f.min(nyquist_hz * 0.999));
+            let l = dynamics.plant(f, scale).mul(Complex { re, im });
+            let one_plus = Complex::ONE.add(l);
+            peak = peak.max(1.0 / one_plus.abs());
+            let t = l.div(one_plus).abs();
+            if bandwidth == nyquist_hz && t < core::f64::consts::FRAC_1_SQRT_2 && k > 0 {
+                bandwidth = f;
+            }
+            if above != (l.abs() >= 1.0) {
+                above = !above;
+                crossings += 1;
+                if i == 0 && crossings == 1 {
+                    nominal = Some((180.0 + l.arg().to_degrees(), f));
+                }
+            }
+        }
+        if crossings != 1 {
+            return None;
+        }
+        if i == 0 {
+            nominal_bandwidth = bandwidth;
+        }
+    }
+    nominal.map(|(pm, fc)| (pm, fc, peak, nominal_bandwidth))
+}
+
+/// Servo parameters from the stage's dynamics, by loop shaping against the nominal plant
+/// `P(s) = g·ω_n²/(s² + 2ζω_n s + ω_n²)·e^{−sτ}` and the discrete controller itself.
+///
+/// The rule: notch at f_n (Q = `notch_q`), Butterworth low-pass at `lowpass_ratio`·f_n (both
+/// capped at 0.45·f_s), PI zero at f_z = `zero_ratio`·f_c, and ki scaled so that |L(f_c)| = 1.
+/// f_c is the highest crossover, scanned downwards from f_n/2 in steps of 2 %, for which
+/// 1. the phase margin at f_c is at least φ_m;
+/// 2. |L| crosses 0 dB exactly once (the mode's peak stays below it after the notch);
+/// 3. |1/(1 + L)| ≤ M_s at every frequency up to Nyquist;
+///
+/// with 2 and 3 also for the mode at (1 ± `mode_uncertainty`)·f_n. The gain g should be the
+/// largest |dy/du| of the model: a lower local gain lowers the crossover, which only adds phase.
+/// Refused (`OutOfRange` on `phase_margin_deg`) when no crossover above f_n/10⁴ meets the goal.
+pub fn tune(
+    dynamics: &StageDynamics,
+    goal: &TuningGoal,
+    limits: CompensatorSettings,
+) -> Result<Tuning, ParamError> {
+    let t = positive("sample_period_s", limits.sample_period_s)?;
+    let g = finite("gain_m_per_v", dynamics.gain_m_per_v)?;
+    if g == 0.0 {
+        return Err(ParamError::OutOfRange {
+            field: "gain_m_per_v",
+            value: g,
+            requirement: "!= 0",
+        });
+    }
+    let fs = 1.0 / f64::from(t);
+    let fn_hz = f64::from(positive("mode_frequency_hz", dynamics.mode_frequency_hz)?);
+    positive("mode_damping", dynamics.mode_damping)?;
+    let tau = finite("latency_s", dynamics.latency_s)?;
+    if tau < 0.0 {
+        return Err(ParamError::OutOfRange {
+            field: "latency_s",
+            value: tau,
+            requirement: ">= 0",
+        });
+    }
+    let pm_goal = f64::from(finite("phase_margin_deg", goal.phase_margin_deg)?);
+    let ms_goal = f64::from(positive("sensitivity_peak", goal.sensitivity_peak)?);
+    let du = f64::from(finite("mode_uncertainty", goal.mode_uncertainty)?).clamp(0.0, 0.9);
+    let zero_ratio = positive("zero_ratio", goal.zero_ratio).or_else(|e| {
+        if goal.zero_ratio == f32::INFINITY {
+            Ok(f32::INFINITY)
+        } else {
+            Err(e)
+        }
+    })?;
+    let cap = MAX_FILTER_FRACTION as f64 * 0.999 * fs;
+    let lp = (f64::from(positive("lowpass_ratio", goal.lowpass_ratio)?) * fn_hz).min(cap);
+    let notch = fn_hz.min(cap);
+    let nyquist = 0.5 * fs;
+    let scales = [1.0, 1.0 - du, 1.0 + du];
+    let sign = if g > 0.0 { 1.0 } else { -1.0 };
+    let mut fc = fn_hz.min(nyquist) / 2.0;
+    while fc > fn_hz * 1e-4 {
+        let unit = ServoParams {
+            kp_v_per_m: 0.0,
+            ki_v_per_m_s: 1.0,
+            lowpass_frequency_hz: lp as f32,
+            lowpass_q: core::f32::consts::FRAC_1_SQRT_2,
+            notch_frequency_hz: notch as f32,
+            notch_q: goal.notch_q,
+            transfer_time_constant_s: goal.transfer_time_constant_s,
+        };
+        // ki = 1, kp = 1/(2π f_z): |L(f_c)| for unit ki, then scale.
+        let wz = 2.0 * core::f64::consts::PI * fc * f64::from(zero_ratio);
+        let with = |ki: f64| {
+            let mut p = unit;
+            p.ki_v_per_m_s = (ki * sign) as f32;
+            p.kp_v_per_m = (ki * sign / wz) as f32;
+            Servo::new(p, limits)
+        };
+        let probe = with(1.0)?;
+        let (re, im) = probe.response(fc);
+        let l1 = dynamics.plant(fc, 1.0).mul(Complex { re, im }).abs();
+        let servo = with(1.0 / l1)?;
+        if let Some((pm, crossover, peak, bandwidth)) =
+            margins(&servo, dynamics, &scales, fc / 100.0, nyquist)
+        {
+            if pm >= pm_goal && peak <= ms_goal {
+                return Ok(Tuning {
+                    params: servo.params(),
+                    crossover_hz: crossover as f32,
+                    phase_margin_deg: pm as f32,
+                    sensitivity_peak: peak as f32,
+                    closed_loop_bandwidth_hz: bandwidth as f32,
+                });
+            }
+        }
+        fc /= 1.02;
+    }
+    Err(ParamError::OutOfRange {
+        field: "phase_margin_deg",
+        value: goal.phase_margin_deg,
+        requirement: "reachable: no crossover above f_n / 1e4 meets the margins",
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const T: f32 = 1e-4;
+
+    fn limits() -> CompensatorSettings {
+        CompensatorSettings {
+            output_min_v: 0.0,
+            output_max_v: 120.0,
+            slew_limit_v_per_s: 1e5,
+            sample_period_s: T,
+        }
+    }
+
+    fn params() -> ServoParams {
+        ServoParams {
+            kp_v_per_m: 2e5,
+            ki_v_per_m_s: 1e9,
+            lowpass_frequency_hz: 2000.0,
+            lowpass_q: core::f32::consts::FRAC_1_SQRT_2,
+            notch_frequency_hz: 2200.0,
+            notch_q: 1.0,
+            transfer_time_constant_s: 0.01,
+        }
+    }
+
+    fn isclose(a: f64, b: f64, rtol: f64, atol: f64) -> bool {
+        (a - b).abs() <= atol + rtol * b.abs()
+    }
+
+    #[test]
+    fn refuses_what_it_cannot_run() {
+        let refused = |p: ServoParams| match Servo::new(p, limits()) {
+            Err(ParamError::OutOfRange { field, .. }) | Err(ParamError::NonFinite { field }) => {
+                field
+            }
+            other => panic!("accepted or wrong error: {other:?}"),
+        };
+        let mut p = params();
+        p.ki_v_per_m_s = 0.0;
+        assert_eq!(refused(p), "ki_v_per_m_s");
+        let mut p = params();
+        p.kp_v_per_m = -1.0;
+        assert_eq!(refused(p), "kp_v_per_m");
+        let mut p = params();
+        p.notch_frequency_hz = 4600.0;
+        assert_eq!(refused(p), "notch_frequency_hz");
+        let mut p = params();
+        p.lowpass_q = 0.0;
+        assert_eq!(refused(p), "lowpass_q");
+        let mut p = params();
+        p.transfer_time_constant_s = f32::NAN;
+        assert_eq!(refused(p), "transfer_time_constant_s");
+        let mut l = limits();
+        l.output_max_v = -1.0;
+        assert!(Servo::new(params(), l).is_err());
+        // Negative gains for a stage with dy/du < 0.
+        let mut p = params();
+        p.kp_v_per_m = -2e5;
+        p.ki_v_per_m_s = -1e9;
+        assert!(Servo::new(p, limits()).is_ok());
+    }
+
+    #[test]
+    fn filters_and_pi_are_what_the_doc_says() {
+        let s = Servo::new(params(), limits()).unwrap();
+        let [lp, notch, pi] = s.coefficients();
+        let w = |hz: f64| 2.0 * core::f64::consts::PI * hz * f64::from(T);
+        assert!(isclose(biquad_response(&lp, 0.0).abs(), 1.0, 1e-5, 0.0));
+        assert!(isclose(
+            biquad_response(&lp, w(2000.0)).abs(),
+            0.5f64.sqrt(),
+            1e-4,
+            0.0
+        ));
+        assert!(biquad_response(&notch, w(2200.0)).abs() < 1e-5);
+        assert!(isclose(biquad_response(&notch, 0.0).abs(), 1.0, 1e-5, 0.0));
+        let (kp, kit) = (2e5, 1e9 * f64::from(T));
+        assert!(isclose(f64::from(pi[0]), kp + kit, 1e-6, 0.0));
+        assert!(isclose(f64::from(pi[1]), -kp, 1e-6, 0.0));
+        assert_eq!([pi[2], pi[3], pi[4]], [0.0, 1.0, 0.0]);
+    }
+
+    /// A static stage g·u with one tick of delay and a slow creep-like drift of its output;
+    /// the largest |error| over the second half.
+    fn closed_loop(mode: ServoMode, ff_gain_error: f32, ticks: usize) -> (f32, ServoState) {
+        let servo = Servo::new(params(), limits()).unwrap();
+        let g = 0.5e-6;
+        let mut state = ServoState::at_rest(0.0, mode);
+        let (mut y, mut err) = (0.0f32, 0.0f32);
+        for k in 0..ticks {
+            if k == ticks / 2 {
+                err = 0.0;
+            }
+            let r = 30e-6 + 10e-6 * libm::sinf(k as f32 * 0.002);
+            let drift = 1e-6 * (1.0 - libm::expf(-(k as f32) * T / 0.05));
+            let ff = r / (g * (1.0 + ff_gain_error));
+            let u = servo.step(&mut state, r, y, ff).voltage_v;
+            y = g * u + drift;
+            err = err.max((r - y).abs());
+        }
+        (err, state)
+    }
+
+    #[test]
+    fn feedback_removes_what_the_feedforward_misses() {
+        let (ff_only, _) = closed_loop(ServoMode::Feedforward, -0.05, 20_000);
+        let (hybrid, _) = closed_loop(ServoMode::FeedforwardFeedback, -0.05, 20_000);
+        let (fb, _) = closed_loop(ServoMode::Feedback, -0.05, 20_000);
+        assert!(ff_only > 1e-6, "{ff_only}");
+        assert!(hybrid < 0.05 * ff_only, "{hybrid} vs {ff_only}");
+        assert!(fb < 0.2 * ff_only, "{fb} vs {ff_only}");
+        assert!(hybrid < 0.2 * fb, "{hybrid} vs {fb}");
+    }
+
+    #[test]
+    fn anti_windup_leaves_the_limit_at_once() {
+        let servo = Servo::new(params(), limits()).unwrap();
+        let mut state = ServoState::at_rest(100.0, ServoMode::FeedforwardFeedback);
+        // The stage does not move: the error stays, the sum sits at the window's top.
+        for _ in 0..5000 {
+            let out = servo.step(&mut state, 80e-6, 0.0, 110.0);
+            assert!(out.voltage_v <= 120.0);
+        }
+        assert_eq!(state.output_v(), 120.0);
+        assert_eq!(state.correction_v(), 10.0);
+        // The error reverses: the output comes off the limit within a few ticks.
+        let mut left = None;
+        for k in 0..20 {
+            let out = servo.step(&mut state, 0.0, 1e-6, 110.0);
+            if out.voltage_v < 120.0 {
+                left = Some(k);
+                break;
+            }
+        }
+        assert!(left.is_some_and(|k| k < 5), "{left:?}");
+    }
+
+    #[test]
+    fn mode_changes_are_bumpless() {
+        let servo = Servo::new(params(), limits()).unwrap();
+        let g = 0.5e-6;
+        let mut state = ServoState::at_rest(30e-6 / g, ServoMode::FeedforwardFeedback);
+        let mut y = 30e-6f32;
+        let mut last = state.output_v();
+        let modes = [
+            ServoMode::Feedback,
+            ServoMode::Feedforward,
+            ServoMode::FeedforwardFeedback,
+            ServoMode::OpenLoop,
+            ServoMode::Feedback,
+        ];
+        for k in 0..25_000usize {
+            if k % 5000 == 4999 {
+                state.set_mode(modes[k / 5000]);
+            }
+            let r = 30e-6 + 10e-6 * libm::sinf(k as f32 * 0.001);
+            // A feedforward 10 % off, so every mode has something different to hand over.
+            let ff = r / (g * 1.1) + 2.0;
+            let u = servo.step(&mut state, r, y, ff).voltage_v;
+            // The reference moves ≤ 0.02 V per tick and the integrator ≤ ki·T·|e| ≈ 0.2 V with
+            // the few µm a mode without feedback leaves; a bump would be the 3–4 V between modes.
+            if k > 0 {
+                assert!((u - last).abs() < 0.5, "tick {k}: {last} -> {u}");
+            }
+            last = u;
+            y = g * u + 1e-7;
+        }
+    }
+
+    #[test]
+    fn never_leaves_the_window_or_the_slew_limit() {
+        let servo = Servo::new(params(), limits()).unwrap();
+        let mut state = ServoState::at_rest(60.0, ServoMode::FeedforwardFeedback);
+        let inputs = [
+            (0.0, 1.0, 50.0),
+            (f32::NAN, 0.0, 50.0),
+            (1.0, f32::INFINITY, 50.0),
+            (0.0, 0.0, f32::NAN),
+            (-1.0, 1.0, -1e9),
+            (1e3, -1e3, 1e9),
+        ];
+        let mut last = state.output_v();
+        for k in 0..600 {
+            if k % 100 == 50 {
+                state.set_mode(ServoMode::ALL[(k / 100) % 4]);
+            }
+            let (r, y, ff) = inputs[k % inputs.len()];
+            let out = servo.step(&mut state, r, y, ff);
+            assert!(out.voltage_v.is_finite() && (0.0..=120.0).contains(&out.voltage_v));
+            assert!((out.voltage_v - last).abs() <= 10.0 + 1e-4);
+            last = out.voltage_v;
+        }
+    }
+
+    #[test]
+    fn tuning_meets_its_goal_on_a_stage_like_the_xy_stage() {
+        let dynamics = StageDynamics {
+            gain_m_per_v: 0.75e-6,
+            mode_frequency_hz: 2200.0,
+            mode_damping: 0.024,
+            latency_s: 1.5 * T,
+        };
+        let goal = TuningGoal::default();
+        let tuning = tune(&dynamics, &goal, limits()).unwrap();
+        assert!(tuning.phase_margin_deg >= 60.0, "{tuning:?}");
+        assert!(tuning.sensitivity_peak <= 1.6, "{tuning:?}");
+        assert!((100.0..1100.0).contains(&tuning.crossover_hz), "{tuning:?}");
+        assert_eq!(tuning.params.notch_frequency_hz, 2200.0);
+        assert!(tuning.params.ki_v_per_m_s > 0.0 && tuning.params.kp_v_per_m == 0.0);
+        assert!(
+            tuning.closed_loop_bandwidth_hz > tuning.crossover_hz,
+            "{tuning:?}"
+        );
+        // A negative stage gain gives negative gains of the same size.
+        let neg = StageDynamics {
+            gain_m_per_v: -0.75e-6,
+            ..dynamics
+        };
+        let t2 = tune(&neg, &goal, limits()).unwrap();
+        assert_eq!(t2.params.ki_v_per_m_s, -tuning.params.ki_v_per_m_s);
+        // A goal no loop can meet is refused.
+        let impossible = TuningGoal {
+            phase_margin_deg: 95.0,
+            ..goal
+        };
+        assert!(tune(&dynamics, &impossible, limits()).is_err());
+    }
+}
