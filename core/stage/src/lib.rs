@@ -32,6 +32,8 @@
 //! [x.oscillator]                     # the benchmark oscillator (oscillator; substeps below)
 //! [x.effects]                        # optional: creep, even term, mode, delay, drift, coupling
 //! [x.limits]                         # output_min_v, output_max_v, slew_limit_v_per_s
+//! [x.servo]                          # optional: kp_v_per_m, ki_v_per_m_s, lowpass_*, notch_*,
+//!                                    # transfer_time_constant_s (piezo_core::servo::tune)
 //! [x.identified]                     # optional: data, window_s, method, fit_rms_m,
 //!                                    # input_range_v, sample_period_s
 //! [y]                                # optional second axis, same tables
@@ -67,7 +69,9 @@ pub use error::{StageError, StageErrorKind};
 pub use validate::{simulate_pair, w_range, AxisChain, ValidAxis, ValidStage};
 
 use piezo_core::effects::EffectParams;
-use piezo_core::{Asymmetry, BoucWenParams, MassSpringDamperParams, OscillatorParams, StaticMap};
+use piezo_core::{
+    Asymmetry, BoucWenParams, MassSpringDamperParams, OscillatorParams, ServoParams, StaticMap,
+};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -242,6 +246,9 @@ pub struct Axis {
     pub effects: EffectParams,
     /// Output limits.
     pub limits: Limits,
+    /// The feedback servo on the sensor (`piezo_core::servo`), on top of the feedforward.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub servo: Option<ServoParams>,
     /// Where the set came from.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub identified: Option<Provenance>,
@@ -274,6 +281,7 @@ impl Axis {
             substeps: None,
             effects: EffectParams::default(),
             limits,
+            servo: None,
             identified: None,
         }
     }

@@ -11,7 +11,7 @@ use crate::{Axis, Io, ModelKind, StageFile, STATE_LIMIT};
 use piezo_core::effects::{couple, Effects, EffectsState};
 use piezo_core::{
     Asymmetry, BoucWen, Compensator, CompensatorSettings, DynamicModel, HystereticOscillator,
-    ModelState, OscillatorState, ParamError, StaticModel,
+    ModelState, OscillatorState, ParamError, Servo, StaticModel,
 };
 
 /// Volts per step of the virgin loading sweep that gives the linear (uncompensated) gain.
@@ -52,6 +52,9 @@ pub struct ValidAxis {
     pub rest_output_m: f32,
     /// The Bouc-Wen input range the model was built over \[V\].
     pub input_range_v: (f32, f32),
+    /// The feedback servo (`[x.servo]`, built by [`StageFile::validate`] with the output limits
+    /// and the loop period).
+    pub servo: Option<Servo>,
 }
 
 /// A validated stage file at its loop rate: what the firmware runs.
@@ -204,6 +207,7 @@ impl Axis {
             linear_gain_m_per_v,
             rest_output_m,
             input_range_v,
+            servo: None,
         })
     }
 }
@@ -318,6 +322,18 @@ impl StageFile {
                         ),
                     ));
                 }
+            }
+            if let Some(params) = axis.servo {
+                let settings = CompensatorSettings {
+                    output_min_v: l.output_min_v,
+                    output_max_v: l.output_max_v,
+                    slew_limit_v_per_s: l.slew_limit_v_per_s,
+                    sample_period_s,
+                };
+                valid.servo = Some(
+                    Servo::new(params, settings)
+                        .map_err(|e| located(core_key(name, &e, "servo"), e))?,
+                );
             }
             axes.push(valid);
         }
