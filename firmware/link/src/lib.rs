@@ -1,0 +1,159 @@
+//! piezo-link: the one wire protocol between a host and the piezo firmware.
+//!
+//! A **packet** is `{sequence, body}` ([`Packet`]): the host sends [`Request`]s, the firmware sends
+//! [`Uplink`]s (a [`Response`] naming the request's sequence number, or a sample [`Frame`]). Each
+//! side numbers its own packets +1 per packet sent, so the receiver counts lost packets with a
+//! [`SequenceChecker`]; frames carry their own frame number as well (the loop's count of
+//! produced frames), so frames dropped before the link are seen too.
+//!
+//! On the wire (both directions):
+//!
+//! ```text
+//! raw    = postcard(packet) ‖ CRC-32/ISO-HDLC(postcard(packet)) as 4 bytes LE
+//! frame  = COBS(raw) ‖ 0x00
+//! ```
+//!
+//! postcard is serde's compact binary format (varint integers, f32 as 4 bytes LE); COBS removes
+//! every 0x00 from the packet so the 0x00 delimiter resynchronises a receiver after any byte lost
+//! or corrupted. A frame whose COBS or CRC check fails is refused ([`DecodeError`]); one whose
+//! CRC holds but whose body does not parse is refused too, and the firmware answers it with
+//! [`RefusalKind::Decode`].
+//!
+//! Everything is fixed capacity (`heapless`) and caller-supplied: [`encode`] writes into a
+//! `&mut [u8]`, [`Decoder`] accumulates up to [`MAX_FRAME`] bytes. Nothing allocates or panics.
+
+#![cfg_attr(not(test), no_std)]
+
+mod cobs;
+mod message;
+mod sequence;
+
+pub use message::*;
+pub use sequence::SequenceChecker;
+
+use serde::{de::DeserializeOwned, Deserialize, Serialize};
+
+/// Largest encoded frame, delimiter included \[bytes\]: every message fits (checked by tests).
+pub const MAX_FRAME: usize = 640;
+/// Largest raw packet (postcard + CRC) that [`encode`] accepts \[bytes\].
+pub const MAX_RAW: usize = MAX_FRAME - MAX_FRAME / 254 - 2;
+
+const CRC: crc::Crc<u32> = crc::Crc::<u32>::new(&crc::CRC_32_ISO_HDLC);
+
+/// A numbered message.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Packet<T> {
+    /// The sender's packet number (+1 per packet, wraps).
+    pub sequence: u32,
+    /// The message.
+    pub body: T,
+}
+
+/// Why a packet could not be encoded or decoded.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DecodeError {
+    /// The packet does not fit [`MAX_FRAME`] (encode), or a frame was longer (decode).
+    TooLong,
+    /// The COBS stuffing is broken (a byte lost or changed).
+    Cobs,
+    /// Fewer bytes than a CRC.
+    TooShort,
+    /// The CRC does not match.
+    Crc,
+    /// The CRC holds but the body is not a message of the expected type.
+    Body,
+}
+
+impl core::fmt::Display for DecodeError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.write_str(match self {
+            DecodeError::TooLong => "frame longer than the link's maximum",
+            DecodeError::Cobs => "broken COBS stuffing",
+            DecodeError::TooShort => "frame shorter than its CRC",
+            DecodeError::Crc => "CRC mismatch",
+            DecodeError::Body => "CRC holds but the body does not parse",
+        })
+    }
+}
+
+/// Encodes `packet` into `out` as one delimited frame; returns its length.
+pub fn encode<T: Serialize>(packet: &Packet<T>, out: &mut [u8]) -> Result<usize, DecodeError> {
+    let mut raw = [0u8; MAX_RAW];
+    let body_len = postcard::to_slice(packet, &mut raw[..MAX_RAW - 4])
+        .map_err(|_| DecodeError::TooLong)?
+        .len();
+    let crc = CRC.checksum(&raw[..body_len]).to_le_bytes();
+    let raw_len = body_len + 4;
+    raw.get_mut(body_len..raw_len)
+        .ok_or(DecodeError::TooLong)?
+        .copy_from_slice(&crc);
+    let n = cobs::encode(&raw[..raw_len], out).ok_or(DecodeError::TooLong)?;
+    *out.get_mut(n).ok_or(DecodeError::TooLong)? = 0;
+    Ok(n + 1)
+}
+
+/// Decodes one frame (without its 0x00 delimiter), in place.
+pub fn decode<T: DeserializeOwned>(frame: &mut [u8]) -> Result<Packet<T>, DecodeError> {
+    let n = cobs::decode_in_place(frame).ok_or(DecodeError::Cobs)?;
+    if n < 4 {
+        return Err(DecodeError::TooShort);
+    }
+    let (body, crc) = frame[..n].split_at(n - 4);
+    let mut expected = [0u8; 4];
+    expected.copy_from_slice(crc);
+    if CRC.checksum(body) != u32::from_le_bytes(expected) {
+        return Err(DecodeError::Crc);
+    }
+    postcard::from_bytes(body).map_err(|_| DecodeError::Body)
+}
+
+/// Collects received bytes into frames (up to the 0x00 delimiter). A frame longer than
+/// [`MAX_FRAME`] is dropped whole and reported once, at its delimiter.
+#[derive(Clone, Debug)]
+pub struct Decoder {
+    buffer: heapless::Vec<u8, MAX_FRAME>,
+    overflowed: bool,
+}
+
+impl Default for Decoder {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Decoder {
+    /// An empty decoder.
+    pub const fn new() -> Self {
+        Self {
+            buffer: heapless::Vec::new(),
+            overflowed: false,
+        }
+    }
+
+    /// Takes one byte; at a delimiter, decodes the frame collected so far (an empty frame, e.g.
+    /// a delimiter sent to resynchronise, gives `None`).
+    pub fn push<T: DeserializeOwned>(
+        &mut self,
+        byte: u8,
+    ) -> Option<Result<Packet<T>, DecodeError>> {
+        if byte != 0 {
+            if self.buffer.push(byte).is_err() {
+                self.overflowed = true;
+            }
+            return None;
+        }
+        let result = if self.overflowed {
+            Some(Err(DecodeError::TooLong))
+        } else if self.buffer.is_empty() {
+            None
+        } else {
+            Some(decode(&mut self.buffer))
+        };
+        self.buffer.clear();
+        self.overflowed = false;
+        result
+    }
+}
+
+#[cfg(test)]
+mod tests;

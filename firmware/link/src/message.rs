@@ -1,0 +1,427 @@
+//! The messages: what a host asks ([`Request`]), what the firmware answers ([`Response`]) and
+//! streams ([`Frame`]), and the run-time model upload ([`ModelSet`]). SI units; a field without a
+//! unit in its name takes the unit of its request (metres for [`Request::Track`], stack volts for
+//! [`Request::Excite`]).
+
+use heapless::{String, Vec};
+use piezo_core::effects::{EffectParams, MAX_CREEP_ELEMENTS};
+use piezo_core::{Asymmetry, BoucWenParams, StaticMap};
+use serde::{Deserialize, Serialize};
+
+/// Setpoints per [`Request::TableAppend`] or [`Request::Stream`] message.
+pub const SETPOINT_CHUNK: usize = 32;
+/// Bytes of a refusal's reason.
+pub const REASON_BYTES: usize = 160;
+/// Bytes of a parameter set's version string.
+pub const VERSION_BYTES: usize = 48;
+
+/// Setpoints `[x, y]`, one per tick (or per table entry).
+pub type Setpoints = Vec<[f32; 2], SETPOINT_CHUNK>;
+
+/// One axis's periodic waveform, `offset + amplitude · w(φ)` with `w ∈ [−1, 1]`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Wave {
+    /// `offset`.
+    Constant {
+        /// Value.
+        offset: f32,
+    },
+    /// `offset + amplitude · sin(2π f t)`.
+    Sine {
+        /// Centre.
+        offset: f32,
+        /// Amplitude.
+        amplitude: f32,
+        /// Frequency \[Hz\].
+        frequency_hz: f32,
+    },
+    /// `offset + amplitude · tri(f t)`, rising from −1 at t = 0.
+    Triangle {
+        /// Centre.
+        offset: f32,
+        /// Amplitude.
+        amplitude: f32,
+        /// Frequency \[Hz\].
+        frequency_hz: f32,
+    },
+    /// `offset − amplitude` for the first half period, `offset + amplitude` for the second.
+    Steps {
+        /// Centre.
+        offset: f32,
+        /// Half the step height.
+        amplitude: f32,
+        /// Frequency \[Hz\].
+        frequency_hz: f32,
+    },
+}
+
+/// What the reference generator plays.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Program {
+    /// One waveform per axis.
+    PerAxis([Wave; 2]),
+    /// The wave table filled by [`Request::TableAppend`]: entry j at tick j·`ticks_per_entry`,
+    /// linear in between; after the last entry it holds it, or starts again (`repeat`).
+    Table {
+        /// Ticks from one entry to the next (≥ 1).
+        ticks_per_entry: u32,
+        /// Start again after the last entry.
+        repeat: bool,
+    },
+    /// Setpoints sent with [`Request::Stream`], one per tick; the last one is held when the queue
+    /// runs dry (counted as an underrun).
+    Streamed,
+}
+
+/// Output limits of one axis (the stage file's `[x.limits]`).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Limits {
+    /// Lowest stack voltage \[V\].
+    pub output_min_v: f32,
+    /// Highest stack voltage \[V\].
+    pub output_max_v: f32,
+    /// Largest rate of change of the stack voltage \[V/s\].
+    pub slew_limit_v_per_s: f32,
+}
+
+/// One axis of a parameter set: piezo-core's own parameter structs.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AxisModel {
+    /// Bouc-Wen parameters.
+    pub bouc_wen: BoucWenParams,
+    /// y = k1·u + k2·h + y0.
+    pub static_map: StaticMap,
+    /// δ and φ (zero: the symmetric model).
+    pub asymmetry: Asymmetry,
+    /// The effects around the model (all zero: none).
+    #[serde(with = "effects_wire")]
+    pub effects: EffectParams,
+    /// Output limits.
+    pub limits: Limits,
+}
+
+/// A whole parameter set, validated on the firmware by piezo-core's constructors and swapped in
+/// between two ticks if it is accepted.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ModelSet {
+    /// `name version` of the stage file.
+    pub version: String<VERSION_BYTES>,
+    /// FNV-1a (32 bit) of the stage file's bytes.
+    pub fnv1a32: u32,
+    /// The stage file's loop rate \[Hz\] (must be the firmware's).
+    pub loop_rate_hz: f32,
+    /// Stack volts per DAC volt (must be the firmware's: the chain is hardware).
+    pub amplifier_gain_v_per_v: f32,
+    /// Metres per sensor volt (must be the firmware's).
+    pub sensor_m_per_v: f32,
+    /// x, y.
+    pub axes: [AxisModel; 2],
+}
+
+/// What a host asks.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Request {
+    /// Answered with [`Response::Status`].
+    Status,
+    /// Track a reference in metres with the feed-forward chosen by [`Request::Compensation`]
+    /// (the compensator unless switched off). Answered with [`Response::Started`].
+    Track(Program),
+    /// Open-loop excitation: the program in stack volts goes to the guard and the DAC, no
+    /// compensator (for identification). Answered with [`Response::Started`].
+    Excite(Program),
+    /// Empties the wave table. Answered with [`Response::Queued`].
+    TableClear,
+    /// Appends entries to the wave table. Answered with [`Response::Queued`], or refused when it
+    /// would overflow (nothing appended).
+    TableAppend(Setpoints),
+    /// Queues streamed setpoints. Answered with [`Response::Queued`], or refused when they do not
+    /// all fit (nothing queued).
+    Stream(Setpoints),
+    /// Compensator on (true) or the linear baseline (false) for [`Request::Track`].
+    Compensation(bool),
+    /// Leaves the safe state. Answered with [`Response::Done`].
+    Rearm,
+    /// Tells the next tick that the previous one missed its deadline (a fault drill).
+    InjectOverrun,
+    /// Loads a parameter set. Answered with [`Response::Loaded`], or refused with the core's
+    /// reason, the running set untouched.
+    Upload(ModelSet),
+    /// Sample frames: one every `decimation` ticks, 0 for none. Answered with
+    /// [`Response::Streaming`].
+    Frames {
+        /// Ticks per frame (0: off).
+        decimation: u32,
+    },
+    /// Ends the run (the QEMU image exits). Answered with [`Response::Done`].
+    Shutdown,
+}
+
+/// Why a request was refused.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum RefusalKind {
+    /// piezo-core refused the parameter set (the reason is the core's).
+    Model,
+    /// The set's loop rate or io chain is not the firmware's.
+    Chain,
+    /// The wave table or the stream queue has no room.
+    Full,
+    /// A table program with an empty table, or zero ticks per entry.
+    Program,
+    /// The frame's CRC held but its body is not a request.
+    Decode,
+}
+
+/// A refusal: its kind, the axis if one, and a sentence.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Refusal {
+    /// What was wrong.
+    pub kind: RefusalKind,
+    /// 0 for x, 1 for y, when it is one axis's.
+    pub axis: Option<u8>,
+    /// Why, in words (for a model: piezo-core's `ParamError` message).
+    pub reason: String<REASON_BYTES>,
+}
+
+/// What tripped the safe state.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Fault {
+    /// A tick missed its deadline.
+    Overrun,
+    /// Reading an axis's sensor failed.
+    SensorError {
+        /// 0 for x, 1 for y.
+        axis: u8,
+    },
+    /// An axis's sensor gave NaN or ±∞.
+    NonFiniteReading {
+        /// 0 for x, 1 for y.
+        axis: u8,
+    },
+    /// An axis's reading froze while its actuator moved.
+    StuckReading {
+        /// 0 for x, 1 for y.
+        axis: u8,
+    },
+    /// Writing an axis's DAC failed.
+    DacError {
+        /// 0 for x, 1 for y.
+        axis: u8,
+    },
+}
+
+/// Running or holding its outputs after a fault.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Mode {
+    /// Tracking the reference.
+    Running,
+    /// Outputs held since the fault, until [`Request::Rearm`].
+    Safe(Fault),
+}
+
+/// Which feed-forward computes the voltage.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Feedforward {
+    /// piezo-core's inverse compensator (reference in metres).
+    Compensator,
+    /// The uncompensated linear baseline (reference in metres).
+    Linear,
+    /// Open-loop excitation (reference in stack volts).
+    OpenLoop,
+}
+
+/// Event counts since boot (saturating).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Counters {
+    /// Ticks run.
+    pub ticks: u32,
+    /// Missed deadlines.
+    pub overruns: u32,
+    /// Failed sensor reads.
+    pub sensor_errors: u32,
+    /// Non-finite readings.
+    pub non_finite_readings: u32,
+    /// Stuck-sensor detections.
+    pub stuck_readings: u32,
+    /// Failed DAC writes.
+    pub dac_errors: u32,
+    /// Transitions into the safe state.
+    pub safe_entries: u32,
+    /// Samples where the compensator's window or slew limit stopped it short.
+    pub compensator_limited: u32,
+    /// Guard interventions (window, slew, non-finite; both axes).
+    pub guard_interventions: u32,
+    /// Ticks of a streamed program that found the queue empty.
+    pub stream_underruns: u32,
+    /// Frames produced but not sent (queue or link full).
+    pub frames_dropped: u32,
+    /// Frames sent.
+    pub frames_sent: u32,
+    /// Requests received (CRC good).
+    pub requests: u32,
+    /// Frames refused by the receiver (COBS, CRC, length, body).
+    pub rejected_packets: u32,
+    /// Gaps in the request sequence numbers.
+    pub request_gaps: u32,
+    /// Parameter sets loaded at run time.
+    pub uploads: u32,
+    /// Parameter sets refused.
+    pub refused_uploads: u32,
+}
+
+/// Tracking error of one axis since the last [`Request::Track`]: the sensor reading of tick k
+/// minus the reference of tick k − 1 (the command it answers), after a settling time.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Tracking {
+    /// Samples.
+    pub count: u32,
+    /// RMS error \[m\].
+    pub rms_m: f32,
+    /// Largest |error| \[m\].
+    pub max_abs_m: f32,
+}
+
+/// The firmware's state, answered to [`Request::Status`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Status {
+    /// FNV-1a of the running parameter set's stage file.
+    pub params_fnv1a32: u32,
+    /// `name version` of the running set.
+    pub params_version: String<VERSION_BYTES>,
+    /// Loop rate \[Hz\].
+    pub loop_rate_hz: f32,
+    /// Running or safe.
+    pub mode: Mode,
+    /// Feed-forward in use.
+    pub feedforward: Feedforward,
+    /// Counters.
+    pub counters: Counters,
+    /// Per axis, since the last [`Request::Track`].
+    pub tracking: [Tracking; 2],
+    /// Voltages applied in the last tick \[V\].
+    pub applied_v: [f32; 2],
+    /// Sensor readings of the last tick \[m\].
+    pub measured_m: [f32; 2],
+    /// Ticks per frame (0: frames off).
+    pub frame_decimation: u32,
+    /// The number the next frame will carry.
+    pub next_frame: u32,
+    /// Wave table entries held, and its capacity.
+    pub table: [u32; 2],
+    /// Streamed setpoints queued, and the queue's capacity.
+    pub stream: [u32; 2],
+}
+
+/// An answer to one request.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Response {
+    /// The state.
+    Status(Status),
+    /// The program runs from the next tick; the first frame it produces carries this number.
+    Started {
+        /// Frame number of the first tick under the new program.
+        first_frame: u32,
+    },
+    /// Entries held by the wave table or the stream queue, and its capacity.
+    Queued {
+        /// Entries held.
+        held: u32,
+        /// Capacity.
+        capacity: u32,
+    },
+    /// Frames are on (decimation > 0) or off; the next frame carries `next_frame`.
+    Streaming {
+        /// Ticks per frame (0: off).
+        decimation: u32,
+        /// Frame number of the next frame.
+        next_frame: u32,
+    },
+    /// The set runs from the next tick.
+    Loaded {
+        /// Its FNV-1a.
+        params_fnv1a32: u32,
+    },
+    /// Done.
+    Done,
+    /// Not done; nothing changed.
+    Refused(Refusal),
+}
+
+/// One sample frame: what the loop did in one tick.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Frame {
+    /// Frame number: +1 per frame the loop produced, sent or not (wraps).
+    pub sequence: u32,
+    /// Reference of the tick \[m\] (NaN during open-loop excitation).
+    pub reference_m: [f32; 2],
+    /// Voltage applied (after the guard) \[V\].
+    pub commanded_v: [f32; 2],
+    /// Sensor reading at the start of the tick \[m\] (NaN if the read failed).
+    pub sensor_m: [f32; 2],
+}
+
+/// What the firmware sends.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Uplink {
+    /// The answer to the request with packet number `request`.
+    Response {
+        /// The request's packet number.
+        request: u32,
+        /// The answer.
+        response: Response,
+    },
+    /// A sample frame.
+    Frame(Frame),
+}
+
+/// [`EffectParams`] as a fixed tuple: its own serde reads the creep arrays as sequences of up to
+/// [`MAX_CREEP_ELEMENTS`] (for TOML), which postcard writes as fixed arrays.
+mod effects_wire {
+    use super::*;
+    use serde::{Deserializer, Serializer};
+
+    type Tuple = (
+        [f32; MAX_CREEP_ELEMENTS],
+        [f32; MAX_CREEP_ELEMENTS],
+        [f32; 11],
+    );
+
+    pub fn serialize<S: Serializer>(e: &EffectParams, s: S) -> Result<S::Ok, S::Error> {
+        let tuple: Tuple = (
+            e.creep_gain_m_per_v,
+            e.creep_time_constant_s,
+            [
+                e.even_coefficient_m_per_v2,
+                e.even_center_v,
+                e.mode_frequency_hz,
+                e.mode_damping,
+                e.delay_s,
+                e.drift_rate_m_per_s,
+                e.coupling,
+                e.drift_settling_m,
+                e.drift_settling_time_constant_s,
+                e.log_creep_gain_m_per_v,
+                e.log_creep_time_s,
+            ],
+        );
+        tuple.serialize(s)
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<EffectParams, D::Error> {
+        let (creep_gain_m_per_v, creep_time_constant_s, f): Tuple = Deserialize::deserialize(d)?;
+        Ok(EffectParams {
+            creep_gain_m_per_v,
+            creep_time_constant_s,
+            even_coefficient_m_per_v2: f[0],
+            even_center_v: f[1],
+            mode_frequency_hz: f[2],
+            mode_damping: f[3],
+            delay_s: f[4],
+            drift_rate_m_per_s: f[5],
+            coupling: f[6],
+            drift_settling_m: f[7],
+            drift_settling_time_constant_s: f[8],
+            log_creep_gain_m_per_v: f[9],
+            log_creep_time_s: f[10],
+        })
+    }
+}

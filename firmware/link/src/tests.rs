@@ -1,0 +1,271 @@
+use super::*;
+use piezo_core::effects::EffectParams;
+use piezo_core::{Asymmetry, BoucWenParams, StaticMap};
+
+fn axis() -> AxisModel {
+    AxisModel {
+        bouc_wen: BoucWenParams {
+            a: 0.185,
+            beta: 0.0296,
+            gamma: -0.0207,
+            n: 1.0,
+        },
+        static_map: StaticMap {
+            k1_m_per_v: 3.2e-7,
+            k2_m_per_h: -3.2e-7,
+            offset_m: 0.0,
+        },
+        asymmetry: Asymmetry::default(),
+        effects: EffectParams {
+            creep_gain_m_per_v: [1e-9, 2e-9, 0.0],
+            creep_time_constant_s: [0.1, 1.0, 0.0],
+            delay_s: 2e-4,
+            coupling: 0.01,
+            log_creep_time_s: 0.5,
+            ..EffectParams::default()
+        },
+        limits: Limits {
+            output_min_v: 0.0,
+            output_max_v: 120.0,
+            slew_limit_v_per_s: 1e5,
+        },
+    }
+}
+
+fn model_set() -> ModelSet {
+    ModelSet {
+        version: heapless::String::try_from("xy-stage 1").unwrap(),
+        fnv1a32: 0xdead_beef,
+        loop_rate_hz: 10_000.0,
+        amplifier_gain_v_per_v: 24.0,
+        sensor_m_per_v: 1e-5,
+        axes: [axis(), axis()],
+    }
+}
+
+fn round_trip<T>(body: T) -> T
+where
+    T: Serialize + serde::de::DeserializeOwned + Clone + core::fmt::Debug + PartialEq,
+{
+    let packet = Packet {
+        sequence: 0x1234_5678,
+        body,
+    };
+    let mut out = [0u8; MAX_FRAME];
+    let n = encode(&packet, &mut out).unwrap();
+    assert!(n <= MAX_FRAME);
+    assert_eq!(out[n - 1], 0);
+    assert!(
+        !out[..n - 1].contains(&0),
+        "COBS leaves no delimiter inside"
+    );
+    let mut decoder = Decoder::new();
+    let mut got = None;
+    for &b in &out[..n] {
+        if let Some(r) = decoder.push::<T>(b) {
+            got = Some(r.unwrap());
+        }
+    }
+    let got = got.expect("one packet at the delimiter");
+    assert_eq!(got, packet);
+    got.body
+}
+
+fn full_status() -> Status {
+    Status {
+        params_fnv1a32: u32::MAX,
+        params_version: heapless::String::try_from("x".repeat(VERSION_BYTES).as_str()).unwrap(),
+        loop_rate_hz: 10_000.0,
+        mode: Mode::Safe(Fault::StuckReading { axis: 1 }),
+        feedforward: Feedforward::OpenLoop,
+        counters: Counters {
+            ticks: u32::MAX,
+            frames_sent: u32::MAX,
+            ..Counters::default()
+        },
+        tracking: [Tracking {
+            count: u32::MAX,
+            rms_m: 1e-9,
+            max_abs_m: f32::NAN,
+        }; 2],
+        applied_v: [1.0, 2.0],
+        measured_m: [3.0, 4.0],
+        frame_decimation: 10,
+        next_frame: u32::MAX,
+        table: [2048, 2048],
+        stream: [0, 63],
+    }
+}
+
+#[test]
+fn every_message_round_trips_and_fits() {
+    round_trip(Request::Status);
+    round_trip(Request::Upload(model_set()));
+    round_trip(Request::TableAppend(
+        (0..SETPOINT_CHUNK).map(|i| [i as f32, -1e-6]).collect(),
+    ));
+    round_trip(Request::Track(Program::PerAxis([
+        Wave::Sine {
+            offset: 19e-6,
+            amplitude: 15e-6,
+            frequency_hz: 10.0,
+        },
+        Wave::Constant { offset: 0.0 },
+    ])));
+    round_trip(Request::Excite(Program::Table {
+        ticks_per_entry: 5,
+        repeat: false,
+    }));
+    round_trip(Request::Frames { decimation: 10 });
+    let reason = "r".repeat(REASON_BYTES);
+    round_trip(Uplink::Response {
+        request: u32::MAX,
+        response: Response::Refused(Refusal {
+            kind: RefusalKind::Model,
+            axis: Some(1),
+            reason: heapless::String::try_from(reason.as_str()).unwrap(),
+        }),
+    });
+    // NaN does not compare equal: check the status's bytes instead.
+    let status = Uplink::Response {
+        request: 7,
+        response: Response::Status(full_status()),
+    };
+    let mut out = [0u8; MAX_FRAME];
+    let n = encode(
+        &Packet {
+            sequence: 1,
+            body: &status,
+        },
+        &mut out,
+    )
+    .unwrap();
+    let back: Packet<Uplink> = decode(&mut out[..n - 1]).unwrap();
+    match back.body {
+        Uplink::Response {
+            response: Response::Status(s),
+            ..
+        } => {
+            assert_eq!(s.counters.ticks, u32::MAX);
+            assert!(s.tracking[0].max_abs_m.is_nan());
+        }
+        other => panic!("{other:?}"),
+    }
+    round_trip(Uplink::Frame(Frame {
+        sequence: 42,
+        reference_m: [1e-6, 2e-6],
+        commanded_v: [60.0, 0.5],
+        sensor_m: [1.1e-6, -0.0],
+    }));
+}
+
+#[test]
+fn effect_parameters_survive_the_wire() {
+    let set = round_trip(model_set());
+    assert_eq!(set.axes[0].effects, axis().effects);
+}
+
+#[test]
+fn a_corrupted_frame_is_refused() {
+    let packet = Packet {
+        sequence: 3,
+        body: Request::Upload(model_set()),
+    };
+    let mut out = [0u8; MAX_FRAME];
+    let n = encode(&packet, &mut out).unwrap();
+    for i in 0..n - 1 {
+        for flip in [0x01u8, 0x80, 0xff] {
+            let mut bad = out;
+            bad[i] ^= flip;
+            if bad[i] == 0 {
+                continue; // a new delimiter: two short frames, each refused below
+            }
+            let r = decode::<Request>(&mut bad[..n - 1]);
+            assert!(r.is_err(), "byte {i} ^ {flip:#x} accepted");
+        }
+    }
+    // A byte lost.
+    let mut short = [0u8; MAX_FRAME];
+    short[..n - 2].copy_from_slice(&out[1..n - 1]);
+    assert!(decode::<Request>(&mut short[..n - 2]).is_err());
+    // A frame that is not a request.
+    let n = encode(
+        &Packet {
+            sequence: 0,
+            body: 200u8,
+        },
+        &mut out,
+    )
+    .unwrap();
+    assert_eq!(decode::<Request>(&mut out[..n - 1]), Err(DecodeError::Body));
+}
+
+#[test]
+fn the_decoder_resynchronises_after_garbage() {
+    let mut decoder = Decoder::new();
+    let mut results = std::vec::Vec::new();
+    let mut feed = |bytes: &[u8], results: &mut std::vec::Vec<_>| {
+        for &b in bytes {
+            if let Some(r) = decoder.push::<Request>(b) {
+                results.push(r);
+            }
+        }
+    };
+    feed(&[7u8; MAX_FRAME + 10], &mut results);
+    feed(&[0], &mut results);
+    let mut out = [0u8; MAX_FRAME];
+    let n = encode(
+        &Packet {
+            sequence: 9,
+            body: Request::Rearm,
+        },
+        &mut out,
+    )
+    .unwrap();
+    feed(&out[..n], &mut results);
+    assert_eq!(results.len(), 2);
+    assert_eq!(results[0], Err(DecodeError::TooLong));
+    assert_eq!(results[1].as_ref().unwrap().body, Request::Rearm);
+}
+
+#[test]
+fn cobs_round_trips_every_length_and_zero_pattern() {
+    for len in [0usize, 1, 2, 253, 254, 255, 508, 509, 600] {
+        for pattern in 0..4u8 {
+            let data: std::vec::Vec<u8> = (0..len)
+                .map(|i| match pattern {
+                    0 => 0,
+                    1 => (i % 255 + 1) as u8,
+                    2 => (i % 7) as u8,
+                    _ => ((i * 31) % 256) as u8,
+                })
+                .collect();
+            let mut out = std::vec![0u8; len + len / 254 + 2];
+            let n = cobs::encode(&data, &mut out).unwrap();
+            assert!(!out[..n].contains(&0));
+            let back = cobs::decode_in_place(&mut out[..n]).unwrap();
+            assert_eq!(&out[..back], &data[..], "len {len} pattern {pattern}");
+        }
+    }
+    let mut tiny = [0u8; 2];
+    assert_eq!(cobs::encode(&[1, 2, 3], &mut tiny), None);
+}
+
+#[test]
+fn gaps_are_counted() {
+    let mut rx = SequenceChecker::default();
+    assert_eq!(rx.accept(10), 0);
+    assert_eq!(rx.accept(11), 0);
+    assert_eq!(rx.accept(15), 3);
+    assert_eq!(rx.accept(16), 0);
+    assert_eq!((rx.gaps, rx.lost), (1, 3));
+    // Wrap without a gap, a restart without a gap.
+    rx.accept(u32::MAX);
+    assert_eq!(rx.accept(0), 0);
+    assert_eq!(rx.accept(0), 0);
+    assert_eq!(rx.gaps, 1);
+    rx.expect(100);
+    assert_eq!(rx.accept(100), 0);
+    assert_eq!(rx.accept(102), 1);
+    assert_eq!((rx.gaps, rx.lost), (2, 4));
+}
