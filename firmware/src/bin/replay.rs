@@ -14,8 +14,11 @@
 //! The loop starts at rest at each axis's `output_min_v` and its sensor reads the simulated stage
 //! of [`piezo_firmware::plant`] (the voltages do not depend on it: the loop is feed-forward). The
 //! samples reach the loop as streamed setpoints, the queue kept full; after the last one the
-//! stream holds it (the chain's lead reads past the end). Output, one line per tick in the frame
-//! text of [`piezo_firmware::frames`] (`frame <tick>: x ref <m> m cmd <V> V sensor <m> m | y …`),
+//! stream holds it (the chain's lead reads past the end). Output: the boot line `host-sim capture`
+//! takes its time base from (`parameters <version> (<file>), fnv1a32 0x…, loop <rate> Hz, one
+//! frame every 1 ticks`), `replay: reference <file> (<n> ticks, <axes> axes)`, one line per tick in
+//! the frame text of [`piezo_firmware::frames`] (`frame <tick>: x ref <m> m cmd <V> V sensor <m> m
+//! | y …`; the sensor reads the stage at the start of the tick, before that tick's command),
 //! then `replay: <n> ticks, lead <L> ticks, limited <n>, held <n>, guard <n>, faults <n>` and
 //! `PASS` (exit 0) when the run had no fault and the guard never overrode the compensator, `FAIL`
 //! (exit 1) otherwise or without a table.
@@ -41,12 +44,16 @@ mod image {
 
     #[entry]
     fn main() -> ! {
+        // The boot line in the form `host-sim capture` reads for its time base; the record apart.
         hprintln!(
-            "piezo-firmware replay: parameters {} ({}), fnv1a32 {:#010x}, loop {} Hz, reference {} ({} ticks, {} axes), one frame every 1 ticks",
+            "piezo-firmware replay: parameters {} ({}), fnv1a32 {:#010x}, loop {} Hz, one frame every 1 ticks",
             params::VERSION,
             params::SOURCE,
             params::FNV1A32,
-            params::LOOP_RATE_HZ,
+            params::LOOP_RATE_HZ
+        );
+        hprintln!(
+            "replay: reference {} ({} ticks, {} axes)",
             REFERENCE_SOURCE,
             REFERENCE_M.len(),
             REFERENCE_AXES
