@@ -181,6 +181,22 @@ impl FrameQueue {
         batch.len()
     }
 
+    /// One frame every `decimation` ticks from now on (0 is taken as 1).
+    pub fn set_decimation(&mut self, decimation: u32) {
+        self.decimation = decimation.max(1);
+        self.countdown = self.countdown.min(self.decimation - 1);
+    }
+
+    /// Ticks per frame.
+    pub fn decimation(&self) -> u32 {
+        self.decimation
+    }
+
+    /// Drops the waiting frames without counting them as dropped (nobody is listening).
+    pub fn discard(&mut self) {
+        self.frames.clear();
+    }
+
     /// Frames waiting.
     pub fn len(&self) -> usize {
         self.frames.len()
@@ -202,39 +218,8 @@ impl FrameQueue {
     }
 }
 
-/// Receiver side: finds gaps in the sequence numbers.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct SequenceChecker {
-    expected: Option<u32>,
-    /// Gaps seen.
-    pub gaps: u32,
-    /// Frames missing in those gaps.
-    pub lost: u32,
-}
-
-impl SequenceChecker {
-    /// Takes one received sequence number; returns how many frames are missing before it
-    /// (0 if none). A number that goes backwards restarts the count (a reboot) without a gap.
-    pub fn accept(&mut self, sequence: u32) -> u32 {
-        let missing = match self.expected {
-            Some(e) => {
-                let ahead = sequence.wrapping_sub(e);
-                if ahead < u32::MAX / 2 {
-                    ahead
-                } else {
-                    0
-                }
-            }
-            None => 0,
-        };
-        if missing > 0 {
-            self.gaps += 1;
-            self.lost = self.lost.saturating_add(missing);
-        }
-        self.expected = Some(sequence.wrapping_add(1));
-        missing
-    }
-}
+/// Receiver side: finds gaps in the sequence numbers (the link's, one owner for both ends).
+pub use piezo_link::SequenceChecker;
 
 #[cfg(test)]
 mod tests {

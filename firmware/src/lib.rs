@@ -13,6 +13,8 @@
 //! - [`xy_loop`]: the two-axis loop (reference → `piezo_core::Compensator` → guard → DAC, sensor
 //!   every tick, fault detection and safe state, overrun count);
 //! - [`frames`]: sample frames out, with sequence numbers and gap detection;
+//! - [`session`]: the command link's endpoint ([`piezo_link`] requests in, responses and frames
+//!   out) around the loop: programs, open-loop excitation, model upload, rearm, status;
 //! - [`inverse_chain`]: the inverse of the effect chain (creep, even term, mode, delay, drift,
 //!   coupling) the loop runs around the compensator when the parameter file has effects;
 //! - [`plant`], [`demo`]: a simulated two-axis stage (independent f32 Bouc-Wen + lag) and the
@@ -35,6 +37,7 @@ pub mod params;
 pub mod plant;
 pub mod reference;
 pub mod safety;
+pub mod session;
 pub mod xy_loop;
 
 #[cfg(all(target_os = "none", feature = "board"))]

@@ -9,7 +9,10 @@
 //!   `y_max`, then back (boustrophedon in both directions);
 //! - streamed setpoints: one `[x, y]` per tick from a fixed-capacity queue
 //!   ([`STREAM_CAPACITY`] − 1 entries, `heapless::spsc::Queue`), filled by the host link; when
-//!   the queue runs dry the last setpoint is held and the underrun is counted.
+//!   the queue runs dry the last setpoint is held and the underrun is counted;
+//! - a wave table of up to [`TABLE_CAPACITY`] `[x, y]` entries (16 KiB), filled by the host
+//!   link: entry j at tick j·m, linear in between, then held at the last entry or started again;
+//!   at m = 10 and 10 kHz it holds 2 s.
 //!
 //! [`ReferenceGenerator::next_setpoint`] never panics and does not allocate. A non-finite setpoint is
 //! passed on: the compensator holds its voltage for it and the safety guard counts it.
@@ -18,6 +21,8 @@ use heapless::spsc::Queue;
 
 /// Queue size for streamed setpoints (holds one fewer).
 pub const STREAM_CAPACITY: usize = 64;
+/// Entries of the wave table.
+pub const TABLE_CAPACITY: usize = 2048;
 
 /// One axis's periodic waveform.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -104,6 +109,13 @@ fn triangle(phase: f32) -> f32 {
     }
 }
 
+/// The wave table cannot take the entries given.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TableFull {
+    /// Entries it can still take.
+    pub room: usize,
+}
+
 /// What the generator plays.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Program {
@@ -126,6 +138,15 @@ pub enum Program {
     },
     /// Setpoints from [`ReferenceGenerator::push_setpoint`].
     Streamed,
+    /// The wave table ([`ReferenceGenerator::table_append`]): entry j at tick
+    /// j·`ticks_per_entry`, linear in between; after the last entry it is held, or the table
+    /// starts again (`repeat`, interpolating from the last entry to the first).
+    Table {
+        /// Ticks from one entry to the next (0 is taken as 1).
+        ticks_per_entry: u32,
+        /// Start again after the last entry.
+        repeat: bool,
+    },
 }
 
 /// The generator: program, phase and the stream queue.
@@ -138,6 +159,9 @@ pub struct ReferenceGenerator {
     stream: Queue<[f32; 2], STREAM_CAPACITY>,
     last_streamed: [f32; 2],
     underruns: u32,
+    table: heapless::Vec<[f32; 2], TABLE_CAPACITY>,
+    /// Table: ticks since the program started (wrapped or held at the end).
+    table_tick: u32,
 }
 
 impl ReferenceGenerator {
@@ -152,7 +176,44 @@ impl ReferenceGenerator {
             stream: Queue::new(),
             last_streamed: initial_m,
             underruns: 0,
+            table: heapless::Vec::new(),
+            table_tick: 0,
         }
+    }
+
+    /// Empties the wave table.
+    pub fn table_clear(&mut self) {
+        self.table.clear();
+    }
+
+    /// Appends entries to the wave table; if they do not all fit, nothing is appended and
+    /// `Err` gives the room left.
+    pub fn table_append(&mut self, entries: &[[f32; 2]]) -> Result<(), TableFull> {
+        self.table
+            .extend_from_slice(entries)
+            .map_err(|()| TableFull {
+                room: TABLE_CAPACITY - self.table.len(),
+            })
+    }
+
+    /// Wave table entries held.
+    pub fn table_len(&self) -> usize {
+        self.table.len()
+    }
+
+    /// The table's value `tick` ticks after its start.
+    fn table_at(&self, tick: u32, ticks_per_entry: u32) -> [f32; 2] {
+        let m = ticks_per_entry.max(1);
+        let (j, within) = ((tick / m) as usize, tick % m);
+        let Some(&a) = self.table.get(j) else {
+            return self.table.last().copied().unwrap_or(self.last_streamed);
+        };
+        let b = match self.table.get(j + 1) {
+            Some(&b) => b,
+            None => self.table.first().copied().unwrap_or(a),
+        };
+        let f = within as f32 / m as f32;
+        [a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1])]
     }
 
     /// The program.
@@ -165,6 +226,7 @@ impl ReferenceGenerator {
         self.program = program;
         self.phase = [0.0; 2];
         self.line = 0;
+        self.table_tick = 0;
     }
 
     /// Queues one streamed setpoint; gives it back if the queue is full.
@@ -215,6 +277,25 @@ impl ReferenceGenerator {
                 }
                 self.phase[0] = wrapped;
                 [x, y]
+            }
+            Program::Table {
+                ticks_per_entry,
+                repeat,
+            } => {
+                let out = self.table_at(self.table_tick, ticks_per_entry);
+                let m = ticks_per_entry.max(1);
+                let length = u32::try_from(self.table.len()).unwrap_or(u32::MAX);
+                let next = self.table_tick.saturating_add(1);
+                self.table_tick = if repeat {
+                    if next >= length.saturating_mul(m) {
+                        0
+                    } else {
+                        next
+                    }
+                } else {
+                    next.min(length.saturating_sub(1).saturating_mul(m))
+                };
+                out
             }
             Program::Streamed => {
                 match self.stream.dequeue() {
@@ -327,6 +408,38 @@ mod tests {
             g.push_setpoint([i as f32; 2]).unwrap();
         }
         assert_eq!(g.push_setpoint([9.0; 2]), Err([9.0; 2]));
+    }
+
+    #[test]
+    fn table_interpolates_then_holds_or_repeats() {
+        let mut g = ReferenceGenerator::new(
+            Program::Table {
+                ticks_per_entry: 2,
+                repeat: false,
+            },
+            T,
+            [7.0; 2],
+        );
+        assert_eq!(
+            g.next_setpoint(),
+            [7.0; 2],
+            "empty table: the initial setpoint"
+        );
+        g.table_append(&[[0.0, 10.0], [2.0, 20.0], [4.0, 30.0]])
+            .unwrap();
+        g.set_program(g.program());
+        let held: std::vec::Vec<f32> = (0..8).map(|_| g.next_setpoint()[0]).collect();
+        assert_eq!(held, [0.0, 1.0, 2.0, 3.0, 4.0, 4.0, 4.0, 4.0]);
+        g.set_program(Program::Table {
+            ticks_per_entry: 2,
+            repeat: true,
+        });
+        let repeated: std::vec::Vec<f32> = (0..8).map(|_| g.next_setpoint()[1]).collect();
+        assert_eq!(repeated, [10.0, 15.0, 20.0, 25.0, 30.0, 20.0, 10.0, 15.0]);
+        g.table_clear();
+        assert!(g.table_append(&[[0.0; 2]; TABLE_CAPACITY]).is_ok());
+        assert!(g.table_append(&[[0.0; 2]]).is_err());
+        assert_eq!(g.table_len(), TABLE_CAPACITY);
     }
 
     #[test]

@@ -72,6 +72,17 @@ impl GuardState {
     pub fn counters(&self) -> FaultCounters {
         self.counters
     }
+
+    /// This state under other limits: the last output moved into their window, the counters
+    /// kept (for a swap of limits between two ticks).
+    pub fn within(&self, limits: &SafetyLimits) -> Self {
+        Self {
+            last_safe_volts: self
+                .last_safe_volts
+                .clamp(limits.min_volts, limits.max_volts),
+            counters: self.counters,
+        }
+    }
 }
 
 impl SafetyLimits {

@@ -182,6 +182,8 @@ pub enum Feedforward {
     /// The uncompensated baseline: `u = u_min + (r − y_rest)/g_lin`, with `g_lin` the secant gain
     /// of the first loading over the window.
     Linear,
+    /// Open-loop excitation: the reference is the stack voltage itself (for identification).
+    OpenLoop,
 }
 
 /// When a frozen sensor reading counts as stuck.
@@ -452,7 +454,7 @@ impl TwoAxisLoop {
                 [settings.axes[0].effects, settings.axes[1].effects],
                 [guard[0].last_safe_volts(), guard[1].last_safe_volts()],
             ),
-            Feedforward::Linear => None,
+            Feedforward::Linear | Feedforward::OpenLoop => None,
         };
         Self {
             compensator: [
@@ -501,6 +503,53 @@ impl TwoAxisLoop {
     /// latency added to streamed setpoints and program switches.
     pub fn lead_ticks(&self) -> u32 {
         self.chain.as_ref().map_or(0, InverseChain::lead_ticks)
+    }
+
+    /// The feed-forward in use.
+    pub fn feedforward(&self) -> Feedforward {
+        self.feedforward
+    }
+
+    /// Switches the feed-forward between two ticks. Bumpless: the compensator's model has been
+    /// advanced with the applied voltages all along; switching to the compensator starts the
+    /// inverse effect chain at rest at the applied voltages (the effects' memory of the time
+    /// before is not kept).
+    pub fn set_feedforward(&mut self, feedforward: Feedforward) {
+        if feedforward == self.feedforward {
+            return;
+        }
+        self.feedforward = feedforward;
+        self.chain = self.chain_at_applied();
+    }
+
+    /// Swaps the settings between two ticks (a new parameter set). The run-time state is kept:
+    /// the compensator's model state, each guard's last output (moved into the new window if
+    /// it lies outside) and its counters, the counters, the mode and the reference. The inverse
+    /// effect chain restarts at rest at the applied voltages when the effects changed.
+    pub fn set_settings(&mut self, settings: LoopSettings) {
+        let effects_changed =
+            (0..2).any(|i| settings.axes[i].effects != self.settings.axes[i].effects);
+        for (guard, axis) in self.guard.iter_mut().zip(&settings.axes) {
+            *guard = guard.within(&axis.limits);
+        }
+        self.frames.set_decimation(settings.frame_decimation);
+        self.settings = settings;
+        if effects_changed {
+            self.chain = self.chain_at_applied();
+        }
+    }
+
+    fn chain_at_applied(&self) -> Option<InverseChain> {
+        match self.feedforward {
+            Feedforward::Compensator => InverseChain::new(
+                [self.settings.axes[0].effects, self.settings.axes[1].effects],
+                [
+                    self.guard[0].last_safe_volts(),
+                    self.guard[1].last_safe_volts(),
+                ],
+            ),
+            Feedforward::Linear | Feedforward::OpenLoop => None,
+        }
     }
 
     /// Leaves the safe state (after the cause is cleared): tracking resumes from the held
@@ -618,10 +667,13 @@ impl TwoAxisLoop {
                     Feedforward::Linear => {
                         axis.min_v + (reference[i] - axis.rest_output_m) / axis.linear_gain_m_per_v
                     }
+                    Feedforward::OpenLoop => reference[i],
                 };
                 let u = axis.limits.apply(&mut self.guard[i], requested);
-                if u != requested && self.feedforward == Feedforward::Compensator {
-                    // The guard overrode the compensator: advance its model by what is applied.
+                if u != requested || self.feedforward != Feedforward::Compensator {
+                    // The guard overrode the compensator, or another feed-forward ran: advance
+                    // the model by what is applied, so that switching to the compensator is
+                    // bumpless.
                     let mut state = before_compensator[i].model;
                     axis.compensator.model().step(&mut state, u);
                     self.compensator[i].model = state;
@@ -671,8 +723,12 @@ impl TwoAxisLoop {
             }
         }
 
-        // 4. Frame.
-        let reference_m = self.last_reference_m;
+        // 4. Frame (open loop: the reference is in volts, not metres).
+        let reference_m = if self.feedforward == Feedforward::OpenLoop {
+            [f32::NAN; 2]
+        } else {
+            self.last_reference_m
+        };
         self.frames.offer(|| {
             [0, 1].map(|i| AxisSample {
                 reference_m: reference_m[i],

@@ -15,9 +15,9 @@
 //!
 //! postcard is serde's compact binary format (varint integers, f32 as 4 bytes LE); COBS removes
 //! every 0x00 from the packet so the 0x00 delimiter resynchronises a receiver after any byte lost
-//! or corrupted. A frame whose COBS or CRC check fails is refused ([`DecodeError`]); one whose
-//! CRC holds but whose body does not parse is refused too, and the firmware answers it with
-//! [`RefusalKind::Decode`].
+//! or corrupted. A frame whose COBS or CRC check fails, or whose body does not parse, is refused
+//! ([`DecodeError`]) and counted; a request lost that way is not answered (the host times out
+//! and sees the gap in the firmware's request count).
 //!
 //! Everything is fixed capacity (`heapless`) and caller-supplied: [`encode`] writes into a
 //! `&mut [u8]`, [`Decoder`] accumulates up to [`MAX_FRAME`] bytes. Nothing allocates or panics.

@@ -167,8 +167,6 @@ pub enum RefusalKind {
     Full,
     /// A table program with an empty table, or zero ticks per entry.
     Program,
-    /// The frame's CRC held but its body is not a request.
-    Decode,
 }
 
 /// A refusal: its kind, the axis if one, and a sentence.

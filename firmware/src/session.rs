@@ -1,0 +1,608 @@
+//! The firmware's end of the command link ([`piezo_link`]): requests in, responses and sample
+//! frames out, around the two-axis loop. No hardware: bytes come in through
+//! [`Session::receive`] and go out through [`Session::transmit`], so the same code serves the
+//! QEMU image's UART, the board's USB link and host tests.
+//!
+//! # Order of events
+//! Requests are handled *between two ticks*, by whoever calls [`Session::receive`] (the QEMU
+//! image's main loop; on the board the lower-priority link task, with the loop as a shared
+//! resource): a new program, feed-forward or parameter set takes effect at the next tick, and a
+//! tick never sees half of one.
+//!
+//! # Requests ([`Request`])
+//! - `Track(program)`: reference in metres, feed-forward the compensator (or the linear baseline
+//!   after `Compensation(false)`); the tracking error per axis (sensor of tick k minus reference
+//!   of tick k − 1) is accumulated from [`SETTLE_TICKS`] after it, reported by `Status`.
+//! - `Excite(program)`: stack volts, open loop (compensator off), for identification; the
+//!   compensator's model still follows the applied voltage, so going back to `Track` is bumpless.
+//! - `TableClear`, `TableAppend`: the wave table ([`TABLE_CAPACITY`] entries); `Stream`: the
+//!   streamed setpoint queue ([`STREAM_CAPACITY`] − 1).
+//! - `Upload(set)`: each axis validated with piezo-core's constructors exactly as `build.rs`
+//!   validates the stage file (`BoucWen::with_input_range`, `StaticModel::new`/`asymmetric`,
+//!   `Compensator::new`, `effects::Effects::new`), plus the first-loading gain the baseline
+//!   needs; the loop rate and the io chain must be the firmware's. Accepted: swapped in with
+//!   [`TwoAxisLoop::set_settings`] (state kept). Refused: nothing changes, and the answer carries
+//!   the core's reason and the axis.
+//! - `Rearm`, `InjectOverrun` (the next tick is told the previous one overran: a fault drill),
+//!   `Frames { decimation }`, `Status`, `Shutdown`.
+//!
+//! # Frames
+//! With frames on, every frame the loop produces is encoded into the transmit buffer
+//! ([`TX_CAPACITY`] bytes) if it fits with room to spare for a response; otherwise it is dropped
+//! and counted, and the receiver sees the gap in the frame numbers. With frames off they are
+//! discarded (the numbers keep counting).
+
+use heapless::{Deque, String};
+use piezo_core::ParamError;
+use piezo_link::{
+    AxisModel, Counters, Decoder, Frame, ModelSet, Packet, Program as WireProgram, Refusal,
+    RefusalKind, Request, Response, SequenceChecker, Setpoints, Status, Tracking, Uplink, Wave,
+    MAX_FRAME, REASON_BYTES, VERSION_BYTES,
+};
+
+use crate::control::TrackingStats;
+use crate::converter::DacWrite;
+use crate::params::{self, AxisParams};
+use crate::reference::{Program, Waveform, STREAM_CAPACITY, TABLE_CAPACITY};
+use crate::xy_loop::{
+    Axis, AxisConfig, ConfigError, Fault, Feedforward, LoopSettings, Mode, PositionSensor,
+    TickReport, TwoAxisLoop, XyIo,
+};
+
+/// Bytes of the transmit buffer.
+pub const TX_CAPACITY: usize = 8 * MAX_FRAME;
+/// Ticks after a `Track` before the tracking error counts (the start-up transient).
+pub const SETTLE_TICKS: u32 = 1_000;
+/// Input step of the first-loading sweep that gives an uploaded axis's baseline gain \[V\] (as
+/// the stage file's validation).
+const SWEEP_STEP_V: f32 = 0.01;
+
+/// The link endpoint around the loop.
+pub struct Session {
+    /// The loop (public: the image ticks it through [`Session::tick`] and reads its state).
+    pub lp: TwoAxisLoop,
+    compensation: bool,
+    inject_overrun: bool,
+    decoder: Decoder,
+    requests: SequenceChecker,
+    tx: Deque<u8, TX_CAPACITY>,
+    tx_sequence: u32,
+    frame_decimation: u32,
+    counters: Counters,
+    tracking: [TrackingStats; 2],
+    previous_reference_m: [f32; 2],
+    settle_left: u32,
+    last: Option<TickReport>,
+    version: String<VERSION_BYTES>,
+    fnv1a32: u32,
+    shutdown: bool,
+}
+
+fn truncated<const N: usize>(text: &str) -> String<N> {
+    let mut out = String::new();
+    for c in text.chars() {
+        if out.push(c).is_err() {
+            break;
+        }
+    }
+    out
+}
+
+/// A reason in words, cut to the link's size.
+fn reason(args: core::fmt::Arguments<'_>) -> String<REASON_BYTES> {
+    struct Cut(String<REASON_BYTES>);
+    impl core::fmt::Write for Cut {
+        fn write_str(&mut self, s: &str) -> core::fmt::Result {
+            for c in s.chars() {
+                if self.0.push(c).is_err() {
+                    break;
+                }
+            }
+            Ok(())
+        }
+    }
+    let mut cut = Cut(String::new());
+    let _ = core::fmt::write(&mut cut, args);
+    cut.0
+}
+
+fn refused(kind: RefusalKind, axis: Option<u8>, why: core::fmt::Arguments<'_>) -> Response {
+    Response::Refused(Refusal {
+        kind,
+        axis,
+        reason: reason(why),
+    })
+}
+
+fn waveform(wave: Wave) -> Waveform {
+    match wave {
+        Wave::Constant { offset } => Waveform::Constant { offset_m: offset },
+        Wave::Sine {
+            offset,
+            amplitude,
+            frequency_hz,
+        } => Waveform::Sine {
+            offset_m: offset,
+            amplitude_m: amplitude,
+            frequency_hz,
+        },
+        Wave::Triangle {
+            offset,
+            amplitude,
+            frequency_hz,
+        } => Waveform::Triangle {
+            offset_m: offset,
+            amplitude_m: amplitude,
+            frequency_hz,
+        },
+        Wave::Steps {
+            offset,
+            amplitude,
+            frequency_hz,
+        } => Waveform::Steps {
+            offset_m: offset,
+            amplitude_m: amplitude,
+            frequency_hz,
+        },
+    }
+}
+
+fn wire_fault(fault: Fault) -> piezo_link::Fault {
+    use piezo_link::Fault as W;
+    let a = |axis: Axis| axis.index() as u8;
+    match fault {
+        Fault::Overrun => W::Overrun,
+        Fault::SensorError(axis) => W::SensorError { axis: a(axis) },
+        Fault::NonFiniteReading(axis) => W::NonFiniteReading { axis: a(axis) },
+        Fault::StuckReading(axis) => W::StuckReading { axis: a(axis) },
+        Fault::DacError(axis) => W::DacError { axis: a(axis) },
+    }
+}
+
+fn frame(f: &crate::frames::SampleFrame) -> Frame {
+    let [x, y] = f.axes;
+    Frame {
+        sequence: f.sequence,
+        reference_m: [x.reference_m, y.reference_m],
+        commanded_v: [x.commanded_v, y.commanded_v],
+        sensor_m: [x.sensor_m, y.sensor_m],
+    }
+}
+
+/// The firmware's view of an uploaded axis: piezo-core's model over the window, and the first
+/// loading from rest at the lower end (rest output and secant gain, as `build.rs` computes them).
+fn axis_params(m: &AxisModel) -> Result<AxisParams, ParamError> {
+    let mut p = AxisParams {
+        bouc_wen: m.bouc_wen,
+        static_map: m.static_map,
+        asymmetry: m.asymmetry,
+        output_min_v: m.limits.output_min_v,
+        output_max_v: m.limits.output_max_v,
+        slew_limit_v_per_s: m.limits.slew_limit_v_per_s,
+        linear_gain_m_per_v: 0.0,
+        rest_output_m: 0.0,
+        effects: m.effects,
+    };
+    let model = p.model()?;
+    let (u0, u1) = (p.output_min_v, p.output_max_v);
+    let mut state = piezo_core::ModelState::at_rest(u0);
+    let rest = model.output(&state);
+    let steps = libm::ceilf((u1 - u0) / SWEEP_STEP_V).clamp(1.0, 1e6) as u32;
+    let mut top = rest;
+    for k in 1..=steps {
+        top = model.step(&mut state, (u0 + k as f32 * SWEEP_STEP_V).min(u1));
+    }
+    p.rest_output_m = rest;
+    p.linear_gain_m_per_v = (top - rest) / (u1 - u0);
+    Ok(p)
+}
+
+fn config_refusal(axis: usize, e: ConfigError) -> Response {
+    let name = ["x", "y"][axis & 1];
+    let axis = Some(axis as u8);
+    match e {
+        ConfigError::Core(e) => refused(RefusalKind::Model, axis, format_args!("{name}: {e}")),
+        ConfigError::Limits(e) => refused(
+            RefusalKind::Model,
+            axis,
+            format_args!("{name}.limits refused by the output guard: {e:?}"),
+        ),
+        ConfigError::Gain => refused(
+            RefusalKind::Model,
+            axis,
+            format_args!("{name}: the model gives no stroke over the output window"),
+        ),
+    }
+}
+
+impl Session {
+    /// A session around `lp`, which runs the parameter set `version` (FNV-1a `fnv1a32`). Frames
+    /// start off.
+    pub fn new(lp: TwoAxisLoop, version: &str, fnv1a32: u32) -> Self {
+        Self {
+            compensation: lp.feedforward() != Feedforward::Linear,
+            lp,
+            inject_overrun: false,
+            decoder: Decoder::new(),
+            requests: SequenceChecker::default(),
+            tx: Deque::new(),
+            tx_sequence: 0,
+            frame_decimation: 0,
+            counters: Counters::default(),
+            tracking: [TrackingStats::default(); 2],
+            previous_reference_m: [f32::NAN; 2],
+            settle_left: SETTLE_TICKS,
+            last: None,
+            version: truncated(version),
+            fnv1a32,
+            shutdown: false,
+        }
+    }
+
+    /// True once a `Shutdown` request was answered.
+    pub fn shutdown_requested(&self) -> bool {
+        self.shutdown
+    }
+
+    /// True if the transmit buffer has room for one more frame besides a response (the QEMU
+    /// image waits for this before a tick while frames are on).
+    pub fn has_room_for_frame(&self) -> bool {
+        TX_CAPACITY - self.tx.len() >= 2 * MAX_FRAME
+    }
+
+    /// Bytes waiting to be sent.
+    pub fn pending_tx(&self) -> usize {
+        self.tx.len()
+    }
+
+    /// One tick of the loop (an injected overrun, if one was asked for, is passed on), then the
+    /// tracking statistics and the frames.
+    pub fn tick<D, S>(&mut self, io: &mut XyIo<D, S>, deadline_missed: bool) -> TickReport
+    where
+        D: DacWrite,
+        S: PositionSensor,
+    {
+        let missed = deadline_missed || core::mem::take(&mut self.inject_overrun);
+        let report = self.lp.tick(io, missed);
+        let tracking = self.lp.feedforward() != Feedforward::OpenLoop;
+        if tracking && report.mode == Mode::Running {
+            if self.settle_left > 0 {
+                self.settle_left -= 1;
+            } else {
+                for (i, stats) in self.tracking.iter_mut().enumerate() {
+                    stats.push(report.measured_m[i] - self.previous_reference_m[i]);
+                }
+            }
+        }
+        self.previous_reference_m = report.reference_m;
+        self.last = Some(report);
+        if self.frame_decimation == 0 {
+            self.lp.frames.discard();
+        } else {
+            let mut batch = heapless::Vec::<crate::frames::SampleFrame, 4>::new();
+            while self.lp.frames.drain_into(&mut batch) > 0 {
+                for f in &batch {
+                    if self.has_room_for_frame() && self.send(Uplink::Frame(frame(f))) {
+                        self.counters.frames_sent = self.counters.frames_sent.saturating_add(1);
+                    } else {
+                        self.counters.frames_dropped =
+                            self.counters.frames_dropped.saturating_add(1);
+                    }
+                }
+            }
+        }
+        report
+    }
+
+    /// Takes received bytes; each complete request is handled at once and its response queued.
+    pub fn receive(&mut self, bytes: &[u8]) {
+        for &byte in bytes {
+            match self.decoder.push::<Request>(byte) {
+                None => {}
+                Some(Ok(Packet { sequence, body })) => {
+                    let c = &mut self.counters;
+                    c.requests = c.requests.saturating_add(1);
+                    if self.requests.accept(sequence) > 0 {
+                        c.request_gaps = c.request_gaps.saturating_add(1);
+                    }
+                    let response = self.handle(body);
+                    self.send(Uplink::Response {
+                        request: sequence,
+                        response,
+                    });
+                }
+                Some(Err(_)) => {
+                    let c = &mut self.counters;
+                    c.rejected_packets = c.rejected_packets.saturating_add(1);
+                }
+            }
+        }
+    }
+
+    /// Hands queued bytes to `put` until it refuses one (returns false); returns how many went.
+    pub fn transmit(&mut self, mut put: impl FnMut(u8) -> bool) -> usize {
+        let mut sent = 0;
+        while let Some(&byte) = self.tx.front() {
+            if !put(byte) {
+                break;
+            }
+            self.tx.pop_front();
+            sent += 1;
+        }
+        sent
+    }
+
+    /// Encodes and queues one packet; false if it did not fit.
+    fn send(&mut self, body: Uplink) -> bool {
+        let mut out = [0u8; MAX_FRAME];
+        let packet = Packet {
+            sequence: self.tx_sequence,
+            body,
+        };
+        let Ok(n) = piezo_link::encode(&packet, &mut out) else {
+            return false;
+        };
+        if TX_CAPACITY - self.tx.len() < n {
+            return false;
+        }
+        for &b in out.iter().take(n) {
+            // Cannot fail: the room was checked above.
+            let _ = self.tx.push_back(b);
+        }
+        self.tx_sequence = self.tx_sequence.wrapping_add(1);
+        true
+    }
+
+    fn start(&mut self, program: WireProgram, feedforward: Feedforward) -> Response {
+        let program = match program {
+            WireProgram::PerAxis([x, y]) => Program::PerAxis([waveform(x), waveform(y)]),
+            WireProgram::Streamed => Program::Streamed,
+            WireProgram::Table {
+                ticks_per_entry,
+                repeat,
+            } => {
+                if ticks_per_entry == 0 || self.lp.reference.table_len() == 0 {
+                    return refused(
+                        RefusalKind::Program,
+                        None,
+                        format_args!(
+                            "a table program needs ticks_per_entry >= 1 and a filled table ({} entries)",
+                            self.lp.reference.table_len()
+                        ),
+                    );
+                }
+                Program::Table {
+                    ticks_per_entry,
+                    repeat,
+                }
+            }
+        };
+        self.lp.set_feedforward(feedforward);
+        self.lp.reference.set_program(program);
+        self.tracking = [TrackingStats::default(); 2];
+        self.settle_left = SETTLE_TICKS;
+        Response::Started {
+            first_frame: self.lp.frames.next_sequence(),
+        }
+    }
+
+    fn queue(&mut self, setpoints: &Setpoints, table: bool) -> Response {
+        let reference = &mut self.lp.reference;
+        let (held, capacity) = if table {
+            if reference.table_append(setpoints).is_err() {
+                return refused(
+                    RefusalKind::Full,
+                    None,
+                    format_args!(
+                        "the wave table holds {} of {TABLE_CAPACITY} entries: {} more do not fit",
+                        reference.table_len(),
+                        setpoints.len()
+                    ),
+                );
+            }
+            (reference.table_len(), TABLE_CAPACITY)
+        } else {
+            let room = STREAM_CAPACITY - 1 - reference.queued();
+            if setpoints.len() > room {
+                return refused(
+                    RefusalKind::Full,
+                    None,
+                    format_args!(
+                        "the stream queue has room for {room}, not {}",
+                        setpoints.len()
+                    ),
+                );
+            }
+            for &s in setpoints {
+                // Cannot fail: the room was checked above.
+                let _ = reference.push_setpoint(s);
+            }
+            (reference.queued(), STREAM_CAPACITY - 1)
+        };
+        Response::Queued {
+            held: held as u32,
+            capacity: capacity as u32,
+        }
+    }
+
+    /// Validates `set` and swaps it in, or says why not (nothing changed).
+    fn upload(&mut self, set: &ModelSet) -> Response {
+        let chain = |what: &str, given: f32, runs: f32| {
+            refused(
+                RefusalKind::Chain,
+                None,
+                format_args!(
+                    "{what} is {given}, the firmware runs {runs} (build it with this stage file)"
+                ),
+            )
+        };
+        if set.loop_rate_hz != params::LOOP_RATE_HZ {
+            return chain("stage.loop_rate_hz", set.loop_rate_hz, params::LOOP_RATE_HZ);
+        }
+        let gain = self.lp.settings().amplifier_gain_v_per_v;
+        if set.amplifier_gain_v_per_v != gain {
+            return chain(
+                "io.amplifier_gain_v_per_v",
+                set.amplifier_gain_v_per_v,
+                gain,
+            );
+        }
+        if set.sensor_m_per_v != params::SENSOR_M_PER_V {
+            return chain(
+                "io.sensor_m_per_v",
+                set.sensor_m_per_v,
+                params::SENSOR_M_PER_V,
+            );
+        }
+        let mut axes = self.lp.settings().axes;
+        for (i, model) in set.axes.iter().enumerate() {
+            let config = axis_params(model)
+                .map_err(ConfigError::Core)
+                .and_then(|p| AxisConfig::from_params(&p, params::SAMPLE_PERIOD_S));
+            match config {
+                Ok(c) => axes[i] = c,
+                Err(e) => {
+                    self.counters.refused_uploads = self.counters.refused_uploads.saturating_add(1);
+                    return config_refusal(i, e);
+                }
+            }
+        }
+        let settings = LoopSettings {
+            axes,
+            ..*self.lp.settings()
+        };
+        self.lp.set_settings(settings);
+        self.version = set.version.clone();
+        self.fnv1a32 = set.fnv1a32;
+        self.counters.uploads = self.counters.uploads.saturating_add(1);
+        Response::Loaded {
+            params_fnv1a32: set.fnv1a32,
+        }
+    }
+
+    fn handle(&mut self, request: Request) -> Response {
+        match request {
+            Request::Status => Response::Status(self.status()),
+            Request::Track(program) => {
+                let ff = if self.compensation {
+                    Feedforward::Compensator
+                } else {
+                    Feedforward::Linear
+                };
+                self.start(program, ff)
+            }
+            Request::Excite(program) => self.start(program, Feedforward::OpenLoop),
+            Request::TableClear => {
+                self.lp.reference.table_clear();
+                Response::Queued {
+                    held: 0,
+                    capacity: TABLE_CAPACITY as u32,
+                }
+            }
+            Request::TableAppend(setpoints) => self.queue(&setpoints, true),
+            Request::Stream(setpoints) => self.queue(&setpoints, false),
+            Request::Compensation(on) => {
+                self.compensation = on;
+                if self.lp.feedforward() != Feedforward::OpenLoop {
+                    self.lp.set_feedforward(if on {
+                        Feedforward::Compensator
+                    } else {
+                        Feedforward::Linear
+                    });
+                }
+                Response::Done
+            }
+            Request::Rearm => {
+                self.lp.rearm();
+                self.settle_left = SETTLE_TICKS;
+                Response::Done
+            }
+            Request::InjectOverrun => {
+                self.inject_overrun = true;
+                Response::Done
+            }
+            Request::Upload(set) => self.upload(&set),
+            Request::Frames { decimation } => {
+                if decimation > 0 {
+                    self.lp.frames.set_decimation(decimation);
+                }
+                self.frame_decimation = decimation;
+                Response::Streaming {
+                    decimation,
+                    next_frame: self.lp.frames.next_sequence(),
+                }
+            }
+            Request::Shutdown => {
+                self.shutdown = true;
+                Response::Done
+            }
+        }
+    }
+
+    /// The state as the link reports it.
+    pub fn status(&self) -> Status {
+        let lc = self.lp.counters();
+        let guard = Axis::ALL
+            .iter()
+            .map(|&a| self.lp.guard(a).counters().total())
+            .fold(0, u32::saturating_add);
+        let counters = Counters {
+            ticks: lc.ticks,
+            overruns: lc.overruns,
+            sensor_errors: lc.sensor_errors,
+            non_finite_readings: lc.non_finite_readings,
+            stuck_readings: lc.stuck_readings,
+            dac_errors: lc.dac_errors,
+            safe_entries: lc.safe_entries,
+            compensator_limited: lc.compensator_limited,
+            guard_interventions: guard,
+            stream_underruns: self.lp.reference.underruns(),
+            frames_dropped: self
+                .counters
+                .frames_dropped
+                .saturating_add(self.lp.frames.dropped()),
+            ..self.counters
+        };
+        let mode = match self.lp.mode() {
+            Mode::Running => piezo_link::Mode::Running,
+            Mode::Safe(f) => piezo_link::Mode::Safe(wire_fault(f)),
+        };
+        let feedforward = match self.lp.feedforward() {
+            Feedforward::Compensator => piezo_link::Feedforward::Compensator,
+            Feedforward::Linear => piezo_link::Feedforward::Linear,
+            Feedforward::OpenLoop => piezo_link::Feedforward::OpenLoop,
+        };
+        let last = self.last;
+        Status {
+            params_fnv1a32: self.fnv1a32,
+            params_version: self.version.clone(),
+            loop_rate_hz: params::LOOP_RATE_HZ,
+            mode,
+            feedforward,
+            counters,
+            tracking: self.tracking.map(|s| Tracking {
+                count: s.count(),
+                rms_m: s.rms_m(),
+                max_abs_m: s.max_abs_m(),
+            }),
+            applied_v: last.map_or(
+                [
+                    self.lp.guard(Axis::X).last_safe_volts(),
+                    self.lp.guard(Axis::Y).last_safe_volts(),
+                ],
+                |r| r.applied_v,
+            ),
+            measured_m: last.map_or([f32::NAN; 2], |r| r.measured_m),
+            frame_decimation: self.frame_decimation,
+            next_frame: self.lp.frames.next_sequence(),
+            table: [self.lp.reference.table_len() as u32, TABLE_CAPACITY as u32],
+            stream: [
+                self.lp.reference.queued() as u32,
+                (STREAM_CAPACITY - 1) as u32,
+            ],
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests;
