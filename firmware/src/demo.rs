@@ -164,20 +164,91 @@ impl DemoComparison {
 
     /// See the module docs.
     pub fn passed(&self) -> bool {
-        let clean = |r: &DemoReport| {
-            r.counters.faults() == 0
-                && r.mode == Mode::Running
-                && r.guard_faults_after_settle == 0
-                && r.counters.ticks == DEMO_TICKS
-        };
-        clean(&self.compensated)
-            && clean(&self.uncompensated)
-            && (0..2).all(|i| {
-                let s = &self.compensated.stats[i];
-                s.rms_m() < RATIO_LIMIT * self.uncompensated.stats[i].rms_m()
-                    && s.rms_m() < RMS_ERROR_LIMIT_M
-                    && s.max_abs_m() < MAX_ERROR_LIMIT_M
-            })
+        self.failures().is_empty()
+    }
+
+    /// Every check that failed, in the order of the module docs.
+    pub fn failures(&self) -> heapless::Vec<Failure, 16> {
+        let mut out = heapless::Vec::new();
+        for r in [&self.compensated, &self.uncompensated] {
+            let ff = r.feedforward;
+            let checks = [
+                (r.counters.faults() != 0).then_some(Failure::Faults(ff, r.counters.faults())),
+                (r.mode != Mode::Running).then_some(Failure::NotRunning(ff, r.mode)),
+                (r.guard_faults_after_settle != 0)
+                    .then_some(Failure::GuardAfterSettle(ff, r.guard_faults_after_settle)),
+                (r.counters.ticks != DEMO_TICKS).then_some(Failure::Ticks(ff, r.counters.ticks)),
+            ];
+            for failure in checks.into_iter().flatten() {
+                let _ = out.push(failure);
+            }
+        }
+        let ratio = self.ratio();
+        // NaN fails every check.
+        let below = |x: f32, limit: f32| x < limit;
+        for axis in Axis::ALL {
+            let s = &self.compensated.stats[axis.index()];
+            let checks = [
+                (!below(ratio[axis.index()], RATIO_LIMIT))
+                    .then_some(Failure::Ratio(axis, ratio[axis.index()])),
+                (!below(s.rms_m(), RMS_ERROR_LIMIT_M)).then_some(Failure::Rms(axis, s.rms_m())),
+                (!below(s.max_abs_m(), MAX_ERROR_LIMIT_M))
+                    .then_some(Failure::Peak(axis, s.max_abs_m())),
+            ];
+            for failure in checks.into_iter().flatten() {
+                let _ = out.push(failure);
+            }
+        }
+        out
+    }
+}
+
+/// One check of [`DemoComparison::passed`] that failed, with the numbers.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Failure {
+    /// A run saw faults (count).
+    Faults(Feedforward, u32),
+    /// A run ended in the safe state.
+    NotRunning(Feedforward, Mode),
+    /// The guard intervened after settling (count).
+    GuardAfterSettle(Feedforward, u32),
+    /// A run did not complete its ticks.
+    Ticks(Feedforward, u32),
+    /// Compensated / uncompensated RMS not below [`RATIO_LIMIT`].
+    Ratio(Axis, f32),
+    /// Compensated RMS error \[m\] not below [`RMS_ERROR_LIMIT_M`].
+    Rms(Axis, f32),
+    /// Compensated peak error \[m\] not below [`MAX_ERROR_LIMIT_M`].
+    Peak(Axis, f32),
+}
+
+impl core::fmt::Display for Failure {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match *self {
+            Failure::Faults(ff, n) => write!(f, "{ff:?} run: {n} faults"),
+            Failure::NotRunning(ff, mode) => write!(f, "{ff:?} run ended in {mode:?}"),
+            Failure::GuardAfterSettle(ff, n) => write!(
+                f,
+                "{ff:?} run: the output guard intervened {n} times after settling (window or slew)"
+            ),
+            Failure::Ticks(ff, n) => write!(f, "{ff:?} run: {n} of {DEMO_TICKS} ticks"),
+            Failure::Ratio(axis, r) => write!(
+                f,
+                "{axis:?}: compensated/uncompensated RMS {r} is not below {RATIO_LIMIT}"
+            ),
+            Failure::Rms(axis, m) => write!(
+                f,
+                "{axis:?}: compensated RMS error {} nm is not below {} nm",
+                m * 1e9,
+                RMS_ERROR_LIMIT_M * 1e9
+            ),
+            Failure::Peak(axis, m) => write!(
+                f,
+                "{axis:?}: compensated peak error {} nm is not below {} nm",
+                m * 1e9,
+                MAX_ERROR_LIMIT_M * 1e9
+            ),
+        }
     }
 }
 
@@ -266,5 +337,12 @@ mod tests {
             uncompensated: linear,
         };
         assert!(!cmp.passed());
+        let failures = cmp.failures();
+        assert!(
+            matches!(failures[0], Failure::Ratio(Axis::X, r) if r == 1.0),
+            "{failures:?}"
+        );
+        let text = std::format!("{}", failures[1]);
+        assert!(text.starts_with("X: compensated RMS error"), "{text}");
     }
 }

@@ -42,6 +42,8 @@ pub mod xy_loop;
 
 #[cfg(all(target_os = "none", feature = "board"))]
 pub mod board;
+#[cfg(all(target_os = "none", feature = "qemu"))]
+pub mod cmsdk_uart;
 
 #[cfg(test)]
 mod test_support;

@@ -35,9 +35,9 @@
 use heapless::{Deque, String};
 use piezo_core::ParamError;
 use piezo_link::{
-    AxisModel, Counters, Decoder, Frame, ModelSet, Packet, Program as WireProgram, Refusal,
-    RefusalKind, Request, Response, SequenceChecker, Setpoints, Status, Tracking, Uplink, Wave,
-    MAX_FRAME, REASON_BYTES, VERSION_BYTES,
+    truncated, AxisModel, Counters, Decoder, Frame, ModelSet, Packet, Program as WireProgram,
+    Refusal, RefusalKind, Request, Response, SequenceChecker, Setpoints, Status, Tracking, Uplink,
+    Wave, MAX_FRAME, REASON_BYTES, VERSION_BYTES,
 };
 
 use crate::control::TrackingStats;
@@ -76,16 +76,6 @@ pub struct Session {
     version: String<VERSION_BYTES>,
     fnv1a32: u32,
     shutdown: bool,
-}
-
-fn truncated<const N: usize>(text: &str) -> String<N> {
-    let mut out = String::new();
-    for c in text.chars() {
-        if out.push(c).is_err() {
-            break;
-        }
-    }
-    out
 }
 
 /// A reason in words, cut to the link's size.

@@ -18,6 +18,17 @@ pub const VERSION_BYTES: usize = 48;
 /// Setpoints `[x, y]`, one per tick (or per table entry).
 pub type Setpoints = Vec<[f32; 2], SETPOINT_CHUNK>;
 
+/// `text` cut to the first `N` bytes that end a character (for versions and reasons).
+pub fn truncated<const N: usize>(text: &str) -> String<N> {
+    let mut out = String::new();
+    for c in text.chars() {
+        if out.push(c).is_err() {
+            break;
+        }
+    }
+    out
+}
+
 /// One axis's periodic waveform, `offset + amplitude · w(φ)` with `w ∈ [−1, 1]`.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Wave {

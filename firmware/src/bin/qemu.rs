@@ -11,6 +11,15 @@
 //! `./run-qemu.sh $CARGO_TARGET_DIR/thumbv7em-none-eabihf/release/qemu > qemu.log` and
 //! `host-sim capture --log qemu.log --out qemu.csv`.
 //!
+//! **Link mode** (`./run-qemu.sh --link PORT ELF`, which passes `--link` on the semihosting
+//! command line and serves UART0 on 127.0.0.1:PORT): instead of the self-check, the loop runs
+//! against the simulated stage until a `Shutdown` request, paced by SysTick at the stage file's
+//! loop rate (QEMU's virtual clock), and serves the command link
+//! ([`piezo_firmware::session`]) on UART0 between ticks. While frames are on and the transmit
+//! buffer is short of room, the tick waits for the link (the simulated stage's time stops with
+//! it), so no frame is lost under QEMU. Deadlines are not checked here (QEMU's timing is not
+//! the board's): an overrun is injected with the `InjectOverrun` request.
+//!
 //! Build and run (from `firmware/`): `cargo qemu`, or `./ci.sh`, or
 //! `cargo build --release --features qemu --bin qemu` then
 //! `./run-qemu.sh $CARGO_TARGET_DIR/thumbv7em-none-eabihf/release/qemu`.
@@ -45,6 +54,25 @@ mod image {
 
     #[entry]
     fn main() -> ! {
+        if link_mode() {
+            link::run()
+        }
+        self_check()
+    }
+
+    /// True if the semihosting command line holds `--link` (`run-qemu.sh --link`).
+    #[allow(unsafe_code)]
+    fn link_mode() -> bool {
+        let mut line = [0u8; 128];
+        // SAFETY: SYS_GET_CMDLINE writes at most `line.len()` bytes (NUL included) into `line`,
+        // which outlives the call; the argument block is the two words the call takes.
+        let status = unsafe {
+            cortex_m_semihosting::syscall!(GET_CMDLINE, line.as_mut_ptr(), line.len() - 1)
+        };
+        status == 0 && line.windows(6).any(|w| w == b"--link")
+    }
+
+    fn self_check() -> ! {
         let frame_decimation = demo::settings().map_or(1, |s| s.frame_decimation);
         hprintln!(
             "piezo-firmware qemu: parameters {} ({}), fnv1a32 {:#010x}, loop {} Hz, one frame every {} ticks",
@@ -119,15 +147,149 @@ mod image {
                 false
             }
         };
-        if cmp.passed() && drill_ok && receiver.gaps == 0 {
+        let failures = cmp.failures();
+        if failures.is_empty() && drill_ok && receiver.gaps == 0 {
             hprintln!("PASS");
             debug::exit(debug::EXIT_SUCCESS);
         } else {
-            hprintln!("FAIL");
+            hprintln!("FAIL ({})", params::SOURCE);
+            for failure in &failures {
+                hprintln!("  {}", failure);
+            }
+            if !drill_ok {
+                hprintln!("  overrun drill: the injected overrun did not hold the outputs");
+            }
+            if receiver.gaps > 0 {
+                hprintln!(
+                    "  frames: {} gaps ({} lost) in the compensated run",
+                    receiver.gaps,
+                    receiver.lost
+                );
+            }
             debug::exit(debug::EXIT_FAILURE);
         }
         #[allow(clippy::empty_loop)]
         loop {}
+    }
+
+    /// The command link on UART0 around the loop and the simulated stage.
+    mod link {
+        use core::cell::Cell;
+
+        use cortex_m::interrupt::InterruptNumber;
+        use cortex_m::peripheral::syst::SystClkSource;
+        use cortex_m::peripheral::NVIC;
+        use cortex_m_semihosting::{debug, hprintln};
+
+        use piezo_firmware::cmsdk_uart::{self, Uart0};
+        use piezo_firmware::demo;
+        use piezo_firmware::params;
+        use piezo_firmware::plant::{PlantAdc, PlantDac, XyPlant};
+        use piezo_firmware::reference::{Program, ReferenceGenerator, Waveform};
+        use piezo_firmware::session::Session;
+        use piezo_firmware::xy_loop::{AdcSensor, Axis, Feedforward, TwoAxisLoop, XyIo};
+
+        /// mps2-an386's CPU clock, SysTick's source \[Hz\].
+        const CPU_CLOCK_HZ: u32 = 25_000_000;
+
+        #[derive(Clone, Copy)]
+        struct Irq(u16);
+
+        // SAFETY: the numbers are UART0's NVIC lines on mps2-an386 (0 and 1), valid interrupts.
+        #[allow(unsafe_code)]
+        unsafe impl InterruptNumber for Irq {
+            fn number(self) -> u16 {
+                self.0
+            }
+        }
+
+        pub fn run() -> ! {
+            let Some(mut core) = cortex_m::Peripherals::take() else {
+                super::fail(format_args!("core peripherals already taken"))
+            };
+            let settings = demo::settings().unwrap_or_else(|e| {
+                super::fail(format_args!("parameter set refused at boot: {e:?}"))
+            });
+            let (Some(scale), Some(stage)) = (
+                demo::sensor_scale(),
+                XyPlant::from_params(params::SAMPLE_PERIOD_S),
+            ) else {
+                super::fail(format_args!("sensor scale refused at boot"))
+            };
+            let plant = Cell::new(stage);
+            let mut io = XyIo {
+                dac: PlantDac(&plant),
+                dac_channels: Axis::ALL,
+                sensor: AdcSensor {
+                    adc: PlantAdc(&plant),
+                    channels: Axis::ALL,
+                    scale,
+                },
+            };
+            // At rest at the lower end of each window until told otherwise.
+            let rest = [0, 1].map(|i| Waveform::Constant {
+                offset_m: params::AXES[i].rest_output_m,
+            });
+            let reference =
+                ReferenceGenerator::new(Program::PerAxis(rest), params::SAMPLE_PERIOD_S, [0.0; 2]);
+            let initial = [params::AXES[0].output_min_v, params::AXES[1].output_min_v];
+            let lp = TwoAxisLoop::new(settings, Feedforward::Compensator, reference, initial);
+            let mut session = Session::new(lp, params::VERSION, params::FNV1A32);
+
+            let mut uart = Uart0::init();
+            for irq in [cmsdk_uart::RX_IRQ, cmsdk_uart::TX_IRQ] {
+                // SAFETY: the handler for these lines (DefaultHandler) only acknowledges them;
+                // no critical section depends on them being masked.
+                #[allow(unsafe_code)]
+                unsafe {
+                    NVIC::unmask(Irq(irq))
+                };
+            }
+            let syst = &mut core.SYST;
+            syst.set_clock_source(SystClkSource::Core);
+            syst.set_reload(CPU_CLOCK_HZ / params::LOOP_RATE_HZ as u32 - 1);
+            syst.clear_current();
+            syst.enable_interrupt();
+            syst.enable_counter();
+            hprintln!(
+                "piezo-firmware qemu: link on UART0, parameters {} ({}), fnv1a32 {:#010x}, loop {} Hz",
+                params::VERSION,
+                params::SOURCE,
+                params::FNV1A32,
+                params::LOOP_RATE_HZ
+            );
+
+            let mut tick_due = false;
+            loop {
+                let mut busy = false;
+                while let Some(byte) = uart.read() {
+                    session.receive(&[byte]);
+                    busy = true;
+                }
+                busy |= session.transmit(|b| uart.write(b)) > 0;
+                if session.shutdown_requested() && session.pending_tx() == 0 {
+                    hprintln!("piezo-firmware qemu: shutdown");
+                    debug::exit(debug::EXIT_SUCCESS);
+                }
+                tick_due |= syst.has_wrapped();
+                if tick_due && session.has_room_for_frame() {
+                    tick_due = false;
+                    session.tick(&mut io, false);
+                    let mut p = plant.get();
+                    p.advance();
+                    plant.set(p);
+                    busy = true;
+                }
+                if !busy {
+                    // SysTick, or a UART byte in or out, wakes the loop.
+                    cortex_m::asm::wfi();
+                }
+            }
+        }
+
+        /// SysTick only wakes the loop (which polls its wrap flag).
+        #[cortex_m_rt::exception]
+        fn SysTick() {}
     }
 
     fn print_run(name: &str, r: &DemoReport) {
@@ -169,6 +331,13 @@ mod image {
     #[allow(unsafe_code)] // cortex-m-rt requires DefaultHandler to be an `unsafe fn`.
     #[exception]
     unsafe fn DefaultHandler(irqn: i16) {
+        use piezo_firmware::cmsdk_uart;
+        let line = u16::try_from(irqn).ok();
+        if line == Some(cmsdk_uart::RX_IRQ) || line == Some(cmsdk_uart::TX_IRQ) {
+            // Link mode: a UART0 byte in or out only wakes the main loop.
+            cmsdk_uart::Uart0::clear_interrupts();
+            return;
+        }
         fail(format_args!("unhandled exception or interrupt {irqn}"))
     }
 }
