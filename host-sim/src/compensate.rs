@@ -48,9 +48,15 @@ pub struct CompensateArgs {
     #[arg(long)]
     pub params: PathBuf,
     /// Reference record (CSV): `t_s` and `r_m` (one axis) or `rx_m`, `ry_m` (two axes); `_um`,
-    /// `_nm`, `_mm` also accepted; sampled at the stage file's loop rate.
+    /// `_nm`, `_mm` also accepted; sampled at the stage file's loop rate. With `--signal`: where
+    /// the generated reference is written first.
     #[arg(long)]
     pub reference: PathBuf,
+    /// Generate the reference from SPEC (`host-sim simulate`'s signal grammar, values in µm,
+    /// sampled at the stage file's loop rate; the same on both axes of a two-axis stage, or a
+    /// two-axis `raster`), e.g. `triangle:low=6,high=58,freq=2,duration=2`.
+    #[arg(long)]
+    pub signal: Option<String>,
     /// Output CSV: `t_s,u_V` or `t_s,ux_V,uy_V` (stack voltages per tick; directory created if
     /// missing).
     #[arg(long)]
@@ -240,6 +246,9 @@ pub fn compensate(params: &Path, reference: &Path) -> Result<Compensation, Strin
 
 /// `host-sim compensate`: computes and writes the voltages; returns the summary line.
 pub fn compensate_cmd(a: &CompensateArgs) -> Result<String, String> {
+    if let Some(spec) = &a.signal {
+        write_reference(&a.params, spec, &a.reference)?;
+    }
     let result = compensate(&a.params, &a.reference)?;
     write_csv(&a.out, &result.to_table()).map_err(|e| format!("--out: {e}"))?;
     let c = result.counts;
@@ -257,6 +266,36 @@ pub fn compensate_cmd(a: &CompensateArgs) -> Result<String, String> {
         result.lead_ticks,
         c.limited
     ))
+}
+
+/// Writes the reference of `spec` (values in µm) at the loop rate of the stage file at `params`:
+/// `t_s,r_um` for one axis, `t_s,rx_um,ry_um` for two.
+fn write_reference(params: &Path, spec: &str, path: &Path) -> Result<(), String> {
+    let (file, _) = StageFile::load(params).map_err(|e| e.to_string())?;
+    let axes = file.axes().len();
+    let spec = crate::signal::SignalSpec::parse(spec).map_err(|e| format!("--signal: {e}"))?;
+    let signals = spec.build(axes).map_err(|e| format!("--signal: {e}"))?;
+    let rate = f64::from(file.stage.loop_rate_hz);
+    let n = (spec.duration_s.unwrap_or(spec.default_duration_s()) * rate).round() as usize + 1;
+    let t_s: Vec<f64> = (0..n).map(|k| k as f64 / rate).collect();
+    let mut names = vec!["t_s".to_string()];
+    let mut columns = vec![t_s.clone()];
+    for (i, signal) in signals.iter().enumerate().take(axes) {
+        names.push(match axes {
+            1 => "r_um".into(),
+            _ => format!("r{}_um", ["x", "y"][i]),
+        });
+        columns.push(t_s.iter().map(|&t| signal.value(t)).collect());
+    }
+    let table = Table {
+        path: path.into(),
+        names,
+        columns,
+    };
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).map_err(|e| format!("--reference {}: {e}", dir.display()))?;
+    }
+    write_csv(path, &table).map_err(|e| format!("--reference: {e}"))
 }
 
 #[cfg(test)]
