@@ -5,6 +5,7 @@
 
 use piezo_core::effects::{
     compensate_axis, couple, decouple, simulate_axis, EffectParams, Effects, EffectsState,
+    LOG_CREEP_ELEMENTS,
 };
 use piezo_core::{
     BoucWen, BoucWenParams, Compensator, CompensatorSettings, CompensatorState, ModelState,
@@ -115,6 +116,180 @@ fn creep_bank_matches_the_exact_first_order_solution() {
             "j={j}: {c} vs {expected}"
         );
     }
+}
+
+// ---------------------------------------------------------------- logarithmic creep
+
+/// Independent reference of the logarithmic creep: superposition of the step responses of its
+/// elements, Σ_m Δu_m·(g_log/2)·Σ_l (1 − e^(−(t_j − t_m)/τ_l)), τ_l = t0·10^((l+1)/2), in f64.
+fn log_creep_reference(gain: f64, t0: f64, u: &[f64], period: f64) -> Vec<f64> {
+    let taus: Vec<f64> = (0..LOG_CREEP_ELEMENTS)
+        .map(|l| t0 * 10f64.powf(0.5 * (l + 1) as f64))
+        .collect();
+    let steps: Vec<(usize, f64)> = (1..u.len())
+        .map(|m| (m, u[m] - u[m - 1]))
+        .filter(|&(_, du)| du != 0.0)
+        .collect();
+    (0..u.len())
+        .map(|j| {
+            steps
+                .iter()
+                .filter(|&&(m, _)| m < j)
+                .map(|&(m, du)| {
+                    let t = (j - m) as f64 * period;
+                    du * 0.5 * gain * taus.iter().map(|tau| 1.0 - (-t / tau).exp()).sum::<f64>()
+                })
+                .sum()
+        })
+        .collect()
+}
+
+#[test]
+fn log_creep_matches_its_f64_reference_and_grows_per_decade() {
+    let (gain, t0) = (2e-9f32, 1e-3f32);
+    let e = effects(EffectParams {
+        log_creep_gain_m_per_v: gain,
+        log_creep_time_s: t0,
+        ..EffectParams::default()
+    });
+    assert!(!e.is_identity());
+    let period = f64::from(PERIOD);
+    let n = 4000;
+    let step: Vec<f64> = (0..n).map(|j| if j < 100 { 10.0 } else { 70.0 }).collect();
+    let sine: Vec<f64> = (0..n)
+        .map(|j| 50.0 + 30.0 * (2.0 * PI * 5.0 * j as f64 * period).sin())
+        .collect();
+    for (name, u) in [("step", &step), ("sine", &sine)] {
+        let core = forward(&e, u, &vec![0.0; n]);
+        let reference = log_creep_reference(f64::from(gain), f64::from(t0), u, period);
+        let scale = reference.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        let err = max_abs_diff(&core, &reference);
+        println!("log creep {name}: max |c| {scale:.3e} m, max error {err:.3e} m");
+        assert!(scale > 1e-8, "{name}: creep too small to test");
+        assert!(err < 1e-5 * scale, "{name}: error {err:e} of {scale:e}");
+    }
+    // After the step of 60 V: g·Δu·log10(1 + t/t0) within ±0.11·g·Δu (t ≤ 10^5.5·t0).
+    let period_long = 1e-3f32;
+    let long = Effects::new(
+        EffectParams {
+            log_creep_gain_m_per_v: gain,
+            log_creep_time_s: 1e-2,
+            ..EffectParams::default()
+        },
+        period_long,
+        W_RANGE,
+    )
+    .unwrap();
+    let n = 200_000;
+    let u: Vec<f64> = (0..n).map(|j| if j < 1 { 10.0 } else { 70.0 }).collect();
+    let core = forward(&long, &u, &vec![0.0; n]);
+    let scale = f64::from(gain) * 60.0;
+    for j in [3usize, 10, 100, 1000, 10_000, 100_000, 199_999] {
+        let t = (j - 1) as f64 * f64::from(period_long);
+        let expected = scale * (1.0 + t / 1e-2).log10();
+        assert!(
+            (core[j] - expected).abs() < 0.11 * scale,
+            "t={t}: {} vs {expected}",
+            core[j]
+        );
+    }
+}
+
+// ---------------------------------------------------------------- settling drift
+
+#[test]
+fn settling_drift_matches_its_formula_at_the_output_and_for_the_command() {
+    let (rate, amplitude, tau) = (-2e-8f64, 3e-7f64, 0.05f64);
+    let e = effects(EffectParams {
+        drift_rate_m_per_s: rate as f32,
+        drift_settling_m: amplitude as f32,
+        drift_settling_time_constant_s: tau as f32,
+        delay_s: 2.5 * PERIOD,
+        ..EffectParams::default()
+    });
+    assert!(!e.is_identity());
+    let period = f64::from(PERIOD);
+    let d = |t: f64| rate * t + amplitude * (1.0 - (-t / tau).exp());
+    let mut state = EffectsState::new();
+    for k in 0..5000usize {
+        e.forward_z(&mut state, 0.0, 0.0);
+        let expected = d(k as f64 * period);
+        let got = f64::from(e.drift_m(&state));
+        assert!(
+            (got - expected).abs() < 1e-6 * amplitude,
+            "k={k}: {got} vs {expected}"
+        );
+        // The inverse subtracts the drift at the output time of command j: (j + D)·T.
+        let for_command = f64::from(e.drift_for_command_m(k));
+        let expected = d((k as f64 + 2.5) * period);
+        assert!(
+            (for_command - expected).abs() < 1e-6 * amplitude,
+            "j={k}: {for_command}"
+        );
+    }
+    // Independent of u: the same drift for any command.
+    let mut other = EffectsState::new();
+    for k in 0..100 {
+        e.forward_z(&mut other, 50.0 * (k % 7) as f32, 1e-6);
+    }
+    let mut plain = EffectsState::new();
+    for _ in 0..100 {
+        e.forward_z(&mut plain, 0.0, 1e-6);
+    }
+    assert_eq!(e.drift_m(&other), e.drift_m(&plain));
+}
+
+#[test]
+fn new_effects_are_refused_without_their_time_constant() {
+    for (params, field) in [
+        (
+            EffectParams {
+                drift_settling_m: 1e-7,
+                ..EffectParams::default()
+            },
+            "drift_settling_time_constant_s",
+        ),
+        (
+            EffectParams {
+                log_creep_gain_m_per_v: 1e-9,
+                log_creep_time_s: -1.0,
+                ..EffectParams::default()
+            },
+            "log_creep_time_s",
+        ),
+    ] {
+        let got = Effects::new(params, PERIOD, W_RANGE);
+        assert!(
+            matches!(got, Err(ParamError::OutOfRange { field: f, .. }) if f == field),
+            "{field}: {got:?}"
+        );
+    }
+    let got = Effects::new(
+        EffectParams {
+            drift_settling_m: f32::NAN,
+            ..EffectParams::default()
+        },
+        PERIOD,
+        W_RANGE,
+    );
+    assert!(matches!(
+        got,
+        Err(ParamError::NonFinite {
+            field: "drift_settling_m"
+        })
+    ));
+    // Their time constants are ignored (but must be finite) while the effect is absent.
+    assert!(Effects::new(
+        EffectParams {
+            drift_settling_time_constant_s: -3.0,
+            log_creep_time_s: 0.0,
+            ..EffectParams::default()
+        },
+        PERIOD,
+        W_RANGE
+    )
+    .unwrap()
+    .is_identity());
 }
 
 // ---------------------------------------------------------------- even term
@@ -510,6 +685,10 @@ fn two_axis_inverse_chain_tracks_with_all_effects() {
         delay_s: 1.25e-4,
         drift_rate_m_per_s: -0.5e-6,
         coupling: -0.03,
+        drift_settling_m: 2e-7,
+        drift_settling_time_constant_s: 0.3,
+        log_creep_gain_m_per_v: 1e-10,
+        log_creep_time_s: 1e-3,
     };
     let (ex, ey) = (effects(px), effects(py));
     let (mx, my) = (x_model(), y_model());
@@ -759,6 +938,10 @@ prop_compose! {
         delay in 0.0f32..64e-4,
         drift in -1.0f32..1.0,
         coupling in -0.49f32..0.49,
+        settling in prop_oneof![Just(0.0f32), -1e-3f32..1e-3, any::<f32>().prop_filter("finite", |v| v.is_finite())],
+        settling_tau in 1e-6f32..1e4,
+        log_gain in prop_oneof![Just(0.0f32), -1e-8f32..1e-8],
+        log_t0 in 1e-6f32..100.0,
     ) -> EffectParams {
         EffectParams {
             creep_gain_m_per_v: gains,
@@ -770,6 +953,10 @@ prop_compose! {
             delay_s: delay,
             drift_rate_m_per_s: drift,
             coupling,
+            drift_settling_m: settling,
+            drift_settling_time_constant_s: settling_tau,
+            log_creep_gain_m_per_v: log_gain,
+            log_creep_time_s: log_t0,
         }
     }
 }
