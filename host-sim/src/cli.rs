@@ -60,6 +60,9 @@ All modes command one sample ahead. Output window 0-120 V."
     /// stack voltages per tick, for a wave table or any DAC).
     #[command(after_help = crate::compensate::HELP)]
     Compensate(crate::compensate::CompensateArgs),
+    /// Drives the firmware over its command link (QEMU image on a TCP port, or the board's
+    /// serial device): status, excite and record, upload a stage file, track, rearm.
+    Link(crate::link::LinkArgs),
 }
 
 /// Plot formats.
@@ -164,6 +167,7 @@ pub fn run(cli: Cli) -> Result<String, String> {
         Command::Predict(a) => crate::identify::predict_cmd(&a),
         Command::CloseLoop(a) => crate::close_loop::close_loop_cmd(&a),
         Command::Compensate(a) => crate::compensate::compensate_cmd(&a),
+        Command::Link(a) => crate::link::link_cmd(&a),
     }
 }
 

@@ -18,6 +18,7 @@ pub mod csv;
 pub mod demo;
 pub mod effects;
 pub mod identify;
+pub mod link;
 pub mod ode;
 pub mod plant;
 pub mod plot;

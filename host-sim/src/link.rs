@@ -1,0 +1,520 @@
+//! `host-sim link`: drives the firmware over its command link ([`piezo_link`]: postcard packets
+//! with CRC-32, COBS-framed, numbered) on a TCP port (the QEMU image, `firmware/run-qemu.sh
+//! --link PORT`) or a serial device (the board).
+//!
+//! Signals: `excite` and `track` take a signal in `simulate`'s grammar ([`SignalSpec`]; volts
+//! for `excite`, metres for `track`), sample it at the loop rate every m ticks into the
+//! firmware's wave table (m the smallest that fits the duration into the table; the firmware
+//! interpolates linearly between entries), start it, and record every frame the loop produces
+//! (one every `--decimation` ticks) until the duration is covered. The record is the CSV that
+//! `identify` reads: `t_s, ux_V, uy_V, x_m, y_m` (and `rx_m, ry_m` for `track`), t_s from the
+//! frame numbers, so a gap would show as a jump (gaps are counted and refused unless
+//! `--allow-gaps`).
+//!
+//! Every read has a timeout (`--timeout`); a request that is not answered in time is an error.
+
+use crate::csv::{write_csv, Table};
+use crate::signal::{SignalSpec, SIGNAL_HELP};
+use piezo_link::{
+    AxisModel, Decoder, Frame, Limits, ModelSet, Packet, Program, Request, Response,
+    SequenceChecker, Status, Uplink, MAX_FRAME, SETPOINT_CHUNK,
+};
+use serde::Serialize;
+use std::io::{Read, Write};
+use std::path::{Path, PathBuf};
+use std::sync::mpsc::{self, Receiver, RecvTimeoutError};
+use std::time::{Duration, Instant};
+
+/// Help after `host-sim link --help`.
+pub const HELP: &str = "Connect: tcp:HOST:PORT (the QEMU image: firmware/run-qemu.sh --link PORT ELF) or serial:PATH (the board's USB serial device).\n\
+Commands: status (JSON: params_fnv1a32, params_version, mode, feedforward, counters, tracking, ...), excite, track, upload, rearm, compensation, inject-overrun, shutdown.\n\
+excite --signal SPEC (volts, compensator off) and track --signal SPEC (metres) write --record CSV (t_s, ux_V, uy_V, x_m, y_m[, rx_m, ry_m]) that identify reads with --u ux_V,uy_V --y x_m,y_m.";
+
+/// Arguments of `link`.
+#[derive(Debug, clap::Args)]
+#[command(after_help = format!("{HELP}\n\n{SIGNAL_HELP}"))]
+pub struct LinkArgs {
+    /// tcp:HOST:PORT or serial:PATH.
+    #[arg(long)]
+    pub connect: String,
+    /// Longest wait for any answer [s].
+    #[arg(long, default_value_t = 10.0)]
+    pub timeout: f64,
+    /// What to do.
+    #[command(subcommand)]
+    pub command: LinkCommand,
+}
+
+/// `link` subcommands.
+#[derive(Debug, clap::Subcommand)]
+pub enum LinkCommand {
+    /// Prints the firmware's state as one JSON object.
+    Status,
+    /// Open-loop excitation in stack volts (compensator off); records the answer.
+    Excite(RunArgs),
+    /// Tracks a reference in metres (compensator on unless switched off); records it.
+    Track(RunArgs),
+    /// Sends a stage file's model; exits non-zero with the core's reason if it is refused.
+    Upload {
+        /// Stage file (TOML).
+        #[arg(long)]
+        params: PathBuf,
+    },
+    /// Leaves the safe state.
+    Rearm,
+    /// Compensator on or off (the linear baseline) for `track`.
+    Compensation {
+        /// on | off.
+        #[arg(value_parser = ["on", "off"])]
+        state: String,
+    },
+    /// Tells the next tick that the previous one overran (a fault drill: the safe state).
+    InjectOverrun,
+    /// Ends the firmware's run (the QEMU image exits).
+    Shutdown,
+}
+
+/// Arguments of `excite` and `track`.
+#[derive(Debug, clap::Args)]
+pub struct RunArgs {
+    /// Signal (simulate's grammar): volts for excite, metres for track.
+    #[arg(long)]
+    pub signal: String,
+    /// Length [s].
+    #[arg(long)]
+    pub duration: f64,
+    /// CSV to write.
+    #[arg(long)]
+    pub record: PathBuf,
+    /// One frame every this many ticks.
+    #[arg(long, default_value_t = 10)]
+    pub decimation: u32,
+    /// Write the record even if frames were lost (t_s stays true; the gaps are reported).
+    #[arg(long)]
+    pub allow_gaps: bool,
+}
+
+/// A connection to the firmware: numbered requests, answers matched by number, frames kept.
+pub struct Client {
+    writer: Box<dyn Write + Send>,
+    bytes: Receiver<Vec<u8>>,
+    pending: std::collections::VecDeque<u8>,
+    decoder: Decoder,
+    sequence: u32,
+    timeout: Duration,
+    /// Gaps in the firmware's packet numbers.
+    pub packets: SequenceChecker,
+    /// Frames received since the last [`Client::take_frames`].
+    frames: Vec<Frame>,
+    /// Frames refused (COBS, CRC, body).
+    pub rejected: u32,
+}
+
+/// A recorded run.
+#[derive(Debug, Clone, Serialize)]
+pub struct Recording {
+    /// Loop rate \[Hz\].
+    pub loop_rate_hz: f64,
+    /// Ticks per frame.
+    pub decimation: u32,
+    /// Number of the first frame.
+    pub first_frame: u32,
+    /// Frames, in order.
+    #[serde(skip)]
+    pub frames: Vec<Frame>,
+    /// Gaps in the frame numbers, and frames lost in them.
+    pub gaps: u32,
+    /// Frames lost in the gaps.
+    pub lost: u32,
+    /// Wave table: ticks per entry, entries.
+    pub table: [u32; 2],
+}
+
+impl Client {
+    /// Connects to `tcp:HOST:PORT` or `serial:PATH`.
+    pub fn connect(spec: &str, timeout: Duration) -> Result<Self, String> {
+        let (reader, writer): (Box<dyn Read + Send>, Box<dyn Write + Send>) =
+            if let Some(address) = spec.strip_prefix("tcp:") {
+                let stream = std::net::TcpStream::connect(address)
+                    .map_err(|e| format!("--connect {spec}: {e}"))?;
+                let _ = stream.set_nodelay(true);
+                let reader = stream.try_clone().map_err(|e| e.to_string())?;
+                (Box::new(reader), Box::new(stream))
+            } else if let Some(path) = spec.strip_prefix("serial:") {
+                let file = std::fs::OpenOptions::new()
+                    .read(true)
+                    .write(true)
+                    .open(path)
+                    .map_err(|e| format!("--connect {spec}: {e}"))?;
+                let reader = file.try_clone().map_err(|e| e.to_string())?;
+                (Box::new(reader), Box::new(file))
+            } else {
+                return Err(format!(
+                    "--connect {spec}: give tcp:HOST:PORT or serial:PATH"
+                ));
+            };
+        // A reader thread, so that every wait has a timeout (a tty read has none in std).
+        let (tx, rx) = mpsc::channel();
+        std::thread::spawn(move || {
+            let mut reader = reader;
+            let mut buffer = [0u8; 4096];
+            while let Ok(n) = reader.read(&mut buffer) {
+                if n == 0 || tx.send(buffer[..n].to_vec()).is_err() {
+                    break;
+                }
+            }
+        });
+        Ok(Self {
+            writer,
+            bytes: rx,
+            pending: Default::default(),
+            decoder: Decoder::new(),
+            sequence: 0,
+            timeout,
+            packets: SequenceChecker::default(),
+            frames: Vec::new(),
+            rejected: 0,
+        })
+    }
+
+    /// The next packet from the firmware, by `deadline`.
+    fn next(&mut self, deadline: Instant) -> Result<Uplink, String> {
+        loop {
+            while let Some(byte) = self.pending.pop_front() {
+                match self.decoder.push::<Uplink>(byte) {
+                    None => {}
+                    Some(Ok(packet)) => {
+                        self.packets.accept(packet.sequence);
+                        return Ok(packet.body);
+                    }
+                    Some(Err(_)) => self.rejected += 1,
+                }
+            }
+            let left = deadline.saturating_duration_since(Instant::now());
+            match self.bytes.recv_timeout(left) {
+                Ok(chunk) => self.pending.extend(chunk),
+                Err(RecvTimeoutError::Timeout) => {
+                    return Err(format!(
+                        "no answer from the firmware within {:.1} s",
+                        self.timeout.as_secs_f64()
+                    ))
+                }
+                Err(RecvTimeoutError::Disconnected) => {
+                    return Err("the firmware closed the link".into())
+                }
+            }
+        }
+    }
+
+    /// Sends `request` and waits for its answer (frames that arrive meanwhile are kept).
+    pub fn request(&mut self, request: Request) -> Result<Response, String> {
+        let asked = self.sequence;
+        self.sequence = self.sequence.wrapping_add(1);
+        let mut out = [0u8; MAX_FRAME];
+        let n = piezo_link::encode(
+            &Packet {
+                sequence: asked,
+                body: request,
+            },
+            &mut out,
+        )
+        .map_err(|e| format!("cannot encode the request: {e}"))?;
+        self.writer
+            .write_all(&out[..n])
+            .and_then(|()| self.writer.flush())
+            .map_err(|e| format!("link: {e}"))?;
+        let deadline = Instant::now() + self.timeout;
+        loop {
+            match self.next(deadline)? {
+                Uplink::Response { request, response } if request == asked => return Ok(response),
+                Uplink::Response { .. } => {}
+                Uplink::Frame(f) => self.frames.push(f),
+            }
+        }
+    }
+
+    /// Like [`Client::request`], a refusal as an error carrying the firmware's reason.
+    pub fn expect(&mut self, request: Request) -> Result<Response, String> {
+        match self.request(request)? {
+            Response::Refused(r) => Err(format!("refused ({:?}): {}", r.kind, r.reason)),
+            other => Ok(other),
+        }
+    }
+
+    /// The firmware's state.
+    pub fn status(&mut self) -> Result<Status, String> {
+        match self.request(Request::Status)? {
+            Response::Status(s) => Ok(s),
+            other => Err(format!("unexpected answer to status: {other:?}")),
+        }
+    }
+
+    /// The frames received so far (and forgets them).
+    pub fn take_frames(&mut self) -> Vec<Frame> {
+        std::mem::take(&mut self.frames)
+    }
+
+    /// Waits for frames until `count` numbered from `first` on have arrived (earlier ones are
+    /// dropped).
+    fn collect(
+        &mut self,
+        first: u32,
+        count: usize,
+    ) -> Result<(Vec<Frame>, SequenceChecker), String> {
+        let mut checker = SequenceChecker::default();
+        checker.expect(first);
+        let mut out = Vec::with_capacity(count);
+        let ahead = |f: &Frame| f.sequence.wrapping_sub(first) < u32::MAX / 2;
+        let keep = |f: Frame, out: &mut Vec<Frame>, checker: &mut SequenceChecker| {
+            if ahead(&f) && out.len() < count {
+                checker.accept(f.sequence);
+                out.push(f);
+            }
+        };
+        for f in self.take_frames() {
+            keep(f, &mut out, &mut checker);
+        }
+        let mut deadline = Instant::now() + self.timeout;
+        while out.len() < count {
+            let before = out.len();
+            match self.next(deadline)? {
+                Uplink::Frame(f) => keep(f, &mut out, &mut checker),
+                Uplink::Response { .. } => {}
+            }
+            if out.len() > before {
+                deadline = Instant::now() + self.timeout;
+            }
+        }
+        Ok((out, checker))
+    }
+
+    /// Plays `spec` for `duration_s` (open loop in volts if `excite`, else tracking in metres)
+    /// and records it.
+    pub fn run(
+        &mut self,
+        spec: &str,
+        duration_s: f64,
+        decimation: u32,
+        excite: bool,
+    ) -> Result<Recording, String> {
+        let parsed = SignalSpec::parse(spec).map_err(|e| format!("--signal: {e}"))?;
+        let signals = parsed.build(2).map_err(|e| format!("--signal: {e}"))?;
+        if !(duration_s > 0.0 && duration_s.is_finite()) || decimation == 0 {
+            return Err("--duration must be > 0 and --decimation >= 1".into());
+        }
+        let status = self.status()?;
+        let rate = f64::from(status.loop_rate_hz);
+        let capacity = status.table[1].max(2);
+        let ticks = (duration_s * rate).round().max(1.0) as u64;
+        let per_entry = ticks.div_ceil(u64::from(capacity - 1)).max(1);
+        let entries = ticks / per_entry + 1;
+        let table: Vec<[f32; 2]> = (0..entries)
+            .map(|j| {
+                let t = (j * per_entry) as f64 / rate;
+                [signals[0].value(t) as f32, signals[1].value(t) as f32]
+            })
+            .collect();
+        self.expect(Request::TableClear)?;
+        for chunk in table.chunks(SETPOINT_CHUNK) {
+            let setpoints = chunk.iter().copied().collect();
+            self.expect(Request::TableAppend(setpoints))?;
+        }
+        self.expect(Request::Frames { decimation })?;
+        let program = Program::Table {
+            ticks_per_entry: per_entry as u32,
+            repeat: false,
+        };
+        let request = if excite {
+            Request::Excite(program)
+        } else {
+            Request::Track(program)
+        };
+        let first_frame = match self.expect(request)? {
+            Response::Started { first_frame } => first_frame,
+            other => return Err(format!("unexpected answer to a program: {other:?}")),
+        };
+        let count = (ticks / u64::from(decimation)) as usize;
+        let (frames, checker) = self.collect(first_frame, count)?;
+        self.expect(Request::Frames { decimation: 0 })?;
+        self.take_frames();
+        Ok(Recording {
+            loop_rate_hz: rate,
+            decimation,
+            first_frame,
+            frames,
+            gaps: checker.gaps,
+            lost: checker.lost,
+            table: [per_entry as u32, entries as u32],
+        })
+    }
+}
+
+impl Recording {
+    /// The record as the CSV `identify` reads: `t_s, ux_V, uy_V, x_m, y_m` and, when tracking,
+    /// `rx_m, ry_m`.
+    pub fn table(&self, tracking: bool) -> Table {
+        let t = |f: &Frame| {
+            f64::from(f.sequence.wrapping_sub(self.first_frame)) * f64::from(self.decimation)
+                / self.loop_rate_hz
+        };
+        let column = |get: &dyn Fn(&Frame) -> f32| -> Vec<f64> {
+            self.frames.iter().map(|f| f64::from(get(f))).collect()
+        };
+        let mut names = vec!["t_s", "ux_V", "uy_V", "x_m", "y_m"];
+        let mut columns = vec![
+            self.frames.iter().map(t).collect(),
+            column(&|f| f.commanded_v[0]),
+            column(&|f| f.commanded_v[1]),
+            column(&|f| f.sensor_m[0]),
+            column(&|f| f.sensor_m[1]),
+        ];
+        if tracking {
+            names.extend(["rx_m", "ry_m"]);
+            columns.push(column(&|f| f.reference_m[0]));
+            columns.push(column(&|f| f.reference_m[1]));
+        }
+        Table {
+            path: PathBuf::new(),
+            names: names.into_iter().map(String::from).collect(),
+            columns,
+        }
+    }
+}
+
+/// FNV-1a, 32 bit, of a stage file's bytes (what the firmware's build logs for the same file).
+pub fn fnv1a32(bytes: &[u8]) -> u32 {
+    bytes.iter().fold(0x811c_9dc5_u32, |hash, &b| {
+        (hash ^ u32::from(b)).wrapping_mul(0x0100_0193)
+    })
+}
+
+/// A stage file as the upload message: read and validated with piezo-stage, per axis the core's
+/// parameter structs (a one-axis file drives both axes with x, as the firmware's build does).
+pub fn model_set(path: &Path) -> Result<ModelSet, String> {
+    let (file, _valid) = piezo_stage::StageFile::load(path).map_err(|e| e.to_string())?;
+    let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let axis = |name: &str, a: &piezo_stage::Axis| -> Result<AxisModel, String> {
+        if !a.model.runs_on_firmware() {
+            return Err(format!(
+                "{}: {name}.model \"{}\": the firmware runs the static models (symmetric, asymmetric) only",
+                path.display(),
+                a.model.name()
+            ));
+        }
+        let (Some(bouc_wen), Some(static_map)) = (a.bouc_wen, a.static_map) else {
+            return Err(format!(
+                "{}: {name}: no bouc_wen or static_map",
+                path.display()
+            ));
+        };
+        Ok(AxisModel {
+            bouc_wen,
+            static_map,
+            asymmetry: a.asymmetry.unwrap_or_default(),
+            effects: a.effects,
+            limits: Limits {
+                output_min_v: a.limits.output_min_v,
+                output_max_v: a.limits.output_max_v,
+                slew_limit_v_per_s: a.limits.slew_limit_v_per_s,
+            },
+        })
+    };
+    let x = axis("x", &file.x)?;
+    let y = match &file.y {
+        Some(y) => axis("y", y)?,
+        None => x,
+    };
+    let version = format!("{} {}", file.stage.name, file.stage.version);
+    Ok(ModelSet {
+        version: piezo_link::truncated(&version),
+        fnv1a32: fnv1a32(&bytes),
+        loop_rate_hz: file.stage.loop_rate_hz,
+        amplifier_gain_v_per_v: file.io.amplifier_gain_v_per_v,
+        sensor_m_per_v: file.io.sensor_m_per_v,
+        axes: [x, y],
+    })
+}
+
+/// Uploads the stage file at `path`; the firmware's refusal (the core's reason) as an error.
+pub fn upload(client: &mut Client, path: &Path) -> Result<u32, String> {
+    let set = model_set(path)?;
+    match client.request(Request::Upload(set))? {
+        Response::Loaded { params_fnv1a32 } => Ok(params_fnv1a32),
+        Response::Refused(r) => Err(format!(
+            "{}: refused by the firmware ({:?}): {}",
+            path.display(),
+            r.kind,
+            r.reason
+        )),
+        other => Err(format!("unexpected answer to upload: {other:?}")),
+    }
+}
+
+fn json<T: Serialize>(value: &T) -> Result<String, String> {
+    serde_json::to_string(value).map_err(|e| e.to_string())
+}
+
+/// Runs `link`.
+pub fn link_cmd(a: &LinkArgs) -> Result<String, String> {
+    if !(a.timeout > 0.0 && a.timeout.is_finite()) {
+        return Err("--timeout must be > 0".into());
+    }
+    let mut client = Client::connect(&a.connect, Duration::from_secs_f64(a.timeout))?;
+    match &a.command {
+        LinkCommand::Status => json(&client.status()?),
+        LinkCommand::Excite(r) | LinkCommand::Track(r) => {
+            let tracking = matches!(a.command, LinkCommand::Track(_));
+            let recording = client.run(&r.signal, r.duration, r.decimation, !tracking)?;
+            if recording.gaps > 0 && !r.allow_gaps {
+                return Err(format!(
+                    "{} gaps ({} frames lost) in the record; --allow-gaps writes it anyway",
+                    recording.gaps, recording.lost
+                ));
+            }
+            write_csv(&r.record, &recording.table(tracking)).map_err(|e| e.to_string())?;
+            let status = client.status()?;
+            json(&serde_json::json!({
+                "record": r.record.display().to_string(),
+                "frames": recording.frames.len(),
+                "recording": recording,
+                "tracking": tracking.then_some(status.tracking),
+                "mode": status.mode,
+                "counters": status.counters,
+            }))
+        }
+        LinkCommand::Upload { params } => {
+            let fnv = upload(&mut client, params)?;
+            json(
+                &serde_json::json!({ "loaded": params.display().to_string(), "params_fnv1a32": fnv }),
+            )
+        }
+        LinkCommand::Rearm => json(&client.expect(Request::Rearm)?),
+        LinkCommand::Compensation { state } => {
+            json(&client.expect(Request::Compensation(state == "on"))?)
+        }
+        LinkCommand::InjectOverrun => json(&client.expect(Request::InjectOverrun)?),
+        LinkCommand::Shutdown => json(&client.expect(Request::Shutdown)?),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fnv_matches_the_firmware_build() {
+        // firmware/build/params.rs: FNV-1a 32 of the empty input is the offset basis.
+        assert_eq!(fnv1a32(b""), 0x811c_9dc5);
+        assert_eq!(fnv1a32(b"a"), 0xe40c_292c);
+    }
+
+    #[test]
+    fn the_stage_file_becomes_the_upload_message() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../firmware/params/xy-stage.toml");
+        let set = model_set(&path).unwrap();
+        assert_eq!(set.loop_rate_hz, 10_000.0);
+        assert!(set.version.starts_with("xy-stage"));
+        assert_ne!(set.axes[0].bouc_wen, set.axes[1].bouc_wen);
+        assert_eq!(set.axes[0].limits.output_max_v, 120.0);
+    }
+}
