@@ -86,8 +86,8 @@ pub struct RunArgs {
     /// CSV to write.
     #[arg(long)]
     pub record: PathBuf,
-    /// One frame every this many ticks.
-    #[arg(long, default_value_t = 10)]
+    /// One frame every this many ticks (1: each reading paired with the voltage it answers).
+    #[arg(long, default_value_t = 1)]
     pub decimation: u32,
     /// Write the record even if frames were lost (t_s stays true; the gaps are reported).
     #[arg(long)]
@@ -351,27 +351,36 @@ impl Client {
 
 impl Recording {
     /// The record as the CSV `identify` reads: `t_s, ux_V, uy_V, x_m, y_m` and, when tracking,
-    /// `rx_m, ry_m`.
+    /// `rx_m, ry_m`. A frame's sensor reading is taken at the start of its tick, before that
+    /// tick's voltage is written: at decimation 1 each reading is paired with the voltage of the
+    /// tick before (the one it answers; the first frame is dropped); at decimation m > 1 with its
+    /// own tick's voltage, one tick ahead.
     pub fn table(&self, tracking: bool) -> Table {
         let t = |f: &Frame| {
             f64::from(f.sequence.wrapping_sub(self.first_frame)) * f64::from(self.decimation)
                 / self.loop_rate_hz
         };
-        let column = |get: &dyn Fn(&Frame) -> f32| -> Vec<f64> {
-            self.frames.iter().map(|f| f64::from(get(f))).collect()
+        // (sensor frame, the frame whose voltage and reference it is paired with)
+        let pairs: Vec<(&Frame, &Frame)> = if self.decimation == 1 {
+            self.frames.windows(2).map(|w| (&w[1], &w[0])).collect()
+        } else {
+            self.frames.iter().map(|f| (f, f)).collect()
+        };
+        let column = |get: &dyn Fn(&Frame, &Frame) -> f64| -> Vec<f64> {
+            pairs.iter().map(|&(s, c)| get(s, c)).collect()
         };
         let mut names = vec!["t_s", "ux_V", "uy_V", "x_m", "y_m"];
         let mut columns = vec![
-            self.frames.iter().map(t).collect(),
-            column(&|f| f.commanded_v[0]),
-            column(&|f| f.commanded_v[1]),
-            column(&|f| f.sensor_m[0]),
-            column(&|f| f.sensor_m[1]),
+            column(&|s, _| t(s)),
+            column(&|_, c| f64::from(c.commanded_v[0])),
+            column(&|_, c| f64::from(c.commanded_v[1])),
+            column(&|s, _| f64::from(s.sensor_m[0])),
+            column(&|s, _| f64::from(s.sensor_m[1])),
         ];
         if tracking {
             names.extend(["rx_m", "ry_m"]);
-            columns.push(column(&|f| f.reference_m[0]));
-            columns.push(column(&|f| f.reference_m[1]));
+            columns.push(column(&|_, c| f64::from(c.reference_m[0])));
+            columns.push(column(&|_, c| f64::from(c.reference_m[1])));
         }
         Table {
             path: PathBuf::new(),

@@ -1,0 +1,305 @@
+//! A whole session over the command link, against the QEMU image's simulated stage.
+//!
+//! Builds the `qemu` image (its own target directory, `<target dir>/link-session`: the outer
+//! `cargo test` holds the workspace's lock), runs it with `firmware/run-qemu.sh --link PORT` on a
+//! free loopback port, and drives it with host-sim's link client:
+//! status (the built-in set) → excite 0.5–119.5 V (every tick) and record → `identify` on the record → upload the
+//! identified set → track a 10 Hz sine with the compensator, then with the linear
+//! baseline → inject an overrun (safe state, outputs held) → rearm and track → a set the core
+//! refuses (β < 0) leaves the running one → shutdown. The tracking error (the firmware's own
+//! statistics: sensor of tick k minus reference of tick k − 1, after settling) is checked at
+//! each stage.
+//!
+//! Every read has a timeout; QEMU is stopped at the end (shutdown request, then SIGTERM).
+//! Skipped, with a message, when `qemu-system-arm` or the thumbv7em-none-eabihf target is
+//! missing.
+
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use clap::Parser as _;
+use host_sim::link::{fnv1a32, model_set, upload, Client};
+use piezo_link::{Fault, Feedforward, Mode, Request, Response, Status};
+
+const TARGET: &str = "thumbv7em-none-eabihf";
+const TIMEOUT: Duration = Duration::from_secs(20);
+
+fn say(line: &str) {
+    let _ = writeln!(std::io::stderr(), "{line}");
+}
+
+fn firmware_dir() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+fn missing_tools() -> Option<String> {
+    let qemu = Command::new("qemu-system-arm").arg("--version").output();
+    if !qemu.is_ok_and(|o| o.status.success()) {
+        return Some("qemu-system-arm not found (apt-get install qemu-system-arm)".into());
+    }
+    let sysroot = Command::new(std::env::var("RUSTC").unwrap_or_else(|_| "rustc".into()))
+        .args(["--print", "sysroot"])
+        .output()
+        .ok()
+        .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string());
+    let installed = sysroot.is_some_and(|s| {
+        Path::new(&s)
+            .join("lib/rustlib")
+            .join(TARGET)
+            .join("lib")
+            .is_dir()
+    });
+    (!installed).then(|| format!("Rust target {TARGET} not installed (rustup target add {TARGET})"))
+}
+
+fn outer_target_dir() -> PathBuf {
+    std::env::current_exe()
+        .ok()
+        .and_then(|exe| Some(exe.parent()?.parent()?.parent()?.to_path_buf()))
+        .unwrap_or_else(|| firmware_dir().join("../target"))
+}
+
+/// QEMU, stopped when dropped (SIGTERM to `timeout`, which passes it on to QEMU).
+struct Qemu(Child);
+
+impl Drop for Qemu {
+    fn drop(&mut self) {
+        if let Ok(None) = self.0.try_wait() {
+            let _ = Command::new("kill").arg(self.0.id().to_string()).status();
+        }
+        let _ = self.0.wait();
+    }
+}
+
+/// A temporary directory, removed when dropped.
+struct TempDir(PathBuf);
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+fn connect(port: u16) -> Client {
+    let started = Instant::now();
+    loop {
+        match Client::connect(&format!("tcp:127.0.0.1:{port}"), TIMEOUT) {
+            Ok(mut c) => match c.status() {
+                Ok(_) => return c,
+                Err(e) if started.elapsed() > Duration::from_secs(15) => {
+                    panic!("QEMU on port {port} does not answer: {e}")
+                }
+                Err(_) => std::thread::sleep(Duration::from_millis(100)),
+            },
+            Err(_) if started.elapsed() < Duration::from_secs(15) => {
+                std::thread::sleep(Duration::from_millis(100))
+            }
+            Err(e) => panic!("cannot connect to QEMU: {e}"),
+        }
+    }
+}
+
+/// Tracks the demo's reference for 1 s and returns the firmware's status after it.
+fn track(client: &mut Client) -> Status {
+    // 19 ± 12 µm sine, 10 Hz, on both axes (inside the identified set's window).
+    client
+        .run(
+            "sine:amp=12e-6,offset=19e-6,freq=10,phase_deg=-90",
+            1.0,
+            10,
+            false,
+        )
+        .expect("track");
+    client.status().expect("status")
+}
+
+fn nm(s: &Status) -> String {
+    format!(
+        "x rms {:.1} nm max {:.1} nm, y rms {:.1} nm max {:.1} nm ({} samples)",
+        s.tracking[0].rms_m * 1e9,
+        s.tracking[0].max_abs_m * 1e9,
+        s.tracking[1].rms_m * 1e9,
+        s.tracking[1].max_abs_m * 1e9,
+        s.tracking[0].count
+    )
+}
+
+#[test]
+fn a_whole_session_over_the_link() {
+    if let Some(why) = missing_tools() {
+        say(&format!("link_session: SKIPPED: {why}"));
+        return;
+    }
+    let started = Instant::now();
+    let target_dir = outer_target_dir().join("link-session");
+    let build = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()))
+        .current_dir(firmware_dir())
+        .args(["build", "--release", "--features", "qemu", "--bin", "qemu"])
+        .env("CARGO_TARGET_DIR", &target_dir)
+        .env_remove("PIEZO_PARAMS")
+        .output()
+        .expect("run cargo");
+    assert!(
+        build.status.success(),
+        "building the qemu image failed:\n{}",
+        String::from_utf8_lossy(&build.stderr)
+    );
+    let built = started.elapsed();
+    let dir = TempDir(std::env::temp_dir().join(format!("link_session_{}", std::process::id())));
+    std::fs::create_dir_all(&dir.0).expect("temporary directory");
+
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .expect("a free port")
+        .port();
+    let elf = target_dir.join(TARGET).join("release/qemu");
+    let mut qemu = Qemu(
+        Command::new(firmware_dir().join("run-qemu.sh"))
+            .args(["--link", &port.to_string()])
+            .arg(&elf)
+            .env("QEMU_TIMEOUT", "300")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("run firmware/run-qemu.sh"),
+    );
+    let mut client = connect(port);
+
+    // 1. Status: the built-in set, running.
+    let built_in = std::fs::read(firmware_dir().join("params/xy-stage.toml")).unwrap();
+    let status = client.status().unwrap();
+    assert_eq!(status.params_fnv1a32, fnv1a32(&built_in));
+    assert_eq!(status.mode, Mode::Running);
+    let session_started = Instant::now();
+
+    // 2. Excite 0.5–119.5 V (5 Hz, both axes) and record every tick.
+    let excitation = client
+        .run("sine:amp=59.5,offset=60,freq=5,phase_deg=-90", 1.2, 1, true)
+        .expect("excite");
+    assert_eq!(excitation.frames.len(), 12_000);
+    assert_eq!((excitation.gaps, excitation.lost), (0, 0));
+    let record = dir.0.join("excite.csv");
+    host_sim::csv::write_csv(&record, &excitation.table(false)).unwrap();
+
+    // 3. Identify on the record (two axes, symmetric, invertible; [stage] and [io] carried).
+    let identified = dir.0.join("identified.toml");
+    let arg = |p: &Path| p.display().to_string();
+    let cli = host_sim::cli::Cli::try_parse_from([
+        "host-sim".to_string(),
+        "identify".into(),
+        "--data".into(),
+        arg(&record),
+        "--model".into(),
+        "symmetric".into(),
+        "--invertible".into(),
+        "--u".into(),
+        "ux_V,uy_V".into(),
+        "--y".into(),
+        "x_m,y_m".into(),
+        "--start".into(),
+        "0.2".into(),
+        "--stage".into(),
+        arg(&firmware_dir().join("params/xy-stage.toml")),
+        "--out".into(),
+        arg(&identified),
+        "--report".into(),
+        arg(&dir.0.join("identified.json")),
+    ])
+    .expect("identify arguments");
+    let summary = host_sim::cli::run(cli).expect("identify");
+    say(&format!("link_session: identify: {summary}"));
+
+    // 4. Upload it: the firmware runs the identified set.
+    let fnv = upload(&mut client, &identified).expect("upload");
+    assert_eq!(fnv, fnv1a32(&std::fs::read(&identified).unwrap()));
+    assert_eq!(client.status().unwrap().params_fnv1a32, fnv);
+
+    // 5. Track with the compensator, then with the linear baseline.
+    let compensated = track(&mut client);
+    assert_eq!(compensated.feedforward, Feedforward::Compensator);
+    assert_eq!(compensated.mode, Mode::Running);
+    client.expect(Request::Compensation(false)).unwrap();
+    let linear = track(&mut client);
+    assert_eq!(linear.feedforward, Feedforward::Linear);
+    client.expect(Request::Compensation(true)).unwrap();
+    say(&format!(
+        "link_session: compensated (identified set): {}",
+        nm(&compensated)
+    ));
+    say(&format!("link_session: linear baseline: {}", nm(&linear)));
+    for i in 0..2 {
+        let (c, l) = (compensated.tracking[i], linear.tracking[i]);
+        assert!(c.count >= 9_000, "{c:?}");
+        assert!(c.rms_m < 0.5 * l.rms_m, "axis {i}: {c:?} vs {l:?}");
+        assert!(c.rms_m < 600e-9 && c.max_abs_m < 1.5e-6, "axis {i}: {c:?}");
+    }
+
+    // 6. A fault: the outputs are held until rearm.
+    client.expect(Request::InjectOverrun).unwrap();
+    std::thread::sleep(Duration::from_millis(50));
+    let safe = client.status().unwrap();
+    assert_eq!(safe.mode, Mode::Safe(Fault::Overrun));
+    std::thread::sleep(Duration::from_millis(50));
+    let later = client.status().unwrap();
+    assert_eq!(later.applied_v, safe.applied_v, "outputs held while safe");
+    assert!(later.counters.ticks > safe.counters.ticks);
+    assert_eq!(later.counters.overruns, 1);
+
+    // 7. Rearm: tracking resumes as before.
+    assert_eq!(client.request(Request::Rearm).unwrap(), Response::Done);
+    let rearmed = track(&mut client);
+    assert_eq!(rearmed.mode, Mode::Running);
+    say(&format!("link_session: after rearm: {}", nm(&rearmed)));
+    for i in 0..2 {
+        assert!(
+            rearmed.tracking[i].rms_m < 600e-9,
+            "{:?}",
+            rearmed.tracking[i]
+        );
+    }
+
+    // 8. A set the core refuses leaves the running one.
+    let mut bad = model_set(&identified).unwrap();
+    bad.axes[1].bouc_wen.beta = -1.0;
+    bad.fnv1a32 = 1;
+    match client.request(Request::Upload(bad)).unwrap() {
+        Response::Refused(r) => {
+            say(&format!("link_session: refused: {}", r.reason));
+            assert_eq!(r.axis, Some(1));
+            assert!(r.reason.contains("beta"), "{}", r.reason);
+        }
+        other => panic!("{other:?}"),
+    }
+    let kept = track(&mut client);
+    assert_eq!(kept.params_fnv1a32, fnv);
+    assert_eq!(kept.counters.refused_uploads, 1);
+    for i in 0..2 {
+        assert!(kept.tracking[i].rms_m < 600e-9, "{:?}", kept.tracking[i]);
+    }
+    assert_eq!(kept.counters.frames_dropped, 0);
+    assert_eq!(client.packets.gaps, 0);
+    let session = session_started.elapsed();
+
+    // 9. Shutdown: QEMU exits with success.
+    assert_eq!(client.request(Request::Shutdown).unwrap(), Response::Done);
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let exit = loop {
+        if let Some(status) = qemu.0.try_wait().unwrap() {
+            break status;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "QEMU did not exit after shutdown"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert!(exit.success(), "QEMU exit {exit:?}");
+    say(&format!(
+        "link_session: image built in {:.1} s, session {:.1} s, {} ticks",
+        built.as_secs_f64(),
+        session.as_secs_f64(),
+        kept.counters.ticks
+    ));
+}
