@@ -122,7 +122,6 @@ fn pow_f32_only(x: f32, n: f32) -> f32 {
 }
 
 /// 1/c for the 16 mantissa intervals of [1, 2), c = 1 + (j + ½)/16.
-#[cfg(not(target_os = "none"))]
 const INV_CENTRE: [f64; 16] = [
     0.9696969696969697,
     0.9142857142857143,
@@ -142,7 +141,6 @@ const INV_CENTRE: [f64; 16] = [
     0.5079365079365079,
 ];
 /// log2 c for the same centres.
-#[cfg(not(target_os = "none"))]
 const LOG2_CENTRE: [f64; 16] = [
     0.044394119358453436,
     0.12928301694496647,
@@ -162,7 +160,6 @@ const LOG2_CENTRE: [f64; 16] = [
     0.9772799234999164,
 ];
 /// 2^(j/16).
-#[cfg(not(target_os = "none"))]
 const EXP2_SIXTEENTHS: [f64; 16] = [
     1.0,
     1.0442737824274138,
@@ -225,6 +222,59 @@ fn pow_host(x: f32, n: f32) -> f32 {
     let whole = k >> 4;
     let scale = f64::from_bits(((whole + 1023) as u64) << 52);
     (e_f * EXP2_SIXTEENTHS[(k & 15) as usize] * scale) as f32
+}
+
+/// `x^p` in f64 for `x ≥ 0`, `p ≥ 0` (the oscillator's `|z|^(ν−1)`), with the tables of
+/// `pow_host`: `ln(1 + r)` to r¹⁰ and `e^f` to f⁸; relative error ≤ 1e-12 for p ≤ 15 (the rounding
+/// of `p·log2 x`, measured in the tests below; a few ulp for p ≈ 1), ample for the oscillator's f64
+/// RK4 state; 0 for x = 0 < p, 1 for p = 0. Several times faster than libm's `pow` on a host.
+/// Subnormal or non-finite `x` go to libm.
+pub(crate) fn pow_f64(x: f64, p: f64) -> f64 {
+    if p == 0.0 {
+        return 1.0;
+    }
+    if x == 0.0 {
+        return 0.0;
+    }
+    if !(x >= f64::MIN_POSITIVE && x < f64::INFINITY) {
+        return libm::pow(x, p);
+    }
+    let bits = x.to_bits();
+    let exponent = ((bits >> 52) & 0x7ff) as i64 - 1023;
+    let index = ((bits >> 48) & 0xf) as usize;
+    let mantissa = f64::from_bits((bits & 0x000f_ffff_ffff_ffff) | 0x3ff0_0000_0000_0000);
+    let r = mantissa * INV_CENTRE[index] - 1.0;
+    let ln1p = r
+        * (1.0
+            - r * (0.5
+                - r * (1.0 / 3.0
+                    - r * (0.25
+                        - r * (0.2
+                            - r * (1.0 / 6.0
+                                - r * (1.0 / 7.0 - r * (0.125 - r * (1.0 / 9.0 - r * 0.1)))))))));
+    let y = p * (exponent as f64 + LOG2_CENTRE[index] + ln1p * core::f64::consts::LOG2_E);
+    if y >= 1024.0 {
+        return f64::INFINITY;
+    }
+    if y < -1000.0 {
+        return libm::pow(x, p);
+    }
+    let scaled = y * 16.0;
+    let k = if scaled >= 0.0 {
+        (scaled + 0.5) as i64
+    } else {
+        (scaled - 0.5) as i64
+    };
+    let f = (y - k as f64 * (1.0 / 16.0)) * core::f64::consts::LN_2;
+    let e_f = 1.0
+        + f * (1.0
+            + f * (0.5
+                + f * (1.0 / 6.0
+                    + f * (1.0 / 24.0
+                        + f * (1.0 / 120.0
+                            + f * (1.0 / 720.0 + f * (1.0 / 5040.0 + f * (1.0 / 40320.0))))))));
+    let scale = f64::from_bits((((k >> 4) + 1023) as u64) << 52);
+    e_f * EXP2_SIXTEENTHS[(k & 15) as usize] * scale
 }
 
 /// exp(X) − I of an N×N matrix in f64: scaling until ‖X·2⁻ˢ‖₁ ≤ 1/4, an 18-term Taylor series of
@@ -331,6 +381,23 @@ mod tests {
             }
         }
         assert!(worst <= 0.5 + 1e-6, "host power off by {worst} ulp");
+    }
+
+    #[test]
+    fn f64_power_is_accurate_to_1e_12() {
+        let mut worst = 0.0f64;
+        for p in [1e-6f64, 0.419, 0.5, 1.0, 1.5, 2.05869, 15.0] {
+            for i in 0..=100_000 {
+                let x = libm::pow(10.0, -8.0 + 14.0 * f64::from(i) / 100_000.0);
+                let exact = libm::pow(x, p);
+                let got = pow_f64(x, p);
+                worst = worst.max(((got - exact) / exact).abs());
+            }
+        }
+        assert!(worst <= 1e-12, "f64 power off by {worst:e} relative");
+        assert_eq!(pow_f64(0.0, 0.5), 0.0);
+        assert_eq!(pow_f64(0.0, 0.0), 1.0);
+        assert_eq!(pow_f64(3.0, 0.0), 1.0);
     }
 
     #[test]

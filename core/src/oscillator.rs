@@ -157,7 +157,7 @@ impl HystereticOscillator {
         let (zn1_z, zn) = if self.nu == 1.0 {
             (z, az)
         } else {
-            let p = libm::pow(az, self.nu - 1.0);
+            let p = crate::math::pow_f64(az, self.nu - 1.0);
             (p * z, p * az)
         };
         let acc = (u - self.c * v - self.k * y - z) * self.inv_mass;

@@ -2,7 +2,8 @@
 //! `piezo-core` f32 models and compensator over long records.
 //!
 //! `cargo bench -p host-sim --bench throughput -- --quick` (criterion's throughput line, elem/s,
-//! is samples per second).
+//! is samples per second). The static-model records and sets are the ones
+//! `host-sim/evidence/peer_static.py` runs in numba (`host-sim/evidence/host_speed.sh` prints both).
 
 use criterion::{black_box, criterion_main, Criterion, Throughput};
 use host_sim::effects::Effects;
@@ -114,6 +115,31 @@ fn core_models(c: &mut Criterion) {
         },
     )
     .unwrap();
+    let n15 = StaticModel::new(
+        BoucWen::new(BoucWenParams {
+            a: 0.8,
+            beta: 0.5,
+            gamma: 0.2,
+            n: 1.5,
+        })
+        .unwrap(),
+        StaticMap {
+            k1_m_per_v: 4.0e-7,
+            k2_m_per_h: -4.0e-7,
+            offset_m: 0.0,
+        },
+    )
+    .unwrap();
+    g.bench_function("static_general_n1.5", |b| {
+        b.iter(|| {
+            let mut s = ModelState::default();
+            let mut acc = 0.0f32;
+            for &v in &u20 {
+                acc += n15.step(&mut s, black_box(v));
+            }
+            acc
+        })
+    });
     g.bench_function("static_general_n3.06", |b| {
         b.iter(|| {
             let mut s = ModelState::default();

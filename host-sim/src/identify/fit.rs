@@ -19,7 +19,9 @@
 //! 1. Differential evolution (DE/current-to-best/1/bin, F = 0.6, CR = 0.9, seeded ChaCha8, so
 //!    deterministic for a given `--seed`) on the record decimated to at most 2500 samples (the
 //!    hysteresis is rate-independent, so the decimated input path gives nearly the same h), each
-//!    generation evaluated in parallel (rayon).
+//!    generation evaluated in parallel (rayon). A trial's simulation stops as soon as the projected
+//!    SSE of the samples seen so far exceeds its parent's SSE (a lower bound of its own, so the
+//!    selection is the same as with the whole record).
 //! 2. Levenberg–Marquardt on the full record from the DE optimum: forward-difference Jacobian of the
 //!    projected residual (each column one core simulation, in parallel, into buffers allocated once per
 //!    run), Marquardt scaling, every trial point evaluated by the same projected objective; it stops
@@ -262,11 +264,16 @@ impl Problem {
 
     /// Projected evaluation on every `stride`-th sample; with `resid`, the normalised residuals of
     /// the scored samples are written there (and `scratch` holds the basis; both of record length).
+    /// With a finite `abandon_above` \[m²\] the simulation stops, returning an infinite SSE, as soon
+    /// as the projected SSE of the samples seen so far exceeds it: that partial minimum is a lower
+    /// bound of the whole record's (the whole record's best linear parameters do no better on its
+    /// first part), so such a θ is certainly worse than `abandon_above`.
     fn evaluate(
         &self,
         theta: &[f64],
         stride: usize,
         mut buffers: Option<(&mut [f64], &mut [[f64; 3]])>,
+        abandon_above: f64,
     ) -> Eval {
         self.evaluations.fetch_add(1, Ordering::Relaxed);
         let bad = Eval {
@@ -284,11 +291,13 @@ impl Problem {
         let mut finite = true;
         let decimated = self.u.iter().copied().step_by(stride);
         let mut k_scored = 0usize;
+        let abandon_n = abandon_above / (scale * scale);
+        let mut abandoned = false;
         // The decimated input is fed through an iterator adapter without copying the record.
-        let mut visit = |k: usize, v: f32| {
+        let mut visit = |k: usize, v: f32| -> bool {
             let i = k * stride;
             if i < self.score_from {
-                return;
+                return true;
             }
             if !v.is_finite() {
                 finite = false;
@@ -310,9 +319,19 @@ impl Problem {
                 basis[k_scored] = phi;
             }
             k_scored += 1;
+            if k_scored % 128 == 0 && abandon_n.is_finite() {
+                if let Some(lin) = solve(&g, &rhs, nb) {
+                    let partial = yy - (0..nb).map(|a| lin[a] * rhs[a]).sum::<f64>();
+                    if partial > abandon_n * (1.0 + 1e-9) {
+                        abandoned = true;
+                        return false;
+                    }
+                }
+            }
+            true
         };
         simulate_iter(&model, decimated, &mut visit);
-        if !finite {
+        if !finite || abandoned {
             return bad;
         }
         let Some(lin) = solve(&g, &rhs, nb) else {
@@ -355,7 +374,14 @@ impl Problem {
 
     /// SSE of θ with its projected linear parameters, on every `stride`-th sample.
     pub fn sse(&self, theta: &[f64], stride: usize) -> f64 {
-        self.evaluate(theta, stride, None).sse
+        self.evaluate(theta, stride, None, f64::INFINITY).sse
+    }
+
+    /// [`Problem::sse`], or ∞ as soon as it is certainly above `threshold` \[m²\] (differential
+    /// evolution's selection against the parent: the outcome is the same, the rest of a losing
+    /// trial's simulation is skipped).
+    pub fn sse_unless_above(&self, theta: &[f64], stride: usize, threshold: f64) -> f64 {
+        self.evaluate(theta, stride, None, threshold).sse
     }
 
     /// The parameter set of θ (with its projected linear parameters), in SI.
@@ -404,7 +430,7 @@ impl Problem {
 
     /// The full evaluation of θ on the whole record.
     pub fn eval_full(&self, theta: &[f64]) -> Eval {
-        self.evaluate(theta, 1, None)
+        self.evaluate(theta, 1, None, f64::INFINITY)
     }
 
     /// SSE of a complete parameter set (no projection), as seed 001's GA scores it.
@@ -435,10 +461,11 @@ impl Problem {
     }
 }
 
+/// Simulates `model` on `u` from rest, calling `visit(k, y_k)` until it returns false.
 fn simulate_iter(
     model: &CoreModel,
     u: impl Iterator<Item = f32>,
-    visit: &mut impl FnMut(usize, f32),
+    visit: &mut impl FnMut(usize, f32) -> bool,
 ) {
     // The decimated record is consumed lazily through a small fixed buffer (no per-evaluation copy).
     let mut chunk = [0.0f32; 256];
@@ -449,7 +476,9 @@ fn simulate_iter(
         chunk[filled] = v;
         filled += 1;
         if filled == chunk.len() {
-            model_state.run(model, &chunk, &mut k, visit);
+            if !model_state.run(model, &chunk, &mut k, visit) {
+                return;
+            }
             filled = 0;
         }
     }
@@ -468,14 +497,15 @@ impl SimState {
         Self::Fresh
     }
 
+    /// Runs a chunk; false when `visit` asked to stop.
     fn run(
         &mut self,
         model: &CoreModel,
         u: &[f32],
         k: &mut usize,
-        visit: &mut impl FnMut(usize, f32),
-    ) {
-        let Some(&u0) = u.first() else { return };
+        visit: &mut impl FnMut(usize, f32) -> bool,
+    ) -> bool {
+        let Some(&u0) = u.first() else { return true };
         if let Self::Fresh = self {
             *self = match model {
                 CoreModel::Static(_) => Self::Static(piezo_core::ModelState::at_rest(u0)),
@@ -490,9 +520,13 @@ impl SimState {
                 (CoreModel::Oscillator(m), Self::Oscillator(s)) => m.step(s, v),
                 _ => f32::NAN,
             };
-            visit(*k, y);
+            let go_on = visit(*k, y);
             *k += 1;
+            if !go_on {
+                return false;
+            }
         }
+        true
     }
 }
 
@@ -615,7 +649,11 @@ pub fn differential_evolution(
                     .collect()
             })
             .collect();
-        let ft: Vec<f64> = trials.par_iter().map(|t| problem.sse(t, stride)).collect();
+        let ft: Vec<f64> = trials
+            .par_iter()
+            .zip(f.par_iter())
+            .map(|(t, &parent)| problem.sse_unless_above(t, stride, parent))
+            .collect();
         let before = f[best];
         for (i, (t, v)) in trials.into_iter().zip(ft).enumerate() {
             if v <= f[i] {
@@ -692,7 +730,7 @@ pub fn levenberg_marquardt(
                 if j > 0 {
                     t[j - 1] += steps[j - 1];
                 }
-                problem.evaluate(&t, 1, Some((r, b))).sse
+                problem.evaluate(&t, 1, Some((r, b)), f64::INFINITY).sse
             })
             .collect();
         if base_f.iter().any(|v| !v.is_finite()) {

@@ -6,10 +6,19 @@
 //! periodic multisine) by [`UPSAMPLING`], and the core oscillator runs at that rate with one RK4 sub-step
 //! per upsampled sample; its output is read at the original samples. `predict` does the same.
 //!
+//! A record that is not one or more whole periods (a sine sweep) would be wrapped by that
+//! interpolation: its last sample joined to its first, and the jump rung through the record as
+//! Gibbs oscillations between the samples. Such a record, recognised by the energy its wrap puts
+//! into the top tenth of the band (≥ 1e-15 of the total; whole periods of a band-limited input leave
+//! only rounding there, ~1e-23), is interpolated as its even extension `u, reversed(u)` instead, which
+//! is continuous at both joins.
+//!
 //! β, γ and δ enter only as the products β·γ and β·δ, so β is fixed at 1 and γ, δ carry the products.
 //! θ = (log10 m, log10 c, log10 k, log10 α, β·γ, β·δ, ν); differential evolution on the first
-//! 2048 samples (input upsampled by 4 only), then Levenberg–Marquardt (forward-difference Jacobian, columns in parallel) on the
-//! whole training record. Never fit on test data: this sees only the record it is given.
+//! 2048 samples (input upsampled by 4 only; a trial's simulation stops once its running SSE passes
+//! its parent's), then Levenberg–Marquardt on the whole training record with the Jacobian from the
+//! sensitivity equations ([`sensitivities`]; one pass instead of one simulation per parameter). Never
+//! fit on test data: this sees only the record it is given.
 
 // Index loops for the small dense algebra; `%` rather than `is_multiple_of` (rust-version 1.80).
 #![allow(clippy::needless_range_loop, clippy::manual_is_multiple_of)]
@@ -28,8 +37,35 @@ use std::time::Instant;
 /// Input upsampling factor (750 Hz → 15 kHz, the benchmark's own integration rate).
 pub const UPSAMPLING: u32 = 20;
 
-/// Band-limited interpolation of a record taken as periodic: `factor` samples per input sample.
+/// Band-limited interpolation of a record: `factor` samples per input sample. Taken as periodic
+/// when it is (module doc), else through its even extension.
 pub fn upsample(u: &[f64], factor: usize) -> Vec<f64> {
+    if is_whole_periods(u) {
+        return upsample_periodic(u, factor);
+    }
+    let even: Vec<f64> = u.iter().chain(u.iter().rev()).copied().collect();
+    let mut fine = upsample_periodic(&even, factor);
+    fine.truncate(u.len() * factor);
+    fine
+}
+
+/// Whether the periodic extension of `u` is band-limited: less than 1e-15 of its spectral energy in
+/// the top tenth of the band.
+fn is_whole_periods(u: &[f64]) -> bool {
+    let n = u.len();
+    let mut spec: Vec<Complex<f64>> = u.iter().map(|&v| Complex::new(v, 0.0)).collect();
+    rustfft::FftPlanner::<f64>::new()
+        .plan_fft_forward(n)
+        .process(&mut spec);
+    let half = n / 2 + 1;
+    let energy = |k: &usize| spec[*k].norm_sqr();
+    let total: f64 = (0..half).map(|k| energy(&k)).sum();
+    let top: f64 = (half * 9 / 10..half).map(|k| energy(&k)).sum();
+    !(top > 1e-15 * total)
+}
+
+/// Trigonometric interpolation of a record taken as periodic.
+fn upsample_periodic(u: &[f64], factor: usize) -> Vec<f64> {
     let n = u.len();
     let m = n * factor;
     let mut planner = rustfft::FftPlanner::<f64>::new();
@@ -74,20 +110,156 @@ pub fn simulate(
     factor: usize,
     mut visit: impl FnMut(usize, f32),
 ) -> Result<(), piezo_core::ParamError> {
+    simulate_while(params, sample_period_s, fine_input, factor, |k, y| {
+        visit(k, y);
+        true
+    })
+}
+
+/// [`simulate`], stopping when `visit` returns false.
+fn simulate_while(
+    params: OscillatorParams,
+    sample_period_s: f64,
+    fine_input: &[f32],
+    factor: usize,
+    mut visit: impl FnMut(usize, f32) -> bool,
+) -> Result<(), piezo_core::ParamError> {
     let model = HystereticOscillator::new(params, (sample_period_s / factor as f64) as f32, 1)?;
     let mut state = OscillatorState {
         input_n: f64::from(fine_input.first().copied().unwrap_or(0.0)),
         ..Default::default()
     };
     // Sample k sits at fine index k·factor; the first sample is the initial (rest) state.
-    visit(0, 0.0);
+    if !visit(0, 0.0) {
+        return Ok(());
+    }
     for (i, &v) in fine_input.iter().enumerate().skip(1) {
         let y = model.step(&mut state, v);
-        if i % factor == 0 {
-            visit(i / factor, y);
+        if i % factor == 0 && !visit(i / factor, y) {
+            break;
         }
     }
     Ok(())
+}
+
+/// Number of identified parameters θ.
+const DIM: usize = 7;
+
+/// The Jacobian of the simulated output with respect to θ by the sensitivity equations, integrated
+/// along the same input path and with the same RK4 stages as the core's step (one sub-step per
+/// upsampled sample, the input linear inside it): with x = (y, ẏ, z), f(x, u; θ) the oscillator's
+/// right-hand side and S = ∂x/∂θ, `Ṡ = (∂f/∂x)·S + ∂f/∂θ`. In θ's coordinates
+/// (log10 m, log10 c, log10 k, log10 α, β·γ, β·δ, ν), with p = |z|^(ν−1):
+///
+/// ```text
+/// ∂v̇/∂(y, v, z) = −(k, c, 1)/m          ∂ż/∂v = α − (βγ·sgn v·p·z + βδ·p·|z|)
+/// ∂ż/∂z = −ν·p·(βγ·|v| + βδ·v·sgn z)
+/// ∂v̇/∂θ₀..₂ = −ln10·(v̇, c·v/m, k·y/m)   ∂ż/∂θ₃ = ln10·α·v
+/// ∂ż/∂(βγ, βδ) = −(|v|·p·z, v·p·|z|)     ∂ż/∂ν = −(βγ·|v|·p·z + βδ·v·p·|z|)·ln|z|
+/// ```
+///
+/// The state is the core's (f64 from f32 parameters); every objective value still comes from the
+/// core's own step. Writes the residuals `y_k − y_meas` and the rows `∂y_k/∂θ` of the scored samples
+/// `from..limit`.
+fn sensitivities(
+    params: OscillatorParams,
+    sample_period_s: f64,
+    fine: &[f32],
+    factor: usize,
+    measured: (&[f64], usize, usize),
+    resid: &mut [f64],
+    jac: &mut [[f64; DIM]],
+) -> bool {
+    let (y_meas, from, limit) = measured;
+    let m = f64::from(params.mass_kg);
+    let c = f64::from(params.damping_n_s_per_m);
+    let k = f64::from(params.stiffness_n_per_m);
+    let alpha = f64::from(params.alpha_n_per_m);
+    let bg = f64::from(params.beta_per_m) * f64::from(params.gamma);
+    let bd = f64::from(params.beta_per_m) * f64::from(params.delta);
+    let nu = f64::from(params.nu);
+    let ln10 = std::f64::consts::LN_10;
+    let h = f64::from((sample_period_s / factor as f64) as f32);
+    // State and sensitivities: [y, v, z] and s[j] = ∂[y, v, z]/∂θ_j.
+    type Block = ([f64; 3], [[f64; 3]; DIM]);
+    let rhs = |x: &[f64; 3], s: &[[f64; 3]; DIM], u: f64| -> Block {
+        let (y, v, z) = (x[0], x[1], x[2]);
+        let az = z.abs();
+        let p = if nu == 1.0 { 1.0 } else { az.powf(nu - 1.0) };
+        let acc = (u - c * v - k * y - z) / m;
+        let zdot = alpha * v - (bg * v.abs() * p * z + bd * v * p * az);
+        let dzdv = alpha - (bg * v.signum() * p * z + bd * p * az);
+        let dzdz = -nu * p * (bg * v.abs() + bd * v * z.signum());
+        let ln_az = if az > 0.0 { az.ln() } else { 0.0 };
+        let forcing: [[f64; 3]; DIM] = [
+            [0.0, -ln10 * acc, 0.0],
+            [0.0, -ln10 * c * v / m, 0.0],
+            [0.0, -ln10 * k * y / m, 0.0],
+            [0.0, 0.0, ln10 * alpha * v],
+            [0.0, 0.0, -v.abs() * p * z],
+            [0.0, 0.0, -v * p * az],
+            [0.0, 0.0, -(bg * v.abs() * p * z + bd * v * p * az) * ln_az],
+        ];
+        let mut ds = [[0.0; 3]; DIM];
+        for j in 0..DIM {
+            let sj = s[j];
+            ds[j] = [
+                sj[1],
+                -(k * sj[0] + c * sj[1] + sj[2]) / m + forcing[j][1],
+                dzdv * sj[1] + dzdz * sj[2] + forcing[j][2],
+            ];
+        }
+        ([v, acc, zdot], ds)
+    };
+    let axpy = |x: &Block, d: &Block, w: f64| -> Block {
+        let mut out = *x;
+        for i in 0..3 {
+            out.0[i] += w * d.0[i];
+        }
+        for j in 0..DIM {
+            for i in 0..3 {
+                out.1[j][i] += w * d.1[j][i];
+            }
+        }
+        out
+    };
+    let mut state: Block = ([0.0; 3], [[0.0; 3]; DIM]);
+    let mut u0 = f64::from(fine.first().copied().unwrap_or(0.0));
+    let fine = &fine[..(limit * factor).min(fine.len())];
+    for (i, &v) in fine.iter().enumerate().skip(1) {
+        let u1 = f64::from(v);
+        let um = u0 + (u1 - u0) * 0.5;
+        let k1 = rhs(&state.0, &state.1, u0);
+        let s2 = axpy(&state, &k1, 0.5 * h);
+        let k2 = rhs(&s2.0, &s2.1, um);
+        let s3 = axpy(&state, &k2, 0.5 * h);
+        let k3 = rhs(&s3.0, &s3.1, um);
+        let s4 = axpy(&state, &k3, h);
+        let k4 = rhs(&s4.0, &s4.1, u1);
+        let mut next = state;
+        for i in 0..3 {
+            next.0[i] += h / 6.0 * (k1.0[i] + 2.0 * k2.0[i] + 2.0 * k3.0[i] + k4.0[i]);
+        }
+        for j in 0..DIM {
+            for i in 0..3 {
+                next.1[j][i] +=
+                    h / 6.0 * (k1.1[j][i] + 2.0 * k2.1[j][i] + 2.0 * k3.1[j][i] + k4.1[j][i]);
+            }
+        }
+        state = next;
+        u0 = u1;
+        if i % factor == 0 {
+            let sample = i / factor;
+            if sample >= from && sample < limit {
+                let r = sample - from;
+                resid[r] = f64::from(state.0[0] as f32) - y_meas[sample];
+                for j in 0..DIM {
+                    jac[r][j] = state.1[j][0];
+                }
+            }
+        }
+    }
+    state.0.iter().all(|v| v.is_finite())
 }
 
 struct Objective<'a> {
@@ -100,19 +272,19 @@ struct Objective<'a> {
 }
 
 impl Objective<'_> {
-    fn residuals(&self, theta: &[f64], limit: usize, mut out: Option<&mut [f64]>) -> f64 {
+    /// SSE of θ on the samples `from..limit`; ∞ as soon as the running sum passes `abandon_above`
+    /// (a losing trial of differential evolution: the rest can only add to it).
+    fn residuals(&self, theta: &[f64], limit: usize, abandon_above: f64) -> f64 {
         self.evaluations.fetch_add(1, Ordering::Relaxed);
         let factor = self.factor;
         let fine = &self.fine[..(limit * factor).min(self.fine.len())];
         let mut sse = 0.0;
-        let ok = simulate(params_of(theta), self.t, fine, factor, |k, v| {
+        let ok = simulate_while(params_of(theta), self.t, fine, factor, |k, v| {
             if k >= self.from && k < limit {
                 let e = f64::from(v) - self.y[k];
                 sse += e * e;
-                if let Some(o) = out.as_deref_mut() {
-                    o[k - self.from] = e;
-                }
             }
+            sse <= abandon_above
         });
         if ok.is_err() || !sse.is_finite() {
             f64::INFINITY
@@ -190,7 +362,7 @@ pub fn identify(record: &Record, s: &IdentifySettings) -> Result<Identification,
     }
     let mut f: Vec<f64> = x
         .par_iter()
-        .map(|th| coarse_obj.residuals(th, short, None))
+        .map(|th| coarse_obj.residuals(th, short, f64::INFINITY))
         .collect();
     for _ in 0..200 {
         pb.inc(1);
@@ -217,7 +389,8 @@ pub fn identify(record: &Record, s: &IdentifySettings) -> Result<Identification,
             .collect();
         let ft: Vec<f64> = trials
             .par_iter()
-            .map(|th| coarse_obj.residuals(th, short, None))
+            .zip(f.par_iter())
+            .map(|(th, &parent)| coarse_obj.residuals(th, short, parent))
             .collect();
         for (i, (th, v)) in trials.into_iter().zip(ft).enumerate() {
             if v <= f[i] {
@@ -228,42 +401,34 @@ pub fn identify(record: &Record, s: &IdentifySettings) -> Result<Identification,
     }
     let best = (0..pop).min_by(|&a, &b| f[a].total_cmp(&f[b])).unwrap_or(0);
     let mut theta = x[best].clone();
-    // Local stage: LM on the whole record.
+    // Local stage: LM on the whole record, the Jacobian by the sensitivity equations.
     pb.set_message("oscillator LM");
     let m = n - from;
-    let mut cols: Vec<Vec<f64>> = vec![vec![0.0; m]; dim + 1];
-    let mut fbest = obj.residuals(&theta, n, None);
+    let mut resid = vec![0.0; m];
+    let mut jac = vec![[0.0; DIM]; m];
+    let mut fbest = obj.residuals(&theta, n, f64::INFINITY);
     let mut lambda = 1e-3;
     for _ in 0..40 {
         pb.inc(1);
-        let steps: Vec<f64> = theta.iter().map(|v| 1e-6 * (1.0 + v.abs())).collect();
-        let ok = cols
-            .par_iter_mut()
-            .enumerate()
-            .map(|(j, c)| {
-                let mut th = theta.clone();
-                if j > 0 {
-                    th[j - 1] += steps[j - 1];
-                }
-                obj.residuals(&th, n, Some(c))
-            })
-            .all(|v| v.is_finite());
-        if !ok {
+        evaluations.fetch_add(1, Ordering::Relaxed);
+        let measured = (record.y_m.as_slice(), from, n);
+        let params = params_of(&theta);
+        if !sensitivities(params, t, &fine, factor, measured, &mut resid, &mut jac) {
             break;
         }
         let mut jtj = vec![vec![0.0; dim]; dim];
         let mut jtr = vec![0.0; dim];
-        let mut col = vec![0.0; dim];
-        for k in 0..m {
-            let r0 = cols[0][k];
-            for j in 0..dim {
-                col[j] = (cols[j + 1][k] - r0) / steps[j];
-            }
+        for (row, &r0) in jac.iter().zip(&resid) {
             for a in 0..dim {
-                jtr[a] += col[a] * r0;
-                for b in 0..dim {
-                    jtj[a][b] += col[a] * col[b];
+                jtr[a] += row[a] * r0;
+                for b in a..dim {
+                    jtj[a][b] += row[a] * row[b];
                 }
+            }
+        }
+        for a in 0..dim {
+            for b in 0..a {
+                jtj[a][b] = jtj[b][a];
             }
         }
         let mut improved = false;
@@ -286,7 +451,7 @@ pub fn identify(record: &Record, s: &IdentifySettings) -> Result<Identification,
                 .zip(&bounds)
                 .map(|((a, b), &(lo, hi))| (a + b).clamp(lo, hi))
                 .collect();
-            let ft = obj.residuals(&trial, n, None);
+            let ft = obj.residuals(&trial, n, f64::INFINITY);
             if ft < fbest {
                 improved = (fbest - ft) / fbest > 1e-9;
                 theta = trial;
