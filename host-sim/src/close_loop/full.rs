@@ -94,11 +94,15 @@ pub struct EffectBounds {
     pub coupling_max: f64,
     /// Sample period \[s\].
     pub sample_period_s: f64,
+    /// Sign of the stage's static gain dy/du (±1): a creep gain of this sign keeps the output moving
+    /// the way a command change moved it.
+    pub gain_sign: f64,
 }
 
 impl EffectBounds {
     /// The ranges for a record: sample period `ts`, scored duration `record_s`, dominant input
-    /// frequency `f_dom`, output stroke `stroke_m`, linear gain `gain_m_per_v`, input span `span_v`.
+    /// frequency `f_dom`, output stroke `stroke_m`, linear gain `gain_m_per_v` (signed: the sign of
+    /// dy/du), input span `span_v`.
     pub fn for_record(
         ts: f64,
         record_s: f64,
@@ -124,6 +128,7 @@ impl EffectBounds {
             mode_damping: (0.005, 2.0),
             coupling_max: 0.3,
             sample_period_s: ts,
+            gain_sign: if gain_m_per_v < 0.0 { -1.0 } else { 1.0 },
         }
     }
 }
@@ -594,9 +599,10 @@ impl AxisModel {
                 let width = s.hi - s.lo;
                 let at = width.is_finite()
                     && (t - s.lo <= AT_BOUND_SHARE * width || s.hi - t <= AT_BOUND_SHARE * width);
-                // Creep moves the output in the direction of a command change: a gain ≤ 0 (fitted
-                // freely, so that the fit is not stuck at 0) is not creep.
-                let at = at || (s.name.contains("creep_gain") && t <= 0.0);
+                // Creep keeps the output moving the way a command change moved it: a gain of the
+                // other sign than the static gain dy/du, or 0 (fitted freely, so that the fit is
+                // not stuck at 0), is not creep.
+                let at = at || (s.name.contains("creep_gain") && t * self.bounds.gain_sign <= 0.0);
                 (s.name, s.value(t), s.range(), at)
             })
             .collect()

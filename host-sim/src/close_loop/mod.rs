@@ -257,7 +257,18 @@ fn base_model(record: &Record, s: &CloseLoopSettings) -> Result<AxisModel, Strin
     let ts = record.sample_period_s();
     let record_s = ts * (record.u.len() - from) as f64;
     let f_dom = diagnose::dominant_frequency_hz(&record.u[from..], ts);
-    let gain = stroke / (u_hi - u_lo).max(1e-12);
+    // The static gain dy/du: the least-squares slope of y on u over the scored samples, its size
+    // the stroke over the input span.
+    let slope = {
+        let (us, ys) = (&record.u[from..], &record.y_m[from..]);
+        let n = us.len().max(1) as f64;
+        let (mu, my) = (us.iter().sum::<f64>() / n, ys.iter().sum::<f64>() / n);
+        us.iter()
+            .zip(ys)
+            .map(|(u, y)| (u - mu) * (y - my))
+            .sum::<f64>()
+    };
+    let gain = stroke / (u_hi - u_lo).max(1e-12) * if slope < 0.0 { -1.0 } else { 1.0 };
     let window = stage::output_window(&record.u);
     let mut model = AxisModel {
         bouc_wen,
@@ -294,6 +305,59 @@ fn base_model(record: &Record, s: &CloseLoopSettings) -> Result<AxisModel, Strin
     Ok(model)
 }
 
+/// A start for the creep fit with gains of the sign of the stage's static gain (σ) and the static
+/// gain k1 + (creep's gain) of `model` kept, when `fitted` (from the screening's start `init`)
+/// ended with a creep gain of the other sign or 0; `None` otherwise. The start's gain per element
+/// is the largest of the fitted and screened magnitudes and 2 % of |k1| (a stack's creep per
+/// decade of time).
+fn creep_restart(model: &AxisModel, fitted: &AxisModel, init: EffectInit) -> Option<AxisModel> {
+    let e = &fitted.effects;
+    let b = model.bounds;
+    let sign = b.gain_sign;
+    let k1 = f64::from(model.map.k1_m_per_v);
+    let floor = 0.02 * k1.abs();
+    let start = match init {
+        EffectInit::Creep {
+            gains_m_per_v,
+            time_constants_s,
+        } => {
+            let n = fitted.creep_elements;
+            let gains = &e.creep_gain_m_per_v[..n];
+            if gains.iter().all(|&g| f64::from(g) * sign > 0.0) {
+                return None;
+            }
+            let mut g = [0.0; 2];
+            for i in 0..n {
+                g[i] = sign
+                    * f64::from(gains[i])
+                        .abs()
+                        .max(gains_m_per_v[i].abs())
+                        .max(floor);
+            }
+            let mut m = model.with_effect(EffectInit::Creep {
+                gains_m_per_v: g,
+                time_constants_s,
+            });
+            m.map.k1_m_per_v = (k1 - g.iter().sum::<f64>()) as f32;
+            m
+        }
+        EffectInit::LogCreep { gain_m_per_v } => {
+            let g_fit = f64::from(e.log_creep_gain_m_per_v);
+            if g_fit * sign > 0.0 {
+                return None;
+            }
+            let g = sign * g_fit.abs().max(gain_m_per_v.abs()).max(0.5 * floor);
+            let mut m = model.with_effect(EffectInit::LogCreep { gain_m_per_v: g });
+            // After a step the logarithmic creep has reached g·log10(1 + t/t0); at half the record:
+            let decades = (1.0 + 0.5 * b.record_s / b.sample_period_s).log10();
+            m.map.k1_m_per_v = (k1 - g * decades) as f32;
+            m
+        }
+        _ => return None,
+    };
+    Some(start)
+}
+
 /// Fits, judges and decides one candidate.
 #[allow(clippy::too_many_arguments)]
 fn try_candidate(
@@ -307,7 +371,18 @@ fn try_candidate(
     t_s: &[f64],
 ) -> Trial {
     let n = data.fitted_count() as f64;
-    let (fitted, sse1, _) = refit(&model.with_effect(cand.init), data, TRIAL_ITERATIONS);
+    let (mut fitted, mut sse1, _) = refit(&model.with_effect(cand.init), data, TRIAL_ITERATIONS);
+    // A base fitted without creep has the creep's long-term gain in k1 (and its lag in the loop),
+    // so a creep fit started from the screening may settle at a gain of the wrong sign. It is
+    // started again with gains of the static gain's sign and the static gain held (k1 lowered by
+    // the creep's gain).
+    if let Some(start) = creep_restart(model, &fitted, cand.init) {
+        let (again, sse_again, _) = refit(&start, data, TRIAL_ITERATIONS);
+        if sse_again.is_finite() && Plausibility::of(&again, cand.effect).plausible() {
+            fitted = again;
+            sse1 = sse_again;
+        }
+    }
     let kind = cand.effect;
     let p_new = (fitted.encode().0.len() - model.encode().0.len()) as f64;
     let plausibility = Plausibility::of(&fitted, kind);
@@ -375,6 +450,18 @@ fn try_candidate(
     trial
 }
 
+/// The search's result on one axis.
+struct AxisSearch {
+    /// The final model.
+    model: AxisModel,
+    /// The decision log.
+    steps: Vec<Step>,
+    /// Sensor noise estimate \[m\].
+    noise_m: f64,
+    /// Held-out RMS (cross-validation) of the base and the final model \[m\].
+    held_out_rms: (f64, f64),
+}
+
 /// Runs the search on one axis; `other_z` is the other axis's z (two-axis records).
 fn close_axis(
     name: &str,
@@ -383,7 +470,7 @@ fn close_axis(
     s: &CloseLoopSettings,
     base: AxisModel,
     run: Option<&OtherRun>,
-) -> Result<(AxisModel, Vec<Step>, f64, (f64, f64)), String> {
+) -> Result<AxisSearch, String> {
     let from = record.index_at(s.start_s);
     let u: Vec<f32> = record.u.iter().map(|&v| v as f32).collect();
     let data = FitData {
@@ -551,7 +638,12 @@ fn close_axis(
     let held_final = held.unwrap_or_else(|| held_out_sse(&model, &data, &blocks));
     let rms_of = |v: &[f64]| (v.iter().sum::<f64>() / n_scored).sqrt();
     let held_out_rms = (rms_of(&base_held), rms_of(&held_final));
-    Ok((model, steps, noise_m, held_out_rms))
+    Ok(AxisSearch {
+        model,
+        steps,
+        noise_m,
+        held_out_rms,
+    })
 }
 
 /// Runs `close-loop` on one record per axis (same times).
@@ -590,7 +682,7 @@ pub fn close_loop_validated(
         })
     };
     let names = ["x", "y"];
-    let mut finals: Vec<(AxisModel, Vec<Step>, f64, (f64, f64))> = Vec::new();
+    let mut finals: Vec<AxisSearch> = Vec::new();
     if records.len() == 1 {
         finals.push(close_axis(
             names[0],
@@ -616,8 +708,8 @@ pub fn close_loop_validated(
             bases[0].clone(),
             run.as_ref(),
         )?);
-        let z_x = finals[0].0.simulate(&f32s(&records[0]), None)?.z;
-        let run = run_of(1, other_run(0, &finals[0].0));
+        let z_x = finals[0].model.simulate(&f32s(&records[0]), None)?.z;
+        let run = run_of(1, other_run(0, &finals[0].model));
         finals.push(close_axis(
             names[1],
             &records[1],
@@ -630,12 +722,16 @@ pub fn close_loop_validated(
     // The predictions of the fitted record through piezo-stage's chain.
     let us: Vec<Vec<f32>> = records.iter().map(f32s).collect();
     let before = stage::predict(&bases.iter().collect::<Vec<_>>(), &us)?;
-    let after = stage::predict(&finals.iter().map(|f| &f.0).collect::<Vec<_>>(), &us)?;
+    let after = stage::predict(&finals.iter().map(|f| &f.model).collect::<Vec<_>>(), &us)?;
     let mut axes = Vec::new();
     let (mut all_y, mut all_b, mut all_a) = (Vec::new(), Vec::new(), Vec::new());
-    for (i, (((model, steps, noise_m, held_out_rms), base), r)) in
-        finals.into_iter().zip(bases).zip(records).enumerate()
-    {
+    for (i, ((found, base), r)) in finals.into_iter().zip(bases).zip(records).enumerate() {
+        let AxisSearch {
+            model,
+            steps,
+            noise_m,
+            held_out_rms,
+        } = found;
         all_y.extend_from_slice(&r.y_m[from..]);
         all_b.extend_from_slice(&before[i][from..]);
         all_a.extend_from_slice(&after[i][from..]);

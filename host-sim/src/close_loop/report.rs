@@ -69,10 +69,14 @@ impl Trial {
         );
         if let Some(o) = &self.out_of_sample {
             s.push_str(&format!(
-                "; out of sample held-out MSE {:+.1} % (gain {:.3e} ± {:.3e} m² per block)",
+                "; out of sample held-out MSE {:+.1} % (per block {}; t = {:.2})",
                 -100.0 * o.relative_gain,
-                o.mean_gain,
-                o.standard_error()
+                o.log_ratios
+                    .iter()
+                    .map(|l| format!("{:+.1} %", 100.0 * l.exp_m1()))
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                o.t_statistic()
             ));
         }
         if let Some(r) = &self.another_run {

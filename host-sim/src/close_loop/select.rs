@@ -3,15 +3,24 @@
 //! **Out of sample.** The scored record is cut into [`FOLDS`] contiguous blocks in time. For each
 //! block b, the model with and without the effect is refitted on the other blocks (Levenberg–Marquardt
 //! from the full fit) and predicts block b with its state carried through: the whole record is
-//! simulated, only block b is scored. With g_b = MSE_b(without) − MSE_b(with), the effect holds when
-//! the mean gain ḡ exceeds its spread across the folds, ḡ > [`SPREAD_FACTOR`]·s_g/√K (s_g the
-//! standard deviation of the g_b, K the number of folds), and the pooled held-out MSE falls by at
-//! least [`MIN_RELATIVE_GAIN`]. On a `--validate` record (another run) the model fitted on the whole
-//! record must also lower the RMS with one constant offset re-estimated on that record.
+//! simulated, only block b is scored. The test is scale-free: a block's error depends on where it
+//! lies (start-up, large or small loops), so the absolute gains MSE_b(without) − MSE_b(with) spread
+//! with the blocks' own error even when every block improves by 99 %. Per block the log ratio
+//! ℓ_b = ln(MSE_b(with) / MSE_b(without)) is taken (−4.6 for a 99 % gain, 0 for none); the effect holds
+//! when (1) their mean is below zero by more than [`T_CRITICAL`] standard errors,
+//! −ℓ̄ > t·s_ℓ/√K (s_ℓ the standard deviation of the ℓ_b, K = 4 blocks: a one-sided t-test of "no
+//! gain" at 90 %, Student's t with 3 degrees of freedom), (2) no block is predicted more than
+//! [`MAX_BLOCK_LOSS`] worse (ℓ_b ≤ ln 1.1), and (3) the pooled held-out MSE falls by at least
+//! [`MIN_RELATIVE_GAIN`] (5 %). On effect-free data the ℓ_b of a spurious effect scatter around 0
+//! (or sit within a few per cent of it), which (1) or (3) refuse; a genuine effect lowers every
+//! block's error by a similar factor, which passes however different the blocks' errors are. On a
+//! `--validate` record (another run) the model fitted on the whole record must also lower the RMS
+//! with one constant offset re-estimated on that record.
 //!
 //! **Plausibility.** Every effect parameter is fitted inside the range that makes it that effect
 //! ([`super::full::EffectBounds`]): creep time constants from three sample periods to a third of
-//! the record and gains > 0 (the output keeps moving in the direction of a command change), a
+//! the record and gains of the sign of the stage's static gain dy/du (the output keeps moving the
+//! way a command change moved it), a
 //! settling drift slower than two input periods, a delay up to 5 % of the input period (at most
 //! 64 samples), a mode between ten times the dominant input frequency and 85 % of Nyquist. A fit
 //! that ends within [`super::full::AT_BOUND_SHARE`] of such a bound is not that effect and is
@@ -27,11 +36,13 @@ use serde_json::{json, Value};
 
 /// Number of blocks of the cross-validation.
 pub const FOLDS: usize = 4;
-/// The mean held-out gain must exceed this many standard errors of the fold gains: the one-sided
-/// 90 % point of Student's t with FOLDS − 1 = 3 degrees of freedom (a one-sided t-test of "no gain").
-pub const SPREAD_FACTOR: f64 = 1.638;
+/// The mean log ratio of the held-out MSEs must lie this many standard errors below zero: the
+/// one-sided 90 % point of Student's t with FOLDS − 1 = 3 degrees of freedom.
+pub const T_CRITICAL: f64 = 1.638;
+/// No held-out block may be predicted worse than this factor of its MSE without the effect.
+pub const MAX_BLOCK_LOSS: f64 = 1.1;
 /// The pooled held-out MSE must fall by at least this share.
-pub const MIN_RELATIVE_GAIN: f64 = 0.01;
+pub const MIN_RELATIVE_GAIN: f64 = 0.05;
 /// Nothing is added when the residual RMS is below this factor times the noise estimate.
 pub const NOISE_FLOOR_FACTOR: f64 = 1.2;
 /// Levenberg–Marquardt iterations of a fold's refit (it starts from the full fit).
@@ -74,9 +85,11 @@ pub struct OutOfSample {
     pub mse_without: Vec<f64>,
     /// Held-out MSE per block with it \[m²\].
     pub mse_with: Vec<f64>,
-    /// Mean of the per-block gains \[m²\].
-    pub mean_gain: f64,
-    /// Standard deviation of the per-block gains \[m²\].
+    /// Per block, ln(MSE with / MSE without).
+    pub log_ratios: Vec<f64>,
+    /// Mean of the log ratios.
+    pub mean_log_ratio: f64,
+    /// Standard deviation of the log ratios.
     pub spread: f64,
     /// Share by which the pooled held-out MSE falls.
     pub relative_gain: f64,
@@ -89,15 +102,26 @@ impl OutOfSample {
         let n: Vec<f64> = blocks.iter().map(|(a, b)| (b - a) as f64).collect();
         let mse_without: Vec<f64> = without.iter().zip(&n).map(|(s, n)| s / n).collect();
         let mse_with: Vec<f64> = with.iter().zip(&n).map(|(s, n)| s / n).collect();
-        let gains: Vec<f64> = mse_without
+        let log_ratios: Vec<f64> = mse_without
             .iter()
             .zip(&mse_with)
-            .map(|(a, b)| a - b)
+            .map(|(a, b)| {
+                if b.is_finite() {
+                    (b.max(1e-300) / a.max(1e-300)).ln()
+                } else {
+                    f64::INFINITY
+                }
+            })
             .collect();
-        let k = gains.len().max(1) as f64;
-        let mean_gain = gains.iter().sum::<f64>() / k;
-        let spread = if gains.len() > 1 {
-            (gains.iter().map(|g| (g - mean_gain).powi(2)).sum::<f64>() / (k - 1.0)).sqrt()
+        let k = log_ratios.len().max(1) as f64;
+        let mean_log_ratio = log_ratios.iter().sum::<f64>() / k;
+        let spread = if log_ratios.len() > 1 && mean_log_ratio.is_finite() {
+            (log_ratios
+                .iter()
+                .map(|l| (l - mean_log_ratio).powi(2))
+                .sum::<f64>()
+                / (k - 1.0))
+                .sqrt()
         } else {
             f64::INFINITY
         };
@@ -116,21 +140,35 @@ impl OutOfSample {
                 .collect(),
             mse_without,
             mse_with,
-            mean_gain,
+            log_ratios,
+            mean_log_ratio,
             spread,
             relative_gain,
         }
     }
 
-    /// The standard error of the mean gain \[m²\].
+    /// The standard error of the mean log ratio.
     pub fn standard_error(&self) -> f64 {
-        self.spread / (self.mse_with.len().max(1) as f64).sqrt()
+        self.spread / (self.log_ratios.len().max(1) as f64).sqrt()
+    }
+
+    /// The t statistic of "no gain": −mean / standard error (∞ when every block gains alike).
+    pub fn t_statistic(&self) -> f64 {
+        let se = self.standard_error();
+        if se > 0.0 {
+            -self.mean_log_ratio / se
+        } else if self.mean_log_ratio < 0.0 {
+            f64::INFINITY
+        } else {
+            0.0
+        }
     }
 
     /// Whether the effect holds out of sample (module doc).
     pub fn holds(&self) -> bool {
-        self.mean_gain.is_finite()
-            && self.mean_gain > SPREAD_FACTOR * self.standard_error()
+        self.mean_log_ratio.is_finite()
+            && self.t_statistic() > T_CRITICAL
+            && self.log_ratios.iter().all(|&l| l <= MAX_BLOCK_LOSS.ln())
             && self.relative_gain >= MIN_RELATIVE_GAIN
     }
 
@@ -141,11 +179,15 @@ impl OutOfSample {
             "blocks_s": self.blocks_s.iter().map(|(a, b)| [a, b]).collect::<Vec<_>>(),
             "mse_without_m2": self.mse_without,
             "mse_with_m2": self.mse_with,
-            "mean_gain_m2": self.mean_gain,
-            "spread_m2": self.spread,
-            "standard_error_m2": self.standard_error(),
+            "log_ratios": self.log_ratios,
+            "mean_log_ratio": self.mean_log_ratio,
+            "spread": self.spread,
+            "t_statistic": self.t_statistic(),
             "relative_gain": self.relative_gain,
-            "rule": format!("mean gain > {SPREAD_FACTOR} standard errors across the blocks and the pooled held-out MSE {:.0} % lower", 100.0 * MIN_RELATIVE_GAIN),
+            "rule": format!(
+                "mean of ln(MSE with / MSE without) over the blocks more than {T_CRITICAL} standard errors below 0 (one-sided t-test, 90 %), no block more than {MAX_BLOCK_LOSS} x worse, pooled held-out MSE >= {:.0} % lower",
+                100.0 * MIN_RELATIVE_GAIN
+            ),
             "holds": self.holds(),
         })
     }
@@ -265,7 +307,7 @@ impl Refusal {
             Self::FitFailed => "the fit failed (every set refused by piezo-core)",
             Self::Implausible => "a parameter ran to the bound of its plausible range: not this effect",
             Self::NoInSampleGain => "it does not lower the residual even in sample",
-            Self::NotOutOfSample => "the gain does not hold on the held-out blocks (it does not exceed its spread across the folds)",
+            Self::NotOutOfSample => "the gain does not hold on the held-out blocks (one-sided t-test on the blocks' log MSE ratios, no block worse, pooled gain)",
             Self::WorseOnAnotherRun => "it makes the prediction of the --validate record worse",
         }
     }
