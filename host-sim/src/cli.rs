@@ -63,6 +63,11 @@ All modes command one sample ahead. Output window 0-120 V."
     /// Drives the firmware over its command link (QEMU image on a TCP port, or the board's
     /// serial device): status, excite and record, upload a stage file, track, rearm.
     Link(crate::link::LinkArgs),
+    /// Open loop, feedforward, feedback and both on the XY stage with creep, drift, noise and
+    /// quantisation: tracking error per mode and frequency, closed-loop bandwidth; writes
+    /// DIR/servo.json and plots.
+    #[command(after_help = crate::servo_bench::HELP)]
+    ServoBench(crate::servo_bench::ServoBenchArgs),
 }
 
 /// Plot formats.
@@ -168,6 +173,7 @@ pub fn run(cli: Cli) -> Result<String, String> {
         Command::CloseLoop(a) => crate::close_loop::close_loop_cmd(&a),
         Command::Compensate(a) => crate::compensate::compensate_cmd(&a),
         Command::Link(a) => crate::link::link_cmd(&a),
+        Command::ServoBench(a) => crate::servo_bench::servo_bench_cmd(&a),
     }
 }
 

@@ -23,6 +23,7 @@ pub mod ode;
 pub mod plant;
 pub mod plot;
 pub mod reproduce;
+pub mod servo_bench;
 pub mod signal;
 pub mod sim;
 pub mod stage_file;

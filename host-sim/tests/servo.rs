@@ -1,0 +1,91 @@
+//! The hybrid controller on the XY stage with creep, drift, sensor noise, DAC and ADC
+//! quantisation and the stage's resonances: shortened `servo-bench` runs, and the stage file's
+//! `[x.servo]` table.
+
+use host_sim::servo_bench::{run_bench, BenchSettings, Shape};
+use piezo_core::servo::{tune, StageDynamics, TuningGoal};
+use piezo_core::ServoMode;
+use piezo_stage::StageFile;
+
+const STACK_FILE: &str = include_str!("../../firmware/params/xy-stage.toml");
+
+#[test]
+fn feedforward_plus_feedback_beats_either_alone_and_every_mode_is_stable() {
+    let settings = BenchSettings {
+        frequencies_hz: vec![1.0, 100.0],
+        shapes: vec![Shape::Triangle],
+        periods: 0.6,
+        min_scored_s: 0.05,
+        chirp_s: 0.0,
+        ..Default::default()
+    };
+    let report = run_bench(&settings, &mut |_: &str| {}).unwrap();
+    println!("{}", report.table());
+    let rms = |mode, f| report.row(mode, Shape::Triangle, f).unwrap().rms_percent;
+    let hybrid = ServoMode::FeedforwardFeedback;
+    // Creep and drift at 1 Hz: what the feedforward alone cannot see.
+    let at_1 = rms(ServoMode::Feedforward, 1.0) / rms(hybrid, 1.0);
+    assert!(at_1 >= 5.0, "feedforward / hybrid at 1 Hz = {at_1}");
+    // 100 Hz: beyond what the loop alone can follow.
+    let at_100 = rms(ServoMode::Feedback, 100.0) / rms(hybrid, 100.0);
+    assert!(at_100 >= 5.0, "feedback / hybrid at 100 Hz = {at_100}");
+    // Stable: every mode's error stays bounded (open loop ≈ 7 % of stroke), and with feedback
+    // the error never grows past what the transient-free loop allows.
+    for row in &report.rows {
+        assert!(
+            row.rms_percent.is_finite() && row.rms_percent < 15.0 && row.max_percent < 25.0,
+            "{row:?}"
+        );
+    }
+    for f in [1.0, 100.0] {
+        assert!(report.row(hybrid, Shape::Triangle, f).unwrap().max_percent < 5.0);
+    }
+    // The last sample of every feedback run is no worse than the RMS over its run allows.
+    for t in report.traces.iter().filter(|t| t.mode.feedback()) {
+        for a in 0..2 {
+            let tail = &t.error_m[a][t.error_m[a].len() - 100..];
+            let tail_max = tail.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            assert!(
+                tail_max / report.stroke_m[a] < 0.15,
+                "{:?} {}",
+                t.mode,
+                t.freq_hz
+            );
+        }
+    }
+}
+
+#[test]
+fn servo_table_round_trips_and_is_validated_by_the_core() {
+    let mut file = StageFile::parse("xy-stage.toml", STACK_FILE).unwrap();
+    let valid = file.validate().unwrap();
+    let compensator = valid.axes[0].compensator.unwrap();
+    let dynamics = StageDynamics::from_model(compensator.model(), 3200.0, 0.035, 1.5e-4);
+    let tuning = tune(&dynamics, &TuningGoal::default(), compensator.settings()).unwrap();
+    file.x.servo = Some(tuning.params);
+    let text = file.to_toml("servo round trip");
+    assert!(text.contains("[x.servo]") && text.contains("ki_v_per_m_s"));
+    let back = StageFile::parse("back.toml", &text).unwrap();
+    assert_eq!(back, file);
+    let valid = back.validate().unwrap();
+    assert_eq!(valid.axes[0].servo.unwrap().params(), tuning.params);
+    assert!(valid.axes[1].servo.is_none());
+    // A refused table names its key.
+    let bad: String = text
+        .lines()
+        .map(|l| {
+            if l.starts_with("ki_v_per_m_s") {
+                "ki_v_per_m_s = 0.0\n".to_string()
+            } else {
+                format!("{l}\n")
+            }
+        })
+        .collect();
+    assert_ne!(bad, text);
+    let e = StageFile::parse("bad.toml", &bad)
+        .unwrap()
+        .validate()
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("x.servo.ki_v_per_m_s"), "{e}");
+}
