@@ -281,7 +281,7 @@ impl Servo {
         let t = positive("sample_period_s", limits.sample_period_s)?;
         let lo = finite("output_min_v", limits.output_min_v)?;
         let hi = finite("output_max_v", limits.output_max_v)?;
-        if !(hi > lo) {
+        if hi <= lo {
             return Err(ParamError::OutOfRange {
                 field: "output_max_v",
                 value: hi,
@@ -289,7 +289,7 @@ impl Servo {
             });
         }
         let slew = limits.slew_limit_v_per_s;
-        if !(slew > 0.0) {
+        if slew.is_nan() || slew <= 0.0 {
             return Err(ParamError::OutOfRange {
                 field: "slew_limit_v_per_s",
                 value: slew,
