@@ -659,8 +659,23 @@ impl DemoResult {
             .map_err(|e| format!("--out {}: {e}", json_path.display()))?;
         written.push(json_path.display().to_string());
         let params_path = dir.join("demo-params.toml");
-        let params =
-            crate::close_loop::parameter_file(&self.close_loop, "demo identification record", 0.0);
+        // The XY stage's own board: DAC8563 0–5 V, 24 V/V amplifier, ADS8681 ±10.24 V, 0–10 V
+        // sensor at 10 µm/V; the demo's loop rate.
+        let stage = piezo_stage::Stage {
+            name: "demo".into(),
+            version: "1".into(),
+            loop_rate_hz: crate::stage_file::rate_of(self.settings.loop_rate_hz),
+        };
+        let io = piezo_stage::Io {
+            placeholder: false,
+            ..piezo_stage::Io::placeholder()
+        };
+        let params = crate::close_loop::parameter_file(
+            &self.close_loop,
+            "demo identification record",
+            stage,
+            io,
+        );
         std::fs::write(&params_path, params)
             .map_err(|e| format!("--out {}: {e}", params_path.display()))?;
         written.push(params_path.display().to_string());

@@ -305,22 +305,21 @@ pub fn write_stage_file(
     )
 }
 
-/// The stage file's text of the final models (placeholder io, the record's rate as the loop rate;
-/// the provenance's window is the one the fit scored, whatever `_start_s`).
-pub fn parameter_file(outcome: &Outcome, data: &str, _start_s: f64) -> String {
-    let rate = 1.0 / f64::from(outcome.axes[0].model.sample_period_s);
-    let stage = piezo_stage::Stage {
-        name: "close-loop".into(),
-        version: "1".into(),
-        loop_rate_hz: crate::stage_file::rate_of(rate),
-    };
+/// The stage file's text of the final models with the given `[stage]` (name, version, loop rate)
+/// and `[io]` (the board's converter chain).
+pub fn parameter_file(
+    outcome: &Outcome,
+    data: &str,
+    stage: piezo_stage::Stage,
+    io: piezo_stage::Io,
+) -> String {
     let mut axes = final_axes(outcome, data).into_iter();
     let Some(x) = axes.next() else {
         return String::new();
     };
     let file = StageFile {
         stage,
-        io: piezo_stage::Io::placeholder(),
+        io,
         x,
         y: axes.next(),
     };
