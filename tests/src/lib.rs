@@ -190,3 +190,58 @@ pub mod fixtures {
         )
     }
 }
+
+/// What the tests that build and run a firmware image under QEMU share: whether the tools are
+/// here, where to build (a target directory of its own beside the outer `cargo test`'s, so the two
+/// never wait for each other's lock), and a line on the real stderr.
+pub mod qemu {
+    use std::io::Write as _;
+    use std::path::{Path, PathBuf};
+    use std::process::Command;
+
+    /// The firmware's target.
+    pub const TARGET: &str = "thumbv7em-none-eabihf";
+
+    /// A line on the real stderr (not captured by the test harness).
+    pub fn say(line: &str) {
+        let _ = writeln!(std::io::stderr(), "{line}");
+    }
+
+    /// The workspace root.
+    pub fn workspace() -> PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .parent()
+            .expect("tests/ is inside the workspace")
+            .to_path_buf()
+    }
+
+    /// Why an image cannot be built and run here, if it cannot (QEMU or the Rust target missing).
+    pub fn missing_tools() -> Option<String> {
+        let qemu = Command::new("qemu-system-arm").arg("--version").output();
+        if !qemu.is_ok_and(|o| o.status.success()) {
+            return Some("qemu-system-arm not found (apt-get install qemu-system-arm)".to_string());
+        }
+        let sysroot = Command::new(std::env::var("RUSTC").unwrap_or_else(|_| "rustc".into()))
+            .args(["--print", "sysroot"])
+            .output()
+            .ok()
+            .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string());
+        let installed = sysroot.is_some_and(|s| {
+            Path::new(&s)
+                .join("lib/rustlib")
+                .join(TARGET)
+                .join("lib")
+                .is_dir()
+        });
+        (!installed)
+            .then(|| format!("Rust target {TARGET} not installed (rustup target add {TARGET})"))
+    }
+
+    /// The target directory the running test binary was built in (`<dir>/debug/deps/<test>`).
+    pub fn outer_target_dir() -> PathBuf {
+        std::env::current_exe()
+            .ok()
+            .and_then(|exe| Some(exe.parent()?.parent()?.parent()?.to_path_buf()))
+            .unwrap_or_else(|| workspace().join("target"))
+    }
+}

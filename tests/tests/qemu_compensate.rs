@@ -18,60 +18,14 @@
 //! Skipped, with a message on stderr, when `qemu-system-arm` or the thumbv7em-none-eabihf target
 //! is not installed (`.ci/run` installs both).
 
-use std::io::Write as _;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 use std::time::Instant;
 
-const TARGET: &str = "thumbv7em-none-eabihf";
+use integration_tests::qemu::{missing_tools, outer_target_dir, say, workspace, TARGET};
+
 const TICKS: usize = 400;
 const RATE_HZ: f64 = 10_000.0;
-
-/// A line on the real stderr (not captured by the test harness).
-fn say(line: &str) {
-    let _ = writeln!(std::io::stderr(), "{line}");
-}
-
-fn workspace() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .expect("tests/ is inside the workspace")
-        .to_path_buf()
-}
-
-/// Why the test cannot run here, if it cannot.
-fn missing_tools() -> Option<String> {
-    let qemu = Command::new("qemu-system-arm").arg("--version").output();
-    if !qemu.is_ok_and(|o| o.status.success()) {
-        return Some("qemu-system-arm not found (apt-get install qemu-system-arm)".to_string());
-    }
-    let sysroot = Command::new(std::env::var("RUSTC").unwrap_or_else(|_| "rustc".into()))
-        .args(["--print", "sysroot"])
-        .output()
-        .ok()
-        .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string());
-    let installed = sysroot.is_some_and(|s| {
-        Path::new(&s)
-            .join("lib/rustlib")
-            .join(TARGET)
-            .join("lib")
-            .is_dir()
-    });
-    if !installed {
-        return Some(format!(
-            "Rust target {TARGET} not installed (rustup target add {TARGET})"
-        ));
-    }
-    None
-}
-
-/// The target directory the test binary was built in (`<dir>/debug/deps/<test>`).
-fn outer_target_dir() -> PathBuf {
-    std::env::current_exe()
-        .ok()
-        .and_then(|exe| Some(exe.parent()?.parent()?.parent()?.to_path_buf()))
-        .unwrap_or_else(|| workspace().join("target"))
-}
 
 fn write_reference(path: &Path) {
     let mut text = String::from("t_s,rx_m,ry_m\n");

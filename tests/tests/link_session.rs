@@ -14,51 +14,19 @@
 //! Skipped, with a message, when `qemu-system-arm` or the thumbv7em-none-eabihf target is
 //! missing.
 
-use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use clap::Parser as _;
 use host_sim::link::{fnv1a32, model_set, upload, Client};
+use integration_tests::qemu::{missing_tools, outer_target_dir, say, workspace, TARGET};
 use piezo_link::{Fault, Feedforward, Mode, Request, Response, Status};
 
-const TARGET: &str = "thumbv7em-none-eabihf";
 const TIMEOUT: Duration = Duration::from_secs(20);
 
-fn say(line: &str) {
-    let _ = writeln!(std::io::stderr(), "{line}");
-}
-
 fn firmware_dir() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
-
-fn missing_tools() -> Option<String> {
-    let qemu = Command::new("qemu-system-arm").arg("--version").output();
-    if !qemu.is_ok_and(|o| o.status.success()) {
-        return Some("qemu-system-arm not found (apt-get install qemu-system-arm)".into());
-    }
-    let sysroot = Command::new(std::env::var("RUSTC").unwrap_or_else(|_| "rustc".into()))
-        .args(["--print", "sysroot"])
-        .output()
-        .ok()
-        .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string());
-    let installed = sysroot.is_some_and(|s| {
-        Path::new(&s)
-            .join("lib/rustlib")
-            .join(TARGET)
-            .join("lib")
-            .is_dir()
-    });
-    (!installed).then(|| format!("Rust target {TARGET} not installed (rustup target add {TARGET})"))
-}
-
-fn outer_target_dir() -> PathBuf {
-    std::env::current_exe()
-        .ok()
-        .and_then(|exe| Some(exe.parent()?.parent()?.parent()?.to_path_buf()))
-        .unwrap_or_else(|| firmware_dir().join("../target"))
+    workspace().join("firmware")
 }
 
 /// QEMU, stopped when dropped (SIGTERM to `timeout`, which passes it on to QEMU).
