@@ -16,7 +16,8 @@
 //! β, γ and δ enter only as the products β·γ and β·δ, so β is fixed at 1 and γ, δ carry the products.
 //! θ = (log10 m, log10 c, log10 k, log10 α, β·γ, β·δ, ν); differential evolution on the first
 //! 2048 samples (input upsampled by 4 only; a trial's simulation stops once its running SSE passes
-//! its parent's), then Levenberg–Marquardt on the whole training record with the Jacobian from the
+//! its parent's; at most 200 generations, fewer once 10 in a row each gain less than 1e-7 of the
+//! best SSE), then Levenberg–Marquardt on the whole training record with the Jacobian from the
 //! sensitivity equations ([`sensitivities`]; one pass instead of one simulation per parameter). Never
 //! fit on test data: this sees only the record it is given.
 
@@ -159,17 +160,18 @@ const DIM: usize = 7;
 /// ```
 ///
 /// The state is the core's (f64 from f32 parameters); every objective value still comes from the
-/// core's own step. Writes the residuals `y_k − y_meas` and the rows `∂y_k/∂θ` of the scored samples
-/// `from..limit`.
+/// core's own step. Writes the residuals `y_k − y_meas` and the entries `columns` of the rows
+/// `∂y_k/∂θ` of the scored samples `from..limit` (two calls with disjoint columns run in parallel).
 fn sensitivities(
     params: OscillatorParams,
     sample_period_s: f64,
     fine: &[f32],
     factor: usize,
     measured: (&[f64], usize, usize),
-    resid: &mut [f64],
-    jac: &mut [[f64; DIM]],
+    columns: std::ops::Range<usize>,
+    out: (&mut [f64], &mut [[f64; DIM]]),
 ) -> bool {
+    let (resid, jac) = out;
     let (y_meas, from, limit) = measured;
     let m = f64::from(params.mass_kg);
     let c = f64::from(params.damping_n_s_per_m);
@@ -201,7 +203,7 @@ fn sensitivities(
             [0.0, 0.0, -(bg * v.abs() * p * z + bd * v * p * az) * ln_az],
         ];
         let mut ds = [[0.0; 3]; DIM];
-        for j in 0..DIM {
+        for j in columns.clone() {
             let sj = s[j];
             ds[j] = [
                 sj[1],
@@ -216,7 +218,7 @@ fn sensitivities(
         for i in 0..3 {
             out.0[i] += w * d.0[i];
         }
-        for j in 0..DIM {
+        for j in columns.clone() {
             for i in 0..3 {
                 out.1[j][i] += w * d.1[j][i];
             }
@@ -240,7 +242,7 @@ fn sensitivities(
         for i in 0..3 {
             next.0[i] += h / 6.0 * (k1.0[i] + 2.0 * k2.0[i] + 2.0 * k3.0[i] + k4.0[i]);
         }
-        for j in 0..DIM {
+        for j in columns.clone() {
             for i in 0..3 {
                 next.1[j][i] +=
                     h / 6.0 * (k1.1[j][i] + 2.0 * k2.1[j][i] + 2.0 * k3.1[j][i] + k4.1[j][i]);
@@ -253,7 +255,7 @@ fn sensitivities(
             if sample >= from && sample < limit {
                 let r = sample - from;
                 resid[r] = f64::from(state.0[0] as f32) - y_meas[sample];
-                for j in 0..DIM {
+                for j in columns.clone() {
                     jac[r][j] = state.1[j][0];
                 }
             }
@@ -364,6 +366,7 @@ pub fn identify(record: &Record, s: &IdentifySettings) -> Result<Identification,
         .par_iter()
         .map(|th| coarse_obj.residuals(th, short, f64::INFINITY))
         .collect();
+    let mut stall = 0;
     for _ in 0..200 {
         pb.inc(1);
         let best = (0..pop).min_by(|&a, &b| f[a].total_cmp(&f[b])).unwrap_or(0);
@@ -392,11 +395,25 @@ pub fn identify(record: &Record, s: &IdentifySettings) -> Result<Identification,
             .zip(f.par_iter())
             .map(|(th, &parent)| coarse_obj.residuals(th, short, parent))
             .collect();
+        let before = f[best];
         for (i, (th, v)) in trials.into_iter().zip(ft).enumerate() {
             if v <= f[i] {
                 x[i] = th;
                 f[i] = v;
             }
+        }
+        let after = f.iter().copied().fold(f64::INFINITY, f64::min);
+        if std::env::var_os("PIEZO_ID_DEBUG").is_some() {
+            eprintln!("oscillator DE: best SSE {after:.6e}");
+        }
+        // Converged: the best gained less than 1e-6 (relative) over 10 generations.
+        stall = if after < before * (1.0 - 1e-7) {
+            0
+        } else {
+            stall + 1
+        };
+        if stall >= 10 {
+            break;
         }
     }
     let best = (0..pop).min_by(|&a, &b| f[a].total_cmp(&f[b])).unwrap_or(0);
@@ -404,8 +421,9 @@ pub fn identify(record: &Record, s: &IdentifySettings) -> Result<Identification,
     // Local stage: LM on the whole record, the Jacobian by the sensitivity equations.
     pb.set_message("oscillator LM");
     let m = n - from;
-    let mut resid = vec![0.0; m];
+    let (mut resid, mut resid_copy) = (vec![0.0; m], vec![0.0; m]);
     let mut jac = vec![[0.0; DIM]; m];
+    let mut jac_hi = vec![[0.0; DIM]; m];
     let mut fbest = obj.residuals(&theta, n, f64::INFINITY);
     let mut lambda = 1e-3;
     for _ in 0..40 {
@@ -413,8 +431,28 @@ pub fn identify(record: &Record, s: &IdentifySettings) -> Result<Identification,
         evaluations.fetch_add(1, Ordering::Relaxed);
         let measured = (record.y_m.as_slice(), from, n);
         let params = params_of(&theta);
-        if !sensitivities(params, t, &fine, factor, measured, &mut resid, &mut jac) {
+        let (lo, hi) = rayon::join(
+            || {
+                sensitivities(
+                    params,
+                    t,
+                    &fine,
+                    factor,
+                    measured,
+                    0..4,
+                    (&mut resid, &mut jac),
+                )
+            },
+            || {
+                let out = (&mut resid_copy[..], &mut jac_hi[..]);
+                sensitivities(params, t, &fine, factor, measured, 4..DIM, out)
+            },
+        );
+        if !(lo && hi) {
             break;
+        }
+        for (row, high) in jac.iter_mut().zip(&jac_hi) {
+            row[4..].copy_from_slice(&high[4..]);
         }
         let mut jtj = vec![vec![0.0; dim]; dim];
         let mut jtr = vec![0.0; dim];
