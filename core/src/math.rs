@@ -169,7 +169,7 @@ const EXP2_SIXTEENTHS: [f64; 16] = [
     1.241857812073484,
     1.2968395546510096,
     1.3542555469368927,
-    1.4142135623730951,
+    core::f64::consts::SQRT_2,
     1.4768261459394993,
     1.5422108254079407,
     1.6104903319492543,
@@ -236,7 +236,7 @@ pub(crate) fn pow_f64(x: f64, p: f64) -> f64 {
     if x == 0.0 {
         return 0.0;
     }
-    if !(x >= f64::MIN_POSITIVE && x < f64::INFINITY) {
+    if !(f64::MIN_POSITIVE..f64::INFINITY).contains(&x) {
         return libm::pow(x, p);
     }
     let bits = x.to_bits();

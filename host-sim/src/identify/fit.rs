@@ -319,7 +319,7 @@ impl Problem {
                 basis[k_scored] = phi;
             }
             k_scored += 1;
-            if k_scored % 128 == 0 && abandon_n.is_finite() {
+            if k_scored & 127 == 0 && abandon_n.is_finite() {
                 if let Some(lin) = solve(&g, &rhs, nb) {
                     let partial = yy - (0..nb).map(|a| lin[a] * rhs[a]).sum::<f64>();
                     if partial > abandon_n * (1.0 + 1e-9) {
