@@ -116,8 +116,15 @@ fn identify_then_predict_round_trip_through_the_stage_file() {
     for (model, invertible) in [("symmetric", true), ("asymmetric", false)] {
         let (stage, report) = (temp(&format!("{model}.toml")), temp("s.json"));
         let mut args = vec![
-            "identify", "--data", data, "--model", model, "--out", stage.to_str().unwrap(),
-            "--report", report.to_str().unwrap(),
+            "identify",
+            "--data",
+            data,
+            "--model",
+            model,
+            "--out",
+            stage.to_str().unwrap(),
+            "--report",
+            report.to_str().unwrap(),
         ];
         if invertible {
             args.push("--invertible");
@@ -142,8 +149,15 @@ fn identify_then_predict_round_trip_through_the_stage_file() {
         assert!((prov.fit_rms_m - fitted).abs() <= 1e-12);
         let (series, predicted) = (temp("series.csv"), temp("p.json"));
         cli(&[
-            "predict", "--params", stage.to_str().unwrap(), "--data", data, "--report",
-            predicted.to_str().unwrap(), "--out", series.to_str().unwrap(),
+            "predict",
+            "--params",
+            stage.to_str().unwrap(),
+            "--data",
+            data,
+            "--report",
+            predicted.to_str().unwrap(),
+            "--out",
+            series.to_str().unwrap(),
         ])
         .unwrap();
         let r = json(&predicted);
@@ -165,8 +179,15 @@ fn a_refused_set_is_written_and_identify_fails() {
     let path = stage_record("refused.csv", "stage");
     let (stage, report) = (temp("refused.toml"), temp("refused.json"));
     let e = cli(&[
-        "identify", "--data", path.to_str().unwrap(), "--model", "symmetric", "--out",
-        stage.to_str().unwrap(), "--report", report.to_str().unwrap(),
+        "identify",
+        "--data",
+        path.to_str().unwrap(),
+        "--model",
+        "symmetric",
+        "--out",
+        stage.to_str().unwrap(),
+        "--report",
+        report.to_str().unwrap(),
     ]);
     let e = e.expect_err("the seed 001 stage's symmetric set is not invertible");
     assert!(e.contains("would be refused by the firmware"), "{e}");

@@ -77,7 +77,12 @@ impl StageError {
 
     /// A core refusal of the value at `key`.
     pub fn core(key: &str, e: ParamError) -> Self {
-        let mut err = Self::new("", StageErrorKind::Invalid, key, format!("refused by piezo-core: {e}"));
+        let mut err = Self::new(
+            "",
+            StageErrorKind::Invalid,
+            key,
+            format!("refused by piezo-core: {e}"),
+        );
         err.core = Some(e);
         err
     }
@@ -163,9 +168,21 @@ mod tests {
     #[test]
     fn finds_keys_and_headers() {
         let text = "[stage]\nname = \"a\"\n\n[x.bouc_wen]\na = 1.0\ngamma = 2.0\n";
-        assert_eq!(line_column(text, find_key(text, "x.bouc_wen.gamma").unwrap()), (6, 1));
-        assert_eq!(line_column(text, find_key(text, "x.bouc_wen").unwrap()), (4, 1));
-        assert_eq!(line_column(text, find_key(text, "x.bouc_wen.n").unwrap()), (4, 1));
-        assert_eq!(line_column(text, find_key(text, "stage.name").unwrap()), (2, 1));
+        assert_eq!(
+            line_column(text, find_key(text, "x.bouc_wen.gamma").unwrap()),
+            (6, 1)
+        );
+        assert_eq!(
+            line_column(text, find_key(text, "x.bouc_wen").unwrap()),
+            (4, 1)
+        );
+        assert_eq!(
+            line_column(text, find_key(text, "x.bouc_wen.n").unwrap()),
+            (4, 1)
+        );
+        assert_eq!(
+            line_column(text, find_key(text, "stage.name").unwrap()),
+            (2, 1)
+        );
     }
 }

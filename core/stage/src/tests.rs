@@ -92,7 +92,11 @@ fn short_creep_arrays_are_padded_and_long_ones_refused() {
     assert_eq!(stage.x.effects.creep_gain_m_per_v, [1.0e-8, 0.0, 0.0]);
     let i = text.find("creep_gain_m_per_v").unwrap();
     let end = i + text[i..].find('\n').unwrap();
-    let bad = format!("{}creep_gain_m_per_v = [1.0, 2.0, 3.0, 4.0]{}", &text[..i], &text[end..]);
+    let bad = format!(
+        "{}creep_gain_m_per_v = [1.0, 2.0, 3.0, 4.0]{}",
+        &text[..i],
+        &text[end..]
+    );
     let e = StageFile::parse("f.toml", &bad).unwrap_err();
     assert!(e.to_string().contains("at most 3"), "{e}");
 }
@@ -104,9 +108,19 @@ fn core_refusals_name_the_key_and_line() {
     let stage = StageFile::parse("f.toml", &bad).unwrap();
     let e = stage.validate().unwrap_err().located("f.toml", &bad);
     assert_eq!(e.kind, StageErrorKind::Invalid);
-    assert!(matches!(e.core, Some(ParamError::UnboundableClass { .. }) | Some(ParamError::OutOfRange { .. })), "{e}");
+    assert!(
+        matches!(
+            e.core,
+            Some(ParamError::UnboundableClass { .. }) | Some(ParamError::OutOfRange { .. })
+        ),
+        "{e}"
+    );
     assert!(e.key.starts_with("x.bouc_wen"), "{e}");
-    let line = bad.lines().position(|l| l.starts_with("beta = -1.0")).unwrap() + 1;
+    let line = bad
+        .lines()
+        .position(|l| l.starts_with("beta = -1.0"))
+        .unwrap()
+        + 1;
     assert_eq!(e.line, Some(line), "{e}");
 }
 

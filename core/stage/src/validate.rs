@@ -119,7 +119,7 @@ impl Axis {
                 .map_err(|e| located(core_key(name, &e, "bouc_wen"), e))
         };
         let (mut linear_gain_m_per_v, mut rest_output_m) = (0.0, 0.0);
-        let chain =         match self.model {
+        let chain = match self.model {
             ModelKind::Symmetric | ModelKind::Asymmetric => {
                 let hysteresis = bouc_wen()?;
                 let map = self
@@ -153,21 +153,24 @@ impl Axis {
                         format!("the model gives no stroke over the output window (first-loading gain {gain} m/V)"),
                     ));
                 }
-                let effects = Effects::new(self.effects, sample_period_s, w_range(rest, gain, u0, u1))
-                    .map_err(|e| {
-                        let key = match e {
-                            ParamError::NonFinite { field } | ParamError::OutOfRange { field, .. }
-                                if field == "sample_period_s" =>
-                            {
-                                "stage.loop_rate_hz".to_string()
-                            }
-                            ParamError::NonFinite { field } | ParamError::OutOfRange { field, .. } => {
-                                format!("{name}.effects.{field}")
-                            }
-                            _ => format!("{name}.effects.mode_frequency_hz"),
-                        };
-                        located(key, e)
-                    })?;
+                let effects =
+                    Effects::new(self.effects, sample_period_s, w_range(rest, gain, u0, u1))
+                        .map_err(|e| {
+                            let key = match e {
+                                ParamError::NonFinite { field }
+                                | ParamError::OutOfRange { field, .. }
+                                    if field == "sample_period_s" =>
+                                {
+                                    "stage.loop_rate_hz".to_string()
+                                }
+                                ParamError::NonFinite { field }
+                                | ParamError::OutOfRange { field, .. } => {
+                                    format!("{name}.effects.{field}")
+                                }
+                                _ => format!("{name}.effects.mode_frequency_hz"),
+                            };
+                            located(key, e)
+                        })?;
                 linear_gain_m_per_v = gain;
                 rest_output_m = rest;
                 AxisChain::Static { model, effects }
@@ -253,7 +256,10 @@ impl Io {
             ("io.sensor_range_v", self.sensor_range_v),
         ] {
             if !(lo.is_finite() && hi.is_finite() && lo < hi) {
-                return Err(invalid(key, format!("[{lo}, {hi}] must be finite with min < max")));
+                return Err(invalid(
+                    key,
+                    format!("[{lo}, {hi}] must be finite with min < max"),
+                ));
             }
         }
         let [s0, s1] = self.sensor_range_v;
@@ -261,7 +267,9 @@ impl Io {
         if s0 < a0 || s1 > a1 {
             return Err(invalid(
                 "io.sensor_range_v",
-                format!("the sensor span [{s0}, {s1}] V exceeds the ADC's input span [{a0}, {a1}] V"),
+                format!(
+                    "the sensor span [{s0}, {s1}] V exceeds the ADC's input span [{a0}, {a1}] V"
+                ),
             ));
         }
         Ok(())
@@ -282,7 +290,10 @@ impl StageFile {
     pub fn validate(&self) -> Result<ValidStage, StageError> {
         let rate = self.stage.loop_rate_hz;
         if !(rate.is_finite() && rate > 0.0) {
-            return Err(invalid("stage.loop_rate_hz", format!("{rate} must be finite and > 0")));
+            return Err(invalid(
+                "stage.loop_rate_hz",
+                format!("{rate} must be finite and > 0"),
+            ));
         }
         let sample_period_s = 1.0 / rate;
         self.io.check()?;
@@ -290,10 +301,16 @@ impl StageFile {
         let mut axes = Vec::new();
         for (name, axis) in self.axes() {
             let l = axis.limits;
-            if !(l.output_min_v.is_finite() && l.output_max_v.is_finite() && l.output_min_v < l.output_max_v) {
+            if !(l.output_min_v.is_finite()
+                && l.output_max_v.is_finite()
+                && l.output_min_v < l.output_max_v)
+            {
                 return Err(invalid(
                     &format!("{name}.limits"),
-                    format!("output window [{}, {}] V must be finite with min < max", l.output_min_v, l.output_max_v),
+                    format!(
+                        "output window [{}, {}] V must be finite with min < max",
+                        l.output_min_v, l.output_max_v
+                    ),
                 ));
             }
             let mut valid = axis.build(name, sample_period_s, (l.output_min_v, l.output_max_v))?;
@@ -383,7 +400,11 @@ pub fn simulate_pair(
     u_v: [&[f32]; 2],
     y_out: [&mut [f32]; 2],
 ) {
-    let n = u_v[0].len().min(u_v[1].len()).min(y_out[0].len()).min(y_out[1].len());
+    let n = u_v[0]
+        .len()
+        .min(u_v[1].len())
+        .min(y_out[0].len())
+        .min(y_out[1].len());
     if n == 0 {
         return;
     }

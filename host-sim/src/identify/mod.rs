@@ -340,7 +340,9 @@ fn at_search_bounds(model: ModelKind, theta: &[f64], bounds: &[(f64, f64)]) -> V
         "the exponent n",
     ];
     match model {
-        ModelKind::Asymmetric => names.extend(["the asymmetric factor delta", "the input shift phi"]),
+        ModelKind::Asymmetric => {
+            names.extend(["the asymmetric factor delta", "the input shift phi"])
+        }
         ModelKind::Dynamic => names.extend([
             "the hysteresis gain A / k1",
             "the natural frequency",
@@ -368,7 +370,9 @@ pub fn data_warnings(record: &Record, from: usize, id: &Identification) -> Vec<S
     let u = &record.u[from..];
     let (lo, hi) = u
         .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
+            (a.min(v), b.max(v))
+        });
     if !(hi - lo > 1e-6 * hi.abs().max(lo.abs()).max(1e-12)) {
         out.push(format!(
             "the input is constant ({lo} V) over the fitted window: it cannot identify a hysteresis model"
@@ -405,14 +409,24 @@ pub fn data_warnings(record: &Record, from: usize, id: &Identification) -> Vec<S
 }
 
 /// The `[x.identified]` provenance of a set fitted to `record` from sample `from`.
-pub fn provenance(record: &Record, from: usize, method: &str, fit_rms_m: f64) -> piezo_stage::Provenance {
+pub fn provenance(
+    record: &Record,
+    from: usize,
+    method: &str,
+    fit_rms_m: f64,
+) -> piezo_stage::Provenance {
     let (lo, hi) = record
         .u
         .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
+            (a.min(v), b.max(v))
+        });
     piezo_stage::Provenance {
         data: record.path.display().to_string(),
-        window_s: [record.t_s[from.min(record.t_s.len() - 1)], record.t_s[record.t_s.len() - 1]],
+        window_s: [
+            record.t_s[from.min(record.t_s.len() - 1)],
+            record.t_s[record.t_s.len() - 1],
+        ],
         method: method.to_string(),
         fit_rms_m,
         input_range_v: [lo as f32, hi as f32],
@@ -526,7 +540,11 @@ pub struct IdentifyArgs {
 }
 
 /// Identifies one axis's record.
-fn identify_axis(a: &IdentifyArgs, record: &Record, settings: &IdentifySettings) -> Result<Identification, String> {
+fn identify_axis(
+    a: &IdentifyArgs,
+    record: &Record,
+    settings: &IdentifySettings,
+) -> Result<Identification, String> {
     if a.method == Method::TwoStep {
         let path = a
             .mech_data
@@ -585,7 +603,10 @@ pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
             eprintln!("warning: {}: {w}", names[i]);
         }
         id.summary["warnings"] = json!(warnings);
-        let method = id.summary["method"].as_str().unwrap_or(a.method.name()).to_string();
+        let method = id.summary["method"]
+            .as_str()
+            .unwrap_or(a.method.name())
+            .to_string();
         let rms = id.summary["fit"]["rms"].as_f64().unwrap_or(f64::NAN);
         lines.push(format!(
             "{}: {} {}: rms {:.4e} m, r2 {}, {} evaluations, {:.2} s",
@@ -758,5 +779,9 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
     if let Some(dir) = &a.plots {
         written.extend(predict::write_plots(dir, "predict", &records, &axes, from)?);
     }
-    Ok(format!("{}\nwritten: {}", lines.join("\n"), written.join(", ")))
+    Ok(format!(
+        "{}\nwritten: {}",
+        lines.join("\n"),
+        written.join(", ")
+    ))
 }

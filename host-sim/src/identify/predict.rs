@@ -131,10 +131,7 @@ pub fn predict_axes(
     let n = us[0].len();
     let mut predicted: Vec<Vec<f64>> = vec![vec![0.0; n]; us.len()];
     let pair = match (built.first(), built.get(1)) {
-        (
-            Some((_, _, a, _)),
-            Some((_, _, b, _)),
-        ) => match (a.chain, b.chain) {
+        (Some((_, _, a, _)), Some((_, _, b, _))) => match (a.chain, b.chain) {
             (
                 AxisChain::Static {
                     model: mx,
@@ -174,13 +171,15 @@ pub fn predict_axes(
         .into_iter()
         .zip(predicted)
         .zip(records)
-        .map(|(((axis, a, _, excursion), predicted_m), r)| AxisPrediction {
-            axis,
-            model: a.model,
-            fit: fit_block(&r.y_m[from..], &predicted_m[from..]),
-            predicted_m,
-            excursion,
-        })
+        .map(
+            |(((axis, a, _, excursion), predicted_m), r)| AxisPrediction {
+                axis,
+                model: a.model,
+                fit: fit_block(&r.y_m[from..], &predicted_m[from..]),
+                predicted_m,
+                excursion,
+            },
+        )
         .collect())
 }
 
@@ -203,7 +202,11 @@ pub fn axis_json(p: &AxisPrediction) -> Value {
 
 /// Writes `t_s`, then per axis input, measured, predicted and residual (`u_V,measured_m,…` for one
 /// axis; `ux_V,x_measured_m,…,uy_V,y_measured_m,…` for two).
-pub fn write_series(path: &Path, records: &[Record], axes: &[AxisPrediction]) -> Result<(), String> {
+pub fn write_series(
+    path: &Path,
+    records: &[Record],
+    axes: &[AxisPrediction],
+) -> Result<(), String> {
     let mut names = vec!["t_s".to_string()];
     let mut columns = vec![records[0].t_s.clone()];
     for (r, p) in records.iter().zip(axes) {
@@ -222,7 +225,11 @@ pub fn write_series(path: &Path, records: &[Record], axes: &[AxisPrediction]) ->
             r.u.clone(),
             r.y_m.clone(),
             p.predicted_m.clone(),
-            r.y_m.iter().zip(&p.predicted_m).map(|(y, q)| y - q).collect(),
+            r.y_m
+                .iter()
+                .zip(&p.predicted_m)
+                .map(|(y, q)| y - q)
+                .collect(),
         ]);
     }
     let table = Table {
@@ -247,9 +254,18 @@ pub fn write_plots(
     for (r, p) in records.iter().zip(axes) {
         let um = 1e6;
         let time = |v: &[f64]| -> Vec<(f64, f64)> {
-            r.t_s[from..].iter().zip(&v[from..]).map(|(&t, &y)| (t, y * um)).collect()
+            r.t_s[from..]
+                .iter()
+                .zip(&v[from..])
+                .map(|(&t, &y)| (t, y * um))
+                .collect()
         };
-        let residual: Vec<f64> = r.y_m.iter().zip(&p.predicted_m).map(|(y, q)| y - q).collect();
+        let residual: Vec<f64> = r
+            .y_m
+            .iter()
+            .zip(&p.predicted_m)
+            .map(|(y, q)| y - q)
+            .collect();
         let label = format!("{} [µm]", p.axis);
         panels.push(Panel {
             title: format!("{}: measured and predicted", p.axis),
@@ -267,7 +283,11 @@ pub fn write_plots(
             series: vec![
                 Series::line(
                     "measured",
-                    r.u[from..].iter().zip(&r.y_m[from..]).map(|(&u, &y)| (u, y * um)).collect(),
+                    r.u[from..]
+                        .iter()
+                        .zip(&r.y_m[from..])
+                        .map(|(&u, &y)| (u, y * um))
+                        .collect(),
                     4000,
                 )
                 .role(Role::Measured),
