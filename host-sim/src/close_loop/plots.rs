@@ -4,7 +4,7 @@
 
 use super::{diagnose, Outcome};
 use crate::identify::Record;
-use crate::plot::{plot_panels, Panel, Series};
+use crate::plot::{plot_panels, Chart, Panel, ReferenceLine, Series};
 use std::path::Path;
 
 fn pts(x: &[f64], y: &[f64]) -> Vec<(f64, f64)> {
@@ -37,10 +37,12 @@ pub fn write_plots(
         let spec = |v: &[f64]| -> Vec<(f64, f64)> {
             diagnose::spectrum(v, ts)
                 .into_iter()
-                .filter(|p| p.1 > 0.0)
-                .map(|(f, m)| (f.log10(), m.log10()))
+                .filter(|p| p.0 > 0.0 && p.1 > 0.0)
                 .collect()
         };
+        // The amplitude a white noise of the estimated σ gives in this spectrum (Hann window over
+        // N samples: 2σ·√(Σw²)/Σw = σ·√(6/N)) [µm].
+        let noise_floor_um = a.noise_m * 1e6 * (6.0 / rb.len().max(1) as f64).sqrt();
         let effects: Vec<String> = a
             .model
             .added
@@ -62,7 +64,7 @@ pub fn write_plots(
                 effects.join(" + ")
             }
         );
-        let panels = vec![
+        let panels: Vec<Chart> = vec![
             Panel {
                 title: format!("{}: residual in time (fit window)", a.name),
                 x_label: "t [s]".into(),
@@ -71,7 +73,8 @@ pub fn write_plots(
                     Series::line("before (base model)", pts(&t, &rb), 4000),
                     Series::line(after_name.clone(), pts(&t, &ra), 4000),
                 ],
-            },
+            }
+            .into(),
             Panel {
                 title: format!("{}: residual against the input", a.name),
                 x_label: "u [V]".into(),
@@ -80,26 +83,33 @@ pub fn write_plots(
                     Series::line("before", pts(&u, &rb), 4000),
                     Series::line(after_name.clone(), pts(&u, &ra), 4000),
                 ],
-            },
+            }
+            .into(),
             Panel {
                 title: format!("{}: residual amplitude spectrum", a.name),
-                x_label: "log10 f [Hz]".into(),
-                y_label: "log10 amplitude [um]".into(),
+                x_label: "f [Hz]".into(),
+                y_label: "amplitude [µm]".into(),
                 series: vec![
                     Series::line("before", spec(&rb), 1000),
                     Series::line(after_name.clone(), spec(&ra), 1000),
                 ],
-            },
+            }
+            .log_log()
+            .reference_line(ReferenceLine::new(
+                format!("white noise of σ = {:.3} µm", a.noise_m * 1e6),
+                noise_floor_um,
+            )),
             Panel {
                 title: format!("{}: loops", a.name),
                 x_label: "u [V]".into(),
-                y_label: "y [um]".into(),
+                y_label: format!("{} [µm]", a.name),
                 series: vec![
                     Series::line("measured", pts(&u, &um(&r.y_m[from..])), 4000),
                     Series::line("base model", pts(&u, &um(&a.before[from..])), 4000),
                     Series::line(after_name.clone(), pts(&u, &um(&a.after[from..])), 4000),
                 ],
-            },
+            }
+            .into(),
         ];
         for ext in formats {
             let path = dir.join(format!("close-loop-{}.{ext}", a.name));
