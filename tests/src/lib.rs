@@ -237,6 +237,34 @@ pub mod qemu {
             .then(|| format!("Rust target {TARGET} not installed (rustup target add {TARGET})"))
     }
 
+    /// Builds the `replay` image with the stage file `params` and the reference table `reference`
+    /// in `<outer target dir>/<subdir>` (panics with cargo's stderr if the build fails); returns
+    /// the ELF.
+    pub fn build_replay(params: &Path, reference: &Path, subdir: &str) -> PathBuf {
+        let target_dir = outer_target_dir().join(subdir);
+        let build = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()))
+            .current_dir(workspace().join("firmware"))
+            .args([
+                "build",
+                "--release",
+                "--features",
+                "qemu",
+                "--bin",
+                "replay",
+            ])
+            .env("PIEZO_PARAMS", params)
+            .env("PIEZO_REFERENCE", reference)
+            .env("CARGO_TARGET_DIR", &target_dir)
+            .output()
+            .expect("run cargo");
+        assert!(
+            build.status.success(),
+            "building the replay image failed:\n{}",
+            String::from_utf8_lossy(&build.stderr)
+        );
+        target_dir.join(TARGET).join("release/replay")
+    }
+
     /// The target directory the running test binary was built in (`<dir>/debug/deps/<test>`).
     pub fn outer_target_dir() -> PathBuf {
         std::env::current_exe()

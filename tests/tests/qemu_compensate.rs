@@ -22,7 +22,7 @@ use std::path::Path;
 use std::process::Command;
 use std::time::Instant;
 
-use integration_tests::qemu::{missing_tools, outer_target_dir, say, workspace, TARGET};
+use integration_tests::qemu::{build_replay, missing_tools, say, workspace};
 
 const TICKS: usize = 400;
 const RATE_HZ: f64 = 10_000.0;
@@ -71,32 +71,11 @@ fn qemu_image_commands_the_voltages_of_host_sim_compensate() {
     let reference = dir.join("reference.csv");
     write_reference(&reference);
     let params = root.join("firmware/params/xy-stage-effects.toml");
-    let target_dir = outer_target_dir().join("qemu-compensate");
 
     let started = Instant::now();
-    let build = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()))
-        .current_dir(root.join("firmware"))
-        .args([
-            "build",
-            "--release",
-            "--features",
-            "qemu",
-            "--bin",
-            "replay",
-        ])
-        .env("PIEZO_PARAMS", &params)
-        .env("PIEZO_REFERENCE", &reference)
-        .env("CARGO_TARGET_DIR", &target_dir)
-        .output()
-        .expect("run cargo");
-    assert!(
-        build.status.success(),
-        "building the replay image failed:\n{}",
-        String::from_utf8_lossy(&build.stderr)
-    );
+    let elf = build_replay(&params, &reference, "qemu-compensate");
     let built = started.elapsed();
 
-    let elf = target_dir.join(TARGET).join("release/replay");
     let run = Command::new(root.join("firmware/run-qemu.sh"))
         .arg(&elf)
         .output()

@@ -33,7 +33,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
 
-use integration_tests::qemu::{missing_tools, outer_target_dir, say, workspace, TARGET};
+use integration_tests::qemu::{build_replay, missing_tools, say, workspace};
 
 /// The stage file whose `[stage]` and `[io]` (10 kHz loop, DAC8563 + 24 V/V, ADS8681 + 10 µm/V)
 /// the fits carry over.
@@ -216,29 +216,8 @@ fn identify_close_loop_firmware_capture_identify() {
     });
     let reference = file("reference.csv");
     let ticks = write_reference(&reference, strokes);
-    let target_dir = outer_target_dir().join("round-trip");
-    let build = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()))
-        .current_dir(root.join("firmware"))
-        .args([
-            "build",
-            "--release",
-            "--features",
-            "qemu",
-            "--bin",
-            "replay",
-        ])
-        .env("PIEZO_PARAMS", &closed)
-        .env("PIEZO_REFERENCE", &reference)
-        .env("CARGO_TARGET_DIR", &target_dir)
-        .output()
-        .expect("run cargo");
-    assert!(
-        build.status.success(),
-        "building the replay image failed:\n{}",
-        String::from_utf8_lossy(&build.stderr)
-    );
+    let elf = build_replay(&closed, &reference, "round-trip");
     let built = started.elapsed();
-    let elf = target_dir.join(TARGET).join("release/replay");
     let run_qemu = Command::new(root.join("firmware/run-qemu.sh"))
         .arg(&elf)
         .env("QEMU_TIMEOUT", "300")

@@ -314,13 +314,13 @@ impl StageFile {
                 ));
             }
             let mut valid = axis.build(name, sample_period_s, (l.output_min_v, l.output_max_v))?;
+            let settings = CompensatorSettings {
+                output_min_v: l.output_min_v,
+                output_max_v: l.output_max_v,
+                slew_limit_v_per_s: l.slew_limit_v_per_s,
+                sample_period_s,
+            };
             if let AxisChain::Static { model, .. } = valid.chain {
-                let settings = CompensatorSettings {
-                    output_min_v: l.output_min_v,
-                    output_max_v: l.output_max_v,
-                    slew_limit_v_per_s: l.slew_limit_v_per_s,
-                    sample_period_s,
-                };
                 valid.compensator = Some(
                     Compensator::new(model, settings)
                         .map_err(|e| located(core_key(name, &e, "limits"), e))?,
@@ -341,12 +341,6 @@ impl StageFile {
                 }
             }
             if let Some(params) = axis.servo {
-                let settings = CompensatorSettings {
-                    output_min_v: l.output_min_v,
-                    output_max_v: l.output_max_v,
-                    slew_limit_v_per_s: l.slew_limit_v_per_s,
-                    sample_period_s,
-                };
                 valid.servo = Some(
                     Servo::new(params, settings)
                         .map_err(|e| located(core_key(name, &e, "servo"), e))?,

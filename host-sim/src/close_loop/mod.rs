@@ -33,7 +33,7 @@ pub use cli::{close_loop_cmd, read_records, CloseLoopArgs};
 pub use plots::write_plots;
 pub use stage::{parameter_file, validate, write_stage_file, Fit, Validation};
 
-use crate::identify::{identify, IdentifySettings, Method, Record};
+use crate::identify::{identify, min_max, IdentifySettings, Method, Record};
 use diagnose::{
     noise_estimate, screen, Candidate, EffectInit, EffectKind, ResidualFigures, Signals,
 };
@@ -217,13 +217,6 @@ fn log(show: bool, msg: impl AsRef<str>) {
     if show {
         eprintln!("close-loop: {}", msg.as_ref());
     }
-}
-
-fn min_max(v: &[f64]) -> (f64, f64) {
-    v.iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
-            (a.min(x), b.max(x))
-        })
 }
 
 fn base_model(record: &Record, s: &CloseLoopSettings) -> Result<AxisModel, String> {

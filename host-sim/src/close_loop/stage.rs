@@ -22,11 +22,7 @@ pub const SLEW_LIMIT_V_PER_S: f32 = 1e5;
 /// The output window for a record's input: its range rounded outwards to a tenth of the power of
 /// ten below its span (0–3.6 V stays 0–3.6 V, 0.2–119.7 V gives 0–120 V).
 pub fn output_window(u: &[f64]) -> (f32, f32) {
-    let (lo, hi) = u
-        .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
-            (a.min(v), b.max(v))
-        });
+    let (lo, hi) = crate::identify::min_max(u);
     let span = (hi - lo).max(1e-9);
     let step = 10f64.powf(span.log10().floor() - 1.0);
     // A value within 1e-6 of a step is on it (0.0 stays 0, 3.6000001 is 3.6).

@@ -363,16 +363,19 @@ fn at_search_bounds(model: ModelKind, theta: &[f64], bounds: &[(f64, f64)]) -> V
         .collect()
 }
 
+/// The smallest and largest value of `v` ((+∞, −∞) when empty).
+pub fn min_max(v: &[f64]) -> (f64, f64) {
+    v.iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
+            (a.min(x), b.max(x))
+        })
+}
+
 /// Data warnings for an identified set on `record` from sample `from`: an input that barely moves,
 /// a fit that explains nothing (R² ≈ 0), optimiser parameters at their search bounds.
 pub fn data_warnings(record: &Record, from: usize, id: &Identification) -> Vec<String> {
     let mut out = Vec::new();
-    let u = &record.u[from..];
-    let (lo, hi) = u
-        .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
-            (a.min(v), b.max(v))
-        });
+    let (lo, hi) = min_max(&record.u[from..]);
     if !(hi - lo > 1e-6 * hi.abs().max(lo.abs()).max(1e-12)) {
         out.push(format!(
             "the input is constant ({lo} V) over the fitted window: it cannot identify a hysteresis model"
@@ -415,12 +418,7 @@ pub fn provenance(
     method: &str,
     fit_rms_m: f64,
 ) -> piezo_stage::Provenance {
-    let (lo, hi) = record
-        .u
-        .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
-            (a.min(v), b.max(v))
-        });
+    let (lo, hi) = min_max(&record.u);
     piezo_stage::Provenance {
         data: record.path.display().to_string(),
         window_s: [

@@ -13,7 +13,7 @@
 //! and how far (`outside_identified_range`).
 
 use super::model::from_axis;
-use super::{fit_block, oscillator, Record};
+use super::{fit_block, min_max, oscillator, Record};
 use crate::csv::{write_csv, Table};
 use crate::plot::{plot_grid, Panel, Role, Series};
 use piezo_stage::{simulate_pair, Axis, AxisChain, ModelKind, StageFile};
@@ -50,13 +50,6 @@ pub struct AxisPrediction {
     pub excursion: RangeExcursion,
 }
 
-fn range_of(v: &[f64]) -> (f64, f64) {
-    v.iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| {
-            (a.min(x), b.max(x))
-        })
-}
-
 fn identified_range(axis: &Axis) -> (f64, f64) {
     match &axis.identified {
         Some(p) => (f64::from(p.input_range_v[0]), f64::from(p.input_range_v[1])),
@@ -80,7 +73,7 @@ fn build_for(
         ilo.min(f64::from(axis.limits.output_min_v)) as f32,
         ihi.max(f64::from(axis.limits.output_max_v)) as f32,
     );
-    let (rlo, rhi) = range_of(&record.u);
+    let (rlo, rhi) = min_max(&record.u);
     let hull = (own.0.min(rlo as f32), own.1.max(rhi as f32));
     match axis.build(name, t, hull) {
         Ok(v) => Ok((v, false)),
