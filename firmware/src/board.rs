@@ -1,5 +1,6 @@
 //! STM32F4-Discovery (STM32F407VG) bring-up: clocks, the two SPI buses, chip selects, the loop
-//! timer, and the DAC8563/ADS8681 drivers on them. Target only (`board` feature).
+//! timer, the USB OTG_FS peripheral, and the DAC8563/ADS8681 drivers on them. Target only
+//! (`board` feature). The tasks that use them are in `src/bin/board.rs` (RTIC 2).
 //!
 //! Wiring (RM0090 / STM32F407 datasheet alternate-function table, AF5 for SPI1/SPI2; the
 //! Discovery user manual UM1472 for pins already used on the board):
@@ -20,31 +21,40 @@
 //! | SPI2 MOSI → DAC8563   | PB15    | DAC8563 DIN (the DAC has no data output; PB14 unused)   |
 //! | DAC8563 SYNC          | PB12    | chip select                                             |
 //! | DAC8563 LDAC, CLR     | —       | tie LDAC low, CLR high (LDAC register set to ignore pin) |
+//! | OTG_FS D− / D+ (board)| PA11/PA12 | AF10, the micro-USB socket CN5: the command link (USB CDC-ACM) |
+//! | OTG_FS VBUS (board)   | PA9     | not used: the USB core's VBUS sensing is off (synopsys-usb-otg) |
+//! | VBUS switch EN (board)| PC0     | held high: the STMPS2141's active-low enable, so the board never drives VBUS |
 //!
 //! DAC8563 channel A drives the x amplifier, channel B the y amplifier.
 //!
 //! The two converters sit on separate buses because they need different SPI modes (ADS8681
 //! mode 0 at power-on, DAC8563 mode 1).
 //!
-//! Clocks: 8 MHz HSE crystal → PLL → SYSCLK 168 MHz, AHB 168 MHz, APB2 84 MHz, APB1 42 MHz
-//! (TIM2 kernel clock 84 MHz).
+//! Clocks: 8 MHz HSE crystal → PLL (VCO 336 MHz) → SYSCLK 168 MHz (/2), 48 MHz for USB (/7);
+//! AHB 168 MHz, APB2 84 MHz, APB1 42 MHz (TIM2 kernel clock 84 MHz). The DWT cycle counter runs
+//! at SYSCLK ([`SYSCLK_HZ`]).
 //!
-//! Loop timer: TIM2 updates at [`LOOP_RATE_HZ`], the stage file's loop rate (10 kHz for the
-//! default file); the main loop polls its update flag ([`wait_for_tick`]) and runs one
-//! [`crate::xy_loop::TwoAxisLoop::tick`] per period. Deadline: a tick must finish within one
-//! period (100 µs at 10 kHz); if the update flag is already set when the loop comes back
-//! to wait, the deadline was missed and the next tick is told so (safe state, counted). Cost:
-//! two 32-bit ADC frames (1.5 µs each at 21 MHz), two 24-bit DAC frames (1.1 µs each) and the
-//! loop body (2 × 781 instructions of compensator + guard with n = 1 under QEMU, see
-//! `firmware/bench.sh`), i.e. roughly 15–25 µs at 168 MHz. Not measured on hardware yet (DWT).
+//! Loop timer: TIM2 counts at [`TIMER_HZ`] and updates every [`TIMER_TICKS_PER_PERIOD`] counts,
+//! at [`LOOP_RATE_HZ`], the stage file's loop rate (10 kHz for the default file; a rate that
+//! does not divide 84 MHz stops the build). Each update raises the TIM2 interrupt, the control
+//! tick. Deadline: a tick must have written both DAC codes within one period
+//! ([`PERIOD_CYCLES`] core cycles, 100 µs at 10 kHz) of the update that started it; [`deadline`]
+//! measures that with the DWT cycle counter. Expected cost: two 32-bit ADC frames (1.5 µs each at
+//! 21 MHz), two 24-bit DAC frames (1.1 µs each) and the loop body (2 375 instructions for the
+//! two-axis tick under QEMU, `firmware/bench.sh`), i.e. roughly 15–25 µs at 168 MHz; the measured
+//! worst case is logged once a second (`src/bin/board.rs`).
+
+pub mod deadline;
+pub mod usb_link;
 
 use embedded_hal_bus::spi::{ExclusiveDevice, NoDelay};
 use stm32f4xx_hal::gpio::{Output, PB12, PD0, PE7};
+use stm32f4xx_hal::otg_fs::USB;
 use stm32f4xx_hal::pac;
 use stm32f4xx_hal::prelude::*;
 use stm32f4xx_hal::rcc::Config;
 use stm32f4xx_hal::spi::{Mode, Phase, Polarity, Spi};
-use stm32f4xx_hal::timer::CounterHz;
+use stm32f4xx_hal::timer::{Counter, Event, Flag};
 
 use crate::ads8681::{Ads8681, InputRange};
 use crate::converter::DriverError;
@@ -53,6 +63,29 @@ use crate::dac8563::Dac8563;
 /// Loop rate, hertz (TIM2 update rate): the stage file's `stage.loop_rate_hz`, a whole number of
 /// hertz checked by `build.rs`.
 pub const LOOP_RATE_HZ: u32 = crate::params::LOOP_RATE_HZ as u32;
+
+/// Core clock, the DWT cycle counter's rate \[Hz\].
+pub const SYSCLK_HZ: u32 = 168_000_000;
+
+/// TIM2's counting rate: its kernel clock, prescaler 1 \[Hz\].
+pub const TIMER_HZ: u32 = 84_000_000;
+
+/// TIM2 counts per loop period.
+pub const TIMER_TICKS_PER_PERIOD: u32 = TIMER_HZ / LOOP_RATE_HZ;
+
+/// Core cycles per TIM2 count.
+pub const CYCLES_PER_TIMER_TICK: u32 = SYSCLK_HZ / TIMER_HZ;
+
+/// The loop period, the tick's deadline \[core cycles\] (16 800 at 10 kHz).
+pub const PERIOD_CYCLES: u32 = TIMER_TICKS_PER_PERIOD * CYCLES_PER_TIMER_TICK;
+
+const _: () = assert!(
+    LOOP_RATE_HZ > 0 && TIMER_HZ.is_multiple_of(LOOP_RATE_HZ),
+    "the stage file's loop rate must divide TIM2's 84 MHz (the board's tick would run at another rate than the model's sample period)"
+);
+
+/// TIM2 as the loop timer: counts at [`TIMER_HZ`].
+pub type LoopTimer = Counter<pac::TIM2, TIMER_HZ>;
 
 /// The ADS8681 as an SPI device on SPI1 with CS on PE7.
 pub type AdcSpi = ExclusiveDevice<Spi<pac::SPI1>, PE7<Output>, NoDelay>;
@@ -77,8 +110,10 @@ pub enum BoardError {
     Adc(AdcError),
     /// The y ADC init failed.
     AdcY(AdcYError),
-    /// The loop timer could not be started.
+    /// TIM2's kernel clock is not [`TIMER_HZ`], or the timer could not be started.
     Timer,
+    /// The PLL's 48 MHz output is off by more than USB's ±0.25 %.
+    UsbClock,
 }
 
 /// Everything the loop needs.
@@ -89,25 +124,37 @@ pub struct Board {
     pub adc: Ads8681<AdcSpi>,
     /// Displacement sensor ADC, y axis.
     pub adc_y: Ads8681<AdcYSpi>,
-    /// TIM2, updating at [`LOOP_RATE_HZ`].
-    pub loop_timer: CounterHz<pac::TIM2>,
+    /// TIM2, counting at [`TIMER_HZ`], not started ([`start_loop_timer`]).
+    pub loop_timer: LoopTimer,
+    /// The OTG_FS peripheral and its pins, for the USB bus.
+    pub usb: USB,
 }
 
 impl Board {
-    /// Clocks, pins, buses, timer; then the DAC init (outputs to 0 V) and the ADC init (range
-    /// ±10.24 V, read back).
+    /// Clocks, pins, buses, timer, USB peripheral; then the DAC init (outputs to 0 V) and the
+    /// ADC init (range ±10.24 V, read back).
     pub fn init(dp: pac::Peripherals) -> Result<Self, BoardError> {
         let mut rcc = dp.RCC.freeze(
             Config::hse(8.MHz())
-                .sysclk(168.MHz())
+                .sysclk(SYSCLK_HZ.Hz())
                 .pclk1(42.MHz())
-                .pclk2(84.MHz()),
+                .pclk2(84.MHz())
+                .require_pll48clk(),
         );
+        if !rcc.clocks.is_pll48clk_valid() {
+            return Err(BoardError::UsbClock);
+        }
+        if rcc.clocks.timclk1().raw() != TIMER_HZ || rcc.clocks.sysclk().raw() != SYSCLK_HZ {
+            return Err(BoardError::Timer);
+        }
         let gpioa = dp.GPIOA.split(&mut rcc);
         let gpiob = dp.GPIOB.split(&mut rcc);
         let gpioc = dp.GPIOC.split(&mut rcc);
         let gpiod = dp.GPIOD.split(&mut rcc);
         let gpioe = dp.GPIOE.split(&mut rcc);
+        // Keep the board's VBUS power switch off (active-low enable): the host powers VBUS.
+        let mut vbus_switch = gpioc.pc0.into_push_pull_output();
+        vbus_switch.set_high();
         // Keep the on-board CS43L22 audio DAC in reset: its I2S3 pins are SPI3's.
         let mut audio_reset = gpiod.pd4.into_push_pull_output();
         audio_reset.set_low();
@@ -162,31 +209,30 @@ impl Board {
         let mut adc_y = Ads8681::new(adc_y_spi, range);
         adc_y.init().map_err(BoardError::AdcY)?;
 
-        let mut loop_timer = dp.TIM2.counter_hz(&mut rcc);
-        loop_timer
-            .start(LOOP_RATE_HZ.Hz())
-            .map_err(|_| BoardError::Timer)?;
+        let usb = USB::new(
+            (dp.OTG_FS_GLOBAL, dp.OTG_FS_DEVICE, dp.OTG_FS_PWRCLK),
+            (gpioa.pa11, gpioa.pa12),
+            &rcc.clocks,
+        );
         Ok(Self {
             dac,
             adc,
             adc_y,
-            loop_timer,
+            loop_timer: dp.TIM2.counter(&mut rcc),
+            usb,
         })
-    }
-
-    /// Blocks until the next TIM2 update (the start of the next tick); returns true if the
-    /// update flag was already set when called, i.e. the previous tick missed its deadline.
-    pub fn wait_for_tick(&mut self) -> bool {
-        wait_for_tick(&mut self.loop_timer)
     }
 }
 
-/// Blocks until the next TIM2 update; true if the update flag was already set when called (the
-/// work since the last update took longer than one period: a missed deadline).
-pub fn wait_for_tick(timer: &mut CounterHz<pac::TIM2>) -> bool {
-    let late = timer.wait().is_ok();
-    if !late {
-        while timer.wait().is_err() {}
-    }
-    late
+/// Starts TIM2 at the loop rate with its update interrupt on: the first tick comes one period
+/// later (starting it raises no update flag).
+pub fn start_loop_timer(timer: &mut LoopTimer) -> Result<(), BoardError> {
+    timer
+        .start(fugit::TimerDurationU32::<TIMER_HZ>::from_ticks(
+            TIMER_TICKS_PER_PERIOD,
+        ))
+        .map_err(|_| BoardError::Timer)?;
+    timer.clear_flags(Flag::Update);
+    timer.listen(Event::Update);
+    Ok(())
 }

@@ -1,0 +1,161 @@
+//! The command link's transport on the board: USB CDC-ACM (a virtual serial port,
+//! `/dev/ttyACM*` on Linux) on the STM32F407's OTG_FS (PA11 D−, PA12 D+; the Discovery's
+//! micro-USB socket CN5), with `usb-device` 0.3 and `usbd-serial` 0.2 on stm32f4xx-hal's
+//! `otg_fs::UsbBus` (synopsys-usb-otg 0.4).
+//!
+//! [`UsbLink::service`] runs in the OTG_FS interrupt (and whenever the control tick pends it
+//! because the session has bytes to send): it polls the USB device, hands every received byte
+//! to [`Session::receive`], and moves bytes from [`Session::transmit`] to the serial port. The
+//! session is taken through an RTIC lock for each batch of at most [`PACKET_BYTES`] bytes, never
+//! while waiting for the bus, so a slow or absent host never holds up the tick; what the host
+//! does not read stays in the session's transmit buffer, which drops frames (counted) when full.
+//!
+//! Bytes go out only while the device is configured (enumerated by a host): `usbd-serial`
+//! accepts bytes into its buffer and then reports a bus error in other states, which would send
+//! them twice.
+
+use stm32f4xx_hal::otg_fs::{UsbBus, USB};
+use usb_device::bus::UsbBusAllocator;
+use usb_device::prelude::{
+    BuilderError, StringDescriptors, UsbDevice, UsbDeviceBuilder, UsbDeviceState, UsbError,
+    UsbVidPid,
+};
+use usbd_serial::SerialPort;
+
+use crate::session::Session;
+
+/// The USB bus of the board.
+pub type Bus = UsbBus<USB>;
+
+/// Bytes of a full-speed bulk packet: the size of one batch in and out.
+pub const PACKET_BYTES: usize = 64;
+
+/// USB vendor and product id: pid.codes' shared id for CDC-ACM devices told apart by their
+/// strings (0x16c0:0x27dd, as the stm32f4xx-hal CDC examples).
+const VID_PID: UsbVidPid = UsbVidPid(0x16c0, 0x27dd);
+
+/// Bytes taken from the session and not yet accepted by the serial port.
+struct Staged {
+    bytes: [u8; PACKET_BYTES],
+    start: usize,
+    end: usize,
+}
+
+impl Staged {
+    fn pending(&self) -> &[u8] {
+        &self.bytes[self.start..self.end]
+    }
+
+    fn push(&mut self, byte: u8) -> bool {
+        if self.end == self.bytes.len() {
+            return false;
+        }
+        self.bytes[self.end] = byte;
+        self.end += 1;
+        true
+    }
+
+    fn consume(&mut self, n: usize) {
+        self.start = (self.start + n).min(self.end);
+        if self.start == self.end {
+            self.start = 0;
+            self.end = 0;
+        }
+    }
+}
+
+/// What the link has counted (logged by the board image).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct UsbCounters {
+    /// Bytes received and handed to the session.
+    pub bytes_in: u32,
+    /// Bytes accepted by the serial port.
+    pub bytes_out: u32,
+    /// USB errors other than "would block" on a write (the staged bytes are dropped; the host
+    /// sees one bad packet and resynchronises on the next delimiter).
+    pub errors: u32,
+}
+
+/// The CDC-ACM device and what it has staged.
+pub struct UsbLink {
+    device: UsbDevice<'static, Bus>,
+    serial: SerialPort<'static, Bus>,
+    staged: Staged,
+    counters: UsbCounters,
+}
+
+impl UsbLink {
+    /// The CDC-ACM device on `bus` (the serial port's endpoints are allocated first, then the
+    /// device is built and the bus enabled; the host sees it once the OTG_FS interrupt runs).
+    pub fn new(bus: &'static UsbBusAllocator<Bus>) -> Result<Self, BuilderError> {
+        let serial = SerialPort::new(bus);
+        let strings = StringDescriptors::default()
+            .manufacturer("piezo-firmware")
+            .product("piezo compensator command link")
+            .serial_number(crate::params::VERSION);
+        let device = UsbDeviceBuilder::new(bus, VID_PID)
+            .device_class(usbd_serial::USB_CLASS_CDC)
+            .strings(&[strings])?
+            .build();
+        Ok(Self {
+            device,
+            serial,
+            staged: Staged {
+                bytes: [0; PACKET_BYTES],
+                start: 0,
+                end: 0,
+            },
+            counters: UsbCounters::default(),
+        })
+    }
+
+    /// What the link has counted.
+    pub fn counters(&self) -> UsbCounters {
+        self.counters
+    }
+
+    /// True while a host has the device configured.
+    pub fn configured(&self) -> bool {
+        self.device.state() == UsbDeviceState::Configured
+    }
+
+    /// Polls the device, passes received bytes to the session and sends what the session has,
+    /// until the serial port would block. `session` is locked once per batch of at most
+    /// [`PACKET_BYTES`] bytes.
+    pub fn service<M>(&mut self, session: &mut M)
+    where
+        M: rtic::Mutex<T = &'static mut Session>,
+    {
+        self.device.poll(&mut [&mut self.serial]);
+        let mut received = [0u8; PACKET_BYTES];
+        while let Ok(n @ 1..) = self.serial.read(&mut received) {
+            let bytes = &received[..n];
+            session.lock(|s| s.receive(bytes));
+            self.counters.bytes_in = self.counters.bytes_in.wrapping_add(n as u32);
+        }
+        if !self.configured() {
+            return;
+        }
+        loop {
+            if self.staged.pending().is_empty() {
+                let staged = &mut self.staged;
+                session.lock(|s| s.transmit(|b| staged.push(b)));
+                if staged.pending().is_empty() {
+                    return;
+                }
+            }
+            match self.serial.write(self.staged.pending()) {
+                Ok(n) => {
+                    self.staged.consume(n);
+                    self.counters.bytes_out = self.counters.bytes_out.wrapping_add(n as u32);
+                }
+                Err(UsbError::WouldBlock) => return,
+                Err(_) => {
+                    self.staged.consume(PACKET_BYTES);
+                    self.counters.errors = self.counters.errors.saturating_add(1);
+                    return;
+                }
+            }
+        }
+    }
+}
