@@ -3,7 +3,8 @@
 # non-zero exit; runs the check image (bench windows) likewise; checks that no panic path is
 # reachable in the check image (panic handler -> undefined symbol; surviving sites listed by
 # panic-sites.sh must be in panic-sites.allowed); runs clippy on the images for the target;
-# builds the STM32F407 board image; prints image sizes. Installs nothing: it checks prerequisites and says what is missing.
+# builds the STM32F407 board image (RTIC 2: checks its TIM2 and OTG_FS handlers); prints image
+# sizes. Installs nothing: it checks prerequisites and says what is missing.
 #
 # Prerequisites (what .ci/run installs):
 #   rustup target add thumbv7em-none-eabihf
@@ -28,10 +29,12 @@ if ! command -v qemu-system-arm >/dev/null; then
   echo "ci.sh: qemu-system-arm not found: apt-get install -y --no-install-recommends qemu-system-arm" >&2
   missing=1
 fi
-if ! command -v size >/dev/null; then
-  echo "ci.sh: 'size' not found (binutils): apt-get install -y --no-install-recommends binutils" >&2
-  missing=1
-fi
+for tool in size nm; do
+  if ! command -v $tool >/dev/null; then
+    echo "ci.sh: '$tool' not found (binutils): apt-get install -y --no-install-recommends binutils" >&2
+    missing=1
+  fi
+done
 [[ $missing == 0 ]] || exit 2
 
 target_dir=${CARGO_TARGET_DIR:-$(cd .. && pwd)/target}
@@ -106,6 +109,14 @@ else
     echo "ci.sh: the board image is not linked at 0x08000000 (wrong memory.x?)" >&2
     exit 1
   fi
+  # The RTIC tasks are bound to their interrupts: the control tick to TIM2, the link to OTG_FS.
+  symbols=$(nm "$out/board")
+  for handler in TIM2 OTG_FS; do
+    if ! grep -q " T $handler\$" <<<"$symbols"; then
+      echo "ci.sh: the board image has no $handler handler (RTIC task binding lost)" >&2
+      exit 1
+    fi
+  done
   size "$out/board"
 fi
 echo "ci.sh: firmware OK (QEMU self-check passed, images built)"
