@@ -34,6 +34,10 @@ pub const PACKET_BYTES: usize = 64;
 /// strings (0x16c0:0x27dd, as the stm32f4xx-hal CDC examples).
 const VID_PID: UsbVidPid = UsbVidPid(0x16c0, 0x27dd);
 
+/// The device's serial number string (short: a string descriptor must fit usb-device's 128-byte
+/// control buffer; the parameter set's version is in `status`).
+const SERIAL_NUMBER: &str = "piezo-f407";
+
 /// Bytes taken from the session and not yet accepted by the serial port.
 struct Staged {
     bytes: [u8; PACKET_BYTES],
@@ -92,7 +96,7 @@ impl UsbLink {
         let strings = StringDescriptors::default()
             .manufacturer("piezo-firmware")
             .product("piezo compensator command link")
-            .serial_number(crate::params::VERSION);
+            .serial_number(SERIAL_NUMBER);
         let device = UsbDeviceBuilder::new(bus, VID_PID)
             .device_class(usbd_serial::USB_CLASS_CDC)
             .strings(&[strings])?
