@@ -19,7 +19,7 @@
 //! A one-axis file drives both channels with its `x` set (said as a build warning).
 
 use piezo_core::effects::EffectParams;
-use piezo_core::{Asymmetry, BoucWenParams, StaticMap};
+use piezo_core::{Asymmetry, BoucWenParams, ServoParams, StaticMap};
 use piezo_stage::{AxisChain, StageError, StageErrorKind, StageFile, ValidAxis};
 
 /// Lowest loop rate the image runs \[Hz\].
@@ -62,6 +62,8 @@ pub struct AxisSet {
     pub rest_output_m: f32,
     /// The effect chain (all zero: none).
     pub effects: EffectParams,
+    /// The feedback servo (`None`: none).
+    pub servo: Option<ServoParams>,
 }
 
 /// A validated stage file.
@@ -121,6 +123,7 @@ fn axis_set(file: &StageFile, valid: &ValidAxis) -> AxisSet {
         linear_gain_m_per_v: valid.linear_gain_m_per_v,
         rest_output_m: valid.rest_output_m,
         effects: axis.effects,
+        servo: axis.servo,
     }
 }
 
@@ -239,6 +242,7 @@ pub fn generate(set: &ParamSet, file: &str) -> String {
              \x20       linear_gain_m_per_v: {:?},\n\
              \x20       rest_output_m: {:?},\n\
              \x20       effects: {:?},\n\
+             \x20       servo: {:?},\n\
              \x20   }},\n",
             a.bouc_wen,
             a.static_map,
@@ -249,6 +253,7 @@ pub fn generate(set: &ParamSet, file: &str) -> String {
             a.linear_gain_m_per_v,
             a.rest_output_m,
             a.effects,
+            a.servo,
         ));
     }
     out.push_str("];\n");

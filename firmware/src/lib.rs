@@ -17,6 +17,7 @@
 //!   out) around the loop: programs, open-loop excitation, model upload, rearm, status;
 //! - [`inverse_chain`]: the inverse of the effect chain (creep, even term, mode, delay, drift,
 //!   coupling) the loop runs around the compensator when the parameter file has effects;
+//! - [`servo_table`]: the four control modes on the simulated stage with creep, drift and noise;
 //! - [`plant`], [`demo`]: a simulated two-axis stage (independent f32 Bouc-Wen + lag) and the
 //!   fixed run the QEMU image checks itself with.
 //!
@@ -37,6 +38,7 @@ pub mod params;
 pub mod plant;
 pub mod reference;
 pub mod safety;
+pub mod servo_table;
 pub mod session;
 pub mod xy_loop;
 

@@ -12,8 +12,8 @@
 
 use piezo_core::effects::{EffectParams, Effects};
 use piezo_core::{
-    Asymmetry, BoucWen, BoucWenParams, Compensator, CompensatorSettings, ParamError, StaticMap,
-    StaticModel,
+    Asymmetry, BoucWen, BoucWenParams, Compensator, CompensatorSettings, ParamError, Servo,
+    ServoParams, StaticMap, StaticModel,
 };
 
 /// One axis of the parameter file.
@@ -39,6 +39,8 @@ pub struct AxisParams {
     /// The effects around the hysteresis model (creep, even term, mode, delay, drift, coupling);
     /// all zero: none.
     pub effects: EffectParams,
+    /// The feedback servo on the sensor (`[x.servo]`; `None`: feed-forward only).
+    pub servo: Option<ServoParams>,
 }
 
 /// Largest |h| accepted for a range-limited Bouc-Wen set over the window (as in `build.rs`).
@@ -90,6 +92,14 @@ impl AxisParams {
     /// The core's effect chain of this axis at the loop period `sample_period_s` \[s\].
     pub fn effect_chain(&self, sample_period_s: f32) -> Result<Effects, ParamError> {
         Effects::new(self.effects, sample_period_s, self.w_range_m())
+    }
+
+    /// The core's feedback servo of this axis at the loop period `sample_period_s` \[s\] (with
+    /// the compensator's output window and slew limit), if the file has one.
+    pub fn servo(&self, sample_period_s: f32) -> Result<Option<Servo>, ParamError> {
+        self.servo
+            .map(|p| Servo::new(p, self.settings(sample_period_s)))
+            .transpose()
     }
 
     /// The core's inverse compensator for this axis at the loop rate of the file.

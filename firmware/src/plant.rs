@@ -12,8 +12,15 @@
 //! y  = k1·u + k2·h + y0                                       static map (same parameters as the
 //!                                                             parameter file)
 //! x  = x₋ + α·(y − x₋),  α = 1 − exp(−T/τ)                   first-order lag (stage mechanics)
-//! V_sensor = x / (metres per volt)  →  AdcCode               sensor and ADC (±10.24 V range)
+//! c  = c₋ + α_c·(g_c·(u − u_rest) − c₋),  α_c = 1 − exp(−T/τ_c)   creep (optional)
+//! d  = d₋ + ḋ·T                                               drift (optional)
+//! V_sensor = (x + c + d) / (metres per volt) + noise  →  AdcCode   sensor and ADC (±10.24 V)
 //! ```
+//!
+//! Creep, drift and sensor noise ([`Disturbances`], all zero by default) are what the servo
+//! table of [`crate::servo_table`] needs: effects no feed-forward model of the image holds. The
+//! noise is uniform with the given RMS, from a hash of the tick and the axis (no state, the
+//! same on every run).
 //!
 //! Time is explicit: the DAC side sets an axis's input code (held), the ADC side reads the
 //! current displacement, and [`XyPlant::advance`] moves the stage one loop period on. The two
@@ -36,6 +43,19 @@ pub const MAX_SUBSTEPS: u32 = 512;
 /// Lag time constant of the simulated stage mechanics \[s\] (first mode ≈ 3.2 kHz: 1/(2π·3.2 kHz)).
 pub const LAG_TIME_CONSTANT_S: f32 = 50e-6;
 
+/// What the simulated stage adds that no model of the image holds (all zero: nothing).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Disturbances {
+    /// g_c: creep gain \[m/V\] (its settled share of the input above the rest voltage).
+    pub creep_gain_m_per_v: f32,
+    /// τ_c: creep time constant \[s\] (> 0 when the gain is not 0).
+    pub creep_time_constant_s: f32,
+    /// ḋ: drift of the output \[m/s\].
+    pub drift_m_per_s: f32,
+    /// RMS of the sensor noise \[m\].
+    pub sensor_noise_rms_m: f32,
+}
+
 /// One axis of the simulated stage.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct StackPlant {
@@ -45,6 +65,12 @@ pub struct StackPlant {
     input_v: f32,
     h: f32,
     displacement_m: f32,
+    rest_v: f32,
+    creep_alpha: f32,
+    creep_gain_m_per_v: f32,
+    creep_m: f32,
+    drift_step_m: f32,
+    drift_m: f32,
 }
 
 impl StackPlant {
@@ -57,7 +83,25 @@ impl StackPlant {
             input_v,
             h: 0.0,
             displacement_m: map.output(input_v, 0.0),
+            rest_v: input_v,
+            creep_alpha: 0.0,
+            creep_gain_m_per_v: 0.0,
+            creep_m: 0.0,
+            drift_step_m: 0.0,
+            drift_m: 0.0,
         }
+    }
+
+    /// This axis with creep and drift at loop period `sample_period_s` \[s\].
+    pub fn with_disturbances(mut self, d: &Disturbances, sample_period_s: f32) -> Self {
+        self.creep_gain_m_per_v = d.creep_gain_m_per_v;
+        self.creep_alpha = if d.creep_time_constant_s > 0.0 {
+            1.0 - libm::expf(-sample_period_s / d.creep_time_constant_s)
+        } else {
+            0.0
+        };
+        self.drift_step_m = d.drift_m_per_s * sample_period_s;
+        self
     }
 
     /// Hysteretic state h.
@@ -65,9 +109,9 @@ impl StackPlant {
         self.h
     }
 
-    /// Displacement \[m\] (after the lag).
+    /// Displacement \[m\]: the lagged hysteresis output plus creep and drift.
     pub fn displacement_m(&self) -> f32 {
-        self.displacement_m
+        self.displacement_m + self.creep_m + self.drift_m
     }
 
     /// Moves the input to `input_v` along a straight path and advances the lag one period.
@@ -92,6 +136,9 @@ impl StackPlant {
         self.input_v = input_v;
         let target = self.map.output(input_v, h);
         self.displacement_m += self.lag_alpha * (target - self.displacement_m);
+        let creep_target = self.creep_gain_m_per_v * (input_v - self.rest_v);
+        self.creep_m += self.creep_alpha * (creep_target - self.creep_m);
+        self.drift_m += self.drift_step_m;
     }
 }
 
@@ -102,6 +149,9 @@ pub struct XyPlant {
     codes: [DacCode; 2],
     amplifier_gain_v_per_v: f32,
     sensor: SensorScale,
+    /// Half-width of the uniform sensor noise \[m\] (√3 × its RMS).
+    noise_half_width_m: f32,
+    ticks: u32,
 }
 
 impl XyPlant {
@@ -112,7 +162,18 @@ impl XyPlant {
             codes: [DacCode::SAFE; 2],
             amplifier_gain_v_per_v,
             sensor,
+            noise_half_width_m: 0.0,
+            ticks: 0,
         }
+    }
+
+    /// This stage with creep, drift and sensor noise on both axes.
+    pub fn with_disturbances(mut self, d: &Disturbances, sample_period_s: f32) -> Self {
+        for axis in &mut self.axes {
+            *axis = axis.with_disturbances(d, sample_period_s);
+        }
+        self.noise_half_width_m = libm::sqrtf(3.0) * d.sensor_noise_rms_m;
+        self
     }
 
     /// The stage of the built-in parameter file ([`crate::params`]), lag
@@ -151,12 +212,27 @@ impl XyPlant {
         for (plant, code) in self.axes.iter_mut().zip(self.codes) {
             plant.advance(code.to_volts() * self.amplifier_gain_v_per_v);
         }
+        self.ticks = self.ticks.wrapping_add(1);
     }
 
     /// What the ADC reads for an axis now.
     pub fn sensor_code(&self, axis: Axis) -> AdcCode {
-        AdcCode::from_volts(self.sensor.volts(self.axis(axis).displacement_m()))
+        let noise = if self.noise_half_width_m > 0.0 {
+            self.noise_half_width_m * uniform(self.ticks, axis.index() as u32)
+        } else {
+            0.0
+        };
+        AdcCode::from_volts(self.sensor.volts(self.axis(axis).displacement_m() + noise))
     }
+}
+
+/// A number in \[−1, 1) from a hash of `tick` and `axis` (a 32-bit integer mix).
+fn uniform(tick: u32, axis: u32) -> f32 {
+    let mut z = tick.wrapping_mul(0x9E37_79B9) ^ axis.wrapping_mul(0x85EB_CA6B);
+    z = (z ^ (z >> 16)).wrapping_mul(0x7FEB_352D);
+    z = (z ^ (z >> 15)).wrapping_mul(0x846C_A68B);
+    z ^= z >> 16;
+    (z >> 8) as f32 / (1u32 << 23) as f32 - 1.0
 }
 
 /// DAC side of a shared [`XyPlant`]; channel = axis.

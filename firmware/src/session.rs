@@ -10,8 +10,10 @@
 //! tick never sees half of one.
 //!
 //! # Requests ([`Request`])
-//! - `Track(program)`: reference in metres, feed-forward the compensator (or the linear baseline
-//!   after `Compensation(false)`); the tracking error per axis (sensor of tick k minus reference
+//! - `Track(program)`: reference in metres, in the control mode set by `Control` (feedforward,
+//!   the compensator, until told otherwise; open loop: the linear baseline; feedback and
+//!   feedforward + feedback: piezo-core's servo on the sensor, which needs `[x.servo]` and
+//!   `[y.servo]` in the running set); the tracking error per axis (sensor of tick k minus reference
 //!   of tick k − 1) is accumulated from [`SETTLE_TICKS`] after it, reported by `Status`.
 //! - `Excite(program)`: stack volts, open loop (compensator off), for identification; the
 //!   compensator's model still follows the applied voltage, so going back to `Track` is bumpless.
@@ -23,6 +25,9 @@
 //!   needs; the loop rate and the io chain must be the firmware's. Accepted: swapped in with
 //!   [`TwoAxisLoop::set_settings`] (state kept). Refused: nothing changes, and the answer carries
 //!   the core's reason and the axis.
+//! - `Control(mode)`: switches the control mode bumplessly between two ticks
+//!   ([`TwoAxisLoop::set_control_mode`]); refused with the axis when a mode with feedback finds
+//!   no servo. An upload without a servo is refused while a feedback mode runs.
 //! - `Rearm`, `InjectOverrun` (the next tick is told the previous one overran: a fault drill),
 //!   `Frames { decimation }`, `Status`, `Shutdown`.
 //!
@@ -33,11 +38,11 @@
 //! discarded (the numbers keep counting).
 
 use heapless::{Deque, String};
-use piezo_core::ParamError;
+use piezo_core::{ParamError, ServoMode};
 use piezo_link::{
-    truncated, AxisModel, Counters, Decoder, Frame, ModelSet, Packet, Program as WireProgram,
-    Refusal, RefusalKind, Request, Response, SequenceChecker, Setpoints, Status, Tracking, Uplink,
-    Wave, MAX_FRAME, REASON_BYTES, VERSION_BYTES,
+    truncated, AxisModel, Control, Counters, Decoder, Frame, ModelSet, Packet,
+    Program as WireProgram, Refusal, RefusalKind, Request, Response, SequenceChecker, Setpoints,
+    Status, Tracking, Uplink, Wave, MAX_FRAME, REASON_BYTES, VERSION_BYTES,
 };
 
 use crate::control::TrackingStats;
@@ -45,8 +50,8 @@ use crate::converter::DacWrite;
 use crate::params::{self, AxisParams};
 use crate::reference::{Program, Waveform, STREAM_CAPACITY, TABLE_CAPACITY};
 use crate::xy_loop::{
-    Axis, AxisConfig, ConfigError, Fault, Feedforward, LoopSettings, Mode, PositionSensor,
-    TickReport, TwoAxisLoop, XyIo,
+    Axis, AxisConfig, ConfigError, ControlError, Fault, Feedforward, LoopSettings, Mode,
+    PositionSensor, TickReport, TwoAxisLoop, XyIo,
 };
 
 /// Bytes of the transmit buffer.
@@ -61,7 +66,9 @@ const SWEEP_STEP_V: f32 = 0.01;
 pub struct Session {
     /// The loop (public: the image ticks it through [`Session::tick`] and reads its state).
     pub lp: TwoAxisLoop,
-    compensation: bool,
+    /// The control mode of `Track`.
+    control: ServoMode,
+    tick_cycles_max: u32,
     inject_overrun: bool,
     decoder: Decoder,
     requests: SequenceChecker,
@@ -172,6 +179,7 @@ fn axis_params(m: &AxisModel) -> Result<AxisParams, ParamError> {
         linear_gain_m_per_v: 0.0,
         rest_output_m: 0.0,
         effects: m.effects,
+        servo: m.servo,
     };
     let model = p.model()?;
     let (u0, u1) = (p.output_min_v, p.output_max_v);
@@ -185,6 +193,26 @@ fn axis_params(m: &AxisModel) -> Result<AxisParams, ParamError> {
     p.rest_output_m = rest;
     p.linear_gain_m_per_v = (top - rest) / (u1 - u0);
     Ok(p)
+}
+
+/// piezo-core's mode for the wire's.
+fn servo_mode(c: Control) -> ServoMode {
+    match c {
+        Control::OpenLoop => ServoMode::OpenLoop,
+        Control::Feedforward => ServoMode::Feedforward,
+        Control::Feedback => ServoMode::Feedback,
+        Control::FeedforwardFeedback => ServoMode::FeedforwardFeedback,
+    }
+}
+
+/// The wire's mode for piezo-core's.
+fn wire_control(m: ServoMode) -> Control {
+    match m {
+        ServoMode::OpenLoop => Control::OpenLoop,
+        ServoMode::Feedforward => Control::Feedforward,
+        ServoMode::Feedback => Control::Feedback,
+        ServoMode::FeedforwardFeedback => Control::FeedforwardFeedback,
+    }
 }
 
 fn config_refusal(axis: usize, e: ConfigError) -> Response {
@@ -210,7 +238,8 @@ impl Session {
     /// start off.
     pub fn new(lp: TwoAxisLoop, version: &str, fnv1a32: u32) -> Self {
         Self {
-            compensation: lp.feedforward() != Feedforward::Linear,
+            control: lp.control_mode(),
+            tick_cycles_max: 0,
             lp,
             inject_overrun: false,
             decoder: Decoder::new(),
@@ -227,6 +256,12 @@ impl Session {
             fnv1a32,
             shutdown: false,
         }
+    }
+
+    /// Records the measured cost of a tick \[CPU cycles\] (the board's DWT cycle counter); the
+    /// largest is reported by `Status`.
+    pub fn note_tick_cycles(&mut self, cycles: u32) {
+        self.tick_cycles_max = self.tick_cycles_max.max(cycles);
     }
 
     /// True once a `Shutdown` request was answered.
@@ -445,6 +480,20 @@ impl Session {
             );
         }
         let mut axes = self.lp.settings().axes;
+        if self.control.feedback() {
+            if let Some(i) = set.axes.iter().position(|a| a.servo.is_none()) {
+                self.counters.refused_uploads = self.counters.refused_uploads.saturating_add(1);
+                let name = ["x", "y"][i & 1];
+                return refused(
+                    RefusalKind::Model,
+                    Some(i as u8),
+                    format_args!(
+                        "{name}: no [{name}.servo] while the control mode is {}; switch to feedforward first",
+                        self.control.name()
+                    ),
+                );
+            }
+        }
         for (i, model) in set.axes.iter().enumerate() {
             let config = axis_params(model)
                 .map_err(ConfigError::Core)
@@ -474,10 +523,11 @@ impl Session {
         match request {
             Request::Status => Response::Status(self.status()),
             Request::Track(program) => {
-                let ff = if self.compensation {
-                    Feedforward::Compensator
-                } else {
-                    Feedforward::Linear
+                let ff = match self.control {
+                    ServoMode::Feedforward | ServoMode::FeedforwardFeedback => {
+                        Feedforward::Compensator
+                    }
+                    ServoMode::OpenLoop | ServoMode::Feedback => Feedforward::Linear,
                 };
                 self.start(program, ff)
             }
@@ -491,16 +541,25 @@ impl Session {
             }
             Request::TableAppend(setpoints) => self.queue(&setpoints, true),
             Request::Stream(setpoints) => self.queue(&setpoints, false),
-            Request::Compensation(on) => {
-                self.compensation = on;
-                if self.lp.feedforward() != Feedforward::OpenLoop {
-                    self.lp.set_feedforward(if on {
-                        Feedforward::Compensator
-                    } else {
-                        Feedforward::Linear
-                    });
+            Request::Control(control) => {
+                let mode = servo_mode(control);
+                match self.lp.set_control_mode(mode) {
+                    Ok(()) => {
+                        self.control = mode;
+                        Response::Done
+                    }
+                    Err(ControlError::NoServo(axis)) => {
+                        let name = ["x", "y"][axis.index()];
+                        refused(
+                            RefusalKind::Program,
+                            Some(axis.index() as u8),
+                            format_args!(
+                                "{} needs a servo: the running set has no [{name}.servo]",
+                                mode.name()
+                            ),
+                        )
+                    }
                 }
-                Response::Done
             }
             Request::Rearm => {
                 self.lp.rearm();
@@ -545,6 +604,7 @@ impl Session {
             dac_errors: lc.dac_errors,
             safe_entries: lc.safe_entries,
             compensator_limited: lc.compensator_limited,
+            servo_limited: lc.servo_limited,
             guard_interventions: guard,
             stream_underruns: self.lp.reference.underruns(),
             frames_dropped: self
@@ -569,6 +629,8 @@ impl Session {
             loop_rate_hz: params::LOOP_RATE_HZ,
             mode,
             feedforward,
+            control: wire_control(self.control),
+            tick_cycles_max: self.tick_cycles_max,
             counters,
             tracking: self.tracking.map(|s| Tracking {
                 count: s.count(),

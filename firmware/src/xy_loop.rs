@@ -13,8 +13,9 @@
 //!                                                       frozen → fault StuckReading
 //! 2. running: [r_x, r_y] = reference.next()
 //!              (with effects: r = r[j], w* = inverse chain, see below)
-//!    per axis: u_req = compensator.compensate(state, r)  (w* with effects; or the linear
+//!    per axis: u_ff  = compensator.compensate(state, r)  (w* with effects; or the linear
 //!                                                       baseline u_min + (r − y_rest)/g_lin)
+//!              u_req = servo.step(r₋, x_meas, u_ff)     with feedback (see Feedback), else u_ff
 //!              u     = guard.apply(u_req)               window, slew, non-finite → hold
 //!    safe:     u     = last guarded output (hold); reference paused, compensator frozen
 //! 3. per axis: DAC code = u / G_amp                     Err → fault DacError; axes not yet
@@ -23,6 +24,20 @@
 //!                                                       compensator's model output
 //! 4. frame {sequence, per axis: r, u, x_meas}           every `decimation`-th tick
 //! ```
+//!
+//! # Feedback
+//! With a servo in the parameter file (`[x.servo]`, [`AxisParams::servo`]), the loop runs one of
+//! piezo-core's four control modes ([`ServoMode`], [`TwoAxisLoop::set_control_mode`]): open loop
+//! (the linear baseline), feedforward (the compensator), feedback (`piezo_core::Servo` alone)
+//! and feedforward + feedback. The servo compares the reference of the previous tick r₋ (the
+//! voltage written in a tick shows in the next tick's reading) with this tick's reading
+//! x_meas, error `e = r₋ − x_meas` \[m\], and adds its correction to the feed-forward
+//! `u_ff`; its own window and slew limit are the compensator's, so the guard only acts on a
+//! fault. Switching feedback on hands over from the voltage applied; switching it off fades the
+//! correction out with the servo's `transfer_time_constant_s` τ over [`HANDOVER_TIME_CONSTANTS`]·τ;
+//! after a fault, an excitation or a new parameter set the servo restarts at rest at the held
+//! voltage. Without feedback and outside a hand-over the servo is not run: the tick is exactly
+//! the feed-forward one.
 //!
 //! # Effects
 //! When the parameter file has effects (`[x.effects]`, `[y.effects]`: creep, even term, mode,
@@ -56,7 +71,10 @@
 //! Never panics (checked mechanically by the `check` image, see `firmware/ci.sh`), no allocation.
 
 use piezo_core::effects::Effects;
-use piezo_core::{CommandStatus, Compensator, CompensatorState, ParamError};
+use piezo_core::{
+    CommandStatus, Compensator, CompensatorState, ParamError, Servo, ServoMode, ServoState,
+    ServoStatus,
+};
 
 use crate::codes::{DacCode, SensorScale};
 use crate::converter::{AdcRead, DacWrite, Error, ErrorKind, ErrorType};
@@ -208,6 +226,7 @@ impl StuckPolicy {
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct AxisConfig {
     compensator: Compensator,
+    servo: Option<Servo>,
     effects: Effects,
     limits: SafetyLimits,
     linear_gain_m_per_v: f32,
@@ -239,6 +258,7 @@ impl AxisConfig {
         let compensator =
             Compensator::new(model, p.settings(sample_period_s)).map_err(ConfigError::Core)?;
         let effects = p.effect_chain(sample_period_s).map_err(ConfigError::Core)?;
+        let servo = p.servo(sample_period_s).map_err(ConfigError::Core)?;
         let max_step_v = p.slew_limit_v_per_s * sample_period_s * GUARD_SLEW_MARGIN;
         let limits = SafetyLimits::new(p.output_min_v, p.output_max_v, max_step_v)
             .map_err(ConfigError::Limits)?;
@@ -247,6 +267,7 @@ impl AxisConfig {
         }
         Ok(Self {
             compensator,
+            servo,
             effects,
             limits,
             linear_gain_m_per_v: p.linear_gain_m_per_v,
@@ -258,6 +279,17 @@ impl AxisConfig {
     /// The core's compensator.
     pub fn compensator(&self) -> &Compensator {
         &self.compensator
+    }
+
+    /// The feedback servo, if the parameter file has one.
+    pub fn servo(&self) -> Option<&Servo> {
+        self.servo.as_ref()
+    }
+
+    /// This axis without its servo (feed-forward only).
+    pub fn without_servo(mut self) -> Self {
+        self.servo = None;
+        self
     }
 
     /// The guard's limits.
@@ -358,6 +390,9 @@ pub struct LoopCounters {
     pub compensator_limited: u32,
     /// Samples with a non-finite reference, held by the compensator (both axes).
     pub held_references: u32,
+    /// Samples where the servo's window or slew limit stopped the feedback short, or it held its
+    /// correction over a non-finite input (both axes).
+    pub servo_limited: u32,
 }
 
 impl LoopCounters {
@@ -403,6 +438,17 @@ impl StuckDetector {
     }
 }
 
+/// Time constants of the servo's fade-out after feedback is switched off, after which the servo
+/// stops running (the correction is down to e⁻¹⁰ ≈ 4.5·10⁻⁵ of what it was).
+pub const HANDOVER_TIME_CONSTANTS: f32 = 10.0;
+
+/// Why a control mode was refused.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ControlError {
+    /// The mode needs feedback and this axis has no servo in the parameter set.
+    NoServo(Axis),
+}
+
 /// What one tick did.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TickReport {
@@ -420,6 +466,11 @@ pub struct TickReport {
 pub struct TwoAxisLoop {
     settings: LoopSettings,
     feedforward: Feedforward,
+    /// Feedback on (the servo's correction added to the feed-forward).
+    feedback: bool,
+    /// Ticks left of the fade-out after feedback was switched off.
+    handover_ticks: u32,
+    servo: [ServoState; 2],
     compensator: [CompensatorState; 2],
     guard: [GuardState; 2],
     stuck: [StuckDetector; 2],
@@ -456,10 +507,21 @@ impl TwoAxisLoop {
             ),
             Feedforward::Linear | Feedforward::OpenLoop => None,
         };
+        let mode = if feedforward == Feedforward::Linear {
+            ServoMode::OpenLoop
+        } else {
+            ServoMode::Feedforward
+        };
         Self {
             compensator: [
                 CompensatorState::at_rest(guard[0].last_safe_volts()),
                 CompensatorState::at_rest(guard[1].last_safe_volts()),
+            ],
+            feedback: false,
+            handover_ticks: 0,
+            servo: [
+                ServoState::at_rest(guard[0].last_safe_volts(), mode),
+                ServoState::at_rest(guard[1].last_safe_volts(), mode),
             ],
             chain,
             guard,
@@ -518,8 +580,91 @@ impl TwoAxisLoop {
         if feedforward == self.feedforward {
             return;
         }
+        let from_excitation = self.feedforward == Feedforward::OpenLoop;
         self.feedforward = feedforward;
         self.chain = self.chain_at_applied();
+        if from_excitation {
+            self.restart_servo();
+        } else {
+            let mode = self.control_mode();
+            self.servo.iter_mut().for_each(|s| s.set_mode(mode));
+        }
+    }
+
+    /// The control mode of [`Feedforward::Compensator`]/[`Feedforward::Linear`] with feedback on
+    /// or off (feedback alone runs the linear feed-forward, which the servo ignores, so that the
+    /// compensator's model only follows the applied voltage). During an excitation, the mode the
+    /// loop returns to.
+    pub fn control_mode(&self) -> ServoMode {
+        match (self.feedforward, self.feedback) {
+            (Feedforward::Linear, false) => ServoMode::OpenLoop,
+            (_, false) => ServoMode::Feedforward,
+            (Feedforward::Linear, true) => ServoMode::Feedback,
+            (_, true) => ServoMode::FeedforwardFeedback,
+        }
+    }
+
+    /// Switches the control mode between two ticks, bumplessly (see the module docs, Feedback).
+    /// A mode with feedback needs a servo on both axes; refused, nothing changes. During an
+    /// excitation only the mode to return to changes.
+    pub fn set_control_mode(&mut self, mode: ServoMode) -> Result<(), ControlError> {
+        if mode.feedback() {
+            for axis in Axis::ALL {
+                if self.settings.axes[axis.index()].servo.is_none() {
+                    return Err(ControlError::NoServo(axis));
+                }
+            }
+        }
+        let was_feedback = self.feedback;
+        self.feedback = mode.feedback();
+        if self.feedforward != Feedforward::OpenLoop {
+            let feedforward = if matches!(
+                mode,
+                ServoMode::Feedforward | ServoMode::FeedforwardFeedback
+            ) {
+                Feedforward::Compensator
+            } else {
+                Feedforward::Linear
+            };
+            if feedforward != self.feedforward {
+                self.feedforward = feedforward;
+                self.chain = self.chain_at_applied();
+            }
+        }
+        if self.feedback && !was_feedback {
+            self.restart_servo();
+        } else {
+            self.servo.iter_mut().for_each(|s| s.set_mode(mode));
+            if was_feedback && !self.feedback {
+                self.handover_ticks = self.handover_length();
+            }
+        }
+        Ok(())
+    }
+
+    /// Ticks of the fade-out: [`HANDOVER_TIME_CONSTANTS`] of the slower axis's τ.
+    fn handover_length(&self) -> u32 {
+        let ticks = |a: &AxisConfig| {
+            a.servo.map_or(0.0, |s| {
+                HANDOVER_TIME_CONSTANTS * s.params().transfer_time_constant_s / s.sample_period_s()
+            })
+        };
+        let [x, y] = &self.settings.axes;
+        libm::ceilf(ticks(x).max(ticks(y))).clamp(0.0, u32::MAX as f32) as u32
+    }
+
+    /// The servo of each axis at rest at its applied voltage in the current mode (no fade-out).
+    fn restart_servo(&mut self) {
+        let mode = self.control_mode();
+        for (servo, guard) in self.servo.iter_mut().zip(&self.guard) {
+            *servo = ServoState::at_rest(guard.last_safe_volts(), mode);
+        }
+        self.handover_ticks = 0;
+    }
+
+    /// An axis's servo state (mode, last output and correction).
+    pub fn servo_state(&self, axis: Axis) -> &ServoState {
+        &self.servo[axis.index()]
     }
 
     /// Swaps the settings between two ticks (a new parameter set). The run-time state is kept:
@@ -537,6 +682,11 @@ impl TwoAxisLoop {
         if effects_changed {
             self.chain = self.chain_at_applied();
         }
+        if self.feedback && settings.axes.iter().any(|a| a.servo.is_none()) {
+            // A set without a servo: feed-forward only from here on.
+            self.feedback = false;
+        }
+        self.restart_servo();
     }
 
     fn chain_at_applied(&self) -> Option<InverseChain> {
@@ -557,6 +707,7 @@ impl TwoAxisLoop {
     pub fn rearm(&mut self) {
         self.mode = Mode::Running;
         self.stuck = [StuckDetector::default(); 2];
+        self.restart_servo();
     }
 
     #[inline]
@@ -629,11 +780,16 @@ impl TwoAxisLoop {
         // 2. Commands.
         let before_compensator = self.compensator;
         let before_guard = self.guard;
+        let before_servo = self.servo;
         let mut applied_v = [
             self.guard[0].last_safe_volts(),
             self.guard[1].last_safe_volts(),
         ];
+        let servo_runs = self.mode == Mode::Running
+            && self.feedforward != Feedforward::OpenLoop
+            && (self.feedback || self.handover_ticks > 0);
         if self.mode == Mode::Running {
+            let previous_reference = self.last_reference_m;
             let (reference, target) = match self.chain.as_mut() {
                 Some(chain) if EFFECTS => {
                     let reference = &mut self.reference;
@@ -669,8 +825,25 @@ impl TwoAxisLoop {
                     }
                     Feedforward::OpenLoop => reference[i],
                 };
+                let feedforward = requested;
+                let requested = match axis.servo.as_ref() {
+                    Some(servo) if servo_runs => {
+                        let out = servo.step(
+                            &mut self.servo[i],
+                            previous_reference[i],
+                            measured_m[i],
+                            feedforward,
+                        );
+                        if out.status != ServoStatus::Tracking {
+                            let c = &mut self.counters;
+                            c.servo_limited = c.servo_limited.saturating_add(1);
+                        }
+                        out.voltage_v
+                    }
+                    _ => feedforward,
+                };
                 let u = axis.limits.apply(&mut self.guard[i], requested);
-                if u != requested || self.feedforward != Feedforward::Compensator {
+                if u != feedforward || self.feedforward != Feedforward::Compensator {
                     // The guard overrode the compensator, or another feed-forward ran: advance
                     // the model by what is applied, so that switching to the compensator is
                     // bumpless.
@@ -695,15 +868,24 @@ impl TwoAxisLoop {
                     // This axis's DAC kept its previous code; so does the model.
                     self.compensator[i] = before_compensator[i];
                     self.guard[i] = before_guard[i];
+                    self.servo[i] = before_servo[i];
                     applied_v[i] = before_guard[i].last_safe_volts();
                     // Axes after it have not been written yet: hold them too.
                     for j in (i + 1)..2 {
                         self.compensator[j] = before_compensator[j];
                         self.guard[j] = before_guard[j];
+                        self.servo[j] = before_servo[j];
                         applied_v[j] = before_guard[j].last_safe_volts();
                     }
                 }
             }
+        }
+
+        // 3a. Servo: a fade-out counts down; a servo that did not run this tick (safe,
+        // excitation, feed-forward only) restarts at rest at the applied voltage when it runs
+        // again (see `restart_servo`: rearm, set_feedforward, set_control_mode).
+        if servo_runs && !self.feedback {
+            self.handover_ticks = self.handover_ticks.saturating_sub(1);
         }
 
         // 3b. Effects: the stage saw `applied_v` this tick (the held value if safe or if the

@@ -93,8 +93,8 @@ fn refusals_name_the_file_line_and_key() {
             "`x.static_map.k1_m_per_v`",
         ),
         (
-            "output_max_v = 120.0\nslew_limit_v_per_s = 1.0e5\n\n[y",
-            "output_max_v = -1.0\nslew_limit_v_per_s = 1.0e5\n\n[y",
+            "[x.limits]\noutput_min_v = 0.0\noutput_max_v = 120.0",
+            "[x.limits]\noutput_min_v = 0.0\noutput_max_v = -1.0",
             "`x.limits",
         ),
         (
@@ -109,7 +109,7 @@ fn refusals_name_the_file_line_and_key() {
         ),
         (
             "loop_rate_hz = 10000.0",
-            "loop_rate_hz = 1234.5",
+            "loop_rate_hz = 10000.5",
             "whole-hertz loop rates",
         ),
         (

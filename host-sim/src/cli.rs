@@ -68,6 +68,9 @@ All modes command one sample ahead. Output window 0-120 V."
     /// DIR/servo.json and plots.
     #[command(after_help = crate::servo_bench::HELP)]
     ServoBench(crate::servo_bench::ServoBenchArgs),
+    /// Tunes the feedback servo of each axis from the stage file's model and the stage's first
+    /// mode; writes the stage file with `[x.servo]`/`[y.servo]` and prints the margins.
+    ServoTune(crate::servo_tune::ServoTuneArgs),
 }
 
 /// Plot formats.
@@ -174,6 +177,7 @@ pub fn run(cli: Cli) -> Result<String, String> {
         Command::Compensate(a) => crate::compensate::compensate_cmd(&a),
         Command::Link(a) => crate::link::link_cmd(&a),
         Command::ServoBench(a) => crate::servo_bench::servo_bench_cmd(&a),
+        Command::ServoTune(a) => crate::servo_tune::servo_tune_cmd(&a),
     }
 }
 

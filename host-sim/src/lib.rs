@@ -1,29 +1,33 @@
-//! host-sim: independent f64 reference plants for the piezo hysteresis compensator.
+//! host-sim: the host tools of the piezo hysteresis compensator — identification, close-loop,
+//! compensation, figures and the `host-sim` command line — on top of the model under test
+//! (`piezo-core`, with the stage file of `piezo-stage`) and the independent reference plants
+//! (`piezo-reference`).
 //!
-//! The plants here are the truth the compensator of `piezo-core` is judged against. They do not call the
-//! core's model step: they integrate their own f64 equations with an adaptive Dormand–Prince 5(4) pair
-//! ([`ode`]), clip steps at sample instants and input breakpoints, and carry effects no model declares
-//! ([`effects`]). Signals ([`signal`]), CSV I/O ([`csv`]), plots ([`plot`]) and the command line ([`cli`])
-//! sit on top.
+//! [`identify`] fits a core model to a record and predicts new data with it; [`close_loop`] reads the
+//! residual, names the effect the fit lacks and refits; [`compensate`] computes the voltages the
+//! firmware would command; [`demo`], [`reproduce`] and [`servo_bench`] run the core against the
+//! reference plants; [`capture`] and [`link`] talk to the firmware (its log, its command link);
+//! [`stage_file`] writes the stage file; [`plot`] draws the figures; [`cli`] is the command line.
+//!
+//! The plants, effects, signals, solver and CSV files live in `piezo-reference` (`host-sim/reference`),
+//! which does not depend on the core; they are re-exported here ([`plant`], [`sim`], [`signal`],
+//! [`effects`], [`ode`], [`bouc_wen`], [`csv`]) so that `host_sim::plant::XyStage` and the like name
+//! the same items. The dependency runs one way: these tools use the reference, never the reverse.
 
 // `!(x > 0.0)` is used on purpose: it rejects NaN as well as out-of-range values.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
-pub mod bouc_wen;
 pub mod capture;
 pub mod cli;
 pub mod close_loop;
 pub mod compensate;
-pub mod csv;
 pub mod demo;
-pub mod effects;
 pub mod identify;
 pub mod link;
-pub mod ode;
-pub mod plant;
 pub mod plot;
 pub mod reproduce;
 pub mod servo_bench;
-pub mod signal;
-pub mod sim;
+pub mod servo_tune;
 pub mod stage_file;
+
+pub use piezo_reference::{bouc_wen, csv, effects, ode, plant, signal, sim};

@@ -16,7 +16,7 @@
 use crate::csv::{write_csv, Table};
 use crate::signal::{SignalSpec, SIGNAL_HELP};
 use piezo_link::{
-    AxisModel, Decoder, Frame, Limits, ModelSet, Packet, Program, Request, Response,
+    AxisModel, Control, Decoder, Frame, Limits, ModelSet, Packet, Program, Request, Response,
     SequenceChecker, Status, Uplink, MAX_FRAME, SETPOINT_CHUNK,
 };
 use serde::Serialize;
@@ -27,7 +27,7 @@ use std::time::{Duration, Instant};
 
 /// Help after `host-sim link --help`.
 pub const HELP: &str = "Connect: tcp:HOST:PORT (the QEMU image: firmware/run-qemu.sh --link PORT ELF) or serial:PATH (the board's USB serial device).\n\
-Commands: status (JSON: params_fnv1a32, params_version, mode, feedforward, counters, tracking, ...), excite, track, upload, rearm, compensation, inject-overrun, shutdown.\n\
+Commands: status (JSON: params_fnv1a32, params_version, mode, feedforward, control, counters, tracking, ...), excite, track, upload, rearm, control, inject-overrun, shutdown.\n\
 excite --signal SPEC (volts, compensator off) and track --signal SPEC (metres) write --record CSV (t_s, ux_V, uy_V, x_m, y_m[, rx_m, ry_m]) that identify reads with --u ux_V,uy_V --y x_m,y_m.";
 
 /// Arguments of `link`.
@@ -52,7 +52,8 @@ pub enum LinkCommand {
     Status,
     /// Open-loop excitation in stack volts (compensator off); records the answer.
     Excite(RunArgs),
-    /// Tracks a reference in metres (compensator on unless switched off); records it.
+    /// Tracks a reference in metres in the control mode set by `control` (feedforward unless
+    /// switched); records it.
     Track(RunArgs),
     /// Sends a stage file's model; exits non-zero with the core's reason if it is refused.
     Upload {
@@ -62,11 +63,13 @@ pub enum LinkCommand {
     },
     /// Leaves the safe state.
     Rearm,
-    /// Compensator on or off (the linear baseline) for `track`.
-    Compensation {
-        /// on | off.
-        #[arg(value_parser = ["on", "off"])]
-        state: String,
+    /// The control mode of `track`, switched bumplessly: open-loop (the linear baseline),
+    /// feedforward (the compensator), feedback (the servo alone), feedforward+feedback. The
+    /// modes with feedback need `[x.servo]`/`[y.servo]` in the running set.
+    Control {
+        /// open-loop | feedforward | feedback | feedforward+feedback.
+        #[arg(value_parser = ["open-loop", "feedforward", "feedback", "feedforward+feedback"])]
+        mode: String,
     },
     /// Tells the next tick that the previous one overran (a fault drill: the safe state).
     InjectOverrun,
@@ -426,6 +429,7 @@ pub fn model_set(path: &Path) -> Result<ModelSet, String> {
                 output_max_v: a.limits.output_max_v,
                 slew_limit_v_per_s: a.limits.slew_limit_v_per_s,
             },
+            servo: a.servo,
         })
     };
     let x = axis("x", &file.x)?;
@@ -498,8 +502,12 @@ pub fn link_cmd(a: &LinkArgs) -> Result<String, String> {
             )
         }
         LinkCommand::Rearm => json(&client.expect(Request::Rearm)?),
-        LinkCommand::Compensation { state } => {
-            json(&client.expect(Request::Compensation(state == "on"))?)
+        LinkCommand::Control { mode } => {
+            let control = Control::ALL
+                .into_iter()
+                .find(|c| c.name() == mode)
+                .ok_or_else(|| format!("unknown control mode {mode:?}"))?;
+            json(&client.expect(Request::Control(control))?)
         }
         LinkCommand::InjectOverrun => json(&client.expect(Request::InjectOverrun)?),
         LinkCommand::Shutdown => json(&client.expect(Request::Shutdown)?),

@@ -21,7 +21,7 @@ use std::time::{Duration, Instant};
 use clap::Parser as _;
 use host_sim::link::{fnv1a32, model_set, upload, Client};
 use integration_tests::qemu::{missing_tools, outer_target_dir, say, workspace, TARGET};
-use piezo_link::{Fault, Feedforward, Mode, Request, Response, Status};
+use piezo_link::{Control, Fault, Feedforward, Mode, Request, Response, Status};
 
 const TIMEOUT: Duration = Duration::from_secs(20);
 
@@ -188,10 +188,12 @@ fn a_whole_session_over_the_link() {
     let compensated = track(&mut client);
     assert_eq!(compensated.feedforward, Feedforward::Compensator);
     assert_eq!(compensated.mode, Mode::Running);
-    client.expect(Request::Compensation(false)).unwrap();
+    client.expect(Request::Control(Control::OpenLoop)).unwrap();
     let linear = track(&mut client);
     assert_eq!(linear.feedforward, Feedforward::Linear);
-    client.expect(Request::Compensation(true)).unwrap();
+    client
+        .expect(Request::Control(Control::Feedforward))
+        .unwrap();
     say(&format!(
         "link_session: compensated (identified set): {}",
         nm(&compensated)

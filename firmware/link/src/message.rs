@@ -5,7 +5,7 @@
 
 use heapless::{String, Vec};
 use piezo_core::effects::{EffectParams, MAX_CREEP_ELEMENTS};
-use piezo_core::{Asymmetry, BoucWenParams, StaticMap};
+use piezo_core::{Asymmetry, BoucWenParams, ServoParams, StaticMap};
 use serde::{Deserialize, Serialize};
 
 /// Setpoints per [`Request::TableAppend`] or [`Request::Stream`] message.
@@ -109,6 +109,8 @@ pub struct AxisModel {
     pub effects: EffectParams,
     /// Output limits.
     pub limits: Limits,
+    /// The feedback servo (the stage file's `[x.servo]`; `None`: feed-forward only).
+    pub servo: Option<ServoParams>,
 }
 
 /// A whole parameter set, validated on the firmware by piezo-core's constructors and swapped in
@@ -134,8 +136,8 @@ pub struct ModelSet {
 pub enum Request {
     /// Answered with [`Response::Status`].
     Status,
-    /// Track a reference in metres with the feed-forward chosen by [`Request::Compensation`]
-    /// (the compensator unless switched off). Answered with [`Response::Started`].
+    /// Track a reference in metres in the control mode chosen by [`Request::Control`]
+    /// (feedforward, the compensator, unless switched). Answered with [`Response::Started`].
     Track(Program),
     /// Open-loop excitation: the program in stack volts goes to the guard and the DAC, no
     /// compensator (for identification). Answered with [`Response::Started`].
@@ -148,8 +150,10 @@ pub enum Request {
     /// Queues streamed setpoints. Answered with [`Response::Queued`], or refused when they do not
     /// all fit (nothing queued).
     Stream(Setpoints),
-    /// Compensator on (true) or the linear baseline (false) for [`Request::Track`].
-    Compensation(bool),
+    /// The control mode of [`Request::Track`], switched bumplessly between two ticks (during an
+    /// excitation: the mode to return to). Answered with [`Response::Done`], or refused
+    /// ([`RefusalKind::Program`]) for a mode with feedback when an axis has no servo.
+    Control(Control),
     /// Leaves the safe state. Answered with [`Response::Done`].
     Rearm,
     /// Tells the next tick that the previous one missed its deadline (a fault drill).
@@ -227,6 +231,39 @@ pub enum Mode {
     Safe(Fault),
 }
 
+/// How the voltage of a tracking tick is made (piezo-core's `ServoMode`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Control {
+    /// The linear baseline, no feedback.
+    OpenLoop,
+    /// The inverse compensator alone.
+    Feedforward,
+    /// The servo on the sensor alone.
+    Feedback,
+    /// The compensator plus the servo's correction.
+    FeedforwardFeedback,
+}
+
+impl Control {
+    /// The four, in the order of the servo benchmark's table.
+    pub const ALL: [Self; 4] = [
+        Self::OpenLoop,
+        Self::Feedforward,
+        Self::Feedback,
+        Self::FeedforwardFeedback,
+    ];
+
+    /// `open-loop`, `feedforward`, `feedback`, `feedforward+feedback` (as piezo-core names them).
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::OpenLoop => "open-loop",
+            Self::Feedforward => "feedforward",
+            Self::Feedback => "feedback",
+            Self::FeedforwardFeedback => "feedforward+feedback",
+        }
+    }
+}
+
 /// Which feed-forward computes the voltage.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub enum Feedforward {
@@ -257,6 +294,9 @@ pub struct Counters {
     pub safe_entries: u32,
     /// Samples where the compensator's window or slew limit stopped it short.
     pub compensator_limited: u32,
+    /// Samples where the servo's window or slew limit stopped its correction short, or it held
+    /// it over a non-finite input.
+    pub servo_limited: u32,
     /// Guard interventions (window, slew, non-finite; both axes).
     pub guard_interventions: u32,
     /// Ticks of a streamed program that found the queue empty.
@@ -302,6 +342,11 @@ pub struct Status {
     pub mode: Mode,
     /// Feed-forward in use.
     pub feedforward: Feedforward,
+    /// Control mode of tracking (during an excitation: the mode it returns to).
+    pub control: Control,
+    /// Largest cost of one control tick measured by the image \[CPU cycles\] (the board's DWT
+    /// cycle counter; 0 where nothing measures it, as under QEMU).
+    pub tick_cycles_max: u32,
     /// Counters.
     pub counters: Counters,
     /// Per axis, since the last [`Request::Track`].

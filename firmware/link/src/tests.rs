@@ -1,6 +1,6 @@
 use super::*;
 use piezo_core::effects::EffectParams;
-use piezo_core::{Asymmetry, BoucWenParams, StaticMap};
+use piezo_core::{Asymmetry, BoucWenParams, ServoParams, StaticMap};
 
 fn axis() -> AxisModel {
     AxisModel {
@@ -29,6 +29,15 @@ fn axis() -> AxisModel {
             output_max_v: 120.0,
             slew_limit_v_per_s: 1e5,
         },
+        servo: Some(ServoParams {
+            kp_v_per_m: 0.0,
+            ki_v_per_m_s: 2.5e9,
+            lowpass_frequency_hz: 3221.0,
+            lowpass_q: core::f32::consts::FRAC_1_SQRT_2,
+            notch_frequency_hz: 3221.0,
+            notch_q: 1.0,
+            transfer_time_constant_s: 0.02,
+        }),
     }
 }
 
@@ -78,6 +87,8 @@ fn full_status() -> Status {
         loop_rate_hz: 10_000.0,
         mode: Mode::Safe(Fault::StuckReading { axis: 1 }),
         feedforward: Feedforward::OpenLoop,
+        control: Control::FeedforwardFeedback,
+        tick_cycles_max: u32::MAX,
         counters: Counters {
             ticks: u32::MAX,
             frames_sent: u32::MAX,
@@ -117,6 +128,9 @@ fn every_message_round_trips_and_fits() {
         repeat: false,
     }));
     round_trip(Request::Frames { decimation: 10 });
+    for control in Control::ALL {
+        round_trip(Request::Control(control));
+    }
     let reason = "r".repeat(REASON_BYTES);
     round_trip(Uplink::Response {
         request: u32::MAX,

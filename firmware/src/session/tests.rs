@@ -125,6 +125,7 @@ fn built_in_set() -> ModelSet {
             output_max_v: p.output_max_v,
             slew_limit_v_per_s: p.slew_limit_v_per_s,
         },
+        servo: p.servo,
     };
     ModelSet {
         version: String::try_from("uploaded 2").unwrap(),

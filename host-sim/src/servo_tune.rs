@@ -1,0 +1,225 @@
+//! `host-sim servo-tune`: the feedback servo of each axis (`[x.servo]`, `[y.servo]`) from the
+//! stage file's own model and the stage's first mode, by `piezo_core::servo::tune`.
+//!
+//! Per axis the tuning plant is `P(s) = g·ω_n²/(s² + 2ζω_n s + ω_n²)·e^{−sτ}` with
+//! - g: the model's small-signal gain dy/du of largest magnitude (`StaticModel::slope_range`);
+//! - f_n = ω_n/2π and ζ: the first mode — given (`--mode-hz`, `--damping`), or the `mode` effect
+//!   close-loop found (`[x.effects] mode_frequency_hz`, `mode_damping`);
+//! - τ: the loop's latency, `--latency-periods` loop periods (1.5: the converter's sample, the
+//!   computation and half the DAC's hold).
+//!
+//! The rule (core docs): notch and Butterworth low-pass at f_n, pure integral action, the highest
+//! crossover with the phase margin asked for and |1/(1 + L)| ≤ 1.6, also with f_n ± 10 %. The
+//! parameters are written into the stage file and validated by the core with the rest of it.
+
+use piezo_core::servo::{tune, StageDynamics, Tuning, TuningGoal};
+use piezo_stage::StageFile;
+use std::path::PathBuf;
+
+/// Help after `host-sim servo-tune --help`.
+pub const HELP: &str = "Tunes [x.servo] and [y.servo] from the stage file's model (its largest dy/du) and the \
+stage's first mode: --mode-hz (one value per axis, comma-separated, or one for both) and --damping, or the `mode` \
+effect close-loop added to the file. Latency: --latency-periods loop periods. Writes --out (the input file with the \
+servo tables; comments are not kept) and prints per axis the crossover, phase margin, sensitivity peak and the \
+feedback loop's -3 dB bandwidth as JSON.";
+
+/// Arguments of `servo-tune`.
+#[derive(Debug, clap::Args)]
+#[command(after_help = HELP)]
+pub struct ServoTuneArgs {
+    /// The stage file (static models; its loop rate and output limits are the servo's).
+    #[arg(long)]
+    pub stage: PathBuf,
+    /// Stage file to write (may be the same file).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// First mode of each axis [Hz]: `F` for both or `FX,FY`; default: the file's mode effect.
+    #[arg(long, value_delimiter = ',')]
+    pub mode_hz: Vec<f32>,
+    /// Damping ratio ζ of the mode (with --mode-hz).
+    #[arg(long, default_value_t = 0.02)]
+    pub damping: f32,
+    /// Phase margin at the crossover [°].
+    #[arg(long, default_value_t = 60.0)]
+    pub phase_margin_deg: f32,
+    /// Sensor-to-actuator latency [loop periods].
+    #[arg(long, default_value_t = 1.5)]
+    pub latency_periods: f32,
+}
+
+/// One axis's tuning: the mode it used and the core's result.
+#[derive(Debug, Clone, Copy)]
+pub struct AxisTuning {
+    /// `x` or `y`.
+    pub axis: &'static str,
+    /// The dynamics the rule was given.
+    pub dynamics: StageDynamics,
+    /// Parameters and margins.
+    pub tuning: Tuning,
+}
+
+/// The first mode of axis `index` \[Hz, 1\]: `given` (one value for all axes, or one per axis)
+/// with `damping`, else the axis's `mode` effect.
+fn first_mode(
+    file: &StageFile,
+    index: usize,
+    given: &[f32],
+    damping: f32,
+) -> Result<(f32, f32), String> {
+    match given.len() {
+        0 => {}
+        1 => return Ok((given[0], damping)),
+        n if n == file.axes().len() => return Ok((given[index], damping)),
+        n => {
+            return Err(format!(
+                "--mode-hz has {n} values for {} axes",
+                file.axes().len()
+            ))
+        }
+    }
+    let (name, axis) = file.axes()[index];
+    let e = axis.effects;
+    if e.mode_frequency_hz > 0.0 {
+        Ok((e.mode_frequency_hz, e.mode_damping))
+    } else {
+        Err(format!(
+            "axis {name}: no first mode: give --mode-hz (and --damping), or let close-loop find \
+             the `mode` effect"
+        ))
+    }
+}
+
+/// Tunes every axis of `file` and writes the parameters into it (validated by the core).
+pub fn tune_file(
+    file: &mut StageFile,
+    mode_hz: &[f32],
+    damping: f32,
+    goal: &TuningGoal,
+    latency_periods: f32,
+) -> Result<Vec<AxisTuning>, String> {
+    let valid = file.validate().map_err(|e| e.to_string())?;
+    let mut out = Vec::new();
+    for (index, v) in valid.axes.iter().enumerate() {
+        let compensator = v.compensator.ok_or_else(|| {
+            format!(
+                "axis {}: servo tuning needs a static model (symmetric or asymmetric)",
+                v.name
+            )
+        })?;
+        let (f, zeta) = first_mode(file, index, mode_hz, damping)?;
+        let dynamics = StageDynamics::from_model(
+            compensator.model(),
+            f,
+            zeta,
+            latency_periods * valid.sample_period_s,
+        );
+        let tuning = tune(&dynamics, goal, compensator.settings())
+            .map_err(|e| format!("servo tuning of axis {}: {e}", v.name))?;
+        out.push(AxisTuning {
+            axis: v.name,
+            dynamics,
+            tuning,
+        });
+    }
+    file.x.servo = Some(out[0].tuning.params);
+    if let (Some(y), Some(t)) = (file.y.as_mut(), out.get(1)) {
+        y.servo = Some(t.tuning.params);
+    }
+    file.validate().map_err(|e| e.to_string())?;
+    Ok(out)
+}
+
+/// An f32 as the f64 with the same shortest decimal form (3221.0, not 3220.999…).
+fn tidy(x: f32) -> f64 {
+    x.to_string().parse().unwrap_or(f64::NAN)
+}
+
+/// The JSON report of a tuning.
+pub fn report(tunings: &[AxisTuning]) -> serde_json::Value {
+    serde_json::Value::Array(
+        tunings
+            .iter()
+            .map(|t| {
+                let p = t.tuning.params;
+                serde_json::json!({
+                    "axis": t.axis,
+                    "gain_m_per_v": tidy(t.dynamics.gain_m_per_v),
+                    "mode_frequency_hz": tidy(t.dynamics.mode_frequency_hz),
+                    "mode_damping": tidy(t.dynamics.mode_damping),
+                    "latency_s": tidy(t.dynamics.latency_s),
+                    "crossover_hz": tidy(t.tuning.crossover_hz),
+                    "phase_margin_deg": tidy(t.tuning.phase_margin_deg),
+                    "sensitivity_peak": tidy(t.tuning.sensitivity_peak),
+                    "closed_loop_bandwidth_hz": tidy(t.tuning.closed_loop_bandwidth_hz),
+                    "servo": {
+                        "kp_v_per_m": tidy(p.kp_v_per_m),
+                        "ki_v_per_m_s": tidy(p.ki_v_per_m_s),
+                        "lowpass_frequency_hz": tidy(p.lowpass_frequency_hz),
+                        "lowpass_q": tidy(p.lowpass_q),
+                        "notch_frequency_hz": tidy(p.notch_frequency_hz),
+                        "notch_q": tidy(p.notch_q),
+                        "transfer_time_constant_s": tidy(p.transfer_time_constant_s),
+                    },
+                })
+            })
+            .collect(),
+    )
+}
+
+/// `host-sim servo-tune`.
+pub fn servo_tune_cmd(a: &ServoTuneArgs) -> Result<String, String> {
+    let (mut file, _) = StageFile::load(&a.stage).map_err(|e| format!("--stage: {e}"))?;
+    let goal = TuningGoal {
+        phase_margin_deg: a.phase_margin_deg,
+        ..TuningGoal::default()
+    };
+    let tunings = tune_file(&mut file, &a.mode_hz, a.damping, &goal, a.latency_periods)?;
+    let header = format!(
+        "Stage file {} with its servo tuned by host-sim servo-tune",
+        a.stage.display()
+    );
+    file.write(&a.out, &header)
+        .map_err(|e| format!("--out: {e}"))?;
+    eprintln!("wrote {}", a.out.display());
+    serde_json::to_string_pretty(&report(&tunings)).map_err(|e| e.to_string())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const XY: &str = include_str!("../../firmware/params/xy-stage.toml");
+
+    #[test]
+    fn tunes_both_axes_of_the_xy_stage_and_the_core_accepts_them() {
+        let mut file = StageFile::parse("xy-stage.toml", XY).unwrap();
+        let goal = TuningGoal::default();
+        let t = tune_file(&mut file, &[3221.0, 2197.0], 0.02, &goal, 1.5).unwrap();
+        assert_eq!(t.len(), 2);
+        for a in &t {
+            assert!(a.tuning.phase_margin_deg >= 60.0 - 1e-3, "{a:?}");
+            assert!(a.tuning.crossover_hz > 50.0 && a.tuning.crossover_hz < 1000.0);
+            assert!(a.tuning.params.ki_v_per_m_s > 0.0, "stage gain is positive");
+        }
+        // A lower mode lowers the crossover.
+        assert!(t[1].tuning.crossover_hz < t[0].tuning.crossover_hz);
+        let valid = file.validate().unwrap();
+        assert!(valid.axes.iter().all(|a| a.servo.is_some()));
+    }
+
+    #[test]
+    fn without_a_mode_it_says_where_to_get_one() {
+        let mut file = StageFile::parse("xy-stage.toml", XY).unwrap();
+        let e = tune_file(&mut file, &[], 0.02, &TuningGoal::default(), 1.5).unwrap_err();
+        assert!(e.contains("axis x") && e.contains("--mode-hz"), "{e}");
+        let e = tune_file(
+            &mut file,
+            &[1.0, 2.0, 3.0],
+            0.02,
+            &TuningGoal::default(),
+            1.5,
+        )
+        .unwrap_err();
+        assert!(e.contains("3 values"), "{e}");
+    }
+}
