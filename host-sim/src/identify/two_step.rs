@@ -81,8 +81,8 @@
 
 use super::model::{Identified, ModelKind};
 use super::{score, Identification, IdentifySettings, Method, Record};
-use crate::bouc_wen::BoucWen;
 use piezo_core::{BoucWenParams, MassSpringDamperParams};
+use piezo_reference::bouc_wen::BoucWen;
 use serde_json::json;
 use std::time::Instant;
 
@@ -768,7 +768,8 @@ pub fn identify(
             let Ok((hy, set, rms)) = chosen.outcome.clone() else {
                 unreachable!("finite rms implies a result")
             };
-            // Self-consistency: the fitted set's own virgin-curve secant h(B)/B.
+            // Self-consistency: the fitted set's own virgin-curve secant h(B)/B, from the reference's
+            // f64 Bouc-Wen law (an evaluation independent of the scan that chose r).
             let bw = BoucWen {
                 a: hy.a,
                 beta: hy.beta,

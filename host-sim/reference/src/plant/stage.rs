@@ -26,7 +26,7 @@ pub enum StageCase {
     III,
 }
 
-/// The seed 001 stage. State: [h].
+/// The seed 001 stage. State: `[h]`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct AsymmetricStage {
     /// k1, mm/V (paper units).

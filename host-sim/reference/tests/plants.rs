@@ -1,9 +1,9 @@
 //! Plant figures and effects: each test fails if its figure or effect is missing.
 
-use host_sim::effects::Effects;
-use host_sim::plant::{AsymmetricStage, Nac2024, Plant, PlantKind, StageCase, XyStage};
-use host_sim::signal::{staircase, Piecewise, Signal, Sine};
-use host_sim::sim::{simulate, SimOutput, SimSettings};
+use piezo_reference::effects::Effects;
+use piezo_reference::plant::{AsymmetricStage, Nac2024, Plant, PlantKind, StageCase, XyStage};
+use piezo_reference::signal::{staircase, Piecewise, Signal, Sine};
+use piezo_reference::sim::{simulate, SimOutput, SimSettings};
 
 const HOLD_S: f64 = 0.03;
 
@@ -239,7 +239,8 @@ fn nac2024_refuses_inputs_beyond_validity() {
 fn nac2024_second_mode_effect_changes_square_response() {
     let sq = || -> Vec<Box<dyn Signal>> {
         vec![Box::new(
-            host_sim::signal::PeriodicPiecewise::ramp_square(0.0, 7.8335, 1e-4, 1.8672e-6).unwrap(),
+            piezo_reference::signal::PeriodicPiecewise::ramp_square(0.0, 7.8335, 1e-4, 1.8672e-6)
+                .unwrap(),
         )]
     };
     let base = run(

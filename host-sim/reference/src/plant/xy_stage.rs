@@ -48,7 +48,7 @@
 //! d(u) = d0·(1 + a·u), which weights the hysteretic part by (1 + a·u). With a = 0.002 /V (d +24 %
 //! over 0–120 V) and the n = 1 stacks refitted (x: α = 0.15362, β = 0.057946, γ = −0.055356; y:
 //! α = 0.15733, β = 0.035710, γ = −0.033560), all five figures are met and the largest opening is
-//! at 80 V (`host-sim/tests/plants.rs`). It is not the default: piezo-core's static map
+//! at 80 V (`host-sim/reference/tests/plants.rs`). It is not the default: piezo-core's static map
 //! y = k1·u + k2·h has no (1 + a·u)·h term, so the demo's compensator built from the plant's stack
 //! parameters, and the firmware's parameter file copied from them, would no longer match the plant.
 

@@ -239,7 +239,7 @@ mod tests {
 
     #[test]
     fn round_trip_two_axis() {
-        let dir = std::env::temp_dir().join(format!("host_sim_csv_{}", std::process::id()));
+        let dir = std::env::temp_dir().join(format!("piezo_reference_csv_{}", std::process::id()));
         fs::create_dir_all(&dir).unwrap();
         let p = dir.join("xy.csv");
         let t = Table {

@@ -90,7 +90,7 @@ impl std::error::Error for SignalError {}
 pub const SIGNAL_KINDS: &str =
     "sine, multisine, triangle, staircase, steps, square, chirp, raster, csv";
 
-/// Help text for signal specs (used by the CLI).
+/// Help text for signal specs (used by the `host-sim` command line).
 pub const SIGNAL_HELP: &str = "\
 Signal spec: KIND:key=value,key=value,...  (lists use '/', e.g. levels=0/5/10)
   common keys: duration=<s>, rate=<Hz> (output sample rate; default: plant's)
