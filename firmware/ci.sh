@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Firmware CI: builds the QEMU image, runs it under QEMU (mps2-an386) with a timeout, fails on a
-# non-zero exit; runs the check image (bench windows) likewise; checks that no panic path is
+# non-zero exit (the self-check, then the servo table of the four control modes); runs the check
+# image (bench windows) likewise; checks that no panic path is
 # reachable in the check image (panic handler -> undefined symbol; surviving sites listed by
 # panic-sites.sh must be in panic-sites.allowed); runs clippy on the images for the target;
 # builds the STM32F407 board image (RTIC 2: checks its TIM2 and OTG_FS handlers); prints image
@@ -60,6 +61,10 @@ if [[ $status != 0 ]]; then
   exit 1
 fi
 echo "ci.sh: QEMU image passed"
+status=0
+"$here/run-qemu.sh" --servo-table "$out/qemu" || status=$?
+[[ $status == 0 ]] || { echo "ci.sh: QEMU servo table FAILED (exit $status)" >&2; exit 1; }
+echo "ci.sh: QEMU servo table passed"
 size "$out/check"
 status=0
 "$here/run-qemu.sh" "$out/check" || status=$?

@@ -8,6 +8,9 @@
 #                                              127.0.0.1:PORT (one host at a time, reconnects
 #                                              allowed), running until a `shutdown` request
 #                                              (QEMU_TIMEOUT seconds if set, default none)
+#        run-qemu.sh --servo-table FIRMWARE.elf  the qemu image's servo table (four control
+#                                              modes on its simulated stage; QEMU_TIMEOUT,
+#                                              default 300 s)
 set -euo pipefail
 serial=(-serial none)
 args=()
@@ -19,7 +22,12 @@ if [[ ${1:-} == --link ]]; then
   args=(,arg=firmware,arg=--link)
   timeout_s=${QEMU_TIMEOUT:-0}
 fi
-elf=${1:?usage: run-qemu.sh [--link PORT] FIRMWARE.elf}
+if [[ ${1:-} == --servo-table ]]; then
+  shift
+  args=(,arg=firmware,arg=--servo-table)
+  timeout_s=${QEMU_TIMEOUT:-300}
+fi
+elf=${1:?usage: run-qemu.sh [--link PORT | --servo-table] FIRMWARE.elf}
 exec timeout "$timeout_s" qemu-system-arm -machine mps2-an386 -cpu cortex-m4 -nographic \
   -monitor none "${serial[@]}" -semihosting-config "enable=on,target=native${args[*]:-}" \
   -kernel "$elf"

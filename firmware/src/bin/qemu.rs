@@ -20,6 +20,13 @@
 //! it), so no frame is lost under QEMU. Deadlines are not checked here (QEMU's timing is not
 //! the board's): an overrun is injected with the `InjectOverrun` request.
 //!
+//! **Servo table** (`./run-qemu.sh --servo-table ELF`): instead of the self-check, the four
+//! control modes on the simulated stage with creep, drift and sensor noise
+//! ([`piezo_firmware::servo_table`]): one `servo-row` line per mode, signal and frequency (RMS
+//! and largest error in % of the stroke, the mode's closed-loop bandwidth), then PASS if
+//! feedforward + feedback beats feedback alone by 5× at 100 Hz and feedforward alone by 5× at
+//! 1 Hz, for both signals, with no fault in any run.
+//!
 //! Build and run (from `firmware/`): `cargo qemu`, or `./ci.sh`, or
 //! `cargo build --release --features qemu --bin qemu` then
 //! `./run-qemu.sh $CARGO_TARGET_DIR/thumbv7em-none-eabihf/release/qemu`.
@@ -54,22 +61,90 @@ mod image {
 
     #[entry]
     fn main() -> ! {
-        if link_mode() {
+        if command_line_has(b"--link") {
             link::run()
+        }
+        if command_line_has(b"--servo-table") {
+            servo_table()
         }
         self_check()
     }
 
-    /// True if the semihosting command line holds `--link` (`run-qemu.sh --link`).
+    /// True if the semihosting command line holds `flag` (`run-qemu.sh --link`,
+    /// `--servo-table`).
     #[allow(unsafe_code)]
-    fn link_mode() -> bool {
+    fn command_line_has(flag: &[u8]) -> bool {
         let mut line = [0u8; 128];
         // SAFETY: SYS_GET_CMDLINE writes at most `line.len()` bytes (NUL included) into `line`,
         // which outlives the call; the argument block is the two words the call takes.
         let status = unsafe {
             cortex_m_semihosting::syscall!(GET_CMDLINE, line.as_mut_ptr(), line.len() - 1)
         };
-        status == 0 && line.windows(6).any(|w| w == b"--link")
+        status == 0 && line.windows(flag.len()).any(|w| w == flag)
+    }
+
+    /// The servo table (see the crate docs); exits with success if the ratios hold.
+    fn servo_table() -> ! {
+        use piezo_core::ServoMode;
+        use piezo_firmware::servo_table::{self, Shape, FREQUENCIES_HZ};
+        hprintln!(
+            "piezo-firmware qemu servo table: parameters {} ({}), fnv1a32 {:#010x}, loop {} Hz, plant {:?}",
+            params::VERSION,
+            params::SOURCE,
+            params::FNV1A32,
+            params::LOOP_RATE_HZ,
+            servo_table::table_disturbances()
+        );
+        let mut rms = [[[0.0f32; 3]; 2]; 4];
+        let mut faults = 0u32;
+        for (m, mode) in ServoMode::ALL.into_iter().enumerate() {
+            let bandwidth = match servo_table::bandwidth_hz(mode) {
+                Ok(b) => b,
+                Err(e) => fail(format_args!("servo table: {}: {e:?}", mode.name())),
+            };
+            for (s, shape) in [Shape::Triangle, Shape::Sine].into_iter().enumerate() {
+                for (f, &hz) in FREQUENCIES_HZ.iter().enumerate() {
+                    let row = match servo_table::tracking(mode, shape, hz) {
+                        Ok(r) => r,
+                        Err(e) => fail(format_args!("servo table: {}: {e:?}", mode.name())),
+                    };
+                    hprintln!(
+                        "servo-row mode={} signal={} freq_hz={} rms_percent={} max_percent={} bandwidth_hz={} faults={}",
+                        mode.name(),
+                        shape.name(),
+                        hz,
+                        row.rms_percent,
+                        row.max_percent,
+                        bandwidth,
+                        row.faults
+                    );
+                    rms[m][s][f] = row.rms_percent;
+                    faults += row.faults;
+                }
+            }
+        }
+        // Modes in ServoMode::ALL order: open loop, feedforward, feedback, both.
+        let mut ok = faults == 0;
+        for s in 0..2 {
+            let slow = rms[1][s][0] / rms[3][s][0];
+            let fast = rms[2][s][2] / rms[3][s][2];
+            hprintln!(
+                "{}: both vs feedforward at 1 Hz {}x, both vs feedback at 100 Hz {}x (limit 5x)",
+                ["triangle", "sine"][s],
+                slow,
+                fast
+            );
+            ok &= slow >= 5.0 && fast >= 5.0;
+        }
+        if ok {
+            hprintln!("PASS");
+            debug::exit(debug::EXIT_SUCCESS);
+        } else {
+            hprintln!("FAIL ({} faults)", faults);
+            debug::exit(debug::EXIT_FAILURE);
+        }
+        #[allow(clippy::empty_loop)]
+        loop {}
     }
 
     fn self_check() -> ! {
