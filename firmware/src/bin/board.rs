@@ -8,7 +8,7 @@
 //!
 //! | task            | priority | runs on                       | does                                             |
 //! |-----------------|----------|-------------------------------|--------------------------------------------------|
-//! | `control_tick`  | 3        | TIM2 update (the loop rate)   | `Session::tick`: sensor → reference → compensator → guard → DAC, frame encoding; deadline measurement |
+//! | `control_tick`  | 3        | TIM2 update (the loop rate)   | `Session::tick`: sensor → reference → compensator → guard → DAC, frame encoding; deadline measurement, `Session::note_tick_cycles` |
 //! | `usb_link`      | 2        | OTG_FS interrupt, or pended by the tick when bytes wait | USB poll, received bytes → `Session::receive`, `Session::transmit` → serial port |
 //! | `telemetry`     | 1        | spawned by the tick once a second | defmt log of the tick's measured cost, the loop's and the link's counters, safe-state entries |
 //! | idle            | 0        | —                             | nothing (busy loop)                              |
@@ -28,10 +28,11 @@
 //! that comes is told so. The loop counts each as an overrun (`counters.overruns` in `status`)
 //! and latches its safe state (outputs held) until `rearm`.
 //!
-//! The measured cost is logged once a second with defmt (`tick: last … cycles, worst … cycles
-//! (… µs), latency worst …, completion worst … of … per period; late …, skipped …`). The link's
-//! `Status` has no field for it (piezo-link's wire types are unchanged); read it from the defmt
-//! log (probe-rs prints it).
+//! Each tick's cost (entry to end, DWT cycles) goes to `Session::note_tick_cycles`, so `status`
+//! over the link reports the worst (`tick_cycles_max`). With the update-to-entry latency and the
+//! update-to-end completion it is also logged once a second with defmt (`tick: last … cycles,
+//! worst … cycles (… µs), latency worst …, completion worst … of … per period; late …,
+//! skipped …`).
 //!
 //! Build: `cd firmware && cargo build --release --features board --bin board`.
 //! Flash and run (probe-rs, the runner in `firmware/.cargo/config.toml`):
@@ -224,6 +225,9 @@ mod app {
         let end_cycles = DWT::cycle_count();
         *cx.local.missed = monitor.finish(start, end_cycles, timer.flags().contains(Flag::Update));
         let stats = monitor.stats();
+        cx.shared
+            .session
+            .lock(|session| session.note_tick_cycles(stats.last_cycles));
         cx.shared.tick_stats.lock(|t| *t = stats);
 
         let countdown = cx.local.ticks_to_telemetry;
