@@ -8,7 +8,16 @@
 #   window 1: the same with n = GENERAL_N (general-n RK4 path of the core)
 #   window 2: BENCH_TICKS full ticks of TwoAxisLoop::tick (sensor, compensator, guard, DAC code,
 #             frame) plus the simulated stage's DAC/ADC and its Euler step
-#   window 3: empty (marker overhead, subtracted)
+#   window 3: BENCH_STEPS two-axis steps of compensator + Servo::step (feedforward + feedback) +
+#             guard, n = 1: the servo's cost per axis-step is window 3 − window 0
+#   window 4: BENCH_TICKS whole control ticks without the simulated stage (the ADC replays
+#             recorded readings, the DAC keeps codes), feedforward
+#   window 5: the same, feedforward + feedback
+#   window 6: empty (marker overhead, subtracted)
+#   windows 7..: one feedforward + feedback tick each (WORST_TICKS of them, from rest): the
+#             largest is the tick's worst case, stated against the stage file's loop period at
+#             168 MHz (instructions, not cycles: the board's DWT counter gives cycles, see
+#             firmware/README.md)
 # Not cycles: see the tool's README. Needs qemu-system-arm, gcc, nm.
 # usage: firmware/bench.sh   (COUNT_SH=path/to/count.sh to override the tool's location)
 set -euo pipefail
@@ -18,15 +27,24 @@ count_sh=${COUNT_SH:-$here/../../shared/tools/qemu-insn-count/count.sh}
 [[ -f $count_sh ]] || { echo "bench.sh: count.sh not found at $count_sh (set COUNT_SH)" >&2; exit 2; }
 const() { sed -n "s/^ *pub const $1: [a-z0-9]* = \([0-9_.]*\);/\1/p" src/bin/check.rs | tr -d _; }
 steps=$(const BENCH_STEPS) ticks=$(const BENCH_TICKS) general_n=$(const GENERAL_N)
+rate=$(sed -n 's/^loop_rate_hz = \([0-9.e]*\).*/\1/p' "${PIEZO_PARAMS:-params/xy-stage.toml}" | head -1)
 cargo build --release --features qemu --bin check
 elf=${CARGO_TARGET_DIR:-$here/../target}/thumbv7em-none-eabihf/release/check
 lines=$(bash "$count_sh" "$elf")
-echo "$lines"
+echo "$lines" | head -8
 win() { awk -v w="$1" '$2 == "window" && $3 == w {sub("insns=", "", $4); print $4}' <<<"$lines"; }
-n1=$(win 0) nx=$(win 1) loop=$(win 2) empty=$(win 3)
-[[ -n $n1 && -n $nx && -n $loop && -n $empty ]] || { echo "bench.sh: expected 4 windows" >&2; exit 1; }
-awk -v a="$n1" -v b="$nx" -v c="$loop" -v e="$empty" -v s="$steps" -v t="$ticks" -v n="$general_n" 'BEGIN {
+n1=$(win 0) nx=$(win 1) loop=$(win 2) servo=$(win 3) ff=$(win 4) both=$(win 5) empty=$(win 6)
+[[ -n $n1 && -n $nx && -n $loop && -n $servo && -n $ff && -n $both && -n $empty ]] \
+  || { echo "bench.sh: expected at least 7 windows" >&2; exit 1; }
+worst=$(awk '$2 == "window" && $3 >= 7 {sub("insns=", "", $4); if ($4 > m) m = $4} END {print m}' <<<"$lines")
+awk -v a="$n1" -v b="$nx" -v c="$loop" -v sv="$servo" -v f="$ff" -v fb="$both" -v w="$worst" \
+    -v e="$empty" -v s="$steps" -v t="$ticks" -v n="$general_n" -v rate="$rate" 'BEGIN {
   printf "instructions per axis-step (n = 1, compensator + safety guard): %.1f\n", (a - e) / (2 * s)
   printf "instructions per axis-step (n = %s, compensator + safety guard): %.1f\n", n, (b - e) / (2 * s)
+  printf "instructions per axis-step (n = 1, compensator + servo + safety guard): %.1f (servo: %.1f)\n", (sv - e) / (2 * s), (sv - a) / (2 * s)
   printf "instructions per two-axis loop tick (n = 1, incl. simulated stage): %.1f\n", (c - e) / t
+  printf "instructions per whole control tick without the stage, feedforward: %.1f\n", (f - e) / t
+  printf "instructions per whole control tick without the stage, feedforward + feedback: %.1f\n", (fb - e) / t
+  budget = 168e6 / rate
+  printf "worst feedforward + feedback tick: %d instructions = %.1f %% of the %d cycles one period of %s Hz has at 168 MHz\n", w - e, 100 * (w - e) / budget, budget, rate
 }'

@@ -14,7 +14,13 @@
 //!    window 0: [`BENCH_STEPS`] two-axis steps of `Compensator::compensate` + `SafetyLimits::apply`
 //!    with the file's parameters (n = 1); window 1: the same with n = 1.5 (general-n path);
 //!    window 2: [`BENCH_TICKS`] full loop ticks (sensor, compensator, guard, DAC code, frame) with
-//!    the simulated stage's DAC/ADC and its Euler step; window 3: empty.
+//!    the simulated stage's DAC/ADC and its Euler step; window 3: [`BENCH_STEPS`] two-axis steps
+//!    of the compensator + `Servo::step` (feedforward + feedback) + guard, n = 1; windows 4 and
+//!    5: [`BENCH_TICKS`] whole control ticks *without* the simulated stage — the ADC replays
+//!    readings recorded from the stage beforehand, the DAC keeps the codes — in feedforward and
+//!    in feedforward + feedback; window 6: empty; windows 7 … 7 + [`WORST_TICKS`] − 1: one
+//!    feedforward + feedback tick each, without the stage (the largest is the tick's worst case
+//!    over a run that includes the start from rest).
 //!
 //! Exits through semihosting (status 0 when everything ran); HardFault and any unhandled
 //! exception exit with failure.
@@ -29,7 +35,9 @@ mod image {
     use cortex_m_rt::{entry, exception, ExceptionFrame};
     use cortex_m_semihosting::debug;
 
-    use piezo_core::{Compensator, CompensatorState};
+    use piezo_core::{Compensator, CompensatorState, Servo, ServoMode, ServoState};
+    use piezo_firmware::codes::{AdcCode, DacCode};
+    use piezo_firmware::converter::{AdcRead, DacWrite, ErrorType};
     use piezo_firmware::demo;
     use piezo_firmware::params::{AxisParams, AXES, SAMPLE_PERIOD_S};
     use piezo_firmware::plant::{PlantAdc, PlantDac, XyPlant};
@@ -43,10 +51,13 @@ mod image {
     pub const BENCH_TICKS: u32 = 500;
     /// Exponent of the general-n window.
     pub const GENERAL_N: f32 = 1.5;
+    /// Single-tick windows for the worst case.
+    pub const WORST_TICKS: u32 = 300;
 
     struct Axes {
         compensator: [Compensator; 2],
         limits: [SafetyLimits; 2],
+        servo: [Option<Servo>; 2],
     }
 
     fn axes(params: [AxisParams; 2]) -> Option<Axes> {
@@ -55,7 +66,53 @@ mod image {
         Some(Axes {
             compensator: [*a.compensator(), *b.compensator()],
             limits: [*a.limits(), *b.limits()],
+            servo: [a.servo().copied(), b.servo().copied()],
         })
+    }
+
+    /// Readings recorded from the simulated stage, replayed one per tick and axis.
+    struct ReplayAdc {
+        codes: [[AdcCode; 2]; RECORDED],
+        next: usize,
+    }
+
+    /// Ticks recorded for [`ReplayAdc`].
+    const RECORDED: usize = (BENCH_TICKS + WORST_TICKS) as usize + 8;
+
+    impl ErrorType for ReplayAdc {
+        type Error = core::convert::Infallible;
+    }
+
+    impl AdcRead for ReplayAdc {
+        type Channel = Axis;
+        #[inline]
+        fn read_code(&mut self, channel: Axis) -> Result<AdcCode, Self::Error> {
+            let row = self
+                .codes
+                .get(self.next)
+                .copied()
+                .unwrap_or([AdcCode(0); 2]);
+            if channel == Axis::Y {
+                self.next += 1;
+            }
+            Ok(row[channel.index()])
+        }
+    }
+
+    /// A DAC that keeps the codes.
+    struct KeptDac([DacCode; 2]);
+
+    impl ErrorType for KeptDac {
+        type Error = core::convert::Infallible;
+    }
+
+    impl DacWrite for KeptDac {
+        type Channel = Axis;
+        #[inline]
+        fn write_code(&mut self, channel: Axis, code: DacCode) -> Result<(), Self::Error> {
+            self.0[channel.index()] = code;
+            Ok(())
+        }
     }
 
     /// The reference of step k: 10 Hz sine-like triangle, 4–34 µm (cheap to compute, realistic
@@ -119,6 +176,111 @@ mod image {
         sum
     }
 
+    /// Compensator + servo (feedforward + feedback) + guard, two axes per step.
+    #[inline(never)]
+    fn servo_window(axes: &Axes) -> Option<f32> {
+        let servo = [axes.servo[0]?, axes.servo[1]?];
+        let mut state = [CompensatorState::at_rest(55.0); 2];
+        let mut guard: [GuardState; 2] = [axes.limits[0].state(55.0), axes.limits[1].state(55.0)];
+        let mut servo_state = [ServoState::at_rest(55.0, ServoMode::FeedforwardFeedback); 2];
+        let mut references = [0.0f32; BENCH_STEPS as usize];
+        for (k, r) in references.iter_mut().enumerate() {
+            *r = reference_m(k as u32);
+        }
+        let references = black_box(references);
+        let [c0, c1] = &axes.compensator;
+        let [l0, l1] = &axes.limits;
+        let [s0, s1] = &mut state;
+        let [g0, g1] = &mut guard;
+        let [v0, v1] = &mut servo_state;
+        let mut previous = references[0];
+        let mut sum = 0.0;
+        bench_mark_start();
+        for &r in references.iter() {
+            // The measurement: the previous reference plus a little error (no plant here).
+            let measured = previous + 1e-9;
+            let u0 = c0.compensate(s0, r).voltage_v;
+            let u0 = servo[0].step(v0, previous, measured, u0).voltage_v;
+            sum += l0.apply(g0, u0);
+            let u1 = c1.compensate(s1, r).voltage_v;
+            let u1 = servo[1].step(v1, previous, measured, u1).voltage_v;
+            sum += l1.apply(g1, u1);
+            previous = r;
+        }
+        bench_mark_end();
+        Some(sum)
+    }
+
+    /// Whole ticks without the stage in `mode`: the averaged window, then (with `worst`)
+    /// single-tick windows.
+    #[inline(never)]
+    fn tick_windows(mode: ServoMode, worst: bool) -> Option<u32> {
+        let settings = demo::settings().ok()?;
+        let scale = demo::sensor_scale()?;
+        // Record the stage's readings under the same loop.
+        let plant = Cell::new(XyPlant::from_params(SAMPLE_PERIOD_S)?);
+        let mut io = XyIo {
+            dac: PlantDac(&plant),
+            dac_channels: Axis::ALL,
+            sensor: AdcSensor {
+                adc: PlantAdc(&plant),
+                channels: Axis::ALL,
+                scale,
+            },
+        };
+        let new_loop = || {
+            let reference = ReferenceGenerator::new(demo::program(), SAMPLE_PERIOD_S, [0.0; 2]);
+            let mut lp = TwoAxisLoop::new(settings, Feedforward::Compensator, reference, [0.0; 2]);
+            lp.set_control_mode(mode).ok().map(|_| lp)
+        };
+        let mut lp = new_loop()?;
+        let mut adc = ReplayAdc {
+            codes: [[AdcCode(0); 2]; RECORDED],
+            next: 0,
+        };
+        for row in adc.codes.iter_mut() {
+            *row = [
+                plant.get().sensor_code(Axis::X),
+                plant.get().sensor_code(Axis::Y),
+            ];
+            lp.tick(&mut io, false);
+            let mut p = plant.get();
+            p.advance();
+            plant.set(p);
+            lp.frames.discard();
+        }
+        // Replay: the same loop from the start, the readings from the record.
+        let mut lp = new_loop()?;
+        let mut io = XyIo {
+            dac: KeptDac([DacCode(0); 2]),
+            dac_channels: Axis::ALL,
+            sensor: AdcSensor {
+                adc,
+                channels: Axis::ALL,
+                scale,
+            },
+        };
+        let mut batch = heapless::Vec::<_, 8>::new();
+        if worst {
+            for _ in 0..WORST_TICKS {
+                bench_mark_start();
+                let report = lp.tick(&mut io, black_box(false));
+                bench_mark_end();
+                black_box(report);
+                lp.frames.drain_into(&mut batch);
+            }
+        } else {
+            bench_mark_start();
+            for _ in 0..BENCH_TICKS {
+                let report = lp.tick(&mut io, black_box(false));
+                black_box(report);
+                lp.frames.drain_into(&mut batch);
+            }
+            bench_mark_end();
+        }
+        Some(lp.counters().faults())
+    }
+
     #[inline(never)]
     fn loop_window() -> Option<u32> {
         let settings = demo::settings().ok()?;
@@ -166,11 +328,15 @@ mod image {
                 black_box(compensator_window(&n1));
                 black_box(compensator_window(&nx));
                 matches!(loop_window(), Some(0))
+                    && black_box(servo_window(&n1)).is_some()
+                    && matches!(tick_windows(ServoMode::Feedforward, false), Some(0))
+                    && matches!(tick_windows(ServoMode::FeedforwardFeedback, false), Some(0))
             }
             _ => false,
         };
         bench_mark_start();
         bench_mark_end();
+        let ok = ok && matches!(tick_windows(ServoMode::FeedforwardFeedback, true), Some(0));
         debug::exit(if ok {
             debug::EXIT_SUCCESS
         } else {
