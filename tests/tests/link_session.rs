@@ -206,6 +206,57 @@ fn a_whole_session_over_the_link() {
         assert!(c.rms_m < 600e-9 && c.max_abs_m < 1.5e-6, "axis {i}: {c:?}");
     }
 
+    // 5b. Feedback: refused while the set has no servo; with the servo `servo-tune` writes into
+    // the identified file, feedforward + feedback tracks closer than the feedforward alone; an
+    // upload without a servo is refused while feedback runs.
+    match client
+        .request(Request::Control(Control::FeedforwardFeedback))
+        .unwrap()
+    {
+        Response::Refused(r) => assert!(r.reason.contains("servo"), "{}", r.reason),
+        other => panic!("{other:?}"),
+    }
+    let tuned = dir.0.join("tuned.toml");
+    let cli = host_sim::cli::Cli::try_parse_from([
+        "host-sim".to_string(),
+        "servo-tune".into(),
+        "--stage".into(),
+        arg(&identified),
+        "--mode-hz".into(),
+        "3221,2197".into(),
+        "--damping".into(),
+        "0.03".into(),
+        "--out".into(),
+        arg(&tuned),
+    ])
+    .expect("servo-tune arguments");
+    host_sim::cli::run(cli).expect("servo-tune");
+    upload(&mut client, &tuned).expect("upload with servo");
+    client
+        .expect(Request::Control(Control::FeedforwardFeedback))
+        .unwrap();
+    let both = track(&mut client);
+    assert_eq!(both.control, Control::FeedforwardFeedback);
+    say(&format!(
+        "link_session: feedforward + feedback (servo-tune): {}",
+        nm(&both)
+    ));
+    for i in 0..2 {
+        let (b, c) = (both.tracking[i], compensated.tracking[i]);
+        assert!(b.rms_m < 0.5 * c.rms_m, "axis {i}: {b:?} vs {c:?}");
+    }
+    match client
+        .request(Request::Upload(model_set(&identified).unwrap()))
+        .unwrap()
+    {
+        Response::Refused(r) => assert!(r.reason.contains("servo"), "{}", r.reason),
+        other => panic!("{other:?}"),
+    }
+    client
+        .expect(Request::Control(Control::Feedforward))
+        .unwrap();
+    assert_eq!(upload(&mut client, &identified).expect("upload"), fnv);
+
     // 6. A fault: the outputs are held until rearm.
     client.expect(Request::InjectOverrun).unwrap();
     std::thread::sleep(Duration::from_millis(50));
@@ -244,7 +295,7 @@ fn a_whole_session_over_the_link() {
     }
     let kept = track(&mut client);
     assert_eq!(kept.params_fnv1a32, fnv);
-    assert_eq!(kept.counters.refused_uploads, 1);
+    assert_eq!(kept.counters.refused_uploads, 2);
     for i in 0..2 {
         assert!(kept.tracking[i].rms_m < 600e-9, "{:?}", kept.tracking[i]);
     }
