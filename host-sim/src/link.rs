@@ -97,6 +97,22 @@ pub struct RunArgs {
     pub allow_gaps: bool,
 }
 
+/// Puts a serial device in raw mode without echo (`stty -F PATH raw -echo`): the terminal's
+/// default line handling would echo bytes back and rewrite newlines inside the packets. A path
+/// that is not a terminal (a pipe, a file) is left as it is.
+fn raw_mode(path: &str) -> Result<(), String> {
+    let out = std::process::Command::new("stty")
+        .args(["-F", path, "raw", "-echo"])
+        .output()
+        .map_err(|e| format!("stty (to set raw mode): {e}"))?;
+    let err = String::from_utf8_lossy(&out.stderr);
+    if out.status.success() || err.contains("Inappropriate ioctl") || err.contains("not a tty") {
+        Ok(())
+    } else {
+        Err(format!("stty -F {path} raw -echo: {}", err.trim()))
+    }
+}
+
 /// A connection to the firmware: numbered requests, answers matched by number, frames kept.
 pub struct Client {
     writer: Box<dyn Write + Send>,
@@ -144,6 +160,7 @@ impl Client {
                 let reader = stream.try_clone().map_err(|e| e.to_string())?;
                 (Box::new(reader), Box::new(stream))
             } else if let Some(path) = spec.strip_prefix("serial:") {
+                raw_mode(path).map_err(|e| format!("--connect {spec}: {e}"))?;
                 let file = std::fs::OpenOptions::new()
                     .read(true)
                     .write(true)

@@ -35,7 +35,7 @@ mod image {
     use cortex_m_rt::{entry, exception, ExceptionFrame};
     use cortex_m_semihosting::debug;
 
-    use piezo_core::{Compensator, CompensatorState, Servo, ServoMode, ServoState};
+    use piezo_core::{Compensator, CompensatorState, Servo, ServoMode, ServoParams, ServoState};
     use piezo_firmware::codes::{AdcCode, DacCode};
     use piezo_firmware::converter::{AdcRead, DacWrite, ErrorType};
     use piezo_firmware::demo;
@@ -53,6 +53,26 @@ mod image {
     pub const GENERAL_N: f32 = 1.5;
     /// Single-tick windows for the worst case.
     pub const WORST_TICKS: u32 = 300;
+
+    /// The servo benched when the stage file has none (its cost does not depend on the values:
+    /// low-pass, notch and PI are three biquads either way).
+    const FALLBACK_SERVO: ServoParams = ServoParams {
+        kp_v_per_m: 0.0,
+        ki_v_per_m_s: 7.0e9,
+        lowpass_frequency_hz: 3000.0,
+        lowpass_q: core::f32::consts::FRAC_1_SQRT_2,
+        notch_frequency_hz: 3000.0,
+        notch_q: 1.0,
+        transfer_time_constant_s: 0.02,
+    };
+
+    /// The file's axes, each with its servo or [`FALLBACK_SERVO`].
+    fn with_servo(mut axes: [AxisParams; 2]) -> [AxisParams; 2] {
+        for a in &mut axes {
+            a.servo = a.servo.or(Some(FALLBACK_SERVO));
+        }
+        axes
+    }
 
     struct Axes {
         compensator: [Compensator; 2],
@@ -215,7 +235,12 @@ mod image {
     /// single-tick windows.
     #[inline(never)]
     fn tick_windows(mode: ServoMode, worst: bool) -> Option<u32> {
-        let settings = demo::settings().ok()?;
+        let settings = piezo_firmware::xy_loop::LoopSettings::from_params(
+            &with_servo(AXES),
+            piezo_firmware::params::AMPLIFIER_GAIN_V_PER_V,
+            SAMPLE_PERIOD_S,
+        )
+        .ok()?;
         let scale = demo::sensor_scale()?;
         // Record the stage's readings under the same loop.
         let plant = Cell::new(XyPlant::from_params(SAMPLE_PERIOD_S)?);
@@ -323,7 +348,7 @@ mod image {
             AXES[0].with_exponent(GENERAL_N),
             AXES[1].with_exponent(GENERAL_N),
         ];
-        let ok = match (axes(AXES), axes(general)) {
+        let ok = match (axes(with_servo(AXES)), axes(general)) {
             (Some(n1), Some(nx)) => {
                 black_box(compensator_window(&n1));
                 black_box(compensator_window(&nx));
