@@ -7,7 +7,8 @@
 //! residual, names the effect the fit lacks and refits; [`compensate`] computes the voltages the
 //! firmware would command; [`demo`], [`reproduce`] and [`servo_bench`] run the core against the
 //! reference plants; [`capture`] and [`link`] talk to the firmware (its log, its command link);
-//! [`stage_file`] writes the stage file; [`plot`] draws the figures; [`cli`] is the command line.
+//! [`servo_tune`] writes the feedback servo of the stage file; [`stage_file`] writes the stage file;
+//! [`plot`] draws the figures; [`cli`] is the command line.
 //!
 //! The plants, effects, signals, solver and CSV files live in `piezo-reference` (`host-sim/reference`),
 //! which does not depend on the core; they are re-exported here ([`plant`], [`sim`], [`signal`],
