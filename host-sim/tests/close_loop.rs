@@ -277,6 +277,15 @@ fn dynamics_is_named_and_removed() {
     let records = read_records(&path, None, Some("ux_V"), Some("x_m"), None).unwrap();
     let o = close_loop(&records, &CloseLoopSettings::default()).unwrap();
     check_single(&o, "dynamics", 0.4);
+    // The stage file carries a servo tuned on the mode close-loop found.
+    let out = temp("dynamics.toml");
+    write_stage_file(&o, &out, "dyn.csv", None, true).unwrap();
+    let (file, _) = piezo_stage::StageFile::load(&out).unwrap();
+    let mode_hz = file.x.effects.mode_frequency_hz;
+    assert!((2800.0..3600.0).contains(&mode_hz), "{mode_hz}");
+    let servo = file.x.servo.expect("a servo tuned on the mode");
+    assert_eq!(servo.notch_frequency_hz, mode_hz);
+    assert!(servo.ki_v_per_m_s > 0.0);
 }
 
 /// Two-axis raster on the XY stage with cross-axis coupling in the measurement; the stage file of

@@ -69,7 +69,14 @@ fn servo_table_round_trips_and_is_validated_by_the_core() {
     assert_eq!(back, file);
     let valid = back.validate().unwrap();
     assert_eq!(valid.axes[0].servo.unwrap().params(), tuning.params);
-    assert!(valid.axes[1].servo.is_none());
+    // y keeps the file's own table; without one it has none.
+    assert_eq!(
+        valid.axes[1].servo.map(|s| s.params()),
+        file.y.as_ref().unwrap().servo
+    );
+    let mut without = back.clone();
+    without.y.as_mut().unwrap().servo = None;
+    assert!(without.validate().unwrap().axes[1].servo.is_none());
     // A refused table names its key.
     let bad: String = text
         .lines()

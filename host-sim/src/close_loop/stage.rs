@@ -291,14 +291,44 @@ pub fn write_stage_file(
         .file_stem()
         .map_or("stage".into(), |s| s.to_string_lossy().to_string());
     let (stage, io) = stage_and_io(given, &name, rate)?;
-    write_stage(
-        path,
-        &header(outcome, data),
-        stage,
-        io,
-        final_axes(outcome, data),
-        allow_refused,
-    )
+    let axes = with_servo(&stage, &io, final_axes(outcome, data));
+    write_stage(path, &header(outcome, data), stage, io, axes, allow_refused)
+}
+
+/// The axes with a feedback servo (`[x.servo]`) tuned by `host-sim servo-tune`'s rule when every
+/// axis has the `mode` effect (its frequency and damping are the tuning's first mode); as they are
+/// otherwise, or when the rule finds no crossover (said on stderr).
+fn with_servo(stage: &piezo_stage::Stage, io: &piezo_stage::Io, axes: Vec<Axis>) -> Vec<Axis> {
+    if axes.is_empty() || axes.iter().any(|a| a.effects.mode_frequency_hz <= 0.0) {
+        return axes;
+    }
+    let mut file = piezo_stage::StageFile {
+        stage: stage.clone(),
+        io: io.clone(),
+        x: axes[0].clone(),
+        y: axes.get(1).cloned(),
+    };
+    let goal = piezo_core::servo::TuningGoal::default();
+    match crate::servo_tune::tune_file(&mut file, &[], 0.0, &goal, 1.5) {
+        Ok(tunings) => {
+            for t in &tunings {
+                eprintln!(
+                    "close-loop: [{}.servo] tuned on the mode effect ({:.0} Hz): crossover {:.0} Hz,                      phase margin {:.0}°",
+                    t.axis,
+                    t.dynamics.mode_frequency_hz,
+                    t.tuning.crossover_hz,
+                    t.tuning.phase_margin_deg
+                );
+            }
+            let mut out = vec![file.x];
+            out.extend(file.y);
+            out
+        }
+        Err(e) => {
+            eprintln!("close-loop: no servo written: {e}");
+            axes
+        }
+    }
 }
 
 /// The stage file's text of the final models with the given `[stage]` (name, version, loop rate)
