@@ -409,8 +409,8 @@ mod tests {
                 } else {
                     2.0
                 };
-                for i in 0..2 {
-                    let step = (r.applied_v[i] - last[i]).abs();
+                for (i, (u, before)) in r.applied_v.iter().zip(&last).enumerate() {
+                    let step = (u - before).abs();
                     assert!(step < limit, "tick {k} axis {i}: step {step} V");
                 }
             }
