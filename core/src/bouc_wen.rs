@@ -129,6 +129,11 @@ impl HysteresisState {
     }
 }
 
+/// Largest |h| accepted for a range-limited set (β + γ·sgn A ≤ 0) over its input range: the
+/// one `state_limit` of [`BoucWen::with_input_range`] that the stage file, the firmware and the
+/// host tools pass (bounded sets never reach it).
+pub const STATE_LIMIT: f32 = 1e6;
+
 impl BoucWen {
     /// Validates a set that must be bounded for every input (β ≥ 0, β + γ·sgn A > 0).
     ///
@@ -138,7 +143,8 @@ impl BoucWen {
         Self::build(params, f32::NEG_INFINITY, f32::INFINITY, f32::INFINITY)
     }
 
-    /// Validates a set for use over the input range `[input_min_v, input_max_v]` only.
+    /// Validates a set for use over the input range `[input_min_v, input_max_v]` only
+    /// ([`STATE_LIMIT`] is the `state_limit` the stage file, the firmware and the tools use).
     ///
     /// For a bounded set the range only clamps the input. For β + γ·sgn A ≤ 0 the set is accepted
     /// when the largest |h| reachable from rest over that range, `L(u_max − u_min)`, is at most

@@ -28,7 +28,9 @@ pub mod oscillator;
 pub mod servo;
 pub mod static_model;
 
-pub use bouc_wen::{max_input_span, BoucWen, BoucWenParams, BoundClass, HysteresisState};
+pub use bouc_wen::{
+    max_input_span, BoucWen, BoucWenParams, BoundClass, HysteresisState, STATE_LIMIT,
+};
 pub use compensator::{Command, CommandStatus, Compensator, CompensatorSettings, CompensatorState};
 pub use dynamic_model::{DynamicModel, DynamicState, MassSpringDamperParams};
 pub use error::{ParamError, MIN_SLOPE_RATIO};

@@ -44,7 +44,7 @@ pub struct AxisParams {
 }
 
 /// Largest |h| accepted for a range-limited Bouc-Wen set over the window (as in `build.rs`).
-pub const STATE_LIMIT: f32 = 1e6;
+pub use piezo_core::STATE_LIMIT;
 
 include!(concat!(env!("OUT_DIR"), "/params.rs"));
 

@@ -233,8 +233,8 @@ pub fn run_xy_stage(
     }
 }
 
-/// Largest |h| the core may assume for the stack sets (never reached: they are bounded).
-const STATE_LIMIT: f32 = 1e3;
+// The largest |h| the core may assume (never reached by the stack sets: they are bounded).
+use piezo_core::STATE_LIMIT;
 
 /// The compensator of one axis from the plant's own stack parameters, valid over 0–120 V (used by the
 /// benches: the model-matched case).

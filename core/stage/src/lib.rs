@@ -75,8 +75,9 @@ use piezo_core::{
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
-/// Largest |h| accepted for a range-limited Bouc-Wen set (β + γ ≤ 0) over the output window.
-pub const STATE_LIMIT: f32 = 1e6;
+/// Largest |h| accepted for a range-limited Bouc-Wen set (β + γ ≤ 0) over the output window
+/// (piezo-core's own).
+pub use piezo_core::STATE_LIMIT;
 
 /// A whole stage file.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
