@@ -195,6 +195,44 @@ fn axis_params(m: &AxisModel) -> Result<AxisParams, ParamError> {
     Ok(p)
 }
 
+/// A request ready for [`Session::apply`]: an upload already validated.
+#[allow(clippy::large_enum_variant)] // moved once per request, never stored in bulk
+pub enum Prepared {
+    /// Any request but an upload.
+    Request(Request),
+    /// An upload with its axes validated.
+    Upload(PreparedUpload),
+}
+
+/// An uploaded set and the outcome of its validation.
+pub struct PreparedUpload {
+    /// The set as received.
+    pub set: ModelSet,
+    /// Both axes' loop settings, or the first axis the core refused and why.
+    pub axes: Result<[AxisConfig; 2], (usize, ConfigError)>,
+}
+
+/// The part of handling a request that does not need the loop: an upload's validation by the
+/// core's constructors (and the first-loading sweep of its baseline gain), which takes several
+/// loop periods on the Cortex-M4F. Pure: it reads only the built-in loop period.
+pub fn prepare(request: Request) -> Prepared {
+    match request {
+        Request::Upload(set) => Prepared::Upload(prepare_upload(set)),
+        other => Prepared::Request(other),
+    }
+}
+
+fn prepare_upload(set: ModelSet) -> PreparedUpload {
+    let config = |i: usize| {
+        axis_params(&set.axes[i])
+            .map_err(ConfigError::Core)
+            .and_then(|p| AxisConfig::from_params(&p, params::SAMPLE_PERIOD_S))
+            .map_err(|e| (i, e))
+    };
+    let axes = config(0).and_then(|x| config(1).map(|y| [x, y]));
+    PreparedUpload { set, axes }
+}
+
 /// piezo-core's mode for the wire's.
 fn servo_mode(c: Control) -> ServoMode {
     match c {
@@ -319,29 +357,42 @@ impl Session {
         report
     }
 
-    /// Takes received bytes; each complete request is handled at once and its response queued.
+    /// Takes received bytes; each complete request is prepared ([`prepare`]) and applied
+    /// ([`Session::apply`]) at once, its response queued.
     pub fn receive(&mut self, bytes: &[u8]) {
         for &byte in bytes {
             match self.decoder.push::<Request>(byte) {
                 None => {}
-                Some(Ok(Packet { sequence, body })) => {
-                    let c = &mut self.counters;
-                    c.requests = c.requests.saturating_add(1);
-                    if self.requests.accept(sequence) > 0 {
-                        c.request_gaps = c.request_gaps.saturating_add(1);
-                    }
-                    let response = self.handle(body);
-                    self.send(Uplink::Response {
-                        request: sequence,
-                        response,
-                    });
-                }
-                Some(Err(_)) => {
-                    let c = &mut self.counters;
-                    c.rejected_packets = c.rejected_packets.saturating_add(1);
-                }
+                Some(Ok(Packet { sequence, body })) => self.apply(sequence, prepare(body)),
+                Some(Err(_)) => self.note_rejected_packet(),
             }
         }
+    }
+
+    /// Applies a request prepared by [`prepare`] (numbered `sequence` by the host) and queues
+    /// its response. For a link that decodes and prepares outside the session (the board: an
+    /// upload's validation then does not hold the loop), with [`Session::note_rejected_packet`]
+    /// for packets its decoder refused.
+    pub fn apply(&mut self, sequence: u32, prepared: Prepared) {
+        let c = &mut self.counters;
+        c.requests = c.requests.saturating_add(1);
+        if self.requests.accept(sequence) > 0 {
+            c.request_gaps = c.request_gaps.saturating_add(1);
+        }
+        let response = match prepared {
+            Prepared::Request(request) => self.handle(request),
+            Prepared::Upload(upload) => self.upload(&upload),
+        };
+        self.send(Uplink::Response {
+            request: sequence,
+            response,
+        });
+    }
+
+    /// Counts a packet the link's decoder refused (COBS, CRC, length, body).
+    pub fn note_rejected_packet(&mut self) {
+        let c = &mut self.counters;
+        c.rejected_packets = c.rejected_packets.saturating_add(1);
     }
 
     /// Hands queued bytes to `put` until it refuses one (returns false); returns how many went.
@@ -450,8 +501,9 @@ impl Session {
         }
     }
 
-    /// Validates `set` and swaps it in, or says why not (nothing changed).
-    fn upload(&mut self, set: &ModelSet) -> Response {
+    /// Swaps in a set [`prepare`] validated, or says why not (nothing changed).
+    fn upload(&mut self, upload: &PreparedUpload) -> Response {
+        let set = &upload.set;
         let chain = |what: &str, given: f32, runs: f32| {
             refused(
                 RefusalKind::Chain,
@@ -479,7 +531,6 @@ impl Session {
                 params::SENSOR_M_PER_V,
             );
         }
-        let mut axes = self.lp.settings().axes;
         if self.control.feedback() {
             if let Some(i) = set.axes.iter().position(|a| a.servo.is_none()) {
                 self.counters.refused_uploads = self.counters.refused_uploads.saturating_add(1);
@@ -494,18 +545,13 @@ impl Session {
                 );
             }
         }
-        for (i, model) in set.axes.iter().enumerate() {
-            let config = axis_params(model)
-                .map_err(ConfigError::Core)
-                .and_then(|p| AxisConfig::from_params(&p, params::SAMPLE_PERIOD_S));
-            match config {
-                Ok(c) => axes[i] = c,
-                Err(e) => {
-                    self.counters.refused_uploads = self.counters.refused_uploads.saturating_add(1);
-                    return config_refusal(i, e);
-                }
+        let axes = match upload.axes {
+            Ok(valid) => valid,
+            Err((i, e)) => {
+                self.counters.refused_uploads = self.counters.refused_uploads.saturating_add(1);
+                return config_refusal(i, e);
             }
-        }
+        };
         let settings = LoopSettings {
             axes,
             ..*self.lp.settings()
@@ -570,7 +616,7 @@ impl Session {
                 self.inject_overrun = true;
                 Response::Done
             }
-            Request::Upload(set) => self.upload(&set),
+            Request::Upload(set) => self.upload(&prepare_upload(set)),
             Request::Frames { decimation } => {
                 if decimation > 0 {
                     self.lp.frames.set_decimation(decimation);

@@ -15,8 +15,10 @@
 //!
 //! The session (the loop inside it) is one RTIC shared resource. The tick has the highest
 //! priority of its users, so it never waits for it; the link and telemetry lock it for one
-//! request's handling, one batch of ≤ 64 bytes or one status, and those locks delay the tick.
-//! Requests are thus handled between two ticks, as `Session` requires.
+//! request's application, one batch of ≤ 64 bytes out or one status, and those locks delay the
+//! tick. The link decodes and prepares each request before it locks (`session::prepare`: an
+//! upload's validation runs there, preempted by the tick), so requests are applied between two
+//! ticks, as `Session` requires, and none holds the loop for long.
 //!
 //! # Deadline and its measurement
 //! Deadline: one loop period, T = 1/`loop_rate_hz` (100 µs, 16 800 core cycles at 10 kHz), from
@@ -24,7 +26,7 @@
 //! end with the DWT cycle counter (CYCCNT, 168 MHz) and reads TIM2's counter to date the update
 //! it serves (`piezo_firmware::board::deadline`). If the update flag is set again when the tick
 //! ends (or update-to-end exceeds T), the next tick is told `deadline_missed`; if a whole period
-//! passed without a tick (a lock held longer than T, e.g. by an `Upload`'s validation), the tick
+//! passed without a tick (a lock held longer than T), the tick
 //! that comes is told so. The loop counts each as an overrun (`counters.overruns` in `status`)
 //! and latches its safe state (outputs held) until `rearm`.
 //!

@@ -4,11 +4,15 @@
 //! `otg_fs::UsbBus` (synopsys-usb-otg 0.4).
 //!
 //! [`UsbLink::service`] runs in the OTG_FS interrupt (and whenever the control tick pends it
-//! because the session has bytes to send): it polls the USB device, hands every received byte
-//! to [`Session::receive`], and moves bytes from [`Session::transmit`] to the serial port. The
-//! session is taken through an RTIC lock for each batch of at most [`PACKET_BYTES`] bytes, never
-//! while waiting for the bus, so a slow or absent host never holds up the tick; what the host
-//! does not read stays in the session's transmit buffer, which drops frames (counted) when full.
+//! because the session has bytes to send): it polls the USB device, decodes the received bytes
+//! into requests itself, prepares each one outside the session ([`session::prepare`]: an
+//! upload's validation by the core, several loop periods of work, happens here while the loop
+//! keeps ticking) and applies it under the session's lock ([`Session::apply`]: the swap between
+//! two ticks), and moves bytes from [`Session::transmit`] to the serial port. The session is
+//! taken through an RTIC lock for one request or one batch of at most [`PACKET_BYTES`] bytes
+//! out, never while waiting for the bus, so a slow or absent host never holds up the tick; what
+//! the host does not read stays in the session's transmit buffer, which drops frames (counted)
+//! when full.
 //!
 //! Bytes go out only while the device is configured (enumerated by a host): `usbd-serial`
 //! accepts bytes into its buffer and then reports a bus error in other states, which would send
@@ -22,7 +26,9 @@ use usb_device::prelude::{
 };
 use usbd_serial::SerialPort;
 
-use crate::session::Session;
+use piezo_link::{Decoder, Packet, Request};
+
+use crate::session::{self, Session};
 
 /// The USB bus of the board.
 pub type Bus = UsbBus<USB>;
@@ -84,6 +90,7 @@ pub struct UsbCounters {
 pub struct UsbLink {
     device: UsbDevice<'static, Bus>,
     serial: SerialPort<'static, Bus>,
+    decoder: Decoder,
     staged: Staged,
     counters: UsbCounters,
 }
@@ -104,6 +111,7 @@ impl UsbLink {
         Ok(Self {
             device,
             serial,
+            decoder: Decoder::new(),
             staged: Staged {
                 bytes: [0; PACKET_BYTES],
                 start: 0,
@@ -123,9 +131,10 @@ impl UsbLink {
         self.device.state() == UsbDeviceState::Configured
     }
 
-    /// Polls the device, passes received bytes to the session and sends what the session has,
-    /// until the serial port would block. `session` is locked once per batch of at most
-    /// [`PACKET_BYTES`] bytes.
+    /// Polls the device, decodes and prepares received requests and applies them to the session,
+    /// and sends what the session has, until the serial port would block. `session` is locked
+    /// once per request (after its preparation) and once per batch of at most [`PACKET_BYTES`]
+    /// bytes out.
     pub fn service<M>(&mut self, session: &mut M)
     where
         M: rtic::Mutex<T = &'static mut Session>,
@@ -133,8 +142,16 @@ impl UsbLink {
         self.device.poll(&mut [&mut self.serial]);
         let mut received = [0u8; PACKET_BYTES];
         while let Ok(n @ 1..) = self.serial.read(&mut received) {
-            let bytes = &received[..n];
-            session.lock(|s| s.receive(bytes));
+            for &byte in &received[..n] {
+                match self.decoder.push::<Request>(byte) {
+                    None => {}
+                    Some(Ok(Packet { sequence, body })) => {
+                        let prepared = session::prepare(body);
+                        session.lock(|s| s.apply(sequence, prepared));
+                    }
+                    Some(Err(_)) => session.lock(|s| s.note_rejected_packet()),
+                }
+            }
             self.counters.bytes_in = self.counters.bytes_in.wrapping_add(n as u32);
         }
         if !self.configured() {

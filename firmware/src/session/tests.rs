@@ -326,3 +326,46 @@ fn corrupted_requests_are_counted_not_answered() {
     host.sequence = 9;
     assert_eq!(host.status(&mut s).counters.request_gaps, 1);
 }
+
+/// The board's way: the link decodes and prepares an upload outside the session while the loop
+/// keeps ticking, then applies it between two ticks; the answer is the same as through
+/// `receive`.
+#[test]
+fn an_upload_prepared_outside_the_session_is_applied_between_two_ticks() {
+    let (mut s, plant) = session();
+    let mut host = Host::new();
+    host.ask(&mut s, sine_track());
+    let prepared = prepare(Request::Upload(built_in_set()));
+    assert!(matches!(&prepared, Prepared::Upload(u) if u.axes.is_ok()));
+    run(&mut s, &plant, &mut host, 50);
+    let ticks = s.status().counters.ticks;
+    s.apply(host.sequence, prepared);
+    host.sequence += 1;
+    let answers = host.drain(&mut s);
+    assert_eq!(
+        answers,
+        [Uplink::Response {
+            request: host.sequence - 1,
+            response: Response::Loaded {
+                params_fnv1a32: 0x1234_5678
+            }
+        }]
+    );
+    let st = host.status(&mut s);
+    assert_eq!(st.counters.ticks, ticks, "applied between two ticks");
+    assert_eq!((st.counters.uploads, st.counters.request_gaps), (1, 0));
+    // A refused set prepared the same way leaves the running one.
+    let mut bad = built_in_set();
+    bad.axes[0].bouc_wen.beta = -1.0;
+    let before = s.lp.settings().axes;
+    s.apply(host.sequence, prepare(Request::Upload(bad)));
+    host.sequence += 1;
+    assert!(matches!(
+        host.drain(&mut s).as_slice(),
+        [Uplink::Response {
+            response: Response::Refused(Refusal { axis: Some(0), .. }),
+            ..
+        }]
+    ));
+    assert_eq!(s.lp.settings().axes, before);
+}
