@@ -733,6 +733,11 @@ impl TwoAxisLoop {
         }
     }
 
+    /// The tick's steps 0–4 (module docs), written as one function on purpose: split into named
+    /// helpers (sensors, commands, DAC, effects, frame; all `#[inline(always)]`) the tick cost
+    /// 6–7 % more instructions under `firmware/bench.sh` (2519 → 2670 per tick with the
+    /// simulated stage), the state copies the DAC-failure path needs no longer staying in
+    /// registers.
     #[inline(always)]
     fn tick_body<const EFFECTS: bool, D, S>(
         &mut self,
