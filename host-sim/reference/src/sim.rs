@@ -221,27 +221,8 @@ pub fn simulate(
 ) -> Result<SimOutput, SimError> {
     let n_in = plant.input_names().len();
     let n_out = plant.output_names().len();
-    if signals.len() != n_in {
-        return Err(SimError::Settings(format!(
-            "plant {} needs {n_in} input signal(s), got {}",
-            plant.name(),
-            signals.len()
-        )));
-    }
+    let n_samples = sample_count(plant, signals.len(), settings)?;
     let fs = settings.sample_rate_hz;
-    if !(fs > 0.0 && fs.is_finite() && settings.duration_s > 0.0 && settings.duration_s.is_finite())
-    {
-        return Err(SimError::Settings(format!(
-            "sample rate ({fs} Hz) and duration ({} s) must be positive and finite",
-            settings.duration_s
-        )));
-    }
-    let n_samples = (settings.duration_s * fs).round() as usize;
-    if n_samples == 0 || n_samples > 200_000_000 {
-        return Err(SimError::Settings(format!(
-            "{n_samples} samples: need 1 .. 2e8"
-        )));
-    }
     let signals: Vec<Box<dyn Signal>> = match effects.dac {
         Some(dac) => signals
             .into_iter()
@@ -250,21 +231,9 @@ pub fn simulate(
         None => signals,
     };
     let t_of = |k: usize| k as f64 / fs;
-    // Validity of the input range (sampled at the output instants and at the breakpoints).
-    let (mut lo, mut hi) = (0.0f64, 0.0f64);
-    let mut bps = Vec::new();
-    for s in &signals {
-        s.breakpoints(0.0, t_of(n_samples), &mut bps);
-        for v in (0..n_samples)
-            .map(|k| s.value(t_of(k)))
-            .chain(bps.iter().map(|&t| s.value(t)))
-        {
-            lo = lo.min(v);
-            hi = hi.max(v);
-        }
-        bps.clear();
-    }
+    let (lo, hi) = input_span(&signals, n_samples, fs);
     plant.check_input_span(lo, hi)?;
+    let mut bps = Vec::new();
 
     let n_amp = if effects.amplifier.is_some() { n_in } else { 0 };
     let ctx = Ctx {
@@ -346,12 +315,76 @@ pub fn simulate(
             outputs_m[j].push(y[j] + creep + drift);
         }
     }
-    // Sensor-side effects.
+    sensor_effects(&mut outputs_m, effects, fs);
+    Ok(SimOutput {
+        t_s,
+        input_names: plant.input_names().iter().map(|s| s.to_string()).collect(),
+        inputs_v,
+        output_names: plant.output_names().iter().map(|s| s.to_string()).collect(),
+        outputs_m,
+        stats: ode.stats(),
+    })
+}
+
+/// Samples of a run, after checking the signal count against the plant's inputs and the rate
+/// and duration.
+fn sample_count(
+    plant: &dyn Plant,
+    n_signals: usize,
+    settings: &SimSettings,
+) -> Result<usize, SimError> {
+    let n_in = plant.input_names().len();
+    if n_signals != n_in {
+        return Err(SimError::Settings(format!(
+            "plant {} needs {n_in} input signal(s), got {n_signals}",
+            plant.name(),
+        )));
+    }
+    let fs = settings.sample_rate_hz;
+    if !(fs > 0.0 && fs.is_finite() && settings.duration_s > 0.0 && settings.duration_s.is_finite())
+    {
+        return Err(SimError::Settings(format!(
+            "sample rate ({fs} Hz) and duration ({} s) must be positive and finite",
+            settings.duration_s
+        )));
+    }
+    let n_samples = (settings.duration_s * fs).round() as usize;
+    if n_samples == 0 || n_samples > 200_000_000 {
+        return Err(SimError::Settings(format!(
+            "{n_samples} samples: need 1 .. 2e8"
+        )));
+    }
+    Ok(n_samples)
+}
+
+/// The range the inputs span (0 included: the plant starts at rest at 0 V), sampled at the
+/// output instants and at the signals' breakpoints.
+fn input_span(signals: &[Box<dyn Signal>], n_samples: usize, fs: f64) -> (f64, f64) {
+    let t_of = |k: usize| k as f64 / fs;
+    let (mut lo, mut hi) = (0.0f64, 0.0f64);
+    let mut bps = Vec::new();
+    for s in signals {
+        s.breakpoints(0.0, t_of(n_samples), &mut bps);
+        for v in (0..n_samples)
+            .map(|k| s.value(t_of(k)))
+            .chain(bps.iter().map(|&t| s.value(t)))
+        {
+            lo = lo.min(v);
+            hi = hi.max(v);
+        }
+        bps.clear();
+    }
+    (lo, hi)
+}
+
+/// The sensor side of the effects, in this order: delay (linear interpolation), noise
+/// (Gaussian, seeded), ADC quantisation.
+fn sensor_effects(outputs_m: &mut [Vec<f64>], effects: &Effects, fs: f64) {
     if let Some(d) = effects.sensor_delay_s {
         for ch in outputs_m.iter_mut() {
             let orig = ch.clone();
             for (k, v) in ch.iter_mut().enumerate() {
-                let pos = (t_of(k) - d) * fs;
+                let pos = (k as f64 / fs - d) * fs;
                 *v = if pos <= 0.0 {
                     orig[0]
                 } else {
@@ -368,6 +401,7 @@ pub fn simulate(
     }
     if let Some(noise) = effects.noise {
         let mut rng = ChaCha8Rng::seed_from_u64(noise.seed);
+        let n_samples = outputs_m.first().map_or(0, Vec::len);
         for k in 0..n_samples {
             for ch in outputs_m.iter_mut() {
                 ch[k] += noise.rms_m * gaussian(&mut rng);
@@ -379,12 +413,4 @@ pub fn simulate(
             *v = (*v / lsb).round() * lsb;
         }
     }
-    Ok(SimOutput {
-        t_s,
-        input_names: plant.input_names().iter().map(|s| s.to_string()).collect(),
-        inputs_v,
-        output_names: plant.output_names().iter().map(|s| s.to_string()).collect(),
-        outputs_m,
-        stats: ode.stats(),
-    })
 }
