@@ -518,6 +518,123 @@ fn positive(key: &str, x: f64) -> Result<f64, SignalError> {
     }
 }
 
+/// The signal of `kind` from its keys, and the keys it takes (for the unknown-key error).
+fn signal_kind(
+    kind: &str,
+    kv: &mut Kv,
+    duration_s: Option<f64>,
+) -> Result<(SignalKind, &'static str), SignalError> {
+    let kind_and_keys = match kind {
+        "sine" => (
+            SignalKind::Sine(Sine {
+                amplitude_v: kv.num("amp", Some(1.0))?,
+                offset_v: kv.num("offset", Some(0.0))?,
+                frequency_hz: positive("freq", kv.num("freq", Some(1.0))?)?,
+                phase_rad: kv.num("phase_deg", Some(0.0))?.to_radians(),
+            }),
+            "amp, offset, freq, phase_deg, duration, rate",
+        ),
+        "multisine" => {
+            let amps = kv.list("amps")?;
+            let freqs = kv.list("freqs")?;
+            if amps.len() != freqs.len() {
+                return Err(SignalError::BadValue {
+                    key: "amps/freqs".into(),
+                    given: format!("{} amplitudes, {} frequencies", amps.len(), freqs.len()),
+                    reason: "lists must have the same length",
+                });
+            }
+            (
+                SignalKind::Multisine(Multisine {
+                    offset_v: kv.num("offset", Some(0.0))?,
+                    components: amps.into_iter().zip(freqs).collect(),
+                }),
+                "offset, amps, freqs, duration, rate",
+            )
+        }
+        "triangle" => (
+            SignalKind::Triangle {
+                low_v: kv.num("low", Some(0.0))?,
+                high_v: kv.num("high", Some(1.0))?,
+                frequency_hz: positive("freq", kv.num("freq", Some(1.0))?)?,
+            },
+            "low, high, freq, duration, rate",
+        ),
+        "staircase" => (
+            SignalKind::Staircase {
+                low_v: kv.num("low", Some(0.0))?,
+                high_v: kv.num("high", None)?,
+                step_v: positive("step", kv.num("step", None)?)?,
+                hold_s: positive("hold", kv.num("hold", None)?)?,
+            },
+            "low, high, step, hold, duration, rate",
+        ),
+        "steps" => (
+            SignalKind::Steps {
+                levels_v: kv.list("levels")?,
+                hold_s: positive("hold", kv.num("hold", None)?)?,
+            },
+            "levels, hold, duration, rate",
+        ),
+        "square" => (
+            SignalKind::Square {
+                low_v: kv.num("low", Some(0.0))?,
+                amplitude_v: kv.num("amp", Some(7.8335))?,
+                period_s: positive("period", kv.num("period", Some(1e-4))?)?,
+                rise_s: positive("rise", kv.num("rise", Some(1.8672e-6))?)?,
+            },
+            "low, amp, period, rise, duration, rate",
+        ),
+        "chirp" => (
+            SignalKind::Chirp(Chirp {
+                amplitude_v: kv.num("amp", Some(1.0))?,
+                offset_v: kv.num("offset", Some(0.0))?,
+                start_hz: kv.num("f0", Some(1.0))?,
+                end_hz: kv.num("f1", Some(100.0))?,
+                duration_s: duration_s.unwrap_or(1.0),
+            }),
+            "amp, offset, f0, f1, duration, rate",
+        ),
+        "raster" => (
+            SignalKind::Raster {
+                x_low_v: kv.num("x_low", Some(0.0))?,
+                x_high_v: kv.num("x_high", Some(100.0))?,
+                line_hz: positive("line_freq", kv.num("line_freq", Some(10.0))?)?,
+                y_low_v: kv.num("y_low", Some(0.0))?,
+                y_high_v: kv.num("y_high", Some(100.0))?,
+            },
+            "x_low, x_high, line_freq, y_low, y_high, duration, rate",
+        ),
+        "csv" => (
+            SignalKind::Csv {
+                path: PathBuf::from(kv.get("path").ok_or(SignalError::MissingKey {
+                    kind: "csv".into(),
+                    key: "path",
+                })?),
+                column: kv.get("column").map(str::to_string),
+                zero_order_hold: match kv.get("hold") {
+                    None | Some("foh") => false,
+                    Some("zoh") => true,
+                    Some(other) => {
+                        return Err(SignalError::BadValue {
+                            key: "hold".into(),
+                            given: other.into(),
+                            reason: "valid: foh, zoh",
+                        })
+                    }
+                },
+            },
+            "path, column, hold, duration, rate",
+        ),
+        other => {
+            return Err(SignalError::UnknownKind {
+                given: other.to_string(),
+            })
+        }
+    };
+    Ok(kind_and_keys)
+}
+
 impl SignalSpec {
     /// Parses `kind:key=value,...` (see [`SIGNAL_HELP`]).
     pub fn parse(spec: &str) -> Result<Self, SignalError> {
@@ -542,114 +659,7 @@ impl SignalSpec {
             .get("rate")
             .map(|v| parse_num("rate", v).and_then(|x| positive("rate", x)))
             .transpose()?;
-        let (kind_value, valid): (SignalKind, &'static str) = match kind {
-            "sine" => (
-                SignalKind::Sine(Sine {
-                    amplitude_v: kv.num("amp", Some(1.0))?,
-                    offset_v: kv.num("offset", Some(0.0))?,
-                    frequency_hz: positive("freq", kv.num("freq", Some(1.0))?)?,
-                    phase_rad: kv.num("phase_deg", Some(0.0))?.to_radians(),
-                }),
-                "amp, offset, freq, phase_deg, duration, rate",
-            ),
-            "multisine" => {
-                let amps = kv.list("amps")?;
-                let freqs = kv.list("freqs")?;
-                if amps.len() != freqs.len() {
-                    return Err(SignalError::BadValue {
-                        key: "amps/freqs".into(),
-                        given: format!("{} amplitudes, {} frequencies", amps.len(), freqs.len()),
-                        reason: "lists must have the same length",
-                    });
-                }
-                (
-                    SignalKind::Multisine(Multisine {
-                        offset_v: kv.num("offset", Some(0.0))?,
-                        components: amps.into_iter().zip(freqs).collect(),
-                    }),
-                    "offset, amps, freqs, duration, rate",
-                )
-            }
-            "triangle" => (
-                SignalKind::Triangle {
-                    low_v: kv.num("low", Some(0.0))?,
-                    high_v: kv.num("high", Some(1.0))?,
-                    frequency_hz: positive("freq", kv.num("freq", Some(1.0))?)?,
-                },
-                "low, high, freq, duration, rate",
-            ),
-            "staircase" => (
-                SignalKind::Staircase {
-                    low_v: kv.num("low", Some(0.0))?,
-                    high_v: kv.num("high", None)?,
-                    step_v: positive("step", kv.num("step", None)?)?,
-                    hold_s: positive("hold", kv.num("hold", None)?)?,
-                },
-                "low, high, step, hold, duration, rate",
-            ),
-            "steps" => (
-                SignalKind::Steps {
-                    levels_v: kv.list("levels")?,
-                    hold_s: positive("hold", kv.num("hold", None)?)?,
-                },
-                "levels, hold, duration, rate",
-            ),
-            "square" => (
-                SignalKind::Square {
-                    low_v: kv.num("low", Some(0.0))?,
-                    amplitude_v: kv.num("amp", Some(7.8335))?,
-                    period_s: positive("period", kv.num("period", Some(1e-4))?)?,
-                    rise_s: positive("rise", kv.num("rise", Some(1.8672e-6))?)?,
-                },
-                "low, amp, period, rise, duration, rate",
-            ),
-            "chirp" => (
-                SignalKind::Chirp(Chirp {
-                    amplitude_v: kv.num("amp", Some(1.0))?,
-                    offset_v: kv.num("offset", Some(0.0))?,
-                    start_hz: kv.num("f0", Some(1.0))?,
-                    end_hz: kv.num("f1", Some(100.0))?,
-                    duration_s: duration_s.unwrap_or(1.0),
-                }),
-                "amp, offset, f0, f1, duration, rate",
-            ),
-            "raster" => (
-                SignalKind::Raster {
-                    x_low_v: kv.num("x_low", Some(0.0))?,
-                    x_high_v: kv.num("x_high", Some(100.0))?,
-                    line_hz: positive("line_freq", kv.num("line_freq", Some(10.0))?)?,
-                    y_low_v: kv.num("y_low", Some(0.0))?,
-                    y_high_v: kv.num("y_high", Some(100.0))?,
-                },
-                "x_low, x_high, line_freq, y_low, y_high, duration, rate",
-            ),
-            "csv" => (
-                SignalKind::Csv {
-                    path: PathBuf::from(kv.get("path").ok_or(SignalError::MissingKey {
-                        kind: "csv".into(),
-                        key: "path",
-                    })?),
-                    column: kv.get("column").map(str::to_string),
-                    zero_order_hold: match kv.get("hold") {
-                        None | Some("foh") => false,
-                        Some("zoh") => true,
-                        Some(other) => {
-                            return Err(SignalError::BadValue {
-                                key: "hold".into(),
-                                given: other.into(),
-                                reason: "valid: foh, zoh",
-                            })
-                        }
-                    },
-                },
-                "path, column, hold, duration, rate",
-            ),
-            other => {
-                return Err(SignalError::UnknownKind {
-                    given: other.to_string(),
-                })
-            }
-        };
+        let (kind_value, valid) = signal_kind(kind, &mut kv, duration_s)?;
         if let Some(i) = kv.used.iter().position(|u| !u) {
             return Err(SignalError::UnknownKey {
                 kind: kind.to_string(),
