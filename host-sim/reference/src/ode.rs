@@ -178,20 +178,7 @@ impl Dp45 {
         sys.rhs(*t, x, k1);
         self.stats.rhs_evals += 1;
         if self.step_s <= 0.0 || !self.step_s.is_finite() {
-            // Initial guess from the derivative scale (Hairer's simple variant).
-            let mut d0 = 0.0;
-            let mut d1 = 0.0;
-            for i in 0..n {
-                let sc = s.atol + s.rtol * x[i].abs();
-                d0 += (x[i] / sc).powi(2);
-                d1 += (k1[i] / sc).powi(2);
-            }
-            let (d0, d1) = ((d0 / n as f64).sqrt(), (d1 / n as f64).sqrt());
-            self.step_s = if d0 < 1e-5 || d1 < 1e-5 {
-                1e-6 * span
-            } else {
-                0.01 * d0 / d1
-            };
+            self.step_s = initial_step(x, k1, &s, span);
         }
         let mut steps = 0usize;
         loop {
@@ -213,42 +200,10 @@ impl Dp45 {
                 return Err(OdeError::TooManySteps { t_s: *t });
             }
             let t0 = *t;
-            for i in 0..n {
-                tmp[i] = x[i] + h * A21 * k1[i];
-            }
-            sys.rhs(t0 + C2 * h, tmp, k2);
-            for i in 0..n {
-                tmp[i] = x[i] + h * (A31 * k1[i] + A32 * k2[i]);
-            }
-            sys.rhs(t0 + C3 * h, tmp, k3);
-            for i in 0..n {
-                tmp[i] = x[i] + h * (A41 * k1[i] + A42 * k2[i] + A43 * k3[i]);
-            }
-            sys.rhs(t0 + C4 * h, tmp, k4);
-            for i in 0..n {
-                tmp[i] = x[i] + h * (A51 * k1[i] + A52 * k2[i] + A53 * k3[i] + A54 * k4[i]);
-            }
-            sys.rhs(t0 + C5 * h, tmp, k5);
-            for i in 0..n {
-                tmp[i] = x[i]
-                    + h * (A61 * k1[i] + A62 * k2[i] + A63 * k3[i] + A64 * k4[i] + A65 * k5[i]);
-            }
             let t_new = if last { t_end } else { t0 + h };
-            sys.rhs(t_new, tmp, k6);
-            for i in 0..n {
-                tmp[i] =
-                    x[i] + h * (B1 * k1[i] + B3 * k3[i] + B4 * k4[i] + B5 * k5[i] + B6 * k6[i]);
-            }
-            sys.rhs(t_new, tmp, k7);
+            let stages = [&mut *k1, k2, k3, k4, k5, k6, k7];
+            let err = trial(sys, stages, tmp, x, (t0, h, t_new), &s);
             self.stats.rhs_evals += 6;
-            let mut err = 0.0;
-            for i in 0..n {
-                let e = h
-                    * (E1 * k1[i] + E3 * k3[i] + E4 * k4[i] + E5 * k5[i] + E6 * k6[i] + E7 * k7[i]);
-                let sc = s.atol + s.rtol * x[i].abs().max(tmp[i].abs());
-                err += (e / sc).powi(2);
-            }
-            let err = (err / n as f64).sqrt();
             if !err.is_finite() {
                 // Retry smaller; give up only when the step floor is reached.
                 self.stats.rejected += 1;
@@ -286,6 +241,69 @@ impl Dp45 {
             }
         }
     }
+}
+
+/// The first step's size from the derivative scale (Hairer's simple variant).
+fn initial_step(x: &[f64], k1: &[f64], s: &Dp45Settings, span: f64) -> f64 {
+    let n = x.len();
+    let mut d0 = 0.0;
+    let mut d1 = 0.0;
+    for i in 0..n {
+        let sc = s.atol + s.rtol * x[i].abs();
+        d0 += (x[i] / sc).powi(2);
+        d1 += (k1[i] / sc).powi(2);
+    }
+    let (d0, d1) = ((d0 / n as f64).sqrt(), (d1 / n as f64).sqrt());
+    if d0 < 1e-5 || d1 < 1e-5 {
+        1e-6 * span
+    } else {
+        0.01 * d0 / d1
+    }
+}
+
+/// One Dormand–Prince 5(4) trial step from `x` at `t0` with step `h` (ending at `t_new`, `t0 + h`
+/// or the clipped end): the stages k2 … k7 (k1 given, the derivative at `t0`), the fifth-order
+/// solution in `tmp`, and the RMS of the scaled error estimate.
+fn trial<S: OdeSystem + ?Sized>(
+    sys: &S,
+    [k1, k2, k3, k4, k5, k6, k7]: [&mut Vec<f64>; 7],
+    tmp: &mut [f64],
+    x: &[f64],
+    (t0, h, t_new): (f64, f64, f64),
+    s: &Dp45Settings,
+) -> f64 {
+    let n = x.len();
+    for i in 0..n {
+        tmp[i] = x[i] + h * A21 * k1[i];
+    }
+    sys.rhs(t0 + C2 * h, tmp, k2);
+    for i in 0..n {
+        tmp[i] = x[i] + h * (A31 * k1[i] + A32 * k2[i]);
+    }
+    sys.rhs(t0 + C3 * h, tmp, k3);
+    for i in 0..n {
+        tmp[i] = x[i] + h * (A41 * k1[i] + A42 * k2[i] + A43 * k3[i]);
+    }
+    sys.rhs(t0 + C4 * h, tmp, k4);
+    for i in 0..n {
+        tmp[i] = x[i] + h * (A51 * k1[i] + A52 * k2[i] + A53 * k3[i] + A54 * k4[i]);
+    }
+    sys.rhs(t0 + C5 * h, tmp, k5);
+    for i in 0..n {
+        tmp[i] = x[i] + h * (A61 * k1[i] + A62 * k2[i] + A63 * k3[i] + A64 * k4[i] + A65 * k5[i]);
+    }
+    sys.rhs(t_new, tmp, k6);
+    for i in 0..n {
+        tmp[i] = x[i] + h * (B1 * k1[i] + B3 * k3[i] + B4 * k4[i] + B5 * k5[i] + B6 * k6[i]);
+    }
+    sys.rhs(t_new, tmp, k7);
+    let mut err = 0.0;
+    for i in 0..n {
+        let e = h * (E1 * k1[i] + E3 * k3[i] + E4 * k4[i] + E5 * k5[i] + E6 * k6[i] + E7 * k7[i]);
+        let sc = s.atol + s.rtol * x[i].abs().max(tmp[i].abs());
+        err += (e / sc).powi(2);
+    }
+    (err / n as f64).sqrt()
 }
 
 #[cfg(test)]
