@@ -138,8 +138,8 @@ fn time_to_noise_floor() {
         let started = Instant::now();
         let (id, trace) = identify_traced(&noisy, &settings()).expect("identify");
         let seconds = started.elapsed().as_secs_f64();
-        let evaluations = id.summary["evaluations"].as_u64().unwrap_or(0);
-        let rms = id.summary["fit"]["rms"].as_f64().unwrap_or(f64::NAN);
+        let evaluations = id.summary.evaluations;
+        let rms = id.summary.fit.rms;
         let mut best = f64::INFINITY;
         let rows: Vec<(f64, u64, f64, &str)> = trace
             .iter()

@@ -185,28 +185,108 @@ pub struct IdentifySettings {
     pub progress: bool,
 }
 
-/// The fit block of the reports (SI).
-pub fn fit_block(measured: &[f64], predicted: &[f64]) -> serde_json::Value {
+/// Why an identification failed. `Display` gives the message the command line prints.
+#[derive(Debug, Clone, PartialEq)]
+pub enum IdentifyError {
+    /// Fewer than 10 samples from `--start` on.
+    TooFewSamples {
+        /// The first scored time \[s\].
+        start_s: f64,
+    },
+    /// The optimiser found no set piezo-core accepts.
+    NoFeasibleSet,
+    /// piezo-core refused the set to score.
+    Refused(String),
+    /// `--method ga` on a model it does not fit.
+    GaStaticOnly,
+    /// `--method two-step` without the square-wave record.
+    NeedsMechData,
+    /// `--method two-step` on a model other than the dynamic one.
+    TwoStepDynamicOnly(ModelKind),
+    /// Anything else (unreadable or unsuitable data), in words.
+    Other(String),
+}
+
+impl std::fmt::Display for IdentifyError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::TooFewSamples { start_s } => {
+                write!(f, "--start {start_s}: fewer than 10 samples left to fit")
+            }
+            Self::NoFeasibleSet => f.write_str(
+                "no feasible parameter set found (every candidate was refused by piezo-core)",
+            ),
+            Self::Refused(e) => write!(f, "parameter set refused by piezo-core: {e}"),
+            Self::GaStaticOnly => f.write_str(
+                "--method ga: seed 001's GA fits the static models only (symmetric, asymmetric)",
+            ),
+            Self::NeedsMechData => f.write_str(
+                "--method two-step needs the square-wave record too: give --mech-data (library: identify::two_step::identify)",
+            ),
+            Self::TwoStepDynamicOnly(model) => write!(
+                f,
+                "--method two-step: seed 000's two-step method identifies the dynamic model only (got --model {})",
+                model.name()
+            ),
+            Self::Other(e) => f.write_str(e),
+        }
+    }
+}
+
+impl std::error::Error for IdentifyError {}
+
+impl From<String> for IdentifyError {
+    fn from(e: String) -> Self {
+        Self::Other(e)
+    }
+}
+
+impl From<IdentifyError> for String {
+    fn from(e: IdentifyError) -> Self {
+        e.to_string()
+    }
+}
+
+/// The fit block of the reports (SI): the error measures of a prediction over the scored samples
+/// (NaN where a measure is undefined, e.g. on no samples; `null` in JSON).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct FitBlock {
+    /// RMS error \[m\].
+    pub rms: f64,
+    /// Largest absolute error \[m\].
+    pub max_abs: f64,
+    /// R² = 1 − SSE/SST.
+    pub r2: f64,
+    /// MRD = max|x − x̂| / max|x| · 100 %.
+    pub mrd_percent: f64,
+    /// Smallest error x̂ − x \[m\].
+    pub rae_min: f64,
+    /// Largest error x̂ − x \[m\].
+    pub rae_max: f64,
+}
+
+/// The fit block of `predicted` against `measured`.
+pub fn fit_block(measured: &[f64], predicted: &[f64]) -> FitBlock {
     use piezo_core::metrics;
     let (lo, hi) = metrics::rae(measured, predicted).unwrap_or((f64::NAN, f64::NAN));
-    json!({
-        "rms": metrics::rms(measured, predicted),
-        "max_abs": lo.abs().max(hi.abs()),
-        "r2": metrics::r_squared(measured, predicted),
-        "mrd_percent": metrics::mrd_percent(measured, predicted),
-        "rae_min": lo,
-        "rae_max": hi,
-    })
+    FitBlock {
+        rms: metrics::rms(measured, predicted).unwrap_or(f64::NAN),
+        max_abs: lo.abs().max(hi.abs()),
+        r2: metrics::r_squared(measured, predicted).unwrap_or(f64::NAN),
+        mrd_percent: metrics::mrd_percent(measured, predicted).unwrap_or(f64::NAN),
+        rae_min: lo,
+        rae_max: hi,
+    }
 }
 
 /// Simulates a set on a record and returns the fit block over the samples from `from`.
-pub fn score(set: &Identified, record: &Record, from: usize) -> Result<serde_json::Value, String> {
+pub fn score(set: &Identified, record: &Record, from: usize) -> Result<FitBlock, IdentifyError> {
     if set.kind() == ModelKind::Oscillator {
         return oscillator::score(set, record, from);
     }
     let model = set
         .build()
-        .map_err(|e| format!("parameter set refused by piezo-core: {e}"))?;
+        .map_err(|e| IdentifyError::Refused(e.to_string()))?;
     let u: Vec<f32> = record.u.iter().map(|&v| v as f32).collect();
     let mut predicted = vec![0.0f64; u.len()];
     model.simulate(&u, |k, v| predicted[k] = f64::from(v));
@@ -218,8 +298,44 @@ pub fn score(set: &Identified, record: &Record, from: usize) -> Result<serde_jso
 pub struct Identification {
     /// The set.
     pub set: Identified,
-    /// Summary JSON (schema of issue 5).
-    pub summary: serde_json::Value,
+    /// How it was found and how well it fits.
+    pub summary: IdentifySummary,
+}
+
+/// How a set was found and how well it fits: the report's figures besides the parameters.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct IdentifySummary {
+    /// Model family name.
+    pub model: &'static str,
+    /// Method name (the one that produced the set: `vp-de-lm` after a two-step fallback).
+    pub method: &'static str,
+    /// The fit over the scored samples.
+    pub fit: FitBlock,
+    /// Model evaluations.
+    pub evaluations: u64,
+    /// Wall time \[s\].
+    pub seconds: f64,
+    /// The search coordinates that ended at a bound (`vp-de-lm` and `ga` only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub at_bounds: Option<Vec<&'static str>>,
+    /// The two-step method's notes and diagnostics (`--method two-step`).
+    #[serde(flatten, skip_serializing_if = "Option::is_none")]
+    pub two_step: Option<two_step::TwoStepReport>,
+}
+
+/// One axis's `identify` report: the summary, the parameters and the data warnings.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct IdentifyResult<'a> {
+    /// `x` or `y`.
+    pub axis: &'static str,
+    /// How the set was found and how well it fits.
+    #[serde(flatten)]
+    pub summary: &'a IdentifySummary,
+    /// The set.
+    #[serde(serialize_with = "model::serialize_params")]
+    pub params: &'a Identified,
+    /// Data warnings ([`data_warnings`]).
+    pub warnings: Vec<String>,
 }
 
 fn bar(len: u64, show: bool) -> Progress {
@@ -237,7 +353,7 @@ fn bar(len: u64, show: bool) -> Progress {
 }
 
 /// Runs one identification on a record.
-pub fn identify(record: &Record, s: &IdentifySettings) -> Result<Identification, String> {
+pub fn identify(record: &Record, s: &IdentifySettings) -> Result<Identification, IdentifyError> {
     identify_traced(record, s).map(|(id, _)| id)
 }
 
@@ -246,17 +362,14 @@ pub fn identify(record: &Record, s: &IdentifySettings) -> Result<Identification,
 pub fn identify_traced(
     record: &Record,
     s: &IdentifySettings,
-) -> Result<(Identification, Vec<TracePoint>), String> {
+) -> Result<(Identification, Vec<TracePoint>), IdentifyError> {
     if s.model == ModelKind::Oscillator {
         return oscillator::identify(record, s).map(|id| (id, Vec::new()));
     }
     let started = Instant::now();
     let from = record.index_at(s.start_s);
     if record.u.len() - from < 10 {
-        return Err(format!(
-            "--start {}: fewer than 10 samples left to fit",
-            s.start_s
-        ));
+        return Err(IdentifyError::TooFewSamples { start_s: s.start_s });
     }
     let mut problem = Problem::new(
         s.model,
@@ -286,13 +399,13 @@ pub fn identify_traced(
             pb.finish_and_clear();
             at_bounds = at_search_bounds(s.model, &theta, &bounds);
             let e = problem.eval_full(&theta);
-            problem.identified(&theta, &e).ok_or(
-                "no feasible parameter set found (every candidate was refused by piezo-core)",
-            )?
+            problem
+                .identified(&theta, &e)
+                .ok_or(IdentifyError::NoFeasibleSet)?
         }
         Method::Ga => {
             if s.model == ModelKind::Dynamic {
-                return Err("--method ga: seed 001's GA fits the static models only (symmetric, asymmetric)".into());
+                return Err(IdentifyError::GaStaticOnly);
             }
             let pb = bar(
                 if s.model == ModelKind::Asymmetric {
@@ -316,19 +429,19 @@ pub fn identify_traced(
             fit::ga_set(&problem, &g)
         }
         Method::TwoStep => {
-            return Err("--method two-step needs the square-wave record too: give --mech-data (library: identify::two_step::identify)".into());
+            return Err(IdentifyError::NeedsMechData);
         }
     };
     let fit = score(&set, record, from)?;
-    let summary = json!({
-        "model": s.model.name(),
-        "method": s.method.name(),
-        "params": set.to_json(),
-        "fit": fit,
-        "evaluations": problem.evaluations(),
-        "seconds": started.elapsed().as_secs_f64(),
-        "at_bounds": at_bounds,
-    });
+    let summary = IdentifySummary {
+        model: s.model.name(),
+        method: s.method.name(),
+        fit,
+        evaluations: problem.evaluations(),
+        seconds: started.elapsed().as_secs_f64(),
+        at_bounds: Some(at_bounds),
+        two_step: None,
+    };
     Ok((Identification { set, summary }, problem.trace()))
 }
 
@@ -381,12 +494,11 @@ pub fn data_warnings(record: &Record, from: usize, id: &Identification) -> Vec<S
             "the input is constant ({lo} V) over the fitted window: it cannot identify a hysteresis model"
         ));
     }
-    if let Some(r2) = id.summary["fit"]["r2"].as_f64() {
-        if r2 < 0.1 {
-            out.push(format!(
-                "R² = {r2:.3}: the model explains almost none of the output (wrong columns, or no response to u?)"
-            ));
-        }
+    let r2 = id.summary.fit.r2;
+    if r2 < 0.1 {
+        out.push(format!(
+            "R² = {r2:.3}: the model explains almost none of the output (wrong columns, or no response to u?)"
+        ));
     }
     if let Identified::Static { bouc_wen, map, .. } = id.set {
         // Small-signal gain from rest: dy/du = k1 + k2·A.
@@ -401,8 +513,8 @@ pub fn data_warnings(record: &Record, from: usize, id: &Identification) -> Vec<S
             ));
         }
     }
-    if let Some(at) = id.summary["at_bounds"].as_array() {
-        for name in at.iter().filter_map(|v| v.as_str()) {
+    if let Some(at) = &id.summary.at_bounds {
+        for name in at {
             out.push(format!(
                 "{name} ended at its search bound: the data do not pin it down (or the model family does not fit)"
             ));
@@ -552,13 +664,18 @@ fn identify_axis(
             .columns
             .read(path)
             .map_err(|e| e.replacen("--data", "--mech-data", 1))?;
-        two_step::identify(&mech, record, settings)
+        Ok(two_step::identify(&mech, record, settings)?)
     } else {
         if a.mech_data.is_some() {
             return Err("--mech-data is used by --method two-step only".into());
         }
-        identify(record, settings)
+        Ok(identify(record, settings)?)
     }
+}
+
+/// A typed report as JSON (the f32 figures widened to f64 and the keys sorted, as every report).
+fn to_json(value: &impl serde::Serialize) -> Result<serde_json::Value, String> {
+    serde_json::to_value(value).map_err(|e| e.to_string())
 }
 
 fn write_json(path: &Path, value: &serde_json::Value, flag: &str) -> Result<(), String> {
@@ -588,43 +705,50 @@ pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
     };
     let names = ["x", "y"];
     let mut axes = Vec::new();
-    let mut summaries = Vec::new();
+    let mut identified = Vec::new();
     let mut lines = Vec::new();
     for (i, record) in records.iter().enumerate() {
         if records.len() > 1 {
             eprintln!("identify: axis {} ({})", names[i], record.path.display());
         }
-        let mut id = identify_axis(a, record, &settings)?;
+        let id = identify_axis(a, record, &settings)?;
         let from = record.index_at(a.start);
         let warnings = data_warnings(record, from, &id);
         for w in &warnings {
             eprintln!("warning: {}: {w}", names[i]);
         }
-        id.summary["warnings"] = json!(warnings);
-        let method = id.summary["method"]
-            .as_str()
-            .unwrap_or(a.method.name())
-            .to_string();
-        let rms = id.summary["fit"]["rms"].as_f64().unwrap_or(f64::NAN);
+        let summary = &id.summary;
+        let rms = summary.fit.rms;
         lines.push(format!(
             "{}: {} {}: rms {:.4e} m, r2 {}, {} evaluations, {:.2} s",
             names[i],
-            id.summary["model"].as_str().unwrap_or(""),
-            method,
+            summary.model,
+            summary.method,
             rms,
-            id.summary["fit"]["r2"],
-            id.summary["evaluations"],
-            id.summary["seconds"].as_f64().unwrap_or(f64::NAN),
+            json!(summary.fit.r2),
+            summary.evaluations,
+            summary.seconds,
         ));
-        axes.push(to_axis(&id.set, provenance(record, from, &method, rms)));
-        let mut summary = id.summary.clone();
-        summary["axis"] = json!(names[i]);
-        summaries.push(summary);
+        axes.push(to_axis(
+            &id.set,
+            provenance(record, from, summary.method, rms),
+        ));
+        identified.push((id, warnings));
     }
+    let mut summaries: Vec<IdentifyResult> = identified
+        .iter()
+        .zip(names)
+        .map(|((id, warnings), axis)| IdentifyResult {
+            axis,
+            summary: &id.summary,
+            params: &id.set,
+            warnings: warnings.clone(),
+        })
+        .collect();
     let report = if summaries.len() == 1 {
-        summaries.remove(0)
+        to_json(&summaries.remove(0))?
     } else {
-        json!({"axes": summaries})
+        json!({ "axes": to_json(&summaries)? })
     };
     write_json(&a.report, &report, "--report")?;
     let (stage, io) = crate::stage_file::stage_and_io(
@@ -751,9 +875,9 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
             p.axis,
             p.model.name(),
             a.data.display(),
-            p.fit["rms"].as_f64().unwrap_or(f64::NAN),
-            p.fit["r2"],
-            p.fit["mrd_percent"],
+            p.fit.rms,
+            json!(p.fit.r2),
+            json!(p.fit.mrd_percent),
         ));
     }
     let mut report = json!({
@@ -766,7 +890,7 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
     if axes.len() == 1 {
         // One axis: its blocks also at the top level.
         report["model"] = json!(axes[0].model.name());
-        report["fit"] = axes[0].fit.clone();
+        report["fit"] = to_json(&axes[0].fit)?;
     }
     write_json(&a.report, &report, "--report")?;
     let mut written = vec![a.report.display().to_string()];

@@ -199,6 +199,15 @@ impl Identified {
     }
 }
 
+/// Serialises a set as its [`Identified::to_json`] (for `#[serde(serialize_with)]`).
+pub fn serialize_params<S, P>(set: &P, s: S) -> Result<S::Ok, S::Error>
+where
+    S: serde::Serializer,
+    P: std::ops::Deref<Target = Identified>,
+{
+    serde::Serialize::serialize(&set.to_json(), s)
+}
+
 impl CoreModel {
     /// Simulates from rest at `u[0]` and calls `visit(k, y_k)` for every sample. No allocation.
     pub fn simulate(&self, u: &[f32], mut visit: impl FnMut(usize, f32)) {

@@ -24,14 +24,15 @@
 // Index loops for the small dense algebra; `%` rather than `is_multiple_of` (rust-version 1.80).
 #![allow(clippy::needless_range_loop, clippy::manual_is_multiple_of)]
 
-use super::{fit_block, Identification, IdentifySettings, Record};
+use super::{
+    fit_block, FitBlock, Identification, IdentifyError, IdentifySettings, IdentifySummary, Record,
+};
 use crate::identify::model::Identified;
 use piezo_core::{HystereticOscillator, OscillatorParams, OscillatorState};
 use rand_chacha::ChaCha8Rng;
 use rand_core::{RngCore, SeedableRng};
 use rayon::prelude::*;
 use rustfft::num_complex::Complex;
-use serde_json::json;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
@@ -297,7 +298,7 @@ impl Objective<'_> {
 }
 
 /// Fits the oscillator to a training record.
-pub fn identify(record: &Record, s: &IdentifySettings) -> Result<Identification, String> {
+pub fn identify(record: &Record, s: &IdentifySettings) -> Result<Identification, IdentifyError> {
     let started = Instant::now();
     let factor = UPSAMPLING as usize;
     let t = record.sample_period_s();
@@ -512,19 +513,20 @@ pub fn identify(record: &Record, s: &IdentifySettings) -> Result<Identification,
     let fit = score(&set, record, from)?;
     Ok(Identification {
         set,
-        summary: json!({
-            "model": "oscillator",
-            "method": s.method.name(),
-            "params": set.to_json(),
-            "fit": fit,
-            "evaluations": evaluations.load(Ordering::Relaxed),
-            "seconds": started.elapsed().as_secs_f64(),
-        }),
+        summary: IdentifySummary {
+            model: "oscillator",
+            method: s.method.name(),
+            fit,
+            evaluations: evaluations.load(Ordering::Relaxed),
+            seconds: started.elapsed().as_secs_f64(),
+            at_bounds: None,
+            two_step: None,
+        },
     })
 }
 
 /// Simulates an oscillator set on a record (input upsampled as in fitting) and scores it from `from`.
-pub fn score(set: &Identified, record: &Record, from: usize) -> Result<serde_json::Value, String> {
+pub fn score(set: &Identified, record: &Record, from: usize) -> Result<FitBlock, IdentifyError> {
     let predicted = predict(set, record)?;
     Ok(fit_block(&record.y_m[from..], &predicted[from..]))
 }

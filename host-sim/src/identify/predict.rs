@@ -13,7 +13,7 @@
 //! and how far (`outside_identified_range`).
 
 use super::model::from_axis;
-use super::{fit_block, min_max, oscillator, Record};
+use super::{fit_block, min_max, oscillator, FitBlock, Record};
 use crate::csv::{write_csv, Table};
 use crate::plot::{plot_grid, Panel, Role, Series};
 use piezo_stage::{simulate_pair, Axis, AxisChain, ModelKind, StageFile};
@@ -45,7 +45,7 @@ pub struct AxisPrediction {
     /// Predicted output per sample \[m\].
     pub predicted_m: Vec<f64>,
     /// The fit block over the scored samples.
-    pub fit: Value,
+    pub fit: FitBlock,
     /// Where the input left the identified range.
     pub excursion: RangeExcursion,
 }

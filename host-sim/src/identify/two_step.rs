@@ -80,10 +80,11 @@
 #![allow(clippy::needless_range_loop)]
 
 use super::model::{Identified, ModelKind};
-use super::{score, Identification, IdentifySettings, Method, Record};
+use super::{
+    score, Identification, IdentifyError, IdentifySettings, IdentifySummary, Method, Record,
+};
 use piezo_core::{BoucWenParams, MassSpringDamperParams};
 use piezo_reference::bouc_wen::BoucWen;
-use serde_json::json;
 use std::time::Instant;
 
 /// CWT scale of the paper, in samples.
@@ -330,7 +331,7 @@ fn central(f: &[f64], dt: f64) -> Vec<f64> {
 }
 
 /// Result of step 2 (eq. 15–24).
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
 pub struct HysteresisFit {
     /// A.
     pub a: f64,
@@ -351,6 +352,7 @@ pub struct HysteresisFit {
     /// Fraction of the u̇h > 0 samples with ż/ḣ̲ > 0 (the sign β + γ < 0 predicts).
     pub positive_fraction: f64,
     /// R² of the log-linear regression.
+    #[serde(rename = "loglinear_r2")]
     pub r2: f64,
 }
 
@@ -642,7 +644,7 @@ impl Scan<'_> {
                 self.evaluations += 1;
                 match score(&set, self.rec, self.from) {
                     Ok(fit) => {
-                        let rms = fit["rms"].as_f64().unwrap_or(f64::INFINITY);
+                        let rms = fit.rms;
                         if rms.is_finite() {
                             Ok((hy, set, rms))
                         } else {
@@ -652,7 +654,7 @@ impl Scan<'_> {
                     }
                     Err(e) => {
                         self.other_failures += 1;
-                        Err(e)
+                        Err(e.to_string())
                     }
                 }
             }
@@ -661,11 +663,122 @@ impl Scan<'_> {
     }
 }
 
-fn hy_json(h: &HysteresisFit) -> serde_json::Value {
-    json!({
-        "a": h.a, "beta": h.beta, "gamma": h.gamma, "n": h.n, "nu": h.nu, "xi": h.xi,
-        "n1": h.n1, "n2": h.n2, "positive_fraction": h.positive_fraction, "loglinear_r2": h.r2,
-    })
+/// The two-step method's part of the `identify` summary (its keys sit at the summary's top level).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct TwoStepReport {
+    /// `two-step` when it fell back to `vp-de-lm` (absent otherwise).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub requested_method: Option<&'static str>,
+    /// Whether it fell back to `vp-de-lm` (absent when not).
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub fallback: bool,
+    /// Notes on the data and the method (also said on stderr).
+    pub notes: Vec<String>,
+    /// Step by step.
+    pub two_step: TwoStepDiagnostics,
+}
+
+/// Step 1's mechanics as reported.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct MechanicsReport {
+    /// The square-wave record.
+    pub data: String,
+    /// Edge slope a \[V/s\].
+    pub slope_a_v_per_s: f64,
+    /// Rise time T1 \[s\].
+    pub rise_t1_s: f64,
+    /// Step height B \[V\].
+    pub step_v: f64,
+    /// Edge start t0 \[s\].
+    pub edge_start_s: f64,
+    /// End of the integration window \[s\].
+    pub window_end_s: f64,
+    /// K0 \[m\].
+    pub k0_m: f64,
+    /// K1 \[m·s\].
+    pub k1_m_s: f64,
+    /// K2 \[m·s²\].
+    pub k2_m_s2: f64,
+    /// k0 \[N/m\].
+    pub stiffness_n_per_m: f64,
+    /// c0 \[N·s/m\].
+    pub damping_n_s_per_m: f64,
+    /// m0 \[kg\].
+    pub mass_kg: f64,
+}
+
+impl MechanicsReport {
+    fn of(m: &Mechanics, mech: &Record) -> Self {
+        Self {
+            data: mech.path.display().to_string(),
+            slope_a_v_per_s: m.slope_v_per_s,
+            rise_t1_s: m.rise_s,
+            step_v: m.step_v,
+            edge_start_s: m.edge_start_s,
+            window_end_s: m.window_end_s,
+            k0_m: m.k[0],
+            k1_m_s: m.k[1],
+            k2_m_s2: m.k[2],
+            stiffness_n_per_m: m.stiffness_n_per_m,
+            damping_n_s_per_m: m.damping_n_s_per_m,
+            mass_kg: m.mass_kg,
+        }
+    }
+}
+
+/// Step 2 at the published scale (r = 0): the set, or why it failed.
+#[derive(Debug, Clone, serde::Serialize)]
+#[serde(untagged)]
+pub enum AsPublished {
+    /// The set, its regression and its output RMS \[m\].
+    Fitted {
+        /// The set.
+        #[serde(serialize_with = "super::model::serialize_params")]
+        params: Box<Identified>,
+        /// Step 2's regression.
+        regression: HysteresisFit,
+        /// Output RMS \[m\].
+        rms: f64,
+    },
+    /// Why step 2 failed.
+    Failed {
+        /// In words.
+        failed: String,
+    },
+}
+
+/// Step 2b's scan of the scale r.
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+pub struct ScaleRefinement {
+    /// The chosen r.
+    pub r: f64,
+    /// The fitted set's own virgin-curve secant h(B)/B.
+    pub r_model_secant: f64,
+    /// Candidates evaluated.
+    pub candidates: usize,
+    /// Candidates whose sign pattern contradicts β + γ < 0.
+    pub sign_failures: usize,
+    /// Candidates ill-posed or refused by piezo-core.
+    pub other_failures: usize,
+}
+
+/// The two-step method's diagnostics, step by step (absent where a step did not run).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct TwoStepDiagnostics {
+    /// Step 1.
+    pub mechanics_step1: MechanicsReport,
+    /// Step 2 at r = 0.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub as_published: Option<AsPublished>,
+    /// Step 2b.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub scale_refinement: Option<ScaleRefinement>,
+    /// White-noise level of the sine record \[m\].
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub noise_estimate_m: Option<f64>,
+    /// Step 2's regression at the chosen r.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub regression: Option<HysteresisFit>,
 }
 
 /// Two-step identification: `mech` is the square-wave record (step 1), `rec` the sine record (step 2,
@@ -674,36 +787,24 @@ pub fn identify(
     mech: &Record,
     rec: &Record,
     s: &IdentifySettings,
-) -> Result<Identification, String> {
+) -> Result<Identification, IdentifyError> {
     if s.model != ModelKind::Dynamic {
-        return Err(format!(
-            "--method two-step: seed 000's two-step method identifies the dynamic model only (got --model {})",
-            s.model.name()
-        ));
+        return Err(IdentifyError::TwoStepDynamicOnly(s.model));
     }
     let started = Instant::now();
     let from = rec.index_at(s.start_s);
     if rec.u.len() - from < 10 {
-        return Err(format!(
-            "--start {}: fewer than 10 samples left to fit",
-            s.start_s
-        ));
+        return Err(IdentifyError::TooFewSamples { start_s: s.start_s });
     }
     let m = mechanics_from_square(mech)?;
-    let mech_json = json!({
-        "data": mech.path.display().to_string(),
-        "slope_a_v_per_s": m.slope_v_per_s,
-        "rise_t1_s": m.rise_s,
-        "step_v": m.step_v,
-        "edge_start_s": m.edge_start_s,
-        "window_end_s": m.window_end_s,
-        "k0_m": m.k[0], "k1_m_s": m.k[1], "k2_m_s2": m.k[2],
-        "stiffness_n_per_m": m.stiffness_n_per_m,
-        "damping_n_s_per_m": m.damping_n_s_per_m,
-        "mass_kg": m.mass_kg,
-    });
     let mut notes: Vec<String> = Vec::new();
-    let mut diag = json!({ "mechanics_step1": mech_json });
+    let mut diag = TwoStepDiagnostics {
+        mechanics_step1: MechanicsReport::of(&m, mech),
+        as_published: None,
+        scale_refinement: None,
+        noise_estimate_m: None,
+        regression: None,
+    };
     let fallback_reason = if !(m.stiffness_n_per_m > 0.0
         && m.damping_n_s_per_m > 0.0
         && m.mass_kg > 0.0)
@@ -727,12 +828,14 @@ pub fn identify(
             other_failures: 0,
         };
         let published = scan.eval(0.0);
-        diag["as_published"] = match &published.outcome {
-            Ok((hy, set, rms)) => {
-                json!({"params": set.to_json(), "regression": hy_json(hy), "rms": rms})
-            }
-            Err(e) => json!({"failed": e}),
-        };
+        diag.as_published = Some(match &published.outcome {
+            Ok((hy, set, rms)) => AsPublished::Fitted {
+                params: Box::new(*set),
+                regression: *hy,
+                rms: *rms,
+            },
+            Err(e) => AsPublished::Failed { failed: e.clone() },
+        });
         // Step 2b: scan the scale r, then golden section around the best grid point.
         let grid: Vec<Candidate> = (0..=100)
             .map(|i| scan.eval(-0.5 + 2.5 * i as f64 / 100.0))
@@ -798,12 +901,12 @@ pub fn identify(
                     scanned + 33
                 ));
             }
-            diag["scale_refinement"] = json!({
-                "r": chosen.r,
-                "r_model_secant": r_model,
-                "candidates": scanned + 33,
-                "sign_failures": scan.sign_failures,
-                "other_failures": scan.other_failures,
+            diag.scale_refinement = Some(ScaleRefinement {
+                r: chosen.r,
+                r_model_secant: r_model,
+                candidates: scanned + 33,
+                sign_failures: scan.sign_failures,
+                other_failures: scan.other_failures,
             });
             // Noise check: the white-noise level of the sine record from its third differences
             // (var Δ³x = 20σ²; the signal's own Δ³x is ~1e-5 of its span at 256 samples per period).
@@ -820,22 +923,26 @@ pub fn identify(
                     "the two-step fit's output RMS {rms:.3e} m is above 3x the record's noise estimate {noise:.3e} m and 0.1 % of its span: eq. 15 differentiates the reconstructed h twice, and the parameters are unreliable at this noise level (vp-de-lm fits the output directly)"
                 ));
             }
-            diag["noise_estimate_m"] = json!(noise);
-            diag["regression"] = hy_json(&hy);
+            diag.noise_estimate_m = Some(noise);
+            diag.regression = Some(hy);
             let fit = score(&set, rec, from)?;
             for n in &notes {
                 eprintln!("warning: two-step: {n}");
             }
-            let summary = json!({
-                "model": "dynamic",
-                "method": Method::TwoStep.name(),
-                "params": set.to_json(),
-                "fit": fit,
-                "evaluations": scan.evaluations,
-                "seconds": started.elapsed().as_secs_f64(),
-                "notes": notes,
-                "two_step": diag,
-            });
+            let summary = IdentifySummary {
+                model: "dynamic",
+                method: Method::TwoStep.name(),
+                fit,
+                evaluations: scan.evaluations,
+                seconds: started.elapsed().as_secs_f64(),
+                at_bounds: None,
+                two_step: Some(TwoStepReport {
+                    requested_method: None,
+                    fallback: false,
+                    notes,
+                    two_step: diag,
+                }),
+            };
             return Ok(Identification { set, summary });
         }
         let why = match &published.outcome {
@@ -861,11 +968,13 @@ pub fn identify(
     let mut fb = s.clone();
     fb.method = Method::VpDeLm;
     let mut id = super::identify(rec, &fb)?;
-    id.summary["requested_method"] = json!(Method::TwoStep.name());
-    id.summary["fallback"] = json!(true);
-    id.summary["notes"] = json!(notes);
-    id.summary["two_step"] = diag;
-    id.summary["seconds"] = json!(started.elapsed().as_secs_f64());
+    id.summary.two_step = Some(TwoStepReport {
+        requested_method: Some(Method::TwoStep.name()),
+        fallback: true,
+        notes,
+        two_step: diag,
+    });
+    id.summary.seconds = started.elapsed().as_secs_f64();
     Ok(id)
 }
 
@@ -915,6 +1024,10 @@ mod tests {
             record(plant, Box::new(sq), 1e-4, noise),
             record(plant, Box::new(sine), 5e-4, noise),
         )
+    }
+
+    fn two_step_of(id: &Identification) -> &TwoStepReport {
+        id.summary.two_step.as_ref().expect("a two-step report")
     }
 
     fn settings() -> IdentifySettings {
@@ -983,7 +1096,7 @@ mod tests {
         );
         let id = identify(&sq, &sine, &settings()).unwrap();
         eprintln!("{}", serde_json::to_string_pretty(&id.summary).unwrap());
-        assert_eq!(id.summary["method"], "two-step");
+        assert_eq!(id.summary.method, "two-step");
         let Identified::Dynamic {
             bouc_wen: bw,
             mechanics: mc,
@@ -1015,12 +1128,10 @@ mod tests {
         );
         assert!(bw.beta + bw.gamma < 0.0);
         // Output error of the core f32 model on the sine: below 0.03 % of the 74 nm span.
-        let rms = id.summary["fit"]["rms"].as_f64().unwrap();
+        let rms = id.summary.fit.rms;
         assert!(rms < 2e-11, "rms {rms}");
         // The chosen scale agrees with the fitted set's own virgin curve (no note about it).
-        let r = id.summary["two_step"]["scale_refinement"]["r"]
-            .as_f64()
-            .unwrap();
+        let r = two_step_of(&id).two_step.scale_refinement.unwrap().r;
         assert!((r - r_true).abs() < 0.01, "r {r} vs {r_true}");
     }
 
@@ -1029,7 +1140,7 @@ mod tests {
         let p = Nac2024::published();
         let (sq, sine) = records(&p, 1e-12);
         let id = identify(&sq, &sine, &settings()).unwrap();
-        assert_eq!(id.summary["method"], "two-step");
+        assert_eq!(id.summary.method, "two-step");
         let Identified::Dynamic {
             bouc_wen: bw,
             mechanics: mc,
@@ -1059,9 +1170,9 @@ mod tests {
             bw.gamma
         );
         // The model error (f32 core vs f64 plant, parameter errors) dominates 1 pm of noise.
-        let rms = id.summary["fit"]["rms"].as_f64().unwrap();
+        let rms = id.summary.fit.rms;
         assert!(rms < 3e-11, "rms {rms}");
-        let noise = id.summary["two_step"]["noise_estimate_m"].as_f64().unwrap();
+        let noise = two_step_of(&id).two_step.noise_estimate_m.unwrap();
         assert!((noise - 1e-12).abs() < 0.2e-12, "noise estimate {noise}");
     }
 
@@ -1070,11 +1181,13 @@ mod tests {
         let p = Nac2024::published();
         let (_, sine) = records(&p, 0.0);
         let e = super::super::identify(&sine, &settings()).unwrap_err();
-        assert!(e.contains("--mech-data"), "{e}");
+        assert_eq!(e, IdentifyError::NeedsMechData);
+        assert!(e.to_string().contains("--mech-data"), "{e}");
         let mut s = settings();
         s.model = ModelKind::Symmetric;
         let e = identify(&sine, &sine, &s).unwrap_err();
-        assert!(e.contains("dynamic"), "{e}");
+        assert_eq!(e, IdentifyError::TwoStepDynamicOnly(ModelKind::Symmetric));
+        assert!(e.to_string().contains("dynamic"), "{e}");
     }
 
     #[test]
@@ -1089,12 +1202,13 @@ mod tests {
         let (sq, sine) = records(&p, 0.0);
         let id = identify(&sq, &sine, &settings()).unwrap();
         eprintln!("{}", serde_json::to_string_pretty(&id.summary).unwrap());
-        assert_eq!(id.summary["method"], "vp-de-lm");
-        assert_eq!(id.summary["fallback"], true);
-        let notes = id.summary["notes"].to_string();
+        assert_eq!(id.summary.method, "vp-de-lm");
+        let report = two_step_of(&id);
+        assert!(report.fallback);
+        let notes = report.notes.join("\n");
         assert!(notes.contains("beta + gamma >= 0"), "{notes}");
         // The fallback still fits (bounded set, vp-de-lm's class): below 1 % of the output span.
-        let rms = id.summary["fit"]["rms"].as_f64().unwrap();
+        let rms = id.summary.fit.rms;
         assert!(rms < 7e-10, "rms {rms}");
     }
 }
