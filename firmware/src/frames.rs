@@ -9,7 +9,8 @@
 //! gap exactly where frames were lost, in the link or in the queue.
 //!
 //! **Text form** (what the images print, and what `host-sim capture` reads), one frame per line,
-//! [`SampleFrame`]'s `Display` (QEMU, semihosting) and `defmt::Format` (board, defmt over RTT):
+//! owned by [`piezo_link::text`]: [`SampleFrame`]'s `Display` (QEMU, semihosting) and `FromStr`
+//! go through [`FrameText`], and the board's `defmt::Format` prints the same words:
 //!
 //! ```text
 //! frame 2000: x ref 0.000018998257 m cmd 58.12863 V sensor 0.000018887498 m | y ref 0.000004001112 m cmd 1.7004242 V sensor 0.0000040718746 m
@@ -20,6 +21,7 @@
 //! so frame `k` was produced at t = k·n / rate after boot.
 
 use heapless::Deque;
+pub use piezo_link::text::{FrameText, FrameTextError};
 
 /// Frames the queue holds.
 pub const FRAME_QUEUE_CAPACITY: usize = 32;
@@ -86,24 +88,47 @@ impl SampleFrame {
     }
 }
 
-impl core::fmt::Display for SampleFrame {
-    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
-        let [x, y] = &self.axes;
-        write!(
-            f,
-            "frame {}: x ref {} m cmd {} V sensor {} m | y ref {} m cmd {} V sensor {} m",
-            self.sequence,
-            x.reference_m,
-            x.commanded_v,
-            x.sensor_m,
-            y.reference_m,
-            y.commanded_v,
-            y.sensor_m
-        )
+impl From<&SampleFrame> for FrameText {
+    fn from(f: &SampleFrame) -> Self {
+        let axis = |a: &AxisSample| [a.reference_m, a.commanded_v, a.sensor_m];
+        Self {
+            sequence: f.sequence,
+            axes: [axis(&f.axes[0]), axis(&f.axes[1])],
+        }
     }
 }
 
-/// Same text as `Display` (host-sim capture parses either).
+impl From<FrameText> for SampleFrame {
+    fn from(t: FrameText) -> Self {
+        let axis = |[reference_m, commanded_v, sensor_m]: [f32; 3]| AxisSample {
+            reference_m,
+            commanded_v,
+            sensor_m,
+        };
+        Self {
+            sequence: t.sequence,
+            axes: t.axes.map(axis),
+        }
+    }
+}
+
+/// The text form of [`piezo_link::text`].
+impl core::fmt::Display for SampleFrame {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        FrameText::from(self).fmt(f)
+    }
+}
+
+/// Reads the text form of [`piezo_link::text`] (what `Display` writes).
+impl core::str::FromStr for SampleFrame {
+    type Err = FrameTextError;
+
+    fn from_str(text: &str) -> Result<Self, FrameTextError> {
+        text.parse::<FrameText>().map(Self::from)
+    }
+}
+
+/// The words of `Display` (host-sim capture reads either); defmt needs the format as a literal.
 #[cfg(all(target_os = "none", feature = "board"))]
 impl defmt::Format for SampleFrame {
     fn format(&self, f: defmt::Formatter<'_>) {
@@ -255,18 +280,45 @@ mod tests {
     }
 
     #[test]
-    fn text_form_is_the_one_host_sim_capture_reads() {
-        // host-sim/src/capture.rs parses this line; change both together.
+    fn text_form_round_trips() {
         let f = SampleFrame {
             sequence: 2000,
             axes: axes(1.5e-5),
         };
-        let mut s = heapless::String::<160>::new();
+        let mut s = heapless::String::<256>::new();
         core::fmt::write(&mut s, format_args!("{f}")).unwrap();
         assert_eq!(
             s.as_str(),
             "frame 2000: x ref 0.000015 m cmd 0.00003 V sensor NaN m | y ref -0.000015 m cmd 3 V sensor 0.000001 m"
         );
+        let back: SampleFrame = s.parse().unwrap();
+        assert_eq!(back.sequence, f.sequence);
+        let bits = |f: &SampleFrame| f.to_bytes();
+        // NaN reads back as NaN (the sensor field of x); every other value bit for bit.
+        assert!(back.axes[0].sensor_m.is_nan());
+        let mut nan_cleared = [back, f];
+        for g in &mut nan_cleared {
+            g.axes[0].sensor_m = 0.0;
+        }
+        assert_eq!(bits(&nan_cleared[0]), bits(&nan_cleared[1]));
+        let odd = SampleFrame {
+            sequence: u32::MAX,
+            axes: [
+                AxisSample {
+                    reference_m: 1.9094246e-5,
+                    commanded_v: -0.0,
+                    sensor_m: f32::from_bits(1),
+                },
+                AxisSample {
+                    reference_m: f32::MAX,
+                    commanded_v: f32::INFINITY,
+                    sensor_m: core::f32::consts::PI,
+                },
+            ],
+        };
+        s.clear();
+        core::fmt::write(&mut s, format_args!("{odd}")).unwrap();
+        assert_eq!(s.parse::<SampleFrame>().unwrap().to_bytes(), odd.to_bytes());
     }
 
     #[test]

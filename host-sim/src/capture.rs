@@ -4,7 +4,7 @@
 //! **Input.** Lines are read one by one; everything that is neither a boot line nor a frame is
 //! ignored (counters, PASS, probe-rs location lines `└─ …`). A frame is any line that contains
 //! `frame <n>: ` (a timestamp or level before it is allowed), in the firmware's text form
-//! (`firmware/src/frames.rs`):
+//! ([`piezo_link::text`], which the firmware prints with and this module reads with):
 //!
 //! ```text
 //! frame 12: x ref 0.000019 m cmd 10 V sensor 0 m | y ref 0.000004 m cmd 10 V sensor 0 m
@@ -50,14 +50,8 @@ QEMU: cd firmware && cargo build --release --features qemu,frames-all --bin qemu
 /// Gaps listed by name in the summary.
 pub const GAPS_LISTED: usize = 5;
 
-/// One frame as printed: sequence number and, per axis, reference [m], command [V], sensor [m].
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct FrameText {
-    /// Sequence number as printed (u32, wraps).
-    pub sequence: u32,
-    /// x then y: `[reference_m, commanded_v, sensor_m]`.
-    pub axes: [[f32; 3]; 2],
-}
+/// One frame as printed: the firmware's text form.
+pub use piezo_link::text::FrameText;
 
 /// The boot line's fields.
 #[derive(Debug, Clone, PartialEq)]
@@ -248,58 +242,13 @@ fn number<T: std::str::FromStr>(word: Option<&str>, what: &str) -> Result<T, Str
         .map_err(|_| format!("{what}: `{w}` is not a number"))
 }
 
-/// Where `frame <digits>: ` starts in a line, if it does.
-fn frame_start(line: &str) -> Option<usize> {
-    let mut from = 0;
-    while let Some(i) = line[from..].find("frame ") {
-        let at = from + i;
-        let rest = &line[at + 6..];
-        let digits = rest.bytes().take_while(u8::is_ascii_digit).count();
-        if digits > 0 && rest[digits..].starts_with(':') {
-            return Some(at);
-        }
-        from = at + 6;
-    }
-    None
-}
-
 /// Parses one log line: `None` if it is not a frame line, else the frame or what is wrong.
 pub fn parse_frame_line(line: &str) -> Option<Result<FrameText, String>> {
-    let start = frame_start(line)?;
-    Some(parse_frame(&line[start..]))
-}
-
-fn parse_frame(text: &str) -> Result<FrameText, String> {
-    let rest = &text["frame ".len()..];
-    let (seq, rest) = rest
-        .split_once(':')
-        .ok_or("no `:` after the sequence number")?;
-    let sequence: u32 = number(Some(seq), "sequence number")?;
-    let mut halves = rest.splitn(3, '|');
-    let mut axes = [[0.0f32; 3]; 2];
-    for (i, name) in ["x", "y"].into_iter().enumerate() {
-        let half = halves
-            .next()
-            .ok_or_else(|| format!("{name} axis missing"))?;
-        let w: Vec<&str> = half.split_whitespace().collect();
-        let expected = [name, "ref", "", "m", "cmd", "", "V", "sensor", "", "m"];
-        if w.len() != expected.len()
-            || w.iter()
-                .zip(expected)
-                .any(|(a, b)| !b.is_empty() && *a != b)
-        {
-            return Err(format!(
-                "{name} axis: expected `{name} ref <m> m cmd <V> V sensor <m> m`, found `{}`",
-                half.trim()
-            ));
-        }
-        axes[i] = [
-            number(Some(w[2]), &format!("{name} ref"))?,
-            number(Some(w[5]), &format!("{name} cmd"))?,
-            number(Some(w[8]), &format!("{name} sensor"))?,
-        ];
-    }
-    Ok(FrameText { sequence, axes })
+    let text = &line[piezo_link::text::find_frame(line)?..];
+    Some(
+        text.parse::<FrameText>()
+            .map_err(|e| e.in_text(text).to_string()),
+    )
 }
 
 /// Parses a boot line (`parameters <version> (<file>), fnv1a32 0x…, loop <rate> Hz[, one frame
@@ -426,10 +375,7 @@ pub fn parse_log(path: &Path, text: &str, allow_gaps: bool) -> Result<CapturedLo
             }
         };
         last = Some((frame.sequence, unwrapped));
-        let names = [
-            ["x ref", "x cmd", "x sensor"],
-            ["y ref", "y cmd", "y sensor"],
-        ];
+        let names = piezo_link::text::FIELDS;
         let bad = (0..2)
             .flat_map(|a| (0..3).map(move |c| (a, c)))
             .find(|&(a, c)| !frame.axes[a][c].is_finite());

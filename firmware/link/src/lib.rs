@@ -21,12 +21,16 @@
 //!
 //! Everything is fixed capacity (`heapless`) and caller-supplied: [`encode`] writes into a
 //! `&mut [u8]`, [`Decoder`] accumulates up to [`MAX_FRAME`] bytes. Nothing allocates or panics.
+//!
+//! [`text`] owns the other form a sample frame takes: the one-line text the firmware images print
+//! and `host-sim capture` reads.
 
 #![cfg_attr(not(test), no_std)]
 
 mod cobs;
 mod message;
 mod sequence;
+pub mod text;
 
 pub use message::*;
 pub use sequence::SequenceChecker;
