@@ -7,7 +7,7 @@
 //! - [`dac8563`], [`ads8681`]: drivers for TI DAC8563 and ADS8681 over
 //!   `embedded_hal::spi::SpiDevice`;
 //! - [`safety`]: output window, slew limit, NaN hold, fault counters;
-//! - [`control`]: the single-axis loop body [`control::tick`] and [`control::TrackingStats`];
+//! - [`control`]: [`control::TrackingStats`], RMS and peak tracking error of a run;
 //! - [`params`]: the parameter set built in by `build.rs` from `firmware/params/*.toml`;
 //! - [`mod@reference`]: waveform generator (sine, triangle, steps, raster, streamed setpoints);
 //! - [`xy_loop`]: the two-axis loop (reference → `piezo_core::Compensator` → guard → DAC, sensor
