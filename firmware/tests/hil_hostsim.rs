@@ -43,7 +43,7 @@ use piezo_firmware::xy_loop::{
 const TICKS: u32 = 5_000;
 /// Ticks left out of the error statistics (start-up step from rest to 19 µm and its transient).
 const SETTLE_TICKS: u32 = 1_000;
-/// Compensated RMS error must be below this fraction of the uncompensated one (issue 4, item 8).
+/// Compensated RMS error must be below this fraction of the uncompensated one.
 const RATIO_LIMIT: f64 = 0.25;
 /// Compensated RMS error limit per axis [m]. Measured: 31.96 nm (x), 30.51 nm (y), zero mean.
 /// That is the zero-order hold, not the hysteresis: the flexure's first modes (3.2 / 2.2 kHz) lie

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Evidence for `host-sim identify` (issue 5): reruns every fit whose figures the README quotes and
+# Evidence for `host-sim identify`: reruns every fit whose figures the README quotes and
 # prints the tables. Usage (from the repository root): bash host-sim/evidence/identify.sh [OUT_DIR]
 # Needs python3 for the tables only. Measured data are read in place from ../shared/data.
 set -euo pipefail

@@ -62,7 +62,7 @@ pub struct BootLine {
     pub version: String,
     /// FNV-1a of the parameter file, as printed (`0x…`).
     pub fnv1a32: String,
-    /// Loop rate [Hz].
+    /// Loop rate \[Hz\].
     pub loop_rate_hz: f64,
     /// Ticks per frame, if the line states it.
     pub decimation: Option<u32>,
@@ -426,14 +426,14 @@ pub enum AxisChoice {
 /// Time base: frame k at t = k·decimation / loop_rate_hz.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TimeBase {
-    /// Loop rate [Hz].
+    /// Loop rate \[Hz\].
     pub loop_rate_hz: f64,
     /// Ticks per frame.
     pub decimation: u32,
 }
 
 impl TimeBase {
-    /// Time of frame `k` [s].
+    /// Time of frame `k` \[s\].
     pub fn time_s(&self, k: u64) -> f64 {
         (k as f64) * f64::from(self.decimation) / self.loop_rate_hz
     }
@@ -444,7 +444,7 @@ impl TimeBase {
 pub struct CaptureTable {
     /// Column names with units.
     pub names: Vec<String>,
-    /// Time [s].
+    /// Time \[s\].
     pub t_s: Vec<f64>,
     /// Data columns, in the order of `names` after `t_s` (and before `segment_1`).
     pub data: Vec<Vec<f32>>,
@@ -555,7 +555,7 @@ pub struct CaptureArgs {
     /// Axis to write: x or y (`t_s,u_V,y_m,r_m`) or both (`t_s,ux_V,uy_V,x_m,y_m,rx_m,ry_m`).
     #[arg(long, value_enum, default_value_t = AxisChoice::Both)]
     pub axis: AxisChoice,
-    /// Loop rate [Hz], replacing the boot line's (needed when the log has no boot line).
+    /// Loop rate (Hz), replacing the boot line's (needed when the log has no boot line).
     #[arg(long)]
     pub rate: Option<f64>,
     /// Loop ticks per frame, replacing the boot line's (default 1 when the log does not say).

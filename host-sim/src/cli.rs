@@ -1,5 +1,7 @@
-//! Command line (clap derive). `main.rs` only calls [`run`]. Subcommands: `simulate`, `demo`,
-//! `reproduce`. Progress goes to stderr, the result (table or summary) to stdout.
+//! Command line (clap derive). `main.rs` only calls [`run`]. Subcommands ([`Command`]):
+//! `simulate`, `demo`, `reproduce`, `capture`, `identify`, `predict`, `close-loop`,
+//! `compensate`, `link`, `servo-bench`, `servo-tune`. Progress goes to stderr, the result (table
+//! or summary) to stdout.
 
 use crate::csv::write_csv;
 use crate::effects::{Effects, EFFECT_HELP};
@@ -100,13 +102,13 @@ pub struct DemoArgs {
     /// Output directory (created if missing).
     #[arg(long, default_value = "out/demo")]
     pub out: PathBuf,
-    /// Triangle frequency of the x axis [Hz].
+    /// Triangle frequency of the x axis (Hz).
     #[arg(long = "x-freq", default_value_t = 2.0)]
     pub x_freq: f64,
-    /// Triangle frequency of the y axis [Hz].
+    /// Triangle frequency of the y axis (Hz).
     #[arg(long = "y-freq", default_value_t = 1.0)]
     pub y_freq: f64,
-    /// Record length [s].
+    /// Record length (s).
     #[arg(long, default_value_t = 2.0)]
     pub duration: f64,
     /// Lower end of the reference [fraction of the stroke].
@@ -115,13 +117,13 @@ pub struct DemoArgs {
     /// Upper end of the reference [fraction of the stroke].
     #[arg(long, default_value_t = 0.9)]
     pub high: f64,
-    /// Loop rate (DAC updates and sensor samples) [Hz].
+    /// Loop rate in Hz (DAC updates and sensor samples).
     #[arg(long, default_value_t = 10_000.0)]
     pub rate: f64,
-    /// Time skipped at the start of the error metrics [s].
+    /// Time skipped at the start of the error metrics (s).
     #[arg(long, default_value_t = 0.01)]
     pub settle: f64,
-    /// Length of the identification experiment [s].
+    /// Length of the identification experiment (s).
     #[arg(long, default_value_t = 3.0)]
     pub identify: f64,
     /// Effect the plant carries and no model declares (host-sim effect spec, repeatable; default:

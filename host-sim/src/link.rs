@@ -37,7 +37,7 @@ pub struct LinkArgs {
     /// tcp:HOST:PORT or serial:PATH.
     #[arg(long)]
     pub connect: String,
-    /// Longest wait for any answer [s].
+    /// Longest wait for any answer (s).
     #[arg(long, default_value_t = 10.0)]
     pub timeout: f64,
     /// What to do.
@@ -83,7 +83,7 @@ pub struct RunArgs {
     /// Signal (simulate's grammar): volts for excite, metres for track.
     #[arg(long)]
     pub signal: String,
-    /// Length [s].
+    /// Length (s).
     #[arg(long)]
     pub duration: f64,
     /// CSV to write.

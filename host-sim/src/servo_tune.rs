@@ -33,7 +33,7 @@ pub struct ServoTuneArgs {
     /// Stage file to write (may be the same file).
     #[arg(long)]
     pub out: PathBuf,
-    /// First mode of each axis [Hz]: `F` for both or `FX,FY`; default: the file's mode effect.
+    /// First mode of each axis (Hz): `F` for both or `FX,FY`; default: the file's mode effect.
     #[arg(long, value_delimiter = ',')]
     pub mode_hz: Vec<f32>,
     /// Damping ratio ζ of the mode (with --mode-hz).

@@ -1,7 +1,7 @@
 //! Accuracy of the f32 core against the independent f64 reference (tests/src/lib.rs: RK4 in time at
 //! a step 64–100× finer than the sample period, no core code).
 //!
-//! Criterion (issue 2): relative RMS error ≤ 1e-4 of the output span at the loop period, for n = 1,
+//! Criterion: relative RMS error ≤ 1e-4 of the output span at the loop period, for n = 1,
 //! 1.5, 2, 3 and for the dynamic NAC2024 model sampled at 2.56 MHz with 10–200 kHz sines.
 //! Run with `-- --nocapture` to see the measured figures (the README quotes them).
 

@@ -7,8 +7,8 @@
 //!    per-axis compensator + guard steps for n = 1 and n = 1.5. No formatting, no printing.
 //!    `firmware/ci.sh` builds it; when the link fails, `firmware/panic-sites.sh` lists the surviving
 //!    panic sites (file:line) in the build without the feature, and ci.sh fails unless all of them
-//!    are in the files named in `firmware/panic-sites.allowed` (known sites in `core/`, reported to
-//!    the lead; firmware code may have none).
+//!    are in the files named in `firmware/panic-sites.allowed` (known sites in `core/`;
+//!    firmware code may have none).
 //! 2. **Instruction counts** with `bench_mark_start`/`bench_mark_end` around known work, for
 //!    `/work/shared/tools/qemu-insn-count/count.sh` (`firmware/bench.sh` divides):
 //!    window 0: [`BENCH_STEPS`] two-axis steps of `Compensator::compensate` + `SafetyLimits::apply`
