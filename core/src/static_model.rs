@@ -114,6 +114,9 @@ impl ModelState {
     }
 }
 
+/// Input step of [`StaticModel::first_loading`] \[V\].
+pub const FIRST_LOADING_STEP_V: f32 = 0.01;
+
 impl StaticModel {
     /// The standard (symmetric) model of seed 001: y = k1·u + k2·h + y0.
     pub fn new(hysteresis: BoucWen, map: StaticMap) -> Result<Self, ParamError> {
@@ -274,6 +277,22 @@ impl StaticModel {
         } else {
             self.hysteresis.state_bound()
         }
+    }
+
+    /// The first loading from rest at `u0_v` to `u1_v` (> `u0_v`) in steps of
+    /// [`FIRST_LOADING_STEP_V`] (at most 10⁶): the output at rest `y(u0)` and the secant gain
+    /// `(y(u1) − y(u0)) / (u1 − u0)` \[m, m/V\] — the stage file's rest output and the linear
+    /// baseline's gain, computed the same way by the stage file's validation and by the firmware
+    /// for an uploaded set.
+    pub fn first_loading(&self, u0_v: f32, u1_v: f32) -> (f32, f32) {
+        let mut state = ModelState::at_rest(u0_v);
+        let rest = self.output(&state);
+        let steps = libm::ceilf((u1_v - u0_v) / FIRST_LOADING_STEP_V).clamp(1.0, 1e6) as u32;
+        let mut top = rest;
+        for k in 1..=steps {
+            top = self.step(&mut state, (u0_v + k as f32 * FIRST_LOADING_STEP_V).min(u1_v));
+        }
+        (rest, (top - rest) / (u1_v - u0_v))
     }
 
     /// The extreme one-step slopes dy/du over all reachable states and both directions.

@@ -58,9 +58,6 @@ use crate::xy_loop::{
 pub const TX_CAPACITY: usize = 8 * MAX_FRAME;
 /// Ticks after a `Track` before the tracking error counts (the start-up transient).
 pub const SETTLE_TICKS: u32 = 1_000;
-/// Input step of the first-loading sweep that gives an uploaded axis's baseline gain \[V\] (as
-/// the stage file's validation).
-const SWEEP_STEP_V: f32 = 0.01;
 
 /// The link endpoint around the loop.
 pub struct Session {
@@ -181,17 +178,9 @@ fn axis_params(m: &AxisModel) -> Result<AxisParams, ParamError> {
         effects: m.effects,
         servo: m.servo,
     };
-    let model = p.model()?;
-    let (u0, u1) = (p.output_min_v, p.output_max_v);
-    let mut state = piezo_core::ModelState::at_rest(u0);
-    let rest = model.output(&state);
-    let steps = libm::ceilf((u1 - u0) / SWEEP_STEP_V).clamp(1.0, 1e6) as u32;
-    let mut top = rest;
-    for k in 1..=steps {
-        top = model.step(&mut state, (u0 + k as f32 * SWEEP_STEP_V).min(u1));
-    }
+    let (rest, gain) = p.model()?.first_loading(p.output_min_v, p.output_max_v);
     p.rest_output_m = rest;
-    p.linear_gain_m_per_v = (top - rest) / (u1 - u0);
+    p.linear_gain_m_per_v = gain;
     Ok(p)
 }
 

@@ -14,8 +14,6 @@ use piezo_core::{
     ModelState, OscillatorState, ParamError, Servo, StaticModel,
 };
 
-/// Volts per step of the virgin loading sweep that gives the linear (uncompensated) gain.
-const SWEEP_STEP_V: f32 = 0.01;
 
 /// The built model of one axis at one sample period.
 #[derive(Debug, Clone, Copy)]
@@ -144,7 +142,7 @@ impl Axis {
                 }
                 .map_err(|e| located(core_key(name, &e, "static_map"), e))?;
                 let (u0, u1) = (self.limits.output_min_v, self.limits.output_max_v);
-                let (rest, gain) = first_loading(&model, u0, u1);
+                let (rest, gain) = model.first_loading(u0, u1);
                 if !(gain.is_finite() && gain != 0.0) {
                     return Err(StageError::new(
                         "",
@@ -213,18 +211,6 @@ impl Axis {
             servo: None,
         })
     }
-}
-
-/// Rest output at u0 and the secant gain of the first loading u0 → u1 \[m/V\].
-fn first_loading(model: &StaticModel, u0: f32, u1: f32) -> (f32, f32) {
-    let mut state = ModelState::at_rest(u0);
-    let rest = model.output(&state);
-    let steps = ((u1 - u0) / SWEEP_STEP_V).ceil().clamp(1.0, 1e7) as u32;
-    let mut top = rest;
-    for k in 1..=steps {
-        top = model.step(&mut state, (u0 + k as f32 * SWEEP_STEP_V).min(u1));
-    }
-    (rest, (top - rest) / (u1 - u0))
 }
 
 /// The hysteresis output range the effects are validated over: the first loading's
