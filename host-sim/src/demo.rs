@@ -561,13 +561,12 @@ impl DemoResult {
     /// The table printed by `host-sim demo`.
     pub fn table(&self) -> String {
         let mut s = String::new();
-        let r = &self.close_loop.report;
         s.push_str(&format!(
             "XY stage with undeclared {}\n\
              close-loop on the identification record: model RMS {:.4} -> {:.4} µm; effects added: x [{}], y [{}]\n",
             self.settings.plant_effects.join(" and "),
-            r["before"]["rms"].as_f64().unwrap_or(f64::NAN) * 1e6,
-            r["after"]["rms"].as_f64().unwrap_or(f64::NAN) * 1e6,
+            self.close_loop.before.rms * 1e6,
+            self.close_loop.after.rms * 1e6,
             self.effects_of(0),
             self.effects_of(1),
         ));
@@ -642,7 +641,7 @@ impl DemoResult {
             },
             "x": axis(0),
             "y": axis(1),
-            "close_loop": self.close_loop.report,
+            "close_loop": self.close_loop.to_json(),
             "seconds": self.seconds,
         })
     }

@@ -175,6 +175,20 @@ pub fn read_records(
     Ok(out)
 }
 
+/// The report as written: the outcome's, with the stage file written and its verdict.
+#[derive(serde::Serialize)]
+struct Written<'a> {
+    /// [`super::Outcome::to_json`].
+    #[serde(flatten)]
+    outcome: serde_json::Value,
+    /// The stage file written.
+    stage_file: String,
+    /// The firmware's verdict on it.
+    stage_file_check: &'a str,
+    /// Wall time \[s\].
+    seconds: f64,
+}
+
 /// Runs `close-loop`.
 pub fn close_loop_cmd(a: &CloseLoopArgs) -> Result<String, String> {
     if !(a.min_share > 0.0 && a.min_share < 1.0) {
@@ -204,7 +218,7 @@ pub fn close_loop_cmd(a: &CloseLoopArgs) -> Result<String, String> {
         ..Default::default()
     };
     let started = Instant::now();
-    let mut outcome = close_loop_validated(
+    let outcome = close_loop_validated(
         &records,
         &settings,
         validation.as_deref().map(|v| (v, a.validate_start)),
@@ -221,12 +235,15 @@ pub fn close_loop_cmd(a: &CloseLoopArgs) -> Result<String, String> {
     let data = a.data.display().to_string();
     let verdict =
         stage::write_stage_file(&outcome, &out, &data, a.stage.as_deref(), a.allow_refused)?;
-    let mut report = outcome.to_json();
-    report["stage_file"] = serde_json::json!(out.display().to_string());
-    report["stage_file_check"] = serde_json::json!(verdict);
-    report["seconds"] = serde_json::json!(started.elapsed().as_secs_f64());
-    outcome.report = report;
-    let json = serde_json::to_string_pretty(&outcome.report).map_err(|e| e.to_string())?;
+    let report = Written {
+        outcome: outcome.to_json(),
+        stage_file: out.display().to_string(),
+        stage_file_check: &verdict,
+        seconds: started.elapsed().as_secs_f64(),
+    };
+    // Through a JSON value, so that the keys are sorted as in every report.
+    let report = serde_json::to_value(&report).map_err(|e| e.to_string())?;
+    let json = serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?;
     std::fs::write(&a.report, json).map_err(|e| format!("--report {}: {e}", a.report.display()))?;
     let mut plots = Vec::new();
     if let Some(dir) = &a.plots {

@@ -33,7 +33,7 @@ pub use cli::{close_loop_cmd, read_records, CloseLoopArgs};
 pub use plots::write_plots;
 pub use stage::{parameter_file, validate, write_stage_file, Fit, Validation};
 
-use crate::identify::{identify, min_max, IdentifySettings, Method, Record};
+use crate::identify::{identify, min_max, IdentifyError, IdentifySettings, Method, Record};
 use diagnose::{
     noise_estimate, screen, Candidate, EffectInit, EffectKind, ResidualFigures, Signals,
 };
@@ -49,6 +49,56 @@ use std::time::Instant;
 pub const MAX_TRIALS: usize = 4;
 /// Levenberg–Marquardt iterations of a candidate's fit on the whole record.
 const TRIAL_ITERATIONS: usize = 20;
+
+/// Why `close-loop` failed. `Display` gives the message the command line prints.
+#[derive(Debug, Clone, PartialEq)]
+pub enum CloseLoopError {
+    /// Too few samples from `--start` on to fit and cross-validate.
+    TooFewSamples {
+        /// The first scored time \[s\].
+        start_s: f64,
+    },
+    /// The base identification failed.
+    Identify(IdentifyError),
+    /// The base identification gave a model other than a static one.
+    BaseNotStatic,
+    /// A model the core refused, or a record it could not run, in words.
+    Other(String),
+}
+
+impl std::fmt::Display for CloseLoopError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::TooFewSamples { start_s } => write!(
+                f,
+                "--start {start_s}: too few samples left to fit and cross-validate"
+            ),
+            Self::Identify(e) => e.fmt(f),
+            Self::BaseNotStatic => f.write_str("base identification did not give a static model"),
+            Self::Other(e) => f.write_str(e),
+        }
+    }
+}
+
+impl std::error::Error for CloseLoopError {}
+
+impl From<IdentifyError> for CloseLoopError {
+    fn from(e: IdentifyError) -> Self {
+        Self::Identify(e)
+    }
+}
+
+impl From<String> for CloseLoopError {
+    fn from(e: String) -> Self {
+        Self::Other(e)
+    }
+}
+
+impl From<CloseLoopError> for String {
+    fn from(e: CloseLoopError) -> Self {
+        e.to_string()
+    }
+}
 
 /// Settings of one run.
 #[derive(Debug, Clone)]
@@ -152,8 +202,6 @@ pub struct Outcome {
     pub after: Fit,
     /// The prediction of `--validate` (when given).
     pub validation: Option<Validation>,
-    /// The report, built from the fields above by [`Outcome::to_json`].
-    pub report: Value,
 }
 
 impl Outcome {
@@ -170,7 +218,7 @@ impl Outcome {
         v
     }
 
-    /// The report.
+    /// The report (the command writes it with the stage file's name and verdict added).
     pub fn to_json(&self) -> Value {
         let mut r = json!({
             "unit": "m",
@@ -219,7 +267,7 @@ fn log(show: bool, msg: impl AsRef<str>) {
     }
 }
 
-fn base_model(record: &Record, s: &CloseLoopSettings) -> Result<AxisModel, String> {
+fn base_model(record: &Record, s: &CloseLoopSettings) -> Result<AxisModel, CloseLoopError> {
     let id = identify(
         record,
         &IdentifySettings {
@@ -240,7 +288,7 @@ fn base_model(record: &Record, s: &CloseLoopSettings) -> Result<AxisModel, Strin
         ..
     } = id.set
     else {
-        return Err("base identification did not give a static model".into());
+        return Err(CloseLoopError::BaseNotStatic);
     };
     let from = record.index_at(s.start_s);
     let (lo, hi) = min_max(&record.y_m[from..]);
@@ -640,7 +688,7 @@ fn close_axis(
 }
 
 /// Runs `close-loop` on one record per axis (same times).
-pub fn close_loop(records: &[Record], s: &CloseLoopSettings) -> Result<Outcome, String> {
+pub fn close_loop(records: &[Record], s: &CloseLoopSettings) -> Result<Outcome, CloseLoopError> {
     close_loop_validated(records, s, None)
 }
 
@@ -650,13 +698,10 @@ pub fn close_loop_validated(
     records: &[Record],
     s: &CloseLoopSettings,
     other: Option<(&[Record], f64)>,
-) -> Result<Outcome, String> {
+) -> Result<Outcome, CloseLoopError> {
     let from = records[0].index_at(s.start_s);
     if records[0].u.len() < from + 10 * select::FOLDS {
-        return Err(format!(
-            "--start {}: too few samples left to fit and cross-validate",
-            s.start_s
-        ));
+        return Err(CloseLoopError::TooFewSamples { start_s: s.start_s });
     }
     let mut bases = Vec::new();
     for (i, r) in records.iter().enumerate() {
@@ -753,11 +798,9 @@ pub fn close_loop_validated(
         before: Fit::of(&all_y, &all_b),
         after: Fit::of(&all_y, &all_a),
         validation: None,
-        report: Value::Null,
     };
     if let Some((recs, start)) = other {
         outcome.validation = Some(validate(&outcome, recs, start)?);
     }
-    outcome.report = outcome.to_json();
     Ok(outcome)
 }
