@@ -290,7 +290,10 @@ impl StaticModel {
         let steps = libm::ceilf((u1_v - u0_v) / FIRST_LOADING_STEP_V).clamp(1.0, 1e6) as u32;
         let mut top = rest;
         for k in 1..=steps {
-            top = self.step(&mut state, (u0_v + k as f32 * FIRST_LOADING_STEP_V).min(u1_v));
+            top = self.step(
+                &mut state,
+                (u0_v + k as f32 * FIRST_LOADING_STEP_V).min(u1_v),
+            );
         }
         (rest, (top - rest) / (u1_v - u0_v))
     }

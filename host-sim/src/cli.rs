@@ -344,7 +344,8 @@ mod tests {
 
     #[test]
     fn errors_name_the_argument_and_choices() {
-        let out = std::env::temp_dir().join(format!("host_sim_cli_{}.csv", std::process::id()));
+        let scratch = tempfile::tempdir().unwrap();
+        let out = scratch.path().join("refused.csv");
         let e = run(args("nac", "sine", &[], &out)).unwrap_err();
         assert!(e.starts_with("--plant") && e.contains("xy-stage"), "{e}");
         let e = run(args("stage", "sine:freq=fast", &[], &out)).unwrap_err();
@@ -357,8 +358,8 @@ mod tests {
 
     #[test]
     fn simulate_writes_csv_and_svg() {
-        let dir = std::env::temp_dir().join(format!("host_sim_cli_run_{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let scratch = tempfile::tempdir().unwrap();
+        let dir = scratch.path();
         let out = dir.join("xy.csv");
         let mut cli = args(
             "xy-stage",
@@ -380,8 +381,8 @@ mod tests {
 
     #[test]
     fn simulate_plots_png_and_refuses_other_extensions() {
-        let dir = std::env::temp_dir().join(format!("host_sim_cli_png_{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let scratch = tempfile::tempdir().unwrap();
+        let dir = scratch.path();
         let out = dir.join("stage.csv");
         let cli_with_plot = |plot: &str| {
             let mut cli = args(
@@ -402,6 +403,5 @@ mod tests {
         let e = run(cli_with_plot("stage.pdf")).unwrap_err();
         assert!(e.starts_with("--plot") && e.contains(".pdf"), "{e}");
         assert!(!dir.join("stage.pdf").exists());
-        let _ = std::fs::remove_dir_all(&dir);
     }
 }

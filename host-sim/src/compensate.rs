@@ -311,11 +311,12 @@ mod tests {
             .join(name)
     }
 
-    fn scratch(name: &str) -> PathBuf {
-        let dir =
-            std::env::temp_dir().join(format!("host_sim_compensate_{}_{name}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        dir
+    /// A directory of the test's own, removed when dropped.
+    fn scratch(name: &str) -> tempfile::TempDir {
+        tempfile::Builder::new()
+            .prefix(&format!("host_sim_compensate_{name}_"))
+            .tempdir()
+            .unwrap()
     }
 
     /// Writes a reference CSV with `columns` (name, f(t)) at `rate_hz` for `n` samples.
@@ -373,9 +374,10 @@ mod tests {
         // (Bouc-Wen stacks, flexure mechanics with modes at 3.2 and 2.2 kHz), must put the
         // platform on the reference: a triangle between 10 % and 90 % of the stroke, faded in
         // from rest over 5 ms (a step from rest would ring the lightly damped modes).
-        let dir = scratch("track");
+        let scratch = scratch("track");
+        let dir = scratch.path();
         let plant = XyStage::default();
-        let params = platform_stage_file(&dir, plant.static_gain());
+        let params = platform_stage_file(dir, plant.static_gain());
         // The platform's stroke over 0–120 V (38 µm of free stroke times G).
         let stroke_m = plant.static_gain().map(|g| g * 38e-6);
         let (rate, n) = (10_000.0, 4_000);
@@ -428,7 +430,8 @@ mod tests {
     fn one_axis_stage_with_effects_and_micrometres() {
         // A one-axis stage file (the x axis of xy-stage-effects.toml, coupling taken off) and a
         // reference in µm: the same voltages as the core's single-axis chain in metres.
-        let dir = scratch("one");
+        let scratch = scratch("one");
+        let dir = scratch.path();
         let text = std::fs::read_to_string(firmware_params("xy-stage-effects.toml")).unwrap();
         let one_axis = text
             .split("\n[y]")
@@ -457,7 +460,8 @@ mod tests {
 
     #[test]
     fn errors_name_the_file_and_the_column() {
-        let dir = scratch("errors");
+        let scratch = scratch("errors");
+        let dir = scratch.path();
         let params = firmware_params("xy-stage-effects.toml");
         let reference = dir.join("ref.csv");
         let f = |t: f64| 10e-6 + t;

@@ -45,10 +45,25 @@ const PROBE_RS_EXCERPT: &str = "\
 0.008000 INFO  counters LoopCounters { ticks: 10000, overruns: 0 }
 ";
 
-fn dir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("host_sim_capture_{}_{name}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d
+/// A directory of its own for one test, removed when dropped.
+fn dir(name: &str) -> tempfile::TempDir {
+    tempfile::Builder::new()
+        .prefix(&format!("host_sim_capture_{name}_"))
+        .tempdir()
+        .unwrap()
+}
+
+/// A file in a test's own directory; the directory goes when this is dropped.
+struct Scratch {
+    _dir: tempfile::TempDir,
+    path: PathBuf,
+}
+
+impl std::ops::Deref for Scratch {
+    type Target = Path;
+    fn deref(&self) -> &Path {
+        &self.path
+    }
 }
 
 fn args(log: &Path, out: &Path) -> CaptureArgs {
@@ -67,16 +82,16 @@ fn capture(
     text: &str,
     name: &str,
     tweak: impl FnOnce(&mut CaptureArgs),
-) -> (Result<String, String>, Vec<String>, PathBuf) {
+) -> (Result<String, String>, Vec<String>, Scratch) {
     let d = dir(name);
-    let log = d.join("decoded.txt");
+    let log = d.path().join("decoded.txt");
     std::fs::write(&log, text).unwrap();
-    let out = d.join("data.csv");
+    let out = d.path().join("data.csv");
     let mut a = args(&log, &out);
     tweak(&mut a);
     let mut stderr = Vec::new();
     let r = run(&a, &mut |l: &str| stderr.push(l.to_string()));
-    (r, stderr, out)
+    (r, stderr, Scratch { _dir: d, path: out })
 }
 
 fn close(a: f64, b: f64) -> bool {
@@ -86,9 +101,9 @@ fn close(a: f64, b: f64) -> bool {
 #[test]
 fn qemu_log_excerpt_becomes_a_two_axis_csv() {
     let d = dir("cli");
-    let log = d.join("qemu.log");
+    let log = d.path().join("qemu.log");
     std::fs::write(&log, QEMU_EXCERPT).unwrap();
-    let out = d.join("xy.csv");
+    let out = d.path().join("xy.csv");
     let cli = Cli::try_parse_from([
         "host-sim",
         "capture",

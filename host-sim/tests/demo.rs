@@ -36,8 +36,9 @@ fn shortened_demo_finds_creep_and_compensates_it() {
         // The uncompensated error is hysteresis-sized (µm), not a gain or offset blunder.
         assert!(l > 0.5e-6 && l < 5e-6, "axis {axis}: uncompensated {l:e}");
     }
-    let dir = std::env::temp_dir().join(format!("host_sim_demo_{}", std::process::id()));
-    let files = r.write(&dir, &["svg", "png"]).unwrap();
+    let scratch = tempfile::tempdir().unwrap();
+    let dir = scratch.path();
+    let files = r.write(dir, &["svg", "png"]).unwrap();
     assert_eq!(files.len(), 9);
     let json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(dir.join("summary.json")).unwrap()).unwrap();
@@ -77,7 +78,7 @@ fn reproduce_writes_every_figure_with_the_paper_value() {
     let s = &j["stage"]["models_vs_plant_case_III"];
     let afv = |k: &str| s[k]["afv_um"].as_f64().unwrap();
     assert!(afv("III_delta_phi") < afv("I_standard"));
-    let dir = std::env::temp_dir().join(format!("host_sim_repro_{}", std::process::id()));
-    let files = report.write(&dir, &["svg"]).unwrap();
+    let scratch = tempfile::tempdir().unwrap();
+    let files = report.write(scratch.path(), &["svg"]).unwrap();
     assert_eq!(files.len(), 4);
 }

@@ -14,7 +14,6 @@ use piezo_core::{
     ModelState, OscillatorState, ParamError, Servo, StaticModel,
 };
 
-
 /// The built model of one axis at one sample period.
 #[derive(Debug, Clone, Copy)]
 pub enum AxisChain {

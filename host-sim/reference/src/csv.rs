@@ -239,9 +239,8 @@ mod tests {
 
     #[test]
     fn round_trip_two_axis() {
-        let dir = std::env::temp_dir().join(format!("piezo_reference_csv_{}", std::process::id()));
-        fs::create_dir_all(&dir).unwrap();
-        let p = dir.join("xy.csv");
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("xy.csv");
         let t = Table {
             path: PathBuf::new(),
             names: vec![
