@@ -2,7 +2,7 @@
 //!
 //! embedded-hal 1.0 has no DAC or ADC trait, so this module defines two small ones in its style:
 //! every operation is fallible, and every error reports an [`ErrorKind`] so generic code (the
-//! control loop, [`crate::control::tick`]) can react without knowing the driver. Implemented by
+//! two-axis loop, [`crate::xy_loop::TwoAxisLoop::tick`]) can react without knowing the driver. Implemented by
 //! the SPI drivers [`crate::dac8563::Dac8563`] and [`crate::ads8681::Ads8681`] and by the
 //! simulated plant [`crate::plant`].
 
