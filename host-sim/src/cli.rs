@@ -3,11 +3,9 @@
 //! `compensate`, `link`, `servo-bench`, `servo-tune`. Progress goes to stderr, the result (table
 //! or summary) to stdout.
 
-use crate::csv::write_csv;
-use crate::effects::{Effects, EFFECT_HELP};
-use crate::plant::{PlantKind, PLANT_NAMES};
-use crate::signal::{SignalSpec, SIGNAL_HELP};
-use crate::sim::{simulate, SimSettings};
+use crate::effects::EFFECT_HELP;
+use crate::plant::PLANT_NAMES;
+use crate::signal::SIGNAL_HELP;
 use clap::{Parser, Subcommand};
 use std::path::PathBuf;
 
@@ -27,7 +25,7 @@ pub enum Command {
     #[command(after_help = format!(
         "Plants: {PLANT_NAMES}\n  nac2024   Noliac NAC2024 actuator (seed 000), output y_m, 2.56 MHz default rate\n  stage     asymmetric stage (seed 001, Case III; stage-case1/stage-case2 too), output y_m, 10 kHz\n  xy-stage  two-axis flexure stage (seed 002), inputs ux_V/uy_V, outputs x_m/y_m, 10 kHz\n\n{SIGNAL_HELP}\n\n{EFFECT_HELP}"
     ))]
-    Simulate(SimulateArgs),
+    Simulate(crate::simulate::SimulateArgs),
     /// The whole story on the XY stage with creep no model declares: identify, compensate, find the
     /// residual (close-loop), add the effect, compensate again; prints tracking error per axis and
     /// mode (RMS and % of stroke), writes plots, demo.csv, demo-params.toml and summary.json.
@@ -46,7 +44,7 @@ All modes command one sample ahead. Output window 0-120 V."
     #[command(
         after_help = "Sections:\n  xy_stage  loop openings at 120 V and 12 V staircases and maximum displacement (seed 002)\n  nac2024   R^2 and MRD of the core DynamicModel (Table 1, f32, 2.56 MHz, range +-10 V, state limit 10) against the plant with a second mode and a 10 % heavier mass, 10-200 kHz sines of 9.738 V, next to Table 2 (seed 000)\n  stage     RAE and AFV of the standard and asymmetric core models on the stage plant, Cases I-III (seed 001)"
     )]
-    Reproduce(ReproduceArgs),
+    Reproduce(crate::reproduce::ReproduceArgs),
     /// Decoded firmware log (QEMU output, or defmt from probe-rs run / defmt-print) to the CSV
     /// that `identify` reads; sequence gaps stop it (--allow-gaps: kept and marked).
     #[command(after_help = crate::capture::HELP)]
@@ -87,7 +85,8 @@ pub enum PlotFormat {
 }
 
 impl PlotFormat {
-    fn extensions(self) -> &'static [&'static str] {
+    /// File extensions of the format.
+    pub fn extensions(self) -> &'static [&'static str] {
         match self {
             Self::Svg => &["svg"],
             Self::Png => &["png"],
@@ -135,43 +134,12 @@ pub struct DemoArgs {
     pub format: PlotFormat,
 }
 
-/// Arguments of `reproduce`.
-#[derive(Debug, clap::Args)]
-pub struct ReproduceArgs {
-    /// Output directory (created if missing).
-    #[arg(long, default_value = "out/reproduce")]
-    pub out: PathBuf,
-    /// Plot format.
-    #[arg(long, value_enum, default_value_t = PlotFormat::Both)]
-    pub format: PlotFormat,
-}
-
-/// Arguments of `simulate`.
-#[derive(Debug, clap::Args)]
-pub struct SimulateArgs {
-    /// Plant: nac2024, stage, xy-stage.
-    #[arg(long)]
-    pub plant: String,
-    /// Signal spec, e.g. `sine:amp=10,offset=10,freq=2,phase_deg=-90,duration=1,rate=10000`.
-    #[arg(long)]
-    pub signal: String,
-    /// Effect spec, repeatable, e.g. `creep:tau=0.1/1/10,weight=0.01/0.01/0.01`.
-    #[arg(long = "effect")]
-    pub effects: Vec<String>,
-    /// Output CSV file.
-    #[arg(long)]
-    pub out: PathBuf,
-    /// Optional plot (time series and loop): `.svg` or `.png`, as the extension says.
-    #[arg(long)]
-    pub plot: Option<PathBuf>,
-}
-
 /// Runs a parsed command line; errors are returned as messages that name the argument at fault.
 pub fn run(cli: Cli) -> Result<String, String> {
     match cli.command {
-        Command::Simulate(a) => simulate_cmd(&a),
+        Command::Simulate(a) => crate::simulate::simulate_cmd(&a),
         Command::Demo(a) => demo_cmd(&a),
-        Command::Reproduce(a) => reproduce_cmd(&a),
+        Command::Reproduce(a) => crate::reproduce::reproduce_cmd(&a),
         Command::Capture(a) => crate::capture::run(&a, &mut progress),
         Command::Identify(a) => crate::identify::identify_cmd(&a),
         Command::Predict(a) => crate::identify::predict_cmd(&a),
@@ -183,7 +151,8 @@ pub fn run(cli: Cli) -> Result<String, String> {
     }
 }
 
-fn progress(line: &str) {
+/// Progress lines go to stderr.
+pub fn progress(line: &str) {
     eprintln!("{line}");
 }
 
@@ -212,52 +181,6 @@ fn demo_cmd(a: &DemoArgs) -> Result<String, String> {
     let result = crate::demo::run_demo(&settings, &mut progress)?;
     let files = result.write(&a.out, a.format.extensions())?;
     Ok(format!("{}written: {}", result.table(), files.join(", ")))
-}
-
-fn reproduce_cmd(a: &ReproduceArgs) -> Result<String, String> {
-    let report = crate::reproduce::run_reproduce(&mut progress)?;
-    let files = report.write(&a.out, a.format.extensions())?;
-    Ok(format!("{}written: {}", report.table(), files.join(", ")))
-}
-
-fn simulate_cmd(a: &SimulateArgs) -> Result<String, String> {
-    // Refuse an unknown plot format before the simulation runs.
-    if let Some(path) = &a.plot {
-        crate::plot::Format::of_path(path).map_err(|e| format!("--plot: {e}"))?;
-    }
-    let mut plant = PlantKind::from_name(&a.plant).map_err(|e| format!("--plant: {e}"))?;
-    let spec = SignalSpec::parse(&a.signal).map_err(|e| format!("--signal: {e}"))?;
-    let mut effects = Effects::default();
-    for e in &a.effects {
-        effects
-            .add_spec(e)
-            .map_err(|err| format!("--effect {e}: {err}"))?;
-    }
-    effects
-        .apply_to_plant(&mut plant)
-        .map_err(|e| format!("--effect: {e}"))?;
-    let p = plant.as_plant();
-    let signals = spec
-        .build(p.input_names().len())
-        .map_err(|e| format!("--signal: {e}"))?;
-    let settings = SimSettings::new(
-        spec.sample_rate_hz.unwrap_or(p.default_sample_rate_hz()),
-        spec.duration_s.unwrap_or(spec.default_duration_s()),
-    );
-    let out = simulate(p, signals, &effects, &settings).map_err(|e| format!("simulate: {e}"))?;
-    write_csv(&a.out, &out.to_table()).map_err(|e| format!("--out: {e}"))?;
-    if let Some(path) = &a.plot {
-        crate::plot::plot_simulation(path, &out, p.name()).map_err(|e| format!("--plot: {e}"))?;
-    }
-    Ok(format!(
-        "{}: {} samples at {} Hz written to {} ({} steps, {} rejected)",
-        p.name(),
-        out.t_s.len(),
-        settings.sample_rate_hz,
-        a.out.display(),
-        out.stats.accepted,
-        out.stats.rejected
-    ))
 }
 
 #[cfg(test)]

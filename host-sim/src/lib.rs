@@ -29,6 +29,7 @@ pub mod plot;
 pub mod reproduce;
 pub mod servo_bench;
 pub mod servo_tune;
+pub mod simulate;
 pub mod stage_file;
 
 pub use piezo_reference::{bouc_wen, csv, effects, ode, plant, signal, sim};
