@@ -7,7 +7,6 @@ use crate::effects::EFFECT_HELP;
 use crate::plant::PLANT_NAMES;
 use crate::signal::SIGNAL_HELP;
 use clap::{Parser, Subcommand};
-use std::path::PathBuf;
 
 /// Simulated piezo plants (independent f64 reference for the compensator).
 #[derive(Debug, Parser)]
@@ -38,7 +37,7 @@ tau 0.1/1 s, weights 0.02/0.02, and 2 nm sensor noise), driven through a zero-or
 identified base model; the same after the core's inverse chain of the effects close-loop added. \
 All modes command one sample ahead. Output window 0-120 V."
     )]
-    Demo(DemoArgs),
+    Demo(crate::demo::DemoArgs),
     /// Reproduces the papers' figures with the simulated plants and the piezo-core models: writes
     /// DIR/reproduce.json (each figure with the paper's value beside it) and plots.
     #[command(
@@ -95,50 +94,11 @@ impl PlotFormat {
     }
 }
 
-/// Arguments of `demo`.
-#[derive(Debug, clap::Args)]
-pub struct DemoArgs {
-    /// Output directory (created if missing).
-    #[arg(long, default_value = "out/demo")]
-    pub out: PathBuf,
-    /// Triangle frequency of the x axis (Hz).
-    #[arg(long = "x-freq", default_value_t = 2.0)]
-    pub x_freq: f64,
-    /// Triangle frequency of the y axis (Hz).
-    #[arg(long = "y-freq", default_value_t = 1.0)]
-    pub y_freq: f64,
-    /// Record length (s).
-    #[arg(long, default_value_t = 2.0)]
-    pub duration: f64,
-    /// Lower end of the reference [fraction of the stroke].
-    #[arg(long, default_value_t = 0.1)]
-    pub low: f64,
-    /// Upper end of the reference [fraction of the stroke].
-    #[arg(long, default_value_t = 0.9)]
-    pub high: f64,
-    /// Loop rate in Hz (DAC updates and sensor samples).
-    #[arg(long, default_value_t = 10_000.0)]
-    pub rate: f64,
-    /// Time skipped at the start of the error metrics (s).
-    #[arg(long, default_value_t = 0.01)]
-    pub settle: f64,
-    /// Length of the identification experiment (s).
-    #[arg(long, default_value_t = 3.0)]
-    pub identify: f64,
-    /// Effect the plant carries and no model declares (host-sim effect spec, repeatable; default:
-    /// creep:tau=0.1/1,weight=0.02/0.02 and noise:rms_m=2e-9,seed=11; `none` for a clean plant).
-    #[arg(long = "plant-effect")]
-    pub plant_effects: Vec<String>,
-    /// Plot format.
-    #[arg(long, value_enum, default_value_t = PlotFormat::Both)]
-    pub format: PlotFormat,
-}
-
 /// Runs a parsed command line; errors are returned as messages that name the argument at fault.
 pub fn run(cli: Cli) -> Result<String, String> {
     match cli.command {
         Command::Simulate(a) => crate::simulate::simulate_cmd(&a),
-        Command::Demo(a) => demo_cmd(&a),
+        Command::Demo(a) => crate::demo::demo_cmd(&a),
         Command::Reproduce(a) => crate::reproduce::reproduce_cmd(&a),
         Command::Capture(a) => crate::capture::run(&a, &mut progress),
         Command::Identify(a) => crate::identify::identify_cmd(&a),
@@ -154,33 +114,6 @@ pub fn run(cli: Cli) -> Result<String, String> {
 /// Progress lines go to stderr.
 pub fn progress(line: &str) {
     eprintln!("{line}");
-}
-
-fn demo_cmd(a: &DemoArgs) -> Result<String, String> {
-    let defaults = crate::demo::DemoSettings::default();
-    let plant_effects = if a.plant_effects.is_empty() {
-        defaults.plant_effects
-    } else {
-        a.plant_effects
-            .iter()
-            .filter(|e| e.as_str() != "none")
-            .cloned()
-            .collect()
-    };
-    let settings = crate::demo::DemoSettings {
-        x_frequency_hz: a.x_freq,
-        y_frequency_hz: a.y_freq,
-        duration_s: a.duration,
-        low_fraction: a.low,
-        high_fraction: a.high,
-        loop_rate_hz: a.rate,
-        settle_s: a.settle,
-        identify_s: a.identify,
-        plant_effects,
-    };
-    let result = crate::demo::run_demo(&settings, &mut progress)?;
-    let files = result.write(&a.out, a.format.extensions())?;
-    Ok(format!("{}written: {}", result.table(), files.join(", ")))
 }
 
 #[cfg(test)]

@@ -10,12 +10,12 @@
 //!    compensator with the identified base model; the same with the effects close-loop added (their
 //!    inverse chain, [`piezo_core::effects`], before the compensator). The plant is the truth.
 //!
-//! **Loop.** At the loop rate f_s (10 kHz) a voltage u[k] is computed per axis and held by the DAC
-//! (zero-order hold) over [k/f_s, (k+1)/f_s); the plant is sampled at k/f_s. The identification record
-//! pairs u[k] with y[k+1] (the sample its hold reaches), and every mode commands one sample ahead, u[k]
-//! for the reference r[k+1]; the error is e[k] = y[k] − r[k].
+//! **Loop.** At the loop rate f_s (10 kHz) a voltage u\[k\] is computed per axis and held by the DAC
+//! (zero-order hold) over \[k/f_s, (k+1)/f_s); the plant is sampled at k/f_s. The identification record
+//! pairs u\[k\] with y\[k+1\] (the sample its hold reaches), and every mode commands one sample ahead, u\[k\]
+//! for the reference r\[k+1\]; the error is e\[k\] = y\[k\] − r\[k\].
 //!
-//! **Uncompensated** (best linear feed-forward): u[k] = (r[k+1] − c)/g with the affine gain (g, c)
+//! **Uncompensated** (best linear feed-forward): u\[k\] = (r\[k+1\] − c)/g with the affine gain (g, c)
 //! fitted by least squares to the plant's own response over the same motion (one extra run driven
 //! with r/g0, g0 = stroke/120 V); it removes gain and offset error, so what is left is hysteresis
 //! and creep.
@@ -876,6 +876,73 @@ fn scored_range<'a>(traces: impl Iterator<Item = &'a [f64]>, scale: f64) -> (f64
     }
     let pad = ((hi - lo) * 0.08).max(1e-9);
     (lo - pad, hi + pad)
+}
+
+/// Arguments of `demo`.
+#[derive(Debug, clap::Args)]
+pub struct DemoArgs {
+    /// Output directory (created if missing).
+    #[arg(long, default_value = "out/demo")]
+    pub out: std::path::PathBuf,
+    /// Triangle frequency of the x axis (Hz).
+    #[arg(long = "x-freq", default_value_t = 2.0)]
+    pub x_freq: f64,
+    /// Triangle frequency of the y axis (Hz).
+    #[arg(long = "y-freq", default_value_t = 1.0)]
+    pub y_freq: f64,
+    /// Record length (s).
+    #[arg(long, default_value_t = 2.0)]
+    pub duration: f64,
+    /// Lower end of the reference [fraction of the stroke].
+    #[arg(long, default_value_t = 0.1)]
+    pub low: f64,
+    /// Upper end of the reference [fraction of the stroke].
+    #[arg(long, default_value_t = 0.9)]
+    pub high: f64,
+    /// Loop rate in Hz (DAC updates and sensor samples).
+    #[arg(long, default_value_t = 10_000.0)]
+    pub rate: f64,
+    /// Time skipped at the start of the error metrics (s).
+    #[arg(long, default_value_t = 0.01)]
+    pub settle: f64,
+    /// Length of the identification experiment (s).
+    #[arg(long, default_value_t = 3.0)]
+    pub identify: f64,
+    /// Effect the plant carries and no model declares (host-sim effect spec, repeatable; default:
+    /// creep:tau=0.1/1,weight=0.02/0.02 and noise:rms_m=2e-9,seed=11; `none` for a clean plant).
+    #[arg(long = "plant-effect")]
+    pub plant_effects: Vec<String>,
+    /// Plot format.
+    #[arg(long, value_enum, default_value_t = crate::cli::PlotFormat::Both)]
+    pub format: crate::cli::PlotFormat,
+}
+
+/// `host-sim demo`: runs the story with the arguments and writes its files.
+pub fn demo_cmd(a: &DemoArgs) -> Result<String, String> {
+    let defaults = DemoSettings::default();
+    let plant_effects = if a.plant_effects.is_empty() {
+        defaults.plant_effects
+    } else {
+        a.plant_effects
+            .iter()
+            .filter(|e| e.as_str() != "none")
+            .cloned()
+            .collect()
+    };
+    let settings = DemoSettings {
+        x_frequency_hz: a.x_freq,
+        y_frequency_hz: a.y_freq,
+        duration_s: a.duration,
+        low_fraction: a.low,
+        high_fraction: a.high,
+        loop_rate_hz: a.rate,
+        settle_s: a.settle,
+        identify_s: a.identify,
+        plant_effects,
+    };
+    let result = run_demo(&settings, &mut crate::cli::progress)?;
+    let files = result.write(&a.out, a.format.extensions())?;
+    Ok(format!("{}written: {}", result.table(), files.join(", ")))
 }
 
 #[cfg(test)]

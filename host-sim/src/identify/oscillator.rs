@@ -18,7 +18,7 @@
 //! 2048 samples (input upsampled by 4 only; a trial's simulation stops once its running SSE passes
 //! its parent's; at most 200 generations, fewer once 10 in a row each gain less than 1e-7 of the
 //! best SSE), then Levenberg–Marquardt on the whole training record with the Jacobian from the
-//! sensitivity equations ([`sensitivities`]; one pass instead of one simulation per parameter). Never
+//! sensitivity equations (`sensitivities`; one pass instead of one simulation per parameter). Never
 //! fit on test data: this sees only the record it is given.
 
 // Index loops for the small dense algebra; `%` rather than `is_multiple_of` (rust-version 1.80).
