@@ -33,10 +33,10 @@ use crate::plant::XyStage;
 use crate::plot::{plot_grid, Chart, Interval, Legend, Panel, Role, Series};
 use crate::signal::{Piecewise, Signal};
 use crate::sim::{simulate, SimSettings};
-use piezo_core::effects::{decouple, Effects as CoreEffects, EffectsState};
+use piezo_core::effects::{EffectParams, Effects as CoreEffects};
+use piezo_core::inverse_chain::{compensate_pair, FeedforwardAxis};
 use piezo_core::{
-    BoucWen, BoucWenParams, Compensator, CompensatorSettings, CompensatorState, ParamError,
-    StaticMap, StaticModel,
+    BoucWen, BoucWenParams, Compensator, CompensatorSettings, ParamError, StaticMap, StaticModel,
 };
 use std::path::Path;
 use std::time::Instant;
@@ -287,9 +287,10 @@ fn model_compensator(m: &AxisModel, loop_rate_hz: f64) -> Result<Compensator, St
         .map_err(|e| format!("piezo-core's compensator refused the identified set: {e}"))
 }
 
-/// Feed-forward voltages for the references `r[k+1]` of both axes with the identified models:
-/// with `effects`, the core's inverse chain (coupling by the exact 2×2 inverse on the references,
-/// then per axis delay, drift, mode, creep and even term) before the compensator.
+/// Feed-forward voltages for the references `r[k+1]` of both axes with the identified models: the
+/// firmware's per-tick chain (`piezo_core::inverse_chain::compensate_pair`, from rest at 0 V); with
+/// `effects`, the inverse of the effects close-loop added (coupling by the exact 2×2 inverse,
+/// then per axis delay, drift, mode, creep and even term) before each compensator.
 fn compensate(
     models: [&AxisModel; 2],
     reference_m: &[Vec<f64>; 2],
@@ -298,57 +299,30 @@ fn compensate(
 ) -> Result<[Vec<f64>; 2], String> {
     let n = reference_m[0].len();
     // u[k] is for r[k+1]: the reference one sample ahead, its last sample held.
-    let ahead: [Vec<f64>; 2] =
-        std::array::from_fn(|a| (0..n).map(|k| reference_m[a][(k + 1).min(n - 1)]).collect());
-    let mut out: [Vec<f64>; 2] = [Vec::new(), Vec::new()];
-    if !effects {
-        for a in 0..2 {
-            let comp = model_compensator(models[a], loop_rate_hz)?;
-            let mut state = CompensatorState::at_rest(OUTPUT_MIN_V as f32);
-            out[a] = ahead[a]
-                .iter()
-                .map(|&r| f64::from(comp.compensate(&mut state, r as f32).voltage_v))
-                .collect();
-        }
-        return Ok(out);
-    }
-    let (cx, cy) = (models[0].effects.coupling, models[1].effects.coupling);
-    let targets: [Vec<f32>; 2] = {
-        let mut tx = Vec::with_capacity(n);
-        let mut ty = Vec::with_capacity(n);
-        for k in 0..n {
-            let (x, y) = decouple(cx, cy, ahead[0][k] as f32, ahead[1][k] as f32);
-            tx.push(x);
-            ty.push(y);
-        }
-        [tx, ty]
-    };
-    for a in 0..2 {
+    let ahead: [Vec<f32>; 2] = std::array::from_fn(|a| {
+        (0..n)
+            .map(|k| reference_m[a][(k + 1).min(n - 1)] as f32)
+            .collect()
+    });
+    let axis = |a: usize| -> Result<FeedforwardAxis, String> {
         let m = models[a];
-        let comp = model_compensator(m, loop_rate_hz)?;
-        let fx = CoreEffects::new(m.effects, m.sample_period_s, m.w_range_m)
-            .map_err(|e| format!("piezo-core refused the {} axis effects: {e}", AXES[a]))?;
-        // The plant rests at 0 V before the run: the chain starts there too (one committed sample
-        // at rest, so that creep counts from 0 V, as it did in the identification record).
-        let mut cs = CompensatorState::at_rest(OUTPUT_MIN_V as f32);
-        let mut es = EffectsState::new();
-        let w_rest = comp.model().output(&cs.model);
-        fx.commit_command(&mut es, OUTPUT_MIN_V as f32, w_rest);
-        let r = &targets[a];
-        out[a] = (0..n)
-            .map(|j| {
-                let z_prev = fx.desired_z_m(r, j.saturating_sub(1));
-                let z_now = fx.desired_z_m(r, j);
-                let z_next = fx.desired_z_m(r, j + 1);
-                let target = fx.inverse_target_w(&es, z_prev, z_now, z_next);
-                let command = comp.compensate(&mut cs, target);
-                let w = comp.model().output(&cs.model);
-                fx.commit_command(&mut es, command.voltage_v, w);
-                f64::from(command.voltage_v)
-            })
-            .collect();
-    }
-    Ok(out)
+        let params = if effects {
+            m.effects
+        } else {
+            EffectParams::default()
+        };
+        Ok(FeedforwardAxis {
+            compensator: model_compensator(m, loop_rate_hz)?,
+            effects: CoreEffects::new(params, m.sample_period_s, m.w_range_m)
+                .map_err(|e| format!("piezo-core refused the {} axis effects: {e}", AXES[a]))?,
+            rest_v: OUTPUT_MIN_V as f32,
+        })
+    };
+    let (x, y) = (axis(0)?, axis(1)?);
+    let mut ux = vec![0.0f32; n];
+    let mut uy = vec![0.0f32; n];
+    compensate_pair([&x, &y], [&ahead[0], &ahead[1]], [&mut ux, &mut uy]);
+    Ok([ux, uy].map(|u| u.into_iter().map(f64::from).collect()))
 }
 
 fn error_stats(reference: &[f64], measured: &[f64], skip: usize) -> ErrorStats {
