@@ -30,17 +30,17 @@ pub struct CloseLoopArgs {
     /// Output column(s), comma-separated for two axes (default: first `y_*`).
     #[arg(long)]
     pub y: Option<String>,
-    /// First scored time [s]; earlier samples only warm the model up.
+    /// First scored time (s); earlier samples only warm the model up.
     #[arg(long, default_value_t = 0.0)]
     pub start: f64,
-    /// Last time used for the fit [s].
+    /// Last time used for the fit (s).
     #[arg(long)]
     pub end: Option<f64>,
     /// Another record (another run, or the same file with --validate-start) both models predict
     /// from its first sample, seeing only u; an effect that predicts it worse is not added.
     #[arg(long)]
     pub validate: Option<PathBuf>,
-    /// First scored time of the validation record [s].
+    /// First scored time of the validation record (s).
     #[arg(long, default_value_t = 0.0)]
     pub validate_start: f64,
     /// Smallest share of the residual variance a candidate's screening must explain (a quarter of
@@ -59,7 +59,7 @@ pub struct CloseLoopArgs {
     /// Stage file of the final model (default: the report's path with .toml).
     #[arg(long)]
     pub out: Option<PathBuf>,
-    /// Stage file to carry [stage] and [io] from (default: the record's rate and a placeholder io).
+    /// Stage file to carry `[stage]` and `[io]` from (default: the record's rate and a placeholder io).
     #[arg(long)]
     pub stage: Option<PathBuf>,
     /// Write the stage file even if the firmware would refuse it (reported), instead of failing.

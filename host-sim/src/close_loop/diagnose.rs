@@ -9,7 +9,7 @@
 //! share = 1 − SSE(r | N ∪ X) / SSE(r | N),
 //!
 //! with X, per effect (Ts the sample period, grids over the nonlinear parameter, best grid point kept):
-//! - creep: x_τ[k] = a·x_τ[k−1] + (1 − a)·(u[k−1] − u[0]), a = e^(−Ts/τ), τ on a log grid from 4·Ts to
+//! - creep: x_τ\[k\] = a·x_τ\[k−1\] + (1 − a)·(u\[k−1\] − u\[0\]), a = e^(−Ts/τ), τ on a log grid from 4·Ts to
 //!   a quarter of the record (one or two elements, greedy) — the core's creep bank driven by the input;
 //!   and the logarithmic creep, the sum of twelve such elements half a decade apart from √10·Ts;
 //! - drift, a function of time alone: t (linear) and 1 − e^(−t/τ) (settling, τ on a log grid from
@@ -18,7 +18,7 @@
 //!   a grid of 0.25–64 samples;
 //! - asymmetry: (u[k−1] − u_mid)², u_mid the middle of the input range over the scored samples
 //!   (u[−1] := u_mid; the core's even-order term on the previous command);
-//! - dynamics: the prediction replaced by M_{f,ζ}[ŷ], M the unit-DC-gain second-order mode (no free
+//! - dynamics: the prediction replaced by M_{f,ζ}\[ŷ\], M the unit-DC-gain second-order mode (no free
 //!   coefficient), f on a log grid from 11× the dominant input frequency to 0.4/Ts,
 //!   ζ ∈ {0.05, 0.1, 0.2, 0.4, 0.7, 1, 1.5, 2.5};
 //! - coupling: the other axis's prediction (two-axis records only).

@@ -14,7 +14,7 @@
 //! Parameter vector θ: (β, γ, n, k1, k2, y0), then per added effect: creep (g_i, ln τ_i) per element
 //! or g_log, drift r or (A, ln τ), delay D \[s\], asymmetry e \[m/V²\] (u_c held), dynamics (ln f, ln ζ),
 //! coupling κ. Every effect parameter has a range that makes it that effect ([`EffectBounds`]);
-//! [`AxisModel::decode`] holds θ inside it and [`AxisModel::at_bounds`] names the parameters a fit
+//! [`AxisModel::decode`] holds θ inside it and [`AxisModel::effect_parameters`] names the parameters a fit
 //! ran to. The Jacobian is by forward differences (one core simulation per column, in parallel),
 //! steps Marquardt-scaled; a set the core refuses scores an infinite SSE and the step is rejected.
 

@@ -616,10 +616,10 @@ pub struct IdentifyArgs {
     /// Column choice.
     #[command(flatten)]
     pub columns: Columns,
-    /// First scored time [s]; earlier samples only warm the model state up.
+    /// First scored time (s); earlier samples only warm the model state up.
     #[arg(long, default_value_t = 0.0)]
     pub start: f64,
-    /// Last time used [s] (the record is cut there; later samples can be scored by `predict --start`).
+    /// Last time used (s) (the record is cut there; later samples can be scored by `predict --start`).
     #[arg(long)]
     pub end: Option<f64>,
     /// Seed of the random generators.
@@ -631,7 +631,7 @@ pub struct IdentifyArgs {
     /// Only sets the firmware's compensator accepts (strictly monotone map) are feasible.
     #[arg(long)]
     pub invertible: bool,
-    /// An existing stage file whose [stage] and [io] sections are carried into --out (without it:
+    /// An existing stage file whose `[stage]` and `[io]` sections are carried into --out (without it:
     /// the record's rate and a placeholder io chain).
     #[arg(long)]
     pub stage: Option<PathBuf>,
@@ -797,7 +797,7 @@ pub struct PredictArgs {
     /// Column choice (two comma-separated per flag for a two-axis stage).
     #[command(flatten)]
     pub columns: Columns,
-    /// First scored time [s].
+    /// First scored time (s).
     #[arg(long, default_value_t = 0.0)]
     pub start: f64,
     /// For a record that is one period of a periodic steady state (the benchmark's test multisine):
