@@ -392,15 +392,7 @@ pub fn run_demo(
         settings.identify_s,
         settings.plant_effects.join(" and ")
     ));
-    let id_freqs = [1.0, 0.7];
-    let id_u: [Vec<f64>; 2] = std::array::from_fn(|a| {
-        (0..n_id)
-            .map(|k| {
-                let t = k as f64 / fs;
-                60.0 - 60.0 * (2.0 * std::f64::consts::PI * id_freqs[a] * t).cos()
-            })
-            .collect()
-    });
+    let id_u = identification_input(n_id, fs);
     let probe: [Vec<f64>; 2] = std::array::from_fn(|axis| {
         let g0 = stroke_m[axis] / OUTPUT_MAX_V;
         (0..n)
@@ -423,14 +415,7 @@ pub fn run_demo(
         "demo [2/5] close-loop: identify the base model, diagnose the residual, add effects ({:.1} s so far)",
         elapsed(&started)
     ));
-    let records: Vec<Record> = (0..2)
-        .map(|a| Record {
-            path: format!("demo identification record, {} axis", AXES[a]).into(),
-            t_s: (0..n_id - 1).map(|k| k as f64 / fs).collect(),
-            u: id_u[a][..n_id - 1].to_vec(),
-            y_m: id_y[a][1..].to_vec(),
-        })
-        .collect();
+    let records = identification_records(&id_u, &id_y, fs);
     let outcome = close_loop(
         &records,
         &CloseLoopSettings {
@@ -442,12 +427,7 @@ pub fn run_demo(
         progress(&format!(
             "demo       {} axis: effects added [{}]",
             a.name,
-            a.model
-                .added
-                .iter()
-                .map(|e| e.name())
-                .collect::<Vec<_>>()
-                .join(", ")
+            effect_names(&a.model)
         ));
     }
 
@@ -473,17 +453,8 @@ pub fn run_demo(
     let finals = [&outcome.axes[0].model, &outcome.axes[1].model];
     let base_v = compensate(bases, &reference_m, fs, false)?;
     let closed_v = compensate(finals, &reference_m, fs, true)?;
-    let (linear_y, base_y, closed_y) = std::thread::scope(|s| {
-        let l = s.spawn(|| run_xy_stage(&stage, &linear_v, fs, &plant_effects));
-        let b = s.spawn(|| run_xy_stage(&stage, &base_v, fs, &plant_effects));
-        let c = run_xy_stage(&stage, &closed_v, fs, &plant_effects);
-        let join = |h: std::thread::ScopedJoinHandle<'_, Result<[Vec<f64>; 2], String>>| {
-            h.join()
-                .unwrap_or_else(|_| Err("plant run panicked".into()))
-        };
-        (join(l), join(b), c)
-    });
-    let (linear_y, base_y, closed_y) = (linear_y?, base_y?, closed_y?);
+    let [linear_y, base_y, closed_y] =
+        run_in_parallel(&stage, [&linear_v, &base_v, &closed_v], fs, &plant_effects)?;
     let seconds = elapsed(&started);
     progress(&format!("demo [5/5] done in {seconds:.1} s"));
 
@@ -507,6 +478,64 @@ pub fn run_demo(
         close_loop: outcome,
         seconds,
     })
+}
+
+/// The identification experiment's voltages: raised cosines 0–120 V, x at 1 Hz, y at 0.7 Hz.
+fn identification_input(n_id: usize, fs: f64) -> [Vec<f64>; 2] {
+    let id_freqs = [1.0, 0.7];
+    std::array::from_fn(|a| {
+        (0..n_id)
+            .map(|k| {
+                let t = k as f64 / fs;
+                60.0 - 60.0 * (2.0 * std::f64::consts::PI * id_freqs[a] * t).cos()
+            })
+            .collect()
+    })
+}
+
+/// The identification records close-loop reads: u\[k\] paired with y\[k+1\], the sample its
+/// hold reaches.
+fn identification_records(id_u: &[Vec<f64>; 2], id_y: &[Vec<f64>; 2], fs: f64) -> Vec<Record> {
+    let n_id = id_u[0].len();
+    (0..2)
+        .map(|a| Record {
+            path: format!("demo identification record, {} axis", AXES[a]).into(),
+            t_s: (0..n_id - 1).map(|k| k as f64 / fs).collect(),
+            u: id_u[a][..n_id - 1].to_vec(),
+            y_m: id_y[a][1..].to_vec(),
+        })
+        .collect()
+}
+
+/// The names of the effects close-loop added to an axis, comma-separated.
+fn effect_names(model: &AxisModel) -> String {
+    model
+        .added
+        .iter()
+        .map(|e| e.name())
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// Three runs of the plant, in parallel: the measured positions of each.
+fn run_in_parallel(
+    stage: &XyStage,
+    voltages_v: [&[Vec<f64>; 2]; 3],
+    fs: f64,
+    effects: &Effects,
+) -> Result<[[Vec<f64>; 2]; 3], String> {
+    let [a, b, c] = voltages_v;
+    let (ya, yb, yc) = std::thread::scope(|s| {
+        let ha = s.spawn(|| run_xy_stage(stage, a, fs, effects));
+        let hb = s.spawn(|| run_xy_stage(stage, b, fs, effects));
+        let yc = run_xy_stage(stage, c, fs, effects);
+        let join = |h: std::thread::ScopedJoinHandle<'_, Result<[Vec<f64>; 2], String>>| {
+            h.join()
+                .unwrap_or_else(|_| Err("plant run panicked".into()))
+        };
+        (join(ha), join(hb), yc)
+    });
+    Ok([ya?, yb?, yc?])
 }
 
 impl DemoResult {
