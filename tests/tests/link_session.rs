@@ -201,7 +201,9 @@ fn a_whole_session_over_the_link() {
     say(&format!("link_session: linear baseline: {}", nm(&linear)));
     for i in 0..2 {
         let (c, l) = (compensated.tracking[i], linear.tracking[i]);
-        assert!(c.count >= 9_000, "{c:?}");
+        // 1 s of track is 10 000 ticks, 1 000 of them settling; the status that reads the
+        // statistics arrives within a few ticks of the last frame, before or after it.
+        assert!(c.count >= 8_900, "{c:?}");
         assert!(c.rms_m < 0.5 * l.rms_m, "axis {i}: {c:?} vs {l:?}");
         assert!(c.rms_m < 600e-9 && c.max_abs_m < 1.5e-6, "axis {i}: {c:?}");
     }
