@@ -415,21 +415,7 @@ pub fn run_demo(
         "demo [2/5] close-loop: identify the base model, diagnose the residual, add effects ({:.1} s so far)",
         elapsed(&started)
     ));
-    let records = identification_records(&id_u, &id_y, fs);
-    let outcome = close_loop(
-        &records,
-        &CloseLoopSettings {
-            invertible: true,
-            ..Default::default()
-        },
-    )?;
-    for a in &outcome.axes {
-        progress(&format!(
-            "demo       {} axis: effects added [{}]",
-            a.name,
-            effect_names(&a.model)
-        ));
-    }
+    let outcome = close_loop_on_record(&id_u, &id_y, fs, progress)?;
 
     // 3. Uncompensated.
     progress(&format!(
@@ -505,6 +491,32 @@ fn identification_records(id_u: &[Vec<f64>; 2], id_y: &[Vec<f64>; 2], fs: f64) -
             y_m: id_y[a][1..].to_vec(),
         })
         .collect()
+}
+
+/// close-loop (firmware-invertible base sets) on the identification record; the effects it added
+/// to each axis go to `progress`.
+fn close_loop_on_record(
+    id_u: &[Vec<f64>; 2],
+    id_y: &[Vec<f64>; 2],
+    fs: f64,
+    progress: &mut dyn FnMut(&str),
+) -> Result<Outcome, String> {
+    let records = identification_records(id_u, id_y, fs);
+    let outcome = close_loop(
+        &records,
+        &CloseLoopSettings {
+            invertible: true,
+            ..Default::default()
+        },
+    )?;
+    for a in &outcome.axes {
+        progress(&format!(
+            "demo       {} axis: effects added [{}]",
+            a.name,
+            effect_names(&a.model)
+        ));
+    }
+    Ok(outcome)
 }
 
 /// The names of the effects close-loop added to an axis, comma-separated.
@@ -727,12 +739,110 @@ impl DemoResult {
     /// full-stroke loop, the compensated error against the reference, the drive voltage against the
     /// reference, all over the scored window). Each with its number of columns.
     fn figures(&self) -> [(&'static str, Vec<Chart>, usize); 3] {
-        const UM: f64 = 1e6;
         let skip = self
             .settings
             .settle_samples()
             .min(self.t_s.len().saturating_sub(1));
-        let t = &self.t_s;
+        let mut tracking: Vec<Chart> = Vec::new();
+        let mut error = Vec::new();
+        let mut loops = Vec::new();
+        for a in 0..2 {
+            let axis = AxisPlots {
+                result: self,
+                a,
+                skip,
+            };
+            tracking.push(axis.tracking());
+            error.extend(axis.errors());
+            loops.extend(axis.loops());
+        }
+        [
+            ("tracking", tracking, 1),
+            ("error", error, 1),
+            ("loops", loops, 3),
+        ]
+    }
+}
+
+/// Micrometres per metre.
+const UM: f64 = 1e6;
+
+/// One axis's panels of [`DemoResult`]'s figures.
+struct AxisPlots<'a> {
+    /// The demo's result.
+    result: &'a DemoResult,
+    /// The axis (0: x, 1: y).
+    a: usize,
+    /// First scored sample.
+    skip: usize,
+}
+
+impl<'a> AxisPlots<'a> {
+    /// The three modes with their names and curve roles.
+    fn modes(&self) -> [(&'static str, &'a ModeRun, Role); 3] {
+        let r = self.result;
+        [
+            ("uncompensated", &r.linear, Role::OpenLoop),
+            ("base model", &r.base, Role::Other(5)),
+            ("base model + effects", &r.closed, Role::Feedforward),
+        ]
+    }
+
+    /// The axis's reference \[m\].
+    fn reference(&self) -> &'a [f64] {
+        &self.result.reference_m[self.a]
+    }
+
+    /// `v` \[m\] in µm against time.
+    fn in_time(&self, name: &str, v: &[f64], role: Role) -> Series {
+        let t = &self.result.t_s;
+        let points = t.iter().zip(v).map(|(&t, &y)| (t, y * UM)).collect();
+        Series::line(name, points, 4000).role(role)
+    }
+
+    /// Over the scored window: `ys` times `sy` against the reference in µm, each sample from `skip`
+    /// on.
+    fn scored(&self, name: &str, ys: &[f64], sy: f64, role: Role) -> Series {
+        let (xs, skip) = (self.reference(), self.skip);
+        let points = xs[skip..]
+            .iter()
+            .zip(&ys[skip..])
+            .map(|(&x, &y)| (x * UM, y * sy))
+            .collect();
+        Series::line(name, points, 6000).role(role)
+    }
+
+    /// A mode's tracking error \[m\].
+    fn err(&self, run: &ModeRun) -> Vec<f64> {
+        run.measured_m[self.a]
+            .iter()
+            .zip(self.reference())
+            .map(|(y, r)| y - r)
+            .collect()
+    }
+
+    /// Reference and measured positions against time.
+    fn tracking(&self) -> Chart {
+        let ax = AXES[self.a];
+        let mut series: Vec<Series> = self
+            .modes()
+            .iter()
+            .map(|(name, run, role)| self.in_time(name, &run.measured_m[self.a], *role))
+            .collect();
+        series.push(self.in_time("reference", self.reference(), Role::Reference));
+        Panel::new(
+            format!("{ax} axis: reference and measured platform position"),
+            "t [s]",
+            format!("{ax} [µm]"),
+            series,
+        )
+        .into()
+    }
+
+    /// The tracking error against time. The uncompensated error is a hundred times the compensated
+    /// one: a panel each, both scaled to the scored window.
+    fn errors(&self) -> [Chart; 2] {
+        let (ax, skip, t) = (AXES[self.a], self.skip, &self.result.t_s);
         let transient = || {
             Interval::excluded(
                 "transient (not scored)",
@@ -740,127 +850,65 @@ impl DemoResult {
                 t.get(skip).copied().unwrap_or(0.0),
             )
         };
-        let modes = [
-            ("uncompensated", &self.linear, Role::OpenLoop),
-            ("base model", &self.base, Role::Other(5)),
-            ("base model + effects", &self.closed, Role::Feedforward),
-        ];
-        let in_time = |name: &str, v: &[f64], role: Role| {
-            let points = t.iter().zip(v).map(|(&t, &y)| (t, y * UM)).collect();
-            Series::line(name, points, 4000).role(role)
-        };
-        // Over the scored window: x and y of each sample from `skip` on.
-        let scored = |name: &str, xs: &[f64], ys: &[f64], sy: f64, role: Role| {
-            let points = xs[skip..]
+        let error_panel = |title: String, runs: &[(&str, &ModeRun, Role)]| {
+            let errors: Vec<Vec<f64>> = runs.iter().map(|(_, run, _)| self.err(run)).collect();
+            let (lo, hi) = scored_range(errors.iter().map(|e| &e[skip..]), UM);
+            let series = runs
                 .iter()
-                .zip(&ys[skip..])
-                .map(|(&x, &y)| (x * UM, y * sy))
+                .zip(&errors)
+                .map(|((name, _, role), e)| self.in_time(name, e, *role))
                 .collect();
-            Series::line(name, points, 6000).role(role)
+            Panel::new(title, "t [s]", "error [µm]", series)
+                .y_range(lo, hi)
+                .interval(transient())
         };
-        let mut tracking: Vec<Chart> = Vec::new();
-        let mut error = Vec::new();
-        let mut loops = Vec::new();
-        for a in 0..2 {
-            let ax = AXES[a];
-            let reference = &self.reference_m[a];
-            let err = |run: &ModeRun| -> Vec<f64> {
-                run.measured_m[a]
-                    .iter()
-                    .zip(reference)
-                    .map(|(y, r)| y - r)
-                    .collect()
-            };
-            let mut series: Vec<Series> = modes
-                .iter()
-                .map(|(name, run, role)| in_time(name, &run.measured_m[a], *role))
-                .collect();
-            series.push(in_time("reference", reference, Role::Reference));
-            tracking.push(
-                Panel::new(
-                    format!("{ax} axis: reference and measured platform position"),
-                    "t [s]",
-                    format!("{ax} [µm]"),
-                    series,
-                )
-                .into(),
-            );
-            // The uncompensated error is a hundred times the compensated one: a panel each, both
-            // scaled to the scored window.
-            let error_panel = |title: String, runs: &[(&str, &ModeRun, Role)]| {
-                let errors: Vec<Vec<f64>> = runs.iter().map(|(_, run, _)| err(run)).collect();
-                let (lo, hi) = scored_range(errors.iter().map(|e| &e[skip..]), UM);
-                let series = runs
-                    .iter()
-                    .zip(&errors)
-                    .map(|((name, _, role), e)| in_time(name, e, *role))
-                    .collect();
-                Panel::new(title, "t [s]", "error [µm]", series)
-                    .y_range(lo, hi)
-                    .interval(transient())
-            };
-            error.push(error_panel(
+        let modes = self.modes();
+        [
+            error_panel(
                 format!("{ax} axis: tracking error, uncompensated"),
                 &modes[..1],
-            ));
-            error.push(error_panel(
+            ),
+            error_panel(
                 format!(
                     "{ax} axis: tracking error, compensated (effects added: {})",
-                    self.effects_of(a)
+                    self.result.effects_of(self.a)
                 ),
                 &modes[1..],
-            ));
-            let mut full_stroke: Vec<Series> = modes
-                .iter()
-                .map(|(name, run, role)| scored(name, reference, &run.measured_m[a], UM, *role))
-                .collect();
-            full_stroke.push(scored(
-                "reference",
-                reference,
-                reference,
-                UM,
-                Role::Reference,
-            ));
-            loops.push(
-                Panel::new(
-                    format!("{ax} axis: measured against reference"),
-                    "reference [µm]",
-                    "measured [µm]",
-                    full_stroke,
-                )
-                .legend(Legend::Below),
-            );
-            let compensated_error = modes[1..]
-                .iter()
-                .map(|(name, run, role)| scored(name, reference, &err(run), UM, *role))
-                .collect();
-            loops.push(
-                Panel::new(
-                    format!("{ax} axis: compensated error against reference"),
-                    "reference [µm]",
-                    "error [µm]",
-                    compensated_error,
-                )
-                .legend(Legend::Below),
-            );
-            let voltage = modes
-                .iter()
-                .map(|(name, run, role)| scored(name, reference, &run.voltage_v[a], 1.0, *role))
-                .collect();
-            loops.push(
-                Panel::new(
-                    format!("{ax} axis: drive voltage against reference"),
-                    "reference [µm]",
-                    "voltage [V]",
-                    voltage,
-                )
-                .legend(Legend::Below),
-            );
-        }
+            ),
+        ]
+    }
+
+    /// Over the scored window, against the reference: the measured position (the full-stroke loop),
+    /// the compensated error and the drive voltage.
+    fn loops(&self) -> [Chart; 3] {
+        let (ax, a, modes) = (AXES[self.a], self.a, self.modes());
+        let reference = self.reference();
+        let mut full_stroke: Vec<Series> = modes
+            .iter()
+            .map(|(name, run, role)| self.scored(name, &run.measured_m[a], UM, *role))
+            .collect();
+        full_stroke.push(self.scored("reference", reference, UM, Role::Reference));
+        let compensated_error = modes[1..]
+            .iter()
+            .map(|(name, run, role)| self.scored(name, &self.err(run), UM, *role))
+            .collect();
+        let voltage = modes
+            .iter()
+            .map(|(name, run, role)| self.scored(name, &run.voltage_v[a], 1.0, *role))
+            .collect();
+        let panel = |what: &str, y_label: &str, series: Vec<Series>| {
+            Panel::new(
+                format!("{ax} axis: {what} against reference"),
+                "reference [µm]",
+                y_label,
+                series,
+            )
+            .legend(Legend::Below)
+        };
         [
-            ("tracking", tracking, 1),
-            ("error", error, 1),
-            ("loops", loops, 3),
+            panel("measured", "measured [µm]", full_stroke),
+            panel("compensated error", "error [µm]", compensated_error),
+            panel("drive voltage", "voltage [V]", voltage),
         ]
     }
 }

@@ -416,288 +416,357 @@ fn log_grid(lo: f64, hi: f64, n: usize) -> Vec<f64> {
 /// Screens every effect in `candidates` on the current prediction; results sorted best first.
 pub fn screen(sig: &Signals, candidates: &[EffectKind]) -> Vec<Candidate> {
     use rayon::prelude::*;
-    let from = sig.from;
-    let n_all = sig.u.len();
-    let ts = sig.sample_period_s;
-    let r: Vec<f64> = (from..n_all).map(|k| sig.y[k] - sig.y_hat[k]).collect();
-    let n = r.len();
-    let ones = vec![1.0; n];
-    let u_s = &sig.u[from..];
-    let h_s = &sig.h[from..];
-    let nuisance: [&[f64]; 3] = [&ones, u_s, h_s];
-    let (sse0, _) = least_squares(&nuisance, &r);
-    let score = |cols: &[&[f64]]| -> (f64, Vec<f64>) {
-        let mut basis: Vec<&[f64]> = nuisance.to_vec();
-        basis.extend_from_slice(cols);
-        let (sse, coef) = least_squares(&basis, &r);
-        (sse, coef[3..].to_vec())
-    };
-    let bic = |sse1: f64, p: usize| {
-        n as f64 * (sse1.max(1e-300) / sse0.max(1e-300)).ln() + p as f64 * (n as f64).ln()
-    };
-    let share = |sse1: f64| {
-        if sse0 > 0.0 {
-            (1.0 - sse1 / sse0).max(0.0)
-        } else {
-            0.0
-        }
-    };
-    let record_s = ts * n_all as f64;
-    let f_dom = dominant_frequency_hz(u_s, ts);
+    let screening = Screening::new(sig);
     let mut out: Vec<Candidate> = candidates
         .par_iter()
-        .filter_map(|&effect| -> Option<Vec<Candidate>> { match effect {
-            EffectKind::Creep => {
-                let taus = log_grid(4.0 * ts, record_s / 4.0, 16);
-                let cols: Vec<Vec<f64>> = taus
-                    .iter()
-                    .map(|&tau| creep_element(sig.u, tau, ts)[from..].to_vec())
-                    .collect();
-                let singles: Vec<(f64, f64, usize)> = cols
-                    .iter()
-                    .enumerate()
-                    .map(|(i, c)| {
-                        let (sse, coef) = score(&[c]);
-                        (sse, coef[0], i)
-                    })
-                    .collect();
-                let best = singles
-                    .iter()
-                    .copied()
-                    .min_by(|a, b| a.0.total_cmp(&b.0))?;
-                // A second element, greedy, only if it explains ≥ 1 % more of the residual.
-                let pair = (0..cols.len())
-                    .filter(|&j| j != best.2)
-                    .map(|j| {
-                        let (sse, coef) = score(&[&cols[best.2], &cols[j]]);
-                        (sse, coef, j)
-                    })
-                    .min_by(|a, b| a.0.total_cmp(&b.0));
-                let (sse, init, p) = match pair {
-                    Some((sse2, coef, j)) if share(sse2) - share(best.0) >= 0.01 => (
-                        sse2,
-                        EffectInit::Creep {
-                            gains_m_per_v: [coef[0], coef[1]],
-                            time_constants_s: [taus[best.2], taus[j]],
-                        },
-                        4,
-                    ),
-                    _ => (
-                        best.0,
-                        EffectInit::Creep {
-                            gains_m_per_v: [best.1, 0.0],
-                            time_constants_s: [taus[best.2], taus[best.2] * 10.0],
-                        },
-                        2,
-                    ),
-                };
-                let figures = match init {
-                    EffectInit::Creep {
-                        gains_m_per_v,
-                        time_constants_s,
-                    } => vec![
-                        ("gain_m_per_v[0]", gains_m_per_v[0]),
-                        ("time_constant_s[0]", time_constants_s[0]),
-                        ("gain_m_per_v[1]", gains_m_per_v[1]),
-                        ("time_constant_s[1]", time_constants_s[1]),
-                    ],
-                    _ => Vec::new(),
-                };
-                Some(vec![Candidate {
-                    effect,
-                    share: share(sse),
-                    delta_bic: bic(sse, p),
-                    init,
-                    test: "residual against first-order low-pass histories of u (time-constant grid)",
-                    figures,
-                },
-                {
-                    // The logarithmic creep: twelve elements half a decade apart, t0 = Ts.
-                    let mut col = vec![0.0; n];
-                    for l in 0..12 {
-                        let tau = ts * 10f64.powf(0.5 * (l + 1) as f64);
-                        for (c, x) in col.iter_mut().zip(&creep_element(sig.u, tau, ts)[from..]) {
-                            *c += 0.5 * x;
-                        }
-                    }
-                    let (sse, coef) = score(&[&col]);
-                    Candidate {
-                        effect,
-                        share: share(sse),
-                        delta_bic: bic(sse, 1),
-                        init: EffectInit::LogCreep { gain_m_per_v: coef[0] },
-                        test: "residual against the logarithmic creep of u (g_log·log10(1 + t/Ts) per step)",
-                        figures: vec![("gain_m_per_v_per_decade", coef[0])],
-                    }
-                }])
-            }
-            EffectKind::Drift => {
-                let t: Vec<f64> = sig.t_s[from..].iter().map(|t| t - sig.t_s[0]).collect();
-                let (sse, coef) = score(&[&t]);
-                let linear = Candidate {
-                    effect,
-                    share: share(sse),
-                    delta_bic: bic(sse, 1),
-                    init: EffectInit::Drift {
-                        rate_m_per_s: coef[0],
-                    },
-                    test: "residual against time (linear drift)",
-                    figures: vec![("rate_m_per_s", coef[0])],
-                };
-                let lo = (2.0 / f_dom).max(20.0 * ts);
-                let taus = log_grid(1.2 * lo, (2.5 * record_s).max(3.0 * lo), 16);
-                let settling = taus
-                    .iter()
-                    .map(|&tau| {
-                        let col: Vec<f64> = t.iter().map(|t| -(-t / tau).exp_m1()).collect();
-                        let (sse, coef) = score(&[&col]);
-                        (sse, coef[0], tau)
-                    })
-                    .min_by(|a, b| a.0.total_cmp(&b.0))?;
-                let settling = Candidate {
-                    effect,
-                    share: share(settling.0),
-                    delta_bic: bic(settling.0, 2),
-                    init: EffectInit::Settling {
-                        amplitude_m: settling.1,
-                        time_constant_s: settling.2,
-                    },
-                    test: "residual against 1 - exp(-t/tau) (settling drift, tau grid)",
-                    figures: vec![("amplitude_m", settling.1), ("time_constant_s", settling.2)],
-                };
-                Some(vec![linear, settling])
-            }
-            EffectKind::Delay => {
-                let grid = [
-                    0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 12.0, 16.0,
-                    20.0, 24.0, 32.0, 40.0, 48.0, 56.0, 64.0,
-                ];
-                // The prediction delayed by D replaces ŷ (coefficient 1: what adding the delay does),
-                // with the linear map refitted through the nuisance basis.
-                let rows: Vec<(f64, f64)> = grid
-                    .iter()
-                    .map(|&d| {
-                        let yd = delayed(sig.y_hat, d);
-                        let shifted: Vec<f64> =
-                            (from..n_all).map(|k| sig.y[k] - yd[k]).collect();
-                        (d, least_squares(&nuisance, &shifted).0)
-                    })
-                    .collect();
-                let best = rows
-                    .iter()
-                    .copied()
-                    .min_by(|a, b| a.1.total_cmp(&b.1))?;
-                // Rate correlation: the first-order signature of a delay, r ≈ −D·dŷ/dt.
-                let rate: Vec<f64> = (from..n_all)
-                    .map(|k| (sig.y_hat[k] - sig.y_hat[k.saturating_sub(1)]) / ts)
-                    .collect();
-                let corr = correlation(&r, &rate);
-                let d_s = best.0 * ts;
-                Some(vec![Candidate {
-                    effect,
-                    share: share(best.1),
-                    delta_bic: bic(best.1, 1),
-                    init: EffectInit::Delay { delay_s: d_s },
-                    test: "the prediction delayed by D against the measurement (D grid); correlation of the residual with the predicted rate",
-                    figures: vec![("delay_s", d_s), ("correlation_with_rate", corr)],
-                }])
-            }
-            EffectKind::Asymmetry => {
-                let (u_lo, u_hi) = sig.u[from..]
-                    .iter()
-                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &v| {
-                        (lo.min(v), hi.max(v))
-                    });
-                let mid = 0.5 * (u_lo + u_hi);
-                // u[k−1], with u[−1] := u_mid (the core's term is 0 at the first sample).
-                let col: Vec<f64> = (from..n_all)
-                    .map(|k| k.checked_sub(1).map_or(0.0, |p| (sig.u[p] - mid).powi(2)))
-                    .collect();
-                let (sse, coef) = score(&[&col]);
-                // sign(u̇)·u: how much of the residual is an odd-in-rate, input-proportional term.
-                let su: Vec<f64> = (from..n_all)
-                    .map(|k| (sig.u[k] - sig.u[k.saturating_sub(1)]).signum() * sig.u[k])
-                    .collect();
-                let (sse_su, _) = score(&[&su]);
-                Some(vec![Candidate {
-                    effect,
-                    share: share(sse),
-                    delta_bic: bic(sse, 1),
-                    init: EffectInit::Asymmetry {
-                        coefficient_m_per_v2: coef[0],
-                        center_v: mid,
-                    },
-                    test: "residual against the even function (u[k-1] - u_mid)^2; and against sign(du/dt)*u",
-                    figures: vec![
-                        ("coefficient_m_per_v2", coef[0]),
-                        ("center_v", mid),
-                        ("share_sign_rate_times_u", share(sse_su)),
-                    ],
-                }])
-            }
-            EffectKind::Dynamics => {
-                // Inside the plausible range of the mode (full::EffectBounds).
-                let f_hi = 0.8 * 0.5 / ts;
-                let f_lo = 1.1 * (10.0 * f_dom).min(0.1 / ts);
-                let freqs = log_grid(f_lo, f_hi, 20);
-                let zetas = [0.05, 0.1, 0.2, 0.4, 0.7, 1.0, 1.5, 2.5];
-                let grid: Vec<(f64, f64)> = freqs
-                    .iter()
-                    .flat_map(|&f| zetas.iter().map(move |&z| (f, z)))
-                    .collect();
-                // The prediction through the mode replaces ŷ (what adding the mode does), with the
-                // linear map refitted through the nuisance basis.
-                let rows: Vec<(f64, f64, f64)> = grid
-                    .iter()
-                    .map(|&(f, z)| {
-                        let m = mode_filter(sig.y_hat, f, z, ts);
-                        let moved: Vec<f64> = (from..n_all).map(|k| sig.y[k] - m[k]).collect();
-                        (f, z, least_squares(&nuisance, &moved).0)
-                    })
-                    .collect();
-                let best = rows
-                    .iter()
-                    .copied()
-                    .min_by(|a, b| a.2.total_cmp(&b.2))?;
-                Some(vec![Candidate {
-                    effect,
-                    share: share(best.2),
-                    delta_bic: bic(best.2, 2),
-                    init: EffectInit::Dynamics {
-                        frequency_hz: best.0,
-                        damping: best.1,
-                    },
-                    test: "the prediction through a second-order mode against the measurement (frequency x damping grid)",
-                    figures: vec![
-                        ("dominant_input_frequency_hz", f_dom),
-                        ("frequency_hz", best.0),
-                        ("damping", best.1),
-                    ],
-                }])
-            }
-            EffectKind::Coupling => {
-                let other = sig.other_y_hat?;
-                let col = &other[from..];
-                let (sse, coef) = score(&[col]);
-                Some(vec![Candidate {
-                    effect,
-                    share: share(sse),
-                    delta_bic: bic(sse, 1),
-                    init: EffectInit::Coupling {
-                        coefficient: coef[0],
-                    },
-                    test: "residual against the other axis's z",
-                    figures: vec![
-                        ("coefficient", coef[0]),
-                        ("correlation", correlation(&r, col)),
-                    ],
-                }])
-            }
-        }})
+        .filter_map(|&effect| screening.effect(effect))
         .flatten()
         .collect();
     out.sort_by(|a, b| b.share.total_cmp(&a.share));
     out
+}
+
+/// What every candidate's screening shares (module doc): the residual on the scored samples, the
+/// nuisance basis N = (1, u, h) and SSE(r | N).
+struct Screening<'s, 'a> {
+    /// The model's current prediction.
+    sig: &'s Signals<'a>,
+    /// r = y − ŷ over the scored samples.
+    r: Vec<f64>,
+    /// The constant column of N.
+    ones: Vec<f64>,
+    /// SSE(r | N).
+    sse0: f64,
+    /// Length of the whole record \[s\].
+    record_s: f64,
+    /// Dominant input frequency over the scored samples \[Hz\].
+    f_dom: f64,
+}
+
+impl<'s, 'a> Screening<'s, 'a> {
+    fn new(sig: &'s Signals<'a>) -> Self {
+        let from = sig.from;
+        let n_all = sig.u.len();
+        let ts = sig.sample_period_s;
+        let r: Vec<f64> = (from..n_all).map(|k| sig.y[k] - sig.y_hat[k]).collect();
+        let ones = vec![1.0; r.len()];
+        let (sse0, _) = least_squares(&[&ones, &sig.u[from..], &sig.h[from..]], &r);
+        Self {
+            sig,
+            r,
+            ones,
+            sse0,
+            record_s: ts * n_all as f64,
+            f_dom: dominant_frequency_hz(&sig.u[from..], ts),
+        }
+    }
+
+    /// N = (1, u, h) over the scored samples.
+    fn nuisance(&self) -> [&[f64]; 3] {
+        let from = self.sig.from;
+        [&self.ones, &self.sig.u[from..], &self.sig.h[from..]]
+    }
+
+    /// The scored samples' indices in the whole record.
+    fn scored(&self) -> std::ops::Range<usize> {
+        self.sig.from..self.sig.u.len()
+    }
+
+    /// SSE(r | N ∪ `cols`) and the coefficients of `cols`.
+    fn score(&self, cols: &[&[f64]]) -> (f64, Vec<f64>) {
+        let mut basis: Vec<&[f64]> = self.nuisance().to_vec();
+        basis.extend_from_slice(cols);
+        let (sse, coef) = least_squares(&basis, &self.r);
+        (sse, coef[3..].to_vec())
+    }
+
+    /// ΔBIC of a candidate with `p` parameters that leaves `sse1`.
+    fn bic(&self, sse1: f64, p: usize) -> f64 {
+        let n = self.r.len();
+        n as f64 * (sse1.max(1e-300) / self.sse0.max(1e-300)).ln() + p as f64 * (n as f64).ln()
+    }
+
+    /// The share of the residual variance a candidate that leaves `sse1` explains.
+    fn share(&self, sse1: f64) -> f64 {
+        if self.sse0 > 0.0 {
+            (1.0 - sse1 / self.sse0).max(0.0)
+        } else {
+            0.0
+        }
+    }
+
+    /// The candidates of one effect (`None` when it has none).
+    fn effect(&self, effect: EffectKind) -> Option<Vec<Candidate>> {
+        match effect {
+            EffectKind::Creep => Some(vec![self.kelvin_voigt_creep()?, self.log_creep()]),
+            EffectKind::Drift => Some(vec![self.linear_drift(), self.settling_drift()?]),
+            EffectKind::Delay => Some(vec![self.delay()?]),
+            EffectKind::Asymmetry => Some(vec![self.asymmetry()]),
+            EffectKind::Dynamics => Some(vec![self.dynamics()?]),
+            EffectKind::Coupling => Some(vec![self.coupling()?]),
+        }
+    }
+
+    /// Kelvin–Voigt creep: one element on the time-constant grid, a second (greedy) if it explains
+    /// ≥ 1 % more of the residual.
+    fn kelvin_voigt_creep(&self) -> Option<Candidate> {
+        let (sig, from, ts) = (self.sig, self.sig.from, self.sig.sample_period_s);
+        let taus = log_grid(4.0 * ts, self.record_s / 4.0, 16);
+        let cols: Vec<Vec<f64>> = taus
+            .iter()
+            .map(|&tau| creep_element(sig.u, tau, ts)[from..].to_vec())
+            .collect();
+        let singles: Vec<(f64, f64, usize)> = cols
+            .iter()
+            .enumerate()
+            .map(|(i, c)| {
+                let (sse, coef) = self.score(&[c]);
+                (sse, coef[0], i)
+            })
+            .collect();
+        let best = singles.iter().copied().min_by(|a, b| a.0.total_cmp(&b.0))?;
+        // A second element, greedy, only if it explains ≥ 1 % more of the residual.
+        let pair = (0..cols.len())
+            .filter(|&j| j != best.2)
+            .map(|j| {
+                let (sse, coef) = self.score(&[&cols[best.2], &cols[j]]);
+                (sse, coef, j)
+            })
+            .min_by(|a, b| a.0.total_cmp(&b.0));
+        let (sse, gains_m_per_v, time_constants_s, p) = match pair {
+            Some((sse2, coef, j)) if self.share(sse2) - self.share(best.0) >= 0.01 => {
+                (sse2, [coef[0], coef[1]], [taus[best.2], taus[j]], 4)
+            }
+            _ => (
+                best.0,
+                [best.1, 0.0],
+                [taus[best.2], taus[best.2] * 10.0],
+                2,
+            ),
+        };
+        Some(Candidate {
+            effect: EffectKind::Creep,
+            share: self.share(sse),
+            delta_bic: self.bic(sse, p),
+            init: EffectInit::Creep {
+                gains_m_per_v,
+                time_constants_s,
+            },
+            test: "residual against first-order low-pass histories of u (time-constant grid)",
+            figures: vec![
+                ("gain_m_per_v[0]", gains_m_per_v[0]),
+                ("time_constant_s[0]", time_constants_s[0]),
+                ("gain_m_per_v[1]", gains_m_per_v[1]),
+                ("time_constant_s[1]", time_constants_s[1]),
+            ],
+        })
+    }
+
+    /// The logarithmic creep: twelve elements half a decade apart, t0 = Ts.
+    fn log_creep(&self) -> Candidate {
+        let (sig, from, ts) = (self.sig, self.sig.from, self.sig.sample_period_s);
+        let mut col = vec![0.0; self.r.len()];
+        for l in 0..12 {
+            let tau = ts * 10f64.powf(0.5 * (l + 1) as f64);
+            for (c, x) in col.iter_mut().zip(&creep_element(sig.u, tau, ts)[from..]) {
+                *c += 0.5 * x;
+            }
+        }
+        let (sse, coef) = self.score(&[&col]);
+        Candidate {
+            effect: EffectKind::Creep,
+            share: self.share(sse),
+            delta_bic: self.bic(sse, 1),
+            init: EffectInit::LogCreep {
+                gain_m_per_v: coef[0],
+            },
+            test: "residual against the logarithmic creep of u (g_log·log10(1 + t/Ts) per step)",
+            figures: vec![("gain_m_per_v_per_decade", coef[0])],
+        }
+    }
+
+    /// Time since the record's start over the scored samples \[s\].
+    fn time(&self) -> Vec<f64> {
+        let t_s = self.sig.t_s;
+        t_s[self.sig.from..].iter().map(|t| t - t_s[0]).collect()
+    }
+
+    /// Linear drift: the residual against time.
+    fn linear_drift(&self) -> Candidate {
+        let (sse, coef) = self.score(&[&self.time()]);
+        Candidate {
+            effect: EffectKind::Drift,
+            share: self.share(sse),
+            delta_bic: self.bic(sse, 1),
+            init: EffectInit::Drift {
+                rate_m_per_s: coef[0],
+            },
+            test: "residual against time (linear drift)",
+            figures: vec![("rate_m_per_s", coef[0])],
+        }
+    }
+
+    /// Settling drift: the residual against 1 − e^(−t/τ) on the time-constant grid.
+    fn settling_drift(&self) -> Option<Candidate> {
+        let ts = self.sig.sample_period_s;
+        let t = self.time();
+        let lo = (2.0 / self.f_dom).max(20.0 * ts);
+        let taus = log_grid(1.2 * lo, (2.5 * self.record_s).max(3.0 * lo), 16);
+        let settling = taus
+            .iter()
+            .map(|&tau| {
+                let col: Vec<f64> = t.iter().map(|t| -(-t / tau).exp_m1()).collect();
+                let (sse, coef) = self.score(&[&col]);
+                (sse, coef[0], tau)
+            })
+            .min_by(|a, b| a.0.total_cmp(&b.0))?;
+        Some(Candidate {
+            effect: EffectKind::Drift,
+            share: self.share(settling.0),
+            delta_bic: self.bic(settling.0, 2),
+            init: EffectInit::Settling {
+                amplitude_m: settling.1,
+                time_constant_s: settling.2,
+            },
+            test: "residual against 1 - exp(-t/tau) (settling drift, tau grid)",
+            figures: vec![("amplitude_m", settling.1), ("time_constant_s", settling.2)],
+        })
+    }
+
+    /// Delay: the prediction delayed by D against the measurement, D on the grid.
+    fn delay(&self) -> Option<Candidate> {
+        let (sig, ts) = (self.sig, self.sig.sample_period_s);
+        let grid = [
+            0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 12.0, 16.0, 20.0,
+            24.0, 32.0, 40.0, 48.0, 56.0, 64.0,
+        ];
+        // The prediction delayed by D replaces ŷ (coefficient 1: what adding the delay does),
+        // with the linear map refitted through the nuisance basis.
+        let rows: Vec<(f64, f64)> = grid
+            .iter()
+            .map(|&d| {
+                let yd = delayed(sig.y_hat, d);
+                let shifted: Vec<f64> = self.scored().map(|k| sig.y[k] - yd[k]).collect();
+                (d, least_squares(&self.nuisance(), &shifted).0)
+            })
+            .collect();
+        let best = rows.iter().copied().min_by(|a, b| a.1.total_cmp(&b.1))?;
+        // Rate correlation: the first-order signature of a delay, r ≈ −D·dŷ/dt.
+        let rate: Vec<f64> = self
+            .scored()
+            .map(|k| (sig.y_hat[k] - sig.y_hat[k.saturating_sub(1)]) / ts)
+            .collect();
+        let corr = correlation(&self.r, &rate);
+        let d_s = best.0 * ts;
+        Some(Candidate {
+            effect: EffectKind::Delay,
+            share: self.share(best.1),
+            delta_bic: self.bic(best.1, 1),
+            init: EffectInit::Delay { delay_s: d_s },
+            test: "the prediction delayed by D against the measurement (D grid); correlation of the residual with the predicted rate",
+            figures: vec![("delay_s", d_s), ("correlation_with_rate", corr)],
+        })
+    }
+
+    /// Asymmetry: the residual against the even function (u\[k−1\] − u_mid)².
+    fn asymmetry(&self) -> Candidate {
+        let sig = self.sig;
+        let (u_lo, u_hi) = sig.u[sig.from..]
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &v| {
+                (lo.min(v), hi.max(v))
+            });
+        let mid = 0.5 * (u_lo + u_hi);
+        // u[k−1], with u[−1] := u_mid (the core's term is 0 at the first sample).
+        let col: Vec<f64> = self
+            .scored()
+            .map(|k| k.checked_sub(1).map_or(0.0, |p| (sig.u[p] - mid).powi(2)))
+            .collect();
+        let (sse, coef) = self.score(&[&col]);
+        // sign(u̇)·u: how much of the residual is an odd-in-rate, input-proportional term.
+        let su: Vec<f64> = self
+            .scored()
+            .map(|k| (sig.u[k] - sig.u[k.saturating_sub(1)]).signum() * sig.u[k])
+            .collect();
+        let (sse_su, _) = self.score(&[&su]);
+        Candidate {
+            effect: EffectKind::Asymmetry,
+            share: self.share(sse),
+            delta_bic: self.bic(sse, 1),
+            init: EffectInit::Asymmetry {
+                coefficient_m_per_v2: coef[0],
+                center_v: mid,
+            },
+            test:
+                "residual against the even function (u[k-1] - u_mid)^2; and against sign(du/dt)*u",
+            figures: vec![
+                ("coefficient_m_per_v2", coef[0]),
+                ("center_v", mid),
+                ("share_sign_rate_times_u", self.share(sse_su)),
+            ],
+        }
+    }
+
+    /// Dynamics: the prediction through a second-order mode against the measurement, on the
+    /// frequency × damping grid.
+    fn dynamics(&self) -> Option<Candidate> {
+        let (sig, ts, f_dom) = (self.sig, self.sig.sample_period_s, self.f_dom);
+        // Inside the plausible range of the mode (full::EffectBounds).
+        let f_hi = 0.8 * 0.5 / ts;
+        let f_lo = 1.1 * (10.0 * f_dom).min(0.1 / ts);
+        let freqs = log_grid(f_lo, f_hi, 20);
+        let zetas = [0.05, 0.1, 0.2, 0.4, 0.7, 1.0, 1.5, 2.5];
+        let grid: Vec<(f64, f64)> = freqs
+            .iter()
+            .flat_map(|&f| zetas.iter().map(move |&z| (f, z)))
+            .collect();
+        // The prediction through the mode replaces ŷ (what adding the mode does), with the
+        // linear map refitted through the nuisance basis.
+        let rows: Vec<(f64, f64, f64)> = grid
+            .iter()
+            .map(|&(f, z)| {
+                let m = mode_filter(sig.y_hat, f, z, ts);
+                let moved: Vec<f64> = self.scored().map(|k| sig.y[k] - m[k]).collect();
+                (f, z, least_squares(&self.nuisance(), &moved).0)
+            })
+            .collect();
+        let best = rows.iter().copied().min_by(|a, b| a.2.total_cmp(&b.2))?;
+        Some(Candidate {
+            effect: EffectKind::Dynamics,
+            share: self.share(best.2),
+            delta_bic: self.bic(best.2, 2),
+            init: EffectInit::Dynamics {
+                frequency_hz: best.0,
+                damping: best.1,
+            },
+            test: "the prediction through a second-order mode against the measurement (frequency x damping grid)",
+            figures: vec![
+                ("dominant_input_frequency_hz", f_dom),
+                ("frequency_hz", best.0),
+                ("damping", best.1),
+            ],
+        })
+    }
+
+    /// Coupling: the residual against the other axis's prediction (two-axis records).
+    fn coupling(&self) -> Option<Candidate> {
+        let other = self.sig.other_y_hat?;
+        let col = &other[self.sig.from..];
+        let (sse, coef) = self.score(&[col]);
+        Some(Candidate {
+            effect: EffectKind::Coupling,
+            share: self.share(sse),
+            delta_bic: self.bic(sse, 1),
+            init: EffectInit::Coupling {
+                coefficient: coef[0],
+            },
+            test: "residual against the other axis's z",
+            figures: vec![
+                ("coefficient", coef[0]),
+                ("correlation", correlation(&self.r, col)),
+            ],
+        })
+    }
 }
 
 /// Pearson correlation.

@@ -410,142 +410,171 @@ impl AxisModel {
 
     /// θ, the typical size of each entry (for difference steps) and what each entry is.
     pub fn encode(&self) -> (Vec<f64>, Vec<f64>, Vec<ParamSpec>) {
-        let b = self.bouc_wen;
+        let scales = self.scales();
+        let mut theta = self.encode_base(scales);
+        for &kind in &self.added {
+            self.encode_effect(kind, scales, &mut theta);
+        }
+        (theta.th, theta.typ, theta.spec)
+    }
+
+    /// The sizes the typical sizes of θ's entries are taken from.
+    fn scales(&self) -> Scales {
         let m = self.map;
         let k = f64::from(m.k1_m_per_v)
             .abs()
             .max(f64::from(m.k2_m_per_h).abs());
         let span = f64::from(self.input_range_v.1 - self.input_range_v.0).max(1e-9);
-        let stroke = (k * span).max(1e-12);
+        Scales {
+            k,
+            span,
+            stroke: (k * span).max(1e-12),
+        }
+    }
+
+    /// The base model's entries of θ: (β, γ, n, k1, k2, y0).
+    fn encode_base(&self, sc: Scales) -> Theta {
+        let b = self.bouc_wen;
+        let m = self.map;
+        let (k, stroke) = (sc.k, sc.stroke);
         let bg = f64::from(b.beta.abs() + b.gamma.abs()).max(1e-12);
-        let mut th = vec![
-            f64::from(b.beta),
-            f64::from(b.gamma),
-            f64::from(b.n),
-            f64::from(m.k1_m_per_v),
-            f64::from(m.k2_m_per_h),
-            f64::from(m.offset_m),
-        ];
-        let mut typ = vec![bg, bg, 1.0, k, k, stroke];
-        let mut spec = ["beta", "gamma", "n", "k1_m_per_v", "k2_m_per_h", "offset_m"]
-            .map(ParamSpec::free)
-            .to_vec();
+        Theta {
+            th: vec![
+                f64::from(b.beta),
+                f64::from(b.gamma),
+                f64::from(b.n),
+                f64::from(m.k1_m_per_v),
+                f64::from(m.k2_m_per_h),
+                f64::from(m.offset_m),
+            ],
+            typ: vec![bg, bg, 1.0, k, k, stroke],
+            spec: ["beta", "gamma", "n", "k1_m_per_v", "k2_m_per_h", "offset_m"]
+                .map(ParamSpec::free)
+                .to_vec(),
+        }
+    }
+
+    /// The entries of θ of an added effect, appended to `theta`.
+    fn encode_effect(&self, kind: EffectKind, sc: Scales, theta: &mut Theta) {
         let e = &self.effects;
         let bd = &self.bounds;
         let ts = f64::from(self.sample_period_s);
-        let mut push = |t: f64, ty: f64, s: ParamSpec| {
-            th.push(t);
-            typ.push(ty);
-            spec.push(s);
-        };
-        for &kind in &self.added {
-            match kind {
-                EffectKind::Creep if self.creep_form == CreepForm::Logarithmic => push(
-                    f64::from(e.log_creep_gain_m_per_v),
-                    0.01 * k,
-                    ParamSpec::within(
-                        "log_creep_gain_m_per_v",
+        match kind {
+            EffectKind::Creep => self.encode_creep(sc, theta),
+            EffectKind::Drift => self.encode_drift(sc, theta),
+            EffectKind::Delay => theta.push(
+                f64::from(e.delay_s),
+                10.0 * ts,
+                ParamSpec::within("delay_s", kind, 0.0, bd.delay_max_s),
+            ),
+            EffectKind::Asymmetry => theta.push(
+                f64::from(e.even_coefficient_m_per_v2),
+                0.01 * f64::from(self.map.k1_m_per_v).abs() / sc.span,
+                ParamSpec::within(
+                    "even_coefficient_m_per_v2",
+                    kind,
+                    -bd.even_max_m_per_v2,
+                    bd.even_max_m_per_v2,
+                ),
+            ),
+            EffectKind::Dynamics => {
+                theta.push(
+                    f64::from(e.mode_frequency_hz).max(1e-9).ln(),
+                    10.0,
+                    ParamSpec::log_within(
+                        "mode_frequency_hz",
                         kind,
-                        -bd.log_creep_max_gain_m_per_v,
-                        bd.log_creep_max_gain_m_per_v,
+                        bd.mode_frequency_hz.0,
+                        bd.mode_frequency_hz.1,
                     ),
-                ),
-                EffectKind::Creep => {
-                    const G: [&str; 2] = ["creep_gain_m_per_v[0]", "creep_gain_m_per_v[1]"];
-                    const T: [&str; 2] = ["creep_time_constant_s[0]", "creep_time_constant_s[1]"];
-                    for i in 0..self.creep_elements {
-                        push(
-                            f64::from(e.creep_gain_m_per_v[i]),
-                            0.01 * k,
-                            ParamSpec::within(
-                                G[i],
-                                kind,
-                                -bd.creep_max_gain_m_per_v,
-                                bd.creep_max_gain_m_per_v,
-                            ),
-                        );
-                        push(
-                            f64::from(e.creep_time_constant_s[i]).max(1e-9).ln(),
-                            10.0,
-                            ParamSpec::log_within(T[i], kind, bd.creep_tau_s.0, bd.creep_tau_s.1),
-                        );
-                    }
-                }
-                EffectKind::Drift if self.drift_form == DriftForm::Settling => {
-                    push(
-                        f64::from(e.drift_settling_m),
-                        0.01 * stroke,
-                        ParamSpec::within(
-                            "drift_settling_m",
-                            kind,
-                            -bd.drift_max_m,
-                            bd.drift_max_m,
-                        ),
-                    );
-                    push(
-                        f64::from(e.drift_settling_time_constant_s).max(1e-9).ln(),
-                        10.0,
-                        ParamSpec::log_within(
-                            "drift_settling_time_constant_s",
-                            kind,
-                            bd.settling_tau_s.0,
-                            bd.settling_tau_s.1,
-                        ),
-                    );
-                }
-                EffectKind::Drift => {
-                    let max = bd.drift_max_m / bd.record_s;
-                    push(
-                        f64::from(e.drift_rate_m_per_s),
-                        0.01 * stroke,
-                        ParamSpec::within("drift_rate_m_per_s", kind, -max, max),
-                    );
-                }
-                EffectKind::Delay => push(
-                    f64::from(e.delay_s),
-                    10.0 * ts,
-                    ParamSpec::within("delay_s", kind, 0.0, bd.delay_max_s),
-                ),
-                EffectKind::Asymmetry => push(
-                    f64::from(e.even_coefficient_m_per_v2),
-                    0.01 * f64::from(m.k1_m_per_v).abs() / span,
-                    ParamSpec::within(
-                        "even_coefficient_m_per_v2",
+                );
+                theta.push(
+                    f64::from(e.mode_damping).max(1e-9).ln(),
+                    10.0,
+                    ParamSpec::log_within(
+                        "mode_damping",
                         kind,
-                        -bd.even_max_m_per_v2,
-                        bd.even_max_m_per_v2,
+                        bd.mode_damping.0,
+                        bd.mode_damping.1,
                     ),
-                ),
-                EffectKind::Dynamics => {
-                    push(
-                        f64::from(e.mode_frequency_hz).max(1e-9).ln(),
-                        10.0,
-                        ParamSpec::log_within(
-                            "mode_frequency_hz",
-                            kind,
-                            bd.mode_frequency_hz.0,
-                            bd.mode_frequency_hz.1,
-                        ),
-                    );
-                    push(
-                        f64::from(e.mode_damping).max(1e-9).ln(),
-                        10.0,
-                        ParamSpec::log_within(
-                            "mode_damping",
-                            kind,
-                            bd.mode_damping.0,
-                            bd.mode_damping.1,
-                        ),
-                    );
-                }
-                EffectKind::Coupling => push(
-                    f64::from(e.coupling),
-                    0.1,
-                    ParamSpec::within("coupling", kind, -bd.coupling_max, bd.coupling_max),
-                ),
+                );
             }
+            EffectKind::Coupling => theta.push(
+                f64::from(e.coupling),
+                0.1,
+                ParamSpec::within("coupling", kind, -bd.coupling_max, bd.coupling_max),
+            ),
         }
-        (th, typ, spec)
+    }
+
+    /// The creep's entries of θ: g_log, or (g_i, ln τ_i) per Kelvin–Voigt element.
+    fn encode_creep(&self, sc: Scales, theta: &mut Theta) {
+        let kind = EffectKind::Creep;
+        let e = &self.effects;
+        let bd = &self.bounds;
+        if self.creep_form == CreepForm::Logarithmic {
+            theta.push(
+                f64::from(e.log_creep_gain_m_per_v),
+                0.01 * sc.k,
+                ParamSpec::within(
+                    "log_creep_gain_m_per_v",
+                    kind,
+                    -bd.log_creep_max_gain_m_per_v,
+                    bd.log_creep_max_gain_m_per_v,
+                ),
+            );
+            return;
+        }
+        const G: [&str; 2] = ["creep_gain_m_per_v[0]", "creep_gain_m_per_v[1]"];
+        const T: [&str; 2] = ["creep_time_constant_s[0]", "creep_time_constant_s[1]"];
+        for i in 0..self.creep_elements {
+            theta.push(
+                f64::from(e.creep_gain_m_per_v[i]),
+                0.01 * sc.k,
+                ParamSpec::within(
+                    G[i],
+                    kind,
+                    -bd.creep_max_gain_m_per_v,
+                    bd.creep_max_gain_m_per_v,
+                ),
+            );
+            theta.push(
+                f64::from(e.creep_time_constant_s[i]).max(1e-9).ln(),
+                10.0,
+                ParamSpec::log_within(T[i], kind, bd.creep_tau_s.0, bd.creep_tau_s.1),
+            );
+        }
+    }
+
+    /// The drift's entries of θ: (A, ln τ) when settling, r when linear.
+    fn encode_drift(&self, sc: Scales, theta: &mut Theta) {
+        let kind = EffectKind::Drift;
+        let e = &self.effects;
+        let bd = &self.bounds;
+        if self.drift_form == DriftForm::Settling {
+            theta.push(
+                f64::from(e.drift_settling_m),
+                0.01 * sc.stroke,
+                ParamSpec::within("drift_settling_m", kind, -bd.drift_max_m, bd.drift_max_m),
+            );
+            theta.push(
+                f64::from(e.drift_settling_time_constant_s).max(1e-9).ln(),
+                10.0,
+                ParamSpec::log_within(
+                    "drift_settling_time_constant_s",
+                    kind,
+                    bd.settling_tau_s.0,
+                    bd.settling_tau_s.1,
+                ),
+            );
+        } else {
+            let max = bd.drift_max_m / bd.record_s;
+            theta.push(
+                f64::from(e.drift_rate_m_per_s),
+                0.01 * sc.stroke,
+                ParamSpec::within("drift_rate_m_per_s", kind, -max, max),
+            );
+        }
     }
 
     /// The model of θ (inverse of [`Self::encode`]); every entry is held inside its range.
@@ -607,6 +636,35 @@ impl AxisModel {
             })
             .collect()
     }
+}
+
+/// θ as [`AxisModel::encode`] builds it: the entries, their typical sizes and what each is.
+struct Theta {
+    /// The entries.
+    th: Vec<f64>,
+    /// Their typical sizes.
+    typ: Vec<f64>,
+    /// What each is.
+    spec: Vec<ParamSpec>,
+}
+
+impl Theta {
+    fn push(&mut self, th: f64, typ: f64, spec: ParamSpec) {
+        self.th.push(th);
+        self.typ.push(typ);
+        self.spec.push(spec);
+    }
+}
+
+/// The sizes of an axis model that θ's typical sizes are scaled by.
+#[derive(Clone, Copy)]
+struct Scales {
+    /// The larger of |k1| and |k2|.
+    k: f64,
+    /// The input range's span \[V\].
+    span: f64,
+    /// k times the span \[m\].
+    stroke: f64,
 }
 
 /// The data one axis is fitted on.

@@ -399,18 +399,26 @@ fn creep_restart(model: &AxisModel, fitted: &AxisModel, init: EffectInit) -> Opt
     Some(start)
 }
 
-/// Fits, judges and decides one candidate.
-#[allow(clippy::too_many_arguments)]
-fn try_candidate(
-    model: &AxisModel,
-    cand: &Candidate,
-    data: &FitData,
-    blocks: &[(usize, usize)],
-    held_without: &[f64],
+/// What a candidate is judged against: the fitted data, its held-out blocks, the current model's
+/// held-out and in-sample SSE, and the other run (`--validate`).
+struct Bench<'a> {
+    /// The data the candidate is fitted on.
+    data: &'a FitData<'a>,
+    /// The held-out blocks (cross-validation).
+    blocks: &'a [(usize, usize)],
+    /// The current model's held-out SSE per block.
+    held_without: &'a [f64],
+    /// The current model's SSE.
     sse0: f64,
-    run: Option<&OtherRun>,
-    t_s: &[f64],
-) -> Trial {
+    /// The run the candidate must not predict worse.
+    run: Option<&'a OtherRun>,
+    /// Times of the record \[s\].
+    t_s: &'a [f64],
+}
+
+/// Fits, judges and decides one candidate.
+fn try_candidate(model: &AxisModel, cand: &Candidate, bench: &Bench) -> Trial {
+    let (data, sse0) = (bench.data, bench.sse0);
     let n = data.fitted_count() as f64;
     let (mut fitted, mut sse1, _) = refit(&model.with_effect(cand.init), data, TRIAL_ITERATIONS);
     // A base fitted without creep has the creep's long-term gain in k1 (and its lag in the loop),
@@ -461,7 +469,7 @@ fn try_candidate(
                 },
                 ..cand.clone()
             };
-            return try_candidate(model, &single, data, blocks, held_without, sse0, run, t_s);
+            return try_candidate(model, &single, bench);
         }
     }
     if !sse1.is_finite() {
@@ -471,13 +479,13 @@ fn try_candidate(
     } else if sse1 >= sse0 {
         trial.decision = refuse(Refusal::NoInSampleGain);
     } else {
-        let with = held_out_sse(&trial.model, data, blocks);
-        let oos = OutOfSample::new(held_without, &with, blocks, t_s);
+        let with = held_out_sse(&trial.model, data, bench.blocks);
+        let oos = OutOfSample::new(bench.held_without, &with, bench.blocks, bench.t_s);
         let holds = oos.holds();
         trial.out_of_sample = Some(oos);
         if !holds {
             trial.decision = refuse(Refusal::NotOutOfSample);
-        } else if let Some(run) = run {
+        } else if let Some(run) = bench.run {
             let gain = RunGain {
                 rms_zeroed_without: run.rms_zeroed(model),
                 rms_zeroed_with: run.rms_zeroed(&trial.model),
@@ -503,6 +511,153 @@ struct AxisSearch {
     held_out_rms: (f64, f64),
 }
 
+/// One axis's search problem: the record, its fitted data and held-out blocks, the settings and
+/// the other run.
+struct Search<'a> {
+    /// Axis name (`x`, `y`).
+    name: &'a str,
+    /// The fitted record.
+    record: &'a Record,
+    /// The other axis's z (two-axis records).
+    other_z: Option<&'a [f64]>,
+    /// The run's settings.
+    s: &'a CloseLoopSettings,
+    /// The run candidates must not predict worse (`--validate`).
+    run: Option<&'a OtherRun>,
+    /// The data every model is fitted on.
+    data: FitData<'a>,
+    /// The held-out blocks (cross-validation).
+    blocks: Vec<(usize, usize)>,
+    /// Number of scored samples.
+    n_scored: f64,
+}
+
+impl Search<'_> {
+    /// y − ŷ over the scored samples.
+    fn residual(&self, sim: &Simulation) -> Vec<f64> {
+        (self.data.from..self.data.u.len())
+            .map(|k| self.record.y_m[k] - sim.y[k])
+            .collect()
+    }
+
+    /// The RMS over the scored samples of an SSE.
+    fn rms(&self, sse: f64) -> f64 {
+        (sse / self.n_scored).sqrt()
+    }
+
+    /// A progress line.
+    fn log(&self, msg: impl AsRef<str>) {
+        log(self.s.progress, format!("{}: {}", self.name, msg.as_ref()));
+    }
+
+    /// The effects allowed and not yet in `model` screened on the residual of its simulation `sim`,
+    /// best first.
+    fn screen(&self, model: &AxisModel, sim: &Simulation) -> Vec<Candidate> {
+        let remaining: Vec<EffectKind> = self
+            .s
+            .allowed
+            .iter()
+            .copied()
+            .filter(|e| !model.added.contains(e))
+            .filter(|e| *e != EffectKind::Coupling || self.other_z.is_some())
+            .collect();
+        let signals = Signals {
+            t_s: &self.record.t_s,
+            u: &self.record.u,
+            y: &self.record.y_m,
+            y_hat: &sim.y,
+            h: &sim.h,
+            other_y_hat: self.other_z,
+            from: self.data.from,
+            sample_period_s: self.record.sample_period_s(),
+        };
+        if remaining.is_empty() {
+            Vec::new()
+        } else {
+            screen(&signals, &remaining)
+        }
+    }
+
+    /// Each of `chosen` fitted and judged against `model` (SSE `current_sse`, held-out SSE
+    /// `held_without`).
+    fn trials(
+        &self,
+        model: &AxisModel,
+        chosen: &[&Candidate],
+        held_without: &[f64],
+        current_sse: f64,
+    ) -> Vec<Trial> {
+        let bench = Bench {
+            data: &self.data,
+            blocks: &self.blocks,
+            held_without,
+            sse0: current_sse,
+            run: self.run,
+            t_s: &self.record.t_s,
+        };
+        let mut trials = Vec::new();
+        for cand in chosen {
+            let started = Instant::now();
+            let trial = try_candidate(model, cand, &bench);
+            self.log(format!(
+                "{} ({:.1} s)",
+                trial.words(),
+                started.elapsed().as_secs_f64()
+            ));
+            trials.push(trial);
+        }
+        trials
+    }
+
+    /// An effect added earlier that `added` makes redundant (refitted without it, within 1 % RMS)
+    /// is taken out again, a step logged for each; returns the model and its SSE.
+    fn prune(
+        &self,
+        mut model: AxisModel,
+        mut current_sse: f64,
+        added: EffectKind,
+        floor: Floor,
+        steps: &mut Vec<Step>,
+    ) -> (AxisModel, f64) {
+        for kind in model.added.clone().into_iter().filter(|k| *k != added) {
+            let (pruned, sse_p, _) =
+                refit(&model.without_effect(kind), &self.data, TRIAL_ITERATIONS);
+            let rms_p = self.rms(sse_p);
+            if rms_p.is_finite() && rms_p < 1.01 * self.rms(current_sse) {
+                steps.push(Step {
+                    axis: self.name.into(),
+                    number: steps.len() + 1,
+                    rms_before: self.rms(current_sse),
+                    floor,
+                    screened: Vec::new(),
+                    trials: Vec::new(),
+                    outcome: StepOutcome::Removed {
+                        effect: kind,
+                        rms_without: rms_p,
+                    },
+                });
+                self.log(format!("removed {}", kind.name()));
+                model = pruned;
+                current_sse = sse_p;
+            }
+        }
+        (model, current_sse)
+    }
+}
+
+/// The trial that holds with the largest held-out gain.
+fn best_trial(trials: &[Trial]) -> Option<usize> {
+    trials
+        .iter()
+        .enumerate()
+        .filter(|(_, t)| t.decision == Decision::HoldsNotBest)
+        .max_by(|a, b| {
+            let g = |t: &Trial| t.out_of_sample.as_ref().map_or(0.0, |o| o.relative_gain);
+            g(a.1).total_cmp(&g(b.1))
+        })
+        .map(|(i, _)| i)
+}
+
 /// Runs the search on one axis; `other_z` is the other axis's z (two-axis records).
 fn close_axis(
     name: &str,
@@ -514,76 +669,54 @@ fn close_axis(
 ) -> Result<AxisSearch, String> {
     let from = record.index_at(s.start_s);
     let u: Vec<f32> = record.u.iter().map(|&v| v as f32).collect();
-    let data = FitData {
-        u: &u,
-        y: &record.y_m,
+    let search = Search {
+        name,
+        record,
         other_z,
-        from,
-        held_out: None,
+        s,
+        run,
+        data: FitData {
+            u: &u,
+            y: &record.y_m,
+            other_z,
+            from,
+            held_out: None,
+        },
+        blocks: folds(from, u.len()),
+        n_scored: (u.len() - from) as f64,
     };
-    let blocks = folds(from, u.len());
-    let ts = record.sample_period_s();
-    let n_scored = (u.len() - from) as f64;
-    let residual = |sim: &Simulation| -> Vec<f64> {
-        (from..u.len()).map(|k| record.y_m[k] - sim.y[k]).collect()
-    };
+    let (data, blocks) = (&search.data, &search.blocks);
     let mut model = base.clone();
     let mut sim = model.simulate(&u, other_z)?;
-    let noise_m = noise_estimate(&residual(&sim));
-    let mut current_sse = sse(&model, &data);
-    let base_held = held_out_sse(&model, &data, &blocks);
+    let noise_m = noise_estimate(&search.residual(&sim));
+    let mut current_sse = sse(&model, data);
+    let base_held = held_out_sse(&model, data, blocks);
     let mut held = Some(base_held.clone());
     let mut steps = Vec::new();
-    log(
-        s.progress,
-        format!(
-            "{name}: base model rms {:.4e} m, sensor noise estimate {noise_m:.4e} m",
-            (current_sse / n_scored).sqrt()
-        ),
-    );
+    search.log(format!(
+        "base model rms {:.4e} m, sensor noise estimate {noise_m:.4e} m",
+        search.rms(current_sse)
+    ));
     loop {
-        let r = residual(&sim);
         let floor = Floor {
-            residual: ResidualFigures::of(&r),
+            residual: ResidualFigures::of(&search.residual(&sim)),
             noise_m,
         };
-        let rms_before = (current_sse / n_scored).sqrt();
         let mut step = Step {
             axis: name.into(),
             number: steps.len() + 1,
-            rms_before,
+            rms_before: search.rms(current_sse),
             floor,
             screened: Vec::new(),
             trials: Vec::new(),
             outcome: StepOutcome::Stopped(Stop::NoiseFloor),
         };
         if floor.reached() {
-            log(s.progress, format!("{name}: {}", step.words()));
+            search.log(step.words());
             steps.push(step);
             break;
         }
-        let remaining: Vec<EffectKind> = s
-            .allowed
-            .iter()
-            .copied()
-            .filter(|e| !model.added.contains(e))
-            .filter(|e| *e != EffectKind::Coupling || other_z.is_some())
-            .collect();
-        let signals = Signals {
-            t_s: &record.t_s,
-            u: &record.u,
-            y: &record.y_m,
-            y_hat: &sim.y,
-            h: &sim.h,
-            other_y_hat: other_z,
-            from,
-            sample_period_s: ts,
-        };
-        let candidates = if remaining.is_empty() {
-            Vec::new()
-        } else {
-            screen(&signals, &remaining)
-        };
+        let candidates = search.screen(&model, &sim);
         step.screened = candidates
             .iter()
             .map(|c| (c.effect, c.init.form(), c.share, c.delta_bic))
@@ -599,43 +732,12 @@ fn close_axis(
             break;
         }
         let held_without = held
-            .get_or_insert_with(|| held_out_sse(&model, &data, &blocks))
+            .get_or_insert_with(|| held_out_sse(&model, data, blocks))
             .clone();
-        for cand in chosen {
-            let started = Instant::now();
-            let trial = try_candidate(
-                &model,
-                cand,
-                &data,
-                &blocks,
-                &held_without,
-                current_sse,
-                run,
-                &record.t_s,
-            );
-            log(
-                s.progress,
-                format!(
-                    "{name}: {} ({:.1} s)",
-                    trial.words(),
-                    started.elapsed().as_secs_f64()
-                ),
-            );
-            step.trials.push(trial);
-        }
-        let best = step
-            .trials
-            .iter()
-            .enumerate()
-            .filter(|(_, t)| t.decision == Decision::HoldsNotBest)
-            .max_by(|a, b| {
-                let g = |t: &Trial| t.out_of_sample.as_ref().map_or(0.0, |o| o.relative_gain);
-                g(a.1).total_cmp(&g(b.1))
-            })
-            .map(|(i, _)| i);
-        let Some(best) = best else {
+        step.trials = search.trials(&model, &chosen, &held_without, current_sse);
+        let Some(best) = best_trial(&step.trials) else {
             step.outcome = StepOutcome::Stopped(Stop::NothingHolds);
-            log(s.progress, format!("{name}: nothing holds"));
+            search.log("nothing holds");
             steps.push(step);
             break;
         };
@@ -647,37 +749,16 @@ fn close_axis(
         step.outcome = StepOutcome::Added {
             effect: chosen.effect,
             form: chosen.form.clone(),
-            rms_after: (current_sse / n_scored).sqrt(),
+            rms_after: search.rms(current_sse),
         };
         let added = chosen.effect;
-        log(s.progress, format!("{name}: added {}", chosen.label()));
+        search.log(format!("added {}", chosen.label()));
         steps.push(step);
-        // An effect added earlier that the new one makes redundant is taken out again.
-        for kind in model.added.clone().into_iter().filter(|k| *k != added) {
-            let (pruned, sse_p, _) = refit(&model.without_effect(kind), &data, TRIAL_ITERATIONS);
-            let rms_p = (sse_p / n_scored).sqrt();
-            if rms_p.is_finite() && rms_p < 1.01 * (current_sse / n_scored).sqrt() {
-                steps.push(Step {
-                    axis: name.into(),
-                    number: steps.len() + 1,
-                    rms_before: (current_sse / n_scored).sqrt(),
-                    floor,
-                    screened: Vec::new(),
-                    trials: Vec::new(),
-                    outcome: StepOutcome::Removed {
-                        effect: kind,
-                        rms_without: rms_p,
-                    },
-                });
-                log(s.progress, format!("{name}: removed {}", kind.name()));
-                model = pruned;
-                current_sse = sse_p;
-            }
-        }
+        (model, current_sse) = search.prune(model, current_sse, added, floor, &mut steps);
         sim = model.simulate(&u, other_z)?;
     }
-    let held_final = held.unwrap_or_else(|| held_out_sse(&model, &data, &blocks));
-    let rms_of = |v: &[f64]| (v.iter().sum::<f64>() / n_scored).sqrt();
+    let held_final = held.unwrap_or_else(|| held_out_sse(&model, data, blocks));
+    let rms_of = |v: &[f64]| (v.iter().sum::<f64>() / search.n_scored).sqrt();
     let held_out_rms = (rms_of(&base_held), rms_of(&held_final));
     Ok(AxisSearch {
         model,

@@ -2,9 +2,10 @@
 //! window (in time, against u, its amplitude spectrum) and the loops; with `--validate`, the same
 //! models' prediction of the validation window (measured and predicted in time, and the residuals).
 
-use super::{diagnose, Outcome};
+use super::stage::ValidationAxis;
+use super::{diagnose, AxisOutcome, Outcome, Validation};
 use crate::identify::Record;
-use crate::plot::{plot_panels, Chart, Panel, ReferenceLine, Series};
+use crate::plot::{plot_panels, AsChart, Chart, Panel, ReferenceLine, Series};
 use std::path::Path;
 
 fn pts(x: &[f64], y: &[f64]) -> Vec<(f64, f64)> {
@@ -23,99 +24,12 @@ pub fn write_plots(
     formats: &[&str],
 ) -> Result<Vec<String>, String> {
     std::fs::create_dir_all(dir).map_err(|e| format!("--plots {}: {e}", dir.display()))?;
-    let from = outcome.from;
     let mut written = Vec::new();
     for (i, a) in outcome.axes.iter().enumerate() {
-        let r = &records[i];
-        let ts = r.sample_period_s();
-        let res =
-            |p: &[f64]| -> Vec<f64> { (from..p.len()).map(|k| (r.y_m[k] - p[k]) * 1e6).collect() };
-        let rb = res(&a.before);
-        let ra = res(&a.after);
-        let t: Vec<f64> = r.t_s[from..].to_vec();
-        let u: Vec<f64> = r.u[from..].to_vec();
-        let spec = |v: &[f64]| -> Vec<(f64, f64)> {
-            diagnose::spectrum(v, ts)
-                .into_iter()
-                .filter(|p| p.0 > 0.0 && p.1 > 0.0)
-                .collect()
-        };
-        // The amplitude a white noise of the estimated σ gives in this spectrum (Hann window over
-        // N samples: 2σ·√(Σw²)/Σw = σ·√(6/N)) [µm].
-        let noise_floor_um = a.noise_m * 1e6 * (6.0 / rb.len().max(1) as f64).sqrt();
-        let effects: Vec<String> = a
-            .model
-            .added
-            .iter()
-            .map(|e| {
-                let form = a.model.form(*e);
-                if form.is_empty() {
-                    e.name().to_string()
-                } else {
-                    format!("{} ({form})", e.name())
-                }
-            })
-            .collect();
-        let after_name = format!(
-            "after (+ {})",
-            if effects.is_empty() {
-                "nothing".to_string()
-            } else {
-                effects.join(" + ")
-            }
-        );
-        let panels: Vec<Chart> = vec![
-            Panel {
-                title: format!("{}: residual in time (fit window)", a.name),
-                x_label: "t [s]".into(),
-                y_label: "residual [um]".into(),
-                series: vec![
-                    Series::line("before (base model)", pts(&t, &rb), 4000),
-                    Series::line(after_name.clone(), pts(&t, &ra), 4000),
-                ],
-            }
-            .into(),
-            Panel {
-                title: format!("{}: residual against the input", a.name),
-                x_label: "u [V]".into(),
-                y_label: "residual [um]".into(),
-                series: vec![
-                    Series::line("before", pts(&u, &rb), 4000),
-                    Series::line(after_name.clone(), pts(&u, &ra), 4000),
-                ],
-            }
-            .into(),
-            Panel {
-                title: format!("{}: residual amplitude spectrum", a.name),
-                x_label: "f [Hz]".into(),
-                y_label: "amplitude [µm]".into(),
-                series: vec![
-                    Series::line("before", spec(&rb), 1000),
-                    Series::line(after_name.clone(), spec(&ra), 1000),
-                ],
-            }
-            .log_log()
-            .reference_line(ReferenceLine::new(
-                format!("white noise of σ = {:.3} µm", a.noise_m * 1e6),
-                noise_floor_um,
-            )),
-            Panel {
-                title: format!("{}: loops", a.name),
-                x_label: "u [V]".into(),
-                y_label: format!("{} [µm]", a.name),
-                series: vec![
-                    Series::line("measured", pts(&u, &um(&r.y_m[from..])), 4000),
-                    Series::line("base model", pts(&u, &um(&a.before[from..])), 4000),
-                    Series::line(after_name.clone(), pts(&u, &um(&a.after[from..])), 4000),
-                ],
-            }
-            .into(),
-        ];
-        for ext in formats {
-            let path = dir.join(format!("close-loop-{}.{ext}", a.name));
-            plot_panels(&path, &panels).map_err(|e| e.to_string())?;
-            written.push(path.display().to_string());
-        }
+        let after_name = after_name(a);
+        let panels = fit_panels(a, &records[i], outcome.from, &after_name);
+        let stem = format!("close-loop-{}", a.name);
+        write_files(dir, &stem, formats, &panels, &mut written)?;
         let Some(v) = outcome
             .validation
             .as_ref()
@@ -124,44 +38,160 @@ pub fn write_plots(
             continue;
         };
         let (validation, va) = v;
-        let res =
-            |p: &[f64]| -> Vec<f64> { va.y.iter().zip(p).map(|(y, p)| (y - p) * 1e6).collect() };
-        let panels = vec![
-            Panel {
-                title: format!(
-                    "{}: validation window of {} (from {} s): measured and predicted",
-                    a.name, validation.data, validation.start_s
-                ),
-                x_label: "t [s]".into(),
-                y_label: "y [um]".into(),
-                series: vec![
-                    Series::line("measured", pts(&va.t_s, &um(&va.y)), 4000),
-                    Series::line("base model", pts(&va.t_s, &um(&va.before)), 4000),
-                    Series::line(after_name.clone(), pts(&va.t_s, &um(&va.after)), 4000),
-                ],
-            },
-            Panel {
-                title: format!(
-                    "{}: validation residual (rms {:.4} -> {:.4} um, zeroed {:.4} -> {:.4} um)",
-                    a.name,
-                    validation.before.rms * 1e6,
-                    validation.after.rms * 1e6,
-                    validation.before.rms_zeroed * 1e6,
-                    validation.after.rms_zeroed * 1e6
-                ),
-                x_label: "t [s]".into(),
-                y_label: "residual [um]".into(),
-                series: vec![
-                    Series::line("before (base model)", pts(&va.t_s, &res(&va.before)), 4000),
-                    Series::line(after_name.clone(), pts(&va.t_s, &res(&va.after)), 4000),
-                ],
-            },
-        ];
-        for ext in formats {
-            let path = dir.join(format!("close-loop-{}-validation.{ext}", a.name));
-            plot_panels(&path, &panels).map_err(|e| e.to_string())?;
-            written.push(path.display().to_string());
-        }
+        let panels = validation_panels(a, validation, va, &after_name);
+        let stem = format!("close-loop-{}-validation", a.name);
+        write_files(dir, &stem, formats, &panels, &mut written)?;
     }
     Ok(written)
+}
+
+/// `panels` into `dir`/`stem`.`ext` for each of `formats`; the files are appended to `written`.
+fn write_files<P: AsChart>(
+    dir: &Path,
+    stem: &str,
+    formats: &[&str],
+    panels: &[P],
+    written: &mut Vec<String>,
+) -> Result<(), String> {
+    for ext in formats {
+        let path = dir.join(format!("{stem}.{ext}"));
+        plot_panels(&path, panels).map_err(|e| e.to_string())?;
+        written.push(path.display().to_string());
+    }
+    Ok(())
+}
+
+/// The final model's name in the legends: "after (+ creep (Kelvin-Voigt, 1 element) + …)".
+fn after_name(a: &AxisOutcome) -> String {
+    let effects: Vec<String> = a
+        .model
+        .added
+        .iter()
+        .map(|e| {
+            let form = a.model.form(*e);
+            if form.is_empty() {
+                e.name().to_string()
+            } else {
+                format!("{} ({form})", e.name())
+            }
+        })
+        .collect();
+    format!(
+        "after (+ {})",
+        if effects.is_empty() {
+            "nothing".to_string()
+        } else {
+            effects.join(" + ")
+        }
+    )
+}
+
+/// The fit window of record `r` from sample `from`: the residual of the base and the final model in
+/// time, against u and as a spectrum, and the loops.
+fn fit_panels(a: &AxisOutcome, r: &Record, from: usize, after_name: &str) -> Vec<Chart> {
+    let ts = r.sample_period_s();
+    let res =
+        |p: &[f64]| -> Vec<f64> { (from..p.len()).map(|k| (r.y_m[k] - p[k]) * 1e6).collect() };
+    let rb = res(&a.before);
+    let ra = res(&a.after);
+    let t: Vec<f64> = r.t_s[from..].to_vec();
+    let u: Vec<f64> = r.u[from..].to_vec();
+    let spec = |v: &[f64]| -> Vec<(f64, f64)> {
+        diagnose::spectrum(v, ts)
+            .into_iter()
+            .filter(|p| p.0 > 0.0 && p.1 > 0.0)
+            .collect()
+    };
+    // The amplitude a white noise of the estimated σ gives in this spectrum (Hann window over
+    // N samples: 2σ·√(Σw²)/Σw = σ·√(6/N)) [µm].
+    let noise_floor_um = a.noise_m * 1e6 * (6.0 / rb.len().max(1) as f64).sqrt();
+    vec![
+        Panel {
+            title: format!("{}: residual in time (fit window)", a.name),
+            x_label: "t [s]".into(),
+            y_label: "residual [um]".into(),
+            series: vec![
+                Series::line("before (base model)", pts(&t, &rb), 4000),
+                Series::line(after_name, pts(&t, &ra), 4000),
+            ],
+        }
+        .into(),
+        Panel {
+            title: format!("{}: residual against the input", a.name),
+            x_label: "u [V]".into(),
+            y_label: "residual [um]".into(),
+            series: vec![
+                Series::line("before", pts(&u, &rb), 4000),
+                Series::line(after_name, pts(&u, &ra), 4000),
+            ],
+        }
+        .into(),
+        Panel {
+            title: format!("{}: residual amplitude spectrum", a.name),
+            x_label: "f [Hz]".into(),
+            y_label: "amplitude [µm]".into(),
+            series: vec![
+                Series::line("before", spec(&rb), 1000),
+                Series::line(after_name, spec(&ra), 1000),
+            ],
+        }
+        .log_log()
+        .reference_line(ReferenceLine::new(
+            format!("white noise of σ = {:.3} µm", a.noise_m * 1e6),
+            noise_floor_um,
+        )),
+        Panel {
+            title: format!("{}: loops", a.name),
+            x_label: "u [V]".into(),
+            y_label: format!("{} [µm]", a.name),
+            series: vec![
+                Series::line("measured", pts(&u, &um(&r.y_m[from..])), 4000),
+                Series::line("base model", pts(&u, &um(&a.before[from..])), 4000),
+                Series::line(after_name, pts(&u, &um(&a.after[from..])), 4000),
+            ],
+        }
+        .into(),
+    ]
+}
+
+/// The validation window of `validation`'s axis `va`: measured and predicted in time, and the
+/// residuals.
+fn validation_panels(
+    a: &AxisOutcome,
+    validation: &Validation,
+    va: &ValidationAxis,
+    after_name: &str,
+) -> Vec<Panel> {
+    let res = |p: &[f64]| -> Vec<f64> { va.y.iter().zip(p).map(|(y, p)| (y - p) * 1e6).collect() };
+    vec![
+        Panel {
+            title: format!(
+                "{}: validation window of {} (from {} s): measured and predicted",
+                a.name, validation.data, validation.start_s
+            ),
+            x_label: "t [s]".into(),
+            y_label: "y [um]".into(),
+            series: vec![
+                Series::line("measured", pts(&va.t_s, &um(&va.y)), 4000),
+                Series::line("base model", pts(&va.t_s, &um(&va.before)), 4000),
+                Series::line(after_name, pts(&va.t_s, &um(&va.after)), 4000),
+            ],
+        },
+        Panel {
+            title: format!(
+                "{}: validation residual (rms {:.4} -> {:.4} um, zeroed {:.4} -> {:.4} um)",
+                a.name,
+                validation.before.rms * 1e6,
+                validation.after.rms * 1e6,
+                validation.before.rms_zeroed * 1e6,
+                validation.after.rms_zeroed * 1e6
+            ),
+            x_label: "t [s]".into(),
+            y_label: "residual [um]".into(),
+            series: vec![
+                Series::line("before (base model)", pts(&va.t_s, &res(&va.before)), 4000),
+                Series::line(after_name, pts(&va.t_s, &res(&va.after)), 4000),
+            ],
+        },
+    ]
 }
