@@ -25,6 +25,7 @@ pub mod inverse_chain;
 pub mod math;
 pub mod metrics;
 pub mod oscillator;
+pub mod sensitivity;
 pub mod servo;
 pub mod static_model;
 
@@ -38,5 +39,6 @@ pub use inverse_chain::{
     compensate_pair, compensate_single, FeedforwardAxis, FeedforwardCounts, InverseChain,
 };
 pub use oscillator::{HystereticOscillator, OscillatorParams, OscillatorState};
+pub use sensitivity::{static_sensitivities, SENSITIVITY_PARAMETERS};
 pub use servo::{Servo, ServoMode, ServoOutput, ServoParams, ServoState, ServoStatus};
 pub use static_model::{Asymmetry, ModelState, StaticMap, StaticModel, ASYMMETRIC_STATE_FACTOR};

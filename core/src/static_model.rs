@@ -269,6 +269,11 @@ impl StaticModel {
             + self.map.k2_m_per_h * ((1.0 - self.shift_fraction) * dh_du + self.delta_half_step * s)
     }
 
+    /// The sample period the asymmetric terms were discretised at \[s\] (0 for the symmetric model).
+    pub fn sample_period_s(&self) -> f32 {
+        self.sample_period_s
+    }
+
     /// The largest |h| the model's state can take: the Bouc-Wen bound, times
     /// [`ASYMMETRIC_STATE_FACTOR`] when δ ≠ 0.
     pub fn state_limit(&self) -> f32 {

@@ -22,11 +22,14 @@
 //!    generation evaluated in parallel (rayon). A trial's simulation stops as soon as the projected
 //!    SSE of the samples seen so far exceeds its parent's SSE (a lower bound of its own, so the
 //!    selection is the same as with the whole record).
-//! 2. Levenberg–Marquardt on the full record from the DE optimum: forward-difference Jacobian of the
-//!    projected residual (each column one core simulation, in parallel, into buffers allocated once per
-//!    run), Marquardt scaling, every trial point evaluated by the same projected objective; it stops
-//!    when an iteration fails to improve or two in a row gain less than 0.1·SSE/N (a tenth of the
-//!    residual variance: below the parameters' one-σ significance).
+//! 2. Levenberg–Marquardt on the full record from the DE optimum. The static models take the exact
+//!    Jacobian of the projected residual in Kaufman's form, J = −P⊥·k2·∂h/∂θ, from one pass of the
+//!    core's forward sensitivities ([`piezo_core::sensitivity`]: ∂h/∂(β, γ, n, δ, φ) along the input
+//!    path, chained to θ), run beside the base point's simulation; the dynamic model a
+//!    forward-difference Jacobian (each column one core simulation, in parallel, into buffers
+//!    allocated once per run). Marquardt scaling, every trial point evaluated by the same projected
+//!    objective; it stops when an iteration fails to improve or two in a row gain less than
+//!    0.1·SSE/N (a tenth of the residual variance: below the parameters' one-σ significance).
 //!
 //! The optimisers record their best θ after every DE generation and LM iteration
 //! ([`Problem::trace`]), so that `benches/identify.rs` can report the time to fitness.
@@ -35,6 +38,7 @@
 #![allow(clippy::needless_range_loop)]
 
 use super::model::{bouc_wen, CoreModel, Identified, ModelKind};
+use piezo_core::{static_sensitivities, SENSITIVITY_PARAMETERS};
 use piezo_core::{
     Asymmetry, BoucWenParams, Compensator, CompensatorSettings, DynamicModel,
     MassSpringDamperParams, StaticMap, StaticModel,
@@ -459,6 +463,111 @@ impl Problem {
     fn scored(&self) -> usize {
         self.u.len().saturating_sub(self.score_from)
     }
+
+    /// The static model's state and its sensitivities to (β, γ, n, δ, φ) at θ along the whole record
+    /// into `work` (record length); false for the dynamic model or an unbuildable θ.
+    fn sensitivities(
+        &self,
+        theta: &[f64],
+        work: &mut (Vec<f64>, Vec<[f64; SENSITIVITY_PARAMETERS]>),
+    ) -> bool {
+        let Some(CoreModel::Static(model)) = self.basis_model(theta, 1) else {
+            return false;
+        };
+        self.evaluations.fetch_add(1, Ordering::Relaxed);
+        static_sensitivities(&model, &self.u, &mut work.0, &mut work.1);
+        true
+    }
+
+    /// ∂(β, γ, n, δ, φ)/∂θ_j of the static models' search coordinates (module doc): with
+    /// H = U·10^θ0, b = H^(−n), β = b·(1 + r)/2, γ = b·(1 − r)/2, δ = d·H/(U·T_rec), φ = p·T.
+    fn parameter_jacobian(&self, theta: &[f64]) -> [[f64; 8]; SENSITIVITY_PARAMETERS] {
+        let mut d = [[0.0; 8]; SENSITIVITY_PARAMETERS];
+        let ln10 = std::f64::consts::LN_10;
+        let (n, r) = (theta[2], theta[1]);
+        let h = self.span() * 10f64.powf(theta[0]);
+        let b = h.powf(-n);
+        let (db0, db2) = (-n * ln10 * b, -h.ln() * b);
+        d[0][0] = 0.5 * (1.0 + r) * db0;
+        d[0][1] = 0.5 * b;
+        d[0][2] = 0.5 * (1.0 + r) * db2;
+        d[1][0] = 0.5 * (1.0 - r) * db0;
+        d[1][1] = -0.5 * b;
+        d[1][2] = 0.5 * (1.0 - r) * db2;
+        d[2][2] = 1.0;
+        if self.kind == ModelKind::Asymmetric {
+            let duration = self.sample_period_s * self.u.len() as f64;
+            let per_d = h / (self.span() * duration);
+            d[3][0] = theta[3] * per_d * ln10;
+            d[3][3] = per_d;
+            if self.fit_shift {
+                d[4][4] = self.sample_period_s;
+            }
+        }
+        d
+    }
+
+    /// The Gauss–Newton normal equations (JᵀJ, Jᵀr) of the projected residual at θ from the static
+    /// model's forward sensitivities ([`piezo_core::sensitivity`]), Kaufman's form of the variable
+    /// projection Jacobian: J = −P⊥·C with C_j = k2·∂h/∂θ_j (normalised units) and P⊥ the projector
+    /// off the basis (u, h, 1), so JᵀJ = CᵀC − (ΦᵀC)ᵀ·(ΦᵀΦ)⁻¹·(ΦᵀC) and Jᵀr = −Cᵀr (Φᵀr = 0).
+    /// `basis` and `resid` are the base point's (from [`Problem::evaluate`]), `lin` its linear
+    /// parameters, `sens` the sensitivities from [`Problem::sensitivities`]. `None` when not finite.
+    fn sensitivity_normal_equations(
+        &self,
+        theta: &[f64],
+        lin: &[f64; 3],
+        basis: &[[f64; 3]],
+        resid: &[f64],
+        sens: &[[f64; SENSITIVITY_PARAMETERS]],
+    ) -> Option<(Vec<Vec<f64>>, Vec<f64>)> {
+        let dim = theta.len();
+        let dp = self.parameter_jacobian(theta);
+        let m = self.scored();
+        let mut ctc = vec![vec![0.0f64; dim]; dim];
+        let mut ctr = vec![0.0f64; dim];
+        let mut phic = [[0.0f64; 8]; 3];
+        let mut g = [[0.0f64; 3]; 3];
+        for k in 0..m {
+            let s = &sens[self.score_from + k];
+            let mut c = [0.0f64; 8];
+            for j in 0..dim {
+                let dh: f64 = (0..SENSITIVITY_PARAMETERS).map(|i| s[i] * dp[i][j]).sum();
+                c[j] = lin[1] * dh;
+            }
+            let phi = &basis[k];
+            for a in 0..dim {
+                ctr[a] += c[a] * resid[k];
+                for b in a..dim {
+                    ctc[a][b] += c[a] * c[b];
+                }
+                for i in 0..3 {
+                    phic[i][a] += phi[i] * c[a];
+                }
+            }
+            for i in 0..3 {
+                for l in 0..3 {
+                    g[i][l] += phi[i] * phi[l];
+                }
+            }
+        }
+        let mut jtj = vec![vec![0.0f64; dim]; dim];
+        for a in 0..dim {
+            let col: [f64; 3] = std::array::from_fn(|i| phic[i][a]);
+            let projected = solve(&g, &col, 3)?;
+            for b in a..dim {
+                let v = ctc[a][b] - (0..3).map(|i| projected[i] * phic[i][b]).sum::<f64>();
+                jtj[a][b] = v;
+                jtj[b][a] = v;
+            }
+        }
+        let jtr = ctr.iter().map(|v| -v).collect();
+        jtj.iter()
+            .flatten()
+            .chain(&jtr)
+            .all(|v| v.is_finite())
+            .then_some((jtj, jtr))
+    }
 }
 
 /// Simulates `model` on `u` from rest, calling `visit(k, y_k)` until it returns false.
@@ -678,8 +787,8 @@ pub fn differential_evolution(
     (x[best].clone(), f[best])
 }
 
-/// Levenberg–Marquardt on the full record from `theta` (forward-difference Jacobian of the projected
-/// residual, columns in parallel).
+/// Levenberg–Marquardt on the full record from `theta` (module doc: sensitivity Jacobian for the
+/// static models, forward differences for the dynamic one).
 pub fn levenberg_marquardt(
     problem: &Problem,
     bounds: &[(f64, f64)],
@@ -692,6 +801,10 @@ pub fn levenberg_marquardt(
     // Buffers for the base point and every column: allocated once per run, reused every iteration.
     let mut resid: Vec<Vec<f64>> = vec![vec![0.0; m]; dim + 1];
     let mut basis: Vec<Vec<[f64; 3]>> = vec![vec![[0.0; 3]; m]; dim + 1];
+    let mut work = (
+        vec![0.0; problem.u.len()],
+        vec![[0.0; SENSITIVITY_PARAMETERS]; problem.u.len()],
+    );
     let clampv = |t: &mut Vec<f64>| {
         for (v, &(lo, hi)) in t.iter_mut().zip(bounds) {
             *v = v.clamp(lo, hi);
@@ -709,54 +822,31 @@ pub fn levenberg_marquardt(
     let mut small_steps = 0;
     for _ in 0..iterations {
         progress.inc(1);
-        let steps: Vec<f64> = theta
-            .iter()
-            .zip(bounds)
-            .map(|(&v, &(_, hi))| {
-                let h = 1e-4 * (1.0 + v.abs());
-                if v + h > hi {
-                    -h
-                } else {
-                    h
-                }
-            })
-            .collect();
-        let base_f: Vec<f64> = resid
-            .par_iter_mut()
-            .zip(basis.par_iter_mut())
-            .enumerate()
-            .map(|(j, (r, b))| {
-                let mut t = theta.clone();
-                if j > 0 {
-                    t[j - 1] += steps[j - 1];
-                }
-                problem.evaluate(&t, 1, Some((r, b)), f64::INFINITY).sse
-            })
-            .collect();
-        if base_f.iter().any(|v| !v.is_finite()) {
-            break;
-        }
-        // J_j = (r_j − r_0)/h_j; normal equations.
-        let mut jtj = vec![vec![0.0f64; dim]; dim];
-        let mut jtr = vec![0.0f64; dim];
-        for k in 0..m {
-            let r0 = resid[0][k];
-            let mut col = [0.0f64; 8];
-            for j in 0..dim {
-                col[j] = (resid[j + 1][k] - r0) / steps[j];
+        let normal = if problem.kind == ModelKind::Dynamic {
+            None
+        } else {
+            // The base point and the sensitivity pass, side by side.
+            let (r0, b0) = (&mut resid[0], &mut basis[0]);
+            let (base, have) = rayon::join(
+                || problem.evaluate(&theta, 1, Some((r0, b0)), f64::INFINITY),
+                || problem.sensitivities(&theta, &mut work),
+            );
+            if !base.sse.is_finite() || !have {
+                break;
             }
-            for a in 0..dim {
-                jtr[a] += col[a] * r0;
-                for b in a..dim {
-                    jtj[a][b] += col[a] * col[b];
-                }
+            problem.sensitivity_normal_equations(&theta, &base.lin, &basis[0], &resid[0], &work.1)
+        };
+        let (jtj, jtr) = match normal {
+            Some(ne) => ne,
+            None => {
+                let Some(ne) =
+                    difference_normal_equations(problem, &theta, bounds, &mut resid, &mut basis)
+                else {
+                    break;
+                };
+                ne
             }
-        }
-        for a in 0..dim {
-            for b in 0..a {
-                jtj[a][b] = jtj[b][a];
-            }
-        }
+        };
         let mut improved = false;
         for _ in 0..10 {
             let mut aug: Vec<Vec<f64>> = (0..dim)
@@ -798,6 +888,69 @@ pub fn levenberg_marquardt(
         }
     }
     (theta, f)
+}
+
+/// The normal equations (JᵀJ, Jᵀr) of the projected residual at θ from a forward-difference
+/// Jacobian: each column one core simulation (in parallel) into `resid`/`basis` (the base point's
+/// first). For the dynamic model, whose sensitivities the core does not give.
+fn difference_normal_equations(
+    problem: &Problem,
+    theta: &[f64],
+    bounds: &[(f64, f64)],
+    resid: &mut [Vec<f64>],
+    basis: &mut [Vec<[f64; 3]>],
+) -> Option<(Vec<Vec<f64>>, Vec<f64>)> {
+    let dim = theta.len();
+    let m = problem.scored();
+    let steps: Vec<f64> = theta
+        .iter()
+        .zip(bounds)
+        .map(|(&v, &(_, hi))| {
+            let h = 1e-4 * (1.0 + v.abs());
+            if v + h > hi {
+                -h
+            } else {
+                h
+            }
+        })
+        .collect();
+    let base_f: Vec<f64> = resid
+        .par_iter_mut()
+        .zip(basis.par_iter_mut())
+        .enumerate()
+        .map(|(j, (r, b))| {
+            let mut t = theta.to_vec();
+            if j > 0 {
+                t[j - 1] += steps[j - 1];
+            }
+            problem.evaluate(&t, 1, Some((r, b)), f64::INFINITY).sse
+        })
+        .collect();
+    if base_f.iter().any(|v| !v.is_finite()) {
+        return None;
+    }
+    // J_j = (r_j − r_0)/h_j; normal equations.
+    let mut jtj = vec![vec![0.0f64; dim]; dim];
+    let mut jtr = vec![0.0f64; dim];
+    for k in 0..m {
+        let r0 = resid[0][k];
+        let mut col = [0.0f64; 8];
+        for j in 0..dim {
+            col[j] = (resid[j + 1][k] - r0) / steps[j];
+        }
+        for a in 0..dim {
+            jtr[a] += col[a] * r0;
+            for b in a..dim {
+                jtj[a][b] += col[a] * col[b];
+            }
+        }
+    }
+    for a in 0..dim {
+        for b in 0..a {
+            jtj[a][b] = jtj[b][a];
+        }
+    }
+    Some((jtj, jtr))
 }
 
 /// Seed 001's genetic algorithm as published: population 30, 100 generations, crossover 0.7,
