@@ -12,7 +12,8 @@
 //! firmware, the host simulation and the identification all call its f32 step. A reference that
 //! called the same step could not disagree with it, so a test against it could not fail. This crate
 //! has its own Bouc-Wen law, its own integrator (variable step in time, not the core's exact
-//! increments along the input path), its own mechanics, all in f64; its `Cargo.toml` lists neither
+//! increments along the input path; over input holds, exact matrix exponentials in f64),
+//! its own mechanics, all in f64; its `Cargo.toml` lists neither
 //! `piezo-core` nor `piezo-stage`, so Cargo, not a comment, keeps it independent
 //! (`cargo tree -p piezo-reference` shows no `piezo-*` crate). The dependency runs one way only: the
 //! tools in `host-sim` use this crate, this crate uses nothing of theirs.
@@ -35,7 +36,10 @@
 //!   (sine, multisine, chirp, triangle, ramp-edged square, raster, staircase, steps, CSV data), and
 //!   the `kind:key=value,...` spec parser.
 //! - [`sim`]: [`sim::simulate`] — integrates the joint state (amplifier, plant, creep) between
-//!   sample instants and breakpoints, then applies the sensor-side effects.
+//!   sample instants and breakpoints, then applies the sensor-side effects; over the holds of
+//!   zero-order-hold inputs to a plant that is linear between jumps it propagates exactly instead.
+//! - [`hold`]: that exact propagation, x ← x + Ψ(Δ)·ẋ with Ψ(Δ) = ∫₀^Δ e^{As} ds from a
+//!   scaling-and-squaring Padé matrix exponential, cached per hold length.
 //! - [`csv`]: CSV files of sampled signals with the unit in every column name (`t_s`, `u_V`, `y_m`),
 //!   read by the CSV signals and written by simulations.
 //!
@@ -55,6 +59,7 @@
 pub mod bouc_wen;
 pub mod csv;
 pub mod effects;
+pub mod hold;
 pub mod ode;
 pub mod plant;
 pub mod signal;

@@ -9,6 +9,7 @@
 use std::f64::consts::PI;
 use std::fmt;
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 /// A scalar input signal in volts.
 pub trait Signal: Send + Sync {
@@ -174,11 +175,36 @@ impl Signal for Multisine {
 }
 
 /// Piecewise-linear signal through knots (t_i, u_i); constant outside. With `hold` it is a zero-order hold.
-#[derive(Debug, Clone, PartialEq)]
+///
+/// The knot search starts from the segment the previous query found (a cursor hint), so the
+/// sequential queries of an integrator cost O(1) instead of a binary search; the result does not
+/// depend on the hint.
+#[derive(Debug)]
 pub struct Piecewise {
     times_s: Vec<f64>,
     values_v: Vec<f64>,
     zero_order_hold: bool,
+    /// The knot count ≤ t of the last query (a hint only: any value gives the same result).
+    cursor: AtomicUsize,
+}
+
+impl Clone for Piecewise {
+    fn clone(&self) -> Self {
+        Self {
+            times_s: self.times_s.clone(),
+            values_v: self.values_v.clone(),
+            zero_order_hold: self.zero_order_hold,
+            cursor: AtomicUsize::new(self.cursor.load(Ordering::Relaxed)),
+        }
+    }
+}
+
+impl PartialEq for Piecewise {
+    fn eq(&self, other: &Self) -> bool {
+        self.times_s == other.times_s
+            && self.values_v == other.values_v
+            && self.zero_order_hold == other.zero_order_hold
+    }
 }
 
 impl Piecewise {
@@ -204,6 +230,7 @@ impl Piecewise {
             times_s,
             values_v,
             zero_order_hold,
+            cursor: AtomicUsize::new(0),
         })
     }
     /// Knot times, s.
@@ -216,11 +243,19 @@ impl Signal for Piecewise {
     fn eval(&self, t: f64, left: bool) -> (f64, f64) {
         let ts = &self.times_s;
         // Segment index i: ts[i] <= t < ts[i+1] (right) or ts[i] < t <= ts[i+1] (left).
-        let idx = if left {
-            ts.partition_point(|&b| b < t)
+        let before = |b: f64| if left { b < t } else { b <= t };
+        // idx = the number of knots `before` t (the partition point), tried at the hint and the
+        // next knot first.
+        let is_idx = |i: usize| (i == 0 || before(ts[i - 1])) && (i == ts.len() || !before(ts[i]));
+        let hint = self.cursor.load(Ordering::Relaxed).min(ts.len());
+        let idx = if is_idx(hint) {
+            hint
+        } else if hint < ts.len() && is_idx(hint + 1) {
+            hint + 1
         } else {
-            ts.partition_point(|&b| b <= t)
+            ts.partition_point(|&b| before(b))
         };
+        self.cursor.store(idx, Ordering::Relaxed);
         if idx == 0 {
             return (self.values_v[0], 0.0);
         }
@@ -867,6 +902,32 @@ mod tests {
         assert_eq!(s.value(2e-5), 7.8335);
         assert_eq!(s.value(9e-5), 0.0);
         assert!((s.eval(5e-5 + 1e-6, false).1 + slope).abs() < 1e-6 * slope);
+    }
+
+    #[test]
+    fn piecewise_cursor_gives_the_binary_search_result_in_any_order() {
+        let times: Vec<f64> = (0..50).map(|k| k as f64 * 0.1).collect();
+        let values: Vec<f64> = (0..50).map(|k| ((k * 37) % 11) as f64).collect();
+        for hold in [true, false] {
+            let s = Piecewise::new(times.clone(), values.clone(), hold).unwrap();
+            let reference = |t: f64, left: bool| {
+                let fresh = Piecewise::new(times.clone(), values.clone(), hold).unwrap();
+                fresh.eval(t, left)
+            };
+            // Forward, backward and scattered queries, on knots and between them, both limits.
+            let mut queries: Vec<f64> = (-3..60).map(|k| k as f64 * 0.05).collect();
+            queries.extend((-3..60).rev().map(|k| k as f64 * 0.1));
+            queries.extend((0..200).map(|k| ((k * 7919) % 613) as f64 * 0.01 - 0.5));
+            for &t in &queries {
+                for left in [false, true] {
+                    assert_eq!(
+                        s.eval(t, left),
+                        reference(t, left),
+                        "t = {t}, left = {left}"
+                    );
+                }
+            }
+        }
     }
 
     #[test]

@@ -13,6 +13,23 @@ pub use nac2024::{Nac2024, SecondMode};
 pub use stage::{AsymmetricStage, StageCase};
 pub use xy_stage::{XyAxis, XyStage};
 
+/// The linear form of a plant while every input is held (zero-order hold, u̇ = 0), for the exact
+/// propagation over holds of [`crate::sim`] (see [`crate::hold`]).
+///
+/// With the inputs held, the plant's right-hand side must be f(x) = A·x + g with g constant over the
+/// hold (g may depend on the held inputs and on the states the hold freezes), and its free
+/// displacement ([`Plant::free_displacement`]) F·x + const. The states a hold freezes (the
+/// hysteresis states: ḣ = 0 when u̇ = 0) have zero rows in A; their columns may be anything,
+/// zero included, since their contribution to f is constant over the hold. A and F must not depend on
+/// the held input values.
+#[derive(Debug, Clone, PartialEq)]
+pub struct HeldLinear {
+    /// A, state_dim × state_dim, row-major.
+    pub a: Vec<f64>,
+    /// F, outputs × state_dim, row-major: ∂(free displacement)/∂x during a hold.
+    pub free_displacement: Vec<f64>,
+}
+
 /// Input values seen by a plant at any time (needed by plants with an input time shift).
 pub trait InputAt {
     /// (u in V, u̇ in V/s) of input `channel` at `t_s`.
@@ -129,6 +146,12 @@ pub trait Plant: Send + Sync {
     /// Checks a state during simulation.
     fn check_state(&self, _x: &[f64]) -> Result<(), PlantError> {
         Ok(())
+    }
+    /// The plant's linear form while every input is held ([`HeldLinear`]), or `None` when the plant is
+    /// not linear between input jumps (the default): [`crate::sim::simulate`] then integrates every
+    /// segment with the adaptive Dormand–Prince pair.
+    fn held_input_linear(&self) -> Option<HeldLinear> {
+        None
     }
     /// Adds an electrostrictive quadratic term: the linear drive k·u becomes k·(u + e·u²), `e` in 1/V.
     fn set_electrostriction(&mut self, per_v: f64);

@@ -15,7 +15,7 @@
 //! ẍ2 + 2ζ2ω2ẋ2 + ω2²·x2 = ω2²·r2·(k1·u + h)/k0; the output is x + x2. The paper attributes its loss of
 //! fit above 140 kHz to the limits of a second-order model; this is the effect a single-mode model lacks.
 
-use super::{drive, InputAt, Plant, PlantError};
+use super::{drive, HeldLinear, InputAt, Plant, PlantError};
 use crate::bouc_wen::BoucWen;
 
 /// A second resonance mode added to the output.
@@ -161,6 +161,26 @@ impl Plant for Nac2024 {
             });
         }
         Ok(())
+    }
+    /// With u held the force k1·u + h is constant (h frozen): ẋ = v, v̇ = (force − c0·v − k0·(x − x0))/m0
+    /// and, with the second mode, ẍ2 = ω2²·(r2·force/k0 − x2) − 2ζ2ω2·ẋ2; the free displacement
+    /// (k1·u + h)/k0 is constant (F = 0).
+    fn held_input_linear(&self) -> Option<HeldLinear> {
+        let n = self.state_dim();
+        let mut a = vec![0.0; n * n];
+        a[1] = 1.0;
+        a[n] = -self.stiffness_n_per_m / self.mass_kg;
+        a[n + 1] = -self.damping_kg_per_s / self.mass_kg;
+        if let Some(m) = self.second_mode {
+            let w = 2.0 * std::f64::consts::PI * m.frequency_hz;
+            a[3 * n + 4] = 1.0;
+            a[4 * n + 3] = -w * w;
+            a[4 * n + 4] = -2.0 * m.damping_ratio * w;
+        }
+        Some(HeldLinear {
+            a,
+            free_displacement: vec![0.0; n],
+        })
     }
     fn set_electrostriction(&mut self, per_v: f64) {
         self.electrostriction_per_v = per_v;

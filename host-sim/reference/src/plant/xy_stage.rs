@@ -52,7 +52,7 @@
 //! y = k1·u + k2·h has no (1 + a·u)·h term, so the demo's compensator built from the plant's stack
 //! parameters, and the firmware's parameter file copied from them, would no longer match the plant.
 
-use super::{drive, InputAt, Plant, PlantError};
+use super::{drive, HeldLinear, InputAt, Plant, PlantError};
 use crate::bouc_wen::BoucWen;
 
 /// One axis: lever-amplified flexure chain driven by one stack.
@@ -422,6 +422,29 @@ impl Plant for XyStage {
             });
         }
         Ok(())
+    }
+    /// Per axis, with u held: η is constant (it depends on u and the frozen h only), so
+    /// q̇ = v, v̇ = M⁻¹·(f·η − K·q − τd·K·v), ḣ = 0; the free displacement G·d·(1 + a·u)·(u − h) is
+    /// constant (F = 0). This holds for the field-dependent variant and with electrostriction too.
+    fn held_input_linear(&self) -> Option<HeldLinear> {
+        let n = self.state_dim();
+        let mut a = vec![0.0; n * n];
+        for (axis, m) in self.models.iter().enumerate() {
+            let o = axis * 9;
+            for i in 0..4 {
+                a[(o + i) * n + o + 4 + i] = 1.0;
+                for j in 0..4 {
+                    // ∂v̇_i/∂q_j = −(M⁻¹·K)_ij, ∂v̇_i/∂v_j = −τd·(M⁻¹·K)_ij.
+                    let mk: f64 = (0..4).map(|l| m.minv[i][l] * m.k[l][j]).sum();
+                    a[(o + 4 + i) * n + o + j] = -mk;
+                    a[(o + 4 + i) * n + o + 4 + j] = -m.tau * mk;
+                }
+            }
+        }
+        Some(HeldLinear {
+            a,
+            free_displacement: vec![0.0; 2 * n],
+        })
     }
     fn set_electrostriction(&mut self, per_v: f64) {
         self.electrostriction_per_v = per_v;
