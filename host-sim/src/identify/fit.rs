@@ -21,7 +21,11 @@
 //!    hysteresis is rate-independent, so the decimated input path gives nearly the same h), each
 //!    generation evaluated in parallel (rayon). A trial's simulation stops as soon as the projected
 //!    SSE of the samples seen so far exceeds its parent's SSE (a lower bound of its own, so the
-//!    selection is the same as with the whole record).
+//!    selection is the same as with the whole record). The screening integrates the general-n
+//!    Bouc-Wen path with RK4 sub-steps of J·Δu ≤ 0.5 instead of the core's 0.1
+//!    ([`piezo_core::BoucWen::with_substep_target`]: about 2.6e-4 of the state scale per sub-step):
+//!    a stiff candidate set (small H, large n) costs sub-steps in proportion to its J along the
+//!    input path, whatever the decimation, and such sets were most of the search's time.
 //! 2. Levenberg–Marquardt on the full record from the DE optimum. The static models take the exact
 //!    Jacobian of the projected residual in Kaufman's form, J = −P⊥·k2·∂h/∂θ, from one pass of the
 //!    core's forward sensitivities ([`piezo_core::sensitivity`]: ∂h/∂(β, γ, n, δ, φ) along the input
@@ -49,6 +53,10 @@ use rayon::prelude::*;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Mutex;
 use std::time::Instant;
+
+/// `J·Δu` per RK4 sub-step of the general-n Bouc-Wen path while differential evolution screens
+/// on the decimated record (the core's default, used for the full record, is 0.1).
+const SCREENING_SUBSTEP_TARGET: f32 = 0.5;
 
 /// One point of an optimiser's progress: the best θ after a DE generation or an LM iteration.
 #[derive(Debug, Clone)]
@@ -228,6 +236,12 @@ impl Problem {
         match self.kind {
             ModelKind::Symmetric | ModelKind::Asymmetric => {
                 let bw = bouc_wen(self.bouc_wen_of(theta, 1.0), self.input_range_v).ok()?;
+                // The decimated record (differential evolution) screens with coarser sub-steps.
+                let bw = if stride > 1 {
+                    bw.with_substep_target(SCREENING_SUBSTEP_TARGET).ok()?
+                } else {
+                    bw
+                };
                 let map = StaticMap {
                     k1_m_per_v: 0.0,
                     k2_m_per_h: 1.0,
