@@ -6,7 +6,7 @@ use crate::csv::write_csv;
 use crate::effects::Effects;
 use crate::plant::PlantKind;
 use crate::signal::SignalSpec;
-use crate::sim::{simulate, SimSettings};
+use crate::sim::{simulate, SimOutput, SimSettings};
 use std::path::PathBuf;
 
 /// Arguments of `simulate`.
@@ -60,12 +60,26 @@ pub fn simulate_cmd(a: &SimulateArgs) -> Result<String, String> {
         crate::plot::plot_simulation(path, &out, p.name()).map_err(|e| format!("--plot: {e}"))?;
     }
     Ok(format!(
-        "{}: {} samples at {} Hz written to {} ({} steps, {} rejected)",
+        "{}: {} samples at {} Hz written to {} ({})",
         p.name(),
         out.t_s.len(),
         settings.sample_rate_hz,
         a.out.display(),
-        out.stats.accepted,
-        out.stats.rejected
+        propagation(&out)
     ))
+}
+
+/// How the run moved its state: holds propagated exactly, Dormand–Prince steps, or both.
+fn propagation(out: &SimOutput) -> String {
+    let steps = format!(
+        "{} integrator steps, {} rejected",
+        out.stats.accepted, out.stats.rejected
+    );
+    match out.exact_segments {
+        0 => steps,
+        n if out.stats.accepted + out.stats.rejected == 0 => {
+            format!("{n} exact holds, 0 integrator steps")
+        }
+        n => format!("{n} exact holds, {steps}"),
+    }
 }

@@ -6,6 +6,13 @@
 //! hysteresis state along the jump ([`Plant::input_jump`]). Outputs are recorded at the sample instants
 //! (after any jump at that instant), then delayed, made noisy and quantised as the effects ask.
 //!
+//! [`simulate`] reads as those steps: it checks the settings and the input span, sets up the run
+//! (`Run::start`: the joint state at rest, the jump to u(0), the integrator or the exact hold
+//! propagator), then per sample advances the state over the interval's breakpoints
+//! (`Run::advance_to`, one segment at a time by `Run::advance_segment`, Dormand–Prince or exact, with
+//! the jumps after each), records the sample (`Record::push_sample`) and at the end applies the
+//! sensor effects.
+//!
 //! **Exact propagation over holds.** When every segment is a hold of a linear system, each segment is
 //! propagated in closed form instead ([`crate::hold`]). That needs
 //!
@@ -294,131 +301,220 @@ pub fn simulate(
     effects: &Effects,
     settings: &SimSettings,
 ) -> Result<SimOutput, SimError> {
-    let n_in = plant.input_names().len();
-    let n_out = plant.output_names().len();
     let n_samples = sample_count(plant, signals.len(), settings)?;
     let fs = settings.sample_rate_hz;
-    let signals: Vec<Box<dyn Signal>> = match effects.dac {
+    let signals = behind_dac(signals, effects);
+    let (lo, hi) = input_span(&signals, n_samples, fs);
+    plant.check_input_span(lo, hi)?;
+    let ctx = Ctx::new(plant, &signals, effects);
+    let mut run = Run::start(&ctx, settings);
+    let mut record = Record::with_capacity(&ctx, n_samples);
+    for k in 0..n_samples {
+        let tk = k as f64 / fs;
+        if k > 0 {
+            run.advance_to(tk)?;
+        }
+        record.push_sample(&ctx, &run.x, tk);
+    }
+    sensor_effects(&mut record.outputs_m, effects, fs);
+    Ok(SimOutput {
+        t_s: record.t_s,
+        input_names: plant.input_names().iter().map(|s| s.to_string()).collect(),
+        inputs_v: record.inputs_v,
+        output_names: plant.output_names().iter().map(|s| s.to_string()).collect(),
+        outputs_m: record.outputs_m,
+        stats: run.ode.stats(),
+        exact_segments: run.exact.map_or(0, |h| h.counts().0),
+    })
+}
+
+/// The signals as the plant sees them: each behind the `dac` effect when there is one.
+fn behind_dac(signals: Vec<Box<dyn Signal>>, effects: &Effects) -> Vec<Box<dyn Signal>> {
+    match effects.dac {
         Some(dac) => signals
             .into_iter()
             .map(|inner| Box::new(DacSignal { inner, dac }) as Box<dyn Signal>)
             .collect(),
         None => signals,
-    };
-    let t_of = |k: usize| k as f64 / fs;
-    let (lo, hi) = input_span(&signals, n_samples, fs);
-    plant.check_input_span(lo, hi)?;
-    let mut bps = Vec::new();
-
-    let n_amp = if effects.amplifier.is_some() { n_in } else { 0 };
-    let ctx = Ctx {
-        plant,
-        signals: &signals,
-        effects,
-        n_in,
-        n_amp,
-        n_plant: plant.state_dim(),
-        n_out,
-    };
-    let dim = Segment {
-        ctx: &ctx,
-        t_start: 0.0,
     }
-    .dim();
-    let mut x = vec![0.0; dim];
-    plant.initial_state(&mut x[n_amp..n_amp + ctx.n_plant]);
-    let mut ode = Dp45::new(dim, settings.ode);
-    let mut exact = if settings.exact_holds {
-        held_state_matrix(plant, &signals, effects, n_out).map(|(a, n)| {
-            debug_assert_eq!(n, dim);
-            HoldPropagator::new(a, n)
-        })
-    } else {
-        None
-    };
-    let mut dx0 = vec![0.0; dim];
+}
 
-    let mut t_s = Vec::with_capacity(n_samples);
-    let mut inputs_v = vec![Vec::with_capacity(n_samples); n_in];
-    let mut outputs_m = vec![Vec::with_capacity(n_samples); n_out];
-    let mut t = 0.0;
-    let apply_jumps = |x: &mut [f64], tb: f64, first: bool| {
-        if n_amp > 0 {
+impl<'a> Ctx<'a> {
+    fn new(plant: &'a dyn Plant, signals: &'a [Box<dyn Signal>], effects: &'a Effects) -> Self {
+        let n_in = plant.input_names().len();
+        Self {
+            plant,
+            signals,
+            effects,
+            n_in,
+            n_amp: if effects.amplifier.is_some() { n_in } else { 0 },
+            n_plant: plant.state_dim(),
+            n_out: plant.output_names().len(),
+        }
+    }
+
+    /// Where the plant states sit in the joint state.
+    fn plant_states(&self) -> std::ops::Range<usize> {
+        self.n_amp..self.n_amp + self.n_plant
+    }
+
+    /// Creep elements per output.
+    fn n_creep(&self) -> usize {
+        self.effects.creep.as_ref().map_or(0, |c| c.elements.len())
+    }
+}
+
+/// The moving part of a run: the joint state at time `t` and what advances it (the Dormand–Prince
+/// pair, or the exact hold propagator when the run is eligible).
+struct Run<'a> {
+    ctx: &'a Ctx<'a>,
+    t: f64,
+    x: Vec<f64>,
+    ode: Dp45,
+    exact: Option<HoldPropagator>,
+    /// ẋ at the start of a hold (exact path).
+    dx0: Vec<f64>,
+    /// Breakpoints of the current sample interval, its end included.
+    bps: Vec<f64>,
+}
+
+impl<'a> Run<'a> {
+    /// The plant at rest at t = 0, then moved by the jump to u(0) if that is not 0.
+    fn start(ctx: &'a Ctx<'a>, settings: &SimSettings) -> Self {
+        let dim = Segment { ctx, t_start: 0.0 }.dim();
+        let mut x = vec![0.0; dim];
+        ctx.plant.initial_state(&mut x[ctx.plant_states()]);
+        let ode = Dp45::new(dim, settings.ode);
+        let exact = if settings.exact_holds {
+            held_state_matrix(ctx.plant, ctx.signals, ctx.effects, ctx.n_out).map(|(a, n)| {
+                debug_assert_eq!(n, dim);
+                HoldPropagator::new(a, n)
+            })
+        } else {
+            None
+        };
+        let mut run = Self {
+            ctx,
+            t: 0.0,
+            x,
+            ode,
+            exact,
+            dx0: vec![0.0; dim],
+            bps: Vec::new(),
+        };
+        // The plant rests at u = 0; a non-zero u(0) is a jump at t = 0.
+        run.apply_jumps(0.0, true);
+        run
+    }
+
+    /// Advances from the previous sample instant to `tk` over the breakpoints in between, moving
+    /// the hysteresis state along the input jumps at each, then checks the plant state.
+    fn advance_to(&mut self, tk: f64) -> Result<(), SimError> {
+        self.collect_breakpoints(tk);
+        let bps = std::mem::take(&mut self.bps);
+        for &tb in &bps {
+            self.advance_segment(tb)?;
+            self.t = tb;
+            self.apply_jumps(tb, false);
+        }
+        self.bps = bps;
+        let c = self.ctx;
+        c.plant.check_state(&self.x[c.plant_states()])?;
+        Ok(())
+    }
+
+    /// The signals' breakpoints strictly inside (t, tk), sorted and distinct, then tk.
+    fn collect_breakpoints(&mut self, tk: f64) {
+        let t = self.t;
+        self.bps.clear();
+        for s in self.ctx.signals {
+            s.breakpoints(t, tk, &mut self.bps);
+        }
+        self.bps.retain(|&b| b > t && b < tk);
+        self.bps.sort_by(f64::total_cmp);
+        self.bps.dedup();
+        self.bps.push(tk);
+    }
+
+    /// Moves the state from `t` to `tb`: exactly over the hold, or with the Dormand–Prince pair.
+    fn advance_segment(&mut self, tb: f64) -> Result<(), SimError> {
+        let seg = Segment {
+            ctx: self.ctx,
+            t_start: self.t,
+        };
+        match self.exact.as_mut() {
+            Some(hold) if tb > self.t => {
+                seg.rhs(self.t, &self.x, &mut self.dx0);
+                hold.advance(&mut self.x, &self.dx0, tb - self.t);
+                if !self.x.iter().all(|v| v.is_finite()) {
+                    return Err(OdeError::NonFinite { t_s: tb }.into());
+                }
+            }
+            Some(_) => {}
+            None => self.ode.advance(&seg, &mut self.t, &mut self.x, tb)?,
+        }
+        Ok(())
+    }
+
+    /// Moves the hysteresis state along every input that jumps at `tb` (from 0 V when `first`);
+    /// nothing behind an amplifier, whose output does not jump.
+    fn apply_jumps(&mut self, tb: f64, first: bool) {
+        let c = self.ctx;
+        if c.n_amp > 0 {
             return;
         }
-        for (ch, s) in signals.iter().enumerate() {
+        for (ch, s) in c.signals.iter().enumerate() {
             let from = if first { 0.0 } else { s.eval(tb, true).0 };
             let to = s.eval(tb, false).0;
             if from != to {
-                plant.input_jump(&mut x[n_amp..n_amp + ctx.n_plant], ch, from, to);
+                c.plant
+                    .input_jump(&mut self.x[c.plant_states()], ch, from, to);
             }
-        }
-    };
-    // The plant rests at u = 0; a non-zero u(0) is a jump at t = 0.
-    apply_jumps(&mut x, 0.0, true);
-    let n_creep = effects.creep.as_ref().map_or(0, |c| c.elements.len());
-    for k in 0..n_samples {
-        let tk = t_of(k);
-        if k > 0 {
-            bps.clear();
-            for s in &signals {
-                s.breakpoints(t, tk, &mut bps);
-            }
-            bps.retain(|&b| b > t && b < tk);
-            bps.sort_by(f64::total_cmp);
-            bps.dedup();
-            bps.push(tk);
-            for &tb in &bps {
-                let seg = Segment {
-                    ctx: &ctx,
-                    t_start: t,
-                };
-                match exact.as_mut() {
-                    Some(hold) if tb > t => {
-                        seg.rhs(t, &x, &mut dx0);
-                        hold.advance(&mut x, &dx0, tb - t);
-                        if !x.iter().all(|v| v.is_finite()) {
-                            return Err(OdeError::NonFinite { t_s: tb }.into());
-                        }
-                    }
-                    Some(_) => {}
-                    None => ode.advance(&seg, &mut t, &mut x, tb)?,
-                }
-                t = tb;
-                apply_jumps(&mut x, tb, false);
-            }
-            plant.check_state(&x[n_amp..n_amp + ctx.n_plant])?;
-        }
-        t_s.push(tk);
-        let mut u = [0.0; 2];
-        for ch in 0..n_in {
-            u[ch] = if n_amp > 0 {
-                x[ch]
-            } else {
-                signals[ch].value(tk)
-            };
-            inputs_v[ch].push(signals[ch].value(tk));
-        }
-        let mut y = [0.0; 2];
-        plant.output(&x[n_amp..n_amp + ctx.n_plant], &u[..n_in], &mut y[..n_out]);
-        for j in 0..n_out {
-            let creep: f64 = x[n_amp + ctx.n_plant + j * n_creep..][..n_creep]
-                .iter()
-                .sum();
-            let drift = effects.drift.map_or(0.0, |d| d.at(tk));
-            outputs_m[j].push(y[j] + creep + drift);
         }
     }
-    sensor_effects(&mut outputs_m, effects, fs);
-    Ok(SimOutput {
-        t_s,
-        input_names: plant.input_names().iter().map(|s| s.to_string()).collect(),
-        inputs_v,
-        output_names: plant.output_names().iter().map(|s| s.to_string()).collect(),
-        outputs_m,
-        stats: ode.stats(),
-        exact_segments: exact.map_or(0, |h| h.counts().0),
-    })
+}
+
+/// The sampled record before the sensor effects.
+struct Record {
+    t_s: Vec<f64>,
+    inputs_v: Vec<Vec<f64>>,
+    outputs_m: Vec<Vec<f64>>,
+}
+
+impl Record {
+    fn with_capacity(ctx: &Ctx<'_>, n_samples: usize) -> Self {
+        Self {
+            t_s: Vec::with_capacity(n_samples),
+            inputs_v: vec![Vec::with_capacity(n_samples); ctx.n_in],
+            outputs_m: vec![Vec::with_capacity(n_samples); ctx.n_out],
+        }
+    }
+
+    /// The sample at `tk` from the joint state `x` (after any jump at `tk`): the commanded inputs,
+    /// and per output the plant's output plus its creep elements plus the drift.
+    fn push_sample(&mut self, c: &Ctx<'_>, x: &[f64], tk: f64) {
+        self.t_s.push(tk);
+        let mut u = [0.0; 2];
+        for ch in 0..c.n_in {
+            u[ch] = if c.n_amp > 0 {
+                x[ch]
+            } else {
+                c.signals[ch].value(tk)
+            };
+            self.inputs_v[ch].push(c.signals[ch].value(tk));
+        }
+        let mut y = [0.0; 2];
+        c.plant
+            .output(&x[c.plant_states()], &u[..c.n_in], &mut y[..c.n_out]);
+        let n_creep = c.n_creep();
+        for j in 0..c.n_out {
+            let creep: f64 = x[c.n_amp + c.n_plant + j * n_creep..][..n_creep]
+                .iter()
+                .sum();
+            let drift = c.effects.drift.map_or(0.0, |d| d.at(tk));
+            self.outputs_m[j].push(y[j] + creep + drift);
+        }
+    }
 }
 
 /// Samples of a run, after checking the signal count against the plant's inputs and the rate
