@@ -728,11 +728,6 @@ pub fn refit(model: &AxisModel, d: &FitData, max_iterations: usize) -> (AxisMode
     let p = th.len();
     let idx: Vec<usize> = (0..d.u.len()).filter(|&k| d.fitted(k)).collect();
     let n = idx.len();
-    let mut evals = 1u64;
-    let mut best = sse(&model.decode(&th), d);
-    if !best.is_finite() || n == 0 {
-        return (model.decode(&th), best, evals);
-    }
     let predict = |th: &[f64]| -> Option<Vec<f64>> {
         let m = model.decode(th);
         let mut out = vec![0.0; d.u.len()];
@@ -741,6 +736,28 @@ pub fn refit(model: &AxisModel, d: &FitData, max_iterations: usize) -> (AxisMode
         let out: Vec<f64> = idx.iter().map(|&k| out[k]).collect();
         out.iter().all(|v| v.is_finite()).then_some(out)
     };
+    // The SSE of a prediction, summed in the order of [`sse`] (so the same number).
+    let sse_of = |prediction: &Option<Vec<f64>>| -> f64 {
+        let Some(out) = prediction else {
+            return f64::INFINITY;
+        };
+        let mut acc = 0.0;
+        for (&k, y) in idx.iter().zip(out) {
+            acc += (d.y[k] - y).powi(2);
+        }
+        if acc.is_finite() {
+            acc
+        } else {
+            f64::INFINITY
+        }
+    };
+    let mut evals = 1u64;
+    // The prediction at the current θ, kept from the accepted trial for the next Jacobian.
+    let mut current = predict(&th);
+    let mut best = sse_of(&current);
+    if !best.is_finite() || n == 0 {
+        return (model.decode(&th), best, evals);
+    }
     let mut lambda = 1e-3;
     let mut stalls = 0;
     // Difference steps grow tenfold (at most twice) when no step of an iteration improves: with the
@@ -749,7 +766,9 @@ pub fn refit(model: &AxisModel, d: &FitData, max_iterations: usize) -> (AxisMode
     let mut it = 0;
     while it < max_iterations {
         it += 1;
-        let Some(base) = predict(&th) else { break };
+        let Some(base) = current.take().or_else(|| predict(&th)) else {
+            break;
+        };
         let steps: Vec<f64> = (0..p)
             .map(|i| {
                 let rel = step_scale * if typ[i] >= 10.0 { 1e-3 } else { 1e-4 };
@@ -776,7 +795,7 @@ pub fn refit(model: &AxisModel, d: &FitData, max_iterations: usize) -> (AxisMode
                 )
             })
             .collect();
-        evals += p as u64 + 1;
+        evals += p as u64;
         let cols: Vec<Vec<f64>> = cols
             .into_iter()
             .map(|c| c.unwrap_or_else(|| vec![0.0; n]))
@@ -812,11 +831,13 @@ pub fn refit(model: &AxisModel, d: &FitData, max_iterations: usize) -> (AxisMode
                 .zip(&spec)
                 .map(|((a, b), s)| (a + b).clamp(s.lo, s.hi))
                 .collect();
-            let s = sse(&model.decode(&trial), d);
+            let prediction = predict(&trial);
+            let s = sse_of(&prediction);
             evals += 1;
             if s < best {
                 let gain = (best - s) / best;
                 th = trial;
+                current = prediction;
                 best = s;
                 lambda = (lambda / 3.0).max(1e-9);
                 improved = true;
@@ -828,6 +849,7 @@ pub fn refit(model: &AxisModel, d: &FitData, max_iterations: usize) -> (AxisMode
         if !improved && step_scale < 100.0 {
             step_scale *= 10.0;
             lambda = 1e-3;
+            current = Some(base);
             continue;
         }
         if !improved || stalls >= 2 {
