@@ -36,7 +36,7 @@ $B identify --data "$P885" --model symmetric --invertible --start 2 --end 20 --o
 $B predict --params "$OUT/p885-inv.toml" --data "$P885" --start 20 --report "$OUT/p885-inv-predict.json"
 $B identify --data "$SH" --model symmetric --start 4.5 --end 7.5 --allow-refused --out "$OUT/sh.toml" --report "$OUT/sh.json" | cut -c1-110
 $B predict --params "$OUT/sh.toml" --data "$SH" --start 7.5 --report "$OUT/sh-predict.json"
-$B identify --data "$SH" --model symmetric --invertible --start 4.5 --end 7.5 --out "$OUT/sh-inv.toml" --report "$OUT/sh-inv.json" | cut -c1-110
+$B identify --data "$SH" --model symmetric --invertible --allow-refused --start 4.5 --end 7.5 --out "$OUT/sh-inv.toml" --report "$OUT/sh-inv.json" | cut -c1-110
 $B predict --params "$OUT/sh-inv.toml" --data "$SH" --start 7.5 --report "$OUT/sh-inv-predict.json"
 
 # 3. The Bouc-Wen benchmark: identify on a training file only, then simulate the test multisine

@@ -645,16 +645,27 @@ impl Search<'_> {
     }
 }
 
-/// The trial that holds with the largest held-out gain.
+/// Held-out gains (pooled relative MSE reductions) within this of the largest are a tie.
+const HELD_OUT_TIE: f64 = 0.02;
+
+/// The trial that holds with the largest held-out gain. Candidates whose gains are within
+/// [`HELD_OUT_TIE`] of it (two percentage points: closer than the blocks' spread can tell apart)
+/// are a tie, decided by the lower in-sample ΔBIC: the effect that explains the whole fitted record
+/// better.
 fn best_trial(trials: &[Trial]) -> Option<usize> {
-    trials
-        .iter()
-        .enumerate()
-        .filter(|(_, t)| t.decision == Decision::HoldsNotBest)
-        .max_by(|a, b| {
-            let g = |t: &Trial| t.out_of_sample.as_ref().map_or(0.0, |o| o.relative_gain);
-            g(a.1).total_cmp(&g(b.1))
-        })
+    let gain = |t: &Trial| t.out_of_sample.as_ref().map_or(0.0, |o| o.relative_gain);
+    let holding = || {
+        trials
+            .iter()
+            .enumerate()
+            .filter(|(_, t)| t.decision == Decision::HoldsNotBest)
+    };
+    let top = holding()
+        .map(|(_, t)| gain(t))
+        .fold(f64::NEG_INFINITY, f64::max);
+    holding()
+        .filter(|(_, t)| gain(t) >= top - HELD_OUT_TIE)
+        .min_by(|a, b| a.1.delta_bic.total_cmp(&b.1.delta_bic))
         .map(|(i, _)| i)
 }
 
