@@ -716,6 +716,38 @@ pub fn sse_where(model: &AxisModel, d: &FitData, keep: impl Fn(usize) -> bool) -
     }
 }
 
+/// Forward-difference steps of the parameters: relative to |θ_i| or to a tenth of its typical size,
+/// times `step_scale`, pointing inwards at an upper bound (so that no column is zero).
+fn difference_steps(th: &[f64], typ: &[f64], spec: &[ParamSpec], step_scale: f64) -> Vec<f64> {
+    (0..th.len())
+        .map(|i| {
+            let rel = step_scale * if typ[i] >= 10.0 { 1e-3 } else { 1e-4 };
+            let h = (rel * th[i].abs()).max(rel * typ[i] * 0.1).max(1e-300);
+            if th[i] + h > spec[i].hi {
+                -h
+            } else {
+                h
+            }
+        })
+        .collect()
+}
+
+/// JᵀJ and Jᵀr of the Jacobian columns `cols` and the residual `r`.
+fn normal_equations(cols: &[Vec<f64>], r: &[f64]) -> (Vec<Vec<f64>>, Vec<f64>) {
+    let p = cols.len();
+    let mut jtj = vec![vec![0.0; p]; p];
+    let mut jtr = vec![0.0; p];
+    for i in 0..p {
+        for j in i..p {
+            let s: f64 = cols[i].iter().zip(&cols[j]).map(|(a, b)| a * b).sum();
+            jtj[i][j] = s;
+            jtj[j][i] = s;
+        }
+        jtr[i] = cols[i].iter().zip(r).map(|(a, b)| a * b).sum();
+    }
+    (jtj, jtr)
+}
+
 /// Levenberg–Marquardt on every parameter of `model` over the fitted samples of `d`; returns the
 /// refitted model, its SSE and the number of model evaluations.
 pub fn refit(model: &AxisModel, d: &FitData, max_iterations: usize) -> (AxisModel, f64, u64) {
@@ -769,18 +801,7 @@ pub fn refit(model: &AxisModel, d: &FitData, max_iterations: usize) -> (AxisMode
         let Some(base) = current.take().or_else(|| predict(&th)) else {
             break;
         };
-        let steps: Vec<f64> = (0..p)
-            .map(|i| {
-                let rel = step_scale * if typ[i] >= 10.0 { 1e-3 } else { 1e-4 };
-                let h = (rel * th[i].abs()).max(rel * typ[i] * 0.1).max(1e-300);
-                // Step inwards at an upper bound, so that the column is not zero.
-                if th[i] + h > spec[i].hi {
-                    -h
-                } else {
-                    h
-                }
-            })
-            .collect();
+        let steps = difference_steps(&th, &typ, &spec, step_scale);
         let cols: Vec<Option<Vec<f64>>> = (0..p)
             .into_par_iter()
             .map(|i| {
@@ -801,16 +822,7 @@ pub fn refit(model: &AxisModel, d: &FitData, max_iterations: usize) -> (AxisMode
             .map(|c| c.unwrap_or_else(|| vec![0.0; n]))
             .collect();
         let r: Vec<f64> = idx.iter().zip(&base).map(|(&k, b)| d.y[k] - b).collect();
-        let mut jtj = vec![vec![0.0; p]; p];
-        let mut jtr = vec![0.0; p];
-        for i in 0..p {
-            for j in i..p {
-                let s: f64 = cols[i].iter().zip(&cols[j]).map(|(a, b)| a * b).sum();
-                jtj[i][j] = s;
-                jtj[j][i] = s;
-            }
-            jtr[i] = cols[i].iter().zip(&r).map(|(a, b)| a * b).sum();
-        }
+        let (jtj, jtr) = normal_equations(&cols, &r);
         let mut improved = false;
         for _ in 0..12 {
             let mut a: Vec<Vec<f64>> = (0..p)
