@@ -13,7 +13,7 @@
 //! where Φ(h; ΔU) integrates dh/dU = f(h) = A − (β·s·σ + γ)·|h|^n (s = sgn ΔU, σ = sgn h) by classical
 //! RK4 over m = max(1, ⌈|ΔU|·J/0.1⌉) sub-steps of Δ = ΔU/m, J = n·(β + |γ|)·H^(n−1) at the state
 //! bound H (the core's sub-step rule; a sub-step that starts within 2·|A·Δ| of h = 0 is cut into 8).
-//! The sensitivities S[k] = ∂h[k]/∂p are that recursion differentiated (discrete forward
+//! The sensitivities S\[k\] = ∂h\[k\]/∂p are that recursion differentiated (discrete forward
 //! sensitivities): per RK4 stage a_i = h + c_i·Δ·k_(i−1), k_i = f(a_i),
 //!
 //! ```text
@@ -21,7 +21,7 @@
 //! f_h = −(β·s·σ + γ)·n·|h|^(n−1)·σ,  f_β = −s·σ·|h|^n,  f_γ = −|h|^n,  f_n = −(β·s·σ + γ)·|h|^n·ln|h|
 //! ```
 //!
-//! with ∂Δ = ∂(U[k] − U[k−1])/m (only φ moves U: ∂U[k]/∂φ = −Δu[k]/T) and ∂d[k]/∂δ = d[k]/δ. A state
+//! with ∂Δ = ∂(U\[k\] − U\[k−1\])/m (only φ moves U: ∂U\[k\]/∂φ = −Δu\[k\]/T) and ∂d\[k\]/∂δ = d\[k\]/δ. A state
 //! held by the clamp has zero sensitivity. The state itself is integrated alongside in f64, so it
 //! matches the model's f32 state to the model's rounding, not bit for bit: these are gradients for an
 //! optimiser, the model's outputs still come from [`StaticModel::step`].
