@@ -97,7 +97,7 @@ const MAX_SUBSTEPS: f32 = 64.0;
 /// Largest number of RK4 sub-steps spent on the way into saturation before the closed-form tail.
 const SATURATION_SUBSTEPS: f32 = 1024.0;
 /// Pieces a general-n RK4 sub-step is cut into where it may cross h = 0.
-const ZERO_CROSSING_SPLIT: usize = 8;
+pub(crate) const ZERO_CROSSING_SPLIT: usize = 8;
 /// Target of `J·Δu` per RK4 sub-step of the general-n path.
 const SUBSTEP_THETA: f32 = 0.1;
 /// Bound on the truncation of the host RK4's binomial series of the stage powers, relative to the
@@ -417,6 +417,12 @@ impl BoucWen {
     #[inline]
     pub(crate) fn clamp_bound(&self) -> f32 {
         self.clamp_bound
+    }
+
+    /// RK4 sub-steps per volt of the general-n path (`J/θ`, module doc), as built.
+    #[inline]
+    pub(crate) fn substeps_per_v(&self) -> f32 {
+        self.substeps_per_v
     }
 
     /// Clamps an input into the validated range; a non-finite input is replaced by `hold_v`.

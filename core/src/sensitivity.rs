@@ -11,8 +11,9 @@
 //! ```
 //!
 //! where Φ(h; ΔU) integrates dh/dU = f(h) = A − (β·s·σ + γ)·|h|^n (s = sgn ΔU, σ = sgn h) by classical
-//! RK4 over m = max(1, ⌈|ΔU|·J/0.1⌉) sub-steps of Δ = ΔU/m, J = n·(β + |γ|)·H^(n−1) at the state
-//! bound H (the core's sub-step rule; a sub-step that starts within 2·|A·Δ| of h = 0 is cut into 8).
+//! RK4 over m = max(1, ⌈|ΔU|·J/θ⌉) sub-steps of Δ = ΔU/m, J = n·(β + |γ|)·H^(n−1) at the state
+//! bound H (the operator's own sub-step rule, θ = 0.1 unless built coarser; a sub-step that starts
+//! within 2·|A·Δ| of h = 0 is cut into 8).
 //! The sensitivities S\[k\] = ∂h\[k\]/∂p are that recursion differentiated (discrete forward
 //! sensitivities): per RK4 stage a_i = h + c_i·Δ·k_(i−1), k_i = f(a_i),
 //!
@@ -26,6 +27,7 @@
 //! matches the model's f32 state to the model's rounding, not bit for bit: these are gradients for an
 //! optimiser, the model's outputs still come from [`StaticModel::step`].
 
+use crate::bouc_wen::ZERO_CROSSING_SPLIT;
 use crate::math::pow_f64;
 use crate::static_model::StaticModel;
 
@@ -113,10 +115,11 @@ fn tangent_advance(
     let (mut h, mut t) = (h, *t);
     for _ in 0..m as usize {
         if h.abs() < near_zero {
-            let dh8 = dh / 8.0;
-            let dd8 = dd.map(|v| v / 8.0);
-            for _ in 0..8 {
-                (h, t) = tangent_rk4(law, s, h, &t, dh8, &dd8);
+            let pieces = ZERO_CROSSING_SPLIT as f64;
+            let dh_piece = dh / pieces;
+            let dd_piece = dd.map(|v| v / pieces);
+            for _ in 0..ZERO_CROSSING_SPLIT {
+                (h, t) = tangent_rk4(law, s, h, &t, dh_piece, &dd_piece);
             }
         } else {
             (h, t) = tangent_rk4(law, s, h, &t, dh, &dd);
@@ -145,7 +148,8 @@ pub fn static_sensitivities(
         n: f64::from(p.n),
     };
     let bound = f64::from(bw.state_bound()).max(1e-30);
-    let per_volt = law.n * (law.beta + law.gamma.abs()) * libm::pow(bound, law.n - 1.0) / 0.1;
+    // The operator's own sub-step rule (so also a coarser `with_substep_target`).
+    let per_volt = f64::from(bw.substeps_per_v());
     let period = f64::from(model.sample_period_s());
     let (delta, shift_fraction) = if period > 0.0 {
         let asym = model.asymmetry();

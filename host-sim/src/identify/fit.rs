@@ -812,12 +812,17 @@ pub fn levenberg_marquardt(
 ) -> (Vec<f64>, f64) {
     let dim = theta.len();
     let m = problem.scored();
-    // Buffers for the base point and every column: allocated once per run, reused every iteration.
-    let mut resid: Vec<Vec<f64>> = vec![vec![0.0; m]; dim + 1];
-    let mut basis: Vec<Vec<[f64; 3]>> = vec![vec![[0.0; 3]; m]; dim + 1];
+    // Buffers allocated once per run, reused every iteration: the base point's, and every
+    // difference column's (dynamic model, or when a static model falls back to differences) or
+    // the state and its sensitivities (static models).
+    let dynamic = problem.kind == ModelKind::Dynamic;
+    let buffers = if dynamic { dim + 1 } else { 1 };
+    let mut resid: Vec<Vec<f64>> = vec![vec![0.0; m]; buffers];
+    let mut basis: Vec<Vec<[f64; 3]>> = vec![vec![[0.0; 3]; m]; buffers];
+    let states = if dynamic { 0 } else { problem.u.len() };
     let mut work = (
-        vec![0.0; problem.u.len()],
-        vec![[0.0; SENSITIVITY_PARAMETERS]; problem.u.len()],
+        vec![0.0; states],
+        vec![[0.0; SENSITIVITY_PARAMETERS]; states],
     );
     let clampv = |t: &mut Vec<f64>| {
         for (v, &(lo, hi)) in t.iter_mut().zip(bounds) {
@@ -836,7 +841,7 @@ pub fn levenberg_marquardt(
     let mut small_steps = 0;
     for _ in 0..iterations {
         progress.inc(1);
-        let normal = if problem.kind == ModelKind::Dynamic {
+        let normal = if dynamic {
             None
         } else {
             // The base point and the sensitivity pass, side by side.
@@ -853,6 +858,9 @@ pub fn levenberg_marquardt(
         let (jtj, jtr) = match normal {
             Some(ne) => ne,
             None => {
+                // A static model whose sensitivities are not finite falls back to differences too.
+                resid.resize(dim + 1, vec![0.0; m]);
+                basis.resize(dim + 1, vec![[0.0; 3]; m]);
                 let Some(ne) =
                     difference_normal_equations(problem, &theta, bounds, &mut resid, &mut basis)
                 else {
