@@ -1065,7 +1065,10 @@ mod tests {
             }
         }
         assert!(u.abs() < 1e-3 * bound, "the loop closes at u = 0");
-        assert!(worst > 0.0, "the coarse target takes fewer sub-steps, so it differs");
+        assert!(
+            worst > 0.0,
+            "the coarse target takes fewer sub-steps, so it differs"
+        );
         assert!(
             worst < 2e-5 * bound,
             "coarse against default: {worst:e} of H = {bound:e}"
