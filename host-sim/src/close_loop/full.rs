@@ -17,6 +17,9 @@
 //! [`AxisModel::decode`] holds θ inside it and [`AxisModel::effect_parameters`] names the parameters a fit
 //! ran to. The Jacobian is by forward differences (one core simulation per column, in parallel),
 //! steps Marquardt-scaled; a set the core refuses scores an infinite SSE and the step is rejected.
+//! A column of a map or effect parameter leaves the Bouc-Wen set alone, so it runs on the base
+//! point's hysteresis path ([`HysteresisPath`]: the operator's input and h per sample) instead of
+//! integrating the operator again; the numbers are those of a whole simulation, bit for bit.
 
 // Small dense linear algebra reads best with index loops.
 #![allow(clippy::needless_range_loop)]
@@ -25,7 +28,7 @@ use super::diagnose::{EffectInit, EffectKind};
 use crate::identify::fit::solve_dense_pub;
 use crate::identify::model::bouc_wen;
 use piezo_core::effects::{EffectParams, Effects, EffectsState};
-use piezo_core::{BoucWenParams, ModelState, StaticMap, StaticModel};
+use piezo_core::{BoucWen, BoucWenParams, ModelState, StaticMap, StaticModel};
 use rayon::prelude::*;
 
 /// The form of the creep term.
@@ -171,6 +174,29 @@ pub struct Simulation {
     pub z: Vec<f64>,
 }
 
+/// The hysteresis operator's path over a record (sanitised input and h per sample), for a Bouc-Wen
+/// set and input range: models that differ only in their map or effects share it.
+#[derive(Debug, Clone)]
+pub struct HysteresisPath {
+    /// The Bouc-Wen set it was integrated with.
+    bouc_wen: BoucWenParams,
+    /// The input range that set was validated over \[V\].
+    input_range_v: (f32, f32),
+    /// The validated operator.
+    operator: BoucWen,
+    /// The operator's input per sample (the command clamped into its range) \[V\].
+    input_v: Vec<f32>,
+    /// h per sample.
+    h: Vec<f32>,
+}
+
+impl HysteresisPath {
+    /// Whether `model` has this path's operator.
+    fn fits(&self, model: &AxisModel) -> bool {
+        self.bouc_wen == model.bouc_wen && self.input_range_v == model.input_range_v
+    }
+}
+
 /// One entry of θ: its name, its range (infinite: free) and whether it is a logarithm.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ParamSpec {
@@ -264,20 +290,90 @@ impl AxisModel {
         &self,
         u: &[f32],
         other_z: Option<&[f64]>,
-        mut visit: impl FnMut(usize, f64, f64, f64),
+        visit: impl FnMut(usize, f64, f64, f64),
     ) -> Result<(), String> {
         let (model, effects) = self.build()?;
         let Some(&u0) = u.first() else {
             return Ok(());
         };
         let mut s = ModelState::at_rest(u0);
+        let operator = |k: usize| {
+            model.step(&mut s, u[k]);
+            (s.input_v, s.hysteresis.h)
+        };
+        self.run_chain(model.map(), &effects, u, other_z, operator, visit);
+        Ok(())
+    }
+
+    /// The hysteresis operator's path over `u` from rest at u\[0\]: what every model with this
+    /// model's Bouc-Wen set and input range shares, whatever its map and effects.
+    pub fn hysteresis_path(&self, u: &[f32]) -> Result<HysteresisPath, String> {
+        let h = bouc_wen(self.bouc_wen, self.input_range_v)
+            .map_err(|e| format!("Bouc-Wen set refused by piezo-core: {e}"))?;
+        let model = StaticModel::new(h, self.map)
+            .map_err(|e| format!("static map refused by piezo-core: {e}"))?;
+        let mut path = HysteresisPath {
+            bouc_wen: self.bouc_wen,
+            input_range_v: self.input_range_v,
+            operator: h,
+            input_v: Vec::with_capacity(u.len()),
+            h: Vec::with_capacity(u.len()),
+        };
+        if let Some(&u0) = u.first() {
+            let mut s = ModelState::at_rest(u0);
+            for &v in u {
+                model.step(&mut s, v);
+                path.input_v.push(s.input_v);
+                path.h.push(s.hysteresis.h);
+            }
+        }
+        Ok(path)
+    }
+
+    /// [`Self::simulate_into`] on a path of the hysteresis operator computed before
+    /// ([`Self::hysteresis_path`]), which must be this model's (same Bouc-Wen set and input range):
+    /// the same numbers, without integrating the operator again.
+    pub fn simulate_on_path(
+        &self,
+        path: &HysteresisPath,
+        u: &[f32],
+        other_z: Option<&[f64]>,
+        visit: impl FnMut(usize, f64, f64, f64),
+    ) -> Result<(), String> {
+        if !path.fits(self) || path.h.len() != u.len() {
+            return self.simulate_into(u, other_z, visit);
+        }
+        let model = StaticModel::new(path.operator, self.map)
+            .map_err(|e| format!("static map refused by piezo-core: {e}"))?;
+        let effects = Effects::new(self.effects, self.sample_period_s, self.w_range_m)
+            .map_err(|e| format!("effects refused by piezo-core: {e}"))?;
+        let operator = |k: usize| (path.input_v[k], path.h[k]);
+        self.run_chain(model.map(), &effects, u, other_z, operator, visit);
+        Ok(())
+    }
+
+    /// The chain after the hysteresis operator: `operator(k)` gives the operator's (sanitised) input
+    /// and h at sample k; w = k1·u + k2·h + y0, then the effects, the delay and the coupling.
+    fn run_chain(
+        &self,
+        map: StaticMap,
+        effects: &Effects,
+        u: &[f32],
+        other_z: Option<&[f64]>,
+        mut operator: impl FnMut(usize) -> (f32, f32),
+        mut visit: impl FnMut(usize, f64, f64, f64),
+    ) {
+        let Some(&u0) = u.first() else {
+            return;
+        };
         let mut es = EffectsState::at_rest(u0);
         let c = self.effects.coupling;
         let whole = effects.reference_index_offset();
         let frac = effects.delay_fraction();
-        for (k, &v) in u.iter().enumerate() {
-            let w = model.step(&mut s, v);
-            let z = effects.forward_z(&mut es, s.input_v, w);
+        for k in 0..u.len() {
+            let (input_v, h) = operator(k);
+            let w = map.output(input_v, h);
+            let z = effects.forward_z(&mut es, input_v, w);
             let mut y = effects.output_m(&es);
             if let (Some(o), true) = (other_z, c != 0.0) {
                 // z_other(k − D), linear interpolation, z_other[0] before the start (the core's ring).
@@ -290,9 +386,8 @@ impl AxisModel {
                 };
                 y += c * delayed;
             }
-            visit(k, f64::from(y), f64::from(s.hysteresis.h), f64::from(z));
+            visit(k, f64::from(y), f64::from(h), f64::from(z));
         }
-        Ok(())
     }
 
     /// Adds an effect with its screening values (the model keeps its other parameters); the values
@@ -748,6 +843,15 @@ fn normal_equations(cols: &[Vec<f64>], r: &[f64]) -> (Vec<Vec<f64>>, Vec<f64>) {
     (jtj, jtr)
 }
 
+/// A prediction over the fitted samples and the hysteresis path it was simulated on (`None` when it
+/// ran on a path given to it).
+struct Prediction {
+    /// Predicted output at the fitted samples \[m\].
+    y: Vec<f64>,
+    /// The hysteresis path it computed.
+    path: Option<HysteresisPath>,
+}
+
 /// Levenberg–Marquardt on every parameter of `model` over the fitted samples of `d`; returns the
 /// refitted model, its SSE and the number of model evaluations.
 pub fn refit(model: &AxisModel, d: &FitData, max_iterations: usize) -> (AxisModel, f64, u64) {
@@ -760,17 +864,27 @@ pub fn refit(model: &AxisModel, d: &FitData, max_iterations: usize) -> (AxisMode
     let p = th.len();
     let idx: Vec<usize> = (0..d.u.len()).filter(|&k| d.fitted(k)).collect();
     let n = idx.len();
-    let predict = |th: &[f64]| -> Option<Vec<f64>> {
+    // The prediction at θ over the fitted samples, and the hysteresis path it ran on. A path
+    // given that fits θ's Bouc-Wen set is reused (a column of a map or effect parameter): the
+    // same numbers as a whole simulation, without integrating the operator again.
+    let predict = |th: &[f64], on: Option<&HysteresisPath>| -> Option<Prediction> {
         let m = model.decode(th);
+        let path = match on {
+            Some(p) if p.fits(&m) => None,
+            _ => Some(m.hysteresis_path(d.u).ok()?),
+        };
         let mut out = vec![0.0; d.u.len()];
-        m.simulate_into(d.u, d.other_z, |k, y, _, _| out[k] = y)
+        let run = path.as_ref().or(on)?;
+        m.simulate_on_path(run, d.u, d.other_z, |k, y, _, _| out[k] = y)
             .ok()?;
-        let out: Vec<f64> = idx.iter().map(|&k| out[k]).collect();
-        out.iter().all(|v| v.is_finite()).then_some(out)
+        let y: Vec<f64> = idx.iter().map(|&k| out[k]).collect();
+        y.iter()
+            .all(|v| v.is_finite())
+            .then_some(Prediction { y, path })
     };
     // The SSE of a prediction, summed in the order of [`sse`] (so the same number).
-    let sse_of = |prediction: &Option<Vec<f64>>| -> f64 {
-        let Some(out) = prediction else {
+    let sse_of = |prediction: &Option<Prediction>| -> f64 {
+        let Some(Prediction { y: out, .. }) = prediction else {
             return f64::INFINITY;
         };
         let mut acc = 0.0;
@@ -785,7 +899,7 @@ pub fn refit(model: &AxisModel, d: &FitData, max_iterations: usize) -> (AxisMode
     };
     let mut evals = 1u64;
     // The prediction at the current θ, kept from the accepted trial for the next Jacobian.
-    let mut current = predict(&th);
+    let mut current = predict(&th, None);
     let mut best = sse_of(&current);
     if !best.is_finite() || n == 0 {
         return (model.decode(&th), best, evals);
@@ -798,7 +912,7 @@ pub fn refit(model: &AxisModel, d: &FitData, max_iterations: usize) -> (AxisMode
     let mut it = 0;
     while it < max_iterations {
         it += 1;
-        let Some(base) = current.take().or_else(|| predict(&th)) else {
+        let Some(base) = current.take().or_else(|| predict(&th, None)) else {
             break;
         };
         let steps = difference_steps(&th, &typ, &spec, step_scale);
@@ -807,10 +921,10 @@ pub fn refit(model: &AxisModel, d: &FitData, max_iterations: usize) -> (AxisMode
             .map(|i| {
                 let mut t = th.clone();
                 t[i] += steps[i];
-                let y = predict(&t)?;
+                let y = predict(&t, base.path.as_ref())?.y;
                 Some(
                     y.iter()
-                        .zip(&base)
+                        .zip(&base.y)
                         .map(|(a, b)| (a - b) / steps[i])
                         .collect(),
                 )
@@ -821,7 +935,7 @@ pub fn refit(model: &AxisModel, d: &FitData, max_iterations: usize) -> (AxisMode
             .into_iter()
             .map(|c| c.unwrap_or_else(|| vec![0.0; n]))
             .collect();
-        let r: Vec<f64> = idx.iter().zip(&base).map(|(&k, b)| d.y[k] - b).collect();
+        let r: Vec<f64> = idx.iter().zip(&base.y).map(|(&k, b)| d.y[k] - b).collect();
         let (jtj, jtr) = normal_equations(&cols, &r);
         let mut improved = false;
         for _ in 0..12 {
@@ -843,7 +957,7 @@ pub fn refit(model: &AxisModel, d: &FitData, max_iterations: usize) -> (AxisMode
                 .zip(&spec)
                 .map(|((a, b), s)| (a + b).clamp(s.lo, s.hi))
                 .collect();
-            let prediction = predict(&trial);
+            let prediction = predict(&trial, None);
             let s = sse_of(&prediction);
             evals += 1;
             if s < best {
@@ -869,4 +983,123 @@ pub fn refit(model: &AxisModel, d: &FitData, max_iterations: usize) -> (AxisMode
         }
     }
     (model.decode(&th), best, evals)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A model with every effect of the chain that a path leaves untouched: creep, drift, delay,
+    /// even term, mode and coupling.
+    fn model_with_effects() -> AxisModel {
+        let ts = 1e-3;
+        AxisModel {
+            bouc_wen: BoucWenParams {
+                a: 1.0,
+                beta: 0.02,
+                gamma: 0.015,
+                n: 1.5,
+            },
+            map: StaticMap {
+                k1_m_per_v: 1.0e-7,
+                k2_m_per_h: -2.0e-8,
+                offset_m: 1e-7,
+            },
+            effects: EffectParams {
+                creep_gain_m_per_v: [3e-9, 0.0, 0.0],
+                creep_time_constant_s: [0.2, 0.0, 0.0],
+                even_coefficient_m_per_v2: 1e-11,
+                even_center_v: 5.0,
+                mode_frequency_hz: 120.0,
+                mode_damping: 0.3,
+                delay_s: 2.5e-3,
+                drift_rate_m_per_s: 1e-8,
+                coupling: 0.05,
+                drift_settling_m: 2e-8,
+                drift_settling_time_constant_s: 0.5,
+                ..EffectParams::default()
+            },
+            added: Vec::new(),
+            creep_form: CreepForm::KelvinVoigt,
+            creep_elements: 1,
+            drift_form: DriftForm::Settling,
+            input_range_v: (0.0, 20.0),
+            w_range_m: (-1e-5, 1e-5),
+            sample_period_s: ts as f32,
+            bounds: EffectBounds::for_record(ts, 2.0, 1.0, 2e-6, 1e-7, 20.0),
+        }
+    }
+
+    fn record() -> (Vec<f32>, Vec<f64>) {
+        let u: Vec<f32> = (0..2000)
+            .map(|k| {
+                let t = k as f64 * 1e-3;
+                (10.0 - 9.0 * (6.0 * t).cos() + 0.5 * (70.0 * t).sin()) as f32
+            })
+            .collect();
+        let other_z = (0..2000).map(|k| 1e-6 * (k as f64 * 3e-3).sin()).collect();
+        (u, other_z)
+    }
+
+    fn outputs(
+        run: impl FnOnce(&mut dyn FnMut(usize, f64, f64, f64)) -> Result<(), String>,
+    ) -> Vec<(f64, f64, f64)> {
+        let mut out = Vec::new();
+        run(&mut |_, y, h, z| out.push((y, h, z))).unwrap();
+        out
+    }
+
+    #[test]
+    fn a_shared_hysteresis_path_gives_the_whole_simulation_bit_for_bit() {
+        let (u, other_z) = record();
+        let base = model_with_effects();
+        let path = base.hysteresis_path(&u).unwrap();
+        // Another map and other effects on the same Bouc-Wen set: the path fits and is reused.
+        let mut other = base.clone();
+        other.map.k1_m_per_v *= 1.01;
+        other.map.offset_m = -3e-7;
+        other.effects.creep_gain_m_per_v[0] = 5e-9;
+        other.effects.delay_s = 1.2e-3;
+        other.effects.coupling = -0.02;
+        assert!(path.fits(&other));
+        for m in [&base, &other] {
+            let whole = outputs(|v| m.simulate_into(&u, Some(&other_z), v));
+            let on_path = outputs(|v| m.simulate_on_path(&path, &u, Some(&other_z), v));
+            assert_eq!(whole.len(), u.len());
+            assert!(
+                whole == on_path,
+                "simulation on the path differs from the whole one"
+            );
+        }
+        // The path's h is the operator's (not a constant): the test compares something that moves.
+        assert!(path.h.iter().any(|&h| h.abs() > 1.0));
+        // Another Bouc-Wen set does not fit the path and is simulated whole.
+        let mut steeper = base.clone();
+        steeper.bouc_wen.n = 1.6;
+        assert!(!path.fits(&steeper));
+        let whole = outputs(|v| steeper.simulate_into(&u, Some(&other_z), v));
+        let on_path = outputs(|v| steeper.simulate_on_path(&path, &u, Some(&other_z), v));
+        assert!(whole == on_path);
+        assert!(whole != outputs(|v| base.simulate_into(&u, Some(&other_z), v)));
+    }
+
+    #[test]
+    fn a_map_the_core_refuses_is_refused_on_a_path_too() {
+        let (u, _) = record();
+        let base = model_with_effects();
+        let path = base.hysteresis_path(&u).unwrap();
+        let mut refused = base.clone();
+        refused.map.k1_m_per_v = 0.0;
+        refused.map.k2_m_per_h = 0.0;
+        let err = refused
+            .simulate_on_path(&path, &u, None, |_, _, _, _| {})
+            .unwrap_err();
+        assert!(err.contains("static map refused"), "{err}");
+        let mut bad_effect = base.clone();
+        bad_effect.effects.mode_damping = -1.0;
+        let err = bad_effect
+            .simulate_on_path(&path, &u, None, |_, _, _, _| {})
+            .unwrap_err();
+        assert!(err.contains("effects refused"), "{err}");
+    }
 }
