@@ -5,7 +5,10 @@
 # fit, stage file and report written). The peer (host-sim/evidence/peer_identify.py: scipy's
 # differential_evolution, numba-jitted objective, the same search box and variable projection): its
 # time to reach the project's fitness (RMS within 1 %), in process, after numba's compilation.
-# Prints every run and the medians and ratio. Needs python3 with scipy and numba (pip install scipy numba).
+# Prints every run and the medians and ratio. Then one SSE evaluation on the same record at the search
+# box's midpoint, side by side: the project's from criterion (`cargo bench -p host-sim --bench identify
+# -- --quick sse_stage3_N10000`), the peer's objective (median of 200 calls, after compilation).
+# Needs python3 with scipy and numba (pip install scipy numba).
 # Usage (from the repository root): bash host-sim/evidence/identify_speed.sh [RUNS] [OUT_DIR]
 set -euo pipefail
 RUNS=${1:-5}
@@ -37,4 +40,18 @@ for r in range(runs):
 mp, mq = statistics.median(project), statistics.median(peer)
 ratios = [q / p for p, q in zip(project, peer)]
 print(f"median: project {mp:.3f} s, peer {mq:.3f} s, ratio of medians {mq / mp:.1f}, median ratio {statistics.median(ratios):.1f}")
+
+import re
+bench = subprocess.run(["cargo", "bench", "-q", "-p", "host-sim", "--bench", "identify", "--", "--quick",
+                        "sse_stage3_N10000"], check=True, capture_output=True, text=True).stdout
+m = re.search(r"sse_stage3_N10000\s+time:\s+\[\S+ \S+ (\S+) (\S+)", bench)
+if m is None:
+    sys.exit("no sse_stage3_N10000 estimate in the criterion output:\n" + bench)
+unit = {"ns": 1e-9, "µs": 1e-6, "us": 1e-6, "ms": 1e-3, "s": 1.0}[m.group(2)]
+ours = float(m.group(1)) * unit
+p = json.loads(subprocess.run([sys.executable, "host-sim/evidence/peer_identify.py", data, "--sse-timing"],
+                              check=True, capture_output=True, text=True).stdout)
+print(f"one SSE evaluation, N = {p['samples']}, theta = box midpoint {p['theta']}: project {ours * 1e3:.3f} ms "
+      f"(criterion), peer {p['sse_seconds_median'] * 1e3:.3f} ms (median of {p['repeats']}), "
+      f"ratio {p['sse_seconds_median'] / ours:.2f}")
 PY

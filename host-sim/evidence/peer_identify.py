@@ -14,7 +14,12 @@ Prints one JSON line: seconds to reach the target RMS (time to fitness: from the
 optimisation, after numba's compilation and the file read, to the first evaluation at or below the
 target; the optimiser stops after that generation), the final RMS, evaluations.
 
+With --sse-timing instead: the time of one objective evaluation on the whole record (after numba's
+compilation) at the search box's midpoint, the point `cargo bench -p host-sim --bench identify`
+times the project's evaluation at; prints one JSON line with the median of --repeats calls.
+
 Usage: peer_identify.py DATA.csv --target-rms M [--seed S]
+       peer_identify.py DATA.csv --sse-timing [--repeats R]
 """
 import argparse
 import json
@@ -106,16 +111,37 @@ def sse(theta, u, y, span, period, duration):
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("data")
-    ap.add_argument("--target-rms", type=float, required=True)
+    ap.add_argument("--target-rms", type=float)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--sse-timing", action="store_true")
+    ap.add_argument("--repeats", type=int, default=200)
     a = ap.parse_args()
+    if not a.sse_timing and a.target_rms is None:
+        ap.error("--target-rms is required (or --sse-timing)")
     d = np.loadtxt(a.data, delimiter=",", skiprows=1)
     t, u, y = d[:, 0], d[:, 1].copy(), d[:, 2] - d[:, 2].mean()
     period = (t[-1] - t[0]) / (len(t) - 1)
     span = u.max() - u.min()
     duration = period * len(u)
-    target_sse = a.target_rms ** 2 * len(u)
     sse(np.array([-0.5, 8.0, 3.0, 0.5, 0.0]), u, y, span, period, duration)  # compile
+    if a.sse_timing:
+        midpoint = np.array([0.5 * (lo + hi) for lo, hi in BOUNDS])
+        times = []
+        for _ in range(a.repeats):
+            t0 = time.perf_counter()
+            sse(midpoint, u, y, span, period, duration)
+            times.append(time.perf_counter() - t0)
+        times.sort()
+        print(json.dumps({
+            "sse_seconds_median": times[len(times) // 2],
+            "sse_seconds_min": times[0],
+            "samples": len(u),
+            "theta": midpoint.tolist(),
+            "repeats": a.repeats,
+            "numba": numba.__version__,
+        }))
+        return
+    target_sse = a.target_rms ** 2 * len(u)
     evaluations = [0]
     reached = [None]
     start = time.perf_counter()
