@@ -15,10 +15,17 @@ use host_sim::close_loop::{
 };
 use std::path::PathBuf;
 
+thread_local! {
+    /// Each test's own directory (libtest runs every test on a thread of its own), removed when
+    /// the test's thread ends.
+    static TEST_DIR: tempfile::TempDir = tempfile::Builder::new()
+        .prefix("host_sim_close_loop_")
+        .tempdir()
+        .unwrap();
+}
+
 fn temp(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("host_sim_close_loop_{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir.join(name)
+    TEST_DIR.with(|dir| dir.path().join(name))
 }
 
 fn simulate(name: &str, plant: &str, signal: &str, effects: &[&str]) -> PathBuf {

@@ -9,14 +9,17 @@ use host_sim::identify::{identify, provenance, IdentifySettings, Method, Record}
 use std::path::PathBuf;
 
 /// This test binary's own temporary folder.
-fn temp_dir() -> PathBuf {
-    std::env::temp_dir().join(format!("host_sim_identify_{}", std::process::id()))
+thread_local! {
+    /// Each test's own directory (libtest runs every test on a thread of its own), removed when
+    /// the test's thread ends.
+    static TEST_DIR: tempfile::TempDir = tempfile::Builder::new()
+        .prefix("host_sim_identify_")
+        .tempdir()
+        .unwrap();
 }
 
 fn temp(name: &str) -> PathBuf {
-    let dir = temp_dir();
-    std::fs::create_dir_all(&dir).unwrap();
-    dir.join(name)
+    TEST_DIR.with(|dir| dir.path().join(name))
 }
 
 /// Seed 001's Case I stage with 10 nm white sensor noise, 2 Hz cosine 0–20 V, 0.5 s at 10 kHz.
@@ -176,6 +179,34 @@ fn identify_then_predict_round_trip_through_the_stage_file() {
         assert_eq!(
             table.names,
             ["t_s", "u_V", "measured_m", "predicted_m", "residual_m"]
+        );
+        // The record's decimation filter applied to the prediction (its response is tested in
+        // `output_filter`): recorded in the report; flat over 2 Hz loops at 10 kHz, so the score
+        // stays; a bad spec is refused naming the flag.
+        let filtered = temp("filtered.json");
+        let spec = "fir-decimate:factors=20";
+        let predict = |extra: &[&str]| {
+            let mut args = vec![
+                "predict",
+                "--params",
+                stage.to_str().unwrap(),
+                "--data",
+                data,
+                "--report",
+                filtered.to_str().unwrap(),
+            ];
+            args.extend(extra);
+            cli(&args)
+        };
+        predict(&["--output-filter", spec]).unwrap();
+        let r = json(&filtered);
+        assert_eq!(r["output_filter"], spec);
+        let b = r["axes"][0]["fit"]["rms"].as_f64().unwrap();
+        assert!((b - a).abs() <= 1e-2 * a, "{b} vs {a}");
+        let e = predict(&["--output-filter", "fir-decimate:factors=1"]).unwrap_err();
+        assert!(
+            e.contains("--output-filter") && e.contains("factors"),
+            "{e}"
         );
     }
     std::fs::remove_file(&path).ok();
