@@ -8,7 +8,6 @@ use host_sim::identify::model::{from_axis, to_axis, Identified};
 use host_sim::identify::{identify, provenance, IdentifySettings, Method, Record};
 use std::path::PathBuf;
 
-/// This test binary's own temporary folder.
 thread_local! {
     /// Each test's own directory (libtest runs every test on a thread of its own), removed when
     /// the test's thread ends.
