@@ -852,6 +852,74 @@ struct Prediction {
     path: Option<HysteresisPath>,
 }
 
+/// What one refit evaluates: the model it decodes θ into and the fitted samples of the data.
+struct RefitProblem<'a> {
+    /// The model θ is decoded into.
+    model: &'a AxisModel,
+    /// The data.
+    d: &'a FitData<'a>,
+    /// The fitted samples' indices.
+    idx: Vec<usize>,
+}
+
+impl RefitProblem<'_> {
+    /// The prediction at θ over the fitted samples, and the hysteresis path it ran on. A path
+    /// given that fits θ's Bouc-Wen set is reused (a column of a map or effect parameter): the
+    /// same numbers as a whole simulation, without integrating the operator again.
+    fn predict(&self, th: &[f64], on: Option<&HysteresisPath>) -> Option<Prediction> {
+        let (m, d) = (self.model.decode(th), self.d);
+        let path = match on {
+            Some(p) if p.fits(&m) => None,
+            _ => Some(m.hysteresis_path(d.u).ok()?),
+        };
+        let mut out = vec![0.0; d.u.len()];
+        let run = path.as_ref().or(on)?;
+        m.simulate_on_path(run, d.u, d.other_z, |k, y, _, _| out[k] = y)
+            .ok()?;
+        let y: Vec<f64> = self.idx.iter().map(|&k| out[k]).collect();
+        y.iter()
+            .all(|v| v.is_finite())
+            .then_some(Prediction { y, path })
+    }
+
+    /// The SSE of a prediction, summed in the order of [`sse`] (so the same number).
+    fn sse_of(&self, prediction: &Option<Prediction>) -> f64 {
+        let Some(Prediction { y: out, .. }) = prediction else {
+            return f64::INFINITY;
+        };
+        let mut acc = 0.0;
+        for (&k, y) in self.idx.iter().zip(out) {
+            acc += (self.d.y[k] - y).powi(2);
+        }
+        if acc.is_finite() {
+            acc
+        } else {
+            f64::INFINITY
+        }
+    }
+
+    /// The forward-difference Jacobian columns at θ (base prediction `base`), in parallel; a
+    /// column whose step the core refuses is zero.
+    fn jacobian(&self, th: &[f64], steps: &[f64], base: &Prediction) -> Vec<Vec<f64>> {
+        (0..th.len())
+            .into_par_iter()
+            .map(|i| {
+                let mut t = th.to_vec();
+                t[i] += steps[i];
+                let Some(moved) = self.predict(&t, base.path.as_ref()) else {
+                    return vec![0.0; base.y.len()];
+                };
+                moved
+                    .y
+                    .iter()
+                    .zip(&base.y)
+                    .map(|(a, b)| (a - b) / steps[i])
+                    .collect()
+            })
+            .collect()
+    }
+}
+
 /// Levenberg–Marquardt on every parameter of `model` over the fitted samples of `d`; returns the
 /// refitted model, its SSE and the number of model evaluations.
 pub fn refit(model: &AxisModel, d: &FitData, max_iterations: usize) -> (AxisModel, f64, u64) {
@@ -862,46 +930,16 @@ pub fn refit(model: &AxisModel, d: &FitData, max_iterations: usize) -> (AxisMode
         .map(|(t, s)| t.clamp(s.lo, s.hi))
         .collect();
     let p = th.len();
-    let idx: Vec<usize> = (0..d.u.len()).filter(|&k| d.fitted(k)).collect();
-    let n = idx.len();
-    // The prediction at θ over the fitted samples, and the hysteresis path it ran on. A path
-    // given that fits θ's Bouc-Wen set is reused (a column of a map or effect parameter): the
-    // same numbers as a whole simulation, without integrating the operator again.
-    let predict = |th: &[f64], on: Option<&HysteresisPath>| -> Option<Prediction> {
-        let m = model.decode(th);
-        let path = match on {
-            Some(p) if p.fits(&m) => None,
-            _ => Some(m.hysteresis_path(d.u).ok()?),
-        };
-        let mut out = vec![0.0; d.u.len()];
-        let run = path.as_ref().or(on)?;
-        m.simulate_on_path(run, d.u, d.other_z, |k, y, _, _| out[k] = y)
-            .ok()?;
-        let y: Vec<f64> = idx.iter().map(|&k| out[k]).collect();
-        y.iter()
-            .all(|v| v.is_finite())
-            .then_some(Prediction { y, path })
-    };
-    // The SSE of a prediction, summed in the order of [`sse`] (so the same number).
-    let sse_of = |prediction: &Option<Prediction>| -> f64 {
-        let Some(Prediction { y: out, .. }) = prediction else {
-            return f64::INFINITY;
-        };
-        let mut acc = 0.0;
-        for (&k, y) in idx.iter().zip(out) {
-            acc += (d.y[k] - y).powi(2);
-        }
-        if acc.is_finite() {
-            acc
-        } else {
-            f64::INFINITY
-        }
+    let problem = RefitProblem {
+        model,
+        d,
+        idx: (0..d.u.len()).filter(|&k| d.fitted(k)).collect(),
     };
     let mut evals = 1u64;
     // The prediction at the current θ, kept from the accepted trial for the next Jacobian.
-    let mut current = predict(&th, None);
-    let mut best = sse_of(&current);
-    if !best.is_finite() || n == 0 {
+    let mut current = problem.predict(&th, None);
+    let mut best = problem.sse_of(&current);
+    if !best.is_finite() || problem.idx.is_empty() {
         return (model.decode(&th), best, evals);
     }
     let mut lambda = 1e-3;
@@ -912,30 +950,18 @@ pub fn refit(model: &AxisModel, d: &FitData, max_iterations: usize) -> (AxisMode
     let mut it = 0;
     while it < max_iterations {
         it += 1;
-        let Some(base) = current.take().or_else(|| predict(&th, None)) else {
+        let Some(base) = current.take().or_else(|| problem.predict(&th, None)) else {
             break;
         };
         let steps = difference_steps(&th, &typ, &spec, step_scale);
-        let cols: Vec<Option<Vec<f64>>> = (0..p)
-            .into_par_iter()
-            .map(|i| {
-                let mut t = th.clone();
-                t[i] += steps[i];
-                let y = predict(&t, base.path.as_ref())?.y;
-                Some(
-                    y.iter()
-                        .zip(&base.y)
-                        .map(|(a, b)| (a - b) / steps[i])
-                        .collect(),
-                )
-            })
-            .collect();
+        let cols = problem.jacobian(&th, &steps, &base);
         evals += p as u64;
-        let cols: Vec<Vec<f64>> = cols
-            .into_iter()
-            .map(|c| c.unwrap_or_else(|| vec![0.0; n]))
+        let r: Vec<f64> = problem
+            .idx
+            .iter()
+            .zip(&base.y)
+            .map(|(&k, b)| d.y[k] - b)
             .collect();
-        let r: Vec<f64> = idx.iter().zip(&base.y).map(|(&k, b)| d.y[k] - b).collect();
         let (jtj, jtr) = normal_equations(&cols, &r);
         let mut improved = false;
         for _ in 0..12 {
@@ -957,8 +983,8 @@ pub fn refit(model: &AxisModel, d: &FitData, max_iterations: usize) -> (AxisMode
                 .zip(&spec)
                 .map(|((a, b), s)| (a + b).clamp(s.lo, s.hi))
                 .collect();
-            let prediction = predict(&trial, None);
-            let s = sse_of(&prediction);
+            let prediction = problem.predict(&trial, None);
+            let s = problem.sse_of(&prediction);
             evals += 1;
             if s < best {
                 let gain = (best - s) / best;
