@@ -1020,25 +1020,9 @@ mod tests {
         BoucWenParams { a, beta, gamma, n }
     }
 
-    /// Reference: fine RK4 of (BW-u) in f64.
+    /// Reference: fine RK4 of (BW-u) in f64, 20 000 sub-steps.
     fn reference(p: BoucWenParams, h0: f64, du: f64) -> f64 {
-        let steps = 20_000;
-        let dh = du / steps as f64;
-        let f = |h: f64| {
-            let s = du.signum();
-            f64::from(p.a)
-                - (f64::from(p.beta) * s * h.signum() + f64::from(p.gamma))
-                    * libm::pow(h.abs(), f64::from(p.n))
-        };
-        let mut h = h0;
-        for _ in 0..steps {
-            let k1 = f(h);
-            let k2 = f(h + 0.5 * dh * k1);
-            let k3 = f(h + 0.5 * dh * k2);
-            let k4 = f(h + dh * k3);
-            h += dh / 6.0 * (k1 + 2.0 * (k2 + k3) + k4);
-        }
-        h
+        rk4_libm(p, h0, du, 20_000, 0.0)
     }
 
     #[test]

@@ -28,7 +28,7 @@ use criterion::{black_box, Criterion, Throughput};
 use host_sim::effects::Effects;
 use host_sim::identify::fit::Problem;
 use host_sim::identify::model::ModelKind;
-use host_sim::identify::{identify, identify_traced, IdentifySettings, Method, Record};
+use host_sim::identify::{identify, identify_traced, IdentifySettings, Record};
 use host_sim::plant::PlantKind;
 use host_sim::signal::SignalSpec;
 use host_sim::sim::{simulate, SimSettings};
@@ -64,15 +64,7 @@ fn stage_record(duration_s: f64, noise: bool) -> Record {
 }
 
 fn settings() -> IdentifySettings {
-    IdentifySettings {
-        model: ModelKind::Asymmetric,
-        method: Method::VpDeLm,
-        seed: 1,
-        start_s: 0.0,
-        no_shift: false,
-        invertible: false,
-        progress: false,
-    }
+    IdentifySettings::new(ModelKind::Asymmetric)
 }
 
 fn problem(rec: &Record) -> Problem {

@@ -14,7 +14,7 @@
 use criterion::{black_box, Criterion};
 use host_sim::demo::{run_demo, DemoSettings};
 use host_sim::identify::model::ModelKind;
-use host_sim::identify::{identify, IdentifySettings, Method, Record};
+use host_sim::identify::{identify, IdentifySettings, Record};
 use std::path::Path;
 use std::time::Instant;
 
@@ -22,15 +22,7 @@ use std::time::Instant;
 const FORGIONE: &str = "../shared/data/boucwen_benchmark/train_multisine_forgione.csv";
 
 fn oscillator_settings() -> IdentifySettings {
-    IdentifySettings {
-        model: ModelKind::Oscillator,
-        method: Method::VpDeLm,
-        seed: 1,
-        start_s: 0.0,
-        no_shift: false,
-        invertible: false,
-        progress: false,
-    }
+    IdentifySettings::new(ModelKind::Oscillator)
 }
 
 /// The training record, or why not (criterion runs benches from the package's folder).

@@ -16,17 +16,17 @@ B=${CARGO_TARGET_DIR:-target}/release/host-sim
 $B identify --data "$BW/train_multisine_forgione.csv" --model oscillator --allow-refused \
   --out "$OUT/bw-forgione.toml" --report "$OUT/bw-forgione.json" >/dev/null 2>&1
 python3 host-sim/evidence/boucwen_sweep.py "$OUT"
-score() { # name, report, predict arguments...
-  local name=$1 report=$2
-  shift 2
+score() { # report name, predict arguments...
+  local report=$1
+  shift
   $B predict --params "$OUT/bw-forgione.toml" --report "$OUT/$report.json" "$@" >/dev/null 2>&1
   python3 -c "import json,sys; print(json.load(open(sys.argv[1]))['fit']['rms'])" "$OUT/$report.json" >"$OUT/$report.rms"
 }
-score multisine test-multisine --data "$BW/test_multisine.csv" --periodic-warmup 3
-score official official-sweep --data "$OUT/sweep_official.csv"
-score official-filtered official-sweep-filtered --data "$OUT/sweep_official.csv" \
+score test-multisine --data "$BW/test_multisine.csv" --periodic-warmup 3
+score official-sweep --data "$OUT/sweep_official.csv"
+score official-sweep-filtered --data "$OUT/sweep_official.csv" \
   --output-filter fir-decimate:factors=20,identified_with=2/2/5
-score reference reference-sweep --data "$OUT/sweep_reference.csv"
+score reference-sweep --data "$OUT/sweep_reference.csv"
 python3 - "$OUT" <<'PY'
 import sys
 out = sys.argv[1]

@@ -262,6 +262,11 @@ impl AxisModel {
     pub fn build(&self) -> Result<(StaticModel, Effects), String> {
         let h = bouc_wen(self.bouc_wen, self.input_range_v)
             .map_err(|e| format!("Bouc-Wen set refused by piezo-core: {e}"))?;
+        self.build_on(h)
+    }
+
+    /// The core's model (this map on the operator `h`) and effects, validated.
+    fn build_on(&self, h: BoucWen) -> Result<(StaticModel, Effects), String> {
         let model = StaticModel::new(h, self.map)
             .map_err(|e| format!("static map refused by piezo-core: {e}"))?;
         let effects = Effects::new(self.effects, self.sample_period_s, self.w_range_m)
@@ -308,14 +313,11 @@ impl AxisModel {
     /// The hysteresis operator's path over `u` from rest at u\[0\]: what every model with this
     /// model's Bouc-Wen set and input range shares, whatever its map and effects.
     pub fn hysteresis_path(&self, u: &[f32]) -> Result<HysteresisPath, String> {
-        let h = bouc_wen(self.bouc_wen, self.input_range_v)
-            .map_err(|e| format!("Bouc-Wen set refused by piezo-core: {e}"))?;
-        let model = StaticModel::new(h, self.map)
-            .map_err(|e| format!("static map refused by piezo-core: {e}"))?;
+        let (model, _) = self.build()?;
         let mut path = HysteresisPath {
             bouc_wen: self.bouc_wen,
             input_range_v: self.input_range_v,
-            operator: h,
+            operator: *model.hysteresis(),
             input_v: Vec::with_capacity(u.len()),
             h: Vec::with_capacity(u.len()),
         };
@@ -343,10 +345,7 @@ impl AxisModel {
         if !path.fits(self) || path.h.len() != u.len() {
             return self.simulate_into(u, other_z, visit);
         }
-        let model = StaticModel::new(path.operator, self.map)
-            .map_err(|e| format!("static map refused by piezo-core: {e}"))?;
-        let effects = Effects::new(self.effects, self.sample_period_s, self.w_range_m)
-            .map_err(|e| format!("effects refused by piezo-core: {e}"))?;
+        let (model, effects) = self.build_on(path.operator)?;
         let operator = |k: usize| (path.input_v[k], path.h[k]);
         self.run_chain(model.map(), &effects, u, other_z, operator, visit);
         Ok(())

@@ -897,9 +897,7 @@ pub fn levenberg_marquardt(
                 } else {
                     0
                 };
-                if std::env::var_os("PIEZO_ID_DEBUG").is_some() {
-                    eprintln!("LM gain {gain:.3e} lambda {lambda:.1e} theta {theta:?}");
-                }
+                super::trace(|| format!("LM gain {gain:.3e} lambda {lambda:.1e} theta {theta:?}"));
                 problem.record("lm", &theta, f, 1);
                 break;
             }

@@ -167,6 +167,15 @@ impl Record {
     }
 }
 
+/// Prints a developer trace line of the optimisers' stages on stderr when `PIEZO_ID_DEBUG` is set
+/// (read once); the line is only formatted then.
+pub(crate) fn trace(line: impl FnOnce() -> String) {
+    static ENABLED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    if *ENABLED.get_or_init(|| std::env::var_os("PIEZO_ID_DEBUG").is_some()) {
+        eprintln!("{}", line());
+    }
+}
+
 /// Settings of one identification.
 #[derive(Debug, Clone)]
 pub struct IdentifySettings {
@@ -184,6 +193,22 @@ pub struct IdentifySettings {
     pub invertible: bool,
     /// Show a progress bar.
     pub progress: bool,
+}
+
+impl IdentifySettings {
+    /// `model` by the default method (`vp-de-lm`), seed 1, scored from t = 0, unconstrained, without
+    /// a progress bar: the command line's defaults, for runs from code.
+    pub fn new(model: ModelKind) -> Self {
+        Self {
+            model,
+            method: Method::VpDeLm,
+            seed: 1,
+            start_s: 0.0,
+            no_shift: false,
+            invertible: false,
+            progress: false,
+        }
+    }
 }
 
 /// Why an identification failed. `Display` gives the message the command line prints.
@@ -388,13 +413,13 @@ pub fn identify_traced(
             let pb = bar(100, s.progress);
             pb.set_message(format!("{} DE", s.model.name()));
             let (theta, _) = fit::differential_evolution(&problem, &bounds, s.seed, 12, &pb);
-            if std::env::var_os("PIEZO_ID_DEBUG").is_some() {
-                eprintln!(
+            trace(|| {
+                format!(
                     "DE: {} evaluations, {:.3} s",
                     problem.evaluations(),
                     started.elapsed().as_secs_f64()
-                );
-            }
+                )
+            });
             pb.set_message(format!("{} LM", s.model.name()));
             let (theta, _) = fit::levenberg_marquardt(&problem, &bounds, theta, 40, &pb);
             pb.finish_and_clear();

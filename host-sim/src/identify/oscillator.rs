@@ -455,7 +455,6 @@ fn levenberg_marquardt(
     stage: LmStage,
     pb: &indicatif::ProgressBar,
 ) -> (Vec<f64>, f64) {
-    let debug = std::env::var_os("PIEZO_ID_DEBUG").is_some();
     let mut fbest = obj.residuals(&theta, limit, f64::INFINITY);
     let mut lambda = stage.lambda;
     for _ in 0..stage.iterations {
@@ -481,12 +480,12 @@ fn levenberg_marquardt(
                 .collect();
             // A trial is abandoned once it passes the best SSE (it would be rejected).
             let ft = obj.residuals(&trial, limit, fbest);
-            if debug {
-                eprintln!(
+            super::trace(|| {
+                format!(
                     "oscillator LM (x{}): lambda {lambda:.1e}, SSE {ft:.9e}",
                     obj.factor
-                );
-            }
+                )
+            });
             if ft < fbest {
                 improved = (fbest - ft) / fbest > stage.tolerance;
                 theta = trial;
@@ -539,9 +538,9 @@ fn differential_evolution(
         .collect();
     // An abandoned member's SSE is a partial sum already past the start's.
     if abandon_above.is_finite() && rest.iter().all(|&v| v > abandon_above) {
-        if std::env::var_os("PIEZO_ID_DEBUG").is_some() {
-            eprintln!("oscillator DE: the equation-error start beats the initial population");
-        }
+        super::trace(|| {
+            "oscillator DE: the equation-error start beats the initial population".into()
+        });
         return x.swap_remove(0);
     }
     // The abandoned members' SSE in full.
@@ -591,9 +590,7 @@ fn differential_evolution(
             }
         }
         let after = f.iter().copied().fold(f64::INFINITY, f64::min);
-        if std::env::var_os("PIEZO_ID_DEBUG").is_some() {
-            eprintln!("oscillator DE: best SSE {after:.6e}");
-        }
+        super::trace(|| format!("oscillator DE: best SSE {after:.6e}"));
         // Converged: the best gained less than 1e-7 (relative) in each of 10 generations.
         stall = if after < before * (1.0 - 1e-7) {
             0
@@ -619,7 +616,6 @@ fn upsampled(record: &Record, factor: usize) -> Vec<f32> {
 /// Fits the oscillator to a training record.
 pub fn identify(record: &Record, s: &IdentifySettings) -> Result<Identification, IdentifyError> {
     let started = Instant::now();
-    let debug = std::env::var_os("PIEZO_ID_DEBUG").is_some();
     let factor = UPSAMPLING as usize;
     let t = record.sample_period_s();
     let from = record.index_at(s.start_s);
@@ -656,12 +652,8 @@ pub fn identify(record: &Record, s: &IdentifySettings) -> Result<Identification,
         s.seed,
         &pb,
     );
-    if debug {
-        eprintln!(
-            "oscillator global stage: {:.2} s",
-            started.elapsed().as_secs_f64()
-        );
-    }
+    let seconds = || started.elapsed().as_secs_f64();
+    super::trace(|| format!("oscillator global stage: {:.2} s", seconds()));
     // Local stage: LM on the whole record at the coarse rate, then polished at the full rate.
     pb.set_message("oscillator LM");
     let approach = LmStage {
@@ -670,24 +662,14 @@ pub fn identify(record: &Record, s: &IdentifySettings) -> Result<Identification,
         iterations: 40,
     };
     let (theta, _) = levenberg_marquardt(&coarse_obj, theta, n, approach, &pb);
-    if debug {
-        eprintln!(
-            "oscillator coarse LM: {:.2} s",
-            started.elapsed().as_secs_f64()
-        );
-    }
+    super::trace(|| format!("oscillator coarse LM: {:.2} s", seconds()));
     let polish = LmStage {
         lambda: 1e-4,
         tolerance: 1e-9,
         iterations: 40,
     };
     let (theta, _) = levenberg_marquardt(&obj, theta, n, polish, &pb);
-    if debug {
-        eprintln!(
-            "oscillator polish: {:.2} s {theta:?}",
-            started.elapsed().as_secs_f64()
-        );
-    }
+    super::trace(|| format!("oscillator polish: {:.2} s {theta:?}", seconds()));
     pb.finish_and_clear();
     let set = Identified::Oscillator {
         params: params_of(&theta),
@@ -874,12 +856,12 @@ fn equation_error_start(record: &Record, bounds: &[(f64, f64)]) -> Option<Vec<f6
     }
     let best = (0..pop).min_by(|&a, &b| f[a].total_cmp(&f[b])).unwrap_or(0);
     let (_, lin) = cost(&x[best]);
-    if std::env::var_os("PIEZO_ID_DEBUG").is_some() {
-        eprintln!(
+    super::trace(|| {
+        format!(
             "equation-error (m, c, k) = {:?}, (alpha, p, q) = {lin:?}, f_max {f_max} Hz",
             x[best]
-        );
-    }
+        )
+    });
     if !(lin[0] > 0.0) {
         return None;
     }
@@ -888,8 +870,6 @@ fn equation_error_start(record: &Record, bounds: &[(f64, f64)]) -> Option<Vec<f6
     theta.push(lin[1].clamp(bounds[4].0, bounds[4].1));
     theta.push(lin[2].clamp(bounds[5].0, bounds[5].1));
     theta.push(1.0);
-    if std::env::var_os("PIEZO_ID_DEBUG").is_some() {
-        eprintln!("equation-error start: {theta:?}");
-    }
+    super::trace(|| format!("equation-error start: {theta:?}"));
     Some(theta)
 }

@@ -53,12 +53,13 @@ pub struct OutputFilter {
 }
 
 impl OutputFilter {
-    /// Parses `fir-decimate:factors=R1/R2/…[,order=N]`; errors name the key.
+    /// Parses `fir-decimate:factors=R1/R2/…[,identified_with=Q1/Q2/…][,order=N]`; errors name the
+    /// key.
     pub fn parse(spec: &str) -> Result<Self, String> {
         let (kind, rest) = spec.split_once(':').unwrap_or((spec, ""));
         if kind != "fir-decimate" {
             return Err(format!(
-                "`{kind}`: unknown output filter (valid: fir-decimate:factors=R1/R2/…[,order=N])"
+                "`{kind}`: unknown output filter (valid: fir-decimate:factors=R1/R2/…[,identified_with=Q1/Q2/…][,order=N])"
             ));
         }
         let mut factors = None;
@@ -98,9 +99,21 @@ impl OutputFilter {
 
     /// H(f) at `f_hz` for a record at `fs_hz`: the record's chain over the identification record's.
     pub fn response(&self, f_hz: f64, fs_hz: f64) -> f64 {
+        self.response_at_rate(fs_hz)(f_hz)
+    }
+
+    /// H as a function of frequency \[Hz\] for a record at `fs_hz` (the stages designed once).
+    fn response_at_rate(&self, fs_hz: f64) -> impl Fn(f64) -> f64 {
         let record = Chain::new(&self.factors, self.order, fs_hz);
         let identified = Chain::new(&self.identified_with, self.order, fs_hz);
-        ratio(record.response(f_hz), identified.response(f_hz))
+        move |f_hz| {
+            let (numerator, denominator) = (record.response(f_hz), identified.response(f_hz));
+            if denominator.abs() < 1e-6 {
+                0.0
+            } else {
+                numerator / denominator
+            }
+        }
     }
 
     /// Filters `y`, sampled at `fs_hz`, by H (zero phase, through its even extension).
@@ -117,24 +130,13 @@ impl OutputFilter {
             .collect();
         let mut planner = rustfft::FftPlanner::<f64>::new();
         planner.plan_fft_forward(m).process(&mut spec);
-        let record = Chain::new(&self.factors, self.order, fs_hz);
-        let identified = Chain::new(&self.identified_with, self.order, fs_hz);
+        let response = self.response_at_rate(fs_hz);
         for (k, bin) in spec.iter_mut().enumerate() {
             // Bin k and bin m − k are ±f: the same real gain keeps the series real.
-            let f = k.min(m - k) as f64 * fs_hz / m as f64;
-            *bin *= ratio(record.response(f), identified.response(f));
+            *bin *= response(k.min(m - k) as f64 * fs_hz / m as f64);
         }
         planner.plan_fft_inverse(m).process(&mut spec);
         spec[..n].iter().map(|c| c.re / m as f64).collect()
-    }
-}
-
-/// `numerator / denominator`, 0 where the denominator is below 1e-6.
-fn ratio(numerator: f64, denominator: f64) -> f64 {
-    if denominator.abs() < 1e-6 {
-        0.0
-    } else {
-        numerator / denominator
     }
 }
 

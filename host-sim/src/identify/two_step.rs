@@ -1155,13 +1155,8 @@ mod tests {
 
     fn settings() -> IdentifySettings {
         IdentifySettings {
-            model: ModelKind::Dynamic,
             method: Method::TwoStep,
-            seed: 1,
-            start_s: 0.0,
-            no_shift: false,
-            invertible: false,
-            progress: false,
+            ..IdentifySettings::new(ModelKind::Dynamic)
         }
     }
 
