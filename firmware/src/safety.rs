@@ -293,7 +293,8 @@ impl SafetyLimits {
 fn step_exceeds(a: f32, b: f32, m: f32) -> bool {
     let d = a - b;
     if d.abs() != m {
-        return !(d.abs() < m);
+        // Finite operands: d is finite or ±∞ on overflow, never NaN.
+        return d.abs() > m;
     }
     let c = -b;
     let a_part = d - c;
