@@ -468,6 +468,15 @@ impl StuckDetector {
     }
 }
 
+/// A servo the guard overrode restarts at rest at the voltage applied, its filters and
+/// integrator consistent with the stage again (out of line: the guard overrides only on a fault
+/// or while slewing into a new window).
+#[cold]
+#[inline(never)]
+fn restart_at(servo: &mut ServoState, applied_v: f32) {
+    *servo = ServoState::at_rest(applied_v, servo.mode());
+}
+
 /// Time constants of the servo's fade-out after feedback is switched off, after which the servo
 /// stops running (the correction is down to e⁻¹⁰ ≈ 4.5·10⁻⁵ of what it was).
 pub const HANDOVER_TIME_CONSTANTS: f32 = 10.0;
@@ -880,12 +889,6 @@ impl TwoAxisLoop {
                     _ => feedforward,
                 };
                 let u = axis.limits.apply(&mut self.guard[i], requested);
-                if u != requested && servo_runs {
-                    // The guard overrode the servo (a fault, or the slew into a new window):
-                    // it restarts at rest at what is applied, its filters and integrator
-                    // consistent with the stage again.
-                    self.servo[i] = ServoState::at_rest(u, self.servo[i].mode());
-                }
                 if u != feedforward || self.feedforward != Feedforward::Compensator {
                     // The guard overrode the compensator, or another feed-forward ran: advance
                     // the model by what is applied, so that switching to the compensator is
@@ -927,8 +930,17 @@ impl TwoAxisLoop {
         // 3a. Servo: a fade-out counts down; a servo that did not run this tick (safe,
         // excitation, feed-forward only) restarts at rest at the applied voltage when it runs
         // again (see `restart_servo`: rearm, set_feedforward, set_control_mode).
-        if servo_runs && !self.feedback {
-            self.handover_ticks = self.handover_ticks.saturating_sub(1);
+        if servo_runs {
+            if !self.feedback {
+                self.handover_ticks = self.handover_ticks.saturating_sub(1);
+            }
+            // A servo whose output was not applied (the guard overrode it: a fault, or the
+            // slew into a new window) restarts at rest at what was.
+            for (servo, &u) in self.servo.iter_mut().zip(&applied_v) {
+                if servo.output_v() != u {
+                    restart_at(servo, u);
+                }
+            }
         }
 
         // 3b. Effects: the stage saw `applied_v` this tick (the held value if safe or if the

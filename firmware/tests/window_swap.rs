@@ -188,7 +188,12 @@ impl Bench {
 
 /// The built-in set as the link carries it, with other windows.
 fn set_with_windows(windows: [(f32, f32); 2]) -> ModelSet {
-    let axis = |p: &AxisParams, (min, max): (f32, f32)| AxisModel {
+    set_with_limits(windows, params::AXES.map(|a| a.slew_limit_v_per_s))
+}
+
+/// The built-in set as the link carries it, with other windows and slew limits.
+fn set_with_limits(windows: [(f32, f32); 2], slew_v_per_s: [f32; 2]) -> ModelSet {
+    let axis = |p: &AxisParams, (min, max): (f32, f32), slew_limit_v_per_s: f32| AxisModel {
         bouc_wen: p.bouc_wen,
         static_map: p.static_map,
         asymmetry: p.asymmetry,
@@ -196,7 +201,7 @@ fn set_with_windows(windows: [(f32, f32); 2]) -> ModelSet {
         limits: Limits {
             output_min_v: min,
             output_max_v: max,
-            slew_limit_v_per_s: p.slew_limit_v_per_s,
+            slew_limit_v_per_s,
         },
         servo: p.servo,
     };
@@ -207,8 +212,8 @@ fn set_with_windows(windows: [(f32, f32); 2]) -> ModelSet {
         amplifier_gain_v_per_v: params::AMPLIFIER_GAIN_V_PER_V,
         sensor_m_per_v: params::SENSOR_M_PER_V,
         axes: [
-            axis(&params::AXES[0], windows[0]),
-            axis(&params::AXES[1], windows[1]),
+            axis(&params::AXES[0], windows[0], slew_v_per_s[0]),
+            axis(&params::AXES[1], windows[1], slew_v_per_s[1]),
         ],
     }
 }
@@ -266,17 +271,19 @@ fn a_window_that_excludes_the_held_voltage_is_slewed_into() {
 }
 
 /// Mid-motion (x sine, y triangle, 19 ± 15 µm at 10 Hz), at an instant when x lies below 50 V
-/// and y above 50 V, a set with x in 60–120 V and y in 0–40 V: in each control mode the output
-/// slews into the new windows, no fault trips, and with the compensator the guard stops acting
-/// once both axes are inside.
+/// and y above 50 V, a set with x in 60–120 V and y in 0–40 V, at the file's slew limit and at
+/// 2 kV/s (0.2 V per tick: about 50 ticks of slewing in): in each control mode the output
+/// slews into the new windows, no fault trips, and with the compensator and the servo the
+/// guard stops acting once both axes are inside.
 #[test]
 fn a_window_uploaded_mid_motion_is_slewed_into_in_every_control_mode() {
-    for control in [
+    let modes = [
         Control::Feedforward,
         Control::FeedforwardFeedback,
         Control::Feedback,
         Control::OpenLoop,
-    ] {
+    ];
+    for (control, slew) in modes.iter().flat_map(|&c| [(c, 1e5f32), (c, 2e3)]) {
         let mut b = Bench::new();
         assert_eq!(b.ask(Request::Control(control)), Response::Done);
         b.ask(sine_track());
@@ -287,7 +294,12 @@ fn a_window_uploaded_mid_motion_is_slewed_into_in_every_control_mode() {
             waited += 1;
             assert!(waited < 2_000, "{control:?}: {:?}", b.applied_v);
         }
-        b.upload(set_with_windows([(60.0, 120.0), (0.0, 40.0)]));
+        b.upload(set_with_limits([(60.0, 120.0), (0.0, 40.0)], [slew; 2]));
+        let far = (0..2)
+            .map(|i| distance(b.windows[i], b.applied_v[i]))
+            .fold(0.0, f64::max);
+        // Ticks at the slew limit to cover the distance (the last one may end exactly inside).
+        let ticks_needed = (far / bound_v(slew)).ceil() as usize + 1;
         let mut inside_since = None;
         for k in 0..3_000 {
             b.tick();
@@ -297,12 +309,15 @@ fn a_window_uploaded_mid_motion_is_slewed_into_in_every_control_mode() {
             }
         }
         let (k, at_entry) = inside_since.expect("both axes inside their windows");
-        assert!(k < 10, "{control:?}: entered after {k} ticks");
+        assert!(
+            k < ticks_needed,
+            "{control:?} {slew}: entered after {k} ticks"
+        );
         b.assert_running_without_faults();
         if control != Control::OpenLoop {
             // The linear baseline's requests leave the window (clamped, counted); the
             // compensator's and the servo's do not.
-            assert_eq!(b.guard_interventions(), at_entry, "{control:?}");
+            assert_eq!(b.guard_interventions(), at_entry, "{control:?} {slew}");
         }
     }
 }
