@@ -23,9 +23,9 @@
 //! of limits between two ticks, [`TwoAxisLoop::set_settings`](crate::xy_loop::TwoAxisLoop::set_settings))
 //! moves monotonically towards the window at the slew limit until it is inside — a new window is
 //! never reached by a jump (should M be below the f32 spacing at `y₋`, no step within M exists
-//! and `y₋` is held: M ≥ 7.7 µV suffices up to 120 V, a slew limit ≥ 0.08 V/s at 10 kHz). A request inside the window whose step is at most `M` passes
-//! unchanged (a controller that limits its own steps is never overridden: see
-//! [`SafetyLimits::controller_slew_v_per_s`]).
+//! and `y₋` is held: M ≥ 7.7 µV suffices up to 120 V, a slew limit ≥ 0.08 V/s at 10 kHz).
+//! A request inside the window whose step is at most `M` passes unchanged (a controller that
+//! limits its own steps is never overridden: see [`SafetyLimits::controller_slew_v_per_s`]).
 //!
 //! Settings ([`SafetyLimits`], validated once by [`SafetyLimits::new`]) are kept apart from the
 //! run-time state ([`GuardState`]: last output and [`FaultCounters`]), so limits can be swapped
