@@ -17,6 +17,7 @@
 //!                                                       baseline u_min + (r − y_rest)/g_lin)
 //!              u_req = servo.step(r₋, x_meas, u_ff)     with feedback (see Feedback), else u_ff
 //!              u     = guard.apply(u_req)               window, slew, non-finite → hold
+//!                                                       (see Output guard)
 //!    safe:     u     = last guarded output (hold); reference paused, compensator frozen
 //! 3. per axis: DAC code = u / G_amp                     Err → fault DacError; axes not yet
 //!                                                       written this tick get their hold value
@@ -35,9 +36,23 @@
 //! `u_ff`; its own window and slew limit are the compensator's, so the guard only acts on a
 //! fault. Switching feedback on hands over from the voltage applied; switching it off fades the
 //! correction out with the servo's `transfer_time_constant_s` τ over [`HANDOVER_TIME_CONSTANTS`]·τ;
-//! after a fault, an excitation or a new parameter set the servo restarts at rest at the held
-//! voltage. Without feedback and outside a hand-over the servo is not run: the tick is exactly
-//! the feed-forward one.
+//! after a fault, an excitation, a new parameter set or a tick in which the guard overrode it
+//! the servo restarts at rest at the applied voltage. Without feedback and outside a hand-over
+//! the servo is not run: the tick is exactly the feed-forward one.
+//!
+//! # Output guard
+//! [`crate::safety`]: per axis, `|u_k − u_{k−1}| ≤ slew_limit_v_per_s · T` in exact arithmetic
+//! (T the loop period; the bound is the f32 just below, [`SafetyLimits::from_slew`]) and `u_k`
+//! inside the window, whatever the request (NaN, ±∞, 10³⁰, any step). The compensator and the
+//! servo run with a slew limit a hair inside ([`SafetyLimits::controller_slew_v_per_s`]: their
+//! largest step 9.99999 V instead of 10 V at 1e5 V/s and 10 kHz), so that their outputs, f32
+//! rounding included, pass the guard unchanged: in normal tracking the guard never acts. A new
+//! parameter set ([`TwoAxisLoop::set_settings`]) whose window excludes the voltage applied is
+//! reached by slewing: the guard moves the output towards the window by at most the new
+//! bound per tick (counted in the guard's `window_entry`, part of the link's
+//! `guard_interventions`), the compensator's model follows the voltage applied; a safe loop
+//! holds its voltage (no jump) and slews in after the rearm. The bound in force in a tick is the
+//! one of the settings of that tick (the new one from the first tick after a swap).
 //!
 //! # Effects
 //! When the parameter file has effects (`[x.effects]`, `[y.effects]`: creep, even term, mode,
@@ -72,8 +87,8 @@
 
 use piezo_core::effects::Effects;
 use piezo_core::{
-    CommandStatus, Compensator, CompensatorState, ParamError, Servo, ServoMode, ServoState,
-    ServoStatus,
+    CommandStatus, Compensator, CompensatorSettings, CompensatorState, ParamError, Servo,
+    ServoMode, ServoState, ServoStatus,
 };
 
 use crate::codes::{DacCode, SensorScale};
@@ -245,23 +260,38 @@ pub enum ConfigError {
     Gain,
 }
 
-/// The guard allows this much more slew per tick than the compensator itself uses, so that it
-/// only acts on a real fault and not on the rounding of `u₋ + Δu`.
-pub const GUARD_SLEW_MARGIN: f32 = 1.001;
-
 impl AxisConfig {
-    /// An axis from the parameter file, at loop period `sample_period_s`: the core's compensator,
-    /// its effect chain, and a guard with the same window and slew limit (plus
-    /// [`GUARD_SLEW_MARGIN`]).
+    /// An axis from the parameter file, at loop period `sample_period_s` T: a guard with the
+    /// file's window whose step never exceeds `slew_limit_v_per_s · T`
+    /// ([`SafetyLimits::from_slew`]); the core's compensator, its effect chain and the servo with
+    /// the same window and a slew limit a hair inside the guard's
+    /// ([`SafetyLimits::controller_slew_v_per_s`]: 10 V per tick become 9.99999 V at 1e5 V/s
+    /// and 10 kHz), so that their own steps, f32 rounding included, pass the guard unchanged
+    /// and the guard acts only on a fault. The core's checks come first: a file it refuses gets
+    /// its reason.
     pub fn from_params(p: &AxisParams, sample_period_s: f32) -> Result<Self, ConfigError> {
         let model = p.model().map_err(ConfigError::Core)?;
-        let compensator =
-            Compensator::new(model, p.settings(sample_period_s)).map_err(ConfigError::Core)?;
+        let limits = SafetyLimits::from_slew(
+            p.output_min_v,
+            p.output_max_v,
+            p.slew_limit_v_per_s,
+            sample_period_s,
+        );
+        let settings = match &limits {
+            Ok(l) => CompensatorSettings {
+                slew_limit_v_per_s: l.controller_slew_v_per_s(sample_period_s),
+                ..p.settings(sample_period_s)
+            },
+            Err(_) => p.settings(sample_period_s),
+        };
+        let compensator = Compensator::new(model, settings).map_err(ConfigError::Core)?;
         let effects = p.effect_chain(sample_period_s).map_err(ConfigError::Core)?;
-        let servo = p.servo(sample_period_s).map_err(ConfigError::Core)?;
-        let max_step_v = p.slew_limit_v_per_s * sample_period_s * GUARD_SLEW_MARGIN;
-        let limits = SafetyLimits::new(p.output_min_v, p.output_max_v, max_step_v)
-            .map_err(ConfigError::Limits)?;
+        let servo = p
+            .servo
+            .map(|params| Servo::new(params, settings))
+            .transpose()
+            .map_err(ConfigError::Core)?;
+        let limits = limits.map_err(ConfigError::Limits)?;
         if !(p.linear_gain_m_per_v.is_finite() && p.linear_gain_m_per_v != 0.0) {
             return Err(ConfigError::Gain);
         }
@@ -436,6 +466,15 @@ impl StuckDetector {
         self.reported |= stuck;
         first
     }
+}
+
+/// A servo the guard overrode restarts at rest at the voltage applied, its filters and
+/// integrator consistent with the stage again (out of line: the guard overrides only on a fault
+/// or while slewing into a new window).
+#[cold]
+#[inline(never)]
+fn restart_at(servo: &mut ServoState, applied_v: f32) {
+    *servo = ServoState::at_rest(applied_v, servo.mode());
 }
 
 /// Time constants of the servo's fade-out after feedback is switched off, after which the servo
@@ -668,15 +707,17 @@ impl TwoAxisLoop {
     }
 
     /// Swaps the settings between two ticks (a new parameter set). The run-time state is kept:
-    /// the compensator's model state, each guard's last output (moved into the new window if
-    /// it lies outside) and its counters, the counters, the mode and the reference. The inverse
-    /// effect chain restarts at rest at the applied voltages when the effects changed.
+    /// the compensator's model state, each guard's last output and its counters, the counters,
+    /// the mode and the reference. Nothing moves here: an output outside the new window is
+    /// slewed into it by the guard in the ticks that follow, at most the new slew limit per
+    /// tick, each such tick counted (`window_entry`); while the loop is safe it stays held
+    /// where it is, and the slew-in follows the rearm. In those ticks the compensator's model is
+    /// advanced with the voltage applied and the servo restarts at it, as after any guard
+    /// override (see [`TwoAxisLoop::tick`]). The inverse effect chain restarts at rest at the
+    /// applied voltages when the effects changed; the servo restarts at rest at them.
     pub fn set_settings(&mut self, settings: LoopSettings) {
         let effects_changed =
             (0..2).any(|i| settings.axes[i].effects != self.settings.axes[i].effects);
-        for (guard, axis) in self.guard.iter_mut().zip(&settings.axes) {
-            *guard = guard.within(&axis.limits);
-        }
         self.frames.set_decimation(settings.frame_decimation);
         self.settings = settings;
         if effects_changed {
@@ -889,8 +930,17 @@ impl TwoAxisLoop {
         // 3a. Servo: a fade-out counts down; a servo that did not run this tick (safe,
         // excitation, feed-forward only) restarts at rest at the applied voltage when it runs
         // again (see `restart_servo`: rearm, set_feedforward, set_control_mode).
-        if servo_runs && !self.feedback {
-            self.handover_ticks = self.handover_ticks.saturating_sub(1);
+        if servo_runs {
+            if !self.feedback {
+                self.handover_ticks = self.handover_ticks.saturating_sub(1);
+            }
+            // A servo whose output was not applied (the guard overrode it: a fault, or the
+            // slew into a new window) restarts at rest at what was.
+            for (servo, &u) in self.servo.iter_mut().zip(&applied_v) {
+                if servo.output_v() != u {
+                    restart_at(servo, u);
+                }
+            }
         }
 
         // 3b. Effects: the stage saw `applied_v` this tick (the held value if safe or if the

@@ -297,7 +297,8 @@ pub struct Counters {
     /// Samples where the servo's window or slew limit stopped its correction short, or it held
     /// it over a non-finite input.
     pub servo_limited: u32,
-    /// Guard interventions (window, slew, non-finite; both axes).
+    /// Guard interventions (window, slew, non-finite, and ticks slewing into a new parameter
+    /// set's window; both axes).
     pub guard_interventions: u32,
     /// Ticks of a streamed program that found the queue empty.
     pub stream_underruns: u32,
