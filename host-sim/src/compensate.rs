@@ -123,7 +123,12 @@ pub fn read_reference(path: &Path) -> Result<Reference, String> {
 }
 
 /// Refuses a record whose sample period is not the loop period 1/`rate_hz`, naming the lines.
-fn check_period(reference: &Path, record: &Reference, params: &Path, rate_hz: f32) -> Result<(), String> {
+fn check_period(
+    reference: &Path,
+    record: &Reference,
+    params: &Path,
+    rate_hz: f32,
+) -> Result<(), String> {
     let t_s = &record.t_s;
     let period_s = 1.0 / f64::from(rate_hz);
     let mean = (t_s[t_s.len() - 1] - t_s[0]) / (t_s.len() - 1) as f64;
@@ -179,9 +184,11 @@ pub fn feedforward_axes(
                     axis.kind.name()
                 );
                 let key = format!("{}.model", axis.name);
-                Err(StageError::new(&name, StageErrorKind::Invalid, &key, message)
-                    .located(&name, &text)
-                    .to_string())
+                Err(
+                    StageError::new(&name, StageErrorKind::Invalid, &key, message)
+                        .located(&name, &text)
+                        .to_string(),
+                )
             }
         })
         .collect()
@@ -441,7 +448,7 @@ mod tests {
         assert_eq!(result.counts.limited, 0);
         let out = dir.join("u.csv");
         write_csv(&out, &result.to_table()).unwrap();
-        let back = read_csv(&out).unwrap();
+        let back = crate::csv::read_csv(&out).unwrap();
         assert_eq!(back.names, ["t_s", "ux_V", "uy_V"]);
         let voltages = [1, 2].map(|c| back.columns[c].clone());
         for (c, (_, u)) in result.voltages_v.iter().enumerate() {

@@ -155,9 +155,21 @@ fn the_models_check_skips_only_invertibility_and_the_drive_span() {
     // Values no check accepts: both refuse them, naming the key and its line.
     let text = example().to_toml("");
     let cases = [
-        ("sensor_m_per_v = ", "sensor_m_per_v = -1e39", "io.sensor_m_per_v"),
-        ("adc_range_v = ", "adc_range_v = [nan, 10.24]", "io.adc_range_v"),
-        ("slew_limit_v_per_s = ", "slew_limit_v_per_s = nan", "x.limits.slew_limit_v_per_s"),
+        (
+            "sensor_m_per_v = ",
+            "sensor_m_per_v = -1e39",
+            "io.sensor_m_per_v",
+        ),
+        (
+            "adc_range_v = ",
+            "adc_range_v = [nan, 10.24]",
+            "io.adc_range_v",
+        ),
+        (
+            "slew_limit_v_per_s = ",
+            "slew_limit_v_per_s = nan",
+            "x.limits.slew_limit_v_per_s",
+        ),
     ];
     for (key, line, path) in cases {
         let i = text.find(key).unwrap();
@@ -165,7 +177,10 @@ fn the_models_check_skips_only_invertibility_and_the_drive_span() {
         let bad = format!("{}{line}{}", &text[..i], &text[end..]);
         let file = StageFile::parse("f.toml", &bad).unwrap();
         for check in [Check::Models, Check::Firmware] {
-            let e = file.validate_with(check).unwrap_err().located("f.toml", &bad);
+            let e = file
+                .validate_with(check)
+                .unwrap_err()
+                .located("f.toml", &bad);
             let at = bad.lines().position(|l| l == line).unwrap() + 1;
             assert_eq!((e.key.as_str(), e.line), (path, Some(at)), "{check:?}: {e}");
         }

@@ -164,8 +164,8 @@ impl fmt::Display for TimeFault {
             ),
             Self::TooFine { median_s } => write!(
                 f,
-                "the median step is {median_s:e} s, below {MIN_SAMPLE_PERIOD_S:e} s: not the times \
-                 of a sampled record in seconds"
+                "the median step is {median_s:.3e} s, below {MIN_SAMPLE_PERIOD_S:e} s: not the \
+                 times of a sampled record in seconds"
             ),
             Self::Uneven {
                 step_s,
@@ -173,8 +173,8 @@ impl fmt::Display for TimeFault {
                 median_s,
             } => write!(
                 f,
-                "the step from line {previous_line} is {step_s:e} s, {:.3} times the median step \
-                 {median_s:e} s (a gap, a jump or a doubled sample): a record is sampled at one \
+                "the step from line {previous_line} is {step_s:.4e} s, {:.3} times the median step \
+                 {median_s:.4e} s (a gap, a jump or a doubled sample): a record is sampled at one \
                  period, every step within {MAX_STEP_RATIO} times the median either way",
                 step_s / median_s
             ),
@@ -573,7 +573,10 @@ mod tests {
         assert!(e.contains("rec.csv:4") && e.contains("strictly"), "{e}");
         // Tiny: 1e-15 s steps.
         let e = time_error(&[0.0, 1e-15, 2e-15, 3e-15]);
-        assert!(e.contains("median step is 1e-15 s"), "{e}");
+        assert!(
+            e.contains("rec.csv:4") && e.contains("median step is 1.000e-15 s"),
+            "{e}"
+        );
         // A gap after the fifth sample (line 7 → 8), and a doubled sample.
         let mut gap: Vec<f64> = (0..10).map(f64::from).collect();
         gap[5..].iter_mut().for_each(|t| *t += 0.6);
@@ -590,12 +593,17 @@ mod tests {
         let e = time_error(&[0.0]);
         assert!(e.contains("at least two"), "{e}");
         // Jitter within 1.5x passes.
-        let jitter: Vec<f64> = (0..10).map(|k| f64::from(k) + 0.2 * f64::from(k % 2)).collect();
+        let jitter: Vec<f64> = (0..10)
+            .map(|k| f64::from(k) + 0.2 * f64::from(k % 2))
+            .collect();
         assert!(parse_rows(
             Path::new("j.csv"),
             &format!(
                 "t_s,u_V\n{}",
-                jitter.iter().map(|t| format!("{t},0\n")).collect::<String>()
+                jitter
+                    .iter()
+                    .map(|t| format!("{t},0\n"))
+                    .collect::<String>()
             )
         )
         .unwrap()
@@ -607,7 +615,10 @@ mod tests {
     fn values_beyond_f32_are_refused_with_their_line() {
         let rows = parse_rows(Path::new("big.csv"), "t_s,u_V,y_nm\n0,1,1e300\n1,1e39,2\n").unwrap();
         let e = rows.f32_column("u_V", 1.0).unwrap_err().to_string();
-        assert!(e.contains("big.csv:3: column 2 (`u_V`)") && e.contains("f32"), "{e}");
+        assert!(
+            e.contains("big.csv:3: column 2 (`u_V`)") && e.contains("f32"),
+            "{e}"
+        );
         // 1e300 nm = 1e291 m is still beyond f32; 2 nm converts.
         let e = rows.f32_column("y_nm", 1e-9).unwrap_err().to_string();
         assert!(e.contains("big.csv:2: column 3"), "{e}");

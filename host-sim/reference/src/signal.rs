@@ -655,23 +655,23 @@ fn signal_kind(
                 _ => 0.0,
             };
             (
-            SignalKind::Csv {
-                path,
-                end_s,
-                column: kv.get("column").map(str::to_string),
-                zero_order_hold: match kv.get("hold") {
-                    None | Some("foh") => false,
-                    Some("zoh") => true,
-                    Some(other) => {
-                        return Err(SignalError::BadValue {
-                            key: "hold".into(),
-                            given: other.into(),
-                            reason: "valid: foh, zoh",
-                        })
-                    }
+                SignalKind::Csv {
+                    path,
+                    end_s,
+                    column: kv.get("column").map(str::to_string),
+                    zero_order_hold: match kv.get("hold") {
+                        None | Some("foh") => false,
+                        Some("zoh") => true,
+                        Some(other) => {
+                            return Err(SignalError::BadValue {
+                                key: "hold".into(),
+                                given: other.into(),
+                                reason: "valid: foh, zoh",
+                            })
+                        }
+                    },
                 },
-            },
-            "path, column, hold, duration, rate",
+                "path, column, hold, duration, rate",
             )
         }
         other => {

@@ -152,6 +152,16 @@ impl Record {
         let rows = read_rows(path).map_err(|e| e.to_string())?;
         let table = &rows.table;
         let t_name = pick(table, t, "t_", "--t")?;
+        let columns = us
+            .iter()
+            .zip(&ys)
+            .map(|(u, y)| {
+                Ok((
+                    pick(table, u.as_deref(), "u_", "--u")?,
+                    pick(table, y.as_deref(), "y_", "--y")?,
+                ))
+            })
+            .collect::<Result<Vec<_>, String>>()?;
         let t_s: Vec<f64> = {
             let factor = si_factor(path, &t_name, "--t")?;
             let t = rows.time(&t_name, factor).map_err(|e| e.to_string())?;
@@ -164,11 +174,9 @@ impl Record {
                 t_s.len()
             ));
         }
-        us.iter()
-            .zip(&ys)
-            .map(|(u, y)| {
-                let u_name = pick(table, u.as_deref(), "u_", "--u")?;
-                let y_name = pick(table, y.as_deref(), "y_", "--y")?;
+        columns
+            .into_iter()
+            .map(|(u_name, y_name)| {
                 let u = rows
                     .f32_column(&u_name, si_factor(path, &u_name, "--u")?)
                     .map_err(|e| e.to_string())?;
@@ -427,7 +435,10 @@ pub fn fit_block(
         }
         sum += measured[k];
         if !sum.is_finite() {
-            return Err(fail("the sum of the measured outputs (it overflows f64)", k));
+            return Err(fail(
+                "the sum of the measured outputs (it overflows f64)",
+                k,
+            ));
         }
     }
     let mean = sum / (n.saturating_sub(from)) as f64;
@@ -738,8 +749,13 @@ impl Columns {
     /// Reads `data` with these columns ([`Record::read_axes`]): one record per axis; errors name
     /// `--data`.
     pub fn read_axes(&self, data: &std::path::Path) -> Result<Vec<Record>, String> {
-        Record::read_axes(data, self.t.as_deref(), self.u.as_deref(), self.y.as_deref())
-            .map_err(|e| format!("--data: {e}"))
+        Record::read_axes(
+            data,
+            self.t.as_deref(),
+            self.u.as_deref(),
+            self.y.as_deref(),
+        )
+        .map_err(|e| format!("--data: {e}"))
     }
 
     fn read(&self, data: &std::path::Path) -> Result<Record, String> {
@@ -1008,7 +1024,9 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
         .map_err(|e| format!("--output-filter: {e}"))?;
     let file = predict::read_stage(&a.params)?;
     if let Some(refusal) = file.firmware_refusal() {
-        eprintln!("note: predicted as a forward model; the firmware would refuse this set: {refusal}");
+        eprintln!(
+            "note: predicted as a forward model; the firmware would refuse this set: {refusal}"
+        );
     }
     let mut records = a.columns.read_axes(&a.data)?;
     let mut start = a.start;

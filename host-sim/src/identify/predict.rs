@@ -78,13 +78,16 @@ fn build_for(
     let hull = (own.0.min(rlo as f32), own.1.max(rhi as f32));
     match axis.build(name, t, hull) {
         Ok(v) => Ok((v, false)),
-        Err(_) => axis.build(name, t, own).map(|v| (v, hull != own)).map_err(|e| {
-            format!(
-                "--params: {} (axis {name} built at the sample period {t} s of {})",
-                e.located(&stage.name, &stage.text),
-                record.path.display()
-            )
-        }),
+        Err(_) => axis
+            .build(name, t, own)
+            .map(|v| (v, hull != own))
+            .map_err(|e| {
+                format!(
+                    "--params: {} (axis {name} built at the sample period {t} s of {})",
+                    e.located(&stage.name, &stage.text),
+                    record.path.display()
+                )
+            }),
     }
 }
 
@@ -170,7 +173,9 @@ pub fn predict_axes(
         .zip(predicted)
         .zip(records)
         .map(|(((axis, a, _, excursion), predicted_m), r)| {
-            let named = |e: super::NonFinite| format!("{axis}: {} on {}: {e}", a.model.name(), r.path.display());
+            let named = |e: super::NonFinite| {
+                format!("{axis}: {} on {}: {e}", a.model.name(), r.path.display())
+            };
             check_finite(&r.t_s, &r.y_m, &predicted_m, 0).map_err(named)?;
             Ok(AxisPrediction {
                 axis,
