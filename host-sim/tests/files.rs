@@ -120,14 +120,17 @@ fn predict_refuses_stage_files_the_firmware_refuses() {
 /// not after line 2), constant, tiny (1e-12 s steps, named at the first, line 3) and a 3 ms gap
 /// after row 199
 /// (line 201 → 202).
-fn broken_time_columns() -> Vec<(&'static str, Box<dyn Fn(usize) -> f64>, usize)> {
+/// A broken time column: its name, t(row) \[s\] and the line its error names.
+type BrokenTime = (&'static str, fn(usize) -> f64, usize);
+
+fn broken_time_columns() -> Vec<BrokenTime> {
     vec![
-        ("reversed", Box::new(|k| (400 - k) as f64 * 1e-4), 3),
-        ("constant", Box::new(|_| 0.5), 3),
-        ("tiny", Box::new(|k| k as f64 * 1e-12), 3),
+        ("reversed", |k: usize| (400 - k) as f64 * 1e-4, 3),
+        ("constant", |_| 0.5, 3),
+        ("tiny", |k| k as f64 * 1e-12, 3),
         (
             "gap",
-            Box::new(|k| k as f64 * 1e-4 + if k >= 200 { 3e-3 } else { 0.0 }),
+            |k| k as f64 * 1e-4 + if k >= 200 { 3e-3 } else { 0.0 },
             202,
         ),
     ]

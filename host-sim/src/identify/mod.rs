@@ -443,8 +443,8 @@ pub fn fit_block(
     }
     let mean = sum / (n.saturating_sub(from)) as f64;
     let mut sst = 0.0f64;
-    for k in from..n {
-        let d = measured[k] - mean;
+    for (k, x) in measured.iter().enumerate().take(n).skip(from) {
+        let d = x - mean;
         sst += d * d;
         if !sst.is_finite() {
             return Err(fail(
