@@ -10,7 +10,9 @@
 //!   asymmetric) with its compensator and effects.
 //! * `REF.csv`: `t_s` and the desired stage output `r_<unit>` (one-axis stage file) or `rx_<unit>`
 //!   and `ry_<unit>` (two axes), unit `m`, `mm`, `um` or `nm`, sampled at the stage file's loop
-//!   period T = 1/`loop_rate_hz` (the mean step within 1e-6 of T, every step within 1 %).
+//!   period T = 1/`loop_rate_hz` (its `t_s` a record's time base, `csv::Rows::time`; the mean
+//!   step within 1e-6 of T, every step within 1 %; errors name the file and the lines).
+//!   Every reference value must be finite in the core's f32.
 //! * `U.csv`: `t_s,u_V` or `t_s,ux_V,uy_V`: the stack voltage of each tick \[V\] (the amplifier's
 //!   output; a DAC sample is this / `io.amplifier_gain_v_per_v`).
 //!
@@ -33,12 +35,12 @@
 //! acts on these voltages, so they are the ones the firmware writes, to f32 rounding
 //! (`tests/tests/qemu_compensate.rs` checks the QEMU image against this command).
 
-use crate::csv::{read_csv, write_csv, Table};
+use crate::csv::{read_rows, write_csv, Table};
 use crate::identify::unit_factor;
 use piezo_core::{
     compensate_pair, compensate_single, FeedforwardAxis, FeedforwardCounts, InverseChain,
 };
-use piezo_stage::{AxisChain, StageFile, ValidStage};
+use piezo_stage::{AxisChain, StageError, StageErrorKind, StageFile, ValidStage};
 use std::path::{Path, PathBuf};
 
 /// Arguments of `compensate`.
@@ -74,15 +76,18 @@ output_min_v. The voltages are the stack voltages (divide by io.amplifier_gain_v
 pub struct Reference {
     /// Sample times \[s\].
     pub t_s: Vec<f64>,
+    /// The file line of each sample (for errors).
+    pub lines: Vec<usize>,
     /// Per axis (1 or 2): the column it came from and the samples \[m\].
     pub axes: Vec<(String, Vec<f32>)>,
 }
 
-/// Reads a reference record: `t_s` and `r_<unit>` or `rx_<unit>`, `ry_<unit>`; errors name the
-/// file and the column.
+/// Reads a reference record: `t_s` (a record's time base) and `r_<unit>` or `rx_<unit>`,
+/// `ry_<unit>`, finite in f32; errors name the file, the line and the column.
 pub fn read_reference(path: &Path) -> Result<Reference, String> {
-    let table = read_csv(path).map_err(|e| e.to_string())?;
-    let t_s = table.column("t_s").map_err(|e| e.to_string())?.to_vec();
+    let rows = read_rows(path).map_err(|e| e.to_string())?;
+    let table = &rows.table;
+    let t_s = rows.time("t_s", 1.0).map_err(|e| e.to_string())?.to_vec();
     let find = |prefix: &str| {
         table
             .names
@@ -106,36 +111,48 @@ pub fn read_reference(path: &Path) -> Result<Reference, String> {
         .into_iter()
         .map(|name| {
             let factor = unit_factor(&name).unwrap_or(1.0);
-            let column = table.column(&name).map_err(|e| e.to_string())?;
-            let samples = column.iter().map(|&v| (v * factor) as f32).collect();
-            Ok((name, samples))
+            let column = rows.f32_column(&name, factor).map_err(|e| e.to_string())?;
+            Ok((name, column.iter().map(|&v| v as f32).collect()))
         })
         .collect::<Result<_, String>>()?;
-    Ok(Reference { t_s, axes })
+    Ok(Reference {
+        t_s,
+        lines: rows.lines,
+        axes,
+    })
 }
 
-/// Refuses a record whose sample period is not the loop period `period_s` \[s\].
-fn check_period(reference: &Path, t_s: &[f64], params: &Path, rate_hz: f32) -> Result<(), String> {
-    if t_s.len() < 2 {
-        return Err(format!(
-            "{}: {} sample(s): need at least two to know the sample period",
-            reference.display(),
-            t_s.len()
-        ));
-    }
+/// Refuses a record whose sample period is not the loop period 1/`rate_hz`, naming the lines.
+fn check_period(
+    reference: &Path,
+    record: &Reference,
+    params: &Path,
+    rate_hz: f32,
+) -> Result<(), String> {
+    let t_s = &record.t_s;
     let period_s = 1.0 / f64::from(rate_hz);
     let mean = (t_s[t_s.len() - 1] - t_s[0]) / (t_s.len() - 1) as f64;
     let uneven = t_s
         .windows(2)
         .position(|w| ((w[1] - w[0]) - period_s).abs() > 1e-2 * period_s);
     if (mean - period_s).abs() > 1e-6 * period_s || uneven.is_some() {
+        let line = |i: usize| record.lines.get(i).copied().unwrap_or(0);
         let at = uneven.map_or(String::new(), |i| {
-            format!(" (step {} s at t_s = {} s)", t_s[i + 1] - t_s[i], t_s[i])
+            format!(
+                " (the step from line {} to line {}, t_s = {} s, is {} s)",
+                line(i),
+                line(i + 1),
+                t_s[i],
+                t_s[i + 1] - t_s[i]
+            )
         });
         return Err(format!(
-            "{}: sample period {mean} s (column t_s){at} differs from the loop period {period_s} s \
-             of {} (stage.loop_rate_hz = {rate_hz} Hz): resample the reference at the loop rate",
+            "{}: sample period {mean} s (column t_s, lines {}-{}){at} differs from the loop \
+             period {period_s} s of {} (stage.loop_rate_hz = {rate_hz} Hz): resample the \
+             reference at the loop rate",
             reference.display(),
+            line(0),
+            line(t_s.len() - 1),
             params.display()
         ));
     }
@@ -158,13 +175,21 @@ pub fn feedforward_axes(
                 effects,
                 rest_v: given.limits.output_min_v,
             }),
-            _ => Err(format!(
-                "{}: {}.model = \"{}\": the firmware compensates the static models only \
-                 (symmetric, asymmetric)",
-                params.display(),
-                axis.name,
-                axis.kind.name()
-            )),
+            _ => {
+                let name = params.display().to_string();
+                let text = std::fs::read_to_string(params).unwrap_or_default();
+                let message = format!(
+                    "\"{}\": the firmware compensates the static models only (symmetric, \
+                     asymmetric)",
+                    axis.kind.name()
+                );
+                let key = format!("{}.model", axis.name);
+                Err(
+                    StageError::new(&name, StageErrorKind::Invalid, &key, message)
+                        .located(&name, &text)
+                        .to_string(),
+                )
+            }
         })
         .collect()
 }
@@ -199,19 +224,42 @@ impl Compensation {
     }
 }
 
-/// Runs the firmware's chain for the stage file at `params` over the record at `reference`.
+/// Runs the firmware's chain for the stage file at `params` over the record at `reference`;
+/// every voltage must be finite (refused naming the tick, its time and the reference's line).
 pub fn compensate(params: &Path, reference: &Path) -> Result<Compensation, String> {
     let (file, valid) = StageFile::load(params).map_err(|e| e.to_string())?;
     let record = read_reference(reference)?;
-    check_period(reference, &record.t_s, params, file.stage.loop_rate_hz)?;
+    check_period(reference, &record, params, file.stage.loop_rate_hz)?;
     let axes = feedforward_axes(&file, &valid, params)?;
+    let result = run_chain(&axes, params, reference, &record)?;
+    for (name, u) in &result.voltages_v {
+        if let Some(k) = u.iter().position(|v| !v.is_finite()) {
+            return Err(format!(
+                "{name} is not a finite number at tick {k} (t = {} s, line {} of {}): nothing \
+                 is written",
+                record.t_s[k],
+                record.lines[k],
+                reference.display()
+            ));
+        }
+    }
+    Ok(result)
+}
+
+/// The chain of `axes` (from `params`) over `record` (from `reference`).
+fn run_chain(
+    axes: &[FeedforwardAxis],
+    params: &Path,
+    reference: &Path,
+    record: &Reference,
+) -> Result<Compensation, String> {
     let n = record.t_s.len();
-    match (axes.as_slice(), record.axes.as_slice()) {
+    match (axes, record.axes.as_slice()) {
         ([x], [(_, r)]) => {
             let mut u = vec![0.0; n];
             let counts = compensate_single(x, r, &mut u);
             Ok(Compensation {
-                t_s: record.t_s,
+                t_s: record.t_s.clone(),
                 voltages_v: vec![("u_V".into(), u)],
                 counts,
                 lead_ticks: InverseChain::single(x.effects, x.rest_v).map_or(0, |c| c.lead_ticks()),
@@ -221,7 +269,7 @@ pub fn compensate(params: &Path, reference: &Path) -> Result<Compensation, Strin
             let (mut ux, mut uy) = (vec![0.0; n], vec![0.0; n]);
             let counts = compensate_pair([x, y], [rx, ry], [&mut ux, &mut uy]);
             Ok(Compensation {
-                t_s: record.t_s,
+                t_s: record.t_s.clone(),
                 voltages_v: vec![("ux_V".into(), ux), ("uy_V".into(), uy)],
                 counts,
                 lead_ticks: InverseChain::new([x.effects, y.effects], [x.rest_v, y.rest_v])
@@ -400,7 +448,7 @@ mod tests {
         assert_eq!(result.counts.limited, 0);
         let out = dir.join("u.csv");
         write_csv(&out, &result.to_table()).unwrap();
-        let back = read_csv(&out).unwrap();
+        let back = crate::csv::read_csv(&out).unwrap();
         assert_eq!(back.names, ["t_s", "ux_V", "uy_V"]);
         let voltages = [1, 2].map(|c| back.columns[c].clone());
         for (c, (_, u)) in result.voltages_v.iter().enumerate() {

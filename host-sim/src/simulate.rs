@@ -54,6 +54,19 @@ pub fn simulate_cmd(a: &SimulateArgs) -> Result<String, String> {
         spec.sample_rate_hz.unwrap_or(p.default_sample_rate_hz()),
         spec.duration_s.unwrap_or(spec.default_duration_s()),
     );
+    if let (Some(end_s), Some(duration_s)) = (spec.csv_end_s(), spec.duration_s) {
+        if duration_s < end_s {
+            eprintln!(
+                "note: --signal duration={duration_s}: plays {duration_s} s of the file's {end_s} s \
+                 (without duration, the whole file)"
+            );
+        } else if duration_s > end_s {
+            eprintln!(
+                "note: --signal duration={duration_s}: the file's samples end at {end_s} s; its \
+                 last sample is held to {duration_s} s"
+            );
+        }
+    }
     let out = simulate(p, signals, &effects, &settings).map_err(|e| format!("simulate: {e}"))?;
     write_csv(&a.out, &out.to_table()).map_err(|e| format!("--out: {e}"))?;
     if let Some(path) = &a.plot {

@@ -45,13 +45,15 @@
 //! new key. Unknown keys are refused with the list of valid ones; every error names the file, the
 //! line and column, and the key path (`x.bouc_wen.gamma`): [`StageError`].
 //!
-//! # Validation ([`StageFile::validate`])
+//! # Validation ([`StageFile::validate`], [`Check`])
 //! Per axis, in this order: `BoucWen::with_input_range(bouc_wen, output_min_v, output_max_v,
 //! STATE_LIMIT)` (the output window is the only input the stage will see), the model constructor
 //! of its family, `Compensator::new` with the limits and `sample_period_s = 1 / loop_rate_hz`
 //! (static models), then `effects::Effects::new(effects, 1 / loop_rate_hz, w_range)` with
 //! `w_range` the output range of the first loading over the window. The io chain: the output
 //! window within `dac_range_v × amplifier_gain_v_per_v`, the sensor span within the ADC's.
+//! [`Check::Models`] is the same without the compensator and the drive-span check: what a forward
+//! simulation of the file needs (`host-sim predict` runs sets that are not invertible).
 //!
 //! # Initial state
 //! Every consumer starts a record or a run that begins at u0 at rest there:
@@ -66,7 +68,7 @@ mod error;
 mod validate;
 
 pub use error::{StageError, StageErrorKind};
-pub use validate::{simulate_pair, w_range, AxisChain, ValidAxis, ValidStage};
+pub use validate::{simulate_pair, w_range, AxisChain, Check, ValidAxis, ValidStage};
 
 use piezo_core::effects::EffectParams;
 use piezo_core::{
@@ -312,12 +314,21 @@ impl StageFile {
         })
     }
 
-    /// Reads, parses and validates a stage file.
+    /// Reads, parses and validates a stage file as the firmware's build does
+    /// ([`StageFile::validate`]); errors name the file, line, column and key.
     pub fn load(path: &Path) -> Result<(Self, ValidStage), StageError> {
+        Self::load_with(path, Check::Firmware)
+    }
+
+    /// Reads, parses and validates a stage file as `check` says; errors name the file, line,
+    /// column and key.
+    pub fn load_with(path: &Path, check: Check) -> Result<(Self, ValidStage), StageError> {
         let file = path.display().to_string();
         let text = std::fs::read_to_string(path).map_err(|e| StageError::io(&file, e))?;
         let stage = Self::parse(&file, &text)?;
-        let valid = stage.validate().map_err(|e| e.located(&file, &text))?;
+        let valid = stage
+            .validate_with(check)
+            .map_err(|e| e.located(&file, &text))?;
         Ok((stage, valid))
     }
 

@@ -136,3 +136,66 @@ fn output_window_beyond_the_drive_chain_is_refused() {
     let e = stage.validate().unwrap_err();
     assert_eq!(e.key, "io.sensor_range_v", "{e}");
 }
+
+#[test]
+fn the_models_check_skips_only_invertibility_and_the_drive_span() {
+    // Refused by the firmware, simulated by a forward model: a window beyond the drive span and a
+    // map that turns back after a reversal (k2·dh/du = −1e-6 · 1.2 outweighs k1 = 3.6e-7 there,
+    // not near saturation).
+    let mut stage = example();
+    stage.io.amplifier_gain_v_per_v = 20.0;
+    stage.x.static_map.as_mut().unwrap().k2_m_per_h = -1e-6;
+    let e = stage.validate().unwrap_err();
+    assert!(
+        matches!(e.core, Some(ParamError::NotInvertible { .. })),
+        "{e}"
+    );
+    let valid = stage.validate_with(Check::Models).unwrap();
+    assert!(valid.axes[0].compensator.is_none() && valid.axes[1].compensator.is_some());
+    // Values no check accepts: both refuse them, naming the key and its line.
+    let text = example().to_toml("");
+    let cases = [
+        (
+            "sensor_m_per_v = ",
+            "sensor_m_per_v = -1e39",
+            "io.sensor_m_per_v",
+        ),
+        (
+            "adc_range_v = ",
+            "adc_range_v = [nan, 10.24]",
+            "io.adc_range_v",
+        ),
+        (
+            "slew_limit_v_per_s = ",
+            "slew_limit_v_per_s = nan",
+            "x.limits.slew_limit_v_per_s",
+        ),
+    ];
+    for (key, line, path) in cases {
+        let i = text.find(key).unwrap();
+        let end = i + text[i..].find('\n').unwrap();
+        let bad = format!("{}{line}{}", &text[..i], &text[end..]);
+        let file = StageFile::parse("f.toml", &bad).unwrap();
+        for check in [Check::Models, Check::Firmware] {
+            let e = file
+                .validate_with(check)
+                .unwrap_err()
+                .located("f.toml", &bad);
+            let at = bad.lines().position(|l| l == line).unwrap() + 1;
+            assert_eq!((e.key.as_str(), e.line), (path, Some(at)), "{check:?}: {e}");
+        }
+    }
+    // A servo with a NaN transfer time constant.
+    let mut stage = example();
+    stage.x.servo = Some(ServoParams {
+        kp_v_per_m: 0.0,
+        ki_v_per_m_s: 7.1671066e9,
+        lowpass_frequency_hz: 3221.0,
+        lowpass_q: 0.70710677,
+        notch_frequency_hz: 3221.0,
+        notch_q: 1.0,
+        transfer_time_constant_s: f32::NAN,
+    });
+    let e = stage.validate_with(Check::Models).unwrap_err();
+    assert_eq!(e.key, "x.servo.transfer_time_constant_s", "{e}");
+}

@@ -232,7 +232,12 @@ impl Io {
             ("io.sensor_m_per_v", self.sensor_m_per_v),
         ] {
             if !(v.is_finite() && v > 0.0) {
-                return Err(invalid(key, format!("{v} must be finite and > 0")));
+                let hint = if v.is_infinite() {
+                    " (a value beyond the f32 range, |v| > 3.4e38, reads as infinite)"
+                } else {
+                    ""
+                };
+                return Err(invalid(key, format!("{v} must be finite and > 0{hint}")));
             }
         }
         for (key, [lo, hi]) in [
@@ -267,12 +272,33 @@ impl Io {
     }
 }
 
+/// How much of the firmware's check a reader of the stage file needs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Check {
+    /// What a forward simulation of the file needs (`host-sim predict`): the loop rate, the io
+    /// chain's own consistency ([`Io::check`]), and per axis the output window, the model of its
+    /// family with its effects at the loop period over that window, the compensator's settings
+    /// and the servo. Every value the firmware's check reads is checked, but a set need not be
+    /// invertible, nor its window inside the drive span, to be simulated: a static set the
+    /// compensator refuses as `NotInvertible` is accepted without one, and the window is not
+    /// held against `io.dac_range_v × io.amplifier_gain_v_per_v`.
+    Models,
+    /// Everything the firmware's build checks with piezo-stage: [`Check::Models`], then per static
+    /// axis its compensator and its output window inside what the DAC and amplifier drive.
+    Firmware,
+}
+
 impl StageFile {
     /// Validates the whole file at its loop rate, as the firmware runs it: every axis built over its
     /// output window with its compensator, the io chain checked and the output windows inside
-    /// what the DAC and amplifier can drive. Errors carry the key path; [`StageFile::load`] adds
-    /// the file, line and column.
+    /// what the DAC and amplifier can drive ([`Check::Firmware`]). Errors carry the key path;
+    /// [`StageFile::load`] adds the file, line and column.
     pub fn validate(&self) -> Result<ValidStage, StageError> {
+        self.validate_with(Check::Firmware)
+    }
+
+    /// Validates the file as `check` says; [`StageFile::validate`] is `Check::Firmware`.
+    pub fn validate_with(&self, check: Check) -> Result<ValidStage, StageError> {
         let rate = self.stage.loop_rate_hz;
         if !(rate.is_finite() && rate > 0.0) {
             return Err(invalid(
@@ -306,10 +332,15 @@ impl StageFile {
                 sample_period_s,
             };
             if let AxisChain::Static { model, .. } = valid.chain {
-                valid.compensator = Some(
-                    Compensator::new(model, settings)
-                        .map_err(|e| located(core_key(name, &e, "limits"), e))?,
-                );
+                match (Compensator::new(model, settings), check) {
+                    (Ok(compensator), _) => valid.compensator = Some(compensator),
+                    // A forward simulation needs no inverse; every other refusal (the window,
+                    // the slew limit) is a value the file must not hold.
+                    (Err(ParamError::NotInvertible { .. }), Check::Models) => {}
+                    (Err(e), _) => return Err(located(core_key(name, &e, "limits"), e)),
+                }
+            }
+            if let (AxisChain::Static { .. }, Check::Firmware) = (valid.chain, check) {
                 if l.output_min_v < d0 - 1e-3 || l.output_max_v > d1 + 1e-3 {
                     return Err(invalid(
                         &format!("{name}.limits.output_max_v"),

@@ -1,11 +1,27 @@
 //! CSV files of sampled signals; every column name carries its unit as a suffix (`t_s`, `u_V`, `y_m`,
 //! `ux_V`, `uy_V`, `x_m`, ...). A two-axis file holds both axes as separate columns.
-//! Reader errors name the file, the line (1-based) and the column (1-based and by name).
+//! Reader errors name the file, the line (1-based) and the column (1-based and by name). A leading
+//! UTF-8 byte-order mark is skipped; every cell must be a finite number.
+//!
+//! A record's time column (`Rows::time`) is its sampling time base t\[k\], k = 0…N−1, checked
+//! where it is read: at least two samples, strictly increasing (t\[k\] > t\[k−1\]), a median step
+//! Δ̃ = median(t\[k\] − t\[k−1\]) of at least [`MIN_SAMPLE_PERIOD_S`], and every step within a
+//! factor [`MAX_STEP_RATIO`] of it, Δ̃/1.5 ≤ t\[k\] − t\[k−1\] ≤ 1.5·Δ̃: the sampling is uniform up
+//! to jitter, with no gap, jump or doubled sample. The tools that read records (identify,
+//! close-loop, predict, compensate's reference, the `csv:` signal) all take their times from it.
 
 use std::fmt;
 use std::fs;
 use std::io::Write;
 use std::path::{Path, PathBuf};
+
+/// Largest ratio between a record's step and its median step (and between the median step and a
+/// step): a step outside Δ̃/1.5…1.5·Δ̃ is a gap, a jump or a doubled sample.
+pub const MAX_STEP_RATIO: f64 = 1.5;
+
+/// Smallest median sample period a record may have \[s\] (1 GHz): below it the times do not
+/// describe a sampled actuator (and in the core's f32 they round towards zero).
+pub const MIN_SAMPLE_PERIOD_S: f64 = 1e-9;
 
 /// Units accepted as column suffixes.
 pub const UNITS: &[&str] = &[
@@ -60,6 +76,32 @@ pub enum CsvError {
         /// Cells found.
         found: usize,
     },
+    /// A value that is finite in the file but not in the f32 the core computes in.
+    BeyondF32 {
+        /// File.
+        path: PathBuf,
+        /// Line (1-based).
+        line: usize,
+        /// Column (1-based).
+        column: usize,
+        /// Column name.
+        name: String,
+        /// The value, in the file's unit.
+        given: f64,
+    },
+    /// A time column that is not a uniform sampling time base (see the module doc).
+    Time {
+        /// File.
+        path: PathBuf,
+        /// Line (1-based) of the sample at fault.
+        line: usize,
+        /// Column (1-based).
+        column: usize,
+        /// Column name.
+        name: String,
+        /// What is wrong.
+        fault: TimeFault,
+    },
     /// A requested column is missing.
     MissingColumn {
         /// File.
@@ -69,6 +111,75 @@ pub enum CsvError {
         /// Columns present.
         available: String,
     },
+}
+
+/// What is wrong with a time column.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum TimeFault {
+    /// Fewer than two samples: no sample period.
+    TooShort {
+        /// Samples found.
+        samples: usize,
+    },
+    /// t\[k\] ≤ t\[k−1\]: the times repeat or run backwards.
+    NotIncreasing {
+        /// t\[k−1\] \[s\].
+        previous_s: f64,
+        /// Its line.
+        previous_line: usize,
+        /// t\[k\] \[s\].
+        given_s: f64,
+    },
+    /// The median step is below [`MIN_SAMPLE_PERIOD_S`].
+    TooFine {
+        /// The median step \[s\].
+        median_s: f64,
+    },
+    /// A step outside Δ̃/1.5…1.5·Δ̃.
+    Uneven {
+        /// The step t\[k\] − t\[k−1\] \[s\].
+        step_s: f64,
+        /// Line of t\[k−1\].
+        previous_line: usize,
+        /// The median step Δ̃ \[s\].
+        median_s: f64,
+    },
+}
+
+impl fmt::Display for TimeFault {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match *self {
+            Self::TooShort { samples } => write!(
+                f,
+                "{samples} sample(s): a record needs at least two to have a sample period"
+            ),
+            Self::NotIncreasing {
+                previous_s,
+                previous_line,
+                given_s,
+            } => write!(
+                f,
+                "t = {given_s} s is not after t = {previous_s} s on line {previous_line}: the time \
+                 column must increase strictly (rows repeated, reversed or out of order)"
+            ),
+            Self::TooFine { median_s } => write!(
+                f,
+                "the median step is {median_s:.3e} s, below {MIN_SAMPLE_PERIOD_S:e} s: not the \
+                 times of a sampled record in seconds"
+            ),
+            Self::Uneven {
+                step_s,
+                previous_line,
+                median_s,
+            } => write!(
+                f,
+                "the step from line {previous_line} is {step_s:.4e} s, {:.3} times the median step \
+                 {median_s:.4e} s (a gap, a jump or a doubled sample): a record is sampled at one \
+                 period, every step within {MAX_STEP_RATIO} times the median either way",
+                step_s / median_s
+            ),
+        }
+    }
 }
 
 impl fmt::Display for CsvError {
@@ -90,6 +201,18 @@ impl fmt::Display for CsvError {
             Self::WrongCellCount { path, line, expected, found } => {
                 write!(f, "{}:{line}: expected {expected} cells, found {found}", path.display())
             }
+            Self::BeyondF32 { path, line, column, name, given } => write!(
+                f,
+                "{}:{line}: column {column} (`{name}`): {given:e} is beyond the range of the f32 \
+                 the core computes in (|v| <= {:e} in SI units)",
+                path.display(),
+                f32::MAX
+            ),
+            Self::Time { path, line, column, name, fault } => write!(
+                f,
+                "{}:{line}: column {column} (`{name}`): {fault}",
+                path.display()
+            ),
             Self::MissingColumn { path, name, available } => {
                 write!(f, "{}: no column `{name}`; columns: {available}", path.display())
             }
@@ -139,17 +262,39 @@ fn has_unit(name: &str) -> bool {
     })
 }
 
-/// Reads a CSV file written by [`write_csv`] (comma separated, header first, `#` comment lines skipped).
+/// Reads a CSV file written by [`write_csv`] (comma separated, header first, `#` comment lines
+/// skipped, a leading byte-order mark skipped).
 pub fn read_csv(path: &Path) -> Result<Table, CsvError> {
-    let text = fs::read_to_string(path).map_err(|e| CsvError::Io {
-        path: path.into(),
-        message: e.to_string(),
-    })?;
-    parse_csv(path, &text)
+    read_rows(path).map(|rows| rows.table)
 }
 
 /// Parses CSV text; `path` is only used in error messages.
 pub fn parse_csv(path: &Path, text: &str) -> Result<Table, CsvError> {
+    parse_rows(path, text).map(|rows| rows.table)
+}
+
+/// A table as read from its file, with the line each row came from, for errors that point at a
+/// row.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Rows {
+    /// The columns.
+    pub table: Table,
+    /// 1-based line of each row.
+    pub lines: Vec<usize>,
+}
+
+/// [`read_csv`], keeping each row's line.
+pub fn read_rows(path: &Path) -> Result<Rows, CsvError> {
+    let text = fs::read_to_string(path).map_err(|e| CsvError::Io {
+        path: path.into(),
+        message: e.to_string(),
+    })?;
+    parse_rows(path, &text)
+}
+
+/// [`parse_csv`], keeping each row's line.
+pub fn parse_rows(path: &Path, text: &str) -> Result<Rows, CsvError> {
+    let text = text.strip_prefix('\u{feff}').unwrap_or(text);
     let mut lines = text
         .lines()
         .enumerate()
@@ -166,6 +311,7 @@ pub fn parse_csv(path: &Path, text: &str) -> Result<Table, CsvError> {
         }
     }
     let mut columns = vec![Vec::new(); names.len()];
+    let mut row_lines = Vec::new();
     for (idx, line) in lines {
         let cells: Vec<&str> = line.split(',').collect();
         if cells.len() != names.len() {
@@ -191,12 +337,106 @@ pub fn parse_csv(path: &Path, text: &str) -> Result<Table, CsvError> {
                 })?;
             columns[c].push(v);
         }
+        row_lines.push(idx + 1);
     }
-    Ok(Table {
-        path: path.into(),
-        names,
-        columns,
+    Ok(Rows {
+        table: Table {
+            path: path.into(),
+            names,
+            columns,
+        },
+        lines: row_lines,
     })
+}
+
+impl Rows {
+    /// The 1-based column index of `name` and its samples.
+    fn indexed(&self, name: &str) -> Result<(usize, &[f64]), CsvError> {
+        let samples = self.table.column(name)?;
+        let index = self.table.names.iter().position(|n| n == name).unwrap_or(0);
+        Ok((index + 1, samples))
+    }
+
+    /// The line of row `row` (1-based; 0 for a row that does not exist).
+    pub fn line(&self, row: usize) -> usize {
+        self.lines.get(row).copied().unwrap_or(0)
+    }
+
+    /// The column `name` as a record's time base \[its unit\], checked as the module doc says:
+    /// at least two samples, strictly increasing, a median step of at least
+    /// [`MIN_SAMPLE_PERIOD_S`] (`factor` converts the column's unit to seconds) and every step
+    /// within [`MAX_STEP_RATIO`] of the median. Errors name the file, the line and the column.
+    pub fn time(&self, name: &str, factor: f64) -> Result<&[f64], CsvError> {
+        let (column, t) = self.indexed(name)?;
+        let fault = |row: usize, fault: TimeFault| CsvError::Time {
+            path: self.table.path.clone(),
+            line: self.line(row).max(1),
+            column,
+            name: name.into(),
+            fault,
+        };
+        if t.len() < 2 {
+            return Err(fault(
+                t.len().saturating_sub(1),
+                TimeFault::TooShort { samples: t.len() },
+            ));
+        }
+        if let Some(k) = (1..t.len()).find(|&k| !(t[k] > t[k - 1])) {
+            return Err(fault(
+                k,
+                TimeFault::NotIncreasing {
+                    previous_s: t[k - 1] * factor,
+                    previous_line: self.line(k - 1),
+                    given_s: t[k] * factor,
+                },
+            ));
+        }
+        let steps: Vec<f64> = t.windows(2).map(|w| (w[1] - w[0]) * factor).collect();
+        let mut sorted = steps.clone();
+        sorted.sort_by(f64::total_cmp);
+        let median_s = sorted[sorted.len() / 2];
+        if !(median_s >= MIN_SAMPLE_PERIOD_S) {
+            return Err(fault(1, TimeFault::TooFine { median_s }));
+        }
+        let uneven = steps
+            .iter()
+            .position(|&s| !(s <= MAX_STEP_RATIO * median_s && s * MAX_STEP_RATIO >= median_s));
+        if let Some(i) = uneven {
+            return Err(fault(
+                i + 1,
+                TimeFault::Uneven {
+                    step_s: steps[i],
+                    previous_line: self.line(i),
+                    median_s,
+                },
+            ));
+        }
+        Ok(t)
+    }
+
+    /// The column `name` times `factor` (its unit to SI), every value finite also in the f32 the
+    /// core computes in; errors name the file, the line and the column.
+    pub fn f32_column(&self, name: &str, factor: f64) -> Result<Vec<f64>, CsvError> {
+        let (column, values) = self.indexed(name)?;
+        values
+            .iter()
+            .enumerate()
+            .map(|(row, &v)| {
+                let si = v * factor;
+                if (si as f32).is_finite() {
+                    Ok(si)
+                } else {
+                    Err(CsvError::BeyondF32 {
+                        path: self.table.path.clone(),
+                        line: self.line(row),
+                        column,
+                        name: name.into(),
+                        given: v,
+                    })
+                }
+            })
+            .collect()
+    }
 }
 
 /// Writes columns (all of the same length) with a header; values in Rust's shortest round-trip format.
@@ -288,5 +528,101 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("/nonexistent/x.csv"), "{e}");
+        for cell in ["NaN", "inf", "-inf", "1e309"] {
+            let e = parse_csv(p, &format!("t_s,u_V\n0,1\n1e-3,{cell}\n"))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("data.csv:3") && e.contains("column 2"), "{e}");
+        }
+    }
+
+    #[test]
+    fn a_byte_order_mark_is_skipped() {
+        let t = parse_csv(Path::new("bom.csv"), "\u{feff}t_s,u_V\n0,1\n").unwrap();
+        assert_eq!(t.names, ["t_s", "u_V"]);
+        assert_eq!(t.column("t_s").unwrap(), &[0.0]);
+    }
+
+    /// The time column's error for `times` (a `# comment` line first, so lines are not rows).
+    fn time_error(times: &[f64]) -> String {
+        let mut text = String::from("# a record\nu_V,t_s\n");
+        for t in times {
+            text.push_str(&format!("0,{t}\n"));
+        }
+        let rows = parse_rows(Path::new("rec.csv"), &text).unwrap();
+        rows.time("t_s", 1.0).unwrap_err().to_string()
+    }
+
+    #[test]
+    fn time_columns_are_uniform_sampling_time_bases() {
+        let uniform: Vec<f64> = (0..20).map(|k| f64::from(k) * 0.1).collect();
+        let text: String = uniform.iter().map(|t| format!("{t},1\n")).collect();
+        let rows = parse_rows(Path::new("ok.csv"), &format!("t_s,u_V\n{text}")).unwrap();
+        assert_eq!(rows.time("t_s", 1.0).unwrap(), uniform.as_slice());
+        assert_eq!(rows.line(3), 5);
+        // Reversed: the second sample (line 4) is not after the first.
+        let e = time_error(&[3.0, 2.0, 1.0]);
+        assert!(
+            e.contains("rec.csv:4: column 2 (`t_s`)")
+                && e.contains("not after")
+                && e.contains("line 3"),
+            "{e}"
+        );
+        // Constant.
+        let e = time_error(&[5.0, 5.0, 5.0]);
+        assert!(e.contains("rec.csv:4") && e.contains("strictly"), "{e}");
+        // Tiny: 1e-15 s steps.
+        let e = time_error(&[0.0, 1e-15, 2e-15, 3e-15]);
+        assert!(
+            e.contains("rec.csv:4") && e.contains("median step is 1.000e-15 s"),
+            "{e}"
+        );
+        // A gap after the fifth sample (line 7 → 8), and a doubled sample.
+        let mut gap: Vec<f64> = (0..10).map(f64::from).collect();
+        gap[5..].iter_mut().for_each(|t| *t += 0.6);
+        let e = time_error(&gap);
+        assert!(
+            e.contains("rec.csv:8") && e.contains("from line 7") && e.contains("1.600 times"),
+            "{e}"
+        );
+        let mut doubled: Vec<f64> = (0..10).map(f64::from).collect();
+        doubled.insert(4, 3.5);
+        let e = time_error(&doubled);
+        assert!(e.contains("rec.csv:7") && e.contains("0.500 times"), "{e}");
+        // One sample.
+        let e = time_error(&[0.0]);
+        assert!(e.contains("at least two"), "{e}");
+        // Jitter within 1.5x passes.
+        let jitter: Vec<f64> = (0..10)
+            .map(|k| f64::from(k) + 0.2 * f64::from(k % 2))
+            .collect();
+        assert!(parse_rows(
+            Path::new("j.csv"),
+            &format!(
+                "t_s,u_V\n{}",
+                jitter
+                    .iter()
+                    .map(|t| format!("{t},0\n"))
+                    .collect::<String>()
+            )
+        )
+        .unwrap()
+        .time("t_s", 1.0)
+        .is_ok());
+    }
+
+    #[test]
+    fn values_beyond_f32_are_refused_with_their_line() {
+        let rows = parse_rows(Path::new("big.csv"), "t_s,u_V,y_nm\n0,1,1e300\n1,1e39,2\n").unwrap();
+        let e = rows.f32_column("u_V", 1.0).unwrap_err().to_string();
+        assert!(
+            e.contains("big.csv:3: column 2 (`u_V`)") && e.contains("f32"),
+            "{e}"
+        );
+        // 1e300 nm = 1e291 m is still beyond f32; 2 nm converts.
+        let e = rows.f32_column("y_nm", 1e-9).unwrap_err().to_string();
+        assert!(e.contains("big.csv:2: column 3"), "{e}");
+        let rows = parse_rows(Path::new("ok.csv"), "t_s,y_nm\n0,1e30\n").unwrap();
+        assert_eq!(rows.f32_column("y_nm", 1e-9).unwrap(), [1e30 * 1e-9]);
     }
 }

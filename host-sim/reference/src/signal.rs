@@ -465,10 +465,13 @@ pub enum SignalKind {
         /// V.
         y_high_v: f64,
     },
-    /// Samples from a CSV file.
+    /// Samples from a CSV file (its `t_s` a record's time base, `crate::csv::Rows::time`).
     Csv {
         /// File.
         path: PathBuf,
+        /// The end of the file's samples \[s\]: its last time plus its last step (a file of N
+        /// samples at rate f from 0 plays N/f seconds), the signal's natural duration.
+        end_s: f64,
         /// Column name.
         column: Option<String>,
         /// Zero-order hold (else first-order hold).
@@ -640,27 +643,37 @@ fn signal_kind(
             },
             "x_low, x_high, line_freq, y_low, y_high, duration, rate",
         ),
-        "csv" => (
-            SignalKind::Csv {
-                path: PathBuf::from(kv.get("path").ok_or(SignalError::MissingKey {
-                    kind: "csv".into(),
-                    key: "path",
-                })?),
-                column: kv.get("column").map(str::to_string),
-                zero_order_hold: match kv.get("hold") {
-                    None | Some("foh") => false,
-                    Some("zoh") => true,
-                    Some(other) => {
-                        return Err(SignalError::BadValue {
-                            key: "hold".into(),
-                            given: other.into(),
-                            reason: "valid: foh, zoh",
-                        })
-                    }
+        "csv" => {
+            let path = PathBuf::from(kv.get("path").ok_or(SignalError::MissingKey {
+                kind: "csv".into(),
+                key: "path",
+            })?);
+            // The file's samples cover [t0, t_last + T): its last step past its last time.
+            let t = csv_times(&path)?;
+            let end_s = match t.as_slice() {
+                [.., a, b] => b + (b - a),
+                _ => 0.0,
+            };
+            (
+                SignalKind::Csv {
+                    path,
+                    end_s,
+                    column: kv.get("column").map(str::to_string),
+                    zero_order_hold: match kv.get("hold") {
+                        None | Some("foh") => false,
+                        Some("zoh") => true,
+                        Some(other) => {
+                            return Err(SignalError::BadValue {
+                                key: "hold".into(),
+                                given: other.into(),
+                                reason: "valid: foh, zoh",
+                            })
+                        }
+                    },
                 },
-            },
-            "path, column, hold, duration, rate",
-        ),
+                "path, column, hold, duration, rate",
+            )
+        }
         other => {
             return Err(SignalError::UnknownKind {
                 given: other.to_string(),
@@ -668,6 +681,18 @@ fn signal_kind(
         }
     };
     Ok(kind_and_keys)
+}
+
+/// The `t_s` column of a CSV signal file, checked as a record's time base; with the rows.
+fn csv_rows(path: &std::path::Path) -> Result<(crate::csv::Rows, Vec<f64>), SignalError> {
+    let csv = |e: crate::csv::CsvError| SignalError::Csv(e.to_string());
+    let rows = crate::csv::read_rows(path).map_err(csv)?;
+    let t = rows.time("t_s", 1.0).map_err(csv)?.to_vec();
+    Ok((rows, t))
+}
+
+fn csv_times(path: &std::path::Path) -> Result<Vec<f64>, SignalError> {
+    csv_rows(path).map(|(_, t)| t)
 }
 
 impl SignalSpec {
@@ -709,7 +734,17 @@ impl SignalSpec {
         })
     }
 
-    /// Natural duration of the signal (staircase/steps: all levels; csv: last sample), else 1 s.
+    /// The end of a `csv` signal's file \[s\]: its last time plus its last step (`None` for the
+    /// other kinds).
+    pub fn csv_end_s(&self) -> Option<f64> {
+        match &self.kind {
+            SignalKind::Csv { end_s, .. } => Some(*end_s),
+            _ => None,
+        }
+    }
+
+    /// Natural duration of the signal (staircase/steps: all levels; square: two periods; csv: the
+    /// whole file, to its last time plus its last step), else 1 s.
     pub fn default_duration_s(&self) -> f64 {
         match &self.kind {
             SignalKind::Staircase {
@@ -723,6 +758,7 @@ impl SignalSpec {
             }
             SignalKind::Steps { levels_v, hold_s } => levels_v.len() as f64 * hold_s,
             SignalKind::Square { period_s, .. } => 2.0 * period_s,
+            SignalKind::Csv { end_s, .. } => *end_s,
             _ => 1.0,
         }
     }
@@ -794,13 +830,10 @@ impl SignalSpec {
                 path,
                 column,
                 zero_order_hold,
+                ..
             } => {
-                let table =
-                    crate::csv::read_csv(path).map_err(|e| SignalError::Csv(e.to_string()))?;
-                let t = table
-                    .column("t_s")
-                    .map_err(|e| SignalError::Csv(e.to_string()))?
-                    .to_vec();
+                let (rows, t) = csv_rows(path)?;
+                let table = rows.table;
                 if inputs == 2 && column.is_none() {
                     let mut out: Vec<Box<dyn Signal>> = Vec::new();
                     for name in ["ux_V", "uy_V"] {

@@ -3,7 +3,7 @@
 //! stage file, plots).
 
 use super::{close_loop_validated, stage, write_plots, CloseLoopSettings};
-use crate::identify::{unit_factor, Record};
+use crate::identify::Record;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -70,8 +70,9 @@ pub struct CloseLoopArgs {
     pub plots: Option<PathBuf>,
 }
 
-/// Reads one record per axis: `t`, `u` and `y` name the columns (defaults: the first `t_*`, `u_*`,
-/// `y_*`; `u` and `y` comma-separated for two axes). Only these columns are parsed.
+/// Reads one record per axis (`Record::read_axes`, the reader of every record): `t`, `u` and `y`
+/// name the columns (defaults: the first `t_*`, `u_*`, `y_*`; `u` and `y` comma-separated for two
+/// axes); cut after `end` \[s\] when given.
 pub fn read_records(
     data: &Path,
     t: Option<&str>,
@@ -79,100 +80,13 @@ pub fn read_records(
     y: Option<&str>,
     end: Option<f64>,
 ) -> Result<Vec<Record>, String> {
-    let split = |s: Option<&str>| -> Vec<Option<String>> {
-        match s {
-            None => vec![None],
-            Some(s) => s.split(',').map(|c| Some(c.trim().to_string())).collect(),
-        }
-    };
-    let us = split(u);
-    let ys = split(y);
-    if us.len() != ys.len() || us.len() > 2 {
-        return Err(format!(
-            "--u and --y must name the same number of columns (1 or 2); got {} and {}",
-            us.len(),
-            ys.len()
-        ));
-    }
-    let text = std::fs::read_to_string(data).map_err(|e| format!("{}: {e}", data.display()))?;
-    let mut lines = text
-        .lines()
-        .enumerate()
-        .filter(|(_, l)| !l.trim().is_empty() && !l.starts_with('#'));
-    let (_, header) = lines
-        .next()
-        .ok_or_else(|| format!("{}: empty", data.display()))?;
-    let names: Vec<&str> = header.split(',').map(str::trim).collect();
-    let pick = |given: &Option<String>, prefix: &str, flag: &str| -> Result<usize, String> {
-        let found = match given {
-            Some(g) => names.iter().position(|n| n == g),
-            None => names.iter().position(|n| n.starts_with(prefix)),
-        };
-        found.ok_or_else(|| {
-            format!(
-                "{flag}: {}: no column {} (columns: {})",
-                data.display(),
-                given
-                    .as_deref()
-                    .map_or(format!("`{prefix}*`"), |g| format!("`{g}`")),
-                names.join(", ")
-            )
-        })
-    };
-    let t_col = pick(&t.map(str::to_string), "t_", "--t")?;
-    let mut wanted = vec![t_col];
-    for (u, y) in us.iter().zip(&ys) {
-        wanted.push(pick(u, "u_", "--u")?);
-        wanted.push(pick(y, "y_", "--y")?);
-    }
-    let factors: Vec<f64> = wanted
-        .iter()
-        .map(|&c| {
-            unit_factor(names[c]).ok_or_else(|| {
-                format!(
-                    "{}: column `{}` has no SI-convertible unit (s, V, N, m, mm, um, nm)",
-                    data.display(),
-                    names[c]
-                )
-            })
-        })
-        .collect::<Result<_, _>>()?;
-    let mut cols: Vec<Vec<f64>> = vec![Vec::new(); wanted.len()];
-    for (line_no, line) in lines {
-        let cells: Vec<&str> = line.split(',').collect();
-        for (i, &c) in wanted.iter().enumerate() {
-            let v = cells
-                .get(c)
-                .and_then(|s| s.trim().parse::<f64>().ok())
-                .filter(|v| v.is_finite())
-                .ok_or_else(|| {
-                    format!(
-                        "{}:{}: column `{}`: not a finite number",
-                        data.display(),
-                        line_no + 1,
-                        names[c]
-                    )
-                })?;
-            cols[i].push(v * factors[i]);
-        }
-    }
-    if cols[0].len() < 10 {
-        return Err(format!("{}: fewer than 10 samples", data.display()));
-    }
-    let mut out = Vec::new();
-    for a in 0..us.len() {
-        let mut r = Record {
-            path: data.into(),
-            t_s: cols[0].clone(),
-            u: cols[1 + 2 * a].clone(),
-            y_m: cols[2 + 2 * a].clone(),
-        };
-        if let Some(end) = end {
+    let mut records = Record::read_axes(data, t, u, y)?;
+    if let Some(end) = end {
+        for r in &mut records {
             r.cut_after(end)?;
         }
-        out.push(r);
     }
-    Ok(out)
+    Ok(records)
 }
 
 /// The report as written: the outcome's, with the stage file written and its verdict.

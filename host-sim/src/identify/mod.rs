@@ -19,7 +19,7 @@ pub mod output_filter;
 pub mod predict;
 pub mod two_step;
 
-use crate::csv::{read_csv, Table};
+use crate::csv::{read_rows, Table};
 use fit::{Problem, Progress, TracePoint};
 use model::{to_axis, Identified, ModelKind};
 use serde_json::json;
@@ -92,49 +92,109 @@ fn pick(table: &Table, given: Option<&str>, prefix: &str, flag: &str) -> Result<
         })
 }
 
+/// The SI factor of column `name`'s unit, or an error naming the file, the column and the flag.
+fn si_factor(path: &Path, name: &str, flag: &str) -> Result<f64, String> {
+    unit_factor(name).ok_or_else(|| {
+        format!(
+            "{flag}: {}: column `{name}` has no SI-convertible unit (s, V, N, m, mm, um, nm)",
+            path.display()
+        )
+    })
+}
+
 impl Record {
-    /// Reads a CSV; columns default to the first `t_*`, `u_*` and `y_*` of the header.
+    /// Reads a one-axis record; columns default to the first `t_*`, `u_*` and `y_*` of the header.
     pub fn read(
         path: &Path,
         t: Option<&str>,
         u: Option<&str>,
         y: Option<&str>,
     ) -> Result<Self, String> {
-        let table = read_csv(path).map_err(|e| e.to_string())?;
-        let names = [
-            pick(&table, t, "t_", "--t")?,
-            pick(&table, u, "u_", "--u")?,
-            pick(&table, y, "y_", "--y")?,
-        ];
-        let mut cols = Vec::new();
-        for (name, flag) in names.iter().zip(["--t", "--u", "--y"]) {
-            let f = unit_factor(name).ok_or_else(|| {
-                format!(
-                    "{flag}: {}: column `{name}` has no SI-convertible unit (s, V, N, m, mm, um, nm)",
-                    path.display()
-                )
-            })?;
-            cols.push(
-                table
-                    .column(name)
+        let mut records = Self::read_axes(path, t, u, y)?;
+        if records.len() != 1 {
+            return Err(format!(
+                "{}: one axis expected, --u and --y name {}",
+                path.display(),
+                records.len()
+            ));
+        }
+        Ok(records.remove(0))
+    }
+
+    /// Reads one record per axis from one CSV file, the one reader of every record the tools
+    /// fit or score: `t` names the time column, `u` and `y` the input and output columns, two
+    /// comma-separated each for a two-axis record (defaults: the first `t_*`, `u_*`, `y_*`).
+    /// Values are converted to SI. The time column must be a uniform sampling time base
+    /// ([`crate::csv::Rows::time`]: strictly increasing, no gap or jump, every step within 1.5
+    /// times the median); inputs must be finite in the core's f32; at least 10 samples. Every
+    /// error names the file, and a bad value its line and column.
+    pub fn read_axes(
+        path: &Path,
+        t: Option<&str>,
+        u: Option<&str>,
+        y: Option<&str>,
+    ) -> Result<Vec<Self>, String> {
+        let split = |v: Option<&str>| -> Vec<Option<String>> {
+            match v {
+                None => vec![None],
+                Some(s) => s.split(',').map(|p| Some(p.trim().to_string())).collect(),
+            }
+        };
+        let (us, ys) = (split(u), split(y));
+        if us.len() != ys.len() || us.len() > 2 {
+            return Err(format!(
+                "--u and --y: give one column each, or two comma-separated each for a two-axis \
+                 record (got {} and {})",
+                us.len(),
+                ys.len()
+            ));
+        }
+        let rows = read_rows(path).map_err(|e| e.to_string())?;
+        let table = &rows.table;
+        let t_name = pick(table, t, "t_", "--t")?;
+        let columns = us
+            .iter()
+            .zip(&ys)
+            .map(|(u, y)| {
+                Ok((
+                    pick(table, u.as_deref(), "u_", "--u")?,
+                    pick(table, y.as_deref(), "y_", "--y")?,
+                ))
+            })
+            .collect::<Result<Vec<_>, String>>()?;
+        let t_s: Vec<f64> = {
+            let factor = si_factor(path, &t_name, "--t")?;
+            let t = rows.time(&t_name, factor).map_err(|e| e.to_string())?;
+            t.iter().map(|v| v * factor).collect()
+        };
+        if t_s.len() < 10 {
+            return Err(format!(
+                "{}: {} samples, fewer than 10",
+                path.display(),
+                t_s.len()
+            ));
+        }
+        columns
+            .into_iter()
+            .map(|(u_name, y_name)| {
+                let u = rows
+                    .f32_column(&u_name, si_factor(path, &u_name, "--u")?)
+                    .map_err(|e| e.to_string())?;
+                let factor = si_factor(path, &y_name, "--y")?;
+                let y_m = table
+                    .column(&y_name)
                     .map_err(|e| e.to_string())?
                     .iter()
-                    .map(|v| v * f)
-                    .collect::<Vec<f64>>(),
-            );
-        }
-        if cols[0].len() < 10 {
-            return Err(format!("{}: fewer than 10 samples", path.display()));
-        }
-        let y_m = cols.pop().unwrap_or_default();
-        let u = cols.pop().unwrap_or_default();
-        let t_s = cols.pop().unwrap_or_default();
-        Ok(Self {
-            path: path.into(),
-            t_s,
-            u,
-            y_m,
-        })
+                    .map(|v| v * factor)
+                    .collect();
+                Ok(Self {
+                    path: path.into(),
+                    t_s: t_s.clone(),
+                    u,
+                    y_m,
+                })
+            })
+            .collect()
     }
 
     /// Mean sample period \[s\].
@@ -229,6 +289,8 @@ pub enum IdentifyError {
     NeedsMechData,
     /// `--method two-step` on a model other than the dynamic one.
     TwoStepDynamicOnly(ModelKind),
+    /// A score that is not a finite number.
+    NonFinite(NonFinite),
     /// Anything else (unreadable or unsuitable data), in words.
     Other(String),
 }
@@ -243,6 +305,7 @@ impl std::fmt::Display for IdentifyError {
                 "no feasible parameter set found (every candidate was refused by piezo-core)",
             ),
             Self::Refused(e) => write!(f, "parameter set refused by piezo-core: {e}"),
+            Self::NonFinite(e) => write!(f, "the fit's score: {e}"),
             Self::GaStaticOnly => f.write_str(
                 "--method ga: seed 001's GA fits the static models only (symmetric, asymmetric)",
             ),
@@ -291,18 +354,115 @@ pub struct FitBlock {
     pub rae_max: f64,
 }
 
-/// The fit block of `predicted` against `measured`.
-pub fn fit_block(measured: &[f64], predicted: &[f64]) -> FitBlock {
+/// A result that is not a finite number, and the sample that made it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NonFinite {
+    /// What is not finite (`the prediction`, `the sum of squared residuals`, ...).
+    pub what: &'static str,
+    /// The sample (0-based index into the record).
+    pub index: usize,
+    /// Its time \[s\].
+    pub t_s: f64,
+    /// The measured output there \[m\].
+    pub measured_m: f64,
+    /// The predicted output there \[m\].
+    pub predicted_m: f64,
+}
+
+impl std::fmt::Display for NonFinite {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} is not a finite number at sample {} (t = {} s; measured {:e} m, predicted {:e} m): \
+             nothing is scored or written from it",
+            self.what, self.index, self.t_s, self.measured_m, self.predicted_m
+        )
+    }
+}
+
+impl std::error::Error for NonFinite {}
+
+/// The first sample from `from` on whose prediction is not finite, as an error.
+pub fn check_finite(
+    t_s: &[f64],
+    measured: &[f64],
+    predicted: &[f64],
+    from: usize,
+) -> Result<(), NonFinite> {
+    match (from..predicted.len()).find(|&k| !predicted[k].is_finite()) {
+        Some(k) => Err(non_finite("the prediction", k, t_s, measured, predicted)),
+        None => Ok(()),
+    }
+}
+
+fn non_finite(
+    what: &'static str,
+    k: usize,
+    t_s: &[f64],
+    measured: &[f64],
+    predicted: &[f64],
+) -> NonFinite {
+    let at = |v: &[f64]| v.get(k).copied().unwrap_or(f64::NAN);
+    NonFinite {
+        what,
+        index: k,
+        t_s: at(t_s),
+        measured_m: at(measured),
+        predicted_m: at(predicted),
+    }
+}
+
+/// The fit block of `predicted` against `measured` (whole records, times `t_s`) over the samples
+/// from `from` on. The sums (SSE = Σ(x̂ − x)², Σx and SST = Σ(x − x̄)²) run in f64 and are checked
+/// as they grow: a prediction that is not finite, or a sum that overflows, is refused naming the
+/// sample; an empty range, or R² and MRD where they are undefined (SST = 0, max|x| = 0), give NaN.
+pub fn fit_block(
+    t_s: &[f64],
+    measured: &[f64],
+    predicted: &[f64],
+    from: usize,
+) -> Result<FitBlock, NonFinite> {
     use piezo_core::metrics;
+    check_finite(t_s, measured, predicted, from)?;
+    let n = measured.len().min(predicted.len());
+    let fail = |what, k| non_finite(what, k, t_s, measured, predicted);
+    let (mut sse, mut sum) = (0.0f64, 0.0f64);
+    for k in from..n {
+        let e = predicted[k] - measured[k];
+        sse += e * e;
+        if !sse.is_finite() {
+            return Err(fail("the sum of squared residuals (it overflows f64)", k));
+        }
+        sum += measured[k];
+        if !sum.is_finite() {
+            return Err(fail(
+                "the sum of the measured outputs (it overflows f64)",
+                k,
+            ));
+        }
+    }
+    let mean = sum / (n.saturating_sub(from)) as f64;
+    let mut sst = 0.0f64;
+    for (k, x) in measured.iter().enumerate().take(n).skip(from) {
+        let d = x - mean;
+        sst += d * d;
+        if !sst.is_finite() {
+            return Err(fail(
+                "the sum of squared deviations from the mean output (it overflows f64)",
+                k,
+            ));
+        }
+    }
+    let (measured, predicted) = (&measured[from.min(n)..n], &predicted[from.min(n)..n]);
     let (lo, hi) = metrics::rae(measured, predicted).unwrap_or((f64::NAN, f64::NAN));
-    FitBlock {
+    Ok(FitBlock {
         rms: metrics::rms(measured, predicted).unwrap_or(f64::NAN),
         max_abs: lo.abs().max(hi.abs()),
         r2: metrics::r_squared(measured, predicted).unwrap_or(f64::NAN),
         mrd_percent: metrics::mrd_percent(measured, predicted).unwrap_or(f64::NAN),
         rae_min: lo,
         rae_max: hi,
-    }
+    })
 }
 
 /// Simulates a set on a record and returns the fit block over the samples from `from`.
@@ -316,7 +476,7 @@ pub fn score(set: &Identified, record: &Record, from: usize) -> Result<FitBlock,
     let u: Vec<f32> = record.u.iter().map(|&v| v as f32).collect();
     let mut predicted = vec![0.0f64; u.len()];
     model.simulate(&u, |k, v| predicted[k] = f64::from(v));
-    Ok(fit_block(&record.y_m[from..], &predicted[from..]))
+    fit_block(&record.t_s, &record.y_m, &predicted, from).map_err(IdentifyError::NonFinite)
 }
 
 /// Result of `identify`.
@@ -586,30 +746,16 @@ pub struct Columns {
 }
 
 impl Columns {
-    /// Reads `data` with these columns: one record per axis; errors name `--data`.
+    /// Reads `data` with these columns ([`Record::read_axes`]): one record per axis; errors name
+    /// `--data`.
     pub fn read_axes(&self, data: &std::path::Path) -> Result<Vec<Record>, String> {
-        let split = |v: &Option<String>| -> Vec<Option<String>> {
-            match v {
-                None => vec![None],
-                Some(s) => s.split(',').map(|p| Some(p.trim().to_string())).collect(),
-            }
-        };
-        let (us, ys) = (split(&self.u), split(&self.y));
-        if us.len() != ys.len() || us.len() > 2 {
-            return Err(format!(
-                "--u and --y: give one column each, or two comma-separated each for a two-axis record \
-                 (got {} and {})",
-                us.len(),
-                ys.len()
-            ));
-        }
-        us.iter()
-            .zip(&ys)
-            .map(|(u, y)| {
-                Record::read(data, self.t.as_deref(), u.as_deref(), y.as_deref())
-                    .map_err(|e| format!("--data: {e}"))
-            })
-            .collect()
+        Record::read_axes(
+            data,
+            self.t.as_deref(),
+            self.u.as_deref(),
+            self.y.as_deref(),
+        )
+        .map_err(|e| format!("--data: {e}"))
     }
 
     fn read(&self, data: &std::path::Path) -> Result<Record, String> {
@@ -877,6 +1023,11 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
         .transpose()
         .map_err(|e| format!("--output-filter: {e}"))?;
     let file = predict::read_stage(&a.params)?;
+    if let Some(refusal) = file.firmware_refusal() {
+        eprintln!(
+            "note: predicted as a forward model; the firmware would refuse this set: {refusal}"
+        );
+    }
     let mut records = a.columns.read_axes(&a.data)?;
     let mut start = a.start;
     if a.periodic_warmup > 0 {
@@ -895,7 +1046,8 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
     if let Some(filter) = &output_filter {
         for (p, r) in axes.iter_mut().zip(&records) {
             p.predicted_m = filter.apply(&p.predicted_m, 1.0 / r.sample_period_s());
-            p.fit = fit_block(&r.y_m[from..], &p.predicted_m[from..]);
+            p.fit = fit_block(&r.t_s, &r.y_m, &p.predicted_m, from)
+                .map_err(|e| format!("{} with --output-filter: {e}", p.axis))?;
         }
     }
     let mut lines = Vec::new();

@@ -694,7 +694,7 @@ pub fn identify(record: &Record, s: &IdentifySettings) -> Result<Identification,
 /// Simulates an oscillator set on a record (input upsampled as in fitting) and scores it from `from`.
 pub fn score(set: &Identified, record: &Record, from: usize) -> Result<FitBlock, IdentifyError> {
     let predicted = predict(set, record)?;
-    Ok(fit_block(&record.y_m[from..], &predicted[from..]))
+    fit_block(&record.t_s, &record.y_m, &predicted, from).map_err(IdentifyError::NonFinite)
 }
 
 /// The oscillator's output per sample of `record` \[m\] (input upsampled by `substeps`).

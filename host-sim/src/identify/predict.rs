@@ -13,10 +13,10 @@
 //! and how far (`outside_identified_range`).
 
 use super::model::from_axis;
-use super::{fit_block, min_max, oscillator, FitBlock, Record};
+use super::{check_finite, fit_block, min_max, oscillator, FitBlock, Record};
 use crate::csv::{write_csv, Table};
 use crate::plot::{plot_grid, Panel, Role, Series};
-use piezo_stage::{simulate_pair, Axis, AxisChain, ModelKind, StageFile};
+use piezo_stage::{simulate_pair, Axis, AxisChain, Check, ModelKind, StageFile};
 use serde_json::{json, Value};
 use std::path::Path;
 
@@ -63,6 +63,7 @@ fn identified_range(axis: &Axis) -> (f64, f64) {
 /// Builds `axis` for `record`: over the hull of window, identified and record ranges when the core
 /// accepts it, else over its own ranges (the input is then clamped there).
 fn build_for(
+    stage: &ReadStage,
     name: &'static str,
     axis: &Axis,
     record: &Record,
@@ -80,17 +81,24 @@ fn build_for(
         Err(_) => axis
             .build(name, t, own)
             .map(|v| (v, hull != own))
-            .map_err(|e| format!("--params: {e}")),
+            .map_err(|e| {
+                format!(
+                    "--params: {} (axis {name} built at the sample period {t} s of {})",
+                    e.located(&stage.name, &stage.text),
+                    record.path.display()
+                )
+            }),
     }
 }
 
-/// Predicts every axis of `file` on `records` (one per axis, same length), scored from `from`.
+/// Predicts every axis of `stage` on `records` (one per axis, same length), scored from `from`;
+/// every predicted sample must be finite.
 pub fn predict_axes(
-    file: &StageFile,
+    stage: &ReadStage,
     records: &[Record],
     from: usize,
 ) -> Result<Vec<AxisPrediction>, String> {
-    let axes = file.axes();
+    let axes = stage.file.axes();
     if records.len() != axes.len() {
         return Err(format!(
             "--params has {} axis(es), the record {}: give one --u/--y column per axis",
@@ -100,7 +108,7 @@ pub fn predict_axes(
     }
     let mut built = Vec::new();
     for ((name, axis), record) in axes.iter().zip(records) {
-        let (valid, clamped) = build_for(name, axis, record)?;
+        let (valid, clamped) = build_for(stage, name, axis, record)?;
         let (ilo, ihi) = identified_range(axis);
         let outside: Vec<f64> = record
             .u
@@ -160,20 +168,24 @@ pub fn predict_axes(
             }
         }
     }
-    Ok(built
+    built
         .into_iter()
         .zip(predicted)
         .zip(records)
-        .map(
-            |(((axis, a, _, excursion), predicted_m), r)| AxisPrediction {
+        .map(|(((axis, a, _, excursion), predicted_m), r)| {
+            let named = |e: super::NonFinite| {
+                format!("{axis}: {} on {}: {e}", a.model.name(), r.path.display())
+            };
+            check_finite(&r.t_s, &r.y_m, &predicted_m, 0).map_err(named)?;
+            Ok(AxisPrediction {
                 axis,
                 model: a.model,
-                fit: fit_block(&r.y_m[from..], &predicted_m[from..]),
+                fit: fit_block(&r.t_s, &r.y_m, &predicted_m, from).map_err(named)?,
                 predicted_m,
                 excursion,
-            },
-        )
-        .collect())
+            })
+        })
+        .collect()
 }
 
 /// JSON of one axis's prediction.
@@ -312,10 +324,36 @@ pub fn write_plots(
     Ok(written)
 }
 
-/// Reads and validates a stage file for prediction (the firmware's io and window checks are not
-/// needed to predict: every axis is built for the record in [`predict_axes`]).
-pub fn read_stage(path: &Path) -> Result<StageFile, String> {
+/// A stage file as read for prediction: its name and text (for located errors) and its tables.
+#[derive(Debug, Clone)]
+pub struct ReadStage {
+    /// The file, as named in errors.
+    pub name: String,
+    /// Its text.
+    pub text: String,
+    /// Its tables, validated with [`Check::Models`].
+    pub file: StageFile,
+}
+
+/// Reads and validates a stage file for prediction ([`Check::Models`]: every value the
+/// firmware's check reads; errors name the file, line, column and key).
+pub fn read_stage(path: &Path) -> Result<ReadStage, String> {
     let name = path.display().to_string();
     let text = std::fs::read_to_string(path).map_err(|e| format!("--params {name}: {e}"))?;
-    StageFile::parse(&name, &text).map_err(|e| format!("--params: {e}"))
+    let file = StageFile::parse(&name, &text).map_err(|e| format!("--params: {e}"))?;
+    file.validate_with(Check::Models)
+        .map_err(|e| format!("--params: {}", e.located(&name, &text)))?;
+    Ok(ReadStage { name, text, file })
+}
+
+impl ReadStage {
+    /// Why the firmware's check ([`Check::Firmware`]) would still refuse the file (a static set
+    /// that is not invertible, an output window beyond the drive span), located; `None` when it
+    /// accepts it.
+    pub fn firmware_refusal(&self) -> Option<String> {
+        self.file
+            .validate()
+            .err()
+            .map(|e| e.located(&self.name, &self.text).to_string())
+    }
 }
