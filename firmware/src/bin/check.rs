@@ -438,17 +438,21 @@ mod image {
             previous = reference[k];
         }
         bench_mark_end();
-        // 5: the models advanced by the requested voltage from the state before the tick.
+        // 5: the models advanced by the requested voltage from the state before the tick
+        // (`Compensator::advance`, as the tick); the states before each tick are those of a
+        // model that followed the requested voltages.
+        let mut state = [CompensatorState::at_rest(0.0); 2];
+        for (b, u) in before.iter_mut().zip(requested.iter()) {
+            *b = state;
+            for i in 0..2 {
+                compensator[i].model().step(&mut state[i].model, u[i]);
+            }
+        }
         let [m0, m1] = [c0.model(), c1.model()];
         bench_mark_start();
-        for k in 0..STAGE_TICKS {
-            let [mut s0, mut s1] = [before[k][0].model, before[k][1].model];
-            m0.step(&mut s0, requested[k][0]);
-            m1.step(&mut s1, requested[k][1]);
-            before[k] = [
-                CompensatorState { model: s0 },
-                CompensatorState { model: s1 },
-            ];
+        for (b, u) in before.iter_mut().zip(requested.iter()) {
+            c0.advance(&mut b[0], u[0]);
+            c1.advance(&mut b[1], u[1]);
         }
         bench_mark_end();
         // 6: the guards.
