@@ -58,11 +58,14 @@ fn effects(axis: usize, k1: f32, mode: bool) -> EffectParams {
 }
 
 /// The runs: name, parameter set, control mode from each tick on.
-fn runs() -> Vec<(
+/// A run: name, parameter set, the control mode to switch to before a tick.
+type Run = (
     &'static str,
     [AxisParams; 2],
     fn(usize) -> Option<ServoMode>,
-)> {
+);
+
+fn runs() -> Vec<Run> {
     let with = |mode: bool| {
         let mut axes = AXES;
         for (i, a) in axes.iter_mut().enumerate() {
@@ -260,7 +263,7 @@ fn the_tick_commands_the_recorded_voltages() {
             for i in 0..2 {
                 let d = (u[i] - old[i]).abs();
                 differ += usize::from(u[i].to_bits() != old[i].to_bits());
-                if !(d <= worst) {
+                if d > worst || d.is_nan() {
                     (worst, at) = (d, k);
                 }
             }
