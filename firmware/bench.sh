@@ -14,10 +14,13 @@
 #             recorded readings, the DAC keeps codes), feedforward
 #   window 5: the same, feedforward + feedback
 #   window 6: empty (marker overhead, subtracted)
-#   windows 7..: one feedforward + feedback tick each (WORST_TICKS of them, from rest): the
+#   windows 7 .. 6 + WORST_TICKS: one feedforward + feedback tick each, from rest: the
 #             largest is the tick's worst case, stated against the stage file's loop period at
 #             168 MHz (instructions, not cycles: the board's DWT counter gives cycles, see
-#             firmware/README.md)
+#             firmware/README.md), and as a share of a 20 kHz and a 50 kHz period
+#   then STAGE_WINDOWS windows: the stages of a feedforward + feedback tick one by one, each over
+#             BENCH_TICKS ticks with the inputs of the same run (check.rs `stage_windows`); what
+#             the whole tick (window 5) costs beyond their sum is its bookkeeping
 # Not cycles: see the tool's README. Needs qemu-system-arm, gcc, nm.
 # usage: firmware/bench.sh   (COUNT_SH=path/to/count.sh to override the tool's location)
 set -euo pipefail
@@ -27,6 +30,7 @@ count_sh=${COUNT_SH:-$here/../../shared/tools/qemu-insn-count/count.sh}
 [[ -f $count_sh ]] || { echo "bench.sh: count.sh not found at $count_sh (set COUNT_SH)" >&2; exit 2; }
 const() { sed -n "s/^ *pub const $1: [a-z0-9]* = \([0-9_.]*\);/\1/p" src/bin/check.rs | tr -d _; }
 steps=$(const BENCH_STEPS) ticks=$(const BENCH_TICKS) general_n=$(const GENERAL_N)
+worst_ticks=$(const WORST_TICKS) stage_windows=$(const STAGE_WINDOWS)
 rate=$(sed -n 's/^loop_rate_hz = \([0-9.e]*\).*/\1/p' "${PIEZO_PARAMS:-params/xy-stage.toml}" | head -1)
 cargo build --release --features qemu --bin check
 elf=${CARGO_TARGET_DIR:-$here/../target}/thumbv7em-none-eabihf/release/check
@@ -36,8 +40,12 @@ win() { awk -v w="$1" '$2 == "window" && $3 == w {sub("insns=", "", $4); print $
 n1=$(win 0) nx=$(win 1) loop=$(win 2) servo=$(win 3) ff=$(win 4) both=$(win 5) empty=$(win 6)
 [[ -n $n1 && -n $nx && -n $loop && -n $servo && -n $ff && -n $both && -n $empty ]] \
   || { echo "bench.sh: expected at least 7 windows" >&2; exit 1; }
-worst=$(awk '$2 == "window" && $3 >= 7 {sub("insns=", "", $4); if ($4 > m) m = $4} END {print m}' <<<"$lines")
-awk -v a="$n1" -v b="$nx" -v c="$loop" -v sv="$servo" -v f="$ff" -v fb="$both" -v w="$worst" \
+last_worst=$((7 + worst_ticks - 1))
+worst=$(awk -v last="$last_worst" '$2 == "window" && $3 >= 7 && $3 <= last {sub("insns=", "", $4); if ($4 > m) m = $4} END {print m}' <<<"$lines")
+[[ $(win $((last_worst + stage_windows))) ]] \
+  || { echo "bench.sh: expected $((last_worst + stage_windows + 1)) windows" >&2; exit 1; }
+stages=$(for k in $(seq 1 "$stage_windows"); do win $((last_worst + k)); done | tr '\n' ' ')
+awk -v stages="$stages" -v wt="$worst_ticks" -v a="$n1" -v b="$nx" -v c="$loop" -v sv="$servo" -v f="$ff" -v fb="$both" -v w="$worst" \
     -v e="$empty" -v s="$steps" -v t="$ticks" -v n="$general_n" -v rate="$rate" 'BEGIN {
   printf "instructions per axis-step (n = 1, compensator + safety guard): %.1f\n", (a - e) / (2 * s)
   printf "instructions per axis-step (n = %s, compensator + safety guard): %.1f\n", n, (b - e) / (2 * s)
@@ -46,5 +54,20 @@ awk -v a="$n1" -v b="$nx" -v c="$loop" -v sv="$servo" -v f="$ff" -v fb="$both" -
   printf "instructions per whole control tick without the stage, feedforward: %.1f\n", (f - e) / t
   printf "instructions per whole control tick without the stage, feedforward + feedback: %.1f\n", (fb - e) / t
   budget = 168e6 / rate
-  printf "worst feedforward + feedback tick: %d instructions = %.1f %% of the %d cycles one period of %s Hz has at 168 MHz\n", w - e, 100 * (w - e) / budget, budget, rate
+  printf "worst feedforward + feedback tick of %d from rest: %d instructions = %.1f %% of the %d cycles one period of %s Hz has at 168 MHz\n", wt, w - e, 100 * (w - e) / budget, budget, rate
+  printf "  the same as a share of one period at 168 MHz: %.1f %% at 20 kHz (8400 cycles), %.1f %% at 50 kHz (3360 cycles)\n", 100 * (w - e) / 8400, 100 * (w - e) / 3360
+  split(stages, g, " ")
+  name[1] = "reference generator"; name[2] = "inverse effect chain: targets"; name[3] = "sensor reads"
+  name[4] = "compensators"; name[5] = "servos"; name[6] = "models advanced by the applied voltage"
+  name[7] = "guards"; name[8] = "DAC codes"; name[9] = "inverse effect chain: commit"; name[10] = "frame"
+  printf "feedforward + feedback tick by stage (instructions per tick, both axes, %d ticks each):\n", t
+  total = 0
+  for (k = 1; k <= 10; k++) {
+    v = (g[k] - e) / t
+    if (k == 2) v = (g[2] - g[1]) / t
+    total += v
+    printf "  %-40s %8.1f\n", name[k], v
+  }
+  printf "  %-40s %8.1f\n", "sum of the stages", total
+  printf "  %-40s %8.1f\n", "rest of the tick (checks, counters, copies)", (fb - e) / t - total
 }'

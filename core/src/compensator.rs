@@ -357,6 +357,65 @@ impl Compensator {
         }
     }
 
+    /// Advances the model state to the voltage actually applied, `applied_v` \[V\]: the same
+    /// state as `self.model().step(&mut state.model, applied_v)` (bit for bit), for a caller whose
+    /// output differs from the compensator's command (a servo's correction, a guard's override).
+    ///
+    /// For n = 1 and a small step it takes the same closed form as [`StaticModel::step`]'s
+    /// increment, `h₁ = h₀ + (A − κ·h₀)·Δu·g(κ·Δu)` with κ = β·s + γ·σ (s = sgn Δu, σ = sgn h₀)
+    /// and g's series (|κ·Δu| < 0.1), with κ from the table built once instead of the general
+    /// step's sanitising and branch selection: only when the state is consistent and inside the
+    /// window, `applied_v` is inside the window, h₀ ≠ 0 and h₁ stays on h₀'s side of zero within
+    /// the state clamp. Every other case (zero crossings, large steps, n ≠ 1, asymmetric terms,
+    /// a non-finite voltage) is the model's own step.
+    #[inline(always)]
+    pub fn advance(&self, state: &mut CompensatorState, applied_v: f32) {
+        if self.fast.kind == FastKind::N1 && self.advance_small_n1(state, applied_v) {
+            return;
+        }
+        self.advance_general(state, applied_v);
+    }
+
+    /// [`Compensator::advance`]'s small n = 1 step; false (nothing changed) when it does not apply.
+    #[inline(always)]
+    fn advance_small_n1(&self, state: &mut CompensatorState, applied_v: f32) -> bool {
+        let p = &self.fast;
+        let u0 = state.model.input_v;
+        let h0 = state.model.hysteresis.h;
+        let u = applied_v;
+        if !(state.model.hysteresis.input_v == u0
+            && u0 >= p.min_v
+            && u0 <= p.max_v
+            && u >= p.min_v
+            && u <= p.max_v
+            && h0 != 0.0)
+        {
+            return false;
+        }
+        let du = u - u0;
+        // s = sgn Δu (the sign bit: −0 counts as negative, as `f32::signum`) and σ = sgn h₀
+        // select κ = β·s + γ·σ in the table indexed by s·sgn(dy/du) (see `FastPath::branch`).
+        let index = ((du.to_bits() ^ self.slope_sign.to_bits()) >> 31) << 1 | h0.to_bits() >> 31;
+        let kappa = p.branch[index as usize & 3];
+        let z = kappa * du;
+        let h1 = h0 + (p.a - kappa * h0) * du * relax_series(z);
+        let h1_on_branch = (h1.to_bits() ^ (h0.to_bits() & 0x8000_0000)) <= p.clamp_bound_bits;
+        if !(z.abs() < 0.1 && h1_on_branch) {
+            return false;
+        }
+        state.model = ModelState {
+            input_v: u,
+            hysteresis: HysteresisState { input_v: u, h: h1 },
+        };
+        true
+    }
+
+    /// [`Compensator::advance`] by the model's step (out of line).
+    #[inline(never)]
+    fn advance_general(&self, state: &mut CompensatorState, applied_v: f32) {
+        self.model.step(&mut state.model, applied_v);
+    }
+
     /// [`Compensator::compensate`] without the small-step paths (kept out of line).
     #[inline(never)]
     fn compensate_general(&self, state: &mut CompensatorState, desired_m: f32) -> Command {
@@ -792,6 +851,82 @@ fn toward(du: f32, direction: f32, limit: f32) -> f32 {
 mod tests {
     use super::*;
     use crate::bouc_wen::{BoucWen, BoucWenParams};
+
+    /// `advance` gives the model's own step bit for bit, from states along a path through both
+    /// branches and zero crossings of h, for small and large steps, both slope signs, the
+    /// window's edges and outside it, and non-finite voltages; and it takes its small-step path.
+    #[test]
+    fn advance_is_the_model_step_bit_for_bit() {
+        for sign in [1.0f32, -1.0] {
+            let bw = BoucWen::with_input_range(
+                BoucWenParams {
+                    a: 0.18522,
+                    beta: 0.029586,
+                    gamma: -0.020710,
+                    n: 1.0,
+                },
+                0.0,
+                120.0,
+                1e3,
+            )
+            .unwrap();
+            let map = StaticMap {
+                k1_m_per_v: sign * 0.357e-6,
+                k2_m_per_h: -sign * 0.357e-6,
+                offset_m: 0.0,
+            };
+            let compensator = Compensator::new(
+                StaticModel::new(bw, map).unwrap(),
+                CompensatorSettings {
+                    output_min_v: 0.0,
+                    output_max_v: 120.0,
+                    slew_limit_v_per_s: 1e5,
+                    sample_period_s: 1e-4,
+                },
+            )
+            .unwrap();
+            let mut state = CompensatorState::at_rest(0.0);
+            let (mut small, mut seed) = (0, 12345u32);
+            for k in 0..200_000 {
+                seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+                let jitter = (seed >> 8) as f32 / (1u32 << 24) as f32 - 0.5;
+                let t = k as f32 * 1e-4;
+                let u = match k % 1000 {
+                    0 => f32::NAN,
+                    1 => 130.0,
+                    2 => -5.0,
+                    3 => 0.0,
+                    4 => 120.0,
+                    _ => {
+                        60.0 - 59.0 * libm::cosf(7.0 * t)
+                            + jitter * if k % 7 == 0 { 20.0 } else { 0.02 }
+                    }
+                };
+                let mut expected = state.model;
+                compensator.model().step(&mut expected, u);
+                let mut got = state;
+                if compensator.advance_small_n1(&mut got, u) {
+                    small += 1;
+                }
+                let mut got = state;
+                compensator.advance(&mut got, u);
+                assert_eq!(
+                    (
+                        got.model.input_v.to_bits(),
+                        got.model.hysteresis.h.to_bits()
+                    ),
+                    (expected.input_v.to_bits(), expected.hysteresis.h.to_bits()),
+                    "k = {k}, u = {u}, from {state:?}"
+                );
+                assert_eq!(
+                    got.model.hysteresis.input_v.to_bits(),
+                    expected.hysteresis.input_v.to_bits()
+                );
+                state = got;
+            }
+            assert!(small > 150_000, "small steps taken: {small}");
+        }
+    }
 
     /// The small-step paths (n = 1 and general n) and the fast n = 1 solve give the same voltage
     /// and state as the general bracketed Newton solve, and their state is the forward model's.

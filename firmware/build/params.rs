@@ -24,9 +24,11 @@ use piezo_stage::{AxisChain, StageError, StageErrorKind, StageFile, ValidAxis};
 
 /// Lowest loop rate the image runs \[Hz\].
 pub const MIN_LOOP_RATE_HZ: f32 = 10.0;
-/// Highest loop rate the image runs \[Hz\]: the two-axis tick with effects costs about 3 000
-/// instructions plus four SPI frames, well inside 50 µs at 168 MHz.
-pub const MAX_LOOP_RATE_HZ: f32 = 20_000.0;
+/// Highest loop rate the image runs \[Hz\]: 50 kHz, a 20 µs period, 3 360 cycles at 168 MHz.
+/// `firmware/bench.sh`'s worst compensator + servo tick of 1 000 from rest takes 2 490
+/// instructions (74 % of that period; with the example effects chain 5 390, for 20 kHz), plus
+/// the four SPI frames of the converters.
+pub const MAX_LOOP_RATE_HZ: f32 = 50_000.0;
 
 /// The ADS8681 input ranges \[V\].
 pub const ADC_RANGES_V: [[f32; 2]; 9] = [

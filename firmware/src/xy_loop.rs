@@ -893,9 +893,9 @@ impl TwoAxisLoop {
                     // The guard overrode the compensator, or another feed-forward ran: advance
                     // the model by what is applied, so that switching to the compensator is
                     // bumpless.
-                    let mut state = before_compensator[i].model;
-                    axis.compensator.model().step(&mut state, u);
-                    self.compensator[i].model = state;
+                    let mut state = before_compensator[i];
+                    axis.compensator.advance(&mut state, u);
+                    self.compensator[i] = state;
                 }
                 applied_v[i] = u;
             }

@@ -42,6 +42,23 @@ fn built_in_consts_are_the_default_file() {
     assert!(source.contains("pub const AXES: [AxisParams; 2]"));
 }
 
+/// The build takes both example stage files at 50 kHz, the highest rate (a 20 µs period, the
+/// effects' 200 µs delay 10 samples) and refuses one hertz more.
+#[test]
+fn stage_files_build_at_50_khz() {
+    for file in [DEFAULT, "params/xy-stage-effects.toml"] {
+        let text = String::from_utf8(read(file)).unwrap();
+        let at = |rate: &str| text.replacen("loop_rate_hz = 10000.0", rate, 1);
+        let set = params::load(file, at("loop_rate_hz = 50000.0").as_bytes())
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(set.loop_rate_hz, 50_000.0);
+        let source = params::generate(&set, file);
+        assert!(source.contains("pub const AXES: [AxisParams; 2]"));
+        let refused = params::load(file, at("loop_rate_hz = 50001.0").as_bytes()).unwrap_err();
+        assert!(refused.contains("whole-hertz loop rates"), "{refused}");
+    }
+}
+
 #[test]
 fn fnv1a32_reference_values() {
     // Published FNV-1a 32 test vectors.

@@ -5,8 +5,14 @@
 //! - g: the model's small-signal gain dy/du of largest magnitude (`StaticModel::slope_range`);
 //! - f_n = ω_n/2π and ζ: the first mode — given (`--mode-hz`, `--damping`), or the `mode` effect
 //!   close-loop found (`[x.effects] mode_frequency_hz`, `mode_damping`);
-//! - τ: the loop's latency, `--latency-periods` loop periods (1.5: the converter's sample, the
-//!   computation and half the DAC's hold).
+//! - τ: the loop's latency as a function of its rate, `τ = p·T + τ_c` with T = 1/`loop_rate_hz`:
+//!   `--latency-periods` p loop periods (1.5: half a period for the DAC's zero-order hold and one
+//!   for the computation, the reading of tick k answered in the DAC write the next update
+//!   latches) plus `--converter-latency-s` τ_c, the converters' own delay whatever the rate
+//!   (default 5 µs: the ADS8681's conversion, ≤ 1 µs, its 32-bit SPI frame and the DAC8563's
+//!   24-bit frame, ≈ 1.5 and 1.1 µs, and the DAC's settling, ≈ 2 µs; from the datasheets, not
+//!   measured on a board). A faster loop has less delay, so the same stage gets a higher
+//!   crossover at the same phase margin.
 //!
 //! The rule (core docs): notch and Butterworth low-pass at f_n, pure integral action, the highest
 //! crossover with the phase margin asked for and |1/(1 + L)| ≤ 1.6, also with f_n ± 10 %. The
@@ -19,7 +25,8 @@ use std::path::PathBuf;
 /// Help after `host-sim servo-tune --help`.
 pub const HELP: &str = "Tunes [x.servo] and [y.servo] from the stage file's model (its largest dy/du) and the \
 stage's first mode: --mode-hz (one value per axis, comma-separated, or one for both) and --damping, or the `mode` \
-effect close-loop added to the file. Latency: --latency-periods loop periods. Writes --out (the input file with the \
+effect close-loop added to the file. Latency: --latency-periods loop periods of the file's loop rate plus \
+--converter-latency-s. Writes --out (the input file with the \
 servo tables; comments are not kept) and prints per axis the crossover, phase margin, sensitivity peak and the \
 feedback loop's -3 dB bandwidth as JSON.";
 
@@ -45,6 +52,34 @@ pub struct ServoTuneArgs {
     /// Sensor-to-actuator latency [loop periods].
     #[arg(long, default_value_t = 1.5)]
     pub latency_periods: f32,
+    /// The converters' latency, added whatever the loop rate [s].
+    #[arg(long, default_value_t = CONVERTER_LATENCY_S)]
+    pub converter_latency_s: f32,
+}
+
+/// τ_c: the ADC conversion and both SPI frames plus the DAC's settling \[s\] (module docs).
+pub const CONVERTER_LATENCY_S: f32 = 5e-6;
+
+/// The loop's latency τ = p·T + τ_c \[s\] (module docs).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Latency {
+    /// p: loop periods (zero-order hold and computation).
+    pub periods: f32,
+    /// τ_c: the converters' delay \[s\].
+    pub converter_s: f32,
+}
+
+impl Latency {
+    /// 1.5 periods plus [`CONVERTER_LATENCY_S`].
+    pub const DEFAULT: Latency = Latency {
+        periods: 1.5,
+        converter_s: CONVERTER_LATENCY_S,
+    };
+
+    /// τ at the loop period `sample_period_s` \[s\].
+    pub fn at_period(&self, sample_period_s: f32) -> f32 {
+        self.periods * sample_period_s + self.converter_s
+    }
 }
 
 /// One axis's tuning: the mode it used and the core's result.
@@ -95,7 +130,7 @@ pub fn tune_file(
     mode_hz: &[f32],
     damping: f32,
     goal: &TuningGoal,
-    latency_periods: f32,
+    latency: Latency,
 ) -> Result<Vec<AxisTuning>, String> {
     let valid = file.validate().map_err(|e| e.to_string())?;
     let mut out = Vec::new();
@@ -111,7 +146,7 @@ pub fn tune_file(
             compensator.model(),
             f,
             zeta,
-            latency_periods * valid.sample_period_s,
+            latency.at_period(valid.sample_period_s),
         );
         let tuning = tune(&dynamics, goal, compensator.settings())
             .map_err(|e| format!("servo tuning of axis {}: {e}", v.name))?;
@@ -173,7 +208,17 @@ pub fn servo_tune_cmd(a: &ServoTuneArgs) -> Result<String, String> {
         phase_margin_deg: a.phase_margin_deg,
         ..TuningGoal::default()
     };
-    let tunings = tune_file(&mut file, &a.mode_hz, a.damping, &goal, a.latency_periods)?;
+    let latency = Latency {
+        periods: a.latency_periods,
+        converter_s: a.converter_latency_s,
+    };
+    if !(latency.periods >= 0.0 && latency.converter_s >= 0.0 && latency.converter_s.is_finite()) {
+        return Err(format!(
+            "--latency-periods {} / --converter-latency-s {}: each must be finite and >= 0",
+            latency.periods, latency.converter_s
+        ));
+    }
+    let tunings = tune_file(&mut file, &a.mode_hz, a.damping, &goal, latency)?;
     let header = format!(
         "Stage file {} with its servo tuned by host-sim servo-tune",
         a.stage.display()
@@ -194,7 +239,7 @@ mod tests {
     fn tunes_both_axes_of_the_xy_stage_and_the_core_accepts_them() {
         let mut file = StageFile::parse("xy-stage.toml", XY).unwrap();
         let goal = TuningGoal::default();
-        let t = tune_file(&mut file, &[3221.0, 2197.0], 0.02, &goal, 1.5).unwrap();
+        let t = tune_file(&mut file, &[3221.0, 2197.0], 0.02, &goal, Latency::DEFAULT).unwrap();
         assert_eq!(t.len(), 2);
         for a in &t {
             assert!(a.tuning.phase_margin_deg >= 60.0 - 1e-3, "{a:?}");
@@ -210,16 +255,56 @@ mod tests {
     #[test]
     fn without_a_mode_it_says_where_to_get_one() {
         let mut file = StageFile::parse("xy-stage.toml", XY).unwrap();
-        let e = tune_file(&mut file, &[], 0.02, &TuningGoal::default(), 1.5).unwrap_err();
+        let e = tune_file(
+            &mut file,
+            &[],
+            0.02,
+            &TuningGoal::default(),
+            Latency::DEFAULT,
+        )
+        .unwrap_err();
         assert!(e.contains("axis x") && e.contains("--mode-hz"), "{e}");
         let e = tune_file(
             &mut file,
             &[1.0, 2.0, 3.0],
             0.02,
             &TuningGoal::default(),
-            1.5,
+            Latency::DEFAULT,
         )
         .unwrap_err();
         assert!(e.contains("3 values"), "{e}");
+    }
+
+    /// The same stage at 10, 20 and 50 kHz: the latency shrinks with the period, so the
+    /// crossover rises at the same phase margin: x 387 → 419 → 472 Hz, y 275 → 303 → 341 Hz
+    /// (the mode, its ±10 % and the sensitivity peak, not the latency, hold it there above
+    /// 20 kHz).
+    #[test]
+    fn a_faster_loop_gets_a_higher_crossover() {
+        let mut crossover = Vec::new();
+        for rate in ["10000.0", "20000.0", "50000.0"] {
+            let text = XY.replacen(
+                "loop_rate_hz = 10000.0",
+                &format!("loop_rate_hz = {rate}"),
+                1,
+            );
+            let mut file = StageFile::parse("xy-stage.toml", &text).unwrap();
+            let goal = TuningGoal::default();
+            let t = tune_file(&mut file, &[3221.0, 2197.0], 0.03, &goal, Latency::DEFAULT).unwrap();
+            for a in &t {
+                assert!(a.tuning.phase_margin_deg >= 60.0 - 1e-3, "{rate}: {a:?}");
+            }
+            println!(
+                "{rate} Hz: latency {:.1} µs, crossover x {:.0} Hz, y {:.0} Hz",
+                t[0].dynamics.latency_s * 1e6,
+                t[0].tuning.crossover_hz,
+                t[1].tuning.crossover_hz
+            );
+            crossover.push([t[0].tuning.crossover_hz, t[1].tuning.crossover_hz]);
+        }
+        for i in 0..2 {
+            assert!(crossover[1][i] > 1.05 * crossover[0][i], "{crossover:?}");
+            assert!(crossover[2][i] > 1.1 * crossover[1][i], "{crossover:?}");
+        }
     }
 }

@@ -43,7 +43,9 @@ mod image {
     use piezo_firmware::plant::{PlantAdc, PlantDac, XyPlant};
     use piezo_firmware::reference::ReferenceGenerator;
     use piezo_firmware::safety::{GuardState, SafetyLimits};
-    use piezo_firmware::xy_loop::{AdcSensor, Axis, AxisConfig, Feedforward, TwoAxisLoop, XyIo};
+    use piezo_firmware::xy_loop::{
+        AdcSensor, Axis, AxisConfig, Feedforward, PositionSensor, TwoAxisLoop, XyIo,
+    };
 
     /// Two-axis steps per compensator window.
     pub const BENCH_STEPS: u32 = 1_000;
@@ -52,7 +54,9 @@ mod image {
     /// Exponent of the general-n window.
     pub const GENERAL_N: f32 = 1.5;
     /// Single-tick windows for the worst case.
-    pub const WORST_TICKS: u32 = 300;
+    pub const WORST_TICKS: u32 = 1_000;
+    /// Stage windows after the single-tick ones ([`stage_windows`]).
+    pub const STAGE_WINDOWS: u32 = 10;
 
     /// The servo benched when the stage file has none (its cost does not depend on the values:
     /// low-pass, notch and PI are three biquads either way).
@@ -231,18 +235,32 @@ mod image {
         Some(sum)
     }
 
-    /// Whole ticks without the stage in `mode`: the averaged window, then (with `worst`)
-    /// single-tick windows.
-    #[inline(never)]
-    fn tick_windows(mode: ServoMode, worst: bool) -> Option<u32> {
-        let settings = piezo_firmware::xy_loop::LoopSettings::from_params(
+    /// The loop settings of the file, each axis with its servo or [`FALLBACK_SERVO`].
+    fn bench_settings() -> Option<piezo_firmware::xy_loop::LoopSettings> {
+        piezo_firmware::xy_loop::LoopSettings::from_params(
             &with_servo(AXES),
             piezo_firmware::params::AMPLIFIER_GAIN_V_PER_V,
             SAMPLE_PERIOD_S,
         )
-        .ok()?;
+        .ok()
+    }
+
+    /// A loop on the demo program in `mode`, from rest at 0 V.
+    fn bench_loop(
+        settings: piezo_firmware::xy_loop::LoopSettings,
+        mode: ServoMode,
+    ) -> Option<TwoAxisLoop> {
+        let reference = ReferenceGenerator::new(demo::program(), SAMPLE_PERIOD_S, [0.0; 2]);
+        let mut lp = TwoAxisLoop::new(settings, Feedforward::Compensator, reference, [0.0; 2]);
+        lp.set_control_mode(mode).ok().map(|_| lp)
+    }
+
+    /// The simulated stage's readings under the loop in `mode`, one row per tick.
+    fn record(
+        settings: piezo_firmware::xy_loop::LoopSettings,
+        mode: ServoMode,
+    ) -> Option<ReplayAdc> {
         let scale = demo::sensor_scale()?;
-        // Record the stage's readings under the same loop.
         let plant = Cell::new(XyPlant::from_params(SAMPLE_PERIOD_S)?);
         let mut io = XyIo {
             dac: PlantDac(&plant),
@@ -253,12 +271,7 @@ mod image {
                 scale,
             },
         };
-        let new_loop = || {
-            let reference = ReferenceGenerator::new(demo::program(), SAMPLE_PERIOD_S, [0.0; 2]);
-            let mut lp = TwoAxisLoop::new(settings, Feedforward::Compensator, reference, [0.0; 2]);
-            lp.set_control_mode(mode).ok().map(|_| lp)
-        };
-        let mut lp = new_loop()?;
+        let mut lp = bench_loop(settings, mode)?;
         let mut adc = ReplayAdc {
             codes: [[AdcCode(0); 2]; RECORDED],
             next: 0,
@@ -274,8 +287,18 @@ mod image {
             plant.set(p);
             lp.frames.discard();
         }
+        Some(adc)
+    }
+
+    /// Whole ticks without the stage in `mode`: the averaged window, then (with `worst`)
+    /// single-tick windows.
+    #[inline(never)]
+    fn tick_windows(mode: ServoMode, worst: bool) -> Option<u32> {
+        let settings = bench_settings()?;
+        let scale = demo::sensor_scale()?;
+        let adc = record(settings, mode)?;
         // Replay: the same loop from the start, the readings from the record.
-        let mut lp = new_loop()?;
+        let mut lp = bench_loop(settings, mode)?;
         let mut io = XyIo {
             dac: KeptDac([DacCode(0); 2]),
             dac_channels: Axis::ALL,
@@ -304,6 +327,185 @@ mod image {
             bench_mark_end();
         }
         Some(lp.counters().faults())
+    }
+
+    /// Ticks of the stage windows.
+    const STAGE_TICKS: usize = BENCH_TICKS as usize;
+
+    /// Where a feedforward + feedback tick's time goes: its stages one after the other, each
+    /// over [`STAGE_TICKS`] ticks in a window of its own, in the order of the tick, with the
+    /// inputs of the same run (the readings recorded from the stage, the reference program, the
+    /// targets, feed-forward voltages and outputs each stage before produced):
+    /// 0 reference generator; 1 reference generator + inverse effect chain's targets (the same
+    /// as 0 without effects); 2 both sensor reads (code → volts → metres); 3 both compensators;
+    /// 4 both servos; 5 both models advanced by the applied voltage (what the tick does when the
+    /// servo moved the output); 6 both guards; 7 both DAC codes written; 8 the effect chain's
+    /// commit of both axes (with the model's output w; nothing without effects); 9 the frame.
+    /// What the tick costs beyond their sum is its bookkeeping (fault checks, counters, copies).
+    #[inline(never)]
+    fn stage_windows() -> Option<()> {
+        let settings = bench_settings()?;
+        let scale = demo::sensor_scale()?;
+        let adc = record(settings, ServoMode::FeedforwardFeedback)?;
+        let [ax, ay] = settings.axes;
+        let compensator = [*ax.compensator(), *ay.compensator()];
+        let servo = [*ax.servo()?, *ay.servo()?];
+        let limits = [*ax.limits(), *ay.limits()];
+        let new_chain = || {
+            piezo_firmware::inverse_chain::InverseChain::new(
+                [*ax.effects(), *ay.effects()],
+                [0.0; 2],
+            )
+        };
+        let program = || ReferenceGenerator::new(demo::program(), SAMPLE_PERIOD_S, [0.0; 2]);
+        let mut reference = [[0.0f32; 2]; STAGE_TICKS];
+        let mut target = [[0.0f32; 2]; STAGE_TICKS];
+        let mut measured = [[0.0f32; 2]; STAGE_TICKS];
+        let mut feedforward = [[0.0f32; 2]; STAGE_TICKS];
+        let mut requested = [[0.0f32; 2]; STAGE_TICKS];
+        let mut applied = [[0.0f32; 2]; STAGE_TICKS];
+        let mut w = [[0.0f32; 2]; STAGE_TICKS];
+
+        // 0: the reference generator.
+        let mut generator = program();
+        bench_mark_start();
+        for r in reference.iter_mut() {
+            *r = generator.next_setpoint();
+        }
+        bench_mark_end();
+        // 1: the generator and the chain's targets.
+        let mut generator = program();
+        let mut chain = new_chain();
+        bench_mark_start();
+        for (r, t) in reference.iter_mut().zip(target.iter_mut()) {
+            (*r, *t) = match chain.as_mut() {
+                Some(c) => c.next_targets(|| generator.next_setpoint()),
+                None => {
+                    let r = generator.next_setpoint();
+                    (r, r)
+                }
+            };
+        }
+        bench_mark_end();
+        // 2: the sensor reads.
+        let mut sensor = AdcSensor {
+            adc,
+            channels: Axis::ALL,
+            scale,
+        };
+        bench_mark_start();
+        for m in measured.iter_mut() {
+            *m = [
+                sensor.read_m(Axis::X).unwrap_or(f32::NAN),
+                sensor.read_m(Axis::Y).unwrap_or(f32::NAN),
+            ];
+        }
+        bench_mark_end();
+        // 3: the compensators (their states as the tick leaves them are rebuilt in 5).
+        let mut state = [CompensatorState::at_rest(0.0); 2];
+        let mut before = [[CompensatorState::at_rest(0.0); 2]; STAGE_TICKS];
+        for k in 0..STAGE_TICKS {
+            before[k] = state;
+            for i in 0..2 {
+                let mut s = state[i];
+                feedforward[k][i] = compensator[i].compensate(&mut s, target[k][i]).voltage_v;
+                // The tick's model follows the applied voltage, which the servo moves; here
+                // the feed-forward's.
+                state[i] = s;
+            }
+        }
+        let mut state = [CompensatorState::at_rest(0.0); 2];
+        let [c0, c1] = &compensator;
+        bench_mark_start();
+        for (t, u) in target.iter().zip(feedforward.iter_mut()) {
+            u[0] = c0.compensate(&mut state[0], t[0]).voltage_v;
+            u[1] = c1.compensate(&mut state[1], t[1]).voltage_v;
+        }
+        bench_mark_end();
+        // 4: the servos.
+        let mut servo_state = [ServoState::at_rest(0.0, ServoMode::FeedforwardFeedback); 2];
+        let [v0, v1] = &servo;
+        let mut previous = [f32::NAN; 2];
+        bench_mark_start();
+        for k in 0..STAGE_TICKS {
+            let (m, u) = (measured[k], feedforward[k]);
+            requested[k] = [
+                v0.step(&mut servo_state[0], previous[0], m[0], u[0])
+                    .voltage_v,
+                v1.step(&mut servo_state[1], previous[1], m[1], u[1])
+                    .voltage_v,
+            ];
+            previous = reference[k];
+        }
+        bench_mark_end();
+        // 5: the models advanced by the requested voltage from the state before the tick
+        // (`Compensator::advance`, as the tick); the states before each tick are those of a
+        // model that followed the requested voltages.
+        let mut state = [CompensatorState::at_rest(0.0); 2];
+        for (b, u) in before.iter_mut().zip(requested.iter()) {
+            *b = state;
+            for i in 0..2 {
+                compensator[i].model().step(&mut state[i].model, u[i]);
+            }
+        }
+        let [m0, m1] = [c0.model(), c1.model()];
+        bench_mark_start();
+        for (b, u) in before.iter_mut().zip(requested.iter()) {
+            c0.advance(&mut b[0], u[0]);
+            c1.advance(&mut b[1], u[1]);
+        }
+        bench_mark_end();
+        // 6: the guards.
+        let mut guard = [limits[0].state(0.0), limits[1].state(0.0)];
+        let [l0, l1] = &limits;
+        bench_mark_start();
+        for (u, a) in requested.iter().zip(applied.iter_mut()) {
+            *a = [l0.apply(&mut guard[0], u[0]), l1.apply(&mut guard[1], u[1])];
+        }
+        bench_mark_end();
+        // 7: the DAC codes.
+        let mut dac = KeptDac([DacCode(0); 2]);
+        let gain = settings.amplifier_gain_v_per_v;
+        bench_mark_start();
+        for a in applied.iter() {
+            let _ = dac.write_code(Axis::X, DacCode::from_volts(a[0] / gain));
+            let _ = dac.write_code(Axis::Y, DacCode::from_volts(a[1] / gain));
+        }
+        bench_mark_end();
+        black_box(dac.0);
+        // 8: the chain's commit, with the models' output.
+        let mut chain = new_chain();
+        bench_mark_start();
+        if let Some(c) = chain.as_mut() {
+            for k in 0..STAGE_TICKS {
+                w[k] = [
+                    m0.output(&before[k][0].model),
+                    m1.output(&before[k][1].model),
+                ];
+                c.commit(0, applied[k][0], w[k][0]);
+                c.commit(1, applied[k][1], w[k][1]);
+            }
+        }
+        bench_mark_end();
+        black_box(chain);
+        // 9: the frame.
+        let mut frames = piezo_firmware::frames::FrameQueue::new(1);
+        let mut batch = heapless::Vec::<_, 8>::new();
+        bench_mark_start();
+        for k in 0..STAGE_TICKS {
+            frames.offer(|| {
+                [0, 1].map(|i| piezo_firmware::frames::AxisSample {
+                    reference_m: reference[k][i],
+                    commanded_v: applied[k][i],
+                    sensor_m: measured[k][i],
+                })
+            });
+            frames.drain_into(&mut batch);
+            batch.clear();
+        }
+        bench_mark_end();
+        black_box((&w, &batch, &guard, &servo_state));
+        Some(())
     }
 
     #[inline(never)]
@@ -362,6 +564,8 @@ mod image {
         bench_mark_start();
         bench_mark_end();
         let ok = ok && matches!(tick_windows(ServoMode::FeedforwardFeedback, true), Some(0));
+        let ok = ok && stage_windows().is_some();
+        black_box(STAGE_WINDOWS);
         debug::exit(if ok {
             debug::EXIT_SUCCESS
         } else {

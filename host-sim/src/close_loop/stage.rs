@@ -309,7 +309,13 @@ fn with_servo(stage: &piezo_stage::Stage, io: &piezo_stage::Io, axes: Vec<Axis>)
         y: axes.get(1).cloned(),
     };
     let goal = piezo_core::servo::TuningGoal::default();
-    match crate::servo_tune::tune_file(&mut file, &[], 0.0, &goal, 1.5) {
+    match crate::servo_tune::tune_file(
+        &mut file,
+        &[],
+        0.0,
+        &goal,
+        crate::servo_tune::Latency::DEFAULT,
+    ) {
         Ok(tunings) => {
             for t in &tunings {
                 eprintln!(
