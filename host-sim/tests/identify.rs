@@ -267,12 +267,12 @@ fn oscillator_stage_axis_round_trip() {
         sample_period_s: 1.0 / 750.0,
         substeps: 20,
     };
-    let record = Record {
-        path: "train.csv".into(),
-        t_s: (0..20).map(|k| k as f64 / 750.0).collect(),
-        u: (0..20).map(|k| k as f64).collect(),
-        y_m: vec![0.0; 20],
-    };
+    let record = Record::from_parts(
+        "train.csv".into(),
+        (0..20).map(|k| k as f64 / 750.0).collect(),
+        (0..20).map(|k| k as f64).collect(),
+        vec![0.0; 20],
+    );
     let axis = to_axis(&set, provenance(&record, 0, "vp-de-lm", 1e-7));
     assert_eq!(from_axis(&axis, 1.0 / 750.0, (0.0, 0.0)).unwrap(), set);
 }

@@ -161,12 +161,12 @@ pub fn read_records(
     }
     let mut out = Vec::new();
     for a in 0..us.len() {
-        let mut r = Record {
-            path: data.into(),
-            t_s: cols[0].clone(),
-            u: cols[1 + 2 * a].clone(),
-            y_m: cols[2 + 2 * a].clone(),
-        };
+        let mut r = Record::from_parts(
+            data.into(),
+            cols[0].clone(),
+            cols[1 + 2 * a].clone(),
+            cols[2 + 2 * a].clone(),
+        );
         if let Some(end) = end {
             r.cut_after(end)?;
         }

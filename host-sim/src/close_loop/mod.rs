@@ -112,6 +112,8 @@ pub struct CloseLoopSettings {
     pub seed: u64,
     /// Only firmware-invertible base sets.
     pub invertible: bool,
+    /// Several records: each has its own constant sensor offset.
+    pub free_offset: bool,
     /// Effects that may be added.
     pub allowed: Vec<EffectKind>,
     /// Progress on stderr.
@@ -125,6 +127,7 @@ impl Default for CloseLoopSettings {
             min_share: 0.05,
             seed: 1,
             invertible: false,
+            free_offset: false,
             allowed: EffectKind::ALL.to_vec(),
             progress: false,
         }
@@ -277,6 +280,7 @@ fn base_model(record: &Record, s: &CloseLoopSettings) -> Result<AxisModel, Close
             start_s: s.start_s,
             no_shift: true,
             invertible: s.invertible,
+            free_offset: s.free_offset,
             progress: s.progress,
         },
     )?;
