@@ -11,9 +11,9 @@
 //!        xᵢ[j] = aᵢ·xᵢ[j−1] + (1 − aᵢ)·(u[j−1] − u_ref),  aᵢ = exp(−T/τᵢ),  xᵢ[0] = 0
 //!      + g_log·½·Σₗ xₗ[j]   logarithmic creep: the same elements with τₗ = t₀·10^((l+1)/2),
 //!                           l = 0 … LOG_CREEP_ELEMENTS − 1 (half a decade apart, 6 decades)
-//! c_w[j] = Σᵢ g_wᵢ·vᵢ[j]    rate-dependent hysteresis (relaxation of w), at most
-//!        vᵢ[j] = bᵢ·vᵢ[j−1] + (1 − bᵢ)·(w[j−1] − w_ref),  bᵢ = exp(−T/τ_wᵢ),  vᵢ[0] = 0
-//!                           MAX_RELAXATION_ELEMENTS elements, w_ref the first w
+//! c_w[j] = Σᵢ g_wᵢ·vᵢ[j]    rate-dependent hysteresis (relaxation of w − k_r·u), at most
+//!        vᵢ[j] = bᵢ·vᵢ[j−1] + (1 − bᵢ)·(p[j−1] − p_ref),  bᵢ = exp(−T/τ_wᵢ),  vᵢ[0] = 0
+//!        p[j] = w[j] − k_r·u[j]  MAX_RELAXATION_ELEMENTS elements, p_ref the first p
 //! s[j] = w[j] + e·(u[j−1] − u_c)² + c[j] + c_w[j],   u[−1] := u_c       even-order term
 //! z[j] = M(s)[j]            second-order mode  z̈ + 2ζω·ż + ω²·z = ω²·s,  ω = 2π·f_mode
 //! y[k] = z(k − D) + d(k·T) + κ·z_other(k − D)                           output sample k
@@ -28,7 +28,9 @@
 //! direction of a command change), t₀ \[s\]; κ \[1\] the part of the *other* axis's z that appears on
 //! this axis; g_wᵢ \[1\] ≥ 0 (the low-frequency output is (1 + Σ g_wᵢ)·w, the high-frequency one w:
 //! the loop's gain falls and its phase lags as the rate rises), τ_wᵢ \[s\]. All zero is the
-//! identity: y\[k\] = w\[k\].
+//! identity: y\[k\] = w\[k\]. k_r \[m/V\]: the linear strain that does not relax (0: all of w
+//! relaxes; the map's k1: only its hysteretic part k2·h + y0, the domain switching, relaxes while
+//! the lattice strain k1·u follows the voltage at once).
 //!
 //! | effect | fields | equation | inverse |
 //! |---|---|---|---|
@@ -57,9 +59,9 @@
 //!   stack's dielectric and domain-wall response; the Hammerstein form of Wang, Zhang, Mao &
 //!   Zhou, "A Hammerstein-based model for rate-dependent hysteresis in piezoelectric actuator",
 //!   CCDC 2012, doi:10.1109/CCDC.2012.6244223: a Bouc-Wen model followed by a linear model).
-//!   Each element is the exact solution of `τ_wᵢ·v̇ᵢ = −vᵢ + (w − w_ref)` for w held from
-//!   t_{j−1} to t_j, updated in the delta form of the creep. c_w\[j\] depends only on w up to
-//!   j−1, so its inverse is explicit: `w* = s* − c[j] − c_w[j] − even`, and the compensator's
+//!   Each element is the exact solution of `τ_wᵢ·v̇ᵢ = −vᵢ + (p − p_ref)`, p = w − k_r·u, for p
+//!   held from t_{j−1} to t_j, updated in the delta form of the creep. c_w\[j\] depends only on
+//!   w and u up to j−1, so its inverse is explicit: `w* = s* − c[j] − c_w[j] − even`, and the compensator's
 //!   per-sample map is unchanged. The inverse recursion (v driven by the w the inverse chose) is
 //!   stable iff `Σᵢ g_wᵢ·tanh(T/(2τ_wᵢ)) < 1` (its one real root below every bᵢ stays above −1);
 //!   [`Effects::new`] asks ≤ [`MAX_RELAXATION_LOOP_GAIN`] = 0.5 and g_wᵢ ≥ 0.
@@ -217,6 +219,9 @@ pub struct EffectParams {
         serde(deserialize_with = "up_to_relaxation_elements")
     )]
     pub relaxation_time_constant_s: [f32; MAX_RELAXATION_ELEMENTS],
+    /// k_r \[m/V\]: the relaxation is driven by w − k_r·u (0: all of w relaxes; the map's k1: only
+    /// the hysteretic part; any finite value).
+    pub relaxation_linear_m_per_v: f32,
 }
 
 /// Reads a sequence of at most [`MAX_CREEP_ELEMENTS`] numbers (missing elements 0).
@@ -317,12 +322,20 @@ struct Relaxation {
     rate: [f32; MAX_RELAXATION_ELEMENTS],
     /// g_wᵢ \[1\] (0 for an absent element).
     gain: [f32; MAX_RELAXATION_ELEMENTS],
+    /// k_r \[m/V\].
+    linear: f32,
 }
 
 impl Relaxation {
     /// Validates the gains and time constants at the sample period `t` \[s\] (module doc).
     fn new(params: &EffectParams, t: f32) -> Result<Self, ParamError> {
-        let mut out = Self::default();
+        let mut out = Self {
+            linear: finite(
+                "relaxation_linear_m_per_v",
+                params.relaxation_linear_m_per_v,
+            )?,
+            ..Self::default()
+        };
         let mut loop_gain = 0.0f64;
         for i in 0..MAX_RELAXATION_ELEMENTS {
             let g = finite(RELAXATION_GAIN_FIELDS[i], params.relaxation_gain[i])?;
@@ -388,7 +401,7 @@ pub struct EffectsState {
     samples: u32,
     /// vᵢ of the rate-dependent hysteresis for the next sample \[m\].
     relaxation_m: [f32; MAX_RELAXATION_ELEMENTS],
-    /// w_ref: the first w \[m\].
+    /// p_ref: the first p = w − k_r·u \[m\].
     w_reference_m: f32,
 }
 
@@ -707,7 +720,8 @@ impl Effects {
     }
 
     /// The rate-dependent hysteresis c_w\[j\] = Σ g_wᵢ·vᵢ\[j\] \[m\] of the next sample to process
-    /// (vᵢ a first-order lag of w − w_ref; 0 without it and before the first sample).
+    /// (vᵢ a first-order lag of p − p_ref, p = w − k_r·u; 0 without it and before the first
+    /// sample).
     #[inline]
     pub fn relaxation_m(&self, state: &EffectsState) -> f32 {
         let mut c = 0.0;
@@ -737,8 +751,9 @@ impl Effects {
             state.creep_v = [0.0; MAX_CREEP_ELEMENTS];
             state.log_creep_v = [0.0; LOG_CREEP_ELEMENTS];
         }
+        let p = bounded(w - self.relaxation.linear * u);
         if !state.started {
-            state.w_reference_m = w;
+            state.w_reference_m = p;
             state.relaxation_m = [0.0; MAX_RELAXATION_ELEMENTS];
         }
         let s =
@@ -778,7 +793,7 @@ impl Effects {
             }
         }
         if !self.relaxation.is_absent() {
-            let dw = bounded(w - state.w_reference_m);
+            let dw = bounded(p - state.w_reference_m);
             for (v, rate) in state
                 .relaxation_m
                 .iter_mut()

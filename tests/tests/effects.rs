@@ -691,6 +691,7 @@ fn two_axis_inverse_chain_tracks_with_all_effects() {
         log_creep_time_s: 1e-3,
         relaxation_gain: [0.3, 0.05],
         relaxation_time_constant_s: [2e-3, 2e-2],
+        relaxation_linear_m_per_v: 2e-7,
     };
     let (ex, ey) = (effects(px), effects(py));
     let (mx, my) = (x_model(), y_model());
@@ -963,6 +964,7 @@ prop_compose! {
             log_creep_time_s: log_t0,
             relaxation_gain: relaxation_gains,
             relaxation_time_constant_s: relaxation_taus,
+            relaxation_linear_m_per_v: 0.0,
         }
     }
 }

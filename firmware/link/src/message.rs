@@ -440,6 +440,7 @@ mod effects_wire {
         [f32; 11],
         [f32; MAX_RELAXATION_ELEMENTS],
         [f32; MAX_RELAXATION_ELEMENTS],
+        f32,
     );
 
     pub fn serialize<S: Serializer>(e: &EffectParams, s: S) -> Result<S::Ok, S::Error> {
@@ -461,6 +462,7 @@ mod effects_wire {
             ],
             e.relaxation_gain,
             e.relaxation_time_constant_s,
+            e.relaxation_linear_m_per_v,
         );
         tuple.serialize(s)
     }
@@ -472,6 +474,7 @@ mod effects_wire {
             f,
             relaxation_gain,
             relaxation_time_constant_s,
+            relaxation_linear_m_per_v,
         ): Tuple = Deserialize::deserialize(d)?;
         Ok(EffectParams {
             creep_gain_m_per_v,
@@ -489,6 +492,7 @@ mod effects_wire {
             log_creep_time_s: f[10],
             relaxation_gain,
             relaxation_time_constant_s,
+            relaxation_linear_m_per_v,
         })
     }
 }

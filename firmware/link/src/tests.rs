@@ -24,6 +24,7 @@ fn axis() -> AxisModel {
             log_creep_time_s: 0.5,
             relaxation_gain: [0.3, 0.1],
             relaxation_time_constant_s: [1e-3, 1e-2],
+            relaxation_linear_m_per_v: 3e-7,
             ..EffectParams::default()
         },
         limits: Limits {
