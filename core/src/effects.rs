@@ -358,7 +358,7 @@ impl Relaxation {
                 loop_gain += f64::from(g) * libm::tanh(0.5 * x);
             }
         }
-        if !(loop_gain <= MAX_RELAXATION_LOOP_GAIN) {
+        if loop_gain > MAX_RELAXATION_LOOP_GAIN || !loop_gain.is_finite() {
             return Err(ParamError::OutOfRange {
                 field: "relaxation_gain",
                 value: loop_gain as f32,

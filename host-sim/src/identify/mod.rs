@@ -1035,6 +1035,10 @@ pub struct PredictArgs {
     /// stage): `fir-decimate:factors=20,identified_with=2/2/5`.
     #[arg(long)]
     pub output_filter: Option<String>,
+    /// The record's sensor offset is its own (the sensor's zero moved since identification):
+    /// also report the RMS with the offset re-estimated on the scored samples (`rms_zeroed_m`).
+    #[arg(long)]
+    pub free_offset: bool,
     /// Report JSON to write.
     #[arg(long)]
     pub report: PathBuf,
@@ -1122,6 +1126,26 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
             json!(p.fit.mrd_percent),
         ));
     }
+    let zeroed: Vec<f64> = axes
+        .iter()
+        .zip(&records)
+        .map(|(p, r)| {
+            let (y, q) = (&r.y_m[from..], &p.predicted_m[from..]);
+            let n = y.len().max(1) as f64;
+            let mean = y.iter().zip(q).map(|(y, q)| y - q).sum::<f64>() / n;
+            (y.iter()
+                .zip(q)
+                .map(|(y, q)| (y - q - mean).powi(2))
+                .sum::<f64>()
+                / n)
+                .sqrt()
+        })
+        .collect();
+    if a.free_offset {
+        for (line, z) in lines.iter_mut().zip(&zeroed) {
+            line.push_str(&format!(", zeroed rms {z:.4e} m"));
+        }
+    }
     let mut report = json!({
         "params_file": a.params.display().to_string(),
         "data": a.data.display().to_string(),
@@ -1130,6 +1154,9 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
         "output_filter": a.output_filter,
         "axes": axes.iter().map(predict::axis_json).collect::<Vec<_>>(),
     });
+    if a.free_offset {
+        report["rms_zeroed_m"] = json!(zeroed);
+    }
     if axes.len() == 1 {
         // One axis: its blocks also at the top level.
         report["model"] = json!(axes[0].model.name());
