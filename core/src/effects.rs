@@ -11,7 +11,10 @@
 //!        xᵢ[j] = aᵢ·xᵢ[j−1] + (1 − aᵢ)·(u[j−1] − u_ref),  aᵢ = exp(−T/τᵢ),  xᵢ[0] = 0
 //!      + g_log·½·Σₗ xₗ[j]   logarithmic creep: the same elements with τₗ = t₀·10^((l+1)/2),
 //!                           l = 0 … LOG_CREEP_ELEMENTS − 1 (half a decade apart, 6 decades)
-//! s[j] = w[j] + e·(u[j−1] − u_c)² + c[j],   u[−1] := u_c                 even-order term
+//! c_w[j] = Σᵢ g_wᵢ·vᵢ[j]    rate-dependent hysteresis (relaxation of w − k_r·u), at most
+//!        vᵢ[j] = bᵢ·vᵢ[j−1] + (1 − bᵢ)·(p[j−1] − p_ref),  bᵢ = exp(−T/τ_wᵢ),  vᵢ[0] = 0
+//!        p[j] = w[j] − k_r·u[j]  MAX_RELAXATION_ELEMENTS elements, p_ref the first p
+//! s[j] = w[j] + e·(u[j−1] − u_c)² + c[j] + c_w[j],   u[−1] := u_c       even-order term
 //! z[j] = M(s)[j]            second-order mode  z̈ + 2ζω·ż + ω²·z = ω²·s,  ω = 2π·f_mode
 //! y[k] = z(k − D) + d(k·T) + κ·z_other(k − D)                           output sample k
 //! d(t) = r_d·t + A_d·(1 − exp(−t/τ_d))                                  drift
@@ -23,12 +26,17 @@
 //! drift r_d \[m/s\] from t = 0 at the first output sample; A_d \[m\] (positive: the output settles
 //! upwards), τ_d \[s\]; g_log \[m/V per decade of time\] (positive: the output keeps moving in the
 //! direction of a command change), t₀ \[s\]; κ \[1\] the part of the *other* axis's z that appears on
-//! this axis. All zero is the identity: y\[k\] = w\[k\].
+//! this axis; g_wᵢ \[1\] ≥ 0 (the low-frequency output is (1 + Σ g_wᵢ)·w, the high-frequency one w:
+//! the loop's gain falls and its phase lags as the rate rises), τ_wᵢ \[s\]. All zero is the
+//! identity: y\[k\] = w\[k\]. k_r \[m/V\]: the linear strain that does not relax (0: all of w
+//! relaxes; the map's k1: only its hysteretic part k2·h + y0, the domain switching, relaxes while
+//! the lattice strain k1·u follows the voltage at once).
 //!
 //! | effect | fields | equation | inverse |
 //! |---|---|---|---|
 //! | creep (Kelvin–Voigt) | `creep_gain_m_per_v`, `creep_time_constant_s` | Σᵢ gᵢ·xᵢ | exact, in [`Effects::creep_m`] |
 //! | creep (logarithmic) | `log_creep_gain_m_per_v`, `log_creep_time_s` | g_log·½·Σₗ xₗ ≈ g_log·Δu·log₁₀(1 + t/t₀) after a step | exact, in [`Effects::creep_m`] |
+//! | rate-dependent hysteresis | `relaxation_gain`, `relaxation_time_constant_s` | Σᵢ g_wᵢ·vᵢ, vᵢ a first-order lag of w | exact, in [`Effects::relaxation_m`] |
 //! | even term | `even_coefficient_m_per_v2`, `even_center_v` | e·(u\[j−1\] − u_c)² | exact, [`Effects::even_term_m`] |
 //! | mode | `mode_frequency_hz`, `mode_damping` | z̈ + 2ζω·ż + ω²·z = ω²·s | central differences |
 //! | delay | `delay_s` | z(k − D) | reference taken ahead |
@@ -46,6 +54,17 @@
 //!   weight g_log/2: after a step its response is g_log·Δu·log₁₀(1 + t/t₀) within ±0.11·g_log·Δu for
 //!   t ≤ 10^5.5·t₀, and it levels off at 6·g_log·Δu beyond 10^6·t₀. Superposed over every
 //!   command change; it depends only on u up to j−1, so it enters the inverse with the creep.
+//! * **Rate-dependent hysteresis** (a Hammerstein model: the rate-independent hysteresis w
+//!   followed by linear dynamics, here the relaxation `G(s) = 1 + Σᵢ g_wᵢ/(1 + s·τ_wᵢ)` of a
+//!   stack's dielectric and domain-wall response; the Hammerstein form of Wang, Zhang, Mao &
+//!   Zhou, "A Hammerstein-based model for rate-dependent hysteresis in piezoelectric actuator",
+//!   CCDC 2012, doi:10.1109/CCDC.2012.6244223: a Bouc-Wen model followed by a linear model).
+//!   Each element is the exact solution of `τ_wᵢ·v̇ᵢ = −vᵢ + (p − p_ref)`, p = w − k_r·u, for p
+//!   held from t_{j−1} to t_j, updated in the delta form of the creep. c_w\[j\] depends only on
+//!   w and u up to j−1, so its inverse is explicit: `w* = s* − c[j] − c_w[j] − even`, and the compensator's
+//!   per-sample map is unchanged. The inverse recursion (v driven by the w the inverse chose) is
+//!   stable iff `Σᵢ g_wᵢ·tanh(T/(2τ_wᵢ)) < 1` (its one real root below every bᵢ stays above −1);
+//!   [`Effects::new`] asks ≤ [`MAX_RELAXATION_LOOP_GAIN`] = 0.5 and g_wᵢ ≥ 0.
 //! * **Even term** `e·(u[j−1] − u_c)²` on the *previous* command u\[j−1\] (the last command the
 //!   state has seen, the same one the creep uses; u\[−1\] := u_c, so the term is 0 at the first
 //!   sample). Electrostriction is an even function of the drive voltage; evaluated at the previous
@@ -88,8 +107,10 @@
 //!    `s* = z*[j] + (2ζ/ω)·(z*[j+1] − z*[j−1])/(2T) + (z*[j+1] − 2z*[j] + z*[j−1])/(ωT)²`;
 //!    truncation error `(ζ/(3ω))·T²·z⃛ + T²·z⁗/(12ω²)`, second order in T, plus the O((ωT)²)
 //!    difference between the sampled and the continuous mode; s* = z*\[j\] without a mode;
-//! 5. **creep and even term**: `w* = s* − c[j] − e·(u[j−1] − u_c)²`, exact and explicit (both
-//!    terms depend only on commands before u\[j\]: [`Effects::creep_m`], [`Effects::even_term_m`]);
+//! 5. **creep, rate-dependent hysteresis and even term**:
+//!    `w* = s* − c[j] − c_w[j] − e·(u[j−1] − u_c)²`, exact and explicit (the terms depend only on
+//!    commands and w before sample j: [`Effects::creep_m`], [`Effects::relaxation_m`],
+//!    [`Effects::even_term_m`]);
 //! 6. the inverse compensator gives u\[j\] for w*, and [`Effects::commit_command`] advances the
 //!    effects state with the u\[j\] actually commanded and the w\[j\] it reaches.
 //!
@@ -116,12 +137,23 @@ pub const MAX_DELAY_SAMPLES: usize = 64;
 pub const MAX_MODE_FREQUENCY_RATIO: f32 = 0.45;
 /// Bound on |coupling| (the 2×2 coupling matrix keeps det > 0.75).
 pub const MAX_COUPLING: f32 = 0.5;
+/// Largest number of elements of the rate-dependent hysteresis (relaxation of w).
+pub const MAX_RELAXATION_ELEMENTS: usize = 2;
+/// Bound on Σᵢ g_wᵢ·tanh(T/(2τ_wᵢ)): the inverse recursion of the relaxation is stable below 1;
+/// at 0.5 its slowest-alternating root stays above −1/3 (well damped).
+pub const MAX_RELAXATION_LOOP_GAIN: f64 = 0.5;
 
 /// Length of the ring of past z samples: the delay reads z\[k − n\] and z\[k − n − 1\], n ≤ 64.
 const RING_LEN: usize = MAX_DELAY_SAMPLES + 2;
 /// Internal signals are held within ±this \[m\] (or V) so that finite inputs give finite results.
 const SIGNAL_LIMIT: f32 = 1.0e30;
 
+const RELAXATION_GAIN_FIELDS: [&str; MAX_RELAXATION_ELEMENTS] =
+    ["relaxation_gain[0]", "relaxation_gain[1]"];
+const RELAXATION_TIME_FIELDS: [&str; MAX_RELAXATION_ELEMENTS] = [
+    "relaxation_time_constant_s[0]",
+    "relaxation_time_constant_s[1]",
+];
 const CREEP_GAIN_FIELDS: [&str; MAX_CREEP_ELEMENTS] = [
     "creep_gain_m_per_v[0]",
     "creep_gain_m_per_v[1]",
@@ -173,6 +205,23 @@ pub struct EffectParams {
     /// t₀ of the logarithmic creep \[s\], > 0 when `log_creep_gain_m_per_v` ≠ 0: the shortest of
     /// its time constants is √10·t₀ (ignored, but finite, otherwise).
     pub log_creep_time_s: f32,
+    /// g_wᵢ \[1\] of the rate-dependent hysteresis: the part of the hysteresis output w that
+    /// follows it with the lag τ_wᵢ (≥ 0; 0: the element is absent).
+    #[cfg_attr(
+        feature = "serde",
+        serde(deserialize_with = "up_to_relaxation_elements")
+    )]
+    pub relaxation_gain: [f32; MAX_RELAXATION_ELEMENTS],
+    /// τ_wᵢ \[s\] of the rate-dependent hysteresis, > 0 for every present element (ignored, but
+    /// finite, otherwise).
+    #[cfg_attr(
+        feature = "serde",
+        serde(deserialize_with = "up_to_relaxation_elements")
+    )]
+    pub relaxation_time_constant_s: [f32; MAX_RELAXATION_ELEMENTS],
+    /// k_r \[m/V\]: the relaxation is driven by w − k_r·u (0: all of w relaxes; the map's k1: only
+    /// the hysteretic part; any finite value).
+    pub relaxation_linear_m_per_v: f32,
 }
 
 /// Reads a sequence of at most [`MAX_CREEP_ELEMENTS`] numbers (missing elements 0).
@@ -181,29 +230,42 @@ fn up_to_creep_elements<'de, D>(deserializer: D) -> Result<[f32; MAX_CREEP_ELEME
 where
     D: serde::Deserializer<'de>,
 {
-    struct UpTo;
-    impl<'de> serde::de::Visitor<'de> for UpTo {
-        type Value = [f32; MAX_CREEP_ELEMENTS];
-        fn expecting(&self, f: &mut core::fmt::Formatter) -> core::fmt::Result {
-            write!(f, "an array of at most {MAX_CREEP_ELEMENTS} numbers")
-        }
-        fn visit_seq<A: serde::de::SeqAccess<'de>>(
-            self,
-            mut seq: A,
-        ) -> Result<Self::Value, A::Error> {
-            let mut out = [0.0f32; MAX_CREEP_ELEMENTS];
-            let mut len = 0;
-            while let Some(v) = seq.next_element::<f32>()? {
-                if len == MAX_CREEP_ELEMENTS {
-                    return Err(serde::de::Error::invalid_length(len + 1, &self));
-                }
-                out[len] = v;
-                len += 1;
-            }
-            Ok(out)
-        }
+    deserializer.deserialize_seq(UpTo::<MAX_CREEP_ELEMENTS>)
+}
+
+/// Reads a sequence of at most [`MAX_RELAXATION_ELEMENTS`] numbers (missing elements 0).
+#[cfg(feature = "serde")]
+fn up_to_relaxation_elements<'de, D>(
+    deserializer: D,
+) -> Result<[f32; MAX_RELAXATION_ELEMENTS], D::Error>
+where
+    D: serde::Deserializer<'de>,
+{
+    deserializer.deserialize_seq(UpTo::<MAX_RELAXATION_ELEMENTS>)
+}
+
+/// A sequence of at most N numbers, missing elements 0.
+#[cfg(feature = "serde")]
+struct UpTo<const N: usize>;
+
+#[cfg(feature = "serde")]
+impl<'de, const N: usize> serde::de::Visitor<'de> for UpTo<N> {
+    type Value = [f32; N];
+    fn expecting(&self, f: &mut core::fmt::Formatter) -> core::fmt::Result {
+        write!(f, "an array of at most {N} numbers")
     }
-    deserializer.deserialize_seq(UpTo)
+    fn visit_seq<A: serde::de::SeqAccess<'de>>(self, mut seq: A) -> Result<Self::Value, A::Error> {
+        let mut out = [0.0f32; N];
+        let mut len = 0;
+        while let Some(v) = seq.next_element::<f32>()? {
+            if len == N {
+                return Err(serde::de::Error::invalid_length(len + 1, &self));
+            }
+            out[len] = v;
+            len += 1;
+        }
+        Ok(out)
+    }
 }
 
 /// The precomputed mode: Φ − I of one half step, and the inverse's difference coefficients.
@@ -249,6 +311,66 @@ pub struct Effects {
     log_creep_weight: f32,
     /// 1/τ_d \[1/s\] (0 without a settling drift).
     drift_settling_rate_per_s: f32,
+    /// The rate-dependent hysteresis's elements (all gains 0 without it).
+    relaxation: Relaxation,
+}
+
+/// The validated elements of the rate-dependent hysteresis (relaxation of w).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+struct Relaxation {
+    /// 1 − bᵢ = 1 − exp(−T/τ_wᵢ) (0 for an absent element).
+    rate: [f32; MAX_RELAXATION_ELEMENTS],
+    /// g_wᵢ \[1\] (0 for an absent element).
+    gain: [f32; MAX_RELAXATION_ELEMENTS],
+    /// k_r \[m/V\].
+    linear: f32,
+}
+
+impl Relaxation {
+    /// Validates the gains and time constants at the sample period `t` \[s\] (module doc).
+    fn new(params: &EffectParams, t: f32) -> Result<Self, ParamError> {
+        let mut out = Self {
+            linear: finite(
+                "relaxation_linear_m_per_v",
+                params.relaxation_linear_m_per_v,
+            )?,
+            ..Self::default()
+        };
+        let mut loop_gain = 0.0f64;
+        for i in 0..MAX_RELAXATION_ELEMENTS {
+            let g = finite(RELAXATION_GAIN_FIELDS[i], params.relaxation_gain[i])?;
+            let tau = finite(
+                RELAXATION_TIME_FIELDS[i],
+                params.relaxation_time_constant_s[i],
+            )?;
+            if g < 0.0 {
+                return Err(ParamError::OutOfRange {
+                    field: RELAXATION_GAIN_FIELDS[i],
+                    value: g,
+                    requirement: ">= 0",
+                });
+            }
+            if g != 0.0 {
+                positive(RELAXATION_TIME_FIELDS[i], tau)?;
+                let x = f64::from(t) / f64::from(tau);
+                out.rate[i] = -libm::expm1(-x) as f32;
+                out.gain[i] = g;
+                loop_gain += f64::from(g) * libm::tanh(0.5 * x);
+            }
+        }
+        if loop_gain > MAX_RELAXATION_LOOP_GAIN || !loop_gain.is_finite() {
+            return Err(ParamError::OutOfRange {
+                field: "relaxation_gain",
+                value: loop_gain as f32,
+                requirement: "sum of g_i * tanh(T / (2 tau_i)) <= 0.5 (a stable inverse)",
+            });
+        }
+        Ok(out)
+    }
+
+    fn is_absent(&self) -> bool {
+        self.gain.iter().all(|&g| g == 0.0)
+    }
 }
 
 /// The state of the effects of one axis (creep, mode, delay line, sample counter).
@@ -277,6 +399,10 @@ pub struct EffectsState {
     head: usize,
     /// Number of samples processed (saturating).
     samples: u32,
+    /// vᵢ of the rate-dependent hysteresis for the next sample \[m\].
+    relaxation_m: [f32; MAX_RELAXATION_ELEMENTS],
+    /// p_ref: the first p = w − k_r·u \[m\].
+    w_reference_m: f32,
 }
 
 impl Default for EffectsState {
@@ -301,6 +427,8 @@ impl EffectsState {
             ring: [0.0; RING_LEN],
             head: 0,
             samples: 0,
+            relaxation_m: [0.0; MAX_RELAXATION_ELEMENTS],
+            w_reference_m: 0.0,
         }
     }
 
@@ -439,6 +567,7 @@ impl Effects {
                 *rate = -libm::expm1(-f64::from(t) / tau) as f32;
             }
         }
+        let relaxation = Relaxation::new(&params, t)?;
         let coupling = finite("coupling", params.coupling)?;
         if libm::fabsf(coupling) >= MAX_COUPLING {
             return Err(ParamError::OutOfRange {
@@ -460,6 +589,7 @@ impl Effects {
             log_creep_rate,
             log_creep_weight: 0.5 * log_gain,
             drift_settling_rate_per_s,
+            relaxation,
         })
     }
 
@@ -485,6 +615,7 @@ impl Effects {
             && p.coupling == 0.0
             && p.drift_settling_m == 0.0
             && self.log_creep_weight == 0.0
+            && self.relaxation.is_absent()
     }
 
     /// Whether the second-order mode is present.
@@ -588,6 +719,18 @@ impl Effects {
         bounded(c)
     }
 
+    /// The rate-dependent hysteresis c_w\[j\] = Σ g_wᵢ·vᵢ\[j\] \[m\] of the next sample to process
+    /// (vᵢ a first-order lag of p − p_ref, p = w − k_r·u; 0 without it and before the first
+    /// sample).
+    #[inline]
+    pub fn relaxation_m(&self, state: &EffectsState) -> f32 {
+        let mut c = 0.0;
+        for (g, v) in self.relaxation.gain.iter().zip(state.relaxation_m.iter()) {
+            c += g * v;
+        }
+        bounded(c)
+    }
+
     /// Forward, one command sample: given the command u\[j\] \[V\] and w\[j\] = H(u\[j\]) \[m\] from the
     /// hysteresis model, advances the state and returns z\[j\] \[m\] (before delay, drift and
     /// coupling). A non-finite u or w holds the previous one.
@@ -608,7 +751,13 @@ impl Effects {
             state.creep_v = [0.0; MAX_CREEP_ELEMENTS];
             state.log_creep_v = [0.0; LOG_CREEP_ELEMENTS];
         }
-        let s = bounded(w + self.even_term_m(state) + self.creep_m(state));
+        let p = bounded(w - self.relaxation.linear * u);
+        if !state.started {
+            state.w_reference_m = p;
+            state.relaxation_m = [0.0; MAX_RELAXATION_ELEMENTS];
+        }
+        let s =
+            bounded(w + self.even_term_m(state) + self.creep_m(state) + self.relaxation_m(state));
         let z = match &self.mode {
             None => s,
             Some(mode) => {
@@ -641,6 +790,16 @@ impl Effects {
         if self.log_creep_weight != 0.0 {
             for (x, rate) in state.log_creep_v.iter_mut().zip(self.log_creep_rate.iter()) {
                 *x += rate * (du - *x);
+            }
+        }
+        if !self.relaxation.is_absent() {
+            let dw = bounded(p - state.w_reference_m);
+            for (v, rate) in state
+                .relaxation_m
+                .iter_mut()
+                .zip(self.relaxation.rate.iter())
+            {
+                *v += rate * (dw - *v);
             }
         }
         state.previous_input_v = u;
@@ -680,7 +839,7 @@ impl Effects {
     /// Inverse, one command sample: from the desired z at command samples j − 1, j and j + 1 \[m\]
     /// (drift removed, decoupled and shifted by the delay: [`Effects::desired_z_m`], [`decouple`]),
     /// the target w\*\[j\] \[m\] for the hysteresis model's inverse (mode inverse by central
-    /// differences, then w\* = s\* − c\[j\] − e·(u\[j−1\] − u_c)²; see the module doc). Call before
+    /// differences, then w\* = s\* − c\[j\] − c_w\[j\] − e·(u\[j−1\] − u_c)²; see the module doc). Call before
     /// [`Effects::commit_command`] for sample j. NaN if a reference sample is not finite (the
     /// compensator then holds its voltage); finite otherwise.
     #[inline]
@@ -704,7 +863,7 @@ impl Effects {
                     + mode.curvature_coefficient * (ahead - behind)
             }
         };
-        let w = s - self.creep_m(state) - self.even_term_m(state);
+        let w = s - self.creep_m(state) - self.relaxation_m(state) - self.even_term_m(state);
         if w.is_finite() {
             w
         } else {
@@ -918,6 +1077,107 @@ mod tests {
             let z = effects.forward_z(&mut plant, u, w);
             assert!((z - (w + term)).abs() < 1e-12, "{k}: {z}");
             previous = Some(u);
+        }
+    }
+
+    fn relaxation(gains: [f32; 2], taus: [f32; 2]) -> Result<Effects, ParamError> {
+        Effects::new(
+            EffectParams {
+                relaxation_gain: gains,
+                relaxation_time_constant_s: taus,
+                ..EffectParams::default()
+            },
+            period(),
+            (0.0, 1e-4),
+        )
+    }
+
+    #[test]
+    fn relaxation_is_the_exact_lag_of_w_and_its_inverse_is_exact() {
+        let (g, tau) = ([0.6f32, 0.2], [1e-3f32, 8e-3]);
+        let effects = relaxation(g, tau).unwrap();
+        assert!(!effects.is_identity());
+        let mut plant = EffectsState::at_rest(0.0);
+        let mut controller = EffectsState::at_rest(0.0);
+        // f64 reference: v_i[j] = b_i v_i[j-1] + (1 - b_i)(w[j-1] - w[0]).
+        let b: [f64; 2] = core::array::from_fn(|i| libm::exp(-1e-4 / f64::from(tau[i])));
+        let mut v = [0.0f64; 2];
+        let (mut w0, mut previous) = (0.0f64, 0.0f64);
+        let mut worst_forward = 0.0f64;
+        let mut worst_inverse = 0.0f32;
+        for j in 0..3000 {
+            let t = j as f64 * 1e-4;
+            let w = 2e-5 * (1.0 - libm::cos(2.0 * core::f64::consts::PI * 80.0 * t));
+            if j == 0 {
+                w0 = w;
+            } else {
+                for i in 0..2 {
+                    v[i] = b[i] * v[i] + (1.0 - b[i]) * (previous - w0);
+                }
+            }
+            let expected = w + f64::from(g[0]) * v[0] + f64::from(g[1]) * v[1];
+            let z = effects.forward_z(&mut plant, 0.0, w as f32);
+            worst_forward = worst_forward.max(libm::fabs(f64::from(z) - expected));
+            // The inverse asked for the plant's z gives back the w that produced it.
+            let target = effects.inverse_target_w(&controller, z, z, z);
+            worst_inverse = worst_inverse.max((target - w as f32).abs());
+            effects.commit_command(&mut controller, 0.0, target);
+            previous = w;
+        }
+        // The lag lowers the output's amplitude at 80 Hz: (1 + Σ g) at DC, |G(jω)| here.
+        assert!(worst_forward < 2e-11, "forward {worst_forward}");
+        assert!(worst_inverse < 2e-11, "inverse {worst_inverse}");
+    }
+
+    #[test]
+    fn relaxation_refuses_bad_sets_and_survives_hostile_inputs() {
+        for (gains, taus, field) in [
+            ([-0.1f32, 0.0], [1e-3f32, 0.0], "relaxation_gain[0]"),
+            ([0.0, f32::NAN], [0.0, 1e-3], "relaxation_gain[1]"),
+            ([0.5, 0.0], [0.0, 0.0], "relaxation_time_constant_s[0]"),
+            ([0.5, 0.0], [-1e-3, 0.0], "relaxation_time_constant_s[0]"),
+            (
+                [0.5, 0.0],
+                [f32::INFINITY, 0.0],
+                "relaxation_time_constant_s[0]",
+            ),
+            // Σ g·tanh(T/2τ) = 20·tanh(0.05) ≈ 1.0 > 0.5: the inverse would ring.
+            ([20.0, 0.0], [1e-3, 0.0], "relaxation_gain"),
+            ([f32::MAX, 0.0], [1e-3, 0.0], "relaxation_gain"),
+        ] {
+            match relaxation(gains, taus) {
+                Err(ParamError::OutOfRange { field: f, .. })
+                | Err(ParamError::NonFinite { field: f }) => {
+                    assert_eq!(f, field, "{gains:?} {taus:?}")
+                }
+                other => panic!("{gains:?} {taus:?}: {other:?}"),
+            }
+        }
+        // The largest accepted set, driven by hostile w and references: finite, never panics.
+        let effects = relaxation([9.0, 0.1], [1e-3, 1e-4]).unwrap();
+        let mut plant = EffectsState::new();
+        let mut controller = EffectsState::new();
+        let hostile = [
+            0.0,
+            f32::NAN,
+            f32::INFINITY,
+            -f32::INFINITY,
+            f32::MAX,
+            -f32::MAX,
+            1e-30,
+            3e38,
+            -2e-5,
+        ];
+        for k in 0..400 {
+            let w = hostile[k % hostile.len()];
+            let r = hostile[(k * 7 + 3) % hostile.len()];
+            let z = effects.forward_z(&mut plant, 1.0, w);
+            assert!(z.is_finite(), "{k}: {z}");
+            assert!(effects.output_m(&plant).is_finite());
+            let target = effects.inverse_target_w(&controller, r, r, r);
+            assert!(target.is_finite() || !r.is_finite(), "{k}: {target}");
+            effects.commit_command(&mut controller, 1.0, target);
+            assert!(effects.relaxation_m(&controller).is_finite());
         }
     }
 }

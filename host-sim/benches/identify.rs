@@ -55,12 +55,12 @@ fn stage_record(duration_s: f64, noise: bool) -> Record {
     let signals = spec.build(1).expect("signal");
     let settings = SimSettings::new(10_000.0, duration_s);
     let out = simulate(p, signals, &effects, &settings).expect("simulate");
-    Record {
-        path: format!("stage-case3-{duration_s}s.csv").into(),
-        t_s: out.t_s,
-        u: out.inputs_v[0].clone(),
-        y_m: out.outputs_m[0].clone(),
-    }
+    Record::from_parts(
+        format!("stage-case3-{duration_s}s.csv").into(),
+        out.t_s,
+        out.inputs_v[0].clone(),
+        out.outputs_m[0].clone(),
+    )
 }
 
 fn settings() -> IdentifySettings {

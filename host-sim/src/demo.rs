@@ -484,11 +484,13 @@ fn identification_input(n_id: usize, fs: f64) -> [Vec<f64>; 2] {
 fn identification_records(id_u: &[Vec<f64>; 2], id_y: &[Vec<f64>; 2], fs: f64) -> Vec<Record> {
     let n_id = id_u[0].len();
     (0..2)
-        .map(|a| Record {
-            path: format!("demo identification record, {} axis", AXES[a]).into(),
-            t_s: (0..n_id - 1).map(|k| k as f64 / fs).collect(),
-            u: id_u[a][..n_id - 1].to_vec(),
-            y_m: id_y[a][1..].to_vec(),
+        .map(|a| {
+            Record::from_parts(
+                format!("demo identification record, {} axis", AXES[a]).into(),
+                (0..n_id - 1).map(|k| k as f64 / fs).collect(),
+                id_u[a][..n_id - 1].to_vec(),
+                id_y[a][1..].to_vec(),
+            )
         })
         .collect()
 }

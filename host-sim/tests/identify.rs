@@ -267,12 +267,81 @@ fn oscillator_stage_axis_round_trip() {
         sample_period_s: 1.0 / 750.0,
         substeps: 20,
     };
-    let record = Record {
-        path: "train.csv".into(),
-        t_s: (0..20).map(|k| k as f64 / 750.0).collect(),
-        u: (0..20).map(|k| k as f64).collect(),
-        y_m: vec![0.0; 20],
-    };
+    let record = Record::from_parts(
+        "train.csv".into(),
+        (0..20).map(|k| k as f64 / 750.0).collect(),
+        (0..20).map(|k| k as f64).collect(),
+        vec![0.0; 20],
+    );
     let axis = to_axis(&set, provenance(&record, 0, "vp-de-lm", 1e-7));
     assert_eq!(from_axis(&axis, 1.0 / 750.0, (0.0, 0.0)).unwrap(), set);
+}
+
+#[test]
+fn several_records_fit_one_set_with_their_own_offsets_and_report_each() {
+    // Two short xy-stage records at 20 and 40 Hz, the second's sensor zero moved by +2 µm.
+    let mut paths = Vec::new();
+    for (f, offset) in [(20, 0.0), (40, 2e-6)] {
+        let raw = temp(&format!("raw{f}.csv"));
+        run(Cli::try_parse_from([
+            "host-sim",
+            "simulate",
+            "--plant",
+            "xy-stage",
+            "--signal",
+            &format!("rising-sine:amp=60,freq={f},phase_deg=-90,raised=1,duration=0.1,rate=10000"),
+            "--effect",
+            "noise:rms_m=2e-9",
+            "--out",
+            raw.to_str().unwrap(),
+        ])
+        .unwrap())
+        .unwrap();
+        let text = std::fs::read_to_string(&raw).unwrap();
+        let mut lines = text.lines();
+        let mut out = format!("{}\n", lines.next().unwrap());
+        for line in lines {
+            let v: Vec<f64> = line.split(',').map(|x| x.parse().unwrap()).collect();
+            out.push_str(&format!("{},{},{}\n", v[0], v[1], v[3] + offset));
+        }
+        let path = temp(&format!("r{f}.csv"));
+        std::fs::write(&path, out.replace("t_s,ux_V,uy_V,x_m,y_m", "t_s,u_V,y_m")).unwrap();
+        paths.push(path);
+    }
+    let data = format!("{},{}", paths[0].display(), paths[1].display());
+    let report = temp("several.json");
+    let run_identify = |free: bool| {
+        let mut args = vec!["identify", "--data", &data, "--model", "symmetric", "--out"];
+        let out = temp("several.toml");
+        let out = out.to_str().unwrap().to_string();
+        let report = report.to_str().unwrap().to_string();
+        args.push(&out);
+        args.push("--report");
+        args.push(&report);
+        if free {
+            args.push("--free-offset");
+        }
+        cli(&args).unwrap();
+        json(&temp("several.json"))
+    };
+    let shared = run_identify(false);
+    let free = run_identify(true);
+    let records = free["records"].as_array().unwrap();
+    assert_eq!(records.len(), 2, "{free}");
+    // Each record from rest with its own offset: the offsets differ by the 2 µm shift and each
+    // record's fit is far below it; one shared offset leaves about a micrometre on each.
+    let offsets: Vec<f64> = records
+        .iter()
+        .map(|r| r["offset_m"].as_f64().unwrap())
+        .collect();
+    assert!(
+        (offsets[1] - offsets[0] - 2e-6).abs() < 0.2e-6,
+        "{offsets:?}"
+    );
+    for r in records {
+        assert!(r["rms_m"].as_f64().unwrap() < 0.3e-6, "{r}");
+    }
+    for r in shared["records"].as_array().unwrap() {
+        assert!(r["rms_m"].as_f64().unwrap() > 0.7e-6, "{r}");
+    }
 }

@@ -689,6 +689,9 @@ fn two_axis_inverse_chain_tracks_with_all_effects() {
         drift_settling_time_constant_s: 0.3,
         log_creep_gain_m_per_v: 1e-10,
         log_creep_time_s: 1e-3,
+        relaxation_gain: [0.3, 0.05],
+        relaxation_time_constant_s: [2e-3, 2e-2],
+        relaxation_linear_m_per_v: 2e-7,
     };
     let (ex, ey) = (effects(px), effects(py));
     let (mx, my) = (x_model(), y_model());
@@ -942,6 +945,8 @@ prop_compose! {
         settling_tau in 1e-6f32..1e4,
         log_gain in prop_oneof![Just(0.0f32), -1e-8f32..1e-8],
         log_t0 in 1e-6f32..100.0,
+        relaxation_gains in prop::array::uniform2(prop_oneof![Just(0.0f32), 0.0f32..4.0]),
+        relaxation_taus in prop::array::uniform2(1e-3f32..100.0),
     ) -> EffectParams {
         EffectParams {
             creep_gain_m_per_v: gains,
@@ -957,6 +962,9 @@ prop_compose! {
             drift_settling_time_constant_s: settling_tau,
             log_creep_gain_m_per_v: log_gain,
             log_creep_time_s: log_t0,
+            relaxation_gain: relaxation_gains,
+            relaxation_time_constant_s: relaxation_taus,
+            relaxation_linear_m_per_v: 0.0,
         }
     }
 }

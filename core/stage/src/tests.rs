@@ -86,6 +86,29 @@ fn unknown_keys_are_refused_with_the_valid_ones_and_a_location() {
 }
 
 #[test]
+fn relaxation_round_trips_and_its_bad_values_name_the_field() {
+    let mut stage = example();
+    stage.x.effects.relaxation_gain = [0.4, 0.0];
+    stage.x.effects.relaxation_time_constant_s = [1.5e-3, 0.0];
+    let text = stage.to_toml("");
+    assert!(text.contains("relaxation_gain"), "{text}");
+    let back = StageFile::parse("f.toml", &text).unwrap();
+    assert_eq!(back.x.effects, stage.x.effects);
+    // A short array is padded; a negative gain is refused by the core, naming the field.
+    let i = text.find("relaxation_gain").unwrap();
+    let end = i + text[i..].find('\n').unwrap();
+    let short = format!("{}relaxation_gain = [0.4]{}", &text[..i], &text[end..]);
+    let back = StageFile::parse("f.toml", &short).unwrap();
+    assert_eq!(back.x.effects.relaxation_gain, [0.4, 0.0]);
+    let bad = format!("{}relaxation_gain = [-0.4]{}", &text[..i], &text[end..]);
+    let stage = StageFile::parse("f.toml", &bad).unwrap();
+    let e = stage.validate().unwrap_err().located("f.toml", &bad);
+    let shown = e.to_string();
+    assert!(shown.contains("relaxation_gain[0]"), "{shown}");
+    assert!(e.line.is_some(), "{shown}");
+}
+
+#[test]
 fn short_creep_arrays_are_padded_and_long_ones_refused() {
     let text = example().to_toml("");
     let stage = StageFile::parse("f.toml", &text).unwrap();

@@ -4,7 +4,7 @@
 //! [`Request::Excite`]).
 
 use heapless::{String, Vec};
-use piezo_core::effects::{EffectParams, MAX_CREEP_ELEMENTS};
+use piezo_core::effects::{EffectParams, MAX_CREEP_ELEMENTS, MAX_RELAXATION_ELEMENTS};
 use piezo_core::{Asymmetry, BoucWenParams, ServoParams, StaticMap};
 use serde::{Deserialize, Serialize};
 
@@ -428,8 +428,9 @@ pub enum Uplink {
     Frame(Frame),
 }
 
-/// [`EffectParams`] as a fixed tuple: its own serde reads the creep arrays as sequences of up to
-/// [`MAX_CREEP_ELEMENTS`] (for TOML), which postcard writes as fixed arrays.
+/// [`EffectParams`] as a fixed tuple: its own serde reads the creep and relaxation arrays as
+/// sequences of up to [`MAX_CREEP_ELEMENTS`] / [`MAX_RELAXATION_ELEMENTS`] (for TOML), which
+/// postcard writes as fixed arrays.
 mod effects_wire {
     use super::*;
     use serde::{Deserializer, Serializer};
@@ -438,6 +439,9 @@ mod effects_wire {
         [f32; MAX_CREEP_ELEMENTS],
         [f32; MAX_CREEP_ELEMENTS],
         [f32; 11],
+        [f32; MAX_RELAXATION_ELEMENTS],
+        [f32; MAX_RELAXATION_ELEMENTS],
+        f32,
     );
 
     pub fn serialize<S: Serializer>(e: &EffectParams, s: S) -> Result<S::Ok, S::Error> {
@@ -457,12 +461,22 @@ mod effects_wire {
                 e.log_creep_gain_m_per_v,
                 e.log_creep_time_s,
             ],
+            e.relaxation_gain,
+            e.relaxation_time_constant_s,
+            e.relaxation_linear_m_per_v,
         );
         tuple.serialize(s)
     }
 
     pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<EffectParams, D::Error> {
-        let (creep_gain_m_per_v, creep_time_constant_s, f): Tuple = Deserialize::deserialize(d)?;
+        let (
+            creep_gain_m_per_v,
+            creep_time_constant_s,
+            f,
+            relaxation_gain,
+            relaxation_time_constant_s,
+            relaxation_linear_m_per_v,
+        ): Tuple = Deserialize::deserialize(d)?;
         Ok(EffectParams {
             creep_gain_m_per_v,
             creep_time_constant_s,
@@ -477,6 +491,9 @@ mod effects_wire {
             drift_settling_time_constant_s: f[8],
             log_creep_gain_m_per_v: f[9],
             log_creep_time_s: f[10],
+            relaxation_gain,
+            relaxation_time_constant_s,
+            relaxation_linear_m_per_v,
         })
     }
 }

@@ -22,6 +22,9 @@ fn axis() -> AxisModel {
             delay_s: 2e-4,
             coupling: 0.01,
             log_creep_time_s: 0.5,
+            relaxation_gain: [0.3, 0.1],
+            relaxation_time_constant_s: [1e-3, 1e-2],
+            relaxation_linear_m_per_v: 3e-7,
             ..EffectParams::default()
         },
         limits: Limits {

@@ -12,6 +12,9 @@
 //! - `dac`: command sampled at `rate` Hz, held (zero-order hold) and quantised to `bits` over [min, max] V.
 //! - `electrostriction`: quadratic term, the linear drive k·u becomes k·(u + e·u²).
 //! - `coupling` (xy-stage): measured x += xy·y, measured y += yx·x.
+//! - `dielectric-lag` (xy-stage): rate-dependent hysteresis, the stacks' Bouc-Wen operator driven by a
+//!   first-order lag of the stack voltage (τ_v·v̇ = u − v), the linear strain by u itself; see
+//!   [`crate::plant::XyStage`].
 //! - `second-mode` (nac2024): second resonance mode, see [`crate::plant::SecondMode`].
 
 use crate::plant::{PlantError, PlantKind, SecondMode};
@@ -20,7 +23,7 @@ use std::fmt;
 
 /// Effect names accepted by [`Effects::add_spec`].
 pub const EFFECT_NAMES: &str =
-    "creep, drift, delay, amplifier, noise, adc, dac, electrostriction, coupling, second-mode";
+    "creep, drift, delay, amplifier, noise, adc, dac, electrostriction, coupling, dielectric-lag, second-mode";
 
 /// Help text for effect specs.
 pub const EFFECT_HELP: &str = "\
@@ -34,6 +37,7 @@ Effect spec: NAME:key=value,...  (repeat --effect for several; lists use '/')
   dac               bits (16), min (0 V), max (120 V), rate_hz (1e5)
   electrostriction  per_v (1e-3)
   coupling          xy (0.01), yx (0.01)                       xy-stage only
+  dielectric-lag    tau (s, 1e-3): Bouc-Wen driven by a lag of the stack voltage   xy-stage only
   second-mode       freq_hz (480e3), zeta (0.05), participation (0.05)   nac2024 only";
 
 /// Effect errors.
@@ -220,6 +224,8 @@ pub struct Effects {
     pub electrostriction_per_v: Option<f64>,
     /// Cross-axis coupling (xy, yx).
     pub coupling: Option<[f64; 2]>,
+    /// Dielectric lag of the stacks' hysteresis, s.
+    pub dielectric_lag_s: Option<f64>,
     /// Second resonance mode.
     pub second_mode: Option<SecondMode>,
 }
@@ -402,6 +408,10 @@ impl Effects {
                 self.coupling = Some([kv.num("xy", 0.01)?, kv.num("yx", 0.01)?]);
                 kv.finish("xy, yx")?;
             }
+            "dielectric-lag" => {
+                self.dielectric_lag_s = Some(pos("tau", kv.num("tau", 1e-3)?)?);
+                kv.finish("tau")?;
+            }
             "second-mode" => {
                 self.second_mode = Some(SecondMode {
                     frequency_hz: pos("freq_hz", kv.num("freq_hz", 480e3)?)?,
@@ -430,11 +440,14 @@ impl Effects {
                 if let Some(c) = self.coupling {
                     p.coupling = c;
                 }
+                if let Some(tau) = self.dielectric_lag_s {
+                    p.dielectric_lag_s = tau;
+                }
             }
-            other if self.coupling.is_some() => {
+            other if self.coupling.is_some() || self.dielectric_lag_s.is_some() => {
                 return Err(PlantError::Unsupported {
                     plant: other.as_plant().name(),
-                    what: "cross-axis coupling (xy-stage only)".into(),
+                    what: "cross-axis coupling or a dielectric lag (xy-stage only)".into(),
                 })
             }
             _ => {}

@@ -89,13 +89,15 @@ impl std::error::Error for SignalError {}
 
 /// Names of the signal kinds accepted by [`SignalSpec::parse`].
 pub const SIGNAL_KINDS: &str =
-    "sine, multisine, triangle, staircase, steps, square, chirp, raster, csv";
+    "sine, rising-sine, multisine, triangle, staircase, steps, square, chirp, raster, csv";
 
 /// Help text for signal specs (used by the `host-sim` command line).
 pub const SIGNAL_HELP: &str = "\
 Signal spec: KIND:key=value,key=value,...  (lists use '/', e.g. levels=0/5/10)
   common keys: duration=<s>, rate=<Hz> (output sample rate; default: plant's)
   sine       amp, offset, freq, phase_deg               u = offset + amp*sin(2*pi*freq*t + phase)
+  rising-sine amp, offset, freq, phase_deg, raised=0|1   u = offset + amp*(t/duration)*(sin(2*pi*freq*t + phase) + raised)
+                                                        (amplitude rising from 0; raised=1, phase_deg=-90: valley at offset)
   multisine  offset, amps=a1/a2/.., freqs=f1/f2/..       sum of sines (sine phases)
   triangle   low, high, freq                            starts at low, rises first
   staircase  low, high, step, hold                      low->high->low in steps, each held `hold` s (ZOH)
@@ -148,6 +150,77 @@ impl Signal for Sine {
             }
             k += 1;
         }
+    }
+}
+
+/// Rising-amplitude sine u = offset + a(t)·(sin(2π f t + φ) + r), a(t) = amp·min(t/T, 1), r = 1 when
+/// raised (the wave rides on its own amplitude: with φ = −90° its valleys stay at the offset) else 0;
+/// breakpoints at its reversals (u̇ = 0, found by Newton's method from the sine's).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RisingSine {
+    /// Final amplitude amp, V.
+    pub amplitude_v: f64,
+    /// Offset, V.
+    pub offset_v: f64,
+    /// Frequency, Hz.
+    pub frequency_hz: f64,
+    /// Phase, rad.
+    pub phase_rad: f64,
+    /// r: 1 (raised) or 0.
+    pub raise: f64,
+    /// T: the amplitude reaches amp at T, s.
+    pub duration_s: f64,
+}
+
+impl RisingSine {
+    /// (a, ȧ) at t.
+    fn envelope(&self, t: f64) -> (f64, f64) {
+        if t < self.duration_s {
+            let rate = self.amplitude_v / self.duration_s;
+            (rate * t.max(0.0), rate)
+        } else {
+            (self.amplitude_v, 0.0)
+        }
+    }
+}
+
+impl Signal for RisingSine {
+    fn eval(&self, t: f64, _left: bool) -> (f64, f64) {
+        let w = 2.0 * PI * self.frequency_hz;
+        let p = w * t + self.phase_rad;
+        let (a, da) = self.envelope(t);
+        (
+            self.offset_v + a * (p.sin() + self.raise),
+            da * (p.sin() + self.raise) + a * w * p.cos(),
+        )
+    }
+    fn breakpoints(&self, t0: f64, t1: f64, out: &mut Vec<f64>) {
+        if self.frequency_hz <= 0.0 {
+            return;
+        }
+        let w = 2.0 * PI * self.frequency_hz;
+        let mut k = ((w * t0 + self.phase_rad - PI / 2.0) / PI).floor() as i64;
+        loop {
+            // From the sine's reversal, Newton on u̇(t) = 0 (u̇' by a central difference).
+            let mut t = (PI / 2.0 + k as f64 * PI - self.phase_rad) / w;
+            if t > t1 + 0.5 / self.frequency_hz {
+                break;
+            }
+            let h = 1e-6 / self.frequency_hz;
+            for _ in 0..8 {
+                let d = self.eval(t, false).1;
+                let dd = (self.eval(t + h, false).1 - self.eval(t - h, false).1) / (2.0 * h);
+                if dd == 0.0 || !dd.is_finite() {
+                    break;
+                }
+                t -= d / dd;
+            }
+            if t > t0 && t <= t1 && t.is_finite() {
+                out.push(t);
+            }
+            k += 1;
+        }
+        out.sort_by(f64::total_cmp);
     }
 }
 
@@ -410,6 +483,8 @@ pub fn steps(levels_v: &[f64], hold_s: f64) -> Result<Piecewise, SignalError> {
 pub enum SignalKind {
     /// See [`Sine`].
     Sine(Sine),
+    /// See [`RisingSine`].
+    RisingSine(RisingSine),
     /// See [`Multisine`].
     Multisine(Multisine),
     /// Triangle low..high at freq.
@@ -572,6 +647,27 @@ fn signal_kind(
             }),
             "amp, offset, freq, phase_deg, duration, rate",
         ),
+        "rising-sine" => {
+            let raise = kv.num("raised", Some(0.0))?;
+            if raise != 0.0 && raise != 1.0 {
+                return Err(SignalError::BadValue {
+                    key: "raised".into(),
+                    given: raise.to_string(),
+                    reason: "0 or 1",
+                });
+            }
+            (
+                SignalKind::RisingSine(RisingSine {
+                    amplitude_v: kv.num("amp", Some(1.0))?,
+                    offset_v: kv.num("offset", Some(0.0))?,
+                    frequency_hz: positive("freq", kv.num("freq", Some(1.0))?)?,
+                    phase_rad: kv.num("phase_deg", Some(0.0))?.to_radians(),
+                    raise,
+                    duration_s: positive("duration", duration_s.unwrap_or(1.0))?,
+                }),
+                "amp, offset, freq, phase_deg, raised, duration, rate",
+            )
+        }
         "multisine" => {
             let amps = kv.list("amps")?;
             let freqs = kv.list("freqs")?;
@@ -768,6 +864,7 @@ impl SignalSpec {
     pub fn build(&self, inputs: usize) -> Result<Vec<Box<dyn Signal>>, SignalError> {
         let one: Box<dyn Signal> = match &self.kind {
             SignalKind::Sine(s) => Box::new(*s),
+            SignalKind::RisingSine(s) => Box::new(*s),
             SignalKind::Multisine(m) => Box::new(m.clone()),
             SignalKind::Triangle {
                 low_v,

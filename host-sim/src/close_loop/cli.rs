@@ -18,9 +18,15 @@ record (blocked cross-validation over time) and on the --validate record, and th
 at the sensor noise estimated from the data. Every decision and its evidence goes into the report. \
 Two-axis records: --u ux_V,uy_V --y x_m,y_m.")]
 pub struct CloseLoopArgs {
-    /// Record to fit (CSV with unit-suffixed columns).
+    /// Record to fit (CSV with unit-suffixed columns); several comma-separated records of one stage
+    /// are fitted together, each from rest at its own first sample, and cross-validated by leaving
+    /// one record out.
     #[arg(long)]
     pub data: PathBuf,
+    /// Several records: each has its own constant sensor offset, re-estimated per record (the
+    /// stage file keeps the first record's).
+    #[arg(long)]
+    pub free_offset: bool,
     /// Time column (default: first `t_*`).
     #[arg(long)]
     pub t: Option<String>,
@@ -108,14 +114,33 @@ pub fn close_loop_cmd(a: &CloseLoopArgs) -> Result<String, String> {
     if !(a.min_share > 0.0 && a.min_share < 1.0) {
         return Err(format!("--min-share {}: must be in (0, 1)", a.min_share));
     }
-    let records = read_records(
-        &a.data,
-        a.t.as_deref(),
-        a.u.as_deref(),
-        a.y.as_deref(),
-        a.end,
-    )
-    .map_err(|e| format!("--data: {e}"))?;
+    let mut parts: Vec<Vec<Record>> = Vec::new();
+    let data_text = a.data.to_string_lossy();
+    for part in data_text
+        .split(',')
+        .map(str::trim)
+        .filter(|p| !p.is_empty())
+    {
+        let axes = read_records(
+            Path::new(part),
+            a.t.as_deref(),
+            a.u.as_deref(),
+            a.y.as_deref(),
+            a.end,
+        )
+        .map_err(|e| format!("--data: {e}"))?;
+        parts.resize_with(axes.len(), Vec::new);
+        for (i, r) in axes.into_iter().enumerate() {
+            parts[i].push(r);
+        }
+    }
+    let records = parts
+        .into_iter()
+        .map(|p| Record::concatenate(p).map_err(|e| format!("--data: {e}")))
+        .collect::<Result<Vec<_>, _>>()?;
+    if records[0].segments.len() > 1 && a.start > 0.0 {
+        return Err("--start: with several records each is scored from its first sample".into());
+    }
     let validation = match &a.validate {
         Some(v) => Some(
             read_records(v, a.t.as_deref(), a.u.as_deref(), a.y.as_deref(), None)
@@ -128,6 +153,7 @@ pub fn close_loop_cmd(a: &CloseLoopArgs) -> Result<String, String> {
         min_share: a.min_share,
         seed: a.seed,
         invertible: a.invertible,
+        free_offset: a.free_offset,
         progress: true,
         ..Default::default()
     };
@@ -160,7 +186,9 @@ pub fn close_loop_cmd(a: &CloseLoopArgs) -> Result<String, String> {
     let json = serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?;
     std::fs::write(&a.report, json).map_err(|e| format!("--report {}: {e}", a.report.display()))?;
     let mut plots = Vec::new();
-    if let Some(dir) = &a.plots {
+    if a.plots.is_some() && records[0].segments.len() > 1 {
+        eprintln!("warning: --plots: drawn for one record only; none drawn for several");
+    } else if let Some(dir) = &a.plots {
         plots = write_plots(&outcome, &records, dir, &["svg", "png"])?;
     }
     let mut line = format!(
@@ -169,6 +197,21 @@ pub fn close_loop_cmd(a: &CloseLoopArgs) -> Result<String, String> {
         outcome.after.rms,
         outcome.effects_added().join(", ")
     );
+    for ax in &outcome.axes {
+        if ax.records.len() > 1 {
+            for r in &ax.records {
+                line.push_str(&format!(
+                    "\n{}: {}: rms {:.4e} -> {:.4e} m (zeroed {:.4e} -> {:.4e} m)",
+                    ax.name,
+                    r.data,
+                    r.before.rms,
+                    r.after.rms,
+                    r.before.rms_zeroed,
+                    r.after.rms_zeroed
+                ));
+            }
+        }
+    }
     if let Some(v) = &outcome.validation {
         line.push_str(&format!(
             "; validation rms {:.4e} -> {:.4e} m, zeroed {:.4e} -> {:.4e} m",

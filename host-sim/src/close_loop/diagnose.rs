@@ -51,17 +51,20 @@ pub enum EffectKind {
     Dynamics,
     /// Cross-axis coupling.
     Coupling,
+    /// Rate-dependent hysteresis: the hysteresis output relaxes through a first-order lag.
+    RateDependent,
 }
 
 impl EffectKind {
     /// All, in report order.
-    pub const ALL: [EffectKind; 6] = [
+    pub const ALL: [EffectKind; 7] = [
         Self::Creep,
         Self::Drift,
         Self::Delay,
         Self::Asymmetry,
         Self::Dynamics,
         Self::Coupling,
+        Self::RateDependent,
     ];
 
     /// Name in reports.
@@ -73,6 +76,7 @@ impl EffectKind {
             Self::Asymmetry => "asymmetry",
             Self::Dynamics => "dynamics",
             Self::Coupling => "coupling",
+            Self::RateDependent => "rate-dependent hysteresis",
         }
     }
 }
@@ -128,6 +132,14 @@ pub enum EffectInit {
         /// Coefficient.
         coefficient: f64,
     },
+    /// Rate-dependent hysteresis: the hysteretic part k2·h of w relaxes, g·(first-order lag of
+    /// k2·h, τ); screened as the coefficient c of the lag of h (g = c/k2).
+    RateDependent {
+        /// c \[m per unit h\].
+        lag_coefficient_m: f64,
+        /// τ \[s\].
+        time_constant_s: f64,
+    },
 }
 
 impl EffectInit {
@@ -140,6 +152,7 @@ impl EffectInit {
             Self::Asymmetry { .. } => EffectKind::Asymmetry,
             Self::Dynamics { .. } => EffectKind::Dynamics,
             Self::Coupling { .. } => EffectKind::Coupling,
+            Self::RateDependent { .. } => EffectKind::RateDependent,
         }
     }
 
@@ -504,6 +517,7 @@ impl<'s, 'a> Screening<'s, 'a> {
             EffectKind::Asymmetry => Some(vec![self.asymmetry()]),
             EffectKind::Dynamics => Some(vec![self.dynamics()?]),
             EffectKind::Coupling => Some(vec![self.coupling()?]),
+            EffectKind::RateDependent => Some(vec![self.rate_dependent()?]),
         }
     }
 
@@ -630,6 +644,33 @@ impl<'s, 'a> Screening<'s, 'a> {
             },
             test: "residual against 1 - exp(-t/tau) (settling drift, tau grid)",
             figures: vec![("amplitude_m", settling.1), ("time_constant_s", settling.2)],
+        })
+    }
+
+    /// Rate-dependent hysteresis: the residual against first-order lags of the hysteresis state h
+    /// (the hysteretic part k2·h of w relaxes, the nuisance basis spans h itself), τ on a grid from
+    /// two sample periods to a tenth of the record or 50 ms.
+    fn rate_dependent(&self) -> Option<Candidate> {
+        let (sig, from, ts) = (self.sig, self.sig.from, self.sig.sample_period_s);
+        let taus = log_grid(2.0 * ts, (self.record_s / 10.0).min(0.05), 16);
+        let best = taus
+            .iter()
+            .map(|&tau| {
+                let col = creep_element(sig.h, tau, ts)[from..].to_vec();
+                let (sse, coef) = self.score(&[&col]);
+                (sse, coef[0], tau)
+            })
+            .min_by(|a, b| a.0.total_cmp(&b.0))?;
+        Some(Candidate {
+            effect: EffectKind::RateDependent,
+            share: self.share(best.0),
+            delta_bic: self.bic(best.0, 2),
+            init: EffectInit::RateDependent {
+                lag_coefficient_m: best.1,
+                time_constant_s: best.2,
+            },
+            test: "residual against first-order lags of the hysteresis state (time-constant grid)",
+            figures: vec![("lag_coefficient_m", best.1), ("time_constant_s", best.2)],
         })
     }
 

@@ -95,6 +95,11 @@ pub struct EffectBounds {
     pub mode_damping: (f64, f64),
     /// Largest |κ|.
     pub coupling_max: f64,
+    /// Rate-dependent hysteresis: time constants from two sample periods to a tenth of the
+    /// record or 50 ms \[s\].
+    pub relaxation_tau_s: (f64, f64),
+    /// Largest relaxation gain g (the low-frequency output (1 + g)·w; plausible gains are > 0).
+    pub relaxation_max_gain: f64,
     /// Sample period \[s\].
     pub sample_period_s: f64,
     /// Sign of the stage's static gain dy/du (±1): a creep gain of this sign keeps the output moving
@@ -130,6 +135,8 @@ impl EffectBounds {
             mode_frequency_hz: ((10.0 * f_dom).min(0.2 * nyquist), 0.85 * nyquist),
             mode_damping: (0.005, 2.0),
             coupling_max: 0.3,
+            relaxation_tau_s: (2.0 * ts, (record_s / 10.0).clamp(4.0 * ts, 0.05)),
+            relaxation_max_gain: 3.0,
             sample_period_s: ts,
             gain_sign: if gain_m_per_v < 0.0 { -1.0 } else { 1.0 },
         }
@@ -161,6 +168,12 @@ pub struct AxisModel {
     pub sample_period_s: f32,
     /// The plausible ranges of the effect parameters.
     pub bounds: EffectBounds,
+    /// The first sample of each record the model runs over (several records of one stage end to
+    /// end): the simulation starts from rest at each; `[0]` for one record.
+    pub segments: Vec<usize>,
+    /// Each record's constant offset is re-estimated on its own samples (`--free-offset`); the
+    /// map's y0 is then held in fits.
+    pub free_offset: bool,
 }
 
 /// A simulation of the whole record.
@@ -303,11 +316,19 @@ impl AxisModel {
         };
         let mut s = ModelState::at_rest(u0);
         let operator = |k: usize| {
+            if self.starts_record(k) {
+                s = ModelState::at_rest(u[k]);
+            }
             model.step(&mut s, u[k]);
             (s.input_v, s.hysteresis.h)
         };
         self.run_chain(model.map(), &effects, u, other_z, operator, visit);
         Ok(())
+    }
+
+    /// Whether sample `k` > 0 is the first of a record (the state restarts from rest there).
+    fn starts_record(&self, k: usize) -> bool {
+        k > 0 && self.segments.binary_search(&k).is_ok()
     }
 
     /// The hysteresis operator's path over `u` from rest at u\[0\]: what every model with this
@@ -323,7 +344,10 @@ impl AxisModel {
         };
         if let Some(&u0) = u.first() {
             let mut s = ModelState::at_rest(u0);
-            for &v in u {
+            for (k, &v) in u.iter().enumerate() {
+                if self.starts_record(k) {
+                    s = ModelState::at_rest(v);
+                }
                 model.step(&mut s, v);
                 path.input_v.push(s.input_v);
                 path.h.push(s.hysteresis.h);
@@ -370,6 +394,9 @@ impl AxisModel {
         let whole = effects.reference_index_offset();
         let frac = effects.delay_fraction();
         for k in 0..u.len() {
+            if self.starts_record(k) {
+                es = EffectsState::at_rest(u[k]);
+            }
             let (input_v, h) = operator(k);
             let w = map.output(input_v, h);
             let z = effects.forward_z(&mut es, input_v, w);
@@ -452,6 +479,29 @@ impl AxisModel {
             EffectInit::Coupling { coefficient } => {
                 e.coupling = coefficient.clamp(-b.coupling_max, b.coupling_max) as f32;
             }
+            EffectInit::RateDependent {
+                lag_coefficient_m,
+                time_constant_s,
+            } => {
+                // The screening's y ≈ ŷ − c·h + c·lag(h) (its static part kept): k2 → k2 − c,
+                // g = c / (k2 − c).
+                let k2 = f64::from(m.map.k2_m_per_h) - lag_coefficient_m;
+                let gain = if k2 != 0.0 {
+                    lag_coefficient_m / k2
+                } else {
+                    0.0
+                };
+                if gain > 0.0 {
+                    m.map.k2_m_per_h = k2 as f32;
+                }
+                let tau = time_constant_s.clamp(b.relaxation_tau_s.0, b.relaxation_tau_s.1);
+                // Within the core's stable-inverse bound g·tanh(T/2τ) ≤ 0.5 (at 0.4).
+                let stable = 0.4 / (0.5 * b.sample_period_s / tau).tanh();
+                e.relaxation_gain[0] = gain.clamp(0.0, b.relaxation_max_gain.min(stable)) as f32;
+                e.relaxation_time_constant_s[0] = tau as f32;
+                // The hysteretic part relaxes; the linear strain k1·u follows at once.
+                e.relaxation_linear_m_per_v = m.map.k1_m_per_v;
+            }
         }
         m.added.push(init.kind());
         m
@@ -484,6 +534,11 @@ impl AxisModel {
                 e.mode_damping = 0.0;
             }
             EffectKind::Coupling => e.coupling = 0.0,
+            EffectKind::RateDependent => {
+                e.relaxation_gain = Default::default();
+                e.relaxation_time_constant_s = Default::default();
+                e.relaxation_linear_m_per_v = 0.0;
+            }
         }
         m
     }
@@ -542,9 +597,18 @@ impl AxisModel {
                 f64::from(m.offset_m),
             ],
             typ: vec![bg, bg, 1.0, k, k, stroke],
-            spec: ["beta", "gamma", "n", "k1_m_per_v", "k2_m_per_h", "offset_m"]
-                .map(ParamSpec::free)
-                .to_vec(),
+            spec: {
+                let mut spec = ["beta", "gamma", "n", "k1_m_per_v", "k2_m_per_h", "offset_m"]
+                    .map(ParamSpec::free)
+                    .to_vec();
+                // With free offsets each record's offset is re-estimated on its samples, so y0 is
+                // held (its column would be zero).
+                if self.free_offset {
+                    let y0 = f64::from(m.offset_m);
+                    (spec[5].lo, spec[5].hi) = (y0, y0);
+                }
+                spec
+            },
         }
     }
 
@@ -598,6 +662,23 @@ impl AxisModel {
                 0.1,
                 ParamSpec::within("coupling", kind, -bd.coupling_max, bd.coupling_max),
             ),
+            EffectKind::RateDependent => {
+                theta.push(
+                    f64::from(e.relaxation_gain[0]),
+                    0.1,
+                    ParamSpec::within("relaxation_gain[0]", kind, 0.0, bd.relaxation_max_gain),
+                );
+                theta.push(
+                    f64::from(e.relaxation_time_constant_s[0]).max(1e-9).ln(),
+                    10.0,
+                    ParamSpec::log_within(
+                        "relaxation_time_constant_s[0]",
+                        kind,
+                        bd.relaxation_tau_s.0,
+                        bd.relaxation_tau_s.1,
+                    ),
+                );
+            }
         }
     }
 
@@ -687,6 +768,9 @@ impl AxisModel {
         m.map.k2_m_per_h = th[4] as f32;
         m.map.offset_m = th[5] as f32;
         let e = &mut m.effects;
+        if m.added.contains(&EffectKind::RateDependent) {
+            e.relaxation_linear_m_per_v = m.map.k1_m_per_v;
+        }
         for (s, &t) in spec.iter().zip(&th).skip(6) {
             let v = s.value(t) as f32;
             match s.name {
@@ -703,6 +787,8 @@ impl AxisModel {
                 "mode_frequency_hz" => e.mode_frequency_hz = v,
                 "mode_damping" => e.mode_damping = v,
                 "coupling" => e.coupling = v,
+                "relaxation_gain[0]" => e.relaxation_gain[0] = v,
+                "relaxation_time_constant_s[0]" => e.relaxation_time_constant_s[0] = v,
                 _ => {}
             }
         }
@@ -773,6 +859,9 @@ pub struct FitData<'a> {
     pub from: usize,
     /// A block of scored samples left out of the fit (held out), as a range of sample indices.
     pub held_out: Option<(usize, usize)>,
+    /// Each record (segment of the model) has its own constant sensor offset, re-estimated on the
+    /// samples scored in it.
+    pub free_offset: bool,
 }
 
 impl FitData<'_> {
@@ -795,18 +884,47 @@ pub fn sse(model: &AxisModel, d: &FitData) -> f64 {
     sse_where(model, d, |k| d.fitted(k))
 }
 
-/// SSE of a model over the samples `k` with `keep(k)` (∞ when the core refuses it).
+/// SSE of a model over the samples `k` with `keep(k)` (∞ when the core refuses it); with free
+/// offsets each record's offset is re-estimated on its kept samples.
 pub fn sse_where(model: &AxisModel, d: &FitData, keep: impl Fn(usize) -> bool) -> f64 {
-    let mut acc = 0.0;
-    let ok = model.simulate_into(d.u, d.other_z, |k, y, _, _| {
-        if keep(k) {
-            acc += (d.y[k] - y).powi(2);
-        }
-    });
+    let mut out = vec![0.0; d.u.len()];
+    let ok = model.simulate_into(d.u, d.other_z, |k, y, _, _| out[k] = y);
+    if d.free_offset {
+        add_record_offsets(&mut out, d.y, &model.segments, &keep);
+    }
+    let acc: f64 = (0..out.len())
+        .filter(|&k| keep(k))
+        .map(|k| (d.y[k] - out[k]).powi(2))
+        .sum();
     if ok.is_ok() && acc.is_finite() {
         acc
     } else {
         f64::INFINITY
+    }
+}
+
+/// Adds to each record's prediction its mean error over the samples with `keep(k)` (its own
+/// constant offset, least squares); a record without kept samples is left alone.
+pub fn add_record_offsets(
+    predicted: &mut [f64],
+    y: &[f64],
+    segments: &[usize],
+    keep: impl Fn(usize) -> bool,
+) {
+    let n = predicted.len();
+    for (i, &a) in segments.iter().enumerate() {
+        let b = segments.get(i + 1).copied().unwrap_or(n).min(n);
+        let (mut sum, mut count) = (0.0, 0usize);
+        for k in a..b {
+            if keep(k) {
+                sum += y[k] - predicted[k];
+                count += 1;
+            }
+        }
+        if count > 0 {
+            let offset = sum / count as f64;
+            predicted[a..b].iter_mut().for_each(|p| *p += offset);
+        }
     }
 }
 
@@ -875,6 +993,9 @@ impl RefitProblem<'_> {
         let run = path.as_ref().or(on)?;
         m.simulate_on_path(run, d.u, d.other_z, |k, y, _, _| out[k] = y)
             .ok()?;
+        if d.free_offset {
+            add_record_offsets(&mut out, d.y, &m.segments, |k| d.fitted(k));
+        }
         let y: Vec<f64> = self.idx.iter().map(|&k| out[k]).collect();
         y.iter()
             .all(|v| v.is_finite())
@@ -1052,6 +1173,8 @@ mod tests {
             w_range_m: (-1e-5, 1e-5),
             sample_period_s: ts as f32,
             bounds: EffectBounds::for_record(ts, 2.0, 1.0, 2e-6, 1e-7, 20.0),
+            segments: vec![0],
+            free_offset: false,
         }
     }
 

@@ -112,6 +112,8 @@ pub struct CloseLoopSettings {
     pub seed: u64,
     /// Only firmware-invertible base sets.
     pub invertible: bool,
+    /// Several records: each has its own constant sensor offset.
+    pub free_offset: bool,
     /// Effects that may be added.
     pub allowed: Vec<EffectKind>,
     /// Progress on stderr.
@@ -125,6 +127,7 @@ impl Default for CloseLoopSettings {
             min_share: 0.05,
             seed: 1,
             invertible: false,
+            free_offset: false,
             allowed: EffectKind::ALL.to_vec(),
             progress: false,
         }
@@ -183,6 +186,58 @@ pub struct AxisOutcome {
     pub fit_after: Fit,
     /// Held-out RMS (cross-validation) of the base and the final model \[m\].
     pub held_out_rms: (f64, f64),
+    /// Per record, when several records were fitted together (one entry otherwise).
+    pub records: Vec<RecordFits>,
+}
+
+/// One record's scores before and after, when several records were fitted together.
+#[derive(Debug, Clone)]
+pub struct RecordFits {
+    /// The record's file.
+    pub data: String,
+    /// The base model's scores on it.
+    pub before: Fit,
+    /// The final model's scores on it.
+    pub after: Fit,
+}
+
+/// The models' predictions of a record of several records through piezo-stage's chain, each
+/// record from rest at its first sample.
+fn predict_records(
+    models: &[&AxisModel],
+    us: &[Vec<f32>],
+    record: &Record,
+) -> Result<Vec<Vec<f64>>, String> {
+    let n = us.iter().map(Vec::len).min().unwrap_or(0);
+    let mut out = vec![vec![0.0; n]; models.len()];
+    for (a, b) in record.segment_ranges() {
+        let (a, b) = (a.min(n), b.min(n));
+        let part: Vec<Vec<f32>> = us.iter().map(|u| u[a..b].to_vec()).collect();
+        for (o, p) in out.iter_mut().zip(stage::predict(models, &part)?) {
+            o[a..b].copy_from_slice(&p);
+        }
+    }
+    Ok(out)
+}
+
+/// With free offsets, the map's offset is set to the first record's own offset (the stage file's;
+/// the other records' are re-estimated on their samples): y0 plus the first record's mean error.
+fn hold_first_record_offset(
+    model: &mut AxisModel,
+    record: &Record,
+    u: &[f32],
+    from: usize,
+) -> Result<(), String> {
+    if !model.free_offset {
+        return Ok(());
+    }
+    let sim = model.simulate(u, None)?;
+    let (a, b) = record.segment_ranges()[0];
+    let a = a.max(from).min(b);
+    let n = (b - a).max(1) as f64;
+    let mean_error = (a..b).map(|k| record.y_m[k] - sim.y[k]).sum::<f64>() / n;
+    model.map.offset_m += mean_error as f32;
+    Ok(())
 }
 
 /// The outcome of a run.
@@ -238,7 +293,8 @@ impl Outcome {
                 "before": a.fit_before.to_json(),
                 "after": a.fit_after.to_json(),
                 "held_out": {"rms_before": a.held_out_rms.0, "rms_after": a.held_out_rms.1,
-                    "method": "blocked cross-validation over time: each block predicted by the model refitted on the others"},
+                    "method": if a.records.len() > 1 { "leave one record out: each record predicted by the model refitted on the others" } else { "blocked cross-validation over time: each block predicted by the model refitted on the others" }},
+                "records": a.records.iter().map(|r| json!({"data": r.data, "before": r.before.to_json(), "after": r.after.to_json()})).collect::<Vec<_>>(),
                 "base_params": params_json(&a.base),
                 "params": params_json(&a.model),
             })).collect::<Vec<_>>(),
@@ -277,6 +333,7 @@ fn base_model(record: &Record, s: &CloseLoopSettings) -> Result<AxisModel, Close
             start_s: s.start_s,
             no_shift: true,
             invertible: s.invertible,
+            free_offset: s.free_offset,
             progress: s.progress,
         },
     )?;
@@ -296,8 +353,18 @@ fn base_model(record: &Record, s: &CloseLoopSettings) -> Result<AxisModel, Close
     let pad = 0.25 * stroke;
     let (u_lo, u_hi) = min_max(&record.u);
     let ts = record.sample_period_s();
-    let record_s = ts * (record.u.len() - from) as f64;
-    let f_dom = diagnose::dominant_frequency_hz(&record.u[from..], ts);
+    // With several records: the longest record's duration, and the highest dominant input
+    // frequency of all (a mode must lie above every record's band).
+    let ranges = record.segment_ranges();
+    let record_s = ranges
+        .iter()
+        .map(|&(a, b)| ts * (b - a.max(from).min(b)) as f64)
+        .fold(0.0, f64::max);
+    let f_dom = ranges
+        .iter()
+        .filter(|&&(a, b)| b > a.max(from) + 10)
+        .map(|&(a, b)| diagnose::dominant_frequency_hz(&record.u[a.max(from)..b], ts))
+        .fold(0.0, f64::max);
     // The static gain dy/du: the least-squares slope of y on u over the scored samples, its size
     // the stroke over the input span.
     let slope = {
@@ -323,6 +390,8 @@ fn base_model(record: &Record, s: &CloseLoopSettings) -> Result<AxisModel, Close
         w_range_m: ((lo - pad) as f32, (hi + pad) as f32),
         sample_period_s,
         bounds: EffectBounds::for_record(ts, record_s, f_dom, stroke, gain, u_hi - u_lo),
+        segments: record.segments.clone(),
+        free_offset: s.free_offset && record.segments.len() > 1,
     };
     // The stage file's output window is the record's range rounded outwards; the Bouc-Wen set must
     // hold over it (else the record's own range is kept).
@@ -338,6 +407,7 @@ fn base_model(record: &Record, s: &CloseLoopSettings) -> Result<AxisModel, Close
         other_z: None,
         from,
         held_out: None,
+        free_offset: model.free_offset,
     };
     let (polished, sse_polished, _) = refit(&model, &data, 2 * TRIAL_ITERATIONS);
     if sse_polished.is_finite() && sse_polished < sse(&model, &data) {
@@ -692,13 +762,27 @@ fn close_axis(
             other_z,
             from,
             held_out: None,
+            free_offset: base.free_offset,
         },
-        blocks: folds(from, u.len()),
+        // Several records: leave one record out; one record: blocks over time.
+        blocks: if record.segments.len() > 1 {
+            select::record_folds(from, &record.segments, u.len())
+        } else {
+            folds(from, u.len())
+        },
         n_scored: (u.len() - from) as f64,
     };
     let (data, blocks) = (&search.data, &search.blocks);
     let mut model = base.clone();
-    let mut sim = model.simulate(&u, other_z)?;
+    // With free offsets the residual the screening reads has each record's own offset removed.
+    let simulate = |m: &AxisModel| -> Result<Simulation, String> {
+        let mut sim = m.simulate(&u, other_z)?;
+        if m.free_offset {
+            full::add_record_offsets(&mut sim.y, &record.y_m, &m.segments, |k| k >= from);
+        }
+        Ok(sim)
+    };
+    let mut sim = simulate(&model)?;
     let noise_m = noise_estimate(&search.residual(&sim));
     let mut current_sse = sse(&model, data);
     let base_held = held_out_sse(&model, data, blocks);
@@ -766,7 +850,7 @@ fn close_axis(
         search.log(format!("added {}", chosen.label()));
         steps.push(step);
         (model, current_sse) = search.prune(model, current_sse, added, floor, &mut steps);
-        sim = model.simulate(&u, other_z)?;
+        sim = simulate(&model)?;
     }
     let held_final = held.unwrap_or_else(|| held_out_sse(&model, data, blocks));
     let rms_of = |v: &[f64]| (v.iter().sum::<f64>() / search.n_scored).sqrt();
@@ -849,10 +933,25 @@ pub fn close_loop_validated(
             run.as_ref(),
         )?);
     }
-    // The predictions of the fitted record through piezo-stage's chain.
+    // The predictions of the fitted record through piezo-stage's chain (each record from rest,
+    // with its own offset when offsets are free; the stage file keeps the first record's).
     let us: Vec<Vec<f32>> = records.iter().map(f32s).collect();
-    let before = stage::predict(&bases.iter().collect::<Vec<_>>(), &us)?;
-    let after = stage::predict(&finals.iter().map(|f| &f.model).collect::<Vec<_>>(), &us)?;
+    for f in finals.iter_mut() {
+        hold_first_record_offset(&mut f.model, &records[0], &us[0], from)?;
+    }
+    let before = predict_records(&bases.iter().collect::<Vec<_>>(), &us, &records[0])?;
+    let after = predict_records(
+        &finals.iter().map(|f| &f.model).collect::<Vec<_>>(),
+        &us,
+        &records[0],
+    )?;
+    let (mut before, mut after) = (before, after);
+    for (i, r) in records.iter().enumerate() {
+        if bases[i].free_offset {
+            full::add_record_offsets(&mut before[i], &r.y_m, &r.segments, |k| k >= from);
+            full::add_record_offsets(&mut after[i], &r.y_m, &r.segments, |k| k >= from);
+        }
+    }
     let mut axes = Vec::new();
     let (mut all_y, mut all_b, mut all_a) = (Vec::new(), Vec::new(), Vec::new());
     for (i, ((found, base), r)) in finals.into_iter().zip(bases).zip(records).enumerate() {
@@ -865,7 +964,21 @@ pub fn close_loop_validated(
         all_y.extend_from_slice(&r.y_m[from..]);
         all_b.extend_from_slice(&before[i][from..]);
         all_a.extend_from_slice(&after[i][from..]);
+        let per_record = r
+            .segment_ranges()
+            .into_iter()
+            .zip(&r.sources)
+            .map(|((a, b), src)| {
+                let a = a.max(from).min(b);
+                RecordFits {
+                    data: src.display().to_string(),
+                    before: Fit::of(&r.y_m[a..b], &before[i][a..b]),
+                    after: Fit::of(&r.y_m[a..b], &after[i][a..b]),
+                }
+            })
+            .collect();
         axes.push(AxisOutcome {
+            records: per_record,
             name: names[i].into(),
             fit_before: Fit::of(&r.y_m[from..], &before[i][from..]),
             fit_after: Fit::of(&r.y_m[from..], &after[i][from..]),

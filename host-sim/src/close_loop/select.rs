@@ -17,6 +17,11 @@
 //! `--validate` record (another run) the model fitted on the whole record must also lower the RMS
 //! with one constant offset re-estimated on that record.
 //!
+//! **Several records.** With several records of one stage the blocks are the records themselves
+//! (leave one record out: each record predicted by the model refitted on the others, with its own
+//! offset re-estimated when offsets are free), and the t-test takes K − 1 degrees of freedom for K
+//! records ([`t_critical`]).
+//!
 //! **Plausibility.** Every effect parameter is fitted inside the range that makes it that effect
 //! ([`super::full::EffectBounds`]): creep time constants from three sample periods to a third of
 //! the record and gains of the sign of the stage's static gain dy/du (the output keeps moving the
@@ -48,6 +53,30 @@ pub const NOISE_FLOOR_FACTOR: f64 = 1.2;
 /// Levenberg–Marquardt iterations of a fold's refit (it starts from the full fit).
 pub const FOLD_ITERATIONS: usize = 8;
 
+/// The one-sided 90 % point of Student's t with `blocks` − 1 degrees of freedom ([`T_CRITICAL`]
+/// for [`FOLDS`] blocks; ∞ for fewer than two blocks: no test).
+pub fn t_critical(blocks: usize) -> f64 {
+    match blocks {
+        0 | 1 => f64::INFINITY,
+        2 => 3.078,
+        3 => 1.886,
+        4 => T_CRITICAL,
+        5 => 1.533,
+        6 => 1.476,
+        _ => 1.44,
+    }
+}
+
+/// The blocks of leave-one-record-out: each record's scored samples (from `from` on).
+pub fn record_folds(from: usize, segments: &[usize], n: usize) -> Vec<(usize, usize)> {
+    segments
+        .iter()
+        .enumerate()
+        .map(|(i, &a)| (a.max(from), segments.get(i + 1).copied().unwrap_or(n)))
+        .filter(|(a, b)| b > a)
+        .collect()
+}
+
 /// The blocks of the cross-validation: `FOLDS` contiguous ranges of samples over `from..n`.
 pub fn folds(from: usize, n: usize) -> Vec<(usize, usize)> {
     let len = n.saturating_sub(from);
@@ -69,6 +98,7 @@ pub fn held_out_sse(model: &AxisModel, data: &FitData, blocks: &[(usize, usize)]
                 other_z: data.other_z,
                 from: data.from,
                 held_out: Some((a, b)),
+                free_offset: data.free_offset,
             };
             let (fitted, _, _) = refit(model, &d, FOLD_ITERATIONS);
             sse_where(&fitted, &d, |k| k >= a && k < b)
@@ -167,7 +197,7 @@ impl OutOfSample {
     /// Whether the effect holds out of sample (module doc).
     pub fn holds(&self) -> bool {
         self.mean_log_ratio.is_finite()
-            && self.t_statistic() > T_CRITICAL
+            && self.t_statistic() > t_critical(self.log_ratios.len())
             && self.log_ratios.iter().all(|&l| l <= MAX_BLOCK_LOSS.ln())
             && self.relative_gain >= MIN_RELATIVE_GAIN
     }
@@ -175,7 +205,7 @@ impl OutOfSample {
     /// JSON for the report.
     pub fn to_json(&self) -> Value {
         json!({
-            "method": format!("blocked cross-validation over time, {FOLDS} blocks: refit on the other blocks, simulate the whole record, score the held-out block"),
+            "method": format!("blocked cross-validation, {} blocks (over time in one record; one record each with several): refit on the other blocks, simulate the whole record, score the held-out block", self.log_ratios.len()),
             "blocks_s": self.blocks_s.iter().map(|(a, b)| [a, b]).collect::<Vec<_>>(),
             "mse_without_m2": self.mse_without,
             "mse_with_m2": self.mse_with,
@@ -185,7 +215,8 @@ impl OutOfSample {
             "t_statistic": self.t_statistic(),
             "relative_gain": self.relative_gain,
             "rule": format!(
-                "mean of ln(MSE with / MSE without) over the blocks more than {T_CRITICAL} standard errors below 0 (one-sided t-test, 90 %), no block more than {MAX_BLOCK_LOSS} x worse, pooled held-out MSE >= {:.0} % lower",
+                "mean of ln(MSE with / MSE without) over the blocks more than {} standard errors below 0 (one-sided t-test, 90 %), no block more than {MAX_BLOCK_LOSS} x worse, pooled held-out MSE >= {:.0} % lower",
+                t_critical(self.log_ratios.len()),
                 100.0 * MIN_RELATIVE_GAIN
             ),
             "holds": self.holds(),

@@ -35,6 +35,14 @@
 //!    objective; it stops when an iteration fails to improve or two in a row gain less than
 //!    0.1·SSE/N (a tenth of the residual variance: below the parameters' one-σ significance).
 //!
+//! # Several records
+//! A problem may hold several records of one stage end to end ([`Problem::segments`]: the first
+//! sample of each). The simulation starts from rest at each record's first sample. With
+//! [`Problem::free_offset`] each record has its own constant sensor offset: the offsets are
+//! projected out with the linear parameters (the basis (u, h) centred per record, so the SSE is
+//! the sum of each record's zeroed SSE) and the Jacobian is taken by forward differences (the
+//! core's sensitivities run over one record from rest).
+//!
 //! The optimisers record their best θ after every DE generation and LM iteration
 //! ([`Problem::trace`]), so that `benches/identify.rs` can report the time to fitness.
 
@@ -93,6 +101,11 @@ pub struct Problem {
     pub fit_shift: bool,
     /// Require the compensator to accept the set (what the firmware build checks).
     pub invertible: bool,
+    /// The first sample of each record (`[0]` for one record); the simulation restarts from rest
+    /// at each.
+    pub segments: Vec<usize>,
+    /// Each record has its own constant sensor offset (projected out per record).
+    pub free_offset: bool,
     y_mean: f64,
     y_scale: f64,
     evaluations: AtomicU64,
@@ -105,8 +118,54 @@ pub struct Problem {
 pub struct Eval {
     /// Sum of squared errors over the scored samples \[m²\] (∞ when infeasible).
     pub sse: f64,
-    /// Linear parameters in normalised units.
+    /// Linear parameters in normalised units (with free offsets, the third is the first
+    /// record's offset).
     lin: [f64; 3],
+}
+
+/// The normal equations of one record's scored samples (basis (u, h, 1) or (x₁, 1)).
+#[derive(Debug, Clone, Copy, Default)]
+struct Sums {
+    g: [[f64; 3]; 3],
+    rhs: [f64; 3],
+    yy: f64,
+}
+
+impl Sums {
+    fn add(&mut self, phi: &[f64; 3], yn: f64, nb: usize) {
+        for a in 0..nb {
+            self.rhs[a] += phi[a] * yn;
+            for b in 0..nb {
+                self.g[a][b] += phi[a] * phi[b];
+            }
+        }
+        self.yy += yn * yn;
+    }
+
+    /// Adds `record`'s sums centred on its own means (its constant projected out; the constant
+    /// is basis entry `nb − 1`).
+    fn add_centred(&mut self, record: &Sums, nb: usize) {
+        let c = nb - 1;
+        let n = record.g[c][c];
+        if n <= 0.0 {
+            return;
+        }
+        for a in 0..c {
+            for b in 0..c {
+                self.g[a][b] += record.g[a][b] - record.g[a][c] * record.g[b][c] / n;
+            }
+            self.rhs[a] += record.rhs[a] - record.g[a][c] * record.rhs[c] / n;
+        }
+        self.yy += record.yy - record.rhs[c] * record.rhs[c] / n;
+    }
+
+    /// The record's offset (normalised) for the linear parameters `lin` of the non-constant
+    /// entries: mean(y) − Σ lin·mean(φ).
+    fn offset(&self, lin: &[f64; 3], nb: usize) -> f64 {
+        let c = nb - 1;
+        let n = self.g[c][c].max(1.0);
+        (self.rhs[c] - (0..c).map(|a| lin[a] * self.g[a][c]).sum::<f64>()) / n
+    }
 }
 
 fn uniform(rng: &mut ChaCha8Rng) -> f64 {
@@ -138,6 +197,8 @@ impl Problem {
             input_range_v: (lo, if hi > lo { hi } else { lo + 1.0 }),
             fit_shift: true,
             invertible: false,
+            segments: vec![0],
+            free_offset: false,
             y_mean: mean,
             y_scale: if var > 0.0 { var.sqrt() } else { 1.0 },
             evaluations: AtomicU64::new(0),
@@ -272,6 +333,49 @@ impl Problem {
         }
     }
 
+    /// The decimated indices (every `stride`-th sample) at which a record starts, after the first.
+    fn restarts(&self, stride: usize) -> Vec<usize> {
+        let mut r: Vec<usize> = self.segments.iter().map(|s| s.div_ceil(stride)).collect();
+        r.dedup();
+        r
+    }
+
+    /// Each record's constant sensor offset \[m\] at θ (the map's offset for every record without
+    /// free offsets).
+    pub fn record_offsets_m(&self, theta: &[f64]) -> Vec<f64> {
+        let mut n = vec![0usize; self.segments.len()];
+        let mut sum = vec![0.0f64; self.segments.len()];
+        let e = self.eval_full(theta);
+        let Some(set) = self.identified(theta, &e) else {
+            return vec![f64::NAN; self.segments.len()];
+        };
+        let Ok(CoreModel::Static(model)) = set.build() else {
+            return vec![f64::NAN; self.segments.len()];
+        };
+        let offset = f64::from(model.map().offset_m);
+        let mut visit = |k: usize, v: f32| -> bool {
+            if k >= self.score_from {
+                let r = self.segments.partition_point(|&s| s <= k).saturating_sub(1);
+                sum[r] += self.y[k] - f64::from(v) + offset;
+                n[r] += 1;
+            }
+            true
+        };
+        simulate_iter(
+            &CoreModel::Static(model),
+            self.u.iter().copied(),
+            &self.segments,
+            &mut visit,
+        );
+        if !self.free_offset {
+            return vec![offset; self.segments.len()];
+        }
+        sum.iter()
+            .zip(&n)
+            .map(|(s, &n)| if n > 0 { s / n as f64 } else { offset })
+            .collect()
+    }
+
     fn basis_len(&self) -> usize {
         if self.kind == ModelKind::Dynamic {
             2
@@ -302,15 +406,25 @@ impl Problem {
             return bad;
         };
         let nb = self.basis_len();
-        let mut g = [[0.0f64; 3]; 3];
-        let mut rhs = [0.0f64; 3];
-        let mut yy = 0.0;
+        let mut total = Sums::default();
         let (mean, scale) = (self.y_mean, self.y_scale);
         let mut finite = true;
         let decimated = self.u.iter().copied().step_by(stride);
         let mut k_scored = 0usize;
-        let abandon_n = abandon_above / (scale * scale);
+        // With free offsets each record's sums are centred when it ends (no partial bound).
+        let free = self.free_offset && self.segments.len() > 1;
+        let abandon_n = if free {
+            f64::INFINITY
+        } else {
+            abandon_above / (scale * scale)
+        };
         let mut abandoned = false;
+        let mut records: Vec<Sums> = if free {
+            vec![Sums::default(); self.segments.len()]
+        } else {
+            Vec::new()
+        };
+        let restarts = self.restarts(stride);
         // The decimated input is fed through an iterator adapter without copying the record.
         let mut visit = |k: usize, v: f32| -> bool {
             let i = k * stride;
@@ -326,20 +440,19 @@ impl Problem {
                 [f64::from(v), 1.0, 0.0]
             };
             let yn = (self.y[i] - mean) / scale;
-            for a in 0..nb {
-                rhs[a] += phi[a] * yn;
-                for b in 0..nb {
-                    g[a][b] += phi[a] * phi[b];
-                }
+            if free {
+                let r = restarts.partition_point(|&s| s <= k).saturating_sub(1);
+                records[r].add(&phi, yn, nb);
+            } else {
+                total.add(&phi, yn, nb);
             }
-            yy += yn * yn;
             if let Some((_, basis)) = buffers.as_mut() {
                 basis[k_scored] = phi;
             }
             k_scored += 1;
             if k_scored & 127 == 0 && abandon_n.is_finite() {
-                if let Some(lin) = solve(&g, &rhs, nb) {
-                    let partial = yy - (0..nb).map(|a| lin[a] * rhs[a]).sum::<f64>();
+                if let Some(lin) = solve(&total.g, &total.rhs, nb) {
+                    let partial = total.yy - (0..nb).map(|a| lin[a] * total.rhs[a]).sum::<f64>();
                     if partial > abandon_n * (1.0 + 1e-9) {
                         abandoned = true;
                         return false;
@@ -348,21 +461,40 @@ impl Problem {
             }
             true
         };
-        simulate_iter(&model, decimated, &mut visit);
+        simulate_iter(&model, decimated, &restarts, &mut visit);
         if !finite || abandoned {
             return bad;
         }
-        let Some(lin) = solve(&g, &rhs, nb) else {
+        // Free offsets: the constant leaves the basis, each record centred on its own means.
+        let nl = if free {
+            for r in &records {
+                total.add_centred(r, nb);
+            }
+            nb - 1
+        } else {
+            nb
+        };
+        let Some(mut lin) = solve(&total.g, &total.rhs, nl) else {
             return bad;
         };
-        let sse_n: f64 = yy - (0..nb).map(|a| lin[a] * rhs[a]).sum::<f64>();
+        let sse_n: f64 = total.yy - (0..nl).map(|a| lin[a] * total.rhs[a]).sum::<f64>();
+        let offsets: Vec<f64> = records.iter().map(|r| r.offset(&lin, nb)).collect();
         if let Some((resid, basis)) = buffers {
             let mut i = self.score_from.div_ceil(stride) * stride;
             for (r, phi) in resid.iter_mut().zip(basis.iter()).take(k_scored) {
                 let yn = (self.y[i] - mean) / scale;
-                *r = yn - (0..nb).map(|a| lin[a] * phi[a]).sum::<f64>();
+                let fitted = if free {
+                    let seg = self.segments.partition_point(|&s| s <= i).saturating_sub(1);
+                    (0..nl).map(|a| lin[a] * phi[a]).sum::<f64>() + offsets[seg]
+                } else {
+                    (0..nb).map(|a| lin[a] * phi[a]).sum::<f64>()
+                };
+                *r = yn - fitted;
                 i += stride;
             }
+        }
+        if free {
+            lin[nb - 1] = offsets.first().copied().unwrap_or(0.0);
         }
         let out = Eval {
             sse: sse_n.max(0.0) * scale * scale,
@@ -584,10 +716,12 @@ impl Problem {
     }
 }
 
-/// Simulates `model` on `u` from rest, calling `visit(k, y_k)` until it returns false.
+/// Simulates `model` on `u` from rest, restarting from rest at each index in `restarts`,
+/// calling `visit(k, y_k)` until it returns false.
 fn simulate_iter(
     model: &CoreModel,
     u: impl Iterator<Item = f32>,
+    restarts: &[usize],
     visit: &mut impl FnMut(usize, f32) -> bool,
 ) {
     // The decimated record is consumed lazily through a small fixed buffer (no per-evaluation copy).
@@ -599,13 +733,13 @@ fn simulate_iter(
         chunk[filled] = v;
         filled += 1;
         if filled == chunk.len() {
-            if !model_state.run(model, &chunk, &mut k, visit) {
+            if !model_state.run(model, &chunk, &mut k, restarts, visit) {
                 return;
             }
             filled = 0;
         }
     }
-    model_state.run(model, &chunk[..filled], &mut k, visit);
+    model_state.run(model, &chunk[..filled], &mut k, restarts, visit);
 }
 
 enum SimState {
@@ -620,23 +754,27 @@ impl SimState {
         Self::Fresh
     }
 
-    /// Runs a chunk; false when `visit` asked to stop.
+    /// Runs a chunk (from rest again at each index in `restarts`); false when `visit` asked to
+    /// stop.
     fn run(
         &mut self,
         model: &CoreModel,
         u: &[f32],
         k: &mut usize,
+        restarts: &[usize],
         visit: &mut impl FnMut(usize, f32) -> bool,
     ) -> bool {
-        let Some(&u0) = u.first() else { return true };
-        if let Self::Fresh = self {
-            *self = match model {
-                CoreModel::Static(_) => Self::Static(piezo_core::ModelState::at_rest(u0)),
-                CoreModel::Dynamic(m) => Self::Dynamic(m.at_rest(u0)),
-                CoreModel::Oscillator(_) => Self::Oscillator(Default::default()),
-            };
-        }
         for &v in u {
+            if *k > 0 && restarts.binary_search(k).is_ok() {
+                *self = Self::Fresh;
+            }
+            if let Self::Fresh = self {
+                *self = match model {
+                    CoreModel::Static(_) => Self::Static(piezo_core::ModelState::at_rest(v)),
+                    CoreModel::Dynamic(m) => Self::Dynamic(m.at_rest(v)),
+                    CoreModel::Oscillator(_) => Self::Oscillator(Default::default()),
+                };
+            }
             let y = match (model, &mut *self) {
                 (CoreModel::Static(m), Self::Static(s)) => m.step(s, v),
                 (CoreModel::Dynamic(m), Self::Dynamic(s)) => m.step(s, v),
@@ -815,7 +953,9 @@ pub fn levenberg_marquardt(
     // Buffers allocated once per run, reused every iteration: the base point's, and every
     // difference column's (dynamic model, or when a static model falls back to differences) or
     // the state and its sensitivities (static models).
-    let dynamic = problem.kind == ModelKind::Dynamic;
+    // Several records (each from rest) take differences too: the core's sensitivities run from
+    // rest over one record.
+    let dynamic = problem.kind == ModelKind::Dynamic || problem.segments.len() > 1;
     let buffers = if dynamic { dim + 1 } else { 1 };
     let mut resid: Vec<Vec<f64>> = vec![vec![0.0; m]; buffers];
     let mut basis: Vec<Vec<[f64; 3]>> = vec![vec![[0.0; 3]; m]; buffers];

@@ -59,6 +59,11 @@ pub struct Record {
     pub u: Vec<f64>,
     /// Output \[m\].
     pub y_m: Vec<f64>,
+    /// The first sample of each record when several records of one stage are held end to end
+    /// (`[0]` for one): every model starts from rest at each ([`Record::concatenate`]).
+    pub segments: Vec<usize>,
+    /// The files of the records (one per segment).
+    pub sources: Vec<PathBuf>,
 }
 
 /// SI factor of a column's unit suffix.
@@ -192,8 +197,68 @@ impl Record {
                     t_s: t_s.clone(),
                     u,
                     y_m,
+                    segments: vec![0],
+                    sources: vec![path.into()],
                 })
             })
+            .collect()
+    }
+
+    /// A record of one sample period from its parts, from the first sample's time on.
+    pub fn from_parts(path: PathBuf, t_s: Vec<f64>, u: Vec<f64>, y_m: Vec<f64>) -> Self {
+        Self {
+            sources: vec![path.clone()],
+            path,
+            t_s,
+            u,
+            y_m,
+            segments: vec![0],
+        }
+    }
+
+    /// Several records of one stage end to end, each a segment that models start from rest at its
+    /// own first sample; times continue from one record to the next. The sample periods must agree
+    /// within 0.1 %.
+    pub fn concatenate(parts: Vec<Record>) -> Result<Record, String> {
+        let mut parts = parts.into_iter();
+        let Some(mut out) = parts.next() else {
+            return Err("no record".into());
+        };
+        let ts = out.sample_period_s();
+        for r in parts {
+            let t = r.sample_period_s();
+            if (t - ts).abs() > 1e-3 * ts {
+                return Err(format!(
+                    "{}: sample period {t:.6e} s differs from {}'s {ts:.6e} s",
+                    r.path.display(),
+                    out.path.display()
+                ));
+            }
+            let shift = out.t_s[out.t_s.len() - 1] + ts - r.t_s[0];
+            let at = out.u.len();
+            out.segments.extend(r.segments.iter().map(|s| s + at));
+            out.sources.extend(r.sources);
+            out.t_s.extend(r.t_s.iter().map(|t| t + shift));
+            out.u.extend(r.u);
+            out.y_m.extend(r.y_m);
+        }
+        out.path = PathBuf::from(
+            out.sources
+                .iter()
+                .map(|p| p.display().to_string())
+                .collect::<Vec<_>>()
+                .join(","),
+        );
+        Ok(out)
+    }
+
+    /// The sample ranges of the records (segments) as (first, end).
+    pub fn segment_ranges(&self) -> Vec<(usize, usize)> {
+        let n = self.u.len();
+        self.segments
+            .iter()
+            .enumerate()
+            .map(|(i, &a)| (a, self.segments.get(i + 1).copied().unwrap_or(n)))
             .collect()
     }
 
@@ -215,6 +280,8 @@ impl Record {
         self.t_s.truncate(n);
         self.u.truncate(n);
         self.y_m.truncate(n);
+        self.segments.retain(|&s| s < n);
+        self.sources.truncate(self.segments.len());
         Ok(())
     }
 
@@ -251,6 +318,8 @@ pub struct IdentifySettings {
     pub no_shift: bool,
     /// Require the firmware's compensator to accept the set.
     pub invertible: bool,
+    /// Several records: each has its own constant sensor offset (`--free-offset`).
+    pub free_offset: bool,
     /// Show a progress bar.
     pub progress: bool,
 }
@@ -266,6 +335,7 @@ impl IdentifySettings {
             start_s: 0.0,
             no_shift: false,
             invertible: false,
+            free_offset: false,
             progress: false,
         }
     }
@@ -473,10 +543,82 @@ pub fn score(set: &Identified, record: &Record, from: usize) -> Result<FitBlock,
     let model = set
         .build()
         .map_err(|e| IdentifyError::Refused(e.to_string()))?;
+    let predicted = simulate_records(&model, record);
+    fit_block(&record.t_s, &record.y_m, &predicted, from).map_err(IdentifyError::NonFinite)
+}
+
+/// The model's output over a record, from rest at each of its records' first samples \[m\].
+pub fn simulate_records(model: &model::CoreModel, record: &Record) -> Vec<f64> {
     let u: Vec<f32> = record.u.iter().map(|&v| v as f32).collect();
     let mut predicted = vec![0.0f64; u.len()];
-    model.simulate(&u, |k, v| predicted[k] = f64::from(v));
-    fit_block(&record.t_s, &record.y_m, &predicted, from).map_err(IdentifyError::NonFinite)
+    for (a, b) in record.segment_ranges() {
+        model.simulate(&u[a..b], |k, v| predicted[a + k] = f64::from(v));
+    }
+    predicted
+}
+
+/// One record's fit, when several are fitted together.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct RecordFit {
+    /// The record's file.
+    pub data: String,
+    /// RMS error over the record \[m\] (with its own offset when offsets are free).
+    pub rms_m: f64,
+    /// RMS error with the record's mean error removed (its offset re-estimated) \[m\].
+    pub rms_zeroed_m: f64,
+    /// The record's constant sensor offset \[m\]: the map's offset, or its own when free.
+    pub offset_m: f64,
+}
+
+/// The prediction of each record from rest, with its own offset when `free_offset` (the record's
+/// mean error added to the map's offset), the per-record fits, and the whole fit from `from` on.
+pub fn fit_records(
+    set: &Identified,
+    record: &Record,
+    from: usize,
+    free_offset: bool,
+) -> Result<(Vec<f64>, FitBlock, Vec<RecordFit>), IdentifyError> {
+    let model = set
+        .build()
+        .map_err(|e| IdentifyError::Refused(e.to_string()))?;
+    let mut predicted = simulate_records(&model, record);
+    let map_offset = match set {
+        Identified::Static { map, .. } => f64::from(map.offset_m),
+        _ => 0.0,
+    };
+    let mut fits = Vec::new();
+    for (i, (a, b)) in record.segment_ranges().into_iter().enumerate() {
+        let a = a.max(from).min(b);
+        let (y, p) = (&record.y_m[a..b], &mut predicted[a..b]);
+        let n = y.len().max(1) as f64;
+        let mean_error = y.iter().zip(p.iter()).map(|(y, p)| y - p).sum::<f64>() / n;
+        let rms = |shift: f64, p: &[f64]| {
+            (y.iter()
+                .zip(p)
+                .map(|(y, p)| (y - p - shift).powi(2))
+                .sum::<f64>()
+                / n)
+                .sqrt()
+        };
+        let rms_zeroed_m = rms(mean_error, p);
+        let mut offset_m = map_offset;
+        if free_offset {
+            p.iter_mut().for_each(|v| *v += mean_error);
+            offset_m += mean_error;
+        }
+        fits.push(RecordFit {
+            data: record.sources.get(i).map_or_else(
+                || record.path.display().to_string(),
+                |p| p.display().to_string(),
+            ),
+            rms_m: rms(0.0, p),
+            rms_zeroed_m,
+            offset_m,
+        });
+    }
+    let whole =
+        fit_block(&record.t_s, &record.y_m, &predicted, from).map_err(IdentifyError::NonFinite)?;
+    Ok((predicted, whole, fits))
 }
 
 /// Result of `identify`.
@@ -504,6 +646,9 @@ pub struct IdentifySummary {
     /// The search coordinates that ended at a bound (`vp-de-lm` and `ga` only).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub at_bounds: Option<Vec<&'static str>>,
+    /// Per record, when several records were fitted together.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub records: Vec<RecordFit>,
     /// The two-step method's notes and diagnostics (`--method two-step`).
     #[serde(flatten, skip_serializing_if = "Option::is_none")]
     pub two_step: Option<two_step::TwoStepReport>,
@@ -566,6 +711,14 @@ pub fn identify_traced(
     );
     problem.fit_shift = !s.no_shift;
     problem.invertible = s.invertible;
+    problem.segments = record.segments.clone();
+    problem.free_offset = s.free_offset;
+    if record.segments.len() > 1 && s.method != Method::VpDeLm {
+        return Err(IdentifyError::Other(format!(
+            "several records: method {} fits one record; use vp-de-lm",
+            s.method.name()
+        )));
+    }
     let mut at_bounds = Vec::new();
     let set = match s.method {
         Method::VpDeLm => {
@@ -618,7 +771,7 @@ pub fn identify_traced(
             return Err(IdentifyError::NeedsMechData);
         }
     };
-    let fit = score(&set, record, from)?;
+    let (_, fit, records) = fit_records(&set, record, from, s.free_offset)?;
     let summary = IdentifySummary {
         model: s.model.name(),
         method: s.method.name(),
@@ -626,6 +779,11 @@ pub fn identify_traced(
         evaluations: problem.evaluations(),
         seconds: started.elapsed().as_secs_f64(),
         at_bounds: Some(at_bounds),
+        records: if record.segments.len() > 1 {
+            records
+        } else {
+            Vec::new()
+        },
         two_step: None,
     };
     Ok((Identification { set, summary }, problem.trace()))
@@ -746,9 +904,29 @@ pub struct Columns {
 }
 
 impl Columns {
-    /// Reads `data` with these columns ([`Record::read_axes`]): one record per axis; errors name
-    /// `--data`.
+    /// Reads `data` with these columns: one record per axis; several comma-separated files are
+    /// records of one stage held end to end ([`Record::concatenate`]); errors name `--data`.
     pub fn read_axes(&self, data: &std::path::Path) -> Result<Vec<Record>, String> {
+        let text = data.to_string_lossy();
+        if !text.contains(',') {
+            return self.read_axes_one(data);
+        }
+        let mut per_axis: Vec<Vec<Record>> = Vec::new();
+        for part in text.split(',').map(str::trim).filter(|p| !p.is_empty()) {
+            let axes = self.read_axes_one(std::path::Path::new(part))?;
+            per_axis.resize_with(axes.len(), Vec::new);
+            for (i, r) in axes.into_iter().enumerate() {
+                per_axis[i].push(r);
+            }
+        }
+        per_axis
+            .into_iter()
+            .map(|parts| Record::concatenate(parts).map_err(|e| format!("--data: {e}")))
+            .collect()
+    }
+
+    /// One file ([`Record::read_axes`]): one record per axis; errors name `--data`.
+    fn read_axes_one(&self, data: &std::path::Path) -> Result<Vec<Record>, String> {
         Record::read_axes(
             data,
             self.t.as_deref(),
@@ -773,9 +951,14 @@ impl Columns {
     after_help = "Methods:\n  vp-de-lm  default: variable projection (k1, k2, offset by least squares in every evaluation), differential evolution on the decimated record, then Levenberg-Marquardt on the full record; deterministic for a given --seed, parallel over cores\n  ga        seed 001's genetic algorithm as published (population 30, 100 generations, crossover 0.7, mutation 0.2, RMS fitness, its search ranges); asymmetric: Case I, then delta (Case II, --no-shift) or delta and phi (Case III)\n  two-step  seed 000's two-step method (--model dynamic only): step 1 takes k0, c0, m0 (k1 = 1 N/V) from the steady-state integrals K0, K1, K2 of the response to a ramp-edged square wave (--mech-data, e.g. `simulate --plant nac2024 --signal square:duration=1e-4`); step 2 takes A, beta, gamma, n from the sine --data by the log-linear least squares of eq. 15-24 on the 25-75 % band of each stroke, derivatives by CWT-TRT (gaus1, s = 4); step 2b (not in the paper) fixes the scale of k0, c0, m0 that step 1 cannot see (it measures (k1 + h(B)/B)/k0). Needs beta + gamma < 0: otherwise (or when ill-posed) it says why in the summary's notes and on stderr and runs vp-de-lm instead\nThe model simulated is piezo-core's f32 model, from rest at the record's first input; sets the core refuses are infeasible. Two-axis records: --u ux_V,uy_V --y x_m,y_m fits each axis and writes both. The stage file written (--out) is validated as the firmware's build validates it: a set the firmware would refuse makes identify exit non-zero after writing it, unless --allow-refused."
 )]
 pub struct IdentifyArgs {
-    /// Record to fit (CSV with unit-suffixed columns).
+    /// Record to fit (CSV with unit-suffixed columns); several comma-separated records of one stage
+    /// are fitted together, each from rest at its own first sample (`a.csv,b.csv,c.csv`).
     #[arg(long)]
     pub data: PathBuf,
+    /// Several records: each has its own constant sensor offset (the sensor's zero moved between
+    /// them), re-estimated per record; the stage file keeps the first record's.
+    #[arg(long)]
+    pub free_offset: bool,
     /// `--method two-step`: the ramp-edged square-wave record for step 1 (same columns as --data).
     #[arg(long)]
     pub mech_data: Option<PathBuf>,
@@ -873,8 +1056,12 @@ pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
         start_s: a.start,
         no_shift: a.no_shift,
         invertible: a.invertible,
+        free_offset: a.free_offset,
         progress: true,
     };
+    if records[0].segments.len() > 1 && a.start > 0.0 {
+        return Err("--start: with several records each is scored from its first sample".into());
+    }
     let names = ["x", "y"];
     let mut axes = Vec::new();
     let mut identified = Vec::new();
@@ -901,6 +1088,12 @@ pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
             summary.evaluations,
             summary.seconds,
         ));
+        for r in &summary.records {
+            lines.push(format!(
+                "{}:   {}: rms {:.4e} m, zeroed {:.4e} m, offset {:.4e} m",
+                names[i], r.data, r.rms_m, r.rms_zeroed_m, r.offset_m
+            ));
+        }
         axes.push(to_axis(
             &id.set,
             provenance(record, from, summary.method, rms),
@@ -937,7 +1130,9 @@ pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
     );
     let verdict = crate::stage_file::write_stage(&a.out, &header, stage, io, axes, a.allow_refused);
     let mut plots = Vec::new();
-    if let Some(dir) = &a.plots {
+    if a.plots.is_some() && records[0].segments.len() > 1 {
+        eprintln!("warning: --plots: drawn for one record only; none drawn for several");
+    } else if let Some(dir) = &a.plots {
         // The fit as written: the stage file's chain on the fitted record.
         let file = predict::read_stage(&a.out)?;
         let from = records[0].index_at(a.start);
@@ -987,6 +1182,10 @@ pub struct PredictArgs {
     /// stage): `fir-decimate:factors=20,identified_with=2/2/5`.
     #[arg(long)]
     pub output_filter: Option<String>,
+    /// The record's sensor offset is its own (the sensor's zero moved since identification):
+    /// also report the RMS with the offset re-estimated on the scored samples (`rms_zeroed_m`).
+    #[arg(long)]
+    pub free_offset: bool,
     /// Report JSON to write.
     #[arg(long)]
     pub report: PathBuf,
@@ -1004,14 +1203,14 @@ fn repeated(record: &Record, copies: usize) -> Record {
     let period = record.sample_period_s() * n as f64;
     let t0 = record.t_s[0];
     let cycle = |v: &[f64]| v.iter().copied().cycle().take(n * copies).collect();
-    Record {
-        path: record.path.clone(),
-        t_s: (0..n * copies)
+    Record::from_parts(
+        record.path.clone(),
+        (0..n * copies)
             .map(|i| t0 + i as f64 * period / n as f64)
             .collect(),
-        u: cycle(&record.u),
-        y_m: cycle(&record.y_m),
-    }
+        cycle(&record.u),
+        cycle(&record.y_m),
+    )
 }
 
 /// Runs `predict`.
@@ -1080,6 +1279,26 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
             json!(p.fit.mrd_percent),
         ));
     }
+    let zeroed: Vec<f64> = axes
+        .iter()
+        .zip(&records)
+        .map(|(p, r)| {
+            let (y, q) = (&r.y_m[from..], &p.predicted_m[from..]);
+            let n = y.len().max(1) as f64;
+            let mean = y.iter().zip(q).map(|(y, q)| y - q).sum::<f64>() / n;
+            (y.iter()
+                .zip(q)
+                .map(|(y, q)| (y - q - mean).powi(2))
+                .sum::<f64>()
+                / n)
+                .sqrt()
+        })
+        .collect();
+    if a.free_offset {
+        for (line, z) in lines.iter_mut().zip(&zeroed) {
+            line.push_str(&format!(", zeroed rms {z:.4e} m"));
+        }
+    }
     let mut report = json!({
         "params_file": a.params.display().to_string(),
         "data": a.data.display().to_string(),
@@ -1088,6 +1307,9 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
         "output_filter": a.output_filter,
         "axes": axes.iter().map(predict::axis_json).collect::<Vec<_>>(),
     });
+    if a.free_offset {
+        report["rms_zeroed_m"] = json!(zeroed);
+    }
     if axes.len() == 1 {
         // One axis: its blocks also at the top level.
         report["model"] = json!(axes[0].model.name());

@@ -680,6 +680,7 @@ pub fn identify(record: &Record, s: &IdentifySettings) -> Result<Identification,
     Ok(Identification {
         set,
         summary: IdentifySummary {
+            records: Vec::new(),
             model: "oscillator",
             method: s.method.name(),
             fit,

@@ -1057,6 +1057,7 @@ fn finish(
         eprintln!("warning: two-step: {n}");
     }
     let summary = IdentifySummary {
+        records: Vec::new(),
         model: "dynamic",
         method: Method::TwoStep.name(),
         fit,
@@ -1126,12 +1127,12 @@ mod tests {
             &SimSettings::new(FS, duration),
         )
         .expect("simulation");
-        Record {
-            path: "simulated".into(),
-            t_s: out.t_s,
-            u: out.inputs_v[0].clone(),
-            y_m: out.outputs_m[0].clone(),
-        }
+        Record::from_parts(
+            "simulated".into(),
+            out.t_s,
+            out.inputs_v[0].clone(),
+            out.outputs_m[0].clone(),
+        )
     }
 
     /// Seed 000's two records: square 7.8335 V, 0.1 ms, edge 1.8672 µs; sine 9.738 V at 10 kHz.

@@ -181,11 +181,12 @@ impl XyAxis {
 }
 
 impl AxisModel {
-    /// x = [q(4), q̇(4), h].
+    /// x = [q(4), q̇(4), h]; `hysteresis_rate` is the rate of the Bouc-Wen operator's input
+    /// (u̇, or v̇ of the stack's dielectric lag).
     #[allow(clippy::needless_range_loop)] // index form mirrors M·q̈ = f − K·q
-    fn rhs(&self, u: f64, du: f64, e: f64, x: &[f64], dx: &mut [f64]) {
+    fn rhs(&self, u: f64, du: f64, hysteresis_rate: f64, e: f64, x: &[f64], dx: &mut [f64]) {
         let (ud, dud) = drive(u, du, e);
-        let dh = self.bw.rate(x[8], du);
+        let dh = self.bw.rate(x[8], hysteresis_rate);
         let a = self.gain_slope_per_v;
         let eta = self.d_m_per_v * (1.0 + a * ud) * (ud - x[8]);
         let deta = self.d_m_per_v * (a * dud * (ud - x[8]) + (1.0 + a * ud) * (dud - dh));
@@ -205,7 +206,15 @@ impl AxisModel {
     }
 }
 
-/// The XY stage. States: x axis [q(4), q̇(4), h] then y axis likewise (18).
+/// The XY stage. States: x axis [q(4), q̇(4), h] then y axis likewise (18), then, with the
+/// dielectric lag, the lagged stack voltages v_x, v_y (20).
+///
+/// **Dielectric lag** (effect `dielectric-lag`, [`XyStage::dielectric_lag_s`] = τ_v > 0): the
+/// stacks' domain switching follows the voltage through the stack's dielectric relaxation, so the
+/// Bouc-Wen operator is driven by a first-order lag of the stack voltage,
+/// τ_v·v̇ = u − v, ḣ = α·v̇ − β·|v̇|·h − γ·v̇·|h|, while the linear piezo strain d·u follows u at
+/// once: η = d·(u − h(v)). The loop opens wider and tilts as the rate rises (rate-dependent
+/// hysteresis); at rest v = u. The core's models carry no such lag.
 #[derive(Debug, Clone, PartialEq)]
 pub struct XyStage {
     x_axis: XyAxis,
@@ -215,6 +224,8 @@ pub struct XyStage {
     pub coupling: [f64; 2],
     /// Electrostrictive coefficient e, 1/V (effect).
     pub electrostriction_per_v: f64,
+    /// τ_v of the stacks' dielectric lag, s (effect; 0: none).
+    pub dielectric_lag_s: f64,
 }
 
 impl Default for XyStage {
@@ -258,6 +269,7 @@ impl Default for XyStage {
             models,
             coupling: [0.0; 2],
             electrostriction_per_v: 0.0,
+            dielectric_lag_s: 0.0,
         }
     }
 }
@@ -314,6 +326,7 @@ impl XyStage {
             models,
             coupling: [0.0; 2],
             electrostriction_per_v: 0.0,
+            dielectric_lag_s: 0.0,
         })
     }
 
@@ -342,6 +355,7 @@ impl XyStage {
             models,
             coupling: [0.0; 2],
             electrostriction_per_v: 0.0,
+            dielectric_lag_s: 0.0,
         }
     }
 
@@ -372,7 +386,11 @@ impl Plant for XyStage {
         &["x_m", "y_m"]
     }
     fn state_dim(&self) -> usize {
-        18
+        if self.dielectric_lag_s > 0.0 {
+            20
+        } else {
+            18
+        }
     }
     fn initial_state(&self, x: &mut [f64]) {
         x.fill(0.0);
@@ -380,10 +398,19 @@ impl Plant for XyStage {
     fn rhs(&self, t: f64, x: &[f64], input: &dyn InputAt, dx: &mut [f64]) {
         for axis in 0..2 {
             let (u, du) = input.input(axis, t);
+            // The operator's input rate: u̇, or v̇ = (u − v)/τ_v behind the dielectric lag.
+            let hysteresis_rate = if self.dielectric_lag_s > 0.0 {
+                let dv = (u - x[18 + axis]) / self.dielectric_lag_s;
+                dx[18 + axis] = dv;
+                dv
+            } else {
+                du
+            };
             let r = axis * 9..axis * 9 + 9;
             self.models[axis].rhs(
                 u,
                 du,
+                hysteresis_rate,
                 self.electrostriction_per_v,
                 &x[r.clone()],
                 &mut dx[r],
@@ -391,6 +418,10 @@ impl Plant for XyStage {
         }
     }
     fn input_jump(&self, x: &mut [f64], channel: usize, u_from: f64, u_to: f64) {
+        if self.dielectric_lag_s > 0.0 {
+            // v is continuous: a voltage step moves h only as v follows it.
+            return;
+        }
         let i = channel.min(1) * 9 + 8;
         x[i] = self.models[channel.min(1)].bw.jump(x[i], u_from, u_to);
     }
@@ -427,6 +458,10 @@ impl Plant for XyStage {
     /// q̇ = v, v̇ = M⁻¹·(f·η − K·q − τd·K·v), ḣ = 0; the free displacement G·d·(1 + a·u)·(u − h) is
     /// constant (F = 0). This holds for the field-dependent variant and with electrostriction too.
     fn held_input_linear(&self) -> Option<HeldLinear> {
+        if self.dielectric_lag_s > 0.0 {
+            // h moves while v follows a held u: not linear between holds.
+            return None;
+        }
         let n = self.state_dim();
         let mut a = vec![0.0; n * n];
         for (axis, m) in self.models.iter().enumerate() {
