@@ -21,8 +21,9 @@ $B close-loop --data "$P885" --u u_ctrl_V --y y_um --start 1 --end 20 --invertib
 $B close-loop --data "$P885" --u u_ctrl_V --y y_um --start 1 --invertible \
   --report "$OUT/p885-all.json" --plots "$OUT/p885-all"
 # SmartHysteresis: the sine starts at 0.5 s and its first cycles settle; fit 4.5-7.5 s, validate 7.5-10 s.
-# Its ±150 V exceed the placeholder io's 0-120 V drive: --allow-refused (a real --stage file would drive it).
-$B close-loop --data "$SH" --start 4.5 --end 7.5 --invertible --allow-refused \
+# Its ±150 V get a placeholder io chain that drives them (bipolar DAC span, 30 V/V): not one the
+# firmware's DAC8563 drives, so the stage file needs the real [io] (--stage) before it builds.
+$B close-loop --data "$SH" --start 4.5 --end 7.5 --invertible \
   --validate "$SH" --validate-start 7.5 --report "$OUT/sh.json" --plots "$OUT/sh"
 python3 - "$OUT" <<'PY'
 import json, sys

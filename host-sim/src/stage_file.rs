@@ -1,17 +1,22 @@
 //! The stage file as the tools write it: `[stage]` and `[io]` carried over from an existing stage
-//! file (`--stage FILE`), or made from the record with a placeholder io chain; the axes from the
-//! fit. Reading, writing and validating are `piezo_stage`'s.
+//! file (`--stage FILE`), or made from the record with a placeholder io chain that covers the
+//! output windows to be written; the axes from the fit. Reading, writing and validating are
+//! `piezo_stage`'s; the verdict on a written file is the check `host-sim compensate` makes
+//! ([`StageFile::load`], then [`crate::compensate::feedforward_axes`]).
 
-use piezo_stage::{Axis, Io, Stage, StageFile};
+use piezo_core::ParamError;
+use piezo_stage::{Io, Stage, StageError, StageFile};
 use std::path::Path;
 
 /// The `[stage]` and `[io]` sections of a file about to be written: from `given` (an existing
 /// stage file, read and validated) or, without one, named `name` at the record's rate
-/// `record_rate_hz` with a placeholder io chain (said on stderr).
+/// `record_rate_hz` with a placeholder io chain whose drive range covers `drive_range_v` \[V\]
+/// (the output windows to be written; [`Io::placeholder_covering`]), said on stderr.
 pub fn stage_and_io(
     given: Option<&Path>,
     name: &str,
     record_rate_hz: f64,
+    drive_range_v: (f32, f32),
 ) -> Result<(Stage, Io), String> {
     match given {
         Some(path) => {
@@ -19,10 +24,23 @@ pub fn stage_and_io(
             Ok((file.stage, file.io))
         }
         None => {
+            let io = Io::placeholder_covering(drive_range_v);
+            let (d0, d1) = io.drive_range_v();
+            let bipolar = if io.dac_range_v[0] < 0.0 {
+                " (a bipolar DAC span, which the firmware's DAC8563 does not drive)"
+            } else {
+                ""
+            };
             eprintln!(
-                "note: [io] is a placeholder (DAC8563 0-5 V, 24 V/V amplifier, ADS8681 ±10.24 V, \
-                 10 µm/V sensor) and the loop rate is the record's ({record_rate_hz:.6} Hz): pass \
-                 --stage FILE to carry [stage] and [io] from your stage file"
+                "note: [io] is a placeholder ({} {}-{} V{bipolar}, {} V/V amplifier: drive \
+                 {d0}-{d1} V; {} ±10.24 V, 10 µm/V sensor) and the loop rate is the record's \
+                 ({record_rate_hz:.6} Hz): pass --stage FILE to carry [stage] and [io] from your \
+                 stage file",
+                io.dac_part,
+                io.dac_range_v[0],
+                io.dac_range_v[1],
+                io.amplifier_gain_v_per_v,
+                io.adc_part,
             );
             Ok((
                 Stage {
@@ -30,7 +48,7 @@ pub fn stage_and_io(
                     version: "1".into(),
                     loop_rate_hz: rate_of(record_rate_hz),
                 },
-                Io::placeholder(),
+                io,
             ))
         }
     }
@@ -42,46 +60,213 @@ pub fn rate_of(record_rate_hz: f64) -> f32 {
     ((record_rate_hz * 1e3).round() / 1e3) as f32
 }
 
-/// Assembles, validates and writes a stage file; returns a one-line verdict on whether the
-/// firmware's chain accepts it. `allow_refused`: write and report a set the firmware refuses
-/// instead of failing.
-pub fn write_stage(
-    path: &Path,
-    header: &str,
-    stage: Stage,
-    io: Io,
-    axes: Vec<Axis>,
-    allow_refused: bool,
-) -> Result<String, String> {
-    let mut axes = axes.into_iter();
-    let x = axes.next().ok_or("no axis to write")?;
-    let file = StageFile {
-        stage,
-        io,
-        x,
-        y: axes.next(),
-    };
-    file.write(path, header)
-        .map_err(|e| format!("--out: {e}"))?;
-    let name = path.display().to_string();
-    let firmware_runs = file.axes().iter().all(|(_, a)| a.model.runs_on_firmware());
-    if !firmware_runs {
-        return Ok("a model family the firmware does not run (it runs symmetric and asymmetric static models)".into());
+/// Why the firmware's check refused a stage file; decides what the user is told to do.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RefusalKind {
+    /// An output window beyond `io.dac_range_v × io.amplifier_gain_v_per_v`.
+    IoWindow,
+    /// A map the compensator cannot invert (`ParamError::NotInvertible`).
+    NotInvertible,
+    /// Anything else (the text says what).
+    Other,
+}
+
+/// The firmware's verdict on a stage file: the check `host-sim compensate` makes before it runs a
+/// file (`StageFile::load`: parsed and validated with the core's constructors at its loop rate, the
+/// output windows inside the io chain's drive range; then the feed-forward axes).
+#[derive(Debug, Clone, PartialEq)]
+pub enum Verdict {
+    /// Accepted: the firmware builds it and `compensate` runs it.
+    Accepted,
+    /// A model family the firmware does not run (dynamic, oscillator): not checked further.
+    NotRunByFirmware,
+    /// Refused: why, and the check's message (file, line, key).
+    Refused {
+        /// What kind of refusal.
+        kind: RefusalKind,
+        /// The check's message.
+        message: String,
+    },
+}
+
+impl Verdict {
+    /// The check of `file` as written at `path` (its text `text`): in memory when it could not be
+    /// written, else read back from disk as `compensate` reads it.
+    pub fn of(file: &StageFile, path: &Path, text: Option<&str>) -> Self {
+        if !file.axes().iter().all(|(_, a)| a.model.runs_on_firmware()) {
+            return Self::NotRunByFirmware;
+        }
+        let name = path.display().to_string();
+        let refused = |e: StageError, text: &str| Self::Refused {
+            kind: refusal_kind(&e),
+            message: e.located(&name, text).to_string(),
+        };
+        let (file, valid) = match text {
+            Some(text) => match StageFile::load(path) {
+                Ok(loaded) => loaded,
+                Err(e) => return refused(e, text),
+            },
+            None => match file.validate() {
+                Ok(valid) => (file.clone(), valid),
+                Err(e) => return refused(e, &file.to_toml("")),
+            },
+        };
+        match crate::compensate::feedforward_axes(&file, &valid, path) {
+            Ok(_) => Self::Accepted,
+            Err(message) => Self::Refused {
+                kind: RefusalKind::Other,
+                message,
+            },
+        }
     }
-    match file.validate() {
-        Ok(_) => Ok("accepted by the firmware's stage-file check".into()),
-        Err(e) => {
-            let text = std::fs::read_to_string(path).unwrap_or_default();
-            let e = e.located(&name, &text);
-            if allow_refused {
-                Ok(format!("REFUSED by the firmware's stage-file check: {e}"))
-            } else {
-                Err(format!(
-                    "the set written to {name} would be refused by the firmware: {e} \
-                     (pass --allow-refused to keep it anyway, or --invertible to fit only sets the \
-                     compensator accepts)"
-                ))
+
+    /// Whether the firmware refuses the file.
+    pub fn refused(&self) -> bool {
+        matches!(self, Self::Refused { .. })
+    }
+
+    /// One line for the report and the summary.
+    pub fn words(&self) -> String {
+        match self {
+            Self::Accepted => "accepted by the firmware's stage-file check".into(),
+            Self::NotRunByFirmware => "a model family the firmware does not run (it runs symmetric and asymmetric static models)".into(),
+            Self::Refused { message, .. } => {
+                format!("REFUSED by the firmware's stage-file check: {message}")
             }
         }
+    }
+
+    /// One line for a summary that is followed by the refusal in full (`detailed`: false) or not.
+    pub fn summary(&self, detailed: bool) -> String {
+        match self {
+            Self::Refused { .. } if !detailed => {
+                "REFUSED by the firmware's stage-file check".into()
+            }
+            _ => self.words(),
+        }
+    }
+
+    /// Short name for the report: `accepted`, `not-run-by-firmware`, `refused`.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Self::Accepted => "accepted",
+            Self::NotRunByFirmware => "not-run-by-firmware",
+            Self::Refused { .. } => "refused",
+        }
+    }
+
+    /// What to do about a refusal, for a run with `invertible` (`--invertible` given) and `given`
+    /// (`--stage`); `None` when accepted.
+    pub fn remedy(&self, invertible: bool, given: Option<&Path>) -> Option<String> {
+        let Self::Refused { kind, .. } = self else {
+            return None;
+        };
+        Some(match (kind, given) {
+            (RefusalKind::IoWindow, None) => "the placeholder [io] chain does not drive the \
+                 output window: pass --stage FILE with your stage's real [io] (its DAC range and \
+                 amplifier gain), or --allow-refused to keep the set anyway"
+                .into(),
+            (RefusalKind::IoWindow, Some(stage)) => format!(
+                "the [io] chain of {} does not drive the output window the record needs: \
+                 correct its io.dac_range_v or io.amplifier_gain_v_per_v if the record is right, \
+                 or record within what it drives; --allow-refused keeps the set anyway",
+                stage.display()
+            ),
+            (RefusalKind::NotInvertible, _) if !invertible => "pass --invertible to fit only \
+                 sets the compensator accepts, or --allow-refused to keep it anyway"
+                .into(),
+            (RefusalKind::NotInvertible, _) => "no set the compensator accepts was found even \
+                 with --invertible; --allow-refused keeps it anyway"
+                .into(),
+            (RefusalKind::Other, _) => "pass --allow-refused to keep it anyway".into(),
+        })
+    }
+}
+
+/// The kind of a refusal from the key and the core's error it carries.
+fn refusal_kind(e: &StageError) -> RefusalKind {
+    if matches!(e.core, Some(ParamError::NotInvertible { .. })) {
+        RefusalKind::NotInvertible
+    } else if e.core.is_none() && e.key.ends_with(".limits.output_max_v") {
+        RefusalKind::IoWindow
+    } else {
+        RefusalKind::Other
+    }
+}
+
+/// A stage file written and checked.
+#[derive(Debug, Clone, PartialEq)]
+pub struct WrittenStage {
+    /// Where it was (to be) written.
+    pub path: String,
+    /// Why it could not be written (`None`: written).
+    pub not_written: Option<String>,
+    /// The firmware's verdict on it.
+    pub verdict: Verdict,
+}
+
+impl WrittenStage {
+    /// The error a command returns for this file after everything else was written: the refusal
+    /// with its remedy (unless `allow_refused`) and a failed write; `None` when there is none.
+    pub fn error(
+        &self,
+        invertible: bool,
+        given: Option<&Path>,
+        allow_refused: bool,
+    ) -> Option<String> {
+        let mut out = Vec::new();
+        if let Some(e) = &self.not_written {
+            out.push(format!("--out {}: not written: {e}", self.path));
+        }
+        if let (Verdict::Refused { message, .. }, false) = (&self.verdict, allow_refused) {
+            let remedy = self.verdict.remedy(invertible, given).unwrap_or_default();
+            let what = if self.not_written.is_some() {
+                "the set"
+            } else {
+                "the set written"
+            };
+            out.push(format!(
+                "{what} to {} would be refused by the firmware: {message} ({remedy})",
+                self.path
+            ));
+        }
+        (!out.is_empty()).then(|| out.join("; "))
+    }
+
+    /// The report's fields: `stage_file`, `stage_file_written`, `stage_file_check` (the verdict in
+    /// words), `verdict` and `refusal` (the remedy of a refusal, or null).
+    pub fn to_json(&self, invertible: bool, given: Option<&Path>) -> serde_json::Value {
+        serde_json::json!({
+            "stage_file": self.path,
+            "stage_file_written": self.not_written.is_none(),
+            "stage_file_not_written": self.not_written,
+            "stage_file_check": self.verdict.words(),
+            "verdict": self.verdict.name(),
+            "refusal": match &self.verdict {
+                Verdict::Refused { message, .. } => serde_json::json!({
+                    "reason": message,
+                    "remedy": self.verdict.remedy(invertible, given),
+                }),
+                _ => serde_json::Value::Null,
+            },
+        })
+    }
+}
+
+/// Writes `file` to `path` (with `header`) and checks it as `compensate` would read it; a file
+/// that could not be written is checked in memory. Never fails: the outcome says what happened.
+pub fn write_stage(path: &Path, header: &str, file: &StageFile) -> WrittenStage {
+    let written = file
+        .write(path, header)
+        .map_err(|e| e.to_string())
+        .and_then(|()| std::fs::read_to_string(path).map_err(|e| e.to_string()));
+    let (text, not_written) = match written {
+        Ok(text) => (Some(text), None),
+        Err(e) => (None, Some(e)),
+    };
+    WrittenStage {
+        path: path.display().to_string(),
+        verdict: Verdict::of(file, path, text.as_deref()),
+        not_written,
     }
 }

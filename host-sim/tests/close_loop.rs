@@ -3,7 +3,8 @@
 //! must fall well below the base model's; a slow thermal settling (independent of u) must be named
 //! drift, not creep; on effect-free data with a small structured misfit nothing may be added; a fit
 //! that runs to the bound of an effect's plausible range must be refused; the stage file written
-//! must be one the firmware accepts.
+//! must be one the firmware accepts. The command keeps its report whatever becomes of the stage
+//! file, and with `--invertible` writes only sets `host-sim compensate` runs.
 
 use clap::Parser;
 use host_sim::cli::{run, Cli};
@@ -11,8 +12,9 @@ use host_sim::close_loop::diagnose::EffectKind;
 use host_sim::close_loop::report::StepOutcome;
 use host_sim::close_loop::select::{Decision, Refusal, Stop};
 use host_sim::close_loop::{
-    close_loop, read_records, write_stage_file, CloseLoopSettings, Outcome,
+    close_loop, read_records, stage_and_io_for, write_stage_file, CloseLoopSettings, Outcome,
 };
+use host_sim::stage_file::Verdict;
 use std::path::PathBuf;
 
 thread_local! {
@@ -286,7 +288,8 @@ fn dynamics_is_named_and_removed() {
     check_single(&o, "dynamics", 0.4);
     // The stage file carries a servo tuned on the mode close-loop found.
     let out = temp("dynamics.toml");
-    write_stage_file(&o, &out, "dyn.csv", None, true).unwrap();
+    let (stage, io) = stage_and_io_for(&records, &path, None).unwrap();
+    write_stage_file(&o, &out, "dyn.csv", stage, io).unwrap();
     let (file, _) = piezo_stage::StageFile::load(&out).unwrap();
     let mode_hz = file.x.effects.mode_frequency_hz;
     assert!((2800.0..3600.0).contains(&mode_hz), "{mode_hz}");
@@ -314,8 +317,9 @@ fn coupling_is_named_and_removed() {
     let o = close_loop(&records, &settings).unwrap();
     check_single(&o, "coupling", 0.25);
     let out = temp("coupling.toml");
-    let verdict = write_stage_file(&o, &out, "coupling.csv", None, false).unwrap();
-    assert!(verdict.starts_with("accepted"), "{verdict}");
+    let (stage, io) = stage_and_io_for(&records, &path, None).unwrap();
+    let written = write_stage_file(&o, &out, "coupling.csv", stage, io).unwrap();
+    assert_eq!(written.verdict, Verdict::Accepted, "{:?}", written);
     let (file, _) = piezo_stage::StageFile::load(&out).unwrap();
     assert!(file.y.is_some());
     assert_eq!(file.x.effects, o.axes[0].model.effects);
@@ -323,4 +327,139 @@ fn coupling_is_named_and_removed() {
         file.x.identified.as_ref().map(|p| p.method.as_str()),
         Some("close-loop")
     );
+}
+
+fn cli(args: &[&str]) -> Result<String, String> {
+    let mut v = vec!["host-sim"];
+    v.extend_from_slice(args);
+    run(Cli::try_parse_from(v).map_err(|e| e.to_string())?)
+}
+
+fn json(path: &std::path::Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+/// The XY stage's x axis with strong creep (Kelvin–Voigt τ 0.1/1 s, weights 0.1/0.1 of the
+/// stroke): a raised cosine 0–120 V at 2 Hz, 1.5 s at 4 kHz. Moving the creep's share of the
+/// static gain out of k1 makes the map turn back after a reversal.
+fn strong_creep(name: &str) -> PathBuf {
+    simulate(
+        name,
+        "xy-stage",
+        "sine:amp=60,offset=60,freq=2,phase_deg=-90,duration=1.5,rate=4000",
+        &["creep:tau=0.1/1,weight=0.1/0.1", "noise:rms_m=2e-9,seed=5"],
+    )
+}
+
+/// Without `--invertible` the final set on the strong-creep record is one the firmware refuses:
+/// the command fails, but only after writing the stage file and the report, which holds the
+/// verdict, the refusal and what to do. A stage file that cannot be written (`--out` is a
+/// directory) and plots that cannot be made (`--plots` is a file) still leave the report, which
+/// says what was not written.
+#[test]
+fn a_refused_set_keeps_its_report_with_the_verdict() {
+    let data = strong_creep("refused.csv");
+    let (out, report) = (temp("refused.toml"), temp("refused.json"));
+    let common = [
+        "close-loop",
+        "--data",
+        data.to_str().unwrap(),
+        "--u",
+        "ux_V",
+        "--y",
+        "x_m",
+    ];
+    let mut args = common.to_vec();
+    args.extend(["--out", out.to_str().unwrap()]);
+    args.extend(["--report", report.to_str().unwrap()]);
+    let e = cli(&args).expect_err("the set is refused");
+    assert!(e.contains("would be refused by the firmware"), "{e}");
+    assert!(e.contains("--invertible"), "{e}");
+    assert!(out.exists(), "the stage file is written all the same");
+    assert!(report.exists(), "the report is written all the same: {e}");
+    let r = json(&report);
+    assert_eq!(r["verdict"], "refused", "{r:#}");
+    assert_eq!(r["stage_file_written"], true);
+    let reason = r["refusal"]["reason"].as_str().unwrap();
+    assert!(reason.contains("not strictly monotone"), "{reason}");
+    assert!(r["refusal"]["remedy"]
+        .as_str()
+        .unwrap()
+        .contains("--invertible"));
+    assert_eq!(r["invertible"]["holds"], false);
+    assert!(!r["steps"].as_array().unwrap().is_empty());
+
+    // --out a directory, --plots a file: neither can be written; the report is.
+    let (dir_out, file_plots, report2) = (temp("out_dir"), temp("plots_file"), temp("r2.json"));
+    std::fs::create_dir_all(&dir_out).unwrap();
+    std::fs::write(&file_plots, "not a directory").unwrap();
+    let mut args = common.to_vec();
+    args.extend(["--out", dir_out.to_str().unwrap()]);
+    args.extend(["--plots", file_plots.to_str().unwrap()]);
+    args.extend(["--report", report2.to_str().unwrap()]);
+    let e = cli(&args).expect_err("nothing but the report can be written");
+    assert!(e.contains("--out") && e.contains("not written"), "{e}");
+    assert!(e.contains("--plots"), "{e}");
+    let r = json(&report2);
+    assert_eq!(r["stage_file_written"], false, "{r:#}");
+    assert!(r["stage_file_not_written"].is_string());
+    assert!(r["plots_not_written"].is_string());
+    assert_eq!(r["verdict"], "refused");
+}
+
+/// With `--invertible`, the set close-loop writes for the strong-creep record is one `host-sim
+/// compensate` runs: read back and checked as `compensate` checks it, and `compensate` itself
+/// computes voltages from it. Every candidate kept to (or refused for) the constraint.
+#[test]
+fn invertible_holds_for_the_whole_set_with_effects() {
+    let data = strong_creep("invertible.csv");
+    let (out, report) = (temp("invertible.toml"), temp("invertible.json"));
+    let msg = cli(&[
+        "close-loop",
+        "--data",
+        data.to_str().unwrap(),
+        "--u",
+        "ux_V",
+        "--y",
+        "x_m",
+        "--invertible",
+        "--out",
+        out.to_str().unwrap(),
+        "--report",
+        report.to_str().unwrap(),
+    ])
+    .unwrap();
+    assert!(msg.contains("accepted by the firmware"), "{msg}");
+    let r = json(&report);
+    assert_eq!(r["verdict"], "accepted", "{r:#}");
+    assert_eq!(r["invertible"]["holds"], true);
+    // The check `compensate` makes, on the file as written.
+    let (file, valid) = piezo_stage::StageFile::load(&out).unwrap();
+    assert!(valid.axes[0].compensator.is_some());
+    host_sim::compensate::feedforward_axes(&file, &valid, &out).unwrap();
+    // Every candidate's final set too.
+    for step in r["steps"].as_array().unwrap() {
+        for c in step["candidates"].as_array().unwrap() {
+            let refused_as = c["decision"].as_str().unwrap();
+            assert!(
+                c["not_invertible"].is_null() || refused_as == "refused-not-invertible",
+                "{c:#}"
+            );
+        }
+    }
+    // And compensate runs it.
+    let (reference, voltages) = (temp("reference.csv"), temp("voltages.csv"));
+    cli(&[
+        "compensate",
+        "--params",
+        out.to_str().unwrap(),
+        "--signal",
+        "triangle:low=5,high=25,freq=2,duration=0.5",
+        "--reference",
+        reference.to_str().unwrap(),
+        "--out",
+        voltages.to_str().unwrap(),
+    ])
+    .unwrap();
+    assert!(voltages.exists());
 }

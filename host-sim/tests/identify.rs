@@ -212,7 +212,100 @@ fn a_refused_set_is_written_and_identify_fails() {
     let e = e.expect_err("the seed 001 stage's symmetric set is not invertible");
     assert!(e.contains("would be refused by the firmware"), "{e}");
     assert!(e.contains("--allow-refused"), "{e}");
+    assert!(e.contains("--invertible"), "{e}");
     assert!(stage.exists(), "the set is written all the same");
+    // The report too, with the verdict and the refusal.
+    let r = json(&report);
+    assert_eq!(r["verdict"], "refused", "{r:#}");
+    assert!(r["refusal"]["reason"]
+        .as_str()
+        .unwrap()
+        .contains("not strictly monotone"));
+    assert!(r["fit"]["rms"].as_f64().is_some());
+}
+
+/// A record driven from −90 to +90 V (seed 001's Case I stage, 2 Hz sine).
+fn bipolar_record(name: &str) -> PathBuf {
+    let out = temp(name);
+    cli(&[
+        "simulate",
+        "--plant",
+        "stage-case1",
+        "--signal",
+        "sine:amp=90,offset=0,freq=2,duration=0.5,rate=4000",
+        "--effect",
+        "noise:rms_m=1e-8,seed=3",
+        "--out",
+        out.to_str().unwrap(),
+    ])
+    .unwrap();
+    out
+}
+
+/// Without `--stage`, the placeholder io chain covers the record's input range (here bipolar):
+/// `identify --invertible` writes a set the stage-file check accepts, still marked placeholder.
+/// With a `--stage` whose `[io]` drives only 0–120 V, the refusal names the io window and
+/// `--stage`, not `--invertible` (which was given).
+#[test]
+fn a_bipolar_record_gets_an_io_chain_that_covers_it() {
+    let data = bipolar_record("bipolar.csv");
+    let (out, report) = (temp("bipolar.toml"), temp("bipolar.json"));
+    let msg = cli(&[
+        "identify",
+        "--data",
+        data.to_str().unwrap(),
+        "--model",
+        "symmetric",
+        "--invertible",
+        "--out",
+        out.to_str().unwrap(),
+        "--report",
+        report.to_str().unwrap(),
+    ])
+    .unwrap();
+    assert!(msg.contains("accepted by the firmware"), "{msg}");
+    let (file, _) = piezo_stage::StageFile::load(&out).unwrap();
+    assert!(file.io.placeholder);
+    let (d0, d1) = file.io.drive_range_v();
+    let (lo, hi) = (file.x.limits.output_min_v, file.x.limits.output_max_v);
+    assert!(lo < -80.0 && hi > 80.0, "window [{lo}, {hi}]");
+    assert!(
+        d0 <= lo && d1 >= hi,
+        "drive [{d0}, {d1}], window [{lo}, {hi}]"
+    );
+    assert_eq!(json(&report)["verdict"], "accepted");
+
+    let board = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../firmware/params/xy-stage.toml"
+    );
+    let (out, report) = (temp("bipolar-board.toml"), temp("bipolar-board.json"));
+    let e = cli(&[
+        "identify",
+        "--data",
+        data.to_str().unwrap(),
+        "--model",
+        "symmetric",
+        "--invertible",
+        "--stage",
+        board,
+        "--out",
+        out.to_str().unwrap(),
+        "--report",
+        report.to_str().unwrap(),
+    ])
+    .expect_err("the board's [io] drives 0-120 V only");
+    assert!(
+        e.contains("io.dac_range_v") && e.contains("xy-stage.toml"),
+        "{e}"
+    );
+    assert!(!e.contains("--invertible"), "{e}");
+    let r = json(&report);
+    assert_eq!(r["verdict"], "refused", "{r:#}");
+    assert!(!r["refusal"]["remedy"]
+        .as_str()
+        .unwrap()
+        .contains("--invertible"));
 }
 
 #[test]

@@ -157,6 +157,30 @@ impl Io {
             sensor_m_per_v: 1.0e-5,
         }
     }
+
+    /// [`Io::placeholder`] widened so that its drive range `dac_range_v × amplifier_gain_v_per_v`
+    /// covers `drive_range_v` = (u_min, u_max) \[V\] (the output windows a tool is about to
+    /// write), still marked as a placeholder. With u_max ≤ 120 V and u_min ≥ 0 it is the board's
+    /// chain unchanged; above, the gain is raised to g = ⌈u_max / 5 V⌉ V/V; with u_min < 0 the
+    /// DAC span becomes bipolar, [−5, 5] V, and g = max(24, ⌈max(|u_min|, |u_max|) / 5 V⌉). A
+    /// bipolar span is not what the firmware's DAC8563 drives: such a file needs the real `[io]`
+    /// before it builds into an image. A non-finite range gives [`Io::placeholder`].
+    pub fn placeholder_covering(drive_range_v: (f32, f32)) -> Self {
+        let mut io = Self::placeholder();
+        let (lo, hi) = drive_range_v;
+        if !(lo.is_finite() && hi.is_finite()) {
+            return io;
+        }
+        let dac_max = io.dac_range_v[1];
+        let reach = if lo < 0.0 {
+            io.dac_range_v = [-dac_max, dac_max];
+            hi.max(-lo)
+        } else {
+            hi
+        };
+        io.amplifier_gain_v_per_v = io.amplifier_gain_v_per_v.max((reach / dac_max).ceil());
+        io
+    }
 }
 
 /// The model family of an axis.

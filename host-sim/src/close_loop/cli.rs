@@ -4,6 +4,7 @@
 
 use super::{close_loop_validated, stage, write_plots, CloseLoopSettings};
 use crate::identify::Record;
+use crate::stage_file::{RefusalKind, Verdict, WrittenStage};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -56,7 +57,8 @@ pub struct CloseLoopArgs {
     /// Seed of the base identification.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Only base sets the firmware's compensator accepts (strictly monotone map).
+    /// Only sets the firmware's compensator accepts (strictly monotone map), base and effects:
+    /// every set kept is checked as `host-sim compensate` checks a stage file.
     #[arg(long)]
     pub invertible: bool,
     /// Report JSON to write.
@@ -95,21 +97,11 @@ pub fn read_records(
     Ok(records)
 }
 
-/// The report as written: the outcome's, with the stage file written and its verdict.
-#[derive(serde::Serialize)]
-struct Written<'a> {
-    /// [`super::Outcome::to_json`].
-    #[serde(flatten)]
-    outcome: serde_json::Value,
-    /// The stage file written.
-    stage_file: String,
-    /// The firmware's verdict on it.
-    stage_file_check: &'a str,
-    /// Wall time \[s\].
-    seconds: f64,
-}
-
-/// Runs `close-loop`.
+/// Runs `close-loop`. `[stage]` and `[io]` (`--stage`) are read before the search, so that a bad
+/// file is said at once. After the search, the stage file, the plots and the report are each
+/// written whatever became of the others; the report (written last) holds the firmware's verdict
+/// on the set, the refusal and what could not be written. A refused set (unless `--allow-refused`)
+/// or a file not written makes the command fail after that.
 pub fn close_loop_cmd(a: &CloseLoopArgs) -> Result<String, String> {
     if !(a.min_share > 0.0 && a.min_share < 1.0) {
         return Err(format!("--min-share {}: must be in (0, 1)", a.min_share));
@@ -148,12 +140,24 @@ pub fn close_loop_cmd(a: &CloseLoopArgs) -> Result<String, String> {
         ),
         None => None,
     };
+    if let Some(v) = &validation {
+        if v.len() != records.len() {
+            return Err(format!(
+                "--validate: {} axes, --data has {}",
+                v.len(),
+                records.len()
+            ));
+        }
+    }
+    let (stage, io) = stage::stage_and_io_for(&records, &a.data, a.stage.as_deref())?;
     let settings = CloseLoopSettings {
         start_s: a.start,
         min_share: a.min_share,
         seed: a.seed,
         invertible: a.invertible,
         free_offset: a.free_offset,
+        whole_set_invertible: a.invertible,
+        loop_rate_hz: Some(stage.loop_rate_hz),
         progress: true,
         ..Default::default()
     };
@@ -167,30 +171,38 @@ pub fn close_loop_cmd(a: &CloseLoopArgs) -> Result<String, String> {
         .out
         .clone()
         .unwrap_or_else(|| a.report.with_extension("toml"));
-    for p in [&a.report, &out] {
-        if let Some(dir) = p.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
-        }
-    }
     let data = a.data.display().to_string();
-    let verdict =
-        stage::write_stage_file(&outcome, &out, &data, a.stage.as_deref(), a.allow_refused)?;
-    let report = Written {
-        outcome: outcome.to_json(),
-        stage_file: out.display().to_string(),
-        stage_file_check: &verdict,
-        seconds: started.elapsed().as_secs_f64(),
-    };
-    // Through a JSON value, so that the keys are sorted as in every report.
-    let report = serde_json::to_value(&report).map_err(|e| e.to_string())?;
-    let json = serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?;
-    std::fs::write(&a.report, json).map_err(|e| format!("--report {}: {e}", a.report.display()))?;
+    let given = a.stage.as_deref();
+    let written = stage::write_stage_file(&outcome, &out, &data, stage, io)?;
     let mut plots = Vec::new();
+    let mut plots_failed = None;
     if a.plots.is_some() && records[0].segments.len() > 1 {
         eprintln!("warning: --plots: drawn for one record only; none drawn for several");
     } else if let Some(dir) = &a.plots {
-        plots = write_plots(&outcome, &records, dir, &["svg", "png"])?;
+        match write_plots(&outcome, &records, dir, &["svg", "png"]) {
+            Ok(p) => plots = p,
+            Err(e) => plots_failed = Some(format!("--plots {}: not written: {e}", dir.display())),
+        }
     }
+    let mut report = outcome.to_json();
+    if let (Some(r), serde_json::Value::Object(w)) =
+        (report.as_object_mut(), written.to_json(a.invertible, given))
+    {
+        r.extend(w);
+        r.insert("invertible".into(), invertible_json(a.invertible, &written));
+        r.insert("plots".into(), plots.clone().into());
+        r.insert("plots_not_written".into(), plots_failed.clone().into());
+        r.insert("seconds".into(), started.elapsed().as_secs_f64().into());
+    }
+    // Written as a JSON value, so that the keys are sorted as in every report.
+    let reported = serde_json::to_string_pretty(&report)
+        .map_err(|e| e.to_string())
+        .and_then(|json| {
+            if let Some(dir) = a.report.parent().filter(|d| !d.as_os_str().is_empty()) {
+                std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+            }
+            std::fs::write(&a.report, json).map_err(|e| e.to_string())
+        });
     let mut line = format!(
         "close-loop {data}: rms {:.4e} -> {:.4e} m, effects added: [{}]",
         outcome.before.rms,
@@ -218,13 +230,55 @@ pub fn close_loop_cmd(a: &CloseLoopArgs) -> Result<String, String> {
             v.before.rms, v.after.rms, v.before.rms_zeroed, v.after.rms_zeroed
         ));
     }
+    let files: Vec<String> = [
+        reported.is_ok().then(|| a.report.display().to_string()),
+        written
+            .not_written
+            .is_none()
+            .then(|| out.display().to_string()),
+    ]
+    .into_iter()
+    .flatten()
+    .collect();
     line.push_str(&format!(
-        "; {} and {} written ({verdict})",
-        a.report.display(),
-        out.display()
+        "; {} written ({})",
+        if files.is_empty() {
+            "nothing".to_string()
+        } else {
+            files.join(" and ")
+        },
+        written.verdict.summary(a.allow_refused)
     ));
     if !plots.is_empty() {
         line.push_str(&format!(", {} plots", plots.len()));
     }
-    Ok(line)
+    let mut failures = Vec::new();
+    failures.extend(written.error(a.invertible, given, a.allow_refused));
+    failures.extend(plots_failed);
+    if let Err(e) = reported {
+        failures.push(format!("--report {}: not written: {e}", a.report.display()));
+    }
+    if failures.is_empty() {
+        Ok(line)
+    } else {
+        Err(format!("{line}\n{}", failures.join("\n")))
+    }
+}
+
+/// The report's `invertible`: whether `--invertible` was asked for and whether the set written is
+/// one `host-sim compensate` runs (the check it makes: [`Verdict`]), and why not.
+fn invertible_json(required: bool, written: &WrittenStage) -> serde_json::Value {
+    let reason = match &written.verdict {
+        Verdict::Accepted => None,
+        Verdict::Refused {
+            kind: RefusalKind::NotInvertible,
+            message,
+        } => Some(format!("not invertible: {message}")),
+        v => Some(v.words()),
+    };
+    serde_json::json!({
+        "required": required,
+        "holds": reason.is_none(),
+        "reason": reason,
+    })
 }

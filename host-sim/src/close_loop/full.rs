@@ -16,7 +16,9 @@
 //! coupling κ. Every effect parameter has a range that makes it that effect ([`EffectBounds`]);
 //! [`AxisModel::decode`] holds θ inside it and [`AxisModel::effect_parameters`] names the parameters a fit
 //! ran to. The Jacobian is by forward differences (one core simulation per column, in parallel),
-//! steps Marquardt-scaled; a set the core refuses scores an infinite SSE and the step is rejected.
+//! steps Marquardt-scaled; a set the core refuses scores an infinite SSE and the step is rejected
+//! (with `--invertible`, [`FitData::invertible_at_hz`], so does a set the compensator refuses: the
+//! fit stays inside the sets `host-sim compensate` runs).
 //! A column of a map or effect parameter leaves the Bouc-Wen set alone, so it runs on the base
 //! point's hysteresis path ([`HysteresisPath`]: the operator's input and h per sample) instead of
 //! integrating the operator again; the numbers are those of a whole simulation, bit for bit.
@@ -862,6 +864,9 @@ pub struct FitData<'a> {
     /// Each record (segment of the model) has its own constant sensor offset, re-estimated on the
     /// samples scored in it.
     pub free_offset: bool,
+    /// `Some(loop rate)` \[Hz\]: only sets that [`super::stage::compensator_check`] accepts at
+    /// this loop rate are feasible (`--invertible`); the others score an infinite SSE.
+    pub invertible_at_hz: Option<f32>,
 }
 
 impl FitData<'_> {
@@ -985,6 +990,9 @@ impl RefitProblem<'_> {
     /// same numbers as a whole simulation, without integrating the operator again.
     fn predict(&self, th: &[f64], on: Option<&HysteresisPath>) -> Option<Prediction> {
         let (m, d) = (self.model.decode(th), self.d);
+        if let Some(rate) = d.invertible_at_hz {
+            super::stage::compensator_check(&m, rate).ok()?;
+        }
         let path = match on {
             Some(p) if p.fits(&m) => None,
             _ => Some(m.hysteresis_path(d.u).ok()?),
@@ -1037,6 +1045,48 @@ impl RefitProblem<'_> {
                     .collect()
             })
             .collect()
+    }
+}
+
+/// Bisection steps of [`last_accepted_on_the_way`] (the share of the way to 2⁻¹⁰).
+const WAY_BISECTIONS: usize = 10;
+
+/// The last set `accepts` takes on the straight line in θ from `from` (which it accepts) to `to`
+/// (a model with the same parameters): θ(t) = θ_from + t·(θ_to − θ_from) at the largest t in
+/// [0, 1] found by bisection (to 2⁻¹⁰), assuming that the accepted sets along the line are the
+/// ones before a single crossing. A start for a fit held to the accepted sets that is as close as
+/// it can be to the unconstrained fit. `from` when the parameters differ.
+pub fn last_accepted_on_the_way(
+    from: &AxisModel,
+    to: &AxisModel,
+    accepts: impl Fn(&AxisModel) -> bool,
+) -> AxisModel {
+    let (a, _, spec_a) = from.encode();
+    let (b, _, spec_b) = to.encode();
+    if spec_a != spec_b {
+        return from.clone();
+    }
+    let at = |t: f64| -> AxisModel {
+        let th: Vec<f64> = a.iter().zip(&b).map(|(x, y)| x + t * (y - x)).collect();
+        to.decode(&th)
+    };
+    let end = at(1.0);
+    if accepts(&end) {
+        return end;
+    }
+    let (mut lo, mut hi) = (0.0, 1.0);
+    for _ in 0..WAY_BISECTIONS {
+        let mid = 0.5 * (lo + hi);
+        if accepts(&at(mid)) {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    if lo == 0.0 {
+        from.clone()
+    } else {
+        at(lo)
     }
 }
 

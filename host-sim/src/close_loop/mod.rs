@@ -18,6 +18,14 @@
 //! 3. Stop when nothing holds. The decisions, with their evidence, are typed ([`report`]) and turned
 //!    into JSON last.
 //!
+//! 4. With `--invertible` ([`CloseLoopSettings::whole_set_invertible`]) every set kept is one
+//!    `host-sim compensate` runs ([`stage::compensator_check`]: the stage file's check at its
+//!    loop rate, a strictly monotone map, min/max |dy/du| ≥ 0.01). A base polish or a candidate's
+//!    fit that the compensator refuses is fitted again held to the sets it accepts (started from
+//!    the last accepted set on the way to it); a candidate that gains nothing so is refused as not
+//!    invertible, with both fits' figures. A search from a base the compensator refuses that ends
+//!    at such a set runs again from the held base.
+//!
 //! The final models are stage-file axes ([`stage`]); the in-sample, held-out and validation
 //! predictions run through piezo-stage's chain, the code `predict` and the firmware run.
 
@@ -31,13 +39,16 @@ pub mod stage;
 
 pub use cli::{close_loop_cmd, read_records, CloseLoopArgs};
 pub use plots::write_plots;
-pub use stage::{parameter_file, validate, write_stage_file, Fit, Validation};
+pub use stage::{
+    compensator_check, parameter_file, stage_and_io_for, validate, write_stage_file, Fit,
+    Validation,
+};
 
 use crate::identify::{identify, min_max, IdentifyError, IdentifySettings, Method, Record};
 use diagnose::{
     noise_estimate, screen, Candidate, EffectInit, EffectKind, ResidualFigures, Signals,
 };
-use full::{refit, sse, AxisModel, EffectBounds, FitData, Simulation};
+use full::{last_accepted_on_the_way, refit, sse, AxisModel, EffectBounds, FitData, Simulation};
 use report::{Step, StepOutcome, Trial};
 use select::{
     folds, held_out_sse, Decision, Floor, OutOfSample, Plausibility, Refusal, RunGain, Stop,
@@ -110,10 +121,19 @@ pub struct CloseLoopSettings {
     pub min_share: f64,
     /// Seed of the base identification.
     pub seed: u64,
-    /// Only firmware-invertible base sets.
+    /// The base identified among the sets the compensator accepts over the record's range
+    /// (`identify --invertible`).
     pub invertible: bool,
     /// Several records: each has its own constant sensor offset.
     pub free_offset: bool,
+    /// Every set the search keeps, base and effects, is one `host-sim compensate` and the firmware
+    /// run ([`stage::compensator_check`] at `loop_rate_hz`): a fit the compensator refuses is
+    /// fitted again held to the sets it accepts, or refused as not invertible (what the command
+    /// line's `--invertible` asks; it needs `invertible` for the base).
+    pub whole_set_invertible: bool,
+    /// The loop rate of the stage file to be written \[Hz\] (its effects are discretised at it);
+    /// `None`: the record's rate, as a stage file written without `--stage` has it.
+    pub loop_rate_hz: Option<f32>,
     /// Effects that may be added.
     pub allowed: Vec<EffectKind>,
     /// Progress on stderr.
@@ -128,6 +148,8 @@ impl Default for CloseLoopSettings {
             seed: 1,
             invertible: false,
             free_offset: false,
+            whole_set_invertible: false,
+            loop_rate_hz: None,
             allowed: EffectKind::ALL.to_vec(),
             progress: false,
         }
@@ -323,7 +345,23 @@ fn log(show: bool, msg: impl AsRef<str>) {
     }
 }
 
-fn base_model(record: &Record, s: &CloseLoopSettings) -> Result<AxisModel, CloseLoopError> {
+/// The loop rate every set is checked at with `whole_set_invertible` (`--invertible`,
+/// [`stage::compensator_check`]); `None` without it.
+fn invertible_at_hz(record: &Record, s: &CloseLoopSettings) -> Option<f32> {
+    s.whole_set_invertible.then(|| {
+        s.loop_rate_hz
+            .unwrap_or_else(|| crate::stage_file::rate_of(1.0 / record.sample_period_s()))
+    })
+}
+
+/// The base model of one axis: the identified set polished on the whole record, and with
+/// `--invertible`, when the compensator refuses that polish, the polish held to the sets it
+/// accepts (started from the last set it accepts on the way from the identified set to the free
+/// polish).
+fn base_model(
+    record: &Record,
+    s: &CloseLoopSettings,
+) -> Result<(AxisModel, Option<AxisModel>), CloseLoopError> {
     let id = identify(
         record,
         &IdentifySettings {
@@ -394,8 +432,13 @@ fn base_model(record: &Record, s: &CloseLoopSettings) -> Result<AxisModel, Close
         free_offset: s.free_offset && record.segments.len() > 1,
     };
     // The stage file's output window is the record's range rounded outwards; the Bouc-Wen set must
-    // hold over it (else the record's own range is kept).
-    if model.build().is_err() {
+    // hold over it, and with `--invertible` the compensator accept it there (else the record's own
+    // range is kept).
+    let invertible_at_hz = invertible_at_hz(record, s);
+    let accepted = |m: &AxisModel| {
+        invertible_at_hz.is_none_or(|rate| stage::compensator_check(m, rate).is_ok())
+    };
+    if model.build().is_err() || !accepted(&model) {
         model.input_range_v = input_range_v;
     }
     // Polished by the same Levenberg–Marquardt as every candidate (on the core's f32 chain), so
@@ -408,33 +451,59 @@ fn base_model(record: &Record, s: &CloseLoopSettings) -> Result<AxisModel, Close
         from,
         held_out: None,
         free_offset: model.free_offset,
+        invertible_at_hz: None,
     };
     let (polished, sse_polished, _) = refit(&model, &data, 2 * TRIAL_ITERATIONS);
-    if sse_polished.is_finite() && sse_polished < sse(&model, &data) {
-        model = polished;
-    }
-    Ok(model)
+    let free = if sse_polished.is_finite() && sse_polished < sse(&model, &data) {
+        polished
+    } else {
+        model.clone()
+    };
+    let held = match invertible_at_hz {
+        Some(rate) if !accepted(&free) => {
+            let start = last_accepted_on_the_way(&model, &free, accepted);
+            let (p, sse_p, _) = refit(&start, &held_to(&data, rate), 2 * TRIAL_ITERATIONS);
+            Some(if sse_p.is_finite() && accepted(&p) {
+                p
+            } else {
+                start
+            })
+        }
+        _ => None,
+    };
+    Ok((free, held))
 }
 
 /// A start for the creep fit with gains of the sign of the stage's static gain (σ) and the static
 /// gain k1 + (creep's gain) of `model` kept, when `fitted` (from the screening's start `init`)
 /// ended with a creep gain of the other sign or 0; `None` otherwise. The start's gain per element
 /// is the largest of the fitted and screened magnitudes and 2 % of |k1| (a stack's creep per
-/// decade of time).
-fn creep_restart(model: &AxisModel, fitted: &AxisModel, init: EffectInit) -> Option<AxisModel> {
+/// decade of time); `always`: also when the gains have the right sign. With `invertible_at_hz`
+/// (`--invertible`) the start must be a set the
+/// compensator accepts: lowering k1 can make the map turn back after a reversal, so the gains
+/// (and the shift of k1 with them) are halved, up to [`FEASIBLE_HALVINGS`] times, until it is;
+/// `None` if they never are.
+fn creep_restart(
+    model: &AxisModel,
+    fitted: &AxisModel,
+    init: EffectInit,
+    invertible_at_hz: Option<f32>,
+    always: bool,
+) -> Option<AxisModel> {
     let e = &fitted.effects;
     let b = model.bounds;
     let sign = b.gain_sign;
     let k1 = f64::from(model.map.k1_m_per_v);
     let floor = 0.02 * k1.abs();
-    let start = match init {
+    // The start with its creep gains scaled by `scale`.
+    let start: Box<dyn Fn(f64) -> AxisModel> = match init {
         EffectInit::Creep {
             gains_m_per_v,
             time_constants_s,
         } => {
             let n = fitted.creep_elements;
             let gains = &e.creep_gain_m_per_v[..n];
-            if gains.iter().all(|&g| f64::from(g) * sign > 0.0) {
+            if !always && gains.iter().all(|&g| f64::from(g) * sign > 0.0) {
                 return None;
             }
             let mut g = [0.0; 2];
@@ -445,32 +514,46 @@ fn creep_restart(model: &AxisModel, fitted: &AxisModel, init: EffectInit) -> Opt
                         .max(gains_m_per_v[i].abs())
                         .max(floor);
             }
-            let mut m = model.with_effect(EffectInit::Creep {
-                gains_m_per_v: g,
-                time_constants_s,
-            });
-            m.map.k1_m_per_v = (k1 - g.iter().sum::<f64>()) as f32;
-            m
+            Box::new(move |scale| {
+                let g = g.map(|v| scale * v);
+                let mut m = model.with_effect(EffectInit::Creep {
+                    gains_m_per_v: g,
+                    time_constants_s,
+                });
+                m.map.k1_m_per_v = (k1 - g.iter().sum::<f64>()) as f32;
+                m
+            })
         }
         EffectInit::LogCreep { gain_m_per_v } => {
             let g_fit = f64::from(e.log_creep_gain_m_per_v);
-            if g_fit * sign > 0.0 {
+            if !always && g_fit * sign > 0.0 {
                 return None;
             }
             let g = sign * g_fit.abs().max(gain_m_per_v.abs()).max(0.5 * floor);
-            let mut m = model.with_effect(EffectInit::LogCreep { gain_m_per_v: g });
             // After a step the logarithmic creep has reached g·log10(1 + t/t0); at half the record:
             let decades = (1.0 + 0.5 * b.record_s / b.sample_period_s).log10();
-            m.map.k1_m_per_v = (k1 - g * decades) as f32;
-            m
+            Box::new(move |scale| {
+                let g = scale * g;
+                let mut m = model.with_effect(EffectInit::LogCreep { gain_m_per_v: g });
+                m.map.k1_m_per_v = (k1 - g * decades) as f32;
+                m
+            })
         }
         _ => return None,
     };
-    Some(start)
+    let Some(rate) = invertible_at_hz else {
+        return Some(start(1.0));
+    };
+    (0..=FEASIBLE_HALVINGS)
+        .map(|i| start(0.5f64.powi(i as i32)))
+        .find(|m| stage::compensator_check(m, rate).is_ok())
 }
 
+/// Most halvings of a creep restart's gains in search of a start the compensator accepts.
+const FEASIBLE_HALVINGS: usize = 4;
+
 /// What a candidate is judged against: the fitted data, its held-out blocks, the current model's
-/// held-out and in-sample SSE, and the other run (`--validate`).
+/// held-out and in-sample SSE, the other run (`--validate`) and the loop rate of `--invertible`.
 struct Bench<'a> {
     /// The data the candidate is fitted on.
     data: &'a FitData<'a>,
@@ -484,22 +567,112 @@ struct Bench<'a> {
     run: Option<&'a OtherRun>,
     /// Times of the record \[s\].
     t_s: &'a [f64],
+    /// `--invertible`: the loop rate every set added must pass [`stage::compensator_check`] at.
+    invertible_at_hz: Option<f32>,
 }
 
-/// Fits, judges and decides one candidate.
+/// The candidate fitted on `data` (the whole model refitted from the screening's start) and its
+/// SSE. A base fitted without creep has the creep's long-term gain in k1 (and its lag in the
+/// loop), so a creep fit started from the screening may settle at a gain of the wrong sign. It is
+/// started again with gains of the static gain's sign and the static gain held (k1 lowered by the
+/// creep's gain). On data held to the compensator's sets ([`FitData::invertible_at_hz`]) a creep
+/// fit that could not lower k1 and gained nothing is started again the same way, from the largest
+/// share of that start the compensator accepts.
+fn fit_candidate(
+    model: &AxisModel,
+    cand: &Candidate,
+    data: &FitData,
+    sse0: f64,
+) -> (AxisModel, f64) {
+    let (mut fitted, mut sse1, _) = refit(&model.with_effect(cand.init), data, TRIAL_ITERATIONS);
+    let stuck = data.invertible_at_hz.is_some() && !(sse1 < sse0);
+    if let Some(start) = creep_restart(model, &fitted, cand.init, data.invertible_at_hz, stuck) {
+        let (again, sse_again, _) = refit(&start, data, TRIAL_ITERATIONS);
+        if sse_again.is_finite()
+            && Plausibility::of(&again, cand.effect).plausible()
+            && (!stuck || sse_again < sse1)
+        {
+            fitted = again;
+            sse1 = sse_again;
+        }
+    }
+    (fitted, sse1)
+}
+
+/// The candidate fitted on `held` (data held to the sets the compensator accepts) when its
+/// unconstrained fit `free` is a set it refuses: the better of the fit from the last set it
+/// accepts on the way from the screening's start to `free` ([`last_accepted_on_the_way`]) and
+/// [`fit_candidate`] on `held`.
+fn fit_held(
+    model: &AxisModel,
+    cand: &Candidate,
+    held: &FitData,
+    free: &AxisModel,
+    sse0: f64,
+) -> (AxisModel, f64) {
+    let Some(rate) = held.invertible_at_hz else {
+        return fit_candidate(model, cand, held, sse0);
+    };
+    let accepted = |m: &AxisModel| stage::compensator_check(m, rate).is_ok();
+    let start = last_accepted_on_the_way(&model.with_effect(cand.init), free, accepted);
+    let (on_the_way, sse_way, _) = refit(&start, held, TRIAL_ITERATIONS);
+    let (again, sse_again) = fit_candidate(model, cand, held, sse0);
+    if sse_again < sse_way {
+        (again, sse_again)
+    } else {
+        (on_the_way, sse_way)
+    }
+}
+
+/// `data` held to the sets the compensator accepts at `rate` \[Hz\].
+fn held_to<'a>(data: &FitData<'a>, rate: f32) -> FitData<'a> {
+    FitData {
+        u: data.u,
+        y: data.y,
+        other_z: data.other_z,
+        from: data.from,
+        held_out: data.held_out,
+        free_offset: data.free_offset,
+        invertible_at_hz: Some(rate),
+    }
+}
+
+/// Fits, judges and decides one candidate. With `--invertible`, a fit the compensator refuses is
+/// fitted again held to the sets it accepts (the Levenberg–Marquardt rejects every step out of
+/// them), and judged as that fit, its held-out blocks refitted the same way; if that fit gains
+/// nothing in sample, the candidate is refused as not invertible, with both fits' figures and the
+/// compensator's refusal.
 fn try_candidate(model: &AxisModel, cand: &Candidate, bench: &Bench) -> Trial {
     let (data, sse0) = (bench.data, bench.sse0);
     let n = data.fitted_count() as f64;
-    let (mut fitted, mut sse1, _) = refit(&model.with_effect(cand.init), data, TRIAL_ITERATIONS);
-    // A base fitted without creep has the creep's long-term gain in k1 (and its lag in the loop),
-    // so a creep fit started from the screening may settle at a gain of the wrong sign. It is
-    // started again with gains of the static gain's sign and the static gain held (k1 lowered by
-    // the creep's gain).
-    if let Some(start) = creep_restart(model, &fitted, cand.init) {
-        let (again, sse_again, _) = refit(&start, data, TRIAL_ITERATIONS);
-        if sse_again.is_finite() && Plausibility::of(&again, cand.effect).plausible() {
-            fitted = again;
-            sse1 = sse_again;
+    let (mut fitted, mut sse1) = fit_candidate(model, cand, data, sse0);
+    let rms = |sse: f64| (sse / n).sqrt();
+    let mut invertibility = None;
+    let mut refused_as_not_invertible = false;
+    let constrained = bench.invertible_at_hz.map(|rate| held_to(data, rate));
+    let mut fit_data = data;
+    if let (Some(rate), Some(held)) = (bench.invertible_at_hz, constrained.as_ref()) {
+        if let Err(refusal) = stage::compensator_check(&fitted, rate) {
+            let (c, sse_c) = fit_held(model, cand, held, &fitted, sse0);
+            let free = format!(
+                "the fit reaches in-sample RMS {:.4e} m with a set the compensator refuses ({refusal})",
+                rms(sse1)
+            );
+            if sse_c < sse0 && stage::compensator_check(&c, rate).is_ok() {
+                invertibility = Some(format!(
+                    "{free}; held to the sets it accepts: {:.4e} m",
+                    rms(sse_c)
+                ));
+                (fitted, sse1, fit_data) = (c, sse_c, held);
+            } else {
+                let held_rms = if sse_c.is_finite() {
+                    format!("{:.4e} m, no gain", rms(sse_c))
+                } else {
+                    "no set".to_string()
+                };
+                invertibility = Some(format!("{free}; held to the sets it accepts: {held_rms}"));
+                refused_as_not_invertible = true;
+            }
         }
     }
     let kind = cand.effect;
@@ -514,12 +687,13 @@ fn try_candidate(model: &AxisModel, cand: &Candidate, bench: &Bench) -> Trial {
             .iter()
             .map(|c| (c.parameter, c.value))
             .collect(),
-        rms_before: (sse0 / n).sqrt(),
-        rms_after: (sse1 / n).sqrt(),
+        rms_before: rms(sse0),
+        rms_after: rms(sse1),
         delta_bic: n * (sse1.max(1e-300) / sse0.max(1e-300)).ln() + p_new * n.ln(),
         plausibility,
         out_of_sample: None,
         another_run: None,
+        invertibility,
         decision: Decision::HoldsNotBest,
         model: fitted,
         sse: sse1,
@@ -548,8 +722,10 @@ fn try_candidate(model: &AxisModel, cand: &Candidate, bench: &Bench) -> Trial {
         trial.decision = refuse(Refusal::Implausible);
     } else if sse1 >= sse0 {
         trial.decision = refuse(Refusal::NoInSampleGain);
+    } else if refused_as_not_invertible {
+        trial.decision = refuse(Refusal::NotInvertible);
     } else {
-        let with = held_out_sse(&trial.model, data, bench.blocks);
+        let with = held_out_sse(&trial.model, fit_data, bench.blocks);
         let oos = OutOfSample::new(bench.held_without, &with, bench.blocks, bench.t_s);
         let holds = oos.holds();
         trial.out_of_sample = Some(oos);
@@ -664,6 +840,7 @@ impl Search<'_> {
             sse0: current_sse,
             run: self.run,
             t_s: &self.record.t_s,
+            invertible_at_hz: invertible_at_hz(self.record, self.s),
         };
         let mut trials = Vec::new();
         for cand in chosen {
@@ -679,8 +856,9 @@ impl Search<'_> {
         trials
     }
 
-    /// An effect added earlier that `added` makes redundant (refitted without it, within 1 % RMS)
-    /// is taken out again, a step logged for each; returns the model and its SSE.
+    /// An effect added earlier that `added` makes redundant (refitted without it, within 1 % RMS,
+    /// and with `--invertible` a set the compensator accepts) is taken out again, a step logged
+    /// for each; returns the model and its SSE.
     fn prune(
         &self,
         mut model: AxisModel,
@@ -693,7 +871,9 @@ impl Search<'_> {
             let (pruned, sse_p, _) =
                 refit(&model.without_effect(kind), &self.data, TRIAL_ITERATIONS);
             let rms_p = self.rms(sse_p);
-            if rms_p.is_finite() && rms_p < 1.01 * self.rms(current_sse) {
+            let accepted = invertible_at_hz(self.record, self.s)
+                .is_none_or(|rate| stage::compensator_check(&pruned, rate).is_ok());
+            if accepted && rms_p.is_finite() && rms_p < 1.01 * self.rms(current_sse) {
                 steps.push(Step {
                     axis: self.name.into(),
                     number: steps.len() + 1,
@@ -763,6 +943,7 @@ fn close_axis(
             from,
             held_out: None,
             free_offset: base.free_offset,
+            invertible_at_hz: None,
         },
         // Several records: leave one record out; one record: blocks over time.
         blocks: if record.segments.len() > 1 {
@@ -863,6 +1044,55 @@ fn close_axis(
     })
 }
 
+/// [`close_axis`] from the base `base.0`; with `--invertible`, when that search ends at a set the
+/// compensator refuses and there is a base held to the sets it accepts (`base.1`), the search runs
+/// again from that base, which becomes the axis's base (`base.0`). The first search's steps are
+/// kept in the log, followed by a step that says why it was not taken.
+fn search_axis(
+    name: &str,
+    record: &Record,
+    other_z: Option<&[f64]>,
+    s: &CloseLoopSettings,
+    base: (&mut AxisModel, Option<&AxisModel>),
+    run: Option<&OtherRun>,
+) -> Result<AxisSearch, String> {
+    let (free, held) = base;
+    let first = close_axis(name, record, other_z, s, free.clone(), run)?;
+    let (Some(rate), Some(held)) = (invertible_at_hz(record, s), held) else {
+        return Ok(first);
+    };
+    let Err(refusal) = stage::compensator_check(&first.model, rate) else {
+        return Ok(first);
+    };
+    log(
+        s.progress,
+        format!(
+            "{name}: the search from the base fitted without the constraint ended at a set the \
+             compensator refuses; searching again from the base held to the sets it accepts"
+        ),
+    );
+    let mut second = close_axis(name, record, other_z, s, held.clone(), run)?;
+    let mut steps = first.steps;
+    if let Some(last) = steps.last() {
+        steps.push(Step {
+            axis: name.into(),
+            number: steps.len() + 1,
+            rms_before: last.rms_before,
+            floor: last.floor,
+            screened: Vec::new(),
+            trials: Vec::new(),
+            outcome: StepOutcome::Restarted { refusal },
+        });
+    }
+    for step in &mut second.steps {
+        step.number += steps.len();
+    }
+    steps.append(&mut second.steps);
+    second.steps = steps;
+    *free = held.clone();
+    Ok(second)
+}
+
 /// Runs `close-loop` on one record per axis (same times).
 pub fn close_loop(records: &[Record], s: &CloseLoopSettings) -> Result<Outcome, CloseLoopError> {
     close_loop_validated(records, s, None)
@@ -880,9 +1110,12 @@ pub fn close_loop_validated(
         return Err(CloseLoopError::TooFewSamples { start_s: s.start_s });
     }
     let mut bases = Vec::new();
+    let mut held_bases = Vec::new();
     for (i, r) in records.iter().enumerate() {
         log(s.progress, format!("axis {i}: identifying the base model"));
-        bases.push(base_model(r, s)?);
+        let (free, held) = base_model(r, s)?;
+        bases.push(free);
+        held_bases.push(held);
     }
     let f32s = |r: &Record| -> Vec<f32> { r.u.iter().map(|&v| v as f32).collect() };
     let run_of = |i: usize, other_z: Option<Vec<f64>>| -> Option<OtherRun> {
@@ -898,12 +1131,12 @@ pub fn close_loop_validated(
     let names = ["x", "y"];
     let mut finals: Vec<AxisSearch> = Vec::new();
     if records.len() == 1 {
-        finals.push(close_axis(
+        finals.push(search_axis(
             names[0],
             &records[0],
             None,
             s,
-            bases[0].clone(),
+            (&mut bases[0], held_bases[0].as_ref()),
             run_of(0, None).as_ref(),
         )?);
     } else {
@@ -914,22 +1147,22 @@ pub fn close_loop_validated(
             m.simulate(&f32s(recs.get(i)?), None).ok().map(|s| s.z)
         };
         let run = run_of(0, other_run(1, &bases[1]));
-        finals.push(close_axis(
+        finals.push(search_axis(
             names[0],
             &records[0],
             Some(&z_y),
             s,
-            bases[0].clone(),
+            (&mut bases[0], held_bases[0].as_ref()),
             run.as_ref(),
         )?);
         let z_x = finals[0].model.simulate(&f32s(&records[0]), None)?.z;
         let run = run_of(1, other_run(0, &finals[0].model));
-        finals.push(close_axis(
+        finals.push(search_axis(
             names[1],
             &records[1],
             Some(&z_x),
             s,
-            bases[1].clone(),
+            (&mut bases[1], held_bases[1].as_ref()),
             run.as_ref(),
         )?);
     }

@@ -33,6 +33,10 @@ pub struct Trial {
     pub out_of_sample: Option<OutOfSample>,
     /// The gain on the `--validate` record (when given and reached).
     pub another_run: Option<RunGain>,
+    /// With `--invertible`, when the compensator refused the fit: both fits' figures and its
+    /// refusal (then the trial is the fit held to the sets it accepts, or refused as not
+    /// invertible); `None` otherwise.
+    pub invertibility: Option<String>,
     /// The decision.
     pub decision: Decision,
     /// The fitted model with the effect.
@@ -90,6 +94,9 @@ impl Trial {
             self.plausibility.words(),
             self.decision.words()
         ));
+        if let Some(reason) = &self.invertibility {
+            s.push_str(&format!(" (--invertible: {reason})"));
+        }
         s
     }
 
@@ -126,6 +133,7 @@ impl Trial {
                 "holds": r.holds(),
             })),
             "plausibility": self.plausibility.to_json(),
+            "invertibility": self.invertibility,
             "decision": self.decision.name(),
             "words": self.words(),
         })
@@ -153,6 +161,12 @@ pub enum StepOutcome {
     },
     /// The search stopped.
     Stopped(Stop),
+    /// With `--invertible`: the search so far ended at a set the compensator refuses (why), and
+    /// starts again from the base held to the sets it accepts.
+    Restarted {
+        /// The compensator's refusal of the set the search ended at.
+        refusal: String,
+    },
 }
 
 /// One step of the search on one axis.
@@ -213,6 +227,11 @@ impl Step {
                 rms_without
             ),
             StepOutcome::Stopped(stop) => format!("stopped: {}", stop.words()),
+            StepOutcome::Restarted { refusal } => format!(
+                "the search from the base fitted without --invertible's constraint ended at a set \
+                 the compensator refuses ({refusal}); it starts again from the base held to the \
+                 sets it accepts"
+            ),
         };
         let mut s = format!("{head}. {outcome}.");
         for t in &self.trials {
@@ -240,11 +259,14 @@ impl Step {
                     Stop::NoCandidates => "stopped-no-candidates",
                 }),
             ),
+            StepOutcome::Restarted { .. } => {
+                (json!(null), json!(null), json!("restarted-from-held-base"))
+            }
         };
         let rms = match &self.outcome {
             StepOutcome::Added { rms_after, .. } => *rms_after,
             StepOutcome::Removed { rms_without, .. } => *rms_without,
-            StepOutcome::Stopped(_) => self.rms_before,
+            StepOutcome::Stopped(_) | StepOutcome::Restarted { .. } => self.rms_before,
         };
         json!({
             "axis": self.axis,

@@ -99,6 +99,7 @@ pub fn held_out_sse(model: &AxisModel, data: &FitData, blocks: &[(usize, usize)]
                 from: data.from,
                 held_out: Some((a, b)),
                 free_offset: data.free_offset,
+                invertible_at_hz: data.invertible_at_hz,
             };
             let (fitted, _, _) = refit(model, &d, FOLD_ITERATIONS);
             sse_where(&fitted, &d, |k| k >= a && k < b)
@@ -329,6 +330,9 @@ pub enum Refusal {
     NotOutOfSample,
     /// The effect makes the prediction of the `--validate` record worse.
     WorseOnAnotherRun,
+    /// With `--invertible`: the fit with the effect is a set the compensator refuses, and held to
+    /// the sets it accepts it gains nothing (the trial's `invertibility` says by how much).
+    NotInvertible,
 }
 
 impl Refusal {
@@ -340,6 +344,7 @@ impl Refusal {
             Self::NoInSampleGain => "it does not lower the residual even in sample",
             Self::NotOutOfSample => "the gain does not hold on the held-out blocks (one-sided t-test on the blocks' log MSE ratios, no block worse, pooled gain)",
             Self::WorseOnAnotherRun => "it makes the prediction of the --validate record worse",
+            Self::NotInvertible => "not invertible: with this effect the fit is a set the compensator refuses, and held to the sets it accepts it gains nothing (--invertible)",
         }
     }
 }
@@ -375,6 +380,7 @@ impl Decision {
             Self::Refused(Refusal::NoInSampleGain) => "refused-no-gain",
             Self::Refused(Refusal::NotOutOfSample) => "refused-not-out-of-sample",
             Self::Refused(Refusal::WorseOnAnotherRun) => "refused-worse-on-another-run",
+            Self::Refused(Refusal::NotInvertible) => "refused-not-invertible",
         }
     }
 }

@@ -10,7 +10,7 @@
 use super::full::AxisModel;
 use super::Outcome;
 use crate::identify::Record;
-use crate::stage_file::{stage_and_io, write_stage};
+use crate::stage_file::{stage_and_io, write_stage, WrittenStage};
 use piezo_core::Asymmetry;
 use piezo_stage::{simulate_pair, Axis, AxisChain, Limits, Provenance, StageFile, AXIS_NAMES};
 use serde_json::{json, Value};
@@ -276,23 +276,84 @@ fn header(outcome: &Outcome, data: &str) -> String {
     )
 }
 
-/// Writes the stage file of the final models: `[stage]` and `[io]` from `given` (or from the record
-/// with a placeholder io), an axis per record axis. Returns the firmware's verdict; refuses a set the
-/// firmware would refuse unless `allow_refused`.
+/// The stage file of the final models: `[stage]` and `[io]` as given, an axis per record axis
+/// (with a servo tuned on a `mode` effect, [`with_servo`]).
+pub fn stage_file(
+    outcome: &Outcome,
+    data: &str,
+    stage: piezo_stage::Stage,
+    io: piezo_stage::Io,
+) -> Result<StageFile, String> {
+    let mut axes = with_servo(&stage, &io, final_axes(outcome, data)).into_iter();
+    Ok(StageFile {
+        stage,
+        io,
+        x: axes.next().ok_or("no axis to write")?,
+        y: axes.next(),
+    })
+}
+
+/// The `[stage]` and `[io]` of the stage file for `records` (the fitted record `data`): from
+/// `given` (`--stage`), or named after the record at its rate with a placeholder io chain whose
+/// drive range covers the records' output windows ([`output_window`]).
+pub fn stage_and_io_for(
+    records: &[Record],
+    data: &Path,
+    given: Option<&Path>,
+) -> Result<(piezo_stage::Stage, piezo_stage::Io), String> {
+    let name = data
+        .file_stem()
+        .map_or("stage".into(), |s| s.to_string_lossy().to_string());
+    let windows: Vec<(f32, f32)> = records.iter().map(|r| output_window(&r.u)).collect();
+    let rate = 1.0 / records.first().ok_or("no record")?.sample_period_s();
+    stage_and_io(given, &name, rate, drive_range(&windows))
+}
+
+/// Writes the stage file of the final models to `path` with `[stage]` and `[io]` (from
+/// [`stage_and_io_for`]) and checks it as `compensate` reads it: what was written and the
+/// firmware's verdict. `Err` only for an outcome without axes.
 pub fn write_stage_file(
     outcome: &Outcome,
     path: &Path,
     data: &str,
-    given: Option<&Path>,
-    allow_refused: bool,
-) -> Result<String, String> {
-    let rate = 1.0 / f64::from(outcome.axes[0].model.sample_period_s);
-    let name = Path::new(data)
-        .file_stem()
-        .map_or("stage".into(), |s| s.to_string_lossy().to_string());
-    let (stage, io) = stage_and_io(given, &name, rate)?;
-    let axes = with_servo(&stage, &io, final_axes(outcome, data));
-    write_stage(path, &header(outcome, data), stage, io, axes, allow_refused)
+    stage: piezo_stage::Stage,
+    io: piezo_stage::Io,
+) -> Result<WrittenStage, String> {
+    let file = stage_file(outcome, data, stage, io)?;
+    Ok(write_stage(path, &header(outcome, data), &file))
+}
+
+/// The smallest range that holds every window \[V\].
+pub fn drive_range(windows: &[(f32, f32)]) -> (f32, f32) {
+    windows
+        .iter()
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), w| {
+            (lo.min(w.0), hi.max(w.1))
+        })
+}
+
+/// Whether `host-sim compensate` (and the firmware) would run `m` as an axis of a stage file at
+/// `loop_rate_hz`: the axis as written ([`stage_axis`]: output window = the model's input range)
+/// in a one-axis file whose io chain drives that window, checked by `StageFile::validate` (the
+/// Bouc-Wen set over the window, the static map, `Compensator::new` (strictly monotone map),
+/// `Effects::new` at the loop period) and `compensate`'s feed-forward axes. The io chain of the
+/// file finally written is checked with it ([`crate::stage_file::Verdict`]). `Err`: the refusal.
+pub fn compensator_check(m: &AxisModel, loop_rate_hz: f32) -> Result<(), String> {
+    let file = StageFile {
+        stage: piezo_stage::Stage {
+            name: "check".into(),
+            version: "1".into(),
+            loop_rate_hz,
+        },
+        io: piezo_stage::Io::placeholder_covering(m.input_range_v),
+        x: stage_axis(m, None),
+        y: None,
+    };
+    let valid = file
+        .validate()
+        .map_err(|e| format!("`{}`: {}", e.key, e.message))?;
+    crate::compensate::feedforward_axes(&file, &valid, Path::new("the axis"))?;
+    Ok(())
 }
 
 /// The axes with a feedback servo (`[x.servo]`) tuned by `host-sim servo-tune`'s rule when every

@@ -1041,7 +1041,10 @@ fn write_json(path: &Path, value: &serde_json::Value, flag: &str) -> Result<(), 
     std::fs::write(path, text).map_err(|e| format!("{flag} {}: {e}", path.display()))
 }
 
-/// Runs `identify`: one set per axis, one stage file.
+/// Runs `identify`: one set per axis, one stage file. The stage file, the plots and the report
+/// are each written whatever became of the others; the report (written last) holds the firmware's
+/// verdict on the set and says what could not be written. A set the firmware refuses (unless
+/// `--allow-refused`) or a file not written makes the command fail after that.
 pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
     let mut records = a.columns.read_axes(&a.data)?;
     if let Some(end) = a.end {
@@ -1049,6 +1052,22 @@ pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
             r.cut_after(end)?;
         }
     }
+    // `[stage]` and `[io]` before the fit, so that a bad --stage is said at once. The output
+    // window of a static set is the record's input range: a placeholder io chain covers it.
+    let drive_range_v = if matches!(a.model, ModelKind::Symmetric | ModelKind::Asymmetric) {
+        records.iter().fold((0.0f32, 0.0f32), |(lo, hi), r| {
+            let (a, b) = min_max(&r.u);
+            (lo.min(a as f32), hi.max(b as f32))
+        })
+    } else {
+        (0.0, 0.0)
+    };
+    let (stage, io) = crate::stage_file::stage_and_io(
+        a.stage.as_deref(),
+        &format!("identified-{}", a.model.name()),
+        1.0 / records[0].sample_period_s(),
+        drive_range_v,
+    )?;
     let settings = IdentifySettings {
         model: a.model,
         method: a.method,
@@ -1100,6 +1119,42 @@ pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
         ));
         identified.push((id, warnings));
     }
+    let header = format!(
+        "Identified by `host-sim identify` ({} model, method {}) from {}, scored from t = {} s.\nSI units.",
+        a.model.name(),
+        a.method.name(),
+        a.data.display(),
+        a.start
+    );
+    let mut axes = axes.into_iter();
+    let file = piezo_stage::StageFile {
+        stage,
+        io,
+        x: axes.next().ok_or("no axis to write")?,
+        y: axes.next(),
+    };
+    let stage_file = crate::stage_file::write_stage(&a.out, &header, &file);
+    let mut plots = Vec::new();
+    let mut plots_failed = None;
+    if a.plots.is_some() && records[0].segments.len() > 1 {
+        eprintln!("warning: --plots: drawn for one record only; none drawn for several");
+    } else if let Some(dir) = &a.plots {
+        // The fit as written: the stage file's chain on the fitted record.
+        let from = records[0].index_at(a.start);
+        let made = if stage_file.not_written.is_some() {
+            Err("the stage file they show was not written".to_string())
+        } else {
+            predict::read_stage(&a.out)
+                .and_then(|file| predict::predict_axes(&file, &records, from))
+                .and_then(|predicted| {
+                    predict::write_plots(dir, "identify", &records, &predicted, from)
+                })
+        };
+        match made {
+            Ok(p) => plots = p,
+            Err(e) => plots_failed = Some(format!("--plots {}: not written: {e}", dir.display())),
+        }
+    }
     let mut summaries: Vec<IdentifyResult> = identified
         .iter()
         .zip(names)
@@ -1110,43 +1165,52 @@ pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
             warnings: warnings.clone(),
         })
         .collect();
-    let report = if summaries.len() == 1 {
+    let mut report = if summaries.len() == 1 {
         to_json(&summaries.remove(0))?
     } else {
         json!({ "axes": to_json(&summaries)? })
     };
-    write_json(&a.report, &report, "--report")?;
-    let (stage, io) = crate::stage_file::stage_and_io(
-        a.stage.as_deref(),
-        &format!("identified-{}", a.model.name()),
-        1.0 / records[0].sample_period_s(),
-    )?;
-    let header = format!(
-        "Identified by `host-sim identify` ({} model, method {}) from {}, scored from t = {} s.\nSI units.",
-        a.model.name(),
-        a.method.name(),
-        a.data.display(),
-        a.start
-    );
-    let verdict = crate::stage_file::write_stage(&a.out, &header, stage, io, axes, a.allow_refused);
-    let mut plots = Vec::new();
-    if a.plots.is_some() && records[0].segments.len() > 1 {
-        eprintln!("warning: --plots: drawn for one record only; none drawn for several");
-    } else if let Some(dir) = &a.plots {
-        // The fit as written: the stage file's chain on the fitted record.
-        let file = predict::read_stage(&a.out)?;
-        let from = records[0].index_at(a.start);
-        let predicted = predict::predict_axes(&file, &records, from)?;
-        plots = predict::write_plots(dir, "identify", &records, &predicted, from)?;
+    if let (Some(r), serde_json::Value::Object(s)) = (
+        report.as_object_mut(),
+        stage_file.to_json(a.invertible, a.stage.as_deref()),
+    ) {
+        r.extend(s);
+        r.insert("plots".into(), json!(plots));
+        r.insert("plots_not_written".into(), json!(plots_failed));
     }
-    let verdict = verdict?;
-    Ok(format!(
-        "{}\n{} written ({verdict}), {}{}",
+    let reported = write_json(&a.report, &report, "--report");
+    let verdict = stage_file.verdict.summary(a.allow_refused);
+    let mut failures = Vec::new();
+    failures.extend(stage_file.error(a.invertible, a.stage.as_deref(), a.allow_refused));
+    failures.extend(plots_failed);
+    if let Err(e) = &reported {
+        failures.push(format!("{e} (the report was not written)"));
+    }
+    let written: Vec<String> = [
+        stage_file
+            .not_written
+            .is_none()
+            .then(|| a.out.display().to_string()),
+        reported.is_ok().then(|| a.report.display().to_string()),
+    ]
+    .into_iter()
+    .flatten()
+    .chain(plots)
+    .collect();
+    let summary = format!(
+        "{}\nwritten: {} ({verdict})",
         lines.join("\n"),
-        a.out.display(),
-        a.report.display(),
-        plots.iter().map(|p| format!(", {p}")).collect::<String>()
-    ))
+        if written.is_empty() {
+            "nothing".to_string()
+        } else {
+            written.join(", ")
+        }
+    );
+    if failures.is_empty() {
+        Ok(summary)
+    } else {
+        Err(format!("{summary}\n{}", failures.join("\n")))
+    }
 }
 
 /// Arguments of `predict`.
