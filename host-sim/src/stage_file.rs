@@ -44,7 +44,8 @@ pub fn rate_of(record_rate_hz: f64) -> f32 {
 
 /// Assembles, validates and writes a stage file; returns a one-line verdict on whether the
 /// firmware's chain accepts it. `allow_refused`: write and report a set the firmware refuses
-/// instead of failing.
+/// instead of failing. An axis's slew limit is lowered, where needed, to the fastest the core
+/// accepts at the file's loop rate (a full-window move in `MIN_WINDOW_TICKS` ticks).
 pub fn write_stage(
     path: &Path,
     header: &str,
@@ -53,6 +54,24 @@ pub fn write_stage(
     axes: Vec<Axis>,
     allow_refused: bool,
 ) -> Result<String, String> {
+    let period = 1.0 / stage.loop_rate_hz;
+    let axes: Vec<Axis> = axes
+        .into_iter()
+        .map(|mut a| {
+            let l = &mut a.limits;
+            let fastest = piezo_core::CompensatorSettings {
+                output_min_v: l.output_min_v,
+                output_max_v: l.output_max_v,
+                slew_limit_v_per_s: l.slew_limit_v_per_s,
+                sample_period_s: period,
+            }
+            .fastest_slew_v_per_s();
+            if fastest.is_finite() && fastest > 0.0 {
+                l.slew_limit_v_per_s = l.slew_limit_v_per_s.min(fastest);
+            }
+            a
+        })
+        .collect();
     let mut axes = axes.into_iter();
     let x = axes.next().ok_or("no axis to write")?;
     let file = StageFile {
