@@ -1067,6 +1067,8 @@ mod tests {
         };
         assert_eq!(field_of(settling(1.01 * stroke)), "drift_settling_m");
         assert!(build(settling(0.99 * stroke)).is_ok());
+        extern crate std;
+        use std::string::ToString;
         let message = build(creep(1e6)).unwrap_err().to_string();
         assert!(
             message.contains("implausible") && message.contains("g_lin"),

@@ -132,6 +132,8 @@ mod tests {
                 "[{lo}, {hi}]"
             );
         }
+        extern crate std;
+        use std::string::ToString;
         let message = CHAIN
             .check_limits(&window(0.0, 200.0, 1e5))
             .unwrap_err()

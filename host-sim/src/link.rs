@@ -600,7 +600,7 @@ mod tests {
     use super::*;
 
     /// A fake device on a loopback port: answers each request with `answer(sequence, request)`,
-    /// and hands back every byte it received when the client hangs up.
+    /// and hands back every byte it received once the link is quiet for a second.
     fn device(
         answer: impl Fn(u32, &Request) -> Response + Send + 'static,
     ) -> (String, std::thread::JoinHandle<Vec<u8>>) {
@@ -608,6 +608,10 @@ mod tests {
         let address = format!("tcp:{}", listener.local_addr().unwrap());
         let handle = std::thread::spawn(move || {
             let (mut stream, _) = listener.accept().unwrap();
+            // The client's reader thread keeps the socket open: stop after a quiet second.
+            stream
+                .set_read_timeout(Some(Duration::from_secs(1)))
+                .unwrap();
             let mut decoder = Decoder::new();
             let mut received = Vec::new();
             let mut buffer = [0u8; 1024];
