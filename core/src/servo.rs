@@ -326,7 +326,7 @@ impl Servo {
             });
         }
         let proportional = libm::fabsf(kp * g);
-        if !(proportional <= MAX_PROPORTIONAL_LOOP_GAIN) {
+        if proportional > MAX_PROPORTIONAL_LOOP_GAIN {
             return Err(ParamError::Implausible {
                 field: "kp_v_per_m",
                 value: kp,
@@ -336,7 +336,7 @@ impl Servo {
             });
         }
         let integral = libm::fabsf(ki * g) * t;
-        if !(integral <= MAX_INTEGRAL_GAIN_PER_TICK) {
+        if integral > MAX_INTEGRAL_GAIN_PER_TICK {
             return Err(ParamError::Implausible {
                 field: "ki_v_per_m_s",
                 value: ki,
