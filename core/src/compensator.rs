@@ -45,12 +45,24 @@
 //! Never panics, never returns NaN, never leaves `[output_min_v, output_max_v]`, never moves by more
 //! than `slew_limit_v_per_s · sample_period_s` per sample (unless the window itself moved the last
 //! voltage back inside). A non-finite reference holds the last voltage.
+//!
+//! # Slew limit (checked when built, [`CompensatorSettings::check_slew`])
+//! A finite slew limit S must leave a full-window move at least [`MIN_WINDOW_TICKS`] ticks:
+//! `S·T·MIN_WINDOW_TICKS ≤ output_max_v − output_min_v`. A faster limit is no limit at all (one
+//! tick crosses the window), which the drive and the stack's first mode do not follow; +∞ says
+//! "no limit" explicitly (offline analyses; the firmware's chain refuses it,
+//! [`crate::io_chain::IoChain::check_limits`]).
 
 use crate::bouc_wen::{relax_series, BoucWenParams, HysteresisState};
 use crate::dynamic_model::DynamicModel;
 use crate::error::{finite, positive, ParamError, MIN_SLOPE_RATIO};
 use crate::math::{self, clamp};
 use crate::static_model::{ModelState, StaticMap, StaticModel};
+
+/// Fewest ticks a full-window move may take at a finite slew limit: with fewer the limit does not
+/// limit (a step across the whole window in one or two ticks is what an unlimited command does),
+/// and the stack's first mode, a few periods of a 10 kHz loop, is hit by an unshaped step.
+pub const MIN_WINDOW_TICKS: f32 = 4.0;
 
 /// Output limits of the compensator.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -63,6 +75,50 @@ pub struct CompensatorSettings {
     pub slew_limit_v_per_s: f32,
     /// Loop period \[s\].
     pub sample_period_s: f32,
+}
+
+impl CompensatorSettings {
+    /// The fastest finite slew limit [`CompensatorSettings::check_slew`] accepts for this window
+    /// and period, `(output_max_v − output_min_v) / (MIN_WINDOW_TICKS · T)` \[V/s\].
+    pub fn fastest_slew_v_per_s(&self) -> f32 {
+        (self.output_max_v - self.output_min_v) / (MIN_WINDOW_TICKS * self.sample_period_s)
+    }
+
+    /// Checks the window (finite, min < max), the period (> 0) and the slew limit: > 0, and
+    /// either +∞ (none) or `S·T·MIN_WINDOW_TICKS ≤ output_max_v − output_min_v`. The one rule
+    /// [`Compensator::new`] and [`crate::Servo::new`] apply.
+    pub fn check_slew(&self) -> Result<(), ParamError> {
+        let min = finite("output_min_v", self.output_min_v)?;
+        let max = finite("output_max_v", self.output_max_v)?;
+        if max <= min {
+            return Err(ParamError::OutOfRange {
+                field: "output_max_v",
+                value: max,
+                requirement: "> output_min_v",
+            });
+        }
+        let period = positive("sample_period_s", self.sample_period_s)?;
+        let slew = self.slew_limit_v_per_s;
+        if slew.is_nan() || slew <= 0.0 {
+            return Err(ParamError::OutOfRange {
+                field: "slew_limit_v_per_s",
+                value: slew,
+                requirement: "> 0 (+inf for no limit)",
+            });
+        }
+        let ticks = (max - min) / (slew * period);
+        if slew.is_finite() && ticks < MIN_WINDOW_TICKS {
+            return Err(ParamError::Implausible {
+                field: "slew_limit_v_per_s",
+                value: slew,
+                measure: "the ticks a full-window move takes, (output_max_v − output_min_v) / \
+                          (slew_limit_v_per_s · sample_period_s),",
+                ratio: ticks,
+                limit: MIN_WINDOW_TICKS,
+            });
+        }
+        Ok(())
+    }
 }
 
 /// What the compensator did with a sample.
@@ -273,15 +329,8 @@ impl Compensator {
         target: Target,
         settings: CompensatorSettings,
     ) -> Result<Self, ParamError> {
-        let min = finite("output_min_v", settings.output_min_v)?;
-        let max = finite("output_max_v", settings.output_max_v)?;
-        if max <= min {
-            return Err(ParamError::OutOfRange {
-                field: "output_max_v",
-                value: max,
-                requirement: "> output_min_v",
-            });
-        }
+        settings.check_slew()?;
+        let (min, max) = (settings.output_min_v, settings.output_max_v);
         let (range_min, range_max) = model.hysteresis().input_range_v();
         if min < range_min {
             return Err(ParamError::OutOfRange {
@@ -297,15 +346,7 @@ impl Compensator {
                 requirement: "inside the model's validated input range",
             });
         }
-        let period = positive("sample_period_s", settings.sample_period_s)?;
-        let slew = settings.slew_limit_v_per_s;
-        if slew.is_nan() || slew <= 0.0 {
-            return Err(ParamError::OutOfRange {
-                field: "slew_limit_v_per_s",
-                value: slew,
-                requirement: "> 0 (+inf for no limit)",
-            });
-        }
+        let (period, slew) = (settings.sample_period_s, settings.slew_limit_v_per_s);
         let (lo, hi) = model.slope_range();
         let monotone = (lo > 0.0 || hi < 0.0)
             && lo.abs().min(hi.abs()) >= MIN_SLOPE_RATIO * lo.abs().max(hi.abs());

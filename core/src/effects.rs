@@ -116,6 +116,22 @@
 //!
 //! [`compensate_axis`] and [`simulate_axis`] run the two chains over a whole single-axis record.
 //!
+//! # Plausibility (checked when built, against the axis's [`OperatingRange`])
+//! Each effect's size is bounded by a dimensionless measure against the hysteresis model over the
+//! output window `[u_min, u_max]`: its stroke S = w_max − w_min \[m\] and linear gain
+//! g_lin = S/(u_max − u_min) \[m/V\]. A set beyond a bound is refused
+//! ([`ParamError::Implausible`], naming the field and the measure):
+//!
+//! | effect | measure | bound | why |
+//! |---|---|---|---|
+//! | creep | (Σᵢ\|gᵢ\| + (LOG_CREEP_ELEMENTS/2)·\|g_log\|) / g_lin: the settled creep over the elastic gain | [`MAX_CREEP_RATIO`] = 2 | stack creep is a few % per decade, tens of % in all |
+//! | even term | \|e\|·max over the window of (u − u_c)² / S | [`MAX_EVEN_RATIO`] = 2 | electrostriction is a part of the stroke, not a multiple |
+//! | linear drift | \|r_d\|·1 h / S: strokes per hour | [`MAX_DRIFT_STROKES_PER_HOUR`] = 3 600 | beyond one stroke per second the inverse leaves the window within a second: a command, not a drift |
+//! | settling drift | \|A_d\| / S | [`MAX_SETTLING_RATIO`] = 1 | a settling beyond the stroke pins the output at the window's edge |
+//!
+//! The bounds are several times what `host-sim close-loop` lets a fit reach (creep ≤ 0.5 g_lin
+//! plus 0.1 g_lin per decade, even term ≤ S/4 over the half span, settling ≤ S/2).
+//!
 //! # Safety of the per-sample path
 //! Never panics, no allocation. For finite inputs every result is finite: internal signals are
 //! held within ±1e30 m (far beyond any stage). A non-finite command or w holds the previous one in
@@ -142,6 +158,84 @@ pub const MAX_RELAXATION_ELEMENTS: usize = 2;
 /// Bound on Σᵢ g_wᵢ·tanh(T/(2τ_wᵢ)): the inverse recursion of the relaxation is stable below 1;
 /// at 0.5 its slowest-alternating root stays above −1/3 (well damped).
 pub const MAX_RELAXATION_LOOP_GAIN: f64 = 0.5;
+
+/// Largest settled creep (Kelvin–Voigt gains plus the logarithmic bank's full 6 decades) relative
+/// to the model's linear gain over the window.
+pub const MAX_CREEP_RATIO: f32 = 2.0;
+/// Largest output change of the even term over the window relative to the stroke.
+pub const MAX_EVEN_RATIO: f32 = 2.0;
+/// Largest linear drift over an hour, in strokes.
+pub const MAX_DRIFT_STROKES_PER_HOUR: f32 = 3600.0;
+/// Largest settling drift amplitude relative to the stroke.
+pub const MAX_SETTLING_RATIO: f32 = 1.0;
+
+/// What the effects of one axis are judged against: the output window and the hysteresis model's
+/// output over it (both sorted).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OperatingRange {
+    /// The output window (the input of the model) `(u_min, u_max)` \[V\].
+    pub input_v: (f32, f32),
+    /// The hysteresis model's output range over it `(w_min, w_max)` \[m\].
+    pub output_m: (f32, f32),
+}
+
+impl OperatingRange {
+    /// The first loading from rest at `u_min` to `u_max`: output `[y_rest, y_rest + g·(u_max −
+    /// u_min)]`, sorted, with `g` the first-loading secant gain
+    /// (`StaticModel::first_loading`) \[m/V\].
+    pub fn first_loading(rest_m: f32, gain_m_per_v: f32, input_v: (f32, f32)) -> Self {
+        let top = rest_m + gain_m_per_v * (input_v.1 - input_v.0);
+        Self {
+            input_v,
+            output_m: (rest_m.min(top), rest_m.max(top)),
+        }
+    }
+
+    /// Checks both spans (finite, max ≥ min); returns (input span \[V\], stroke \[m\]).
+    fn spans(&self) -> Result<(f32, f32), ParamError> {
+        let mut spans = [0.0f32; 2];
+        for (i, (field, (lo, hi))) in [
+            ("input_range_v", self.input_v),
+            ("w_range_m", self.output_m),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            finite(field, lo)?;
+            finite(field, hi)?;
+            if hi < lo {
+                return Err(ParamError::OutOfRange {
+                    field,
+                    value: hi,
+                    requirement: "max >= min",
+                });
+            }
+            spans[i] = hi - lo;
+        }
+        Ok((spans[0], spans[1]))
+    }
+}
+
+/// Refuses `value` of `field` when `ratio` (its measure) exceeds `limit` (NaN: 0/0, accepted).
+fn plausible(
+    field: &'static str,
+    value: f32,
+    measure: &'static str,
+    ratio: f32,
+    limit: f32,
+) -> Result<(), ParamError> {
+    if ratio > limit {
+        Err(ParamError::Implausible {
+            field,
+            value,
+            measure,
+            ratio,
+            limit,
+        })
+    } else {
+        Ok(())
+    }
+}
 
 /// Length of the ring of past z samples: the delay reads z\[k − n\] and z\[k − n − 1\], n ≤ 64.
 const RING_LEN: usize = MAX_DELAY_SAMPLES + 2;
@@ -266,6 +360,76 @@ impl<'de, const N: usize> serde::de::Visitor<'de> for UpTo<N> {
         }
         Ok(out)
     }
+}
+
+/// The bounds of the module doc's plausibility table, for finite `params`.
+fn check_plausible(
+    params: &EffectParams,
+    range: OperatingRange,
+    span_v: f32,
+    stroke_m: f32,
+) -> Result<(), ParamError> {
+    let gain = stroke_m / span_v;
+    let log_total = 0.5 * LOG_CREEP_ELEMENTS as f32 * libm::fabsf(params.log_creep_gain_m_per_v);
+    let creep = params
+        .creep_gain_m_per_v
+        .iter()
+        .fold(log_total, |sum, g| sum + libm::fabsf(*g));
+    let worst = if log_total > 0.0 {
+        ("log_creep_gain_m_per_v", params.log_creep_gain_m_per_v)
+    } else {
+        let i = (0..MAX_CREEP_ELEMENTS)
+            .max_by(|&a, &b| {
+                libm::fabsf(params.creep_gain_m_per_v[a])
+                    .total_cmp(&libm::fabsf(params.creep_gain_m_per_v[b]))
+            })
+            .unwrap_or(0);
+        (CREEP_GAIN_FIELDS[i], params.creep_gain_m_per_v[i])
+    };
+    if creep > 0.0 {
+        plausible(
+            worst.0,
+            worst.1,
+            "the settled creep over the linear gain, (Σ|g_i| + 6·|g_log|) / g_lin,",
+            creep / gain,
+            MAX_CREEP_RATIO,
+        )?;
+    }
+    let e = params.even_coefficient_m_per_v2;
+    if e != 0.0 {
+        let c = params.even_center_v;
+        let (u0, u1) = range.input_v;
+        let reach = libm::fabsf(u0 - c).max(libm::fabsf(u1 - c));
+        plausible(
+            "even_coefficient_m_per_v2",
+            e,
+            "the even term's largest output over the window relative to the stroke, \
+             |e|·max (u − u_c)² / S,",
+            libm::fabsf(e) * reach * reach / stroke_m,
+            MAX_EVEN_RATIO,
+        )?;
+    }
+    let r = params.drift_rate_m_per_s;
+    if r != 0.0 {
+        plausible(
+            "drift_rate_m_per_s",
+            r,
+            "the drift over an hour in strokes, |r_d|·3600 s / S,",
+            libm::fabsf(r) * 3600.0 / stroke_m,
+            MAX_DRIFT_STROKES_PER_HOUR,
+        )?;
+    }
+    let a = params.drift_settling_m;
+    if a != 0.0 {
+        plausible(
+            "drift_settling_m",
+            a,
+            "the settling drift relative to the stroke, |A_d| / S,",
+            libm::fabsf(a) / stroke_m,
+            MAX_SETTLING_RATIO,
+        )?;
+    }
+    Ok(())
 }
 
 /// The precomputed mode: Φ − I of one half step, and the inverse's difference coefficients.
@@ -470,25 +634,15 @@ fn bounded(x: f32) -> f32 {
 }
 
 impl Effects {
-    /// Validates `params` for the sample period `sample_period_s` \[s\]. `w_range_m = (w_min,
-    /// w_max)` \[m\], the hysteresis model's output range, is only checked (finite, max ≥ min): no
-    /// effect constrains it any more (the even term is on the previous command).
+    /// Validates `params` for the sample period `sample_period_s` \[s\] and their plausibility
+    /// over `range` (the output window and the model's output over it; see the module doc).
     pub fn new(
         params: EffectParams,
         sample_period_s: f32,
-        w_range_m: (f32, f32),
+        range: OperatingRange,
     ) -> Result<Self, ParamError> {
         let t = positive("sample_period_s", sample_period_s)?;
-        let (w_min, w_max) = w_range_m;
-        finite("w_range_m", w_min)?;
-        finite("w_range_m", w_max)?;
-        if w_max < w_min {
-            return Err(ParamError::OutOfRange {
-                field: "w_range_m",
-                value: w_max,
-                requirement: "max >= min",
-            });
-        }
+        let (span_v, stroke_m) = range.spans()?;
 
         let mut creep_rate = [0.0f32; MAX_CREEP_ELEMENTS];
         let mut creep_gain = [0.0f32; MAX_CREEP_ELEMENTS];
@@ -568,6 +722,7 @@ impl Effects {
             }
         }
         let relaxation = Relaxation::new(&params, t)?;
+        check_plausible(&params, range, span_v, stroke_m)?;
         let coupling = finite("coupling", params.coupling)?;
         if libm::fabsf(coupling) >= MAX_COUPLING {
             return Err(ParamError::OutOfRange {
@@ -1003,13 +1158,90 @@ pub fn compensate_axis(
 mod tests {
     use super::*;
 
+    /// The window 0–120 V with a stroke of `stroke_m` \[m\] from 0.
+    fn range(stroke_m: f32) -> OperatingRange {
+        OperatingRange {
+            input_v: (0.0, 120.0),
+            output_m: (0.0, stroke_m),
+        }
+    }
+
+    /// Each bound of the plausibility table refuses a set just beyond it (naming the field) and
+    /// accepts one just inside it.
+    #[test]
+    fn implausible_effects_are_refused_with_their_measure() {
+        let stroke = 40e-6f32;
+        let gain = stroke / 120.0;
+        let build = |p: EffectParams| Effects::new(p, period(), range(stroke));
+        let field_of = |p: EffectParams| match build(p) {
+            Err(ParamError::Implausible { field, .. }) => field,
+            other => panic!("{p:?}: {other:?}"),
+        };
+        let creep = |g: f32| EffectParams {
+            creep_gain_m_per_v: [g, 0.0, 0.0],
+            creep_time_constant_s: [0.1, 0.0, 0.0],
+            ..EffectParams::default()
+        };
+        assert_eq!(field_of(creep(1e6)), "creep_gain_m_per_v[0]");
+        assert_eq!(
+            field_of(creep(-1.01 * MAX_CREEP_RATIO * gain)),
+            "creep_gain_m_per_v[0]"
+        );
+        assert!(build(creep(0.99 * MAX_CREEP_RATIO * gain)).is_ok());
+        let log = |g: f32| EffectParams {
+            log_creep_gain_m_per_v: g,
+            log_creep_time_s: 0.1,
+            ..EffectParams::default()
+        };
+        assert_eq!(
+            field_of(log(1.01 * MAX_CREEP_RATIO * gain / 6.0)),
+            "log_creep_gain_m_per_v"
+        );
+        assert!(build(log(0.99 * MAX_CREEP_RATIO * gain / 6.0)).is_ok());
+        // The even term's reach counts from its centre to the far end of the window.
+        let even = |e: f32, c: f32| EffectParams {
+            even_coefficient_m_per_v2: e,
+            even_center_v: c,
+            ..EffectParams::default()
+        };
+        assert_eq!(field_of(even(1e30, 60.0)), "even_coefficient_m_per_v2");
+        let at_edge = MAX_EVEN_RATIO * stroke / (120.0 * 120.0);
+        assert!(build(even(0.99 * at_edge, 0.0)).is_ok());
+        assert_eq!(
+            field_of(even(0.99 * at_edge, -10.0)),
+            "even_coefficient_m_per_v2"
+        );
+        let drift = |r: f32| EffectParams {
+            drift_rate_m_per_s: r,
+            ..EffectParams::default()
+        };
+        let per_hour = MAX_DRIFT_STROKES_PER_HOUR * stroke / 3600.0;
+        assert_eq!(field_of(drift(1e30)), "drift_rate_m_per_s");
+        assert_eq!(field_of(drift(-1.01 * per_hour)), "drift_rate_m_per_s");
+        assert!(build(drift(0.99 * per_hour)).is_ok());
+        let settling = |a: f32| EffectParams {
+            drift_settling_m: a,
+            drift_settling_time_constant_s: 1.0,
+            ..EffectParams::default()
+        };
+        assert_eq!(field_of(settling(1.01 * stroke)), "drift_settling_m");
+        assert!(build(settling(0.99 * stroke)).is_ok());
+        extern crate std;
+        use std::string::ToString;
+        let message = build(creep(1e6)).unwrap_err().to_string();
+        assert!(
+            message.contains("implausible") && message.contains("g_lin"),
+            "{message}"
+        );
+    }
+
     fn period() -> f32 {
         1e-4
     }
 
     #[test]
     fn default_is_identity() {
-        let effects = Effects::new(EffectParams::default(), period(), (0.0, 1e-5)).unwrap();
+        let effects = Effects::new(EffectParams::default(), period(), range(1e-5)).unwrap();
         assert!(effects.is_identity());
         assert_eq!(effects.lead_samples(), 0);
         let mut state = EffectsState::new();
@@ -1030,7 +1262,7 @@ mod tests {
                 ..EffectParams::default()
             },
             period(),
-            (0.0, 1e-5),
+            range(1e-5),
         )
         .unwrap();
         let mode = effects.mode.unwrap();
@@ -1059,7 +1291,7 @@ mod tests {
                 ..EffectParams::default()
             },
             period(),
-            (0.0, 4e-5),
+            range(4e-5),
         )
         .unwrap();
         assert!(!effects.is_identity());
@@ -1088,7 +1320,7 @@ mod tests {
                 ..EffectParams::default()
             },
             period(),
-            (0.0, 1e-4),
+            range(1e-4),
         )
     }
 

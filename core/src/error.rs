@@ -57,6 +57,40 @@ pub enum ParamError {
         /// Largest dy/du over reachable states and both directions.
         max_slope: f32,
     },
+    /// A field is finite and inside the model's domain but physically implausible: a
+    /// dimensionless measure of it (`measure`, e.g. the creep's settled gain over the model's
+    /// linear gain) exceeds the bound `limit` the core documents for it.
+    Implausible {
+        /// Field name, e.g. `"creep_gain_m_per_v[0]"`.
+        field: &'static str,
+        /// The value given.
+        value: f32,
+        /// What was measured, in words with its formula.
+        measure: &'static str,
+        /// The measure's value.
+        ratio: f32,
+        /// Its largest accepted value.
+        limit: f32,
+    },
+    /// The output window `[output_min_v, output_max_v]` reaches outside the stack voltages the
+    /// DAC and the amplifier can produce, `dac_range_v × amplifier_gain_v_per_v`.
+    WindowOutsideDrive {
+        /// Lowest voltage of the window \[V\].
+        output_min_v: f32,
+        /// Highest voltage of the window \[V\].
+        output_max_v: f32,
+        /// Lowest stack voltage the chain drives \[V\].
+        drive_min_v: f32,
+        /// Highest stack voltage the chain drives \[V\].
+        drive_max_v: f32,
+    },
+    /// The sensor's output span reaches outside the ADC's input span.
+    SensorOutsideAdc {
+        /// The sensor's span \[V\].
+        sensor_range_v: [f32; 2],
+        /// The ADC's input span \[V\].
+        adc_range_v: [f32; 2],
+    },
     /// The discretised mass–spring–damper could not be built (its matrix exponential did not
     /// converge or produced non-finite coefficients) for this sample period.
     Discretisation {
@@ -107,6 +141,35 @@ impl fmt::Display for ParamError {
                 "the forward map is not strictly monotone in u over the reachable hysteresis states \
                  (dy/du ranges over [{min_slope}, {max_slope}]; it must keep one sign and \
                  min/max |dy/du| >= {MIN_SLOPE_RATIO}); the inverse compensator would not be unique"
+            ),
+            ParamError::Implausible {
+                field,
+                value,
+                measure,
+                ratio,
+                limit,
+            } => write!(
+                f,
+                "field `{field}` = {value} is implausible: {measure} is {ratio:e}, at most {limit} \
+                 is accepted"
+            ),
+            ParamError::WindowOutsideDrive {
+                output_min_v,
+                output_max_v,
+                drive_min_v,
+                drive_max_v,
+            } => write!(
+                f,
+                "the output window [{output_min_v}, {output_max_v}] V exceeds what the DAC and \
+                 amplifier drive: io.dac_range_v × io.amplifier_gain_v_per_v = [{drive_min_v}, \
+                 {drive_max_v}] V"
+            ),
+            ParamError::SensorOutsideAdc {
+                sensor_range_v: [s0, s1],
+                adc_range_v: [a0, a1],
+            } => write!(
+                f,
+                "the sensor span [{s0}, {s1}] V exceeds the ADC's input span [{a0}, {a1}] V"
             ),
             ParamError::Discretisation { sample_period_s } => write!(
                 f,

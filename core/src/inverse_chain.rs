@@ -403,7 +403,15 @@ mod tests {
     const T: f32 = 1e-4;
 
     fn effects(p: EffectParams) -> Effects {
-        Effects::new(p, T, (0.0, 40e-6)).unwrap()
+        Effects::new(
+            p,
+            T,
+            crate::effects::OperatingRange {
+                input_v: (0.0, 120.0),
+                output_m: (0.0, 40e-6),
+            },
+        )
+        .unwrap()
     }
 
     /// A rising ramp of 1e-8 m per tick from −`amplitude` \[m\].

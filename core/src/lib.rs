@@ -22,6 +22,7 @@ pub mod dynamic_model;
 pub mod effects;
 pub mod error;
 pub mod inverse_chain;
+pub mod io_chain;
 pub mod math;
 pub mod metrics;
 pub mod oscillator;
@@ -32,12 +33,15 @@ pub mod static_model;
 pub use bouc_wen::{
     max_input_span, BoucWen, BoucWenParams, BoundClass, HysteresisState, STATE_LIMIT,
 };
-pub use compensator::{Command, CommandStatus, Compensator, CompensatorSettings, CompensatorState};
+pub use compensator::{
+    Command, CommandStatus, Compensator, CompensatorSettings, CompensatorState, MIN_WINDOW_TICKS,
+};
 pub use dynamic_model::{DynamicModel, DynamicState, MassSpringDamperParams};
 pub use error::{ParamError, MIN_SLOPE_RATIO};
 pub use inverse_chain::{
     compensate_pair, compensate_single, FeedforwardAxis, FeedforwardCounts, InverseChain,
 };
+pub use io_chain::IoChain;
 pub use oscillator::{HystereticOscillator, OscillatorParams, OscillatorState};
 pub use sensitivity::{static_sensitivities, SENSITIVITY_PARAMETERS};
 pub use servo::{Servo, ServoMode, ServoOutput, ServoParams, ServoState, ServoStatus};

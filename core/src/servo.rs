@@ -62,6 +62,14 @@ use dsp_process::SplitProcess;
 use idsp::iir::{coefficients::Filter, pid, Biquad, DirectForm1};
 use idsp::Build;
 
+/// Largest proportional loop gain |kp·g| accepted (g the stage's gain dy/du \[m/V\]): a loop with a
+/// tick of latency is unstable at |kp·g| ≥ 1 without filtering, and the low-pass and notch buy at
+/// most a decade of it (tuned servos stay below 1).
+pub const MAX_PROPORTIONAL_LOOP_GAIN: f32 = 10.0;
+/// Largest integral gain per tick |ki·g|·T accepted: the integrator alone crosses unity gain at
+/// |ki·g|/2π, which must stay below the Nyquist frequency 1/(2T), i.e. |ki·g|·T < π.
+pub const MAX_INTEGRAL_GAIN_PER_TICK: f32 = core::f32::consts::PI;
+
 /// Highest filter frequency accepted, as a fraction of the loop rate.
 pub const MAX_FILTER_FRACTION: f32 = 0.45;
 
@@ -276,32 +284,37 @@ fn rbj(hz: f32, q: f32, sample_period_s: f32, notch: bool) -> [f32; 5] {
 
 impl Servo {
     /// Validates `params` for a loop with the output window, slew limit and sample period of
-    /// `limits` (the compensator's settings of the same axis).
-    pub fn new(params: ServoParams, limits: CompensatorSettings) -> Result<Self, ParamError> {
-        let t = positive("sample_period_s", limits.sample_period_s)?;
-        let lo = finite("output_min_v", limits.output_min_v)?;
-        let hi = finite("output_max_v", limits.output_max_v)?;
-        if hi <= lo {
-            return Err(ParamError::OutOfRange {
-                field: "output_max_v",
-                value: hi,
-                requirement: "> output_min_v",
-            });
-        }
+    /// `limits` (the compensator's settings of the same axis, [`CompensatorSettings::check_slew`])
+    /// around a stage of gain `gain_m_per_v` = g = dy/du \[m/V\] (its sign is the stage's; the
+    /// firmware passes the first-loading secant gain over the window). The gains are checked as
+    /// loop gains: ki·g > 0 (negative feedback), |kp·g| ≤ [`MAX_PROPORTIONAL_LOOP_GAIN`] and
+    /// |ki·g|·T ≤ [`MAX_INTEGRAL_GAIN_PER_TICK`].
+    pub fn new(
+        params: ServoParams,
+        limits: CompensatorSettings,
+        gain_m_per_v: f32,
+    ) -> Result<Self, ParamError> {
+        limits.check_slew()?;
+        let (t, lo, hi) = (
+            limits.sample_period_s,
+            limits.output_min_v,
+            limits.output_max_v,
+        );
         let slew = limits.slew_limit_v_per_s;
-        if slew.is_nan() || slew <= 0.0 {
+        let g = finite("gain_m_per_v", gain_m_per_v)?;
+        if g == 0.0 {
             return Err(ParamError::OutOfRange {
-                field: "slew_limit_v_per_s",
-                value: slew,
-                requirement: "> 0 (+inf for none)",
+                field: "gain_m_per_v",
+                value: g,
+                requirement: "!= 0 (the stage's dy/du)",
             });
         }
         let ki = finite("ki_v_per_m_s", params.ki_v_per_m_s)?;
-        if ki == 0.0 {
+        if ki == 0.0 || (ki > 0.0) != (g > 0.0) {
             return Err(ParamError::OutOfRange {
                 field: "ki_v_per_m_s",
                 value: ki,
-                requirement: "!= 0 (the sign of the stage's dy/du)",
+                requirement: "!= 0 and the sign of the stage's dy/du",
             });
         }
         let kp = finite("kp_v_per_m", params.kp_v_per_m)?;
@@ -310,6 +323,26 @@ impl Servo {
                 field: "kp_v_per_m",
                 value: kp,
                 requirement: "0 or the sign of ki_v_per_m_s",
+            });
+        }
+        let proportional = libm::fabsf(kp * g);
+        if proportional > MAX_PROPORTIONAL_LOOP_GAIN {
+            return Err(ParamError::Implausible {
+                field: "kp_v_per_m",
+                value: kp,
+                measure: "the proportional loop gain |kp·g|",
+                ratio: proportional,
+                limit: MAX_PROPORTIONAL_LOOP_GAIN,
+            });
+        }
+        let integral = libm::fabsf(ki * g) * t;
+        if integral > MAX_INTEGRAL_GAIN_PER_TICK {
+            return Err(ParamError::Implausible {
+                field: "ki_v_per_m_s",
+                value: ki,
+                measure: "the integral gain per tick |ki·g|·T",
+                ratio: integral,
+                limit: MAX_INTEGRAL_GAIN_PER_TICK,
             });
         }
         let lp = filter_frequency("lowpass_frequency_hz", params.lowpass_frequency_hz, t)?;
@@ -737,7 +770,7 @@ pub fn tune(
             let mut p = unit;
             p.ki_v_per_m_s = (ki * sign) as f32;
             p.kp_v_per_m = (ki * sign / wz) as f32;
-            Servo::new(p, limits)
+            Servo::new(p, limits, g)
         };
         let probe = with(1.0)?;
         let (re, im) = probe.response(fc);
@@ -770,6 +803,8 @@ mod tests {
     use super::*;
 
     const T: f32 = 1e-4;
+    /// The stage's gain dy/du \[m/V\] (40 µm over 120 V).
+    const G: f32 = 3.3e-7;
 
     fn limits() -> CompensatorSettings {
         CompensatorSettings {
@@ -798,12 +833,13 @@ mod tests {
 
     #[test]
     fn refuses_what_it_cannot_run() {
-        let refused = |p: ServoParams| match Servo::new(p, limits()) {
+        let refused_on = |p: ServoParams, g: f32| match Servo::new(p, limits(), g) {
             Err(ParamError::OutOfRange { field, .. }) | Err(ParamError::NonFinite { field }) => {
                 field
             }
             other => panic!("accepted or wrong error: {other:?}"),
         };
+        let refused = |p: ServoParams| refused_on(p, G);
         let mut p = params();
         p.ki_v_per_m_s = 0.0;
         assert_eq!(refused(p), "ki_v_per_m_s");
@@ -821,17 +857,58 @@ mod tests {
         assert_eq!(refused(p), "transfer_time_constant_s");
         let mut l = limits();
         l.output_max_v = -1.0;
-        assert!(Servo::new(params(), l).is_err());
+        assert!(Servo::new(params(), l, G).is_err());
         // Negative gains for a stage with dy/du < 0.
         let mut p = params();
         p.kp_v_per_m = -2e5;
         p.ki_v_per_m_s = -1e9;
-        assert!(Servo::new(p, limits()).is_ok());
+        assert!(Servo::new(p, limits(), -G).is_ok());
+        // ... and refused on a stage with dy/du > 0 (positive feedback).
+        assert_eq!(refused_on(p, G), "ki_v_per_m_s");
+    }
+
+    /// Loop gains beyond the documented bounds are refused as implausible, with the measure; the
+    /// bounds themselves are accepted.
+    #[test]
+    fn loop_gains_are_bounded() {
+        let implausible = |p: ServoParams| match Servo::new(p, limits(), G) {
+            Err(ParamError::Implausible {
+                field,
+                ratio,
+                limit,
+                ..
+            }) => (field, ratio, limit),
+            other => panic!("accepted or wrong error: {other:?}"),
+        };
+        let mut p = params();
+        p.kp_v_per_m = 1e38;
+        let (field, ratio, limit) = implausible(p);
+        assert_eq!(field, "kp_v_per_m");
+        assert!(ratio > 1e30 && limit == MAX_PROPORTIONAL_LOOP_GAIN);
+        p.kp_v_per_m = 1.01 * MAX_PROPORTIONAL_LOOP_GAIN / G;
+        assert_eq!(implausible(p).0, "kp_v_per_m");
+        p.kp_v_per_m = 0.99 * MAX_PROPORTIONAL_LOOP_GAIN / G;
+        assert!(Servo::new(p, limits(), G).is_ok());
+        let mut p = params();
+        p.ki_v_per_m_s = 1.01 * MAX_INTEGRAL_GAIN_PER_TICK / (G * T);
+        assert_eq!(implausible(p).0, "ki_v_per_m_s");
+        p.ki_v_per_m_s = 0.99 * MAX_INTEGRAL_GAIN_PER_TICK / (G * T);
+        assert!(Servo::new(p, limits(), G).is_ok());
+        // The slew rule is the compensator's.
+        let mut l = limits();
+        l.slew_limit_v_per_s = 1e38;
+        assert!(matches!(
+            Servo::new(params(), l, G),
+            Err(ParamError::Implausible {
+                field: "slew_limit_v_per_s",
+                ..
+            })
+        ));
     }
 
     #[test]
     fn filters_and_pi_are_what_the_doc_says() {
-        let s = Servo::new(params(), limits()).unwrap();
+        let s = Servo::new(params(), limits(), G).unwrap();
         let [lp, notch, pi] = s.coefficients();
         let w = |hz: f64| 2.0 * core::f64::consts::PI * hz * f64::from(T);
         assert!(isclose(biquad_response(&lp, 0.0).abs(), 1.0, 1e-5, 0.0));
@@ -852,7 +929,7 @@ mod tests {
     /// A static stage g·u with one tick of delay and a slow creep-like drift of its output;
     /// the largest |error| over the second half.
     fn closed_loop(mode: ServoMode, ff_gain_error: f32, ticks: usize) -> (f32, ServoState) {
-        let servo = Servo::new(params(), limits()).unwrap();
+        let servo = Servo::new(params(), limits(), G).unwrap();
         let g = 0.5e-6;
         let mut state = ServoState::at_rest(0.0, mode);
         let (mut y, mut err) = (0.0f32, 0.0f32);
@@ -883,7 +960,7 @@ mod tests {
 
     #[test]
     fn anti_windup_leaves_the_limit_at_once() {
-        let servo = Servo::new(params(), limits()).unwrap();
+        let servo = Servo::new(params(), limits(), G).unwrap();
         let mut state = ServoState::at_rest(100.0, ServoMode::FeedforwardFeedback);
         // The stage does not move: the error stays, the sum sits at the window's top.
         for _ in 0..5000 {
@@ -906,7 +983,7 @@ mod tests {
 
     #[test]
     fn mode_changes_are_bumpless() {
-        let servo = Servo::new(params(), limits()).unwrap();
+        let servo = Servo::new(params(), limits(), G).unwrap();
         let g = 0.5e-6;
         let mut state = ServoState::at_rest(30e-6 / g, ServoMode::FeedforwardFeedback);
         let mut y = 30e-6f32;
@@ -938,7 +1015,7 @@ mod tests {
 
     #[test]
     fn never_leaves_the_window_or_the_slew_limit() {
-        let servo = Servo::new(params(), limits()).unwrap();
+        let servo = Servo::new(params(), limits(), G).unwrap();
         let mut state = ServoState::at_rest(60.0, ServoMode::FeedforwardFeedback);
         let inputs = [
             (0.0, 1.0, 50.0),

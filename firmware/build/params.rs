@@ -7,8 +7,11 @@
 //! `firmware/tests/params_file.rs`. Every refusal names the file, line, column and key path
 //! (`x.bouc_wen.gamma`), so a bad file gives a build error that says what to change.
 //!
-//! On top of `StageFile::validate` (the core's constructors, the output window inside
-//! `dac_range_v × amplifier_gain_v_per_v`, the sensor span inside the ADC's), the image needs:
+//! On top of `StageFile::validate` (the core's constructors with their plausibility bounds, and
+//! `piezo_core::IoChain::check_limits`: the output window inside `dac_range_v ×
+//! amplifier_gain_v_per_v`, a finite slew limit that leaves a full-window move a few ticks, the
+//! sensor span inside the ADC's — the same function the firmware's session calls on an upload),
+//! the image needs:
 //! - models the firmware's chain runs: `symmetric` or `asymmetric` static models;
 //! - `io.dac_part = "DAC8563"` with `dac_range_v = [0, 5]` (internal reference, gain 2);
 //! - `io.adc_part = "ADS8681"` with `adc_range_v` one of its input ranges (±12.288, ±10.24,
@@ -19,7 +22,7 @@
 //! A one-axis file drives both channels with its `x` set (said as a build warning).
 
 use piezo_core::effects::EffectParams;
-use piezo_core::{Asymmetry, BoucWenParams, ServoParams, StaticMap};
+use piezo_core::{Asymmetry, BoucWenParams, IoChain, ServoParams, StaticMap};
 use piezo_stage::{AxisChain, StageError, StageErrorKind, StageFile, ValidAxis};
 
 /// Lowest loop rate the image runs \[Hz\].
@@ -83,6 +86,8 @@ pub struct ParamSet {
     pub sensor_m_per_v: f32,
     /// ADC input range \[V\].
     pub adc_range_v: [f32; 2],
+    /// The whole chain (DAC, amplifier, ADC, sensor), as an upload must carry it.
+    pub io: IoChain,
     /// x then y.
     pub axes: [AxisSet; 2],
     /// Notes for the build log (a one-axis file, a placeholder io chain).
@@ -196,6 +201,7 @@ pub fn load(file: &str, bytes: &[u8]) -> Result<ParamSet, String> {
         amplifier_gain_v_per_v: io.amplifier_gain_v_per_v,
         sensor_m_per_v: io.sensor_m_per_v,
         adc_range_v: io.adc_range_v,
+        io: io.chain(),
         axes: [x, y],
         warnings,
     })
@@ -223,6 +229,8 @@ pub fn generate(set: &ParamSet, file: &str) -> String {
          pub const SENSOR_M_PER_V: f32 = {:?};\n\
          /// ADC input range \\[V\\].\n\
          pub const ADC_RANGE_V: [f32; 2] = {:?};\n\
+         /// The hardware chain (an upload must carry exactly this).\n\
+         pub const IO: IoChain = {:?};\n\
          /// Per axis, x then y (validated by piezo-core when built).\n\
          pub const AXES: [AxisParams; 2] = [\n",
         set.version,
@@ -230,7 +238,8 @@ pub fn generate(set: &ParamSet, file: &str) -> String {
         set.loop_rate_hz,
         set.amplifier_gain_v_per_v,
         set.sensor_m_per_v,
-        set.adc_range_v
+        set.adc_range_v,
+        set.io
     ));
     for a in &set.axes {
         out.push_str(&format!(

@@ -7,13 +7,17 @@
 //!
 //! Each axis also carries its effect chain ([`AxisParams::effects`], from the optional
 //! `[x.effects]` table; all zero when absent), validated at build time and again at boot by
-//! [`AxisParams::effect_chain`] (`piezo_core::effects::Effects::new` at the loop period, over the
-//! output range [`AxisParams::w_range_m`]).
+//! [`AxisParams::effect_chain`] (`piezo_core::effects::Effects::new` at the loop period, over
+//! [`AxisParams::operating_range`]).
+//!
+//! [`IO`] is the hardware chain the image drives (DAC8563 range, amplifier gain, ADS8681 range,
+//! sensor span and gain); each axis's window and slew limit were checked against it at build time
+//! by `piezo_core::IoChain::check_limits`, which the command link's upload calls again.
 
-use piezo_core::effects::{EffectParams, Effects};
+use piezo_core::effects::{EffectParams, Effects, OperatingRange};
 use piezo_core::{
-    Asymmetry, BoucWen, BoucWenParams, Compensator, CompensatorSettings, ParamError, Servo,
-    ServoParams, StaticMap, StaticModel,
+    Asymmetry, BoucWen, BoucWenParams, Compensator, CompensatorSettings, IoChain, ParamError,
+    Servo, ServoParams, StaticMap, StaticModel,
 };
 
 /// One axis of the parameter file.
@@ -77,29 +81,34 @@ impl AxisParams {
         }
     }
 
-    /// The hysteresis output range the effects are validated over: the first loading's
-    /// `[y_rest, y_rest + g_lin·(u_max − u_min)]`, sorted \[m\] (as in `build.rs`).
-    pub fn w_range_m(&self) -> (f32, f32) {
-        let top =
-            self.rest_output_m + self.linear_gain_m_per_v * (self.output_max_v - self.output_min_v);
-        if top < self.rest_output_m {
-            (top, self.rest_output_m)
-        } else {
-            (self.rest_output_m, top)
-        }
+    /// What the effects are validated against: the output window and the first loading's
+    /// output over it, `[y_rest, y_rest + g_lin·(u_max − u_min)]` (as in `build.rs`).
+    pub fn operating_range(&self) -> OperatingRange {
+        OperatingRange::first_loading(
+            self.rest_output_m,
+            self.linear_gain_m_per_v,
+            (self.output_min_v, self.output_max_v),
+        )
     }
 
     /// The core's effect chain of this axis at the loop period `sample_period_s` \[s\].
     pub fn effect_chain(&self, sample_period_s: f32) -> Result<Effects, ParamError> {
-        Effects::new(self.effects, sample_period_s, self.w_range_m())
+        Effects::new(self.effects, sample_period_s, self.operating_range())
     }
 
     /// The core's feedback servo of this axis at the loop period `sample_period_s` \[s\] (with
-    /// the compensator's output window and slew limit), if the file has one.
+    /// the compensator's output window and slew limit, around the first-loading gain), if the
+    /// file has one.
     pub fn servo(&self, sample_period_s: f32) -> Result<Option<Servo>, ParamError> {
         self.servo
-            .map(|p| Servo::new(p, self.settings(sample_period_s)))
+            .map(|p| Servo::new(p, self.settings(sample_period_s), self.linear_gain_m_per_v))
             .transpose()
+    }
+
+    /// This axis's window and slew limit against the chain `io` at the loop period
+    /// `sample_period_s` \[s\] ([`IoChain::check_limits`]).
+    pub fn check_chain(&self, io: &IoChain, sample_period_s: f32) -> Result<(), ParamError> {
+        io.check_limits(&self.settings(sample_period_s))
     }
 
     /// The core's inverse compensator for this axis at the loop rate of the file.
@@ -135,6 +144,7 @@ mod tests {
             // The general-n variant the check image benches must be valid too.
             axis.with_exponent(1.5).compensator().unwrap();
             assert!(axis.effect_chain(SAMPLE_PERIOD_S).unwrap().is_identity());
+            axis.check_chain(&IO, SAMPLE_PERIOD_S).unwrap();
         }
         assert!(SAMPLE_PERIOD_S.is_finite());
         assert!(VERSION.starts_with("xy-stage"));

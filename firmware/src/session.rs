@@ -21,10 +21,15 @@
 //!   streamed setpoint queue ([`STREAM_CAPACITY`] − 1).
 //! - `Upload(set)`: each axis validated with piezo-core's constructors exactly as `build.rs`
 //!   validates the stage file (`BoucWen::with_input_range`, `StaticModel::new`/`asymmetric`,
-//!   `Compensator::new`, `effects::Effects::new`), plus the first-loading gain the baseline
-//!   needs; the loop rate and the io chain must be the firmware's. Accepted: swapped in with
-//!   [`TwoAxisLoop::set_settings`] (state kept). Refused: nothing changes, and the answer carries
-//!   the core's reason and the axis.
+//!   `Compensator::new`, `effects::Effects::new`, `Servo::new`, with their plausibility bounds,
+//!   and `IoChain::check_limits`: the window inside what the DAC and amplifier drive, a finite
+//!   slew limit that leaves a full-window move a few ticks), plus the first-loading gain the
+//!   baseline needs; the loop rate and the whole io chain (DAC, amplifier, ADC and sensor ranges
+//!   and gains) must be the firmware's. Accepted: swapped in with [`TwoAxisLoop::set_settings`]
+//!   (state kept). Refused: nothing changes, the answer carries the core's reason and the axis,
+//!   and every refusal is counted in `refused_uploads`.
+//! - A request whose sequence number is not ahead of the last one handled is not run: it is
+//!   answered with `Replayed { next }` and counted in `replayed_requests` (see [`piezo_link`]).
 //! - `Control(mode)`: switches the control mode bumplessly between two ticks
 //!   ([`TwoAxisLoop::set_control_mode`]); refused with the axis when a mode with feedback finds
 //!   no servo. An upload without a servo is refused while a feedback mode runs.
@@ -184,6 +189,14 @@ fn axis_params(m: &AxisModel) -> Result<AxisParams, ParamError> {
     Ok(p)
 }
 
+/// An upload's axis checked against the firmware's chain and built by the core, as the build does.
+fn axis_config(m: &AxisModel) -> Result<AxisConfig, ConfigError> {
+    let p = axis_params(m).map_err(ConfigError::Core)?;
+    p.check_chain(&params::IO, params::SAMPLE_PERIOD_S)
+        .map_err(ConfigError::Core)?;
+    AxisConfig::from_params(&p, params::SAMPLE_PERIOD_S)
+}
+
 /// A request ready for [`Session::apply`]: an upload already validated.
 #[allow(clippy::large_enum_variant)] // moved once per request, never stored in bulk
 pub enum Prepared {
@@ -212,12 +225,7 @@ pub fn prepare(request: Request) -> Prepared {
 }
 
 fn prepare_upload(set: ModelSet) -> PreparedUpload {
-    let config = |i: usize| {
-        axis_params(&set.axes[i])
-            .map_err(ConfigError::Core)
-            .and_then(|p| AxisConfig::from_params(&p, params::SAMPLE_PERIOD_S))
-            .map_err(|e| (i, e))
-    };
+    let config = |i: usize| axis_config(&set.axes[i]).map_err(|e| (i, e));
     let axes = config(0).and_then(|x| config(1).map(|y| [x, y]));
     PreparedUpload { set, axes }
 }
@@ -258,6 +266,64 @@ fn config_refusal(axis: usize, e: ConfigError) -> Response {
             format_args!("{name}: the model gives no stroke over the output window"),
         ),
     }
+}
+
+/// The set's loop rate and io chain against the firmware's (the chain is hardware: each field
+/// must be the built-in one), or the refusal naming the first that differs.
+fn chain_refusal(set: &ModelSet) -> Option<Response> {
+    let (io, runs) = (&set.io, &params::IO);
+    let differs = |what: &str, given: &dyn core::fmt::Debug, built: &dyn core::fmt::Debug| {
+        refused(
+            RefusalKind::Chain,
+            None,
+            format_args!(
+                "{what} is {given:?}, the firmware runs {built:?} (build it with this stage file)"
+            ),
+        )
+    };
+    if set.loop_rate_hz != params::LOOP_RATE_HZ {
+        return Some(differs(
+            "stage.loop_rate_hz",
+            &set.loop_rate_hz,
+            &params::LOOP_RATE_HZ,
+        ));
+    }
+    let fields: [(&str, &dyn core::fmt::Debug, &dyn core::fmt::Debug, bool); 5] = [
+        (
+            "io.dac_range_v",
+            &io.dac_range_v,
+            &runs.dac_range_v,
+            io.dac_range_v == runs.dac_range_v,
+        ),
+        (
+            "io.amplifier_gain_v_per_v",
+            &io.amplifier_gain_v_per_v,
+            &runs.amplifier_gain_v_per_v,
+            io.amplifier_gain_v_per_v == runs.amplifier_gain_v_per_v,
+        ),
+        (
+            "io.adc_range_v",
+            &io.adc_range_v,
+            &runs.adc_range_v,
+            io.adc_range_v == runs.adc_range_v,
+        ),
+        (
+            "io.sensor_range_v",
+            &io.sensor_range_v,
+            &runs.sensor_range_v,
+            io.sensor_range_v == runs.sensor_range_v,
+        ),
+        (
+            "io.sensor_m_per_v",
+            &io.sensor_m_per_v,
+            &runs.sensor_m_per_v,
+            io.sensor_m_per_v == runs.sensor_m_per_v,
+        ),
+    ];
+    fields
+        .into_iter()
+        .find(|f| !f.3)
+        .map(|(what, given, built, _)| differs(what, given, built))
 }
 
 impl Session {
@@ -365,12 +431,20 @@ impl Session {
     pub fn apply(&mut self, sequence: u32, prepared: Prepared) {
         let c = &mut self.counters;
         c.requests = c.requests.saturating_add(1);
-        if self.requests.accept(sequence) > 0 {
-            c.request_gaps = c.request_gaps.saturating_add(1);
-        }
-        let response = match prepared {
-            Prepared::Request(request) => self.handle(request),
-            Prepared::Upload(upload) => self.upload(&upload),
+        let response = match self.requests.admit(sequence) {
+            Err(next) => {
+                c.replayed_requests = c.replayed_requests.saturating_add(1);
+                Response::Replayed { next }
+            }
+            Ok(missing) => {
+                if missing > 0 {
+                    c.request_gaps = c.request_gaps.saturating_add(1);
+                }
+                match prepared {
+                    Prepared::Request(request) => self.handle(request),
+                    Prepared::Upload(upload) => self.upload(&upload),
+                }
+            }
         };
         self.send(Uplink::Response {
             request: sequence,
@@ -490,39 +564,24 @@ impl Session {
         }
     }
 
-    /// Swaps in a set [`prepare`] validated, or says why not (nothing changed).
+    /// Swaps in a set [`prepare`] validated, or says why not (nothing changed), counting every
+    /// refusal.
     fn upload(&mut self, upload: &PreparedUpload) -> Response {
+        let response = self.try_upload(upload);
+        if matches!(response, Response::Refused(_)) {
+            let c = &mut self.counters;
+            c.refused_uploads = c.refused_uploads.saturating_add(1);
+        }
+        response
+    }
+
+    fn try_upload(&mut self, upload: &PreparedUpload) -> Response {
         let set = &upload.set;
-        let chain = |what: &str, given: f32, runs: f32| {
-            refused(
-                RefusalKind::Chain,
-                None,
-                format_args!(
-                    "{what} is {given}, the firmware runs {runs} (build it with this stage file)"
-                ),
-            )
-        };
-        if set.loop_rate_hz != params::LOOP_RATE_HZ {
-            return chain("stage.loop_rate_hz", set.loop_rate_hz, params::LOOP_RATE_HZ);
-        }
-        let gain = self.lp.settings().amplifier_gain_v_per_v;
-        if set.amplifier_gain_v_per_v != gain {
-            return chain(
-                "io.amplifier_gain_v_per_v",
-                set.amplifier_gain_v_per_v,
-                gain,
-            );
-        }
-        if set.sensor_m_per_v != params::SENSOR_M_PER_V {
-            return chain(
-                "io.sensor_m_per_v",
-                set.sensor_m_per_v,
-                params::SENSOR_M_PER_V,
-            );
+        if let Some(refusal) = chain_refusal(set) {
+            return refusal;
         }
         if self.control.feedback() {
             if let Some(i) = set.axes.iter().position(|a| a.servo.is_none()) {
-                self.counters.refused_uploads = self.counters.refused_uploads.saturating_add(1);
                 let name = ["x", "y"][i & 1];
                 return refused(
                     RefusalKind::Model,
@@ -536,10 +595,7 @@ impl Session {
         }
         let axes = match upload.axes {
             Ok(valid) => valid,
-            Err((i, e)) => {
-                self.counters.refused_uploads = self.counters.refused_uploads.saturating_add(1);
-                return config_refusal(i, e);
-            }
+            Err((i, e)) => return config_refusal(i, e),
         };
         let settings = LoopSettings {
             axes,

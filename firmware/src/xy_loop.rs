@@ -288,7 +288,7 @@ impl AxisConfig {
         let effects = p.effect_chain(sample_period_s).map_err(ConfigError::Core)?;
         let servo = p
             .servo
-            .map(|params| Servo::new(params, settings))
+            .map(|params| Servo::new(params, settings, p.linear_gain_m_per_v))
             .transpose()
             .map_err(ConfigError::Core)?;
         let limits = limits.map_err(ConfigError::Limits)?;

@@ -217,13 +217,13 @@ fn effects_tables_are_parsed_validated_and_emitted() {
     assert_eq!((y.mode_frequency_hz, y.mode_damping), (0.0, 0.0));
     // The same validation as the firmware's boot: the core accepts them at the loop period.
     for a in &set.axes {
-        let range = piezo_stage::w_range(
+        let range = piezo_core::effects::OperatingRange::first_loading(
             a.rest_output_m,
             a.linear_gain_m_per_v,
-            a.output_min_v,
-            a.output_max_v,
+            (a.output_min_v, a.output_max_v),
         );
-        assert!(range.0 < range.1 && range.1 > 37e-6, "{range:?}");
+        let (w0, w1) = range.output_m;
+        assert!(w0 < w1 && w1 > 37e-6, "{range:?}");
         let e =
             piezo_core::effects::Effects::new(a.effects, 1.0 / set.loop_rate_hz, range).unwrap();
         assert!(!e.is_identity());

@@ -209,8 +209,7 @@ fn set_with_limits(windows: [(f32, f32); 2], slew_v_per_s: [f32; 2]) -> ModelSet
         version: piezo_link::truncated("window swap"),
         fnv1a32: 0x5a5a_5a5a,
         loop_rate_hz: params::LOOP_RATE_HZ,
-        amplifier_gain_v_per_v: params::AMPLIFIER_GAIN_V_PER_V,
-        sensor_m_per_v: params::SENSOR_M_PER_V,
+        io: params::IO,
         axes: [
             axis(&params::AXES[0], windows[0], slew_v_per_s[0]),
             axis(&params::AXES[1], windows[1], slew_v_per_s[1]),

@@ -17,8 +17,8 @@ fn servo(c: &mut Criterion) {
     let compensator = valid.axes[0].compensator.unwrap();
     let dynamics = StageDynamics::from_model(compensator.model(), 3200.0, 0.035, 1.5e-4);
     let tuning = tune(&dynamics, &TuningGoal::default(), compensator.settings()).unwrap();
-    let servo = Servo::new(tuning.params, compensator.settings()).unwrap();
     let gain = valid.axes[0].linear_gain_m_per_v;
+    let servo = Servo::new(tuning.params, compensator.settings(), gain).unwrap();
     // A 100 Hz sine over 10-90 % of the stroke, the stage following with a small lag.
     let reference: Vec<f32> = (0..=TICKS)
         .map(|k| gain * 120.0 * (0.5 - 0.4 * (k as f32 * 2.0 * std::f32::consts::PI * 0.01).cos()))

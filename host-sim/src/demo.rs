@@ -313,8 +313,15 @@ fn compensate(
         };
         Ok(FeedforwardAxis {
             compensator: model_compensator(m, loop_rate_hz)?,
-            effects: CoreEffects::new(params, m.sample_period_s, m.w_range_m)
-                .map_err(|e| format!("piezo-core refused the {} axis effects: {e}", AXES[a]))?,
+            effects: CoreEffects::new(
+                params,
+                m.sample_period_s,
+                piezo_core::effects::OperatingRange {
+                    input_v: m.input_range_v,
+                    output_m: m.w_range_m,
+                },
+            )
+            .map_err(|e| format!("piezo-core refused the {} axis effects: {e}", AXES[a]))?,
             rest_v: OUTPUT_MIN_V as f32,
         })
     };

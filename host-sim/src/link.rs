@@ -12,6 +12,15 @@
 //! `--allow-gaps`).
 //!
 //! Every read has a timeout (`--timeout`); a request that is not answered in time is an error.
+//! Every request starts with a 0x00 delimiter (`piezo_link::encode_request`), so half a frame a
+//! previous client left in the firmware's decoder does not swallow it. The client starts counting
+//! its requests at 0; the firmware answers a number it already handled with `Replayed { next }`,
+//! and the client takes `next` and sends the request again (once).
+//!
+//! A device's answers are checked before they size anything: the loop rate, the wave table's
+//! capacity and the number of frames a run asks for are bounded ([`MAX_LOOP_RATE_HZ`],
+//! [`MAX_TABLE_ENTRIES`], [`MAX_RECORD_FRAMES`]); a value outside is an error naming the field
+//! and the value, never a panic or an allocation the size of the device's number.
 
 use crate::csv::{write_csv, Table};
 use crate::signal::{SignalSpec, SIGNAL_HELP};
@@ -24,6 +33,32 @@ use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 use std::sync::mpsc::{self, Receiver, RecvTimeoutError};
 use std::time::{Duration, Instant};
+
+/// Highest loop rate accepted from a device \[Hz\] (the firmware runs at most 20 kHz).
+pub const MAX_LOOP_RATE_HZ: f64 = 1e6;
+/// Largest wave table accepted from a device \[entries\] (the firmware holds 2 048).
+pub const MAX_TABLE_ENTRIES: u32 = 1 << 20;
+/// Most frames one recording keeps (28 bytes each in memory: 1.9 GB).
+pub const MAX_RECORD_FRAMES: u64 = 1 << 26;
+
+/// The parts of a device's status a run is sized by, checked: a finite loop rate in
+/// (0, [`MAX_LOOP_RATE_HZ`]] and a table capacity in [2, [`MAX_TABLE_ENTRIES`]].
+fn run_limits(status: &Status) -> Result<(f64, u32), String> {
+    let rate = f64::from(status.loop_rate_hz);
+    if !(rate > 0.0 && rate <= MAX_LOOP_RATE_HZ) {
+        return Err(format!(
+            "the device reports loop_rate_hz = {:?}: expected a finite rate in (0, {MAX_LOOP_RATE_HZ}] Hz",
+            status.loop_rate_hz
+        ));
+    }
+    let capacity = status.table[1];
+    if !(2..=MAX_TABLE_ENTRIES).contains(&capacity) {
+        return Err(format!(
+            "the device reports a wave table of {capacity} entries (table[1]): expected 2 to {MAX_TABLE_ENTRIES}"
+        ));
+    }
+    Ok((rate, capacity))
+}
 
 /// Help after `host-sim link --help`.
 pub const HELP: &str = "Connect: tcp:HOST:PORT (the QEMU image: firmware/run-qemu.sh --link PORT ELF) or serial:PATH (the board's USB serial device).\n\
@@ -226,12 +261,30 @@ impl Client {
         }
     }
 
-    /// Sends `request` and waits for its answer (frames that arrive meanwhile are kept).
+    /// Sends `request` and waits for its answer (frames that arrive meanwhile are kept). A
+    /// `Replayed { next }` answer (the firmware handled this number already, e.g. from an earlier
+    /// client) moves the count to `next` and sends the request once more.
     pub fn request(&mut self, request: Request) -> Result<Response, String> {
+        match self.send_once(&request)? {
+            Response::Replayed { next } => {
+                self.sequence = next;
+                match self.send_once(&request)? {
+                    Response::Replayed { next } => Err(format!(
+                        "the firmware refused request {} as already handled (next {next})",
+                        self.sequence.wrapping_sub(1)
+                    )),
+                    other => Ok(other),
+                }
+            }
+            other => Ok(other),
+        }
+    }
+
+    fn send_once(&mut self, request: &Request) -> Result<Response, String> {
         let asked = self.sequence;
         self.sequence = self.sequence.wrapping_add(1);
-        let mut out = [0u8; MAX_FRAME];
-        let n = piezo_link::encode(
+        let mut out = [0u8; MAX_FRAME + 1];
+        let n = piezo_link::encode_request(
             &Packet {
                 sequence: asked,
                 body: request,
@@ -283,7 +336,8 @@ impl Client {
     ) -> Result<(Vec<Frame>, SequenceChecker), String> {
         let mut checker = SequenceChecker::default();
         checker.expect(first);
-        let mut out = Vec::with_capacity(count);
+        // Grown as frames arrive: `count` comes from the device's numbers.
+        let mut out = Vec::new();
         let ahead = |f: &Frame| f.sequence.wrapping_sub(first) < u32::MAX / 2;
         let keep = |f: Frame, out: &mut Vec<Frame>, checker: &mut SequenceChecker| {
             if ahead(&f) && out.len() < count {
@@ -323,10 +377,21 @@ impl Client {
             return Err("--duration must be > 0 and --decimation >= 1".into());
         }
         let status = self.status()?;
-        let rate = f64::from(status.loop_rate_hz);
-        let capacity = status.table[1].max(2);
-        let ticks = (duration_s * rate).round().max(1.0) as u64;
+        let (rate, capacity) = run_limits(&status)?;
+        let ticks = (duration_s * rate).round().max(1.0);
+        if !(ticks / f64::from(decimation) <= MAX_RECORD_FRAMES as f64) {
+            return Err(format!(
+                "--duration {duration_s} s at the device's {rate} Hz and --decimation {decimation} \
+                 is more than {MAX_RECORD_FRAMES} frames"
+            ));
+        }
+        let ticks = ticks as u64;
         let per_entry = ticks.div_ceil(u64::from(capacity - 1)).max(1);
+        if per_entry > u64::from(u32::MAX) {
+            return Err(format!(
+                "--duration {duration_s} s needs {per_entry} ticks per table entry, more than the link carries"
+            ));
+        }
         let entries = ticks / per_entry + 1;
         let table: Vec<[f32; 2]> = (0..entries)
             .map(|j| {
@@ -459,8 +524,7 @@ pub fn model_set(path: &Path) -> Result<ModelSet, String> {
         version: piezo_link::truncated(&version),
         fnv1a32: fnv1a32(&bytes),
         loop_rate_hz: file.stage.loop_rate_hz,
-        amplifier_gain_v_per_v: file.io.amplifier_gain_v_per_v,
-        sensor_m_per_v: file.io.sensor_m_per_v,
+        io: file.io.chain(),
         axes: [x, y],
     })
 }
@@ -534,6 +598,131 @@ pub fn link_cmd(a: &LinkArgs) -> Result<String, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A fake device on a loopback port: answers each request with `answer(sequence, request)`,
+    /// and hands back every byte it received once the link is quiet for a second.
+    fn device(
+        answer: impl Fn(u32, &Request) -> Response + Send + 'static,
+    ) -> (String, std::thread::JoinHandle<Vec<u8>>) {
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let address = format!("tcp:{}", listener.local_addr().unwrap());
+        let handle = std::thread::spawn(move || {
+            let (mut stream, _) = listener.accept().unwrap();
+            // The client's reader thread keeps the socket open: stop after a quiet second.
+            stream
+                .set_read_timeout(Some(Duration::from_secs(1)))
+                .unwrap();
+            let mut decoder = Decoder::new();
+            let mut received = Vec::new();
+            let mut buffer = [0u8; 1024];
+            let mut sequence = 0;
+            while let Ok(n) = stream.read(&mut buffer) {
+                if n == 0 {
+                    break;
+                }
+                received.extend_from_slice(&buffer[..n]);
+                for &b in &buffer[..n] {
+                    if let Some(Ok(packet)) = decoder.push::<Request>(b) {
+                        let body = Uplink::Response {
+                            request: packet.sequence,
+                            response: answer(packet.sequence, &packet.body),
+                        };
+                        let mut out = [0u8; MAX_FRAME];
+                        let n = piezo_link::encode(&Packet { sequence, body }, &mut out).unwrap();
+                        sequence += 1;
+                        if stream.write_all(&out[..n]).is_err() {
+                            return received;
+                        }
+                    }
+                }
+            }
+            received
+        });
+        (address, handle)
+    }
+
+    fn status(loop_rate_hz: f32, table: u32) -> Status {
+        Status {
+            params_fnv1a32: 0,
+            params_version: Default::default(),
+            loop_rate_hz,
+            mode: piezo_link::Mode::Running,
+            feedforward: piezo_link::Feedforward::Compensator,
+            control: Control::Feedforward,
+            tick_cycles_max: 0,
+            counters: Default::default(),
+            tracking: Default::default(),
+            applied_v: [0.0; 2],
+            measured_m: [0.0; 2],
+            frame_decimation: 0,
+            next_frame: 0,
+            table: [0, table],
+            stream: [0, 63],
+        }
+    }
+
+    /// A device whose status is out of bounds makes `excite` fail with the field and the value,
+    /// never a panic or a huge allocation.
+    #[test]
+    fn bad_device_answers_are_errors() {
+        let cases: [(f32, u32, &str); 6] = [
+            (1e30, 2048, "loop_rate_hz = 1e30"),
+            (f32::INFINITY, 2048, "loop_rate_hz = inf"),
+            (f32::NAN, 2048, "loop_rate_hz = NaN"),
+            (-10_000.0, 2048, "loop_rate_hz = -10000.0"),
+            (10_000.0, u32::MAX, "4294967295 entries"),
+            (10_000.0, 0, "0 entries"),
+        ];
+        for (rate, table, expected) in cases {
+            let (address, device) = device(move |_, request| match request {
+                Request::Status => Response::Status(status(rate, table)),
+                _ => Response::Done,
+            });
+            let mut client = Client::connect(&address, Duration::from_secs(5)).unwrap();
+            let e = client
+                .run("sine:amp=1,offset=1,freq=1", 1.0, 1, true)
+                .unwrap_err();
+            assert!(e.contains(expected), "{rate} {table}: {e}");
+            drop(client);
+            device.join().unwrap();
+        }
+        // A sane device with a duration too long to record.
+        let (address, device) = device(|_, request| match request {
+            Request::Status => Response::Status(status(20_000.0, 2048)),
+            _ => Response::Done,
+        });
+        let mut client = Client::connect(&address, Duration::from_secs(5)).unwrap();
+        let e = client
+            .run("sine:amp=1,offset=1,freq=1", 1e9, 1, true)
+            .unwrap_err();
+        assert!(e.contains("frames"), "{e}");
+        drop(client);
+        device.join().unwrap();
+    }
+
+    /// Every request starts with a delimiter; a `Replayed` answer moves the count on and the
+    /// request is sent again with the number the device asked for.
+    #[test]
+    fn requests_start_with_a_delimiter_and_follow_a_replayed_answer() {
+        let (address, device) = device(|sequence, _| {
+            if sequence < 40 {
+                Response::Replayed { next: 40 }
+            } else {
+                Response::Status(status(10_000.0, 2048))
+            }
+        });
+        let mut client = Client::connect(&address, Duration::from_secs(5)).unwrap();
+        assert_eq!(client.status().unwrap().loop_rate_hz, 10_000.0);
+        assert_eq!(client.sequence, 41);
+        drop(client);
+        let bytes = device.join().unwrap();
+        assert_eq!(bytes[0], 0);
+        let starts = bytes.windows(2).filter(|w| w == &[0, 0]).count();
+        assert_eq!(
+            starts, 1,
+            "two requests, the second right after the first's delimiter"
+        );
+    }
 
     #[test]
     fn fnv_matches_the_firmware_build() {

@@ -25,7 +25,7 @@ pub fn stage_and_io(
         }
         None => {
             let io = Io::placeholder_covering(drive_range_v);
-            let (d0, d1) = io.drive_range_v();
+            let (d0, d1) = io.chain().drive_range_v();
             let bipolar = if io.dac_range_v[0] < 0.0 {
                 " (a bipolar DAC span, which the firmware's DAC8563 does not drive)"
             } else {
@@ -187,7 +187,9 @@ impl Verdict {
 fn refusal_kind(e: &StageError) -> RefusalKind {
     if matches!(e.core, Some(ParamError::NotInvertible { .. })) {
         RefusalKind::NotInvertible
-    } else if e.core.is_none() && e.key.ends_with(".limits.output_max_v") {
+    } else if matches!(e.core, Some(ParamError::WindowOutsideDrive { .. }))
+        || (e.core.is_none() && e.key.ends_with(".limits.output_max_v"))
+    {
         RefusalKind::IoWindow
     } else {
         RefusalKind::Other
@@ -255,7 +257,11 @@ impl WrittenStage {
 
 /// Writes `file` to `path` (with `header`) and checks it as `compensate` would read it; a file
 /// that could not be written is checked in memory. Never fails: the outcome says what happened.
+///
+/// An axis's slew limit is lowered, where needed, to the fastest the core accepts at the file's
+/// loop rate (a full-window move in `MIN_WINDOW_TICKS` ticks).
 pub fn write_stage(path: &Path, header: &str, file: &StageFile) -> WrittenStage {
+    let file = &with_feasible_slew(file);
     let written = file
         .write(path, header)
         .map_err(|e| e.to_string())
@@ -269,4 +275,29 @@ pub fn write_stage(path: &Path, header: &str, file: &StageFile) -> WrittenStage 
         verdict: Verdict::of(file, path, text.as_deref()),
         not_written,
     }
+}
+
+/// `file` with each axis's slew limit lowered, where needed, to the fastest the core accepts at
+/// the file's loop rate.
+fn with_feasible_slew(file: &StageFile) -> StageFile {
+    let mut file = file.clone();
+    let period = 1.0 / file.stage.loop_rate_hz;
+    let lower = |a: &mut piezo_stage::Axis| {
+        let l = &mut a.limits;
+        let fastest = piezo_core::CompensatorSettings {
+            output_min_v: l.output_min_v,
+            output_max_v: l.output_max_v,
+            slew_limit_v_per_s: l.slew_limit_v_per_s,
+            sample_period_s: period,
+        }
+        .fastest_slew_v_per_s();
+        if fastest.is_finite() && fastest > 0.0 {
+            l.slew_limit_v_per_s = l.slew_limit_v_per_s.min(fastest);
+        }
+    };
+    lower(&mut file.x);
+    if let Some(y) = file.y.as_mut() {
+        lower(y);
+    }
+    file
 }

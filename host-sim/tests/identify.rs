@@ -266,7 +266,7 @@ fn a_bipolar_record_gets_an_io_chain_that_covers_it() {
     assert!(msg.contains("accepted by the firmware"), "{msg}");
     let (file, _) = piezo_stage::StageFile::load(&out).unwrap();
     assert!(file.io.placeholder);
-    let (d0, d1) = file.io.drive_range_v();
+    let (d0, d1) = file.io.chain().drive_range_v();
     let (lo, hi) = (file.x.limits.output_min_v, file.x.limits.output_max_v);
     assert!(lo < -80.0 && hi > 80.0, "window [{lo}, {hi}]");
     assert!(

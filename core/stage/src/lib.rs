@@ -49,9 +49,12 @@
 //! Per axis, in this order: `BoucWen::with_input_range(bouc_wen, output_min_v, output_max_v,
 //! STATE_LIMIT)` (the output window is the only input the stage will see), the model constructor
 //! of its family, `Compensator::new` with the limits and `sample_period_s = 1 / loop_rate_hz`
-//! (static models), then `effects::Effects::new(effects, 1 / loop_rate_hz, w_range)` with
-//! `w_range` the output range of the first loading over the window. The io chain: the output
-//! window within `dac_range_v × amplifier_gain_v_per_v`, the sensor span within the ADC's.
+//! (static models), then `effects::Effects::new(effects, 1 / loop_rate_hz, range)` with
+//! `range = OperatingRange::first_loading(..)` (the window and the first loading's output over
+//! it: the effects' plausibility bounds are relative to them), `Servo::new(servo, limits,
+//! linear gain)` (its loop gains). The io chain: `IoChain::check_limits` (the output window within
+//! `dac_range_v × amplifier_gain_v_per_v`, a finite slew limit that leaves a full-window move
+//! `MIN_WINDOW_TICKS` ticks), `IoChain::check` (the sensor span within the ADC's).
 //! [`Check::Models`] is the same without the compensator and the drive-span check: what a forward
 //! simulation of the file needs (`host-sim predict` runs sets that are not invertible).
 //!
@@ -68,7 +71,7 @@ mod error;
 mod validate;
 
 pub use error::{StageError, StageErrorKind};
-pub use validate::{simulate_pair, w_range, AxisChain, Check, ValidAxis, ValidStage};
+pub use validate::{simulate_pair, AxisChain, Check, ValidAxis, ValidStage};
 
 use piezo_core::effects::EffectParams;
 use piezo_core::{

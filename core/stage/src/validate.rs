@@ -8,10 +8,10 @@
 
 use crate::error::{StageError, StageErrorKind};
 use crate::{Axis, Io, ModelKind, StageFile, STATE_LIMIT};
-use piezo_core::effects::{couple, Effects, EffectsState};
+use piezo_core::effects::{couple, Effects, EffectsState, OperatingRange};
 use piezo_core::{
     Asymmetry, BoucWen, Compensator, CompensatorSettings, DynamicModel, HystereticOscillator,
-    ModelState, OscillatorState, ParamError, Servo, StaticModel,
+    IoChain, ModelState, OscillatorState, ParamError, Servo, StaticModel,
 };
 
 /// The built model of one axis at one sample period.
@@ -70,7 +70,9 @@ fn located(key: String, e: ParamError) -> StageError {
 /// The key path a core error names, for an axis `name`.
 fn core_key(name: &str, e: &ParamError, section: &str) -> String {
     match e {
-        ParamError::NonFinite { field } | ParamError::OutOfRange { field, .. } => {
+        ParamError::NonFinite { field }
+        | ParamError::OutOfRange { field, .. }
+        | ParamError::Implausible { field, .. } => {
             let section = match *field {
                 "output_min_v" | "output_max_v" | "slew_limit_v_per_s" => "limits",
                 "input_min_v" | "input_max_v" => "limits",
@@ -86,6 +88,8 @@ fn core_key(name: &str, e: &ParamError, section: &str) -> String {
             format!("{name}.bouc_wen")
         }
         ParamError::NotInvertible { .. } => format!("{name}.static_map"),
+        ParamError::WindowOutsideDrive { .. } => format!("{name}.limits.output_max_v"),
+        ParamError::SensorOutsideAdc { .. } => "io.sensor_range_v".into(),
         ParamError::Discretisation { .. } => format!("{name}.{section}"),
     }
 }
@@ -150,24 +154,23 @@ impl Axis {
                         format!("the model gives no stroke over the output window (first-loading gain {gain} m/V)"),
                     ));
                 }
-                let effects =
-                    Effects::new(self.effects, sample_period_s, w_range(rest, gain, u0, u1))
-                        .map_err(|e| {
-                            let key = match e {
-                                ParamError::NonFinite { field }
-                                | ParamError::OutOfRange { field, .. }
-                                    if field == "sample_period_s" =>
-                                {
-                                    "stage.loop_rate_hz".to_string()
-                                }
-                                ParamError::NonFinite { field }
-                                | ParamError::OutOfRange { field, .. } => {
-                                    format!("{name}.effects.{field}")
-                                }
-                                _ => format!("{name}.effects.mode_frequency_hz"),
-                            };
-                            located(key, e)
-                        })?;
+                let range = OperatingRange::first_loading(rest, gain, (u0, u1));
+                let effects = Effects::new(self.effects, sample_period_s, range).map_err(|e| {
+                    let key = match e {
+                        ParamError::NonFinite { field } | ParamError::OutOfRange { field, .. }
+                            if field == "sample_period_s" =>
+                        {
+                            "stage.loop_rate_hz".to_string()
+                        }
+                        ParamError::NonFinite { field }
+                        | ParamError::OutOfRange { field, .. }
+                        | ParamError::Implausible { field, .. } => {
+                            format!("{name}.effects.{field}")
+                        }
+                        _ => format!("{name}.effects.mode_frequency_hz"),
+                    };
+                    located(key, e)
+                })?;
                 linear_gain_m_per_v = gain;
                 rest_output_m = rest;
                 AxisChain::Static { model, effects }
@@ -212,63 +215,34 @@ impl Axis {
     }
 }
 
-/// The hysteresis output range the effects are validated over: the first loading's
-/// `[y_rest, y_rest + g_lin·(u_max − u_min)]`, sorted \[m\].
-pub fn w_range(rest_m: f32, gain_m_per_v: f32, u0: f32, u1: f32) -> (f32, f32) {
-    let top = rest_m + gain_m_per_v * (u1 - u0);
-    (rest_m.min(top), rest_m.max(top))
-}
-
 fn invalid(key: &str, message: String) -> StageError {
     StageError::new("", StageErrorKind::Invalid, key, message)
 }
 
 impl Io {
-    /// The chain's own consistency: finite positive gains, ordered spans, the sensor span inside
-    /// the ADC's.
-    pub fn check(&self) -> Result<(), StageError> {
-        for (key, v) in [
-            ("io.amplifier_gain_v_per_v", self.amplifier_gain_v_per_v),
-            ("io.sensor_m_per_v", self.sensor_m_per_v),
-        ] {
-            if !(v.is_finite() && v > 0.0) {
-                let hint = if v.is_infinite() {
-                    " (a value beyond the f32 range, |v| > 3.4e38, reads as infinite)"
-                } else {
-                    ""
-                };
-                return Err(invalid(key, format!("{v} must be finite and > 0{hint}")));
-            }
+    /// The chain as the core checks it (part names aside).
+    pub fn chain(&self) -> IoChain {
+        IoChain {
+            dac_range_v: self.dac_range_v,
+            amplifier_gain_v_per_v: self.amplifier_gain_v_per_v,
+            adc_range_v: self.adc_range_v,
+            sensor_range_v: self.sensor_range_v,
+            sensor_m_per_v: self.sensor_m_per_v,
         }
-        for (key, [lo, hi]) in [
-            ("io.dac_range_v", self.dac_range_v),
-            ("io.adc_range_v", self.adc_range_v),
-            ("io.sensor_range_v", self.sensor_range_v),
-        ] {
-            if !(lo.is_finite() && hi.is_finite() && lo < hi) {
-                return Err(invalid(
-                    key,
-                    format!("[{lo}, {hi}] must be finite with min < max"),
-                ));
-            }
-        }
-        let [s0, s1] = self.sensor_range_v;
-        let [a0, a1] = self.adc_range_v;
-        if s0 < a0 || s1 > a1 {
-            return Err(invalid(
-                "io.sensor_range_v",
-                format!(
-                    "the sensor span [{s0}, {s1}] V exceeds the ADC's input span [{a0}, {a1}] V"
-                ),
-            ));
-        }
-        Ok(())
     }
 
-    /// The stack voltage span the DAC and amplifier can produce \[V\].
-    pub fn drive_range_v(&self) -> (f32, f32) {
-        let g = self.amplifier_gain_v_per_v;
-        (self.dac_range_v[0] * g, self.dac_range_v[1] * g)
+    /// The chain's own consistency ([`IoChain::check`]): finite positive gains, ordered spans,
+    /// the sensor span inside the ADC's.
+    pub fn check(&self) -> Result<(), StageError> {
+        self.chain().check().map_err(|e| {
+            let key = match e {
+                ParamError::NonFinite { field }
+                | ParamError::OutOfRange { field, .. }
+                | ParamError::Implausible { field, .. } => format!("io.{field}"),
+                _ => "io.sensor_range_v".into(),
+            };
+            located(key, e)
+        })
     }
 }
 
@@ -308,7 +282,7 @@ impl StageFile {
         }
         let sample_period_s = 1.0 / rate;
         self.io.check()?;
-        let (d0, d1) = self.io.drive_range_v();
+        let chain = self.io.chain();
         let mut axes = Vec::new();
         for (name, axis) in self.axes() {
             let l = axis.limits;
@@ -341,24 +315,20 @@ impl StageFile {
                 }
             }
             if let (AxisChain::Static { .. }, Check::Firmware) = (valid.chain, check) {
-                if l.output_min_v < d0 - 1e-3 || l.output_max_v > d1 + 1e-3 {
-                    return Err(invalid(
-                        &format!("{name}.limits.output_max_v"),
-                        format!(
-                            "the output window [{}, {}] V exceeds what the DAC and amplifier drive: \
-                             io.dac_range_v [{}, {}] V × io.amplifier_gain_v_per_v {} = [{d0}, {d1}] V",
-                            l.output_min_v,
-                            l.output_max_v,
-                            self.io.dac_range_v[0],
-                            self.io.dac_range_v[1],
-                            self.io.amplifier_gain_v_per_v
-                        ),
-                    ));
-                }
+                chain
+                    .check_limits(&settings)
+                    .map_err(|e| located(core_key(name, &e, "limits"), e))?;
             }
             if let Some(params) = axis.servo {
+                if !matches!(valid.chain, AxisChain::Static { .. }) {
+                    return Err(invalid(
+                        &format!("{name}.servo"),
+                        "the servo runs around the static models only (symmetric, asymmetric)"
+                            .into(),
+                    ));
+                }
                 valid.servo = Some(
-                    Servo::new(params, settings)
+                    Servo::new(params, settings, valid.linear_gain_m_per_v)
                         .map_err(|e| located(core_key(name, &e, "servo"), e))?,
                 );
             }

@@ -9,15 +9,24 @@
 //! On the wire (both directions):
 //!
 //! ```text
-//! raw    = postcard(packet) ‖ CRC-32/ISO-HDLC(postcard(packet)) as 4 bytes LE
-//! frame  = COBS(raw) ‖ 0x00
+//! raw     = postcard(packet) ‖ CRC-32/ISO-HDLC(postcard(packet)) as 4 bytes LE
+//! frame   = COBS(raw) ‖ 0x00                       firmware → host ([`encode`])
+//! request = 0x00 ‖ COBS(raw) ‖ 0x00                host → firmware ([`encode_request`])
 //! ```
 //!
 //! postcard is serde's compact binary format (varint integers, f32 as 4 bytes LE); COBS removes
 //! every 0x00 from the packet so the 0x00 delimiter resynchronises a receiver after any byte lost
-//! or corrupted. A frame whose COBS or CRC check fails, or whose body does not parse, is refused
+//! or corrupted. A request starts with a delimiter too, so that bytes a previous host left in the
+//! firmware's decoder (half a frame) end there as one refused frame instead of swallowing the
+//! request; the empty frame between two delimiters is ignored. A frame whose COBS or CRC check
+//! fails, whose body does not parse, or that has bytes after its body, is refused
 //! ([`DecodeError`]) and counted; a request lost that way is not answered (the host times out
 //! and sees the gap in the firmware's request count).
+//!
+//! **Replays**: the firmware runs a request only if its sequence number is ahead of the last one
+//! it handled ([`SequenceChecker::admit`]); any other is answered with [`Response::Replayed`]
+//! naming the next number it runs, counted (`replayed_requests`), and not run. A host that starts
+//! (and counts from 0) learns the number from that answer and sends its request again.
 //!
 //! Everything is fixed capacity (`heapless`) and caller-supplied: [`encode`] writes into a
 //! `&mut [u8]`, [`Decoder`] accumulates up to [`MAX_FRAME`] bytes. Nothing allocates or panics.
@@ -66,6 +75,8 @@ pub enum DecodeError {
     Crc,
     /// The CRC holds but the body is not a message of the expected type.
     Body,
+    /// The CRC holds and a message parses, but bytes follow it.
+    Trailing,
 }
 
 impl core::fmt::Display for DecodeError {
@@ -76,6 +87,7 @@ impl core::fmt::Display for DecodeError {
             DecodeError::TooShort => "frame shorter than its CRC",
             DecodeError::Crc => "CRC mismatch",
             DecodeError::Body => "CRC holds but the body does not parse",
+            DecodeError::Trailing => "CRC holds but bytes follow the body",
         })
     }
 }
@@ -96,6 +108,17 @@ pub fn encode<T: Serialize>(packet: &Packet<T>, out: &mut [u8]) -> Result<usize,
     Ok(n + 1)
 }
 
+/// Encodes a request: a 0x00 (ending whatever the receiver's decoder holds), then the frame of
+/// [`encode`]; returns its length (at most [`MAX_FRAME`] + 1).
+pub fn encode_request<T: Serialize>(
+    packet: &Packet<T>,
+    out: &mut [u8],
+) -> Result<usize, DecodeError> {
+    let (first, rest) = out.split_first_mut().ok_or(DecodeError::TooLong)?;
+    *first = 0;
+    Ok(encode(packet, rest)? + 1)
+}
+
 /// Decodes one frame (without its 0x00 delimiter), in place.
 pub fn decode<T: DeserializeOwned>(frame: &mut [u8]) -> Result<Packet<T>, DecodeError> {
     let n = cobs::decode_in_place(frame).ok_or(DecodeError::Cobs)?;
@@ -108,7 +131,11 @@ pub fn decode<T: DeserializeOwned>(frame: &mut [u8]) -> Result<Packet<T>, Decode
     if CRC.checksum(body) != u32::from_le_bytes(expected) {
         return Err(DecodeError::Crc);
     }
-    postcard::from_bytes(body).map_err(|_| DecodeError::Body)
+    match postcard::take_from_bytes(body) {
+        Ok((packet, [])) => Ok(packet),
+        Ok(_) => Err(DecodeError::Trailing),
+        Err(_) => Err(DecodeError::Body),
+    }
 }
 
 /// Collects received bytes into frames (up to the 0x00 delimiter). A frame longer than

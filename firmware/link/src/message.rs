@@ -5,7 +5,7 @@
 
 use heapless::{String, Vec};
 use piezo_core::effects::{EffectParams, MAX_CREEP_ELEMENTS, MAX_RELAXATION_ELEMENTS};
-use piezo_core::{Asymmetry, BoucWenParams, ServoParams, StaticMap};
+use piezo_core::{Asymmetry, BoucWenParams, IoChain, ServoParams, StaticMap};
 use serde::{Deserialize, Serialize};
 
 /// Setpoints per [`Request::TableAppend`] or [`Request::Stream`] message.
@@ -113,8 +113,10 @@ pub struct AxisModel {
     pub servo: Option<ServoParams>,
 }
 
-/// A whole parameter set, validated on the firmware by piezo-core's constructors and swapped in
-/// between two ticks if it is accepted.
+/// A whole parameter set, validated on the firmware exactly as the stage file's build validates
+/// it — piezo-core's constructors with their plausibility bounds, and each axis's window and slew
+/// limit against the chain (`IoChain::check_limits`) — and swapped in between two ticks if it is
+/// accepted.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ModelSet {
     /// `name version` of the stage file.
@@ -123,10 +125,9 @@ pub struct ModelSet {
     pub fnv1a32: u32,
     /// The stage file's loop rate \[Hz\] (must be the firmware's).
     pub loop_rate_hz: f32,
-    /// Stack volts per DAC volt (must be the firmware's: the chain is hardware).
-    pub amplifier_gain_v_per_v: f32,
-    /// Metres per sensor volt (must be the firmware's).
-    pub sensor_m_per_v: f32,
+    /// The stage file's DAC, amplifier, ADC and sensor chain (must be the firmware's, field by
+    /// field: the chain is hardware).
+    pub io: IoChain,
     /// x, y.
     pub axes: [AxisModel; 2],
 }
@@ -312,9 +313,12 @@ pub struct Counters {
     pub rejected_packets: u32,
     /// Gaps in the request sequence numbers.
     pub request_gaps: u32,
+    /// Requests not run because their sequence number was already handled
+    /// ([`Response::Replayed`]).
+    pub replayed_requests: u32,
     /// Parameter sets loaded at run time.
     pub uploads: u32,
-    /// Parameter sets refused.
+    /// Parameter sets refused (by the core, the chain or the control mode).
     pub refused_uploads: u32,
 }
 
@@ -399,6 +403,13 @@ pub enum Response {
     Done,
     /// Not done; nothing changed.
     Refused(Refusal),
+    /// Not run, nothing changed: the request's sequence number is not ahead of the last one the
+    /// firmware handled (a replayed or duplicated frame, or a host that started counting again).
+    /// A host that meant it numbers it `next` and sends it again.
+    Replayed {
+        /// The lowest sequence number the firmware runs next (the last handled + 1).
+        next: u32,
+    },
 }
 
 /// One sample frame: what the loop did in one tick.

@@ -1,6 +1,7 @@
 use super::*;
 use piezo_core::effects::EffectParams;
 use piezo_core::{Asymmetry, BoucWenParams, ServoParams, StaticMap};
+use proptest::prelude::*;
 
 fn axis() -> AxisModel {
     AxisModel {
@@ -49,8 +50,13 @@ fn model_set() -> ModelSet {
         version: heapless::String::try_from("xy-stage 1").unwrap(),
         fnv1a32: 0xdead_beef,
         loop_rate_hz: 10_000.0,
-        amplifier_gain_v_per_v: 24.0,
-        sensor_m_per_v: 1e-5,
+        io: piezo_core::IoChain {
+            dac_range_v: [0.0, 5.0],
+            amplifier_gain_v_per_v: 24.0,
+            adc_range_v: [-10.24, 10.24],
+            sensor_range_v: [0.0, 10.0],
+            sensor_m_per_v: 1e-5,
+        },
         axes: [axis(), axis()],
     }
 }
@@ -285,4 +291,162 @@ fn gaps_are_counted() {
     assert_eq!(rx.accept(100), 0);
     assert_eq!(rx.accept(102), 1);
     assert_eq!((rx.gaps, rx.lost), (2, 4));
+}
+
+#[test]
+fn requests_already_handled_are_refused_with_the_next_number() {
+    let mut rx = SequenceChecker::default();
+    assert_eq!(rx.admit(7), Ok(0));
+    assert_eq!(rx.admit(7), Err(8), "the same number again");
+    assert_eq!(rx.admit(3), Err(8), "a number behind");
+    assert_eq!(rx.admit(0), Err(8), "a host counting from 0 again");
+    assert_eq!(rx.admit(8), Ok(0));
+    assert_eq!(rx.admit(10), Ok(1));
+    assert_eq!((rx.gaps, rx.lost), (1, 1));
+    let mut rx = SequenceChecker::default();
+    rx.admit(u32::MAX).unwrap();
+    assert_eq!(rx.admit(0), Ok(0), "wraps");
+    assert_eq!(rx.admit(u32::MAX), Err(1));
+}
+
+/// One encoded frame of `packet`, delimiter included.
+fn frame_of<T: Serialize>(sequence: u32, body: T) -> std::vec::Vec<u8> {
+    let mut out = [0u8; MAX_FRAME];
+    let n = encode(&Packet { sequence, body }, &mut out).unwrap();
+    out[..n].to_vec()
+}
+
+/// A frame whose CRC holds over `raw` (any bytes), delimiter included.
+fn frame_with_crc(raw: &[u8]) -> std::vec::Vec<u8> {
+    let mut data = raw.to_vec();
+    data.extend_from_slice(&CRC.checksum(raw).to_le_bytes());
+    let mut out = std::vec![0u8; data.len() + data.len() / 254 + 2];
+    let n = cobs::encode(&data, &mut out).unwrap();
+    out.truncate(n);
+    out.push(0);
+    out
+}
+
+fn feed(
+    decoder: &mut Decoder,
+    bytes: &[u8],
+) -> std::vec::Vec<Result<Packet<Request>, DecodeError>> {
+    bytes
+        .iter()
+        .filter_map(|&b| decoder.push::<Request>(b))
+        .collect()
+}
+
+#[test]
+fn bytes_after_the_body_are_refused() {
+    let packet = Packet {
+        sequence: 4,
+        body: Request::Rearm,
+    };
+    let mut body = postcard::to_allocvec(&packet).unwrap();
+    assert_eq!(
+        feed(&mut Decoder::new(), &frame_with_crc(&body)),
+        [Ok(packet.clone())]
+    );
+    body.push(0x17);
+    assert_eq!(
+        feed(&mut Decoder::new(), &frame_with_crc(&body)),
+        [Err(DecodeError::Trailing)]
+    );
+}
+
+#[test]
+fn a_half_frame_left_in_the_decoder_ends_at_the_next_requests_delimiter() {
+    let mut out = [0u8; MAX_FRAME + 1];
+    let n = encode_request(
+        &Packet {
+            sequence: 1,
+            body: Request::Status,
+        },
+        &mut out,
+    )
+    .unwrap();
+    assert_eq!((out[0], out[n - 1]), (0, 0));
+    let half = frame_of(0, Request::Upload(model_set()));
+    let mut decoder = Decoder::new();
+    let mut results = feed(&mut decoder, &half[..half.len() / 2]);
+    results.extend(feed(&mut decoder, &out[..n]));
+    assert_eq!(results.len(), 2, "{results:?}");
+    assert!(results[0].is_err());
+    assert_eq!(results[1].as_ref().unwrap().body, Request::Status);
+}
+
+#[test]
+fn frames_at_the_length_limit() {
+    // MAX_FRAME − 1 non-zero bytes plus the delimiter: collected whole (the CRC decides).
+    let mut decoder = Decoder::new();
+    let mut at_limit = std::vec![1u8; MAX_FRAME - 1];
+    at_limit.push(0);
+    assert_eq!(feed(&mut decoder, &at_limit), [Err(DecodeError::Crc)]);
+    // One more byte: too long, reported once, and the decoder takes the next frame.
+    let mut over = std::vec![1u8; MAX_FRAME + 1];
+    over.push(0);
+    assert_eq!(feed(&mut decoder, &over), [Err(DecodeError::TooLong)]);
+    let good = frame_of(2, Request::Status);
+    assert_eq!(feed(&mut decoder, &good)[0].as_ref().unwrap().sequence, 2);
+    // The largest raw packet encode accepts fits the limit, and decodes.
+    let raw = std::vec![0xeeu8; MAX_RAW - 4];
+    let frame = frame_with_crc(&raw);
+    assert_eq!(frame.len(), MAX_FRAME);
+    assert_eq!(feed(&mut decoder, &frame), [Err(DecodeError::Body)]);
+}
+
+proptest! {
+    /// Any byte stream: the decoder never panics, reports at most one result per delimiter, and
+    /// a valid request sent after a delimiter still decodes.
+    #[test]
+    fn the_decoder_survives_any_byte_stream(
+        bytes in prop::collection::vec(any::<u8>(), 0..2000),
+    ) {
+        let mut decoder = Decoder::new();
+        let results = feed(&mut decoder, &bytes);
+        let delimiters = bytes.iter().filter(|&&b| b == 0).count();
+        prop_assert!(results.len() <= delimiters);
+        let mut out = [0u8; MAX_FRAME + 1];
+        let n = encode_request(&Packet { sequence: 9, body: Request::Rearm }, &mut out).unwrap();
+        let after = feed(&mut decoder, &out[..n]);
+        prop_assert_eq!(after.last().cloned(), Some(Ok(Packet { sequence: 9, body: Request::Rearm })));
+    }
+
+    /// Bodies with a correct CRC that are not a request (or have bytes after one) are refused,
+    /// never accepted as something else and never a panic.
+    #[test]
+    fn correct_crc_bad_bodies_are_refused(
+        raw in prop::collection::vec(any::<u8>(), 0..600),
+    ) {
+        let results = feed(&mut Decoder::new(), &frame_with_crc(&raw));
+        prop_assert_eq!(results.len(), 1);
+        match &results[0] {
+            Ok(packet) => {
+                // Then it is exactly a request's bytes: re-encoding gives them back.
+                prop_assert_eq!(postcard::to_allocvec(packet).unwrap(), raw);
+            }
+            Err(e) => prop_assert!(matches!(e, DecodeError::Body | DecodeError::Trailing)),
+        }
+    }
+
+    /// Broken COBS: a random non-zero run claims more than it holds, or holds a frame cut short.
+    #[test]
+    fn malformed_cobs_is_refused(
+        sequence in any::<u32>(),
+        cut in 1usize..30,
+        code in 2u8..=255,
+    ) {
+        let frame = frame_of(sequence, Request::Frames { decimation: sequence });
+        let body = &frame[..frame.len() - 1];
+        let mut cut_short = body[..body.len().saturating_sub(cut).max(1)].to_vec();
+        cut_short.push(0);
+        let r = feed(&mut Decoder::new(), &cut_short);
+        prop_assert!(r.iter().all(|r| r.is_err()), "{:?}", r);
+        let mut overrun = std::vec![code];
+        overrun.extend(std::iter::repeat_n(1u8, usize::from(code) - 2));
+        overrun.push(0);
+        let r = feed(&mut Decoder::new(), &overrun);
+        prop_assert!(r.iter().all(|r| r.is_err()), "{:?}", r);
+    }
 }

@@ -27,8 +27,8 @@ impl Host {
     }
 
     fn ask(&mut self, s: &mut Session, request: Request) -> Response {
-        let mut out = [0u8; MAX_FRAME];
-        let n = piezo_link::encode(
+        let mut out = [0u8; MAX_FRAME + 1];
+        let n = piezo_link::encode_request(
             &Packet {
                 sequence: self.sequence,
                 body: request,
@@ -131,8 +131,7 @@ fn built_in_set() -> ModelSet {
         version: String::try_from("uploaded 2").unwrap(),
         fnv1a32: 0x1234_5678,
         loop_rate_hz: params::LOOP_RATE_HZ,
-        amplifier_gain_v_per_v: params::AMPLIFIER_GAIN_V_PER_V,
-        sensor_m_per_v: params::SENSOR_M_PER_V,
+        io: params::IO,
         axes: [axis(&params::AXES[0]), axis(&params::AXES[1])],
     }
 }
@@ -244,7 +243,8 @@ fn a_refused_set_leaves_the_running_one_and_a_good_one_is_swapped_in() {
     }
     let st = host.status(&mut s);
     assert_eq!(st.params_fnv1a32, 0x1234_5678);
-    assert_eq!((st.counters.uploads, st.counters.refused_uploads), (1, 1));
+    // Both refusals count: the core's and the chain's.
+    assert_eq!((st.counters.uploads, st.counters.refused_uploads), (1, 2));
 }
 
 #[test]
@@ -368,4 +368,203 @@ fn an_upload_prepared_outside_the_session_is_applied_between_two_ticks() {
         }]
     ));
     assert_eq!(s.lp.settings().axes, before);
+}
+
+fn refusal(response: Response) -> Refusal {
+    match response {
+        Response::Refused(r) => r,
+        other => panic!("accepted: {other:?}"),
+    }
+}
+
+/// Every set the stage file's build refuses is refused on upload too, with the core's reason,
+/// counted, and the running set left as it was.
+#[test]
+fn implausible_sets_and_other_chains_are_refused_and_counted() {
+    let (mut s, _plant) = session();
+    let mut host = Host::new();
+    let before = s.lp.settings().axes;
+    let servo = piezo_core::ServoParams {
+        kp_v_per_m: 0.0,
+        ki_v_per_m_s: 2.5e9,
+        lowpass_frequency_hz: 3221.0,
+        lowpass_q: core::f32::consts::FRAC_1_SQRT_2,
+        notch_frequency_hz: 3221.0,
+        notch_q: 1.0,
+        transfer_time_constant_s: 0.02,
+    };
+    type Edit = fn(&mut ModelSet);
+    let model: [(&str, Edit); 9] = [
+        ("window 0-200 V", |m| m.axes[0].limits.output_max_v = 200.0),
+        ("window -50-120 V", |m| {
+            m.axes[1].limits.output_min_v = -50.0
+        }),
+        ("creep gain 1e6", |m| {
+            m.axes[0].effects.creep_gain_m_per_v[0] = 1e6;
+            m.axes[0].effects.creep_time_constant_s[0] = 0.1;
+        }),
+        ("even term 1e30", |m| {
+            m.axes[0].effects.even_coefficient_m_per_v2 = 1e30
+        }),
+        ("drift 1e30", |m| {
+            m.axes[1].effects.drift_rate_m_per_s = 1e30
+        }),
+        ("settling drift 1 m", |m| {
+            m.axes[1].effects.drift_settling_m = 1.0;
+            m.axes[1].effects.drift_settling_time_constant_s = 1.0;
+        }),
+        ("slew 1e38", |m| m.axes[0].limits.slew_limit_v_per_s = 1e38),
+        ("slew +inf", |m| {
+            m.axes[1].limits.slew_limit_v_per_s = f32::INFINITY
+        }),
+        ("kp 1e38", |m| {
+            if let Some(servo) = m.axes[0].servo.as_mut() {
+                servo.kp_v_per_m = 1e38;
+            }
+        }),
+    ];
+    let chain: [(&str, Edit); 6] = [
+        ("loop rate", |m| m.loop_rate_hz = 5_000.0),
+        ("amplifier gain", |m| m.io.amplifier_gain_v_per_v = 40.0),
+        ("DAC range", |m| m.io.dac_range_v = [0.0, 10.0]),
+        ("ADC range", |m| m.io.adc_range_v = [-12.288, 12.288]),
+        ("sensor range", |m| m.io.sensor_range_v = [0.0, 5.0]),
+        ("sensor gain", |m| m.io.sensor_m_per_v = 2e-5),
+    ];
+    let mut refused = 0;
+    for (what, edit) in model {
+        let mut set = built_in_set();
+        set.axes[0].servo = Some(servo);
+        set.axes[1].servo = Some(servo);
+        edit(&mut set);
+        let r = refusal(host.ask(&mut s, Request::Upload(set)));
+        assert_eq!(r.kind, RefusalKind::Model, "{what}: {}", r.reason);
+        assert!(r.axis.is_some(), "{what}");
+        refused += 1;
+        assert_eq!(s.status().counters.refused_uploads, refused, "{what}");
+    }
+    for (what, edit) in chain {
+        let mut set = built_in_set();
+        edit(&mut set);
+        let r = refusal(host.ask(&mut s, Request::Upload(set)));
+        assert_eq!(r.kind, RefusalKind::Chain, "{what}: {}", r.reason);
+        refused += 1;
+        assert_eq!(s.status().counters.refused_uploads, refused, "{what}");
+    }
+    assert_eq!(s.lp.settings().axes, before);
+    assert_eq!(s.status().counters.uploads, 0);
+    // The reasons are the core's.
+    let mut wide = built_in_set();
+    wide.axes[0].limits.output_max_v = 200.0;
+    let r = refusal(host.ask(&mut s, Request::Upload(wide)));
+    assert!(
+        r.reason
+            .contains("exceeds what the DAC and amplifier drive"),
+        "{}",
+        r.reason
+    );
+    let mut creep = built_in_set();
+    creep.axes[1].effects.creep_gain_m_per_v[0] = 1e6;
+    creep.axes[1].effects.creep_time_constant_s[0] = 0.1;
+    let r = refusal(host.ask(&mut s, Request::Upload(creep)));
+    assert!(
+        r.reason.starts_with("y: field `creep_gain_m_per_v[0]`"),
+        "{}",
+        r.reason
+    );
+}
+
+/// A 200 V excitation on the built-in window never commands more than the window's 120 V.
+#[test]
+fn an_excitation_beyond_the_window_stays_inside_it() {
+    let (mut s, plant) = session();
+    let mut host = Host::new();
+    host.ask(&mut s, Request::Frames { decimation: 1 });
+    let excite = Request::Excite(WireProgram::PerAxis([Wave::Constant { offset: 200.0 }; 2]));
+    host.ask(&mut s, excite);
+    run(&mut s, &plant, &mut host, 200);
+    let top = host
+        .frames
+        .iter()
+        .flat_map(|f| f.commanded_v)
+        .fold(f32::MIN, f32::max);
+    assert!(top <= params::AXES[0].output_max_v, "{top}");
+}
+
+/// The same upload frame delivered 20 times runs once; the other 19 are answered `Replayed` with
+/// the next number, counted, and change nothing.
+#[test]
+fn a_replayed_request_is_not_run_again() {
+    let (mut s, _plant) = session();
+    let mut host = Host::new();
+    let mut out = [0u8; MAX_FRAME + 1];
+    let n = piezo_link::encode_request(
+        &Packet {
+            sequence: 3,
+            body: Request::Upload(built_in_set()),
+        },
+        &mut out,
+    )
+    .unwrap();
+    for _ in 0..20 {
+        s.receive(&out[..n]);
+    }
+    let answers = host.drain(&mut s);
+    assert_eq!(answers.len(), 20);
+    assert!(matches!(
+        answers[0],
+        Uplink::Response {
+            request: 3,
+            response: Response::Loaded { .. }
+        }
+    ));
+    for a in &answers[1..] {
+        assert_eq!(
+            *a,
+            Uplink::Response {
+                request: 3,
+                response: Response::Replayed { next: 4 }
+            }
+        );
+    }
+    host.sequence = 4;
+    let st = host.status(&mut s);
+    assert_eq!(st.counters.uploads, 1);
+    assert_eq!(st.counters.replayed_requests, 19);
+    assert_eq!(st.counters.requests, 21);
+    // A host that counts from 0 again is told where to go on.
+    host.sequence = 0;
+    assert_eq!(
+        host.ask(&mut s, Request::Rearm),
+        Response::Replayed { next: 5 }
+    );
+}
+
+/// A request with bytes after its body (CRC over both) is refused as a packet, not run.
+#[test]
+fn a_request_with_trailing_bytes_is_refused() {
+    let (mut s, _plant) = session();
+    let mut host = Host::new();
+    let packet = Packet {
+        sequence: 1,
+        body: Request::InjectOverrun,
+    };
+    let mut raw = [0u8; 64];
+    let mut n = postcard::to_slice(&packet, &mut raw).unwrap().len();
+    raw[n] = 0x55;
+    n += 1;
+    let crc = crc::Crc::<u32>::new(&crc::CRC_32_ISO_HDLC).checksum(&raw[..n]);
+    raw[n..n + 4].copy_from_slice(&crc.to_le_bytes());
+    n += 4;
+    // COBS by hand: one block (the packet holds no zero byte).
+    assert!(!raw[..n].contains(&0), "{:?}", &raw[..n]);
+    let mut frame = std::vec![0u8, n as u8 + 1];
+    frame.extend_from_slice(&raw[..n]);
+    frame.push(0);
+    s.receive(&frame);
+    assert!(host.drain(&mut s).is_empty());
+    host.sequence = 2;
+    let st = host.status(&mut s);
+    assert_eq!(st.counters.rejected_packets, 1);
+    assert_eq!(st.mode, WireMode::Running, "the overrun drill did not run");
 }

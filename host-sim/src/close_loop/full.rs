@@ -284,7 +284,11 @@ impl AxisModel {
     fn build_on(&self, h: BoucWen) -> Result<(StaticModel, Effects), String> {
         let model = StaticModel::new(h, self.map)
             .map_err(|e| format!("static map refused by piezo-core: {e}"))?;
-        let effects = Effects::new(self.effects, self.sample_period_s, self.w_range_m)
+        let range = piezo_core::effects::OperatingRange {
+            input_v: self.input_range_v,
+            output_m: self.w_range_m,
+        };
+        let effects = Effects::new(self.effects, self.sample_period_s, range)
             .map_err(|e| format!("effects refused by piezo-core: {e}"))?;
         Ok((model, effects))
     }

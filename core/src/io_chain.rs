@@ -1,0 +1,170 @@
+//! The hardware chain of an axis: DAC → amplifier → stack for the drive, stage → sensor → ADC for
+//! the measurement. The stack voltages the chain can produce are
+//! `[dac_min·G, dac_max·G]` (G the amplifier gain, stack volts per DAC volt, > 0); the sensor's
+//! output span must lie inside the ADC's input span.
+//!
+//! [`IoChain::check_limits`] is the one rule for an output window and slew limit against the
+//! chain, called by the stage file's validation, the firmware's build, `host-sim link upload` and
+//! the firmware's session alike: the window inside what the chain drives, the slew limit finite
+//! (a drive has one; +∞ is only for offline analyses) and within [`CompensatorSettings::check_slew`].
+
+use crate::compensator::CompensatorSettings;
+use crate::error::{positive, ParamError};
+
+/// The drive and sensing chain of a stage (both axes share it). SI units: volts, metres per volt.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+pub struct IoChain {
+    /// DAC output span \[V\].
+    pub dac_range_v: [f32; 2],
+    /// Stack volts per DAC volt \[V/V\], > 0.
+    pub amplifier_gain_v_per_v: f32,
+    /// ADC input span \[V\].
+    pub adc_range_v: [f32; 2],
+    /// Displacement sensor output span \[V\], inside `adc_range_v`.
+    pub sensor_range_v: [f32; 2],
+    /// Displacement per sensor volt \[m/V\], > 0.
+    pub sensor_m_per_v: f32,
+}
+
+/// Checks that a span is finite and ordered.
+fn span(field: &'static str, [lo, hi]: [f32; 2]) -> Result<(), ParamError> {
+    if !(lo.is_finite() && hi.is_finite()) {
+        return Err(ParamError::NonFinite { field });
+    }
+    if lo < hi {
+        Ok(())
+    } else {
+        Err(ParamError::OutOfRange {
+            field,
+            value: hi,
+            requirement: "> the span's lower end",
+        })
+    }
+}
+
+impl IoChain {
+    /// The chain's own consistency: finite positive gains, finite ordered spans, the sensor span
+    /// inside the ADC's.
+    pub fn check(&self) -> Result<(), ParamError> {
+        positive("amplifier_gain_v_per_v", self.amplifier_gain_v_per_v)?;
+        positive("sensor_m_per_v", self.sensor_m_per_v)?;
+        span("dac_range_v", self.dac_range_v)?;
+        span("adc_range_v", self.adc_range_v)?;
+        span("sensor_range_v", self.sensor_range_v)?;
+        let ([s0, s1], [a0, a1]) = (self.sensor_range_v, self.adc_range_v);
+        if s0 < a0 || s1 > a1 {
+            return Err(ParamError::SensorOutsideAdc {
+                sensor_range_v: self.sensor_range_v,
+                adc_range_v: self.adc_range_v,
+            });
+        }
+        Ok(())
+    }
+
+    /// The stack voltages the DAC and the amplifier produce, `dac_range_v × amplifier_gain_v_per_v`
+    /// \[V\].
+    pub fn drive_range_v(&self) -> (f32, f32) {
+        let g = self.amplifier_gain_v_per_v;
+        (self.dac_range_v[0] * g, self.dac_range_v[1] * g)
+    }
+
+    /// An axis's output window and slew limit against this chain: the chain itself
+    /// ([`IoChain::check`]), the window and slew by [`CompensatorSettings::check_slew`], the slew
+    /// limit finite, and the window inside [`IoChain::drive_range_v`] (1 mV of rounding allowed).
+    pub fn check_limits(&self, settings: &CompensatorSettings) -> Result<(), ParamError> {
+        self.check()?;
+        settings.check_slew()?;
+        if !settings.slew_limit_v_per_s.is_finite() {
+            return Err(ParamError::OutOfRange {
+                field: "slew_limit_v_per_s",
+                value: settings.slew_limit_v_per_s,
+                requirement: "finite: the drive needs a slew limit",
+            });
+        }
+        let (d0, d1) = self.drive_range_v();
+        let (u0, u1) = (settings.output_min_v, settings.output_max_v);
+        if u0 < d0 - 1e-3 || u1 > d1 + 1e-3 {
+            return Err(ParamError::WindowOutsideDrive {
+                output_min_v: u0,
+                output_max_v: u1,
+                drive_min_v: d0,
+                drive_max_v: d1,
+            });
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const CHAIN: IoChain = IoChain {
+        dac_range_v: [0.0, 5.0],
+        amplifier_gain_v_per_v: 24.0,
+        adc_range_v: [-10.24, 10.24],
+        sensor_range_v: [0.0, 10.0],
+        sensor_m_per_v: 1e-5,
+    };
+
+    fn window(min: f32, max: f32, slew: f32) -> CompensatorSettings {
+        CompensatorSettings {
+            output_min_v: min,
+            output_max_v: max,
+            slew_limit_v_per_s: slew,
+            sample_period_s: 1e-4,
+        }
+    }
+
+    #[test]
+    fn the_window_must_lie_inside_what_the_chain_drives() {
+        assert_eq!(CHAIN.check_limits(&window(0.0, 120.0, 1e5)), Ok(()));
+        for (lo, hi) in [(0.0, 200.0), (-50.0, 120.0), (-0.01, 100.0)] {
+            assert!(
+                matches!(
+                    CHAIN.check_limits(&window(lo, hi, 1e5)),
+                    Err(ParamError::WindowOutsideDrive {
+                        drive_max_v: 120.0,
+                        ..
+                    })
+                ),
+                "[{lo}, {hi}]"
+            );
+        }
+        extern crate std;
+        use std::string::ToString;
+        let message = CHAIN
+            .check_limits(&window(0.0, 200.0, 1e5))
+            .unwrap_err()
+            .to_string();
+        assert!(message.contains("[0, 120] V"), "{message}");
+    }
+
+    #[test]
+    fn the_slew_limit_is_finite_and_leaves_a_full_window_move_a_few_ticks() {
+        for slew in [1e38, f32::INFINITY, 3.1e5] {
+            assert!(
+                matches!(
+                    CHAIN.check_limits(&window(0.0, 120.0, slew)),
+                    Err(ParamError::Implausible { .. } | ParamError::OutOfRange { .. })
+                ),
+                "{slew}"
+            );
+        }
+        assert_eq!(CHAIN.check_limits(&window(0.0, 120.0, 3.0e5)), Ok(()));
+    }
+
+    #[test]
+    fn the_sensor_span_must_lie_inside_the_adc_span() {
+        let mut chain = CHAIN;
+        chain.sensor_range_v = [0.0, 12.0];
+        assert!(matches!(
+            chain.check(),
+            Err(ParamError::SensorOutsideAdc { .. })
+        ));
+        chain.sensor_range_v = [0.0, 10.0];
+        chain.amplifier_gain_v_per_v = f32::INFINITY;
+        assert!(chain.check().is_err());
+    }
+}
