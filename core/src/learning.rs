@@ -582,3 +582,97 @@ impl Learning {
         moved
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 4th-order Butterworth pair at `cutoff_hz` for 10 kHz, as `Learning::new` builds it.
+    fn sections(cutoff_hz: f64) -> [Biquad; 2] {
+        BUTTERWORTH4_Q.map(|q| Biquad::lowpass(2.0 * PI * cutoff_hz * 1e-4, q))
+    }
+
+    #[test]
+    fn circular_forward_backward_is_zero_phase_with_the_stated_gain() {
+        // One period of a sinusoid, filtered circularly: every sample is |Q(f)| times the input
+        // (no phase, no start-up transient), |Q| = 1/(1 + (tan(πfT)/tan(πf_cT))⁸).
+        let (fc, n) = (1000.0, 200);
+        for cycles in [1usize, 10, 20, 30, 50] {
+            let f = cycles as f64 * 1e4 / n as f64;
+            let x: [f32; 200] =
+                core::array::from_fn(|j| libm::sin(2.0 * PI * f * j as f64 * 1e-4 + 0.3) as f32);
+            let mut y = x;
+            for s in &sections(fc) {
+                s.filter(&mut y, false, true);
+            }
+            for s in &sections(fc) {
+                s.filter(&mut y, true, true);
+            }
+            let r = libm::tan(PI * f * 1e-4) / libm::tan(PI * fc * 1e-4);
+            let gain = 1.0 / (1.0 + libm::pow(r, 8.0));
+            for j in 0..n {
+                let want = gain * f64::from(x[j]);
+                assert!(
+                    (f64::from(y[j]) - want).abs() < 2e-5,
+                    "{f} Hz, sample {j}: {} vs {want}",
+                    y[j]
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn a_record_from_rest_keeps_its_level_at_both_ends() {
+        // Not periodic: each pass starts in the steady state of its first sample, so a constant
+        // record (a voltage far from 0) passes unchanged, ends included.
+        let mut y = [60.0f32; 300];
+        for s in &sections(500.0) {
+            s.filter(&mut y, false, false);
+            s.filter(&mut y, true, false);
+        }
+        assert!(y.iter().all(|&v| (v - 60.0).abs() < 1e-4), "{:?}", &y[..4]);
+    }
+
+    #[test]
+    fn a_periodic_table_respects_window_and_slew_across_the_wrap() {
+        use crate::bouc_wen::{BoucWen, BoucWenParams, STATE_LIMIT};
+        use crate::static_model::StaticMap;
+        let params = BoucWenParams {
+            a: 0.18522,
+            beta: 0.029586,
+            gamma: -0.020710,
+            n: 1.0,
+        };
+        let bw = BoucWen::with_input_range(params, 0.0, 120.0, STATE_LIMIT).unwrap();
+        let map = StaticMap {
+            k1_m_per_v: 3.57e-7,
+            k2_m_per_h: -3.57e-7,
+            offset_m: 0.0,
+        };
+        let settings = CompensatorSettings {
+            output_min_v: 0.0,
+            output_max_v: 120.0,
+            slew_limit_v_per_s: 2e4,
+            sample_period_s: 1e-4,
+        };
+        let compensator =
+            Compensator::new(StaticModel::new(bw, map).unwrap(), settings).unwrap();
+        let effects = Effects::new(Default::default(), 1e-4, (0.0, 50e-6)).unwrap();
+        let learning = Learning::new(&compensator, &effects, LearningParams::default()).unwrap();
+        // A rising ramp from −20 V to 150 V: out of the window at both ends, steps of 0.85 V
+        // within it, and a 170 V fall across the wrap.
+        let mut u: [f32; 200] = core::array::from_fn(|j| -20.0 + 0.85 * j as f32);
+        let moved = learning.limit(&mut u, true);
+        assert!(moved > 0);
+        let step = 2e4 * 1e-4 + 1e-4;
+        for j in 0..200 {
+            assert!((0.0..=120.0).contains(&u[j]), "{j}: {}", u[j]);
+            let previous = u[(j + 199) % 200];
+            assert!((u[j] - previous).abs() <= step, "{j}: {previous} -> {}", u[j]);
+        }
+        // From rest: the first sample is reachable from output_min_v.
+        let mut u = [50.0f32; 10];
+        learning.limit(&mut u, false);
+        assert_eq!(u[0], 2.0);
+    }
+}
