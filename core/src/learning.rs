@@ -273,7 +273,8 @@ impl Learning {
                 requirement: "in (0, 1)",
             });
         }
-        if !(lo > 0.0) {
+        // Both finite (checked above), so plain comparisons cover every case.
+        if lo <= 0.0 {
             return Err(ParamError::OutOfRange {
                 field: "gain_min",
                 value: lo,
@@ -281,11 +282,12 @@ impl Learning {
             });
         }
         let spread = (f64::from(hi) - f64::from(lo)) / (f64::from(hi) + f64::from(lo));
-        if !(hi >= lo) || spread >= 1.0 - f64::from(margin) {
+        if hi < lo || spread >= 1.0 - f64::from(margin) {
             return Err(ParamError::OutOfRange {
                 field: "gain_max",
                 value: hi,
-                requirement: ">= gain_min and (gain_max - gain_min)/(gain_max + gain_min) < 1 - margin",
+                requirement:
+                    ">= gain_min and (gain_max - gain_min)/(gain_max + gain_min) < 1 - margin",
             });
         }
         let tolerance = finite("mode_frequency_tolerance", params.mode_frequency_tolerance)?;
@@ -304,12 +306,9 @@ impl Learning {
             limits,
             delay_whole: effects.reference_index_offset(),
             delay_fraction: d - libm::floor(d),
-            mode: effects.has_mode().then(|| {
-                (
-                    f64::from(p.mode_frequency_hz),
-                    f64::from(p.mode_damping),
-                )
-            }),
+            mode: effects
+                .has_mode()
+                .then(|| (f64::from(p.mode_frequency_hz), f64::from(p.mode_damping))),
             params,
             learning_gain: 2.0 / (f64::from(lo) + f64::from(hi)),
             cutoff_hz: 0.0,
@@ -363,13 +362,11 @@ impl Learning {
         // L's shift: e^(jω⌊D⌋T)·((1 − φ) + φ·e^(jωT)); the delay of G: e^(−jωDT).
         let phi = self.delay_fraction;
         let step = C::expj(w * t);
-        let shift = C::expj(w * t * self.delay_whole as f64).mul(C(
-            1.0 - phi + phi * step.0,
-            phi * step.1,
-        ));
+        let shift =
+            C::expj(w * t * self.delay_whole as f64).mul(C(1.0 - phi + phi * step.0, phi * step.1));
         let delay = C::expj(-w * d * t);
         let base = shift.mul(delay);
-        let gains = [self.params.gain_min, self.params.gain_max].map(|g| f64::from(g));
+        let gains = [self.params.gain_min, self.params.gain_max].map(f64::from);
         let lambda = self.learning_gain;
         let factor = |ratio: C| {
             gains
@@ -655,8 +652,7 @@ mod tests {
             slew_limit_v_per_s: 2e4,
             sample_period_s: 1e-4,
         };
-        let compensator =
-            Compensator::new(StaticModel::new(bw, map).unwrap(), settings).unwrap();
+        let compensator = Compensator::new(StaticModel::new(bw, map).unwrap(), settings).unwrap();
         let effects = Effects::new(Default::default(), 1e-4, (0.0, 50e-6)).unwrap();
         let learning = Learning::new(&compensator, &effects, LearningParams::default()).unwrap();
         // A rising ramp from −20 V to 150 V: out of the window at both ends, steps of 0.85 V
@@ -668,7 +664,11 @@ mod tests {
         for j in 0..200 {
             assert!((0.0..=120.0).contains(&u[j]), "{j}: {}", u[j]);
             let previous = u[(j + 199) % 200];
-            assert!((u[j] - previous).abs() <= step, "{j}: {previous} -> {}", u[j]);
+            assert!(
+                (u[j] - previous).abs() <= step,
+                "{j}: {previous} -> {}",
+                u[j]
+            );
         }
         // From rest: the first sample is reachable from output_min_v.
         let mut u = [50.0f32; 10];

@@ -60,6 +60,14 @@ pub struct LearnArgs {
     /// Output JSON: the error of this trial per axis, the cut-off and the rule.
     #[arg(long)]
     pub report: PathBuf,
+    /// The uncertainty the learning must converge for.
+    #[command(flatten)]
+    pub learning: LearningArgs,
+}
+
+/// The learning's uncertainty and margin on the command line (`learn`, `learn-bench`).
+#[derive(Debug, Clone, Copy, clap::Args)]
+pub struct LearningArgs {
     /// Smallest plant/model gain ratio the learning must converge for.
     #[arg(long, default_value_t = LearningParams::default().gain_min)]
     pub gain_min: f32,
@@ -72,6 +80,18 @@ pub struct LearnArgs {
     /// Margin m of the monotone convergence |Q(1 - LG)| <= 1 - m.
     #[arg(long, default_value_t = LearningParams::default().margin)]
     pub margin: f32,
+}
+
+impl LearningArgs {
+    /// As the core's parameters (validated when a `Learning` is built).
+    pub fn params(&self) -> LearningParams {
+        LearningParams {
+            gain_min: self.gain_min,
+            gain_max: self.gain_max,
+            mode_frequency_tolerance: self.mode_tolerance,
+            margin: self.margin,
+        }
+    }
 }
 
 /// Help text after the options.
@@ -214,10 +234,19 @@ fn read_command(path: &Path) -> Result<CommandFile, String> {
     let mut iteration = 0;
     let mut stage = None;
     for (i, line) in text.lines().enumerate().filter(|(_, l)| l.starts_with('#')) {
-        let bad = || format!("{}:{}: unreadable learn header `{line}`", path.display(), i + 1);
+        let bad = || {
+            format!(
+                "{}:{}: unreadable learn header `{line}`",
+                path.display(),
+                i + 1
+            )
+        };
         if let Some(rest) = line.strip_prefix(ITERATION_KEY) {
             iteration = rest.trim().parse().map_err(|_| bad())?;
-        } else if let Some(rest) = line.strip_prefix("# ").and_then(|l| l.strip_prefix(STAGE_KEY)) {
+        } else if let Some(rest) = line
+            .strip_prefix("# ")
+            .and_then(|l| l.strip_prefix(STAGE_KEY))
+        {
             let (hash, name) = rest.split_once(' ').ok_or_else(bad)?;
             let hash = u32::from_str_radix(hash.trim_start_matches("0x"), 16).map_err(|_| bad())?;
             let name = name.trim().trim_start_matches('(').trim_end_matches(')');
@@ -374,12 +403,7 @@ pub fn learn(a: &LearnArgs) -> Result<LearnStep, String> {
         ));
     }
     let columns = measured_columns(&measured, a.y.as_deref(), axes.len())?;
-    let params = LearningParams {
-        gain_min: a.gain_min,
-        gain_max: a.gain_max,
-        mode_frequency_tolerance: a.mode_tolerance,
-        margin: a.margin,
-    };
+    let params = a.learning.params();
     let mut steps = Vec::new();
     let mut next_v = Vec::new();
     for (i, axis) in axes.iter().enumerate() {

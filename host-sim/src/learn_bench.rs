@@ -166,6 +166,9 @@ pub struct Curve {
     pub cutoff_hz: [f64; 2],
     /// Periods per trial.
     pub periods_per_trial: usize,
+    /// RMS of the last trial's measured error (averaged over its periods) above Q's cut-off,
+    /// % of stroke, worse axis: what the learning leaves to the compensator.
+    pub above_cutoff_percent: f64,
 }
 
 impl Curve {
@@ -265,8 +268,10 @@ fn run_case(
             })
             .collect()
     });
-    // The compensator over the fade-in and warm_periods + 1 periods.
-    let full = lead + (warm_periods + 1) * period;
+    // The compensator over the fade-in and warm_periods + 2 periods: its command of period
+    // warm_periods + 1 is the table (the last period's end sees the reference held, not the
+    // next period, so it is not taken).
+    let full = lead + (warm_periods + 2) * period;
     let reference = |a: usize, k: usize| -> f32 {
         if k < lead {
             let fade = 0.5 - 0.5 * (std::f64::consts::PI * k as f64 / lead as f64).cos();
@@ -282,12 +287,11 @@ fn run_case(
         [&full_r[0], &full_r[1]],
         [&mut ux, &mut uy],
     );
-    let warm = full - period;
-    let base: [Vec<f32>; 2] = [ux[warm..].to_vec(), uy[warm..].to_vec()];
+    let warm = lead + warm_periods * period;
+    let base: [Vec<f32>; 2] = [&ux, &uy].map(|u| u[warm..warm + period].to_vec());
     let mut table = base.clone();
     let mut rig = Rig::new(ctx.stage, ctx.effects, fs);
-    let mut states =
-        [0, 1].map(|a| ServoState::at_rest(axes[a].rest_v, mode.servo_mode()));
+    let mut states = [0, 1].map(|a| ServoState::at_rest(axes[a].rest_v, mode.servo_mode()));
     let mut tick = |states: &mut [ServoState; 2], r_now: [f32; 2], ff: [f32; 2]| {
         let (truth, read) = rig.sense();
         let mut u = [0.0f32; 2];
@@ -300,21 +304,18 @@ fn run_case(
         Ok::<_, String>((truth, read, u))
     };
     for k in 0..warm {
-        let c = [ux[k], uy[k]];
-        tick(&mut states, [full_r[0][k], full_r[1][k]], c)?;
+        tick(&mut states, [full_r[0][k], full_r[1][k]], [ux[k], uy[k]])?;
     }
     let (mut rms_percent, mut max_percent) = (Vec::new(), Vec::new());
+    let mut above_cutoff_percent = 0.0f64;
     for trial in 0..=s.iterations {
         let mut y_sum = [vec![0.0f64; period], vec![0.0f64; period]];
         let mut u_sum = [vec![0.0f64; period], vec![0.0f64; period]];
         let (mut sq, mut max) = ([0.0f64; 2], [0.0f64; 2]);
         for _ in 0..trial_periods {
             for j in 0..period {
-                let (truth, read, u) = tick(
-                    &mut states,
-                    [r[0][j], r[1][j]],
-                    [table[0][j], table[1][j]],
-                )?;
+                let (truth, read, u) =
+                    tick(&mut states, [r[0][j], r[1][j]], [table[0][j], table[1][j]])?;
                 for a in 0..2 {
                     let e = truth[a] - f64::from(r[a][j]);
                     sq[a] += e * e;
@@ -335,10 +336,17 @@ fn run_case(
                 .map(|a| 100.0 * max[a] / ctx.stroke_m[a])
                 .fold(0.0, f64::max),
         );
+        let m = trial_periods as f64;
         if trial == s.iterations {
+            for a in 0..2 {
+                let e: Vec<f64> = (0..period)
+                    .map(|j| y_sum[a][j] / m - f64::from(r[a][j]))
+                    .collect();
+                let above = rms_above(&e, fs, learning[a].cutoff_hz());
+                above_cutoff_percent = above_cutoff_percent.max(100.0 * above / ctx.stroke_m[a]);
+            }
             break;
         }
-        let m = trial_periods as f64;
         for a in 0..2 {
             let y: Vec<f32> = y_sum[a].iter().map(|v| (v / m) as f32).collect();
             let u: Vec<f32> = u_sum[a].iter().map(|v| (v / m) as f32).collect();
@@ -365,7 +373,25 @@ fn run_case(
         max_percent,
         cutoff_hz: [learning[0].cutoff_hz(), learning[1].cutoff_hz()],
         periods_per_trial: trial_periods,
+        above_cutoff_percent,
     })
+}
+
+/// RMS of the components of the periodic record `e` above `cutoff_hz` (Parseval over its DFT).
+fn rms_above(e: &[f64], fs: f64, cutoff_hz: f64) -> f64 {
+    use rustfft::num_complex::Complex;
+    let n = e.len();
+    let mut spectrum: Vec<Complex<f64>> = e.iter().map(|&v| Complex::new(v, 0.0)).collect();
+    rustfft::FftPlanner::new()
+        .plan_fft_forward(n)
+        .process(&mut spectrum);
+    let above: f64 = spectrum
+        .iter()
+        .enumerate()
+        .filter(|(k, _)| (*k).min(n - k) as f64 * fs / n as f64 > cutoff_hz)
+        .map(|(_, x)| x.norm_sqr())
+        .sum();
+    above.sqrt() / n as f64
 }
 
 /// Runs the bench; `progress` receives one line per phase.
@@ -476,8 +502,8 @@ impl LearnBenchReport {
         for k in 0..=n {
             s += &format!(" {k} |");
         }
-        s += " max after last [%] | worst ratio after 3 |\n|---|---|---|---|";
-        s += &"---|".repeat(n + 3);
+        s += " max after last [%] | above cut-off [%] | worst ratio after 3 |\n|---|---|---|---|";
+        s += &"---|".repeat(n + 4);
         s += "\n";
         for c in &self.curves {
             s += &self.row(c, &format!("| {} ", c.mode.name()));
@@ -535,8 +561,9 @@ impl LearnBenchReport {
             s += &format!(" {v:.4} |");
         }
         s += &format!(
-            " {:.4} | {:.3} |\n",
+            " {:.4} | {:.4} | {:.3} |\n",
             c.max_percent.last().copied().unwrap_or(f64::NAN),
+            c.above_cutoff_percent,
             c.worst_ratio_after(3)
         );
         s
@@ -554,6 +581,7 @@ impl LearnBenchReport {
                 "periods_per_trial": c.periods_per_trial,
                 "rms_percent": c.rms_percent,
                 "max_percent": c.max_percent,
+                "above_cutoff_percent": c.above_cutoff_percent,
             })
         };
         serde_json::json!({
@@ -631,7 +659,9 @@ impl LearnBenchReport {
                 .filter(|c| c.shape == shape && c.freq_hz == f)
                 .enumerate()
             {
-                series.push(Series::line(c.perturbation.label(), points(c), 100).role(Role::Other(i)));
+                series.push(
+                    Series::line(c.perturbation.label(), points(c), 100).role(Role::Other(i)),
+                );
             }
             panels.push(
                 Panel::new(
@@ -674,6 +704,9 @@ pub struct LearnBenchArgs {
     /// `none` for a clean plant).
     #[arg(long = "plant-effect")]
     pub plant_effects: Vec<String>,
+    /// The uncertainty the learning must converge for.
+    #[command(flatten)]
+    pub learning: crate::learn::LearningArgs,
 }
 
 /// Help after the options.
@@ -688,6 +721,7 @@ mode frequency x1.15 and x0.85 on the 100 Hz sine and triangle and the 10 Hz tri
 pub fn learn_bench_cmd(a: &LearnBenchArgs) -> Result<String, String> {
     let mut settings = LearnBenchSettings {
         iterations: a.iterations,
+        params: a.learning.params(),
         ..Default::default()
     };
     if a.freq.is_empty() || a.freq.iter().any(|&f| !(f > 0.0 && f <= 1000.0)) {

@@ -25,7 +25,13 @@ fn scratch(name: &str) -> tempfile::TempDir {
 
 /// xy-stage.toml with its maps scaled by `gain` per axis and, per axis, the mode (Hz, ζ) and
 /// delay \[s\] given; written to `dir/name`.
-fn stage_file(dir: &Path, name: &str, gain: [f64; 2], mode: [(f32, f32); 2], delay_s: f32) -> PathBuf {
+fn stage_file(
+    dir: &Path,
+    name: &str,
+    gain: [f64; 2],
+    mode: [(f32, f32); 2],
+    delay_s: f32,
+) -> PathBuf {
     let mut file = StageFile::parse("xy-stage.toml", STACK_FILE).unwrap();
     let axes = [Some(&mut file.x), file.y.as_mut()];
     for ((axis, g), (f, zeta)) in axes.into_iter().zip(gain).zip(mode) {
@@ -78,7 +84,11 @@ fn write_reference(path: &Path, stroke_m: [f64; 2]) -> [Vec<f64>; 2] {
             })
             .collect::<Vec<f64>>()
     });
-    write_table(path, &["t_s", "rx_m", "ry_m"], vec![t, r[0].clone(), r[1].clone()]);
+    write_table(
+        path,
+        &["t_s", "rx_m", "ry_m"],
+        vec![t, r[0].clone(), r[1].clone()],
+    );
     r
 }
 
@@ -101,7 +111,13 @@ fn play(plant: &XyStage, u: &Path, y: &Path, r: &[Vec<f64>; 2]) -> f64 {
     write_table(
         y,
         &["t_s", "ux_V", "uy_V", "x_m", "y_m"],
-        vec![t, voltages[0].clone(), voltages[1].clone(), out[0].clone(), out[1].clone()],
+        vec![
+            t,
+            voltages[0].clone(),
+            voltages[1].clone(),
+            out[0].clone(),
+            out[1].clone(),
+        ],
     );
     rms
 }
@@ -115,12 +131,26 @@ fn learning_converges_on_the_reference_plant() {
     let stroke_m = gain.map(|g| g * 38e-6);
     // The platform model with the stage's first modes (±10 % of what the plant has is well
     // inside the rule's ±20 %).
-    let params = stage_file(dir, "stage.toml", gain, [(3200.0, 0.03), (2200.0, 0.03)], 0.0);
+    let params = stage_file(
+        dir,
+        "stage.toml",
+        gain,
+        [(3200.0, 0.03), (2200.0, 0.03)],
+        0.0,
+    );
     let reference = dir.join("r.csv");
     let r = write_reference(&reference, stroke_m);
     let mut command = dir.join("u0.csv");
-    cli(&["compensate", "--params", p(&params), "--reference", p(&reference), "--out", p(&command)])
-        .unwrap();
+    cli(&[
+        "compensate",
+        "--params",
+        p(&params),
+        "--reference",
+        p(&reference),
+        "--out",
+        p(&command),
+    ])
+    .unwrap();
     let mut errors = Vec::new();
     for k in 0..=10 {
         let measured = dir.join(format!("y{k}.csv"));
@@ -131,8 +161,19 @@ fn learning_converges_on_the_reference_plant() {
         let next = dir.join(format!("u{}.csv", k + 1));
         let report = dir.join(format!("step{k}.json"));
         cli(&[
-            "learn", "--params", p(&params), "--reference", p(&reference), "--command",
-            p(&command), "--measured", p(&measured), "--out", p(&next), "--report", p(&report),
+            "learn",
+            "--params",
+            p(&params),
+            "--reference",
+            p(&reference),
+            "--command",
+            p(&command),
+            "--measured",
+            p(&measured),
+            "--out",
+            p(&next),
+            "--report",
+            p(&report),
         ])
         .unwrap();
         // The report's error is that of the trial just played.
@@ -141,7 +182,11 @@ fn learning_converges_on_the_reference_plant() {
         let reported = (0..2)
             .map(|a| json[["x", "y"][a]]["rms_m"].as_f64().unwrap())
             .fold(0.0, f64::max);
-        assert!((reported / errors[k] - 1.0).abs() < 1e-3, "{reported} vs {}", errors[k]);
+        assert!(
+            (reported / errors[k] - 1.0).abs() < 1e-3,
+            "{reported} vs {}",
+            errors[k]
+        );
         assert_eq!(json["iteration"], k + 1);
         command = next;
     }
@@ -165,15 +210,33 @@ fn learn_refuses_records_and_tables_that_do_not_belong() {
     let reference = dir.join("r.csv");
     let r = write_reference(&reference, gain.map(|g| g * 38e-6));
     let u0 = dir.join("u0.csv");
-    cli(&["compensate", "--params", p(&params), "--reference", p(&reference), "--out", p(&u0)])
-        .unwrap();
+    cli(&[
+        "compensate",
+        "--params",
+        p(&params),
+        "--reference",
+        p(&reference),
+        "--out",
+        p(&u0),
+    ])
+    .unwrap();
     let y0 = dir.join("y0.csv");
     play(&plant, &u0, &y0, &r);
     let learn = |params: &Path, reference: &Path, command: &Path, measured: &Path| {
         cli(&[
-            "learn", "--params", p(params), "--reference", p(reference), "--command",
-            p(command), "--measured", p(measured), "--out", p(&dir.join("next.csv")),
-            "--report", p(&dir.join("step.json")),
+            "learn",
+            "--params",
+            p(params),
+            "--reference",
+            p(reference),
+            "--command",
+            p(command),
+            "--measured",
+            p(measured),
+            "--out",
+            p(&dir.join("next.csv")),
+            "--report",
+            p(&dir.join("step.json")),
         ])
     };
     let u1 = dir.join("u1.csv");
@@ -181,7 +244,10 @@ fn learn_refuses_records_and_tables_that_do_not_belong() {
     std::fs::rename(dir.join("next.csv"), &u1).unwrap();
     let names_both = |e: &str, a: &Path, b: &Path| {
         let (a, b) = (a.file_name().unwrap(), b.file_name().unwrap());
-        assert!(e.contains(a.to_str().unwrap()) && e.contains(b.to_str().unwrap()), "{e}");
+        assert!(
+            e.contains(a.to_str().unwrap()) && e.contains(b.to_str().unwrap()),
+            "{e}"
+        );
     };
     // A measured record one sample short.
     let y0_table = read_csv(&y0).unwrap();
@@ -189,21 +255,33 @@ fn learn_refuses_records_and_tables_that_do_not_belong() {
     write_table(
         &short,
         &["t_s", "x_m", "y_m"],
-        [0, 3, 4].iter().map(|&c| y0_table.columns[c][..999].to_vec()).collect(),
+        [0, 3, 4]
+            .iter()
+            .map(|&c| y0_table.columns[c][..999].to_vec())
+            .collect(),
     );
     let e = learn(&params, &reference, &u0, &short).unwrap_err();
     names_both(&e, &short, &u0);
     assert!(e.contains("999") && e.contains("1000"), "{e}");
     // A measured record at another sample period (same length).
     let slow = dir.join("slow.csv");
-    let mut columns: Vec<Vec<f64>> = [0, 3, 4].iter().map(|&c| y0_table.columns[c].clone()).collect();
+    let mut columns: Vec<Vec<f64>> = [0, 3, 4]
+        .iter()
+        .map(|&c| y0_table.columns[c].clone())
+        .collect();
     columns[0].iter_mut().for_each(|t| *t *= 2.0);
     write_table(&slow, &["t_s", "x_m", "y_m"], columns);
     let e = learn(&params, &reference, &u0, &slow).unwrap_err();
     names_both(&e, &slow, &u0);
     assert!(e.contains("period"), "{e}");
     // The learned table with another stage file: one digit of the mode differs.
-    let other = stage_file(dir, "other.toml", gain, [(3300.0, 0.03), (2200.0, 0.03)], 0.0);
+    let other = stage_file(
+        dir,
+        "other.toml",
+        gain,
+        [(3300.0, 0.03), (2200.0, 0.03)],
+        0.0,
+    );
     let e = learn(&other, &reference, &u1, &y0).unwrap_err();
     names_both(&e, &u1, &other);
     assert!(e.contains("stage.toml") && e.contains("fnv1a32"), "{e}");
@@ -219,7 +297,10 @@ fn learn_refuses_records_and_tables_that_do_not_belong() {
     // The same table, reference and stage file: accepted, and the next iteration is 2.
     learn(&params, &reference, &u1, &y0).unwrap();
     let text = std::fs::read_to_string(dir.join("next.csv")).unwrap();
-    assert!(text.starts_with("# host-sim learn: iteration 2\n"), "{text:.80}");
+    assert!(
+        text.starts_with("# host-sim learn: iteration 2\n"),
+        "{text:.80}"
+    );
 }
 
 /// The cut-off rule's promise, checked on the step itself: on a linear plant with the model's
@@ -263,7 +344,13 @@ fn the_q_rule_margin_holds_for_the_model() {
             .collect();
         let t_tol = f64::from(params.mode_frequency_tolerance);
         for gamma in [params.gain_min, params.gain_max].map(f64::from) {
-            for mu in [1.0 - t_tol, 1.0 - t_tol / 2.0, 1.0, 1.0 + t_tol / 2.0, 1.0 + t_tol] {
+            for mu in [
+                1.0 - t_tol,
+                1.0 - t_tol / 2.0,
+                1.0,
+                1.0 + t_tol / 2.0,
+                1.0 + t_tol,
+            ] {
                 // The plant's steady response: gain γ·k1, the mode at μ·f_mode, delay D.
                 let wm = mu * 2.0 * std::f64::consts::PI * f_mode;
                 let (re, im) = (wm * wm - w * w, 2.0 * zeta * wm * w);
@@ -291,7 +378,10 @@ fn the_q_rule_margin_holds_for_the_model() {
                     )
                     .unwrap();
                 let rms = |v: &[f32]| {
-                    (v.iter().map(|&u| (f64::from(u) - offset_v).powi(2)).sum::<f64>() / n as f64)
+                    (v.iter()
+                        .map(|&u| (f64::from(u) - offset_v).powi(2))
+                        .sum::<f64>()
+                        / n as f64)
                         .sqrt()
                 };
                 let ratio = rms(&next) / rms(&command);
