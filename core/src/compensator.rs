@@ -379,6 +379,11 @@ impl Compensator {
         self.settings
     }
 
+    /// Whether the model's output is the position (static models), not the dynamic model's force.
+    pub(crate) fn is_position(&self) -> bool {
+        self.target == Target::Position
+    }
+
     /// The voltage for the desired position `desired_m` \[m\] (quasi-static for the dynamic model).
     ///
     /// The small-step path chosen when built is inlined here; every sample it does not take goes

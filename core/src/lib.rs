@@ -5,8 +5,9 @@
 //! ([`bouc_wen`]), its output maps — the static map of seed 001 with its asymmetric variant
 //! ([`static_model`]) and the mass–spring–damper of seed 000 ([`dynamic_model`]) — the inverse
 //! feedforward compensator ([`compensator`]), the two-axis inverse of the effect chain around it
-//! ([`inverse_chain`]), the error measures of the seeds ([`metrics`]), and the
-//! hysteretic oscillator of the Bouc-Wen benchmark ([`oscillator`]).
+//! ([`inverse_chain`]), the learning step for repeated trajectories ([`learning`]), the error
+//! measures of the seeds ([`metrics`]), and the hysteretic oscillator of the Bouc-Wen benchmark
+//! ([`oscillator`]).
 //!
 //! `no_std`, no allocation, `unsafe` forbidden, f32 on the per-sample path, SI units (volts, metres,
 //! seconds, newtons). Parameters are validated once, when built, into types that cannot hold an invalid
@@ -23,6 +24,7 @@ pub mod effects;
 pub mod error;
 pub mod inverse_chain;
 pub mod io_chain;
+pub mod learning;
 pub mod math;
 pub mod metrics;
 pub mod oscillator;
@@ -42,6 +44,7 @@ pub use inverse_chain::{
     compensate_pair, compensate_single, FeedforwardAxis, FeedforwardCounts, InverseChain,
 };
 pub use io_chain::IoChain;
+pub use learning::{Learning, LearningParams, StepSummary, Trial};
 pub use oscillator::{HystereticOscillator, OscillatorParams, OscillatorState};
 pub use sensitivity::{static_sensitivities, SENSITIVITY_PARAMETERS};
 pub use servo::{Servo, ServoMode, ServoOutput, ServoParams, ServoState, ServoStatus};

@@ -70,6 +70,14 @@ All modes command one sample ahead. Output window 0-120 V."
     /// Tunes the feedback servo of each axis from the stage file's model and the stage's first
     /// mode; writes the stage file with `[x.servo]`/`[y.servo]` and prints the margins.
     ServoTune(crate::servo_tune::ServoTuneArgs),
+    /// One step of iterative learning control: reference, command and measured record of a trial
+    /// → the next trial's command (a table tied to its reference and stage file) and a report.
+    #[command(after_help = crate::learn::HELP)]
+    Learn(crate::learn::LearnArgs),
+    /// Iterative learning control on the XY stage (learned, learned+feedback; 1, 10, 100 Hz;
+    /// perturbed stage files): error per trial; writes DIR/learn.json and the plot.
+    #[command(after_help = crate::learn_bench::HELP)]
+    LearnBench(crate::learn_bench::LearnBenchArgs),
 }
 
 /// Plot formats.
@@ -108,6 +116,8 @@ pub fn run(cli: Cli) -> Result<String, String> {
         Command::Link(a) => crate::link::link_cmd(&a),
         Command::ServoBench(a) => crate::servo_bench::servo_bench_cmd(&a),
         Command::ServoTune(a) => crate::servo_tune::servo_tune_cmd(&a),
+        Command::Learn(a) => crate::learn::learn_cmd(&a),
+        Command::LearnBench(a) => crate::learn_bench::learn_bench_cmd(&a),
     }
 }
 

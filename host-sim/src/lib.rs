@@ -7,7 +7,8 @@
 //! residual, names the effect the fit lacks and refits; [`compensate`] computes the voltages the
 //! firmware would command; [`demo`], [`reproduce`] and [`servo_bench`] run the core against the
 //! reference plants; [`capture`] and [`link`] talk to the firmware (its log, its command link);
-//! [`servo_tune`] writes the feedback servo of the stage file; [`stage_file`] writes the stage file;
+//! [`servo_tune`] writes the feedback servo of the stage file; [`learn`] takes one step of iterative
+//! learning control and [`learn_bench`] runs it on the XY stage; [`stage_file`] writes the stage file;
 //! [`plot`] draws the figures; [`cli`] is the command line.
 //!
 //! The plants, effects, signals, solver and CSV files live in `piezo-reference` (`host-sim/reference`),
@@ -24,6 +25,8 @@ pub mod close_loop;
 pub mod compensate;
 pub mod demo;
 pub mod identify;
+pub mod learn;
+pub mod learn_bench;
 pub mod link;
 pub mod plot;
 pub mod reproduce;

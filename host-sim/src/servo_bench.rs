@@ -45,7 +45,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// The stack model the feedforward starts from.
-const STACK_FILE: &str = include_str!("../../firmware/params/xy-stage.toml");
+pub(crate) const STACK_FILE: &str = include_str!("../../firmware/params/xy-stage.toml");
 
 /// The effects the bench's plant carries (host-sim effect specs).
 pub const DEFAULT_PLANT_EFFECTS: [&str; 5] = [
@@ -81,7 +81,7 @@ impl Shape {
     }
 
     /// The shape's value in [0, 1] at `t_s` for frequency `hz`.
-    fn unit(self, hz: f64, t_s: f64) -> f64 {
+    pub(crate) fn unit(self, hz: f64, t_s: f64) -> f64 {
         match self {
             Self::Triangle => crate::demo::triangle(0.0, 1.0, hz, t_s),
             Self::Sine => 0.5 - 0.5 * (2.0 * std::f64::consts::PI * hz * t_s).cos(),
@@ -401,7 +401,7 @@ fn solve3(mut a: [[f64; 3]; 3], mut b: [f64; 3]) -> Option<[f64; 3]> {
 /// The identification experiments: a 1 Hz raised cosine 0–120 V (1 s), then 0 V held for 0.2 s
 /// and a 10 V step recorded for 20 ms. Returns per axis the platform/stack gain (least squares
 /// of the readings on the stack model's output) and the first mode.
-fn identify_rig(
+pub(crate) fn identify_rig(
     stage: &XyStage,
     effects: &Effects,
     stack: &ValidStage,
@@ -449,7 +449,7 @@ fn identify_rig(
 
 /// One axis's controller: the compensator, the linear baseline and the servo.
 #[derive(Debug, Clone, Copy)]
-struct AxisController {
+pub(crate) struct AxisController {
     compensator: Compensator,
     compensator_state: CompensatorState,
     servo: Servo,
@@ -480,7 +480,7 @@ impl AxisController {
 
 /// The controllers of both axes: the stack file scaled to the platform, its servo tuned from
 /// the identified mode, both validated through the stage file.
-fn controllers(
+pub(crate) fn controllers(
     stack_file: &StageFile,
     identified: &[(f64, f64, f64); 2],
 ) -> Result<([AxisController; 2], [Tuning; 2], StageFile), String> {

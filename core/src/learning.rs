@@ -1,0 +1,686 @@
+//! Iterative learning control (ILC) for repeated trajectories: one trial's reference r, command
+//! u_k and measured output y_k (same length: one period of a periodic trajectory, or one whole
+//! trial from rest) give the next trial's command. Caller-supplied slices, no allocation.
+//!
+//! # The learning step (per axis, sample period T)
+//! ```text
+//! e_k[j]     = r[j] − y_k[j]                                       error of trial k [m]
+//! z[j]       = e_k(j + D)          the error D samples later (linear interpolation between
+//!                                  e[j + ⌊D⌋] and e[j + ⌊D⌋ + 1]): u[j] shows at output sample j + D
+//! s[j]       = z[j] + (ζ/(ωT))·(z[j+1] − z[j−1]) + (z[j+1] − 2z[j] + z[j−1])/(ωT)²
+//!                                  inverse of the mode z̈ + 2ζω·ż + ω²·z = ω²·s (central
+//!                                  differences, as the inverse chain; s = z without a mode)
+//! (L·e_k)[j] = λ · s[j] / g[j]     g[j] = dy/du of the hysteresis model at step j along u_k
+//! u_{k+1}    = u_0 + Q·(u_k − u_0 + L·e_k),   then limited to the window and the slew limit
+//! ```
+//! u_0 is the compensator's command for r (iteration 0); with u_0 = 0 this is the textbook
+//! `Q·(u_k + L·e_k)`. Q acts on what was learned, not on the compensator's own command, so the
+//! error outside Q's band is the compensator's rather than the whole reference. The contraction
+//! is the same: with δ_k = u_k − u_0 and e_k = e_0 − G·δ_k, δ_{k+1} = Q·((1 − L·G)·δ_k + L·e_0).
+//! Sign convention: e = r − y; for a stage whose output rises with voltage (g > 0) a positive
+//! error raises the command.
+//!
+//! * **Learning gain** λ = 2/(γ_min + γ_max): the plant's gain is γ times the model's, γ in
+//!   `[gain_min, gain_max]`; λ balances the two ends, max|1 − λγ| = (γ_max − γ_min)/(γ_max + γ_min).
+//! * **Q** is a zero-phase low-pass: a 4th-order Butterworth (two biquads, bilinear transform
+//!   with prewarping) run forward and then backward, so
+//!   `|Q(f)| = 1/(1 + (tan(πfT)/tan(πf_cT))⁸)` and its phase is 0. Periodic trials are filtered
+//!   circularly (each pass starts from its periodic steady state, solved exactly); a trial from
+//!   rest starts each pass in the steady state of its first sample.
+//! * **The cut-off rule** (monotone convergence with a margin m): with the model's
+//!   `G(f) = γ·g·M_μ(f)·e^(−j2πfDT)` (M_μ the continuous mode at μ·f_mode, damping ζ) and L's
+//!   own frequency response (the interpolated shift and the central-difference inverse above),
+//!   `W(f) = max |1 − λ·γ·M_μ(f)·M̂⁻¹(f)·S_D(f)·e^(−j2πfDT)|` over γ ∈ {γ_min, γ_max} and
+//!   μ ∈ [1 − t, 1 + t] (t = `mode_frequency_tolerance`; 33 values and μ = f/f_mode);
+//!   f_c is the largest cut-off with `|Q(f)|·W(f) ≤ 1 − m` at 2048 frequencies across
+//!   (0, 1/(2T)), in closed form per frequency:
+//!   `f_c = min over f with W(f) > 1 − m of atan(tan(πfT)/(W(f)/(1 − m) − 1)^(1/8))/(πT)`,
+//!   at most 0.4/T. Then ‖e_{k+1}‖ ≤ (1 − m)·‖e_k‖ for every plant in that set (the linear
+//!   part, on a periodic trial). With a feedback servo whose sensitivity is S, learning on the
+//!   applied command gives the factor |S·Q·(1 − L·G)| instead.
+//! * **Limits**: the result is clamped to `[output_min_v, output_max_v]` and to the slew limit S_r:
+//!   a forward pass `u[j] ∈ u[j−1] ± S_r·T` (from rest at `output_min_v` for a trial from rest),
+//!   and for a periodic table a backward pass from the first sample, which also holds the wrap
+//!   from the last sample to the first (a learned table is safe to play in a loop).
+//!
+//! Never panics, for any slices: a non-finite reference or measured sample counts as no error,
+//! a non-finite command sample as the compensator's.
+
+use crate::compensator::{Compensator, CompensatorSettings};
+use crate::effects::Effects;
+use crate::error::{finite, ParamError};
+use crate::math::clamp;
+use crate::static_model::{ModelState, StaticModel};
+use core::f64::consts::PI;
+
+/// Frequencies at which the cut-off rule checks the convergence condition.
+pub const RULE_FREQUENCIES: usize = 2048;
+/// Mode frequencies (relative, spread over the tolerance) the rule checks per frequency.
+pub const RULE_MODE_SAMPLES: usize = 33;
+/// Highest cut-off, as a fraction of the sample rate.
+pub const MAX_CUTOFF_FRACTION: f64 = 0.4;
+/// Q of the two biquads of the 4th-order Butterworth: 1/(2·sin(π/8)), 1/(2·sin(3π/8)).
+const BUTTERWORTH4_Q: [f64; 2] = [1.306_562_964_876_376_5, 0.541_196_100_146_197];
+
+/// The uncertainty the learning must converge under, and the margin.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LearningParams {
+    /// Smallest plant/model gain ratio γ_min, > 0.
+    pub gain_min: f32,
+    /// Largest plant/model gain ratio γ_max, ≥ γ_min.
+    pub gain_max: f32,
+    /// Relative error of the model's mode frequency t: the plant's mode is within (1 ± t)·f_mode,
+    /// 0 ≤ t < 0.9 (ignored without a mode).
+    pub mode_frequency_tolerance: f32,
+    /// m in |Q·(1 − L·G)| ≤ 1 − m, 0 < m < 1.
+    pub margin: f32,
+}
+
+impl Default for LearningParams {
+    /// γ in [0.6, 1.7] (a stage file whose gain is ×1.5 or ×0.6 off stays inside), mode ±20 %,
+    /// margin 0.1.
+    fn default() -> Self {
+        Self {
+            gain_min: 0.6,
+            gain_max: 1.7,
+            mode_frequency_tolerance: 0.2,
+            margin: 0.1,
+        }
+    }
+}
+
+/// One biquad, denominator `1 + a1·z⁻¹ + a2·z⁻²`, transposed direct form II (f64).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Biquad {
+    b: [f64; 3],
+    a: [f64; 2],
+}
+
+impl Biquad {
+    /// RBJ low-pass at `w0 = 2π·f_c·T` with quality `q` (the bilinear transform of
+    /// 1/(s² + s/q + 1) prewarped at w0).
+    fn lowpass(w0: f64, q: f64) -> Self {
+        let (sin, cos) = (libm::sin(w0), libm::cos(w0));
+        let alpha = sin / (2.0 * q);
+        let a0 = 1.0 + alpha;
+        let b1 = (1.0 - cos) / a0;
+        Self {
+            b: [0.5 * b1, b1, 0.5 * b1],
+            a: [-2.0 * cos / a0, (1.0 - alpha) / a0],
+        }
+    }
+
+    /// One sample: returns y, updates the state `s`.
+    #[inline]
+    fn tick(&self, s: &mut [f64; 2], x: f64) -> f64 {
+        let y = self.b[0] * x + s[0];
+        s[0] = self.b[1] * x - self.a[0] * y + s[1];
+        s[1] = self.b[2] * x - self.a[1] * y;
+        y
+    }
+
+    /// Filters `v` in place in the direction `reverse`; `periodic`: from the periodic steady
+    /// state, else from the steady state of the first sample met.
+    fn filter(&self, v: &mut [f32], reverse: bool, periodic: bool) {
+        let n = v.len();
+        let at = |i: usize| if reverse { n - 1 - i } else { i };
+        let Some(&first) = v.get(at(0)) else { return };
+        let mut s = if periodic {
+            // Final state from zero: f; from s0: Aⁿ·s0 + f. Periodic: s0 = (I − Aⁿ)⁻¹·f.
+            let mut f = [0.0; 2];
+            for i in 0..n {
+                self.tick(&mut f, f64::from(v[at(i)]));
+            }
+            let an = mat_pow([[-self.a[0], 1.0], [-self.a[1], 0.0]], n);
+            let m = [[1.0 - an[0][0], -an[0][1]], [-an[1][0], 1.0 - an[1][1]]];
+            let det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
+            if det.abs() > 1e-300 {
+                [
+                    (m[1][1] * f[0] - m[0][1] * f[1]) / det,
+                    (m[0][0] * f[1] - m[1][0] * f[0]) / det,
+                ]
+            } else {
+                [0.0; 2]
+            }
+        } else {
+            let x = f64::from(first);
+            [x * (1.0 - self.b[0]), x * (self.b[2] - self.a[1])]
+        };
+        for i in 0..n {
+            let j = at(i);
+            v[j] = self.tick(&mut s, f64::from(v[j])) as f32;
+        }
+    }
+}
+
+/// `m^n` by squaring.
+fn mat_pow(mut m: [[f64; 2]; 2], mut n: usize) -> [[f64; 2]; 2] {
+    let mul = |a: [[f64; 2]; 2], b: [[f64; 2]; 2]| {
+        [
+            [
+                a[0][0] * b[0][0] + a[0][1] * b[1][0],
+                a[0][0] * b[0][1] + a[0][1] * b[1][1],
+            ],
+            [
+                a[1][0] * b[0][0] + a[1][1] * b[1][0],
+                a[1][0] * b[0][1] + a[1][1] * b[1][1],
+            ],
+        ]
+    };
+    let mut out = [[1.0, 0.0], [0.0, 1.0]];
+    while n > 0 {
+        if n & 1 == 1 {
+            out = mul(out, m);
+        }
+        m = mul(m, m);
+        n >>= 1;
+    }
+    out
+}
+
+/// A complex number (re, im) for the rule's frequency responses.
+#[derive(Debug, Clone, Copy)]
+struct C(f64, f64);
+
+impl C {
+    fn mul(self, o: C) -> C {
+        C(self.0 * o.0 - self.1 * o.1, self.0 * o.1 + self.1 * o.0)
+    }
+    fn div(self, o: C) -> C {
+        let d = o.0 * o.0 + o.1 * o.1;
+        C(
+            (self.0 * o.0 + self.1 * o.1) / d,
+            (self.1 * o.0 - self.0 * o.1) / d,
+        )
+    }
+    fn expj(phase: f64) -> C {
+        C(libm::cos(phase), libm::sin(phase))
+    }
+    fn abs(self) -> f64 {
+        libm::hypot(self.0, self.1)
+    }
+}
+
+/// The validated learning settings of one axis: the model it inverts, the delay and mode of its
+/// effects, the limits, and the filter its rule chose.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Learning {
+    model: StaticModel,
+    limits: CompensatorSettings,
+    /// ⌊D⌋ and D − ⌊D⌋.
+    delay_whole: usize,
+    delay_fraction: f64,
+    /// (f_mode \[Hz\], ζ) of the model's mode.
+    mode: Option<(f64, f64)>,
+    params: LearningParams,
+    learning_gain: f64,
+    cutoff_hz: f64,
+    sections: [Biquad; 2],
+}
+
+/// What a step measured and did.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepSummary {
+    /// RMS of r − y over the trial just measured \[m\].
+    pub rms_error_m: f64,
+    /// Largest |r − y| over the trial \[m\].
+    pub max_abs_error_m: f64,
+    /// Samples of the new command moved by the window or the slew limit.
+    pub limited: usize,
+}
+
+/// One trial, per axis: all slices of the same length.
+#[derive(Debug, Clone, Copy)]
+pub struct Trial<'a> {
+    /// r: the reference at the output samples \[m\].
+    pub reference_m: &'a [f32],
+    /// u_k: the command of the trial (the voltage applied) \[V\].
+    pub command_v: &'a [f32],
+    /// y_k: the measured output \[m\].
+    pub measured_m: &'a [f32],
+    /// u_0: the compensator's command for r \[V\].
+    pub base_v: &'a [f32],
+    /// Whether the trial is one period of a trajectory played in a loop (else one run from rest
+    /// at `output_min_v`).
+    pub periodic: bool,
+}
+
+impl Learning {
+    /// Learning for the axis whose compensator is `compensator` (a position model) and whose
+    /// effects are `effects` (delay and mode used; the rest is left to the learning), with the
+    /// uncertainty and margin of `params`. Chooses the cut-off by the rule of the module doc.
+    pub fn new(
+        compensator: &Compensator,
+        effects: &Effects,
+        params: LearningParams,
+    ) -> Result<Self, ParamError> {
+        if !compensator.is_position() {
+            return Err(ParamError::OutOfRange {
+                field: "model",
+                value: 0.0,
+                requirement: "a static (position) model",
+            });
+        }
+        let (lo, hi) = (
+            finite("gain_min", params.gain_min)?,
+            finite("gain_max", params.gain_max)?,
+        );
+        let margin = finite("margin", params.margin)?;
+        if !(margin > 0.0 && margin < 1.0) {
+            return Err(ParamError::OutOfRange {
+                field: "margin",
+                value: margin,
+                requirement: "in (0, 1)",
+            });
+        }
+        // Both finite (checked above), so plain comparisons cover every case.
+        if lo <= 0.0 {
+            return Err(ParamError::OutOfRange {
+                field: "gain_min",
+                value: lo,
+                requirement: "> 0",
+            });
+        }
+        let spread = (f64::from(hi) - f64::from(lo)) / (f64::from(hi) + f64::from(lo));
+        if hi < lo || spread >= 1.0 - f64::from(margin) {
+            return Err(ParamError::OutOfRange {
+                field: "gain_max",
+                value: hi,
+                requirement:
+                    ">= gain_min and (gain_max - gain_min)/(gain_max + gain_min) < 1 - margin",
+            });
+        }
+        let tolerance = finite("mode_frequency_tolerance", params.mode_frequency_tolerance)?;
+        if !(0.0..0.9).contains(&tolerance) {
+            return Err(ParamError::OutOfRange {
+                field: "mode_frequency_tolerance",
+                value: tolerance,
+                requirement: "in [0, 0.9)",
+            });
+        }
+        let limits = compensator.settings();
+        let d = f64::from(effects.delay_samples());
+        let p = effects.params();
+        let mut learning = Self {
+            model: *compensator.model(),
+            limits,
+            delay_whole: effects.reference_index_offset(),
+            delay_fraction: d - libm::floor(d),
+            mode: effects
+                .has_mode()
+                .then(|| (f64::from(p.mode_frequency_hz), f64::from(p.mode_damping))),
+            params,
+            learning_gain: 2.0 / (f64::from(lo) + f64::from(hi)),
+            cutoff_hz: 0.0,
+            sections: [Biquad::lowpass(0.1, 1.0); 2],
+        };
+        let t = f64::from(limits.sample_period_s);
+        let mut cutoff = MAX_CUTOFF_FRACTION / t;
+        let bound = 1.0 - f64::from(margin);
+        for i in 0..RULE_FREQUENCIES {
+            let f = (i as f64 + 0.5) / RULE_FREQUENCIES as f64 * 0.5 / t;
+            let w = learning.worst_factor(f);
+            if w > bound {
+                let tan_c = libm::tan(PI * f * t) / libm::pow(w / bound - 1.0, 0.125);
+                // A hair below the boundary, so that rounding cannot put it above.
+                cutoff = cutoff.min(0.999 * libm::atan(tan_c) / (PI * t));
+            }
+        }
+        learning.cutoff_hz = cutoff;
+        let w0 = 2.0 * PI * cutoff * t;
+        learning.sections = BUTTERWORTH4_Q.map(|q| Biquad::lowpass(w0, q));
+        Ok(learning)
+    }
+
+    /// The cut-off f_c of Q chosen by the rule \[Hz\].
+    pub fn cutoff_hz(&self) -> f64 {
+        self.cutoff_hz
+    }
+
+    /// λ = 2/(γ_min + γ_max).
+    pub fn learning_gain(&self) -> f64 {
+        self.learning_gain
+    }
+
+    /// The parameters as given.
+    pub fn params(&self) -> &LearningParams {
+        &self.params
+    }
+
+    /// |Q(f)| = 1/(1 + (tan(πfT)/tan(πf_cT))⁸) (zero phase).
+    pub fn filter_gain(&self, f_hz: f64) -> f64 {
+        let t = f64::from(self.limits.sample_period_s);
+        let x = libm::tan(PI * f_hz * t) / libm::tan(PI * self.cutoff_hz * t);
+        1.0 / (1.0 + libm::pow(x * x, 4.0))
+    }
+
+    /// W(f): the largest |1 − L·G| over the gain and mode sets at `f_hz` (module doc).
+    pub fn worst_factor(&self, f_hz: f64) -> f64 {
+        let t = f64::from(self.limits.sample_period_s);
+        let w = 2.0 * PI * f_hz;
+        let d = self.delay_whole as f64 + self.delay_fraction;
+        // L's shift: e^(jω⌊D⌋T)·((1 − φ) + φ·e^(jωT)); the delay of G: e^(−jωDT).
+        let phi = self.delay_fraction;
+        let step = C::expj(w * t);
+        let shift =
+            C::expj(w * t * self.delay_whole as f64).mul(C(1.0 - phi + phi * step.0, phi * step.1));
+        let delay = C::expj(-w * d * t);
+        let base = shift.mul(delay);
+        let gains = [self.params.gain_min, self.params.gain_max].map(f64::from);
+        let lambda = self.learning_gain;
+        let factor = |ratio: C| {
+            gains
+                .iter()
+                .map(|g| {
+                    let lg = ratio.mul(base);
+                    C(1.0 - lambda * g * lg.0, -lambda * g * lg.1).abs()
+                })
+                .fold(0.0, f64::max)
+        };
+        let Some((fm, zeta)) = self.mode else {
+            return factor(C(1.0, 0.0));
+        };
+        let wm = 2.0 * PI * fm;
+        // L's mode inverse: 1 + j·2ζ·sin(ωT)/(ω_m·T) − 4·sin²(ωT/2)/(ω_m·T)².
+        let half = libm::sin(0.5 * w * t);
+        let inverse = C(
+            1.0 - 4.0 * half * half / (wm * t * wm * t),
+            2.0 * zeta * libm::sin(w * t) / (wm * t),
+        );
+        let tol = f64::from(self.params.mode_frequency_tolerance);
+        let mode_at = |mu: f64| {
+            let wt = mu * wm;
+            let m = C(wt * wt, 0.0).div(C(wt * wt - w * w, 2.0 * zeta * wt * w));
+            factor(m.mul(inverse))
+        };
+        let on_peak = (f_hz / fm).clamp(1.0 - tol, 1.0 + tol);
+        (0..RULE_MODE_SAMPLES)
+            .map(|i| 1.0 - tol + 2.0 * tol * i as f64 / (RULE_MODE_SAMPLES - 1) as f64)
+            .map(mode_at)
+            .fold(mode_at(on_peak), f64::max)
+    }
+
+    /// |Q(f)|·W(f): the worst contraction of the error at `f_hz` per trial.
+    pub fn convergence_factor(&self, f_hz: f64) -> f64 {
+        self.filter_gain(f_hz) * self.worst_factor(f_hz)
+    }
+
+    /// The next command into `next_v` (the length of the trial's slices). Refuses slices of
+    /// different lengths (naming the first that differs from `command_v`) or shorter than 2.
+    pub fn step(&self, trial: &Trial<'_>, next_v: &mut [f32]) -> Result<StepSummary, ParamError> {
+        let n = trial.command_v.len();
+        for (field, len) in [
+            ("reference_m", trial.reference_m.len()),
+            ("measured_m", trial.measured_m.len()),
+            ("base_v", trial.base_v.len()),
+            ("next_v", next_v.len()),
+        ] {
+            if len != n {
+                return Err(ParamError::OutOfRange {
+                    field,
+                    value: len as f32,
+                    requirement: "the length of command_v",
+                });
+            }
+        }
+        if n < 2 {
+            return Err(ParamError::OutOfRange {
+                field: "command_v",
+                value: n as f32,
+                requirement: "at least 2 samples",
+            });
+        }
+        let error = |j: usize| {
+            let e = trial.reference_m[j] - trial.measured_m[j];
+            if e.is_finite() {
+                f64::from(e)
+            } else {
+                0.0
+            }
+        };
+        let (mut sq, mut max) = (0.0f64, 0.0f64);
+        for j in 0..n {
+            let e = error(j);
+            sq += e * e;
+            max = max.max(e.abs());
+        }
+        let base = |j: usize| {
+            let b = trial.base_v[j];
+            if b.is_finite() {
+                b
+            } else {
+                self.limits.output_min_v
+            }
+        };
+        let command = |j: usize| {
+            let u = trial.command_v[j];
+            if u.is_finite() {
+                u
+            } else {
+                base(j)
+            }
+        };
+        self.learned_update(trial.periodic, &error, &command, &base, next_v);
+        for section in &self.sections {
+            section.filter(next_v, false, trial.periodic);
+        }
+        for section in &self.sections {
+            section.filter(next_v, true, trial.periodic);
+        }
+        for (j, v) in next_v.iter_mut().enumerate() {
+            *v += base(j);
+        }
+        let limited = self.limit(next_v, trial.periodic);
+        Ok(StepSummary {
+            rms_error_m: libm::sqrt(sq / n as f64),
+            max_abs_error_m: max,
+            limited,
+        })
+    }
+
+    /// `out[j] = u_k[j] − u_0[j] + (L·e)[j]` (module doc).
+    fn learned_update(
+        &self,
+        periodic: bool,
+        error: &dyn Fn(usize) -> f64,
+        command: &dyn Fn(usize) -> f32,
+        base: &dyn Fn(usize) -> f32,
+        out: &mut [f32],
+    ) {
+        let n = out.len();
+        let index = |i: isize| -> usize {
+            if periodic {
+                i.rem_euclid(n as isize) as usize
+            } else {
+                i.clamp(0, n as isize - 1) as usize
+            }
+        };
+        let shifted = |i: isize| {
+            let k = i + self.delay_whole as isize;
+            let (a, b) = (error(index(k)), error(index(k + 1)));
+            a + self.delay_fraction * (b - a)
+        };
+        let t = f64::from(self.limits.sample_period_s);
+        let (velocity, curvature) = self.mode.map_or((0.0, 0.0), |(f, zeta)| {
+            let wt = 2.0 * PI * f * t;
+            (zeta / wt, 1.0 / (wt * wt))
+        });
+        // The model along u_k: a periodic trial starts from the state one period of u_k leaves.
+        let mut state = ModelState::at_rest(if periodic {
+            command(0)
+        } else {
+            self.limits.output_min_v
+        });
+        if periodic {
+            for j in 0..n {
+                self.model.step(&mut state, command(j));
+            }
+        }
+        let mut direction = 1.0f32;
+        for (j, o) in out.iter_mut().enumerate() {
+            let from = state;
+            let u = command(j);
+            self.model.step(&mut state, u);
+            let du = state.input_v - from.input_v;
+            if du != 0.0 {
+                direction = if du > 0.0 { 1.0 } else { -1.0 };
+            }
+            let slope = f64::from(self.model.step_slope(&from, &state, direction));
+            let i = j as isize;
+            let (zm, z0, zp) = (shifted(i - 1), shifted(i), shifted(i + 1));
+            let s = z0 + velocity * (zp - zm) + curvature * (zp - 2.0 * z0 + zm);
+            let learned = if slope.is_finite() && slope.abs() > 0.0 {
+                self.learning_gain * s / slope
+            } else {
+                0.0
+            };
+            *o = (f64::from(u) - f64::from(base(j)) + learned) as f32;
+        }
+    }
+
+    /// Clamps `u` to the window and the slew limit (module doc); returns the samples moved.
+    fn limit(&self, u: &mut [f32], periodic: bool) -> usize {
+        let CompensatorSettings {
+            output_min_v: lo,
+            output_max_v: hi,
+            slew_limit_v_per_s,
+            sample_period_s,
+        } = self.limits;
+        let step = slew_limit_v_per_s * sample_period_s;
+        let mut moved = 0;
+        let mut set = |v: &mut f32, x: f32| {
+            if *v != x {
+                *v = x;
+                moved += 1;
+            }
+        };
+        let Some((first, rest)) = u.split_first_mut() else {
+            return 0;
+        };
+        let from_rest = if periodic { *first } else { lo };
+        let x = clamp(clamp(*first, from_rest - step, from_rest + step), lo, hi);
+        set(first, x);
+        let mut previous = *first;
+        for v in rest.iter_mut() {
+            let x = clamp(clamp(*v, previous - step, previous + step), lo, hi);
+            set(v, x);
+            previous = *v;
+        }
+        if periodic {
+            // Backward from the first sample around the wrap: u[j] ∈ u[j+1] ± step, u[n] = u[0].
+            let anchor = u[0];
+            let mut next = anchor;
+            for v in u[1..].iter_mut().rev() {
+                let x = clamp(*v, next - step, next + step);
+                set(v, x);
+                next = *v;
+            }
+        }
+        moved
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 4th-order Butterworth pair at `cutoff_hz` for 10 kHz, as `Learning::new` builds it.
+    fn sections(cutoff_hz: f64) -> [Biquad; 2] {
+        BUTTERWORTH4_Q.map(|q| Biquad::lowpass(2.0 * PI * cutoff_hz * 1e-4, q))
+    }
+
+    #[test]
+    fn circular_forward_backward_is_zero_phase_with_the_stated_gain() {
+        // One period of a sinusoid, filtered circularly: every sample is |Q(f)| times the input
+        // (no phase, no start-up transient), |Q| = 1/(1 + (tan(πfT)/tan(πf_cT))⁸).
+        let (fc, n) = (1000.0, 200);
+        for cycles in [1usize, 10, 20, 30, 50] {
+            let f = cycles as f64 * 1e4 / n as f64;
+            let x: [f32; 200] =
+                core::array::from_fn(|j| libm::sin(2.0 * PI * f * j as f64 * 1e-4 + 0.3) as f32);
+            let mut y = x;
+            for s in &sections(fc) {
+                s.filter(&mut y, false, true);
+            }
+            for s in &sections(fc) {
+                s.filter(&mut y, true, true);
+            }
+            let r = libm::tan(PI * f * 1e-4) / libm::tan(PI * fc * 1e-4);
+            let gain = 1.0 / (1.0 + libm::pow(r, 8.0));
+            for j in 0..n {
+                let want = gain * f64::from(x[j]);
+                assert!(
+                    (f64::from(y[j]) - want).abs() < 2e-5,
+                    "{f} Hz, sample {j}: {} vs {want}",
+                    y[j]
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn a_record_from_rest_keeps_its_level_at_both_ends() {
+        // Not periodic: each pass starts in the steady state of its first sample, so a constant
+        // record (a voltage far from 0) passes unchanged, ends included.
+        let mut y = [60.0f32; 300];
+        for s in &sections(500.0) {
+            s.filter(&mut y, false, false);
+            s.filter(&mut y, true, false);
+        }
+        assert!(y.iter().all(|&v| (v - 60.0).abs() < 1e-4), "{:?}", &y[..4]);
+    }
+
+    #[test]
+    fn a_periodic_table_respects_window_and_slew_across_the_wrap() {
+        use crate::bouc_wen::{BoucWen, BoucWenParams, STATE_LIMIT};
+        use crate::static_model::StaticMap;
+        let params = BoucWenParams {
+            a: 0.18522,
+            beta: 0.029586,
+            gamma: -0.020710,
+            n: 1.0,
+        };
+        let bw = BoucWen::with_input_range(params, 0.0, 120.0, STATE_LIMIT).unwrap();
+        let map = StaticMap {
+            k1_m_per_v: 3.57e-7,
+            k2_m_per_h: -3.57e-7,
+            offset_m: 0.0,
+        };
+        let settings = CompensatorSettings {
+            output_min_v: 0.0,
+            output_max_v: 120.0,
+            slew_limit_v_per_s: 2e4,
+            sample_period_s: 1e-4,
+        };
+        let compensator = Compensator::new(StaticModel::new(bw, map).unwrap(), settings).unwrap();
+        let effects = Effects::new(
+            Default::default(),
+            1e-4,
+            crate::effects::OperatingRange {
+                input_v: (0.0, 120.0),
+                output_m: (0.0, 50e-6),
+            },
+        )
+        .unwrap();
+        let learning = Learning::new(&compensator, &effects, LearningParams::default()).unwrap();
+        // A rising ramp from −20 V to 150 V: out of the window at both ends, steps of 0.85 V
+        // within it, and a 170 V fall across the wrap.
+        let mut u: [f32; 200] = core::array::from_fn(|j| -20.0 + 0.85 * j as f32);
+        let moved = learning.limit(&mut u, true);
+        assert!(moved > 0);
+        let step = 2e4 * 1e-4 + 1e-4;
+        for j in 0..200 {
+            assert!((0.0..=120.0).contains(&u[j]), "{j}: {}", u[j]);
+            let previous = u[(j + 199) % 200];
+            assert!(
+                (u[j] - previous).abs() <= step,
+                "{j}: {previous} -> {}",
+                u[j]
+            );
+        }
+        // From rest: the first sample is reachable from output_min_v.
+        let mut u = [50.0f32; 10];
+        learning.limit(&mut u, false);
+        assert_eq!(u[0], 2.0);
+    }
+}

@@ -1,0 +1,748 @@
+//! `host-sim learn-bench`: iterative learning control ([`piezo_core::learning`]) on the XY stage
+//! of `servo-bench` — host-sim's f64 plant (piezo-reference, independent of the core) with
+//! creep, drift, sensor noise, ADC and DAC quantisation and its flexure modes — for periodic
+//! triangles and sines.
+//!
+//! **Stage file**: `servo-bench`'s (the stacks' Bouc-Wen sets scaled by the identified platform
+//! gain, its servo) plus, per axis, the first mode identified from the step response and a delay
+//! of half a loop period (the zero-order hold: sample j is held over \[t_j, t_{j+1}) and read at
+//! t_j). Robustness rows scale its static gain (k1, k2) or its mode frequency.
+//!
+//! **Run** (one continuous run per row, tick by tick at the loop rate): a fade-in from rest to
+//! the reference's first sample (50 ms), the compensator's own command over whole periods of at
+//! least 0.1 s (`compensate`'s chain on that reference), then trials: trial k plays the periodic
+//! table u_k over the fewest whole periods lasting ≥ 0.1 s; the table of trial 0 is the
+//! compensator's command of the next period. After each trial the readings and the applied
+//! voltages (table + servo correction with feedback) are averaged over its periods, and the
+//! learning step (periodic) gives u_{k+1}. Modes: **learned** (the table alone) and
+//! **learned+feedback** (the servo of the stage file adds its correction to the table; the
+//! learning then sees the applied voltage, so its factor is S·Q·(1 − L·G)).
+//!
+//! **Figures**: per trial the RMS and the largest |true position − reference| over the trial, in
+//! % of the axis's stroke, the worse axis; references between 20 % and 90 % of the stroke.
+
+#![allow(clippy::needless_range_loop)] // axis indices run over parallel per-axis arrays
+
+use crate::compensate::feedforward_axes;
+use crate::effects::Effects;
+use crate::learn::rule_text;
+use crate::plant::XyStage;
+use crate::plot::{plot_grid, Chart, Legend, Panel, Role, Series};
+use crate::servo_bench::{
+    controllers, identify_rig, Rig, Shape, DEFAULT_PLANT_EFFECTS, HIGH, LOW, STACK_FILE,
+};
+use piezo_core::{compensate_pair, Learning, LearningParams, ServoMode, ServoState, Trial};
+use piezo_stage::StageFile;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// How the learned table reaches the stage.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LearnMode {
+    /// The table alone.
+    Learned,
+    /// The table plus the servo's correction.
+    LearnedFeedback,
+}
+
+impl LearnMode {
+    /// `learned` or `learned+feedback`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Learned => "learned",
+            Self::LearnedFeedback => "learned+feedback",
+        }
+    }
+
+    fn servo_mode(self) -> ServoMode {
+        match self {
+            Self::Learned => ServoMode::Feedforward,
+            Self::LearnedFeedback => ServoMode::FeedforwardFeedback,
+        }
+    }
+}
+
+/// What is changed in the stage file the learning and the compensator use.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Perturbation {
+    /// The identified file.
+    Nominal,
+    /// Static gain (k1, k2) times this.
+    Gain(f64),
+    /// Mode frequency times this.
+    ModeFrequency(f64),
+}
+
+impl Perturbation {
+    /// `nominal`, `gain x0.6`, `mode x1.15`.
+    pub fn label(self) -> String {
+        match self {
+            Self::Nominal => "nominal".into(),
+            Self::Gain(g) => format!("gain x{g}"),
+            Self::ModeFrequency(m) => format!("mode x{m}"),
+        }
+    }
+}
+
+/// What the bench runs.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LearnBenchSettings {
+    /// Loop rate \[Hz\].
+    pub loop_rate_hz: f64,
+    /// Reference frequencies \[Hz\].
+    pub frequencies_hz: Vec<f64>,
+    /// Reference shapes.
+    pub shapes: Vec<Shape>,
+    /// Modes.
+    pub modes: Vec<LearnMode>,
+    /// Learning steps (trials 0 ..= this).
+    pub iterations: usize,
+    /// A trial is the fewest whole periods lasting at least this \[s\].
+    pub trial_min_s: f64,
+    /// The compensator's warm-up: whole periods lasting at least this \[s\].
+    pub warmup_min_s: f64,
+    /// Fade-in from rest \[s\].
+    pub fade_in_s: f64,
+    /// Effect specs the plant carries.
+    pub plant_effects: Vec<String>,
+    /// The learning's uncertainty and margin.
+    pub params: LearningParams,
+    /// Perturbed stage files, each run on `robustness_cases` in `robustness_mode`.
+    pub perturbations: Vec<Perturbation>,
+    /// (shape, frequency) of the robustness rows.
+    pub robustness_cases: Vec<(Shape, f64)>,
+    /// Mode of the robustness rows.
+    pub robustness_mode: LearnMode,
+}
+
+impl Default for LearnBenchSettings {
+    fn default() -> Self {
+        Self {
+            loop_rate_hz: 10_000.0,
+            frequencies_hz: vec![1.0, 10.0, 100.0],
+            shapes: vec![Shape::Triangle, Shape::Sine],
+            modes: vec![LearnMode::Learned, LearnMode::LearnedFeedback],
+            iterations: 15,
+            trial_min_s: 0.1,
+            warmup_min_s: 0.1,
+            fade_in_s: 0.05,
+            plant_effects: DEFAULT_PLANT_EFFECTS
+                .iter()
+                .map(|s| s.to_string())
+                .collect(),
+            params: LearningParams::default(),
+            perturbations: vec![
+                Perturbation::Gain(0.6),
+                Perturbation::Gain(1.5),
+                Perturbation::ModeFrequency(1.15),
+                Perturbation::ModeFrequency(0.85),
+            ],
+            robustness_cases: vec![
+                (Shape::Sine, 100.0),
+                (Shape::Triangle, 100.0),
+                (Shape::Triangle, 10.0),
+            ],
+            robustness_mode: LearnMode::LearnedFeedback,
+        }
+    }
+}
+
+/// The error of every trial of one run.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Curve {
+    /// Mode.
+    pub mode: LearnMode,
+    /// Shape.
+    pub shape: Shape,
+    /// Frequency \[Hz\].
+    pub freq_hz: f64,
+    /// The stage file's perturbation.
+    pub perturbation: Perturbation,
+    /// Per trial (0 = the compensator's command): RMS error, % of stroke, worse axis.
+    pub rms_percent: Vec<f64>,
+    /// Per trial: largest |error|, % of stroke, worse axis.
+    pub max_percent: Vec<f64>,
+    /// Cut-off of Q per axis \[Hz\].
+    pub cutoff_hz: [f64; 2],
+    /// Periods per trial.
+    pub periods_per_trial: usize,
+    /// RMS of the last trial's measured error (averaged over its periods) above Q's cut-off,
+    /// % of stroke, worse axis: what the learning leaves to the compensator.
+    pub above_cutoff_percent: f64,
+}
+
+impl Curve {
+    /// The error of the last trial (RMS, % of stroke).
+    pub fn last(&self) -> f64 {
+        self.rms_percent.last().copied().unwrap_or(f64::NAN)
+    }
+
+    /// The largest ratio rms\[k\]/rms\[k−1\] for k > `after`.
+    pub fn worst_ratio_after(&self, after: usize) -> f64 {
+        self.rms_percent
+            .windows(2)
+            .enumerate()
+            .filter(|(k, _)| k + 1 > after)
+            .map(|(_, w)| w[1] / w[0])
+            .fold(0.0, f64::max)
+    }
+}
+
+/// Everything the bench measured.
+#[derive(Debug, Clone)]
+pub struct LearnBenchReport {
+    /// Nominal runs.
+    pub curves: Vec<Curve>,
+    /// Robustness runs.
+    pub robustness: Vec<Curve>,
+    /// The stage file the learning used (nominal).
+    pub stage_toml: String,
+    /// Largest sensitivity |S| of each axis's servo (the learned+feedback factor's bound).
+    pub sensitivity_peak: [f64; 2],
+    /// The settings.
+    pub settings: LearnBenchSettings,
+    /// Wall-clock seconds.
+    pub seconds: f64,
+}
+
+/// The rig and the stage file every run starts from.
+struct Context<'a> {
+    stage: &'a XyStage,
+    effects: &'a Effects,
+    file: StageFile,
+    stroke_m: [f64; 2],
+    settings: &'a LearnBenchSettings,
+}
+
+/// The stage file with `p` applied.
+fn perturbed(file: &StageFile, p: Perturbation) -> Result<StageFile, String> {
+    let mut file = file.clone();
+    for axis in [Some(&mut file.x), file.y.as_mut()].into_iter().flatten() {
+        match p {
+            Perturbation::Nominal => {}
+            Perturbation::Gain(g) => {
+                let map = axis.static_map.as_mut().ok_or("no static map")?;
+                map.k1_m_per_v = (f64::from(map.k1_m_per_v) * g) as f32;
+                map.k2_m_per_h = (f64::from(map.k2_m_per_h) * g) as f32;
+            }
+            Perturbation::ModeFrequency(m) => {
+                let f = &mut axis.effects.mode_frequency_hz;
+                *f = (f64::from(*f) * m) as f32;
+            }
+        }
+    }
+    Ok(file)
+}
+
+/// One run: warm-up, then `iterations + 1` trials with a learning step after each but the last.
+fn run_case(
+    ctx: &Context<'_>,
+    shape: Shape,
+    freq_hz: f64,
+    mode: LearnMode,
+    perturbation: Perturbation,
+) -> Result<Curve, String> {
+    let s = ctx.settings;
+    let fs = s.loop_rate_hz;
+    let file = perturbed(&ctx.file, perturbation)?;
+    let valid = file.validate().map_err(|e| e.to_string())?;
+    let axes = feedforward_axes(&file, &valid, Path::new("learn-bench stage file"))?;
+    let mut learning = Vec::new();
+    let mut servos = Vec::new();
+    for (a, v) in valid.axes.iter().enumerate() {
+        learning.push(
+            Learning::new(&axes[a].compensator, &axes[a].effects, s.params)
+                .map_err(|e| format!("learning of axis {}: {e}", v.name))?,
+        );
+        servos.push(v.servo.ok_or("the stage file has no servo")?);
+    }
+    let period = (fs / freq_hz).round() as usize;
+    let whole = |min_s: f64| ((min_s * freq_hz).ceil() as usize).max(1);
+    let (trial_periods, warm_periods) = (whole(s.trial_min_s), whole(s.warmup_min_s));
+    let lead = (s.fade_in_s * fs).round() as usize;
+    let r: [Vec<f32>; 2] = [0, 1].map(|a| {
+        (0..period)
+            .map(|j| {
+                let unit = shape.unit(freq_hz, j as f64 / fs);
+                (ctx.stroke_m[a] * (LOW + (HIGH - LOW) * unit)) as f32
+            })
+            .collect()
+    });
+    // The compensator over the fade-in and warm_periods + 2 periods: its command of period
+    // warm_periods + 1 is the table (the last period's end sees the reference held, not the
+    // next period, so it is not taken).
+    let full = lead + (warm_periods + 2) * period;
+    let reference = |a: usize, k: usize| -> f32 {
+        if k < lead {
+            let fade = 0.5 - 0.5 * (std::f64::consts::PI * k as f64 / lead as f64).cos();
+            (f64::from(r[a][0]) * fade) as f32
+        } else {
+            r[a][(k - lead) % period]
+        }
+    };
+    let full_r: [Vec<f32>; 2] = [0, 1].map(|a| (0..full).map(|k| reference(a, k)).collect());
+    let (mut ux, mut uy) = (vec![0.0f32; full], vec![0.0f32; full]);
+    compensate_pair(
+        [&axes[0], &axes[1]],
+        [&full_r[0], &full_r[1]],
+        [&mut ux, &mut uy],
+    );
+    let warm = lead + warm_periods * period;
+    let base: [Vec<f32>; 2] = [&ux, &uy].map(|u| u[warm..warm + period].to_vec());
+    let mut table = base.clone();
+    let mut rig = Rig::new(ctx.stage, ctx.effects, fs);
+    let mut states = [0, 1].map(|a| ServoState::at_rest(axes[a].rest_v, mode.servo_mode()));
+    let mut tick = |states: &mut [ServoState; 2], r_now: [f32; 2], ff: [f32; 2]| {
+        let (truth, read) = rig.sense();
+        let mut u = [0.0f32; 2];
+        for a in 0..2 {
+            u[a] = servos[a]
+                .step(&mut states[a], r_now[a], read[a] as f32, ff[a])
+                .voltage_v;
+        }
+        rig.apply(u.map(f64::from))?;
+        Ok::<_, String>((truth, read, u))
+    };
+    for k in 0..warm {
+        tick(&mut states, [full_r[0][k], full_r[1][k]], [ux[k], uy[k]])?;
+    }
+    let (mut rms_percent, mut max_percent) = (Vec::new(), Vec::new());
+    let mut above_cutoff_percent = 0.0f64;
+    for trial in 0..=s.iterations {
+        let mut y_sum = [vec![0.0f64; period], vec![0.0f64; period]];
+        let mut u_sum = [vec![0.0f64; period], vec![0.0f64; period]];
+        let (mut sq, mut max) = ([0.0f64; 2], [0.0f64; 2]);
+        for _ in 0..trial_periods {
+            for j in 0..period {
+                let (truth, read, u) =
+                    tick(&mut states, [r[0][j], r[1][j]], [table[0][j], table[1][j]])?;
+                for a in 0..2 {
+                    let e = truth[a] - f64::from(r[a][j]);
+                    sq[a] += e * e;
+                    max[a] = max[a].max(e.abs());
+                    y_sum[a][j] += read[a];
+                    u_sum[a][j] += f64::from(u[a]);
+                }
+            }
+        }
+        let ticks = (trial_periods * period) as f64;
+        rms_percent.push(
+            (0..2)
+                .map(|a| 100.0 * (sq[a] / ticks).sqrt() / ctx.stroke_m[a])
+                .fold(0.0, f64::max),
+        );
+        max_percent.push(
+            (0..2)
+                .map(|a| 100.0 * max[a] / ctx.stroke_m[a])
+                .fold(0.0, f64::max),
+        );
+        let m = trial_periods as f64;
+        if trial == s.iterations {
+            for a in 0..2 {
+                let e: Vec<f64> = (0..period)
+                    .map(|j| y_sum[a][j] / m - f64::from(r[a][j]))
+                    .collect();
+                let above = rms_above(&e, fs, learning[a].cutoff_hz());
+                above_cutoff_percent = above_cutoff_percent.max(100.0 * above / ctx.stroke_m[a]);
+            }
+            break;
+        }
+        for a in 0..2 {
+            let y: Vec<f32> = y_sum[a].iter().map(|v| (v / m) as f32).collect();
+            let u: Vec<f32> = u_sum[a].iter().map(|v| (v / m) as f32).collect();
+            learning[a]
+                .step(
+                    &Trial {
+                        reference_m: &r[a],
+                        command_v: &u,
+                        measured_m: &y,
+                        base_v: &base[a],
+                        periodic: true,
+                    },
+                    &mut table[a],
+                )
+                .map_err(|e| e.to_string())?;
+        }
+    }
+    Ok(Curve {
+        mode,
+        shape,
+        freq_hz,
+        perturbation,
+        rms_percent,
+        max_percent,
+        cutoff_hz: [learning[0].cutoff_hz(), learning[1].cutoff_hz()],
+        periods_per_trial: trial_periods,
+        above_cutoff_percent,
+    })
+}
+
+/// RMS of the components of the periodic record `e` above `cutoff_hz` (Parseval over its DFT).
+fn rms_above(e: &[f64], fs: f64, cutoff_hz: f64) -> f64 {
+    use rustfft::num_complex::Complex;
+    let n = e.len();
+    let mut spectrum: Vec<Complex<f64>> = e.iter().map(|&v| Complex::new(v, 0.0)).collect();
+    rustfft::FftPlanner::new()
+        .plan_fft_forward(n)
+        .process(&mut spectrum);
+    let above: f64 = spectrum
+        .iter()
+        .enumerate()
+        .filter(|(k, _)| (*k).min(n - k) as f64 * fs / n as f64 > cutoff_hz)
+        .map(|(_, x)| x.norm_sqr())
+        .sum();
+    above.sqrt() / n as f64
+}
+
+/// Runs the bench; `progress` receives one line per phase.
+pub fn run_learn_bench(
+    settings: &LearnBenchSettings,
+    progress: &mut (dyn FnMut(&str) + Send),
+) -> Result<LearnBenchReport, String> {
+    use rayon::prelude::*;
+    let start = Instant::now();
+    let fs = settings.loop_rate_hz;
+    let mut effects = Effects::default();
+    for spec in &settings.plant_effects {
+        effects.add_spec(spec).map_err(|e| format!("{spec}: {e}"))?;
+    }
+    let stage = XyStage::default();
+    let stack_file =
+        StageFile::parse("firmware/params/xy-stage.toml", STACK_FILE).map_err(|e| e.to_string())?;
+    let stack = stack_file.validate().map_err(|e| e.to_string())?;
+    progress("identifying the platform gain and the first mode");
+    let identified = identify_rig(&stage, &effects, &stack, fs)?;
+    let (_, tunings, mut file) = controllers(&stack_file, &identified)?;
+    for (axis, &(_, f, zeta)) in [Some(&mut file.x), file.y.as_mut()]
+        .into_iter()
+        .flatten()
+        .zip(&identified)
+    {
+        axis.effects.mode_frequency_hz = f as f32;
+        axis.effects.mode_damping = zeta as f32;
+        axis.effects.delay_s = (0.5 / fs) as f32;
+    }
+    file.stage.name = "xy-stage-learn".into();
+    let (ax, ay) = stage.axes();
+    let g = stage.static_gain();
+    let stroke_m = [g[0] * ax.free_stroke_m, g[1] * ay.free_stroke_m];
+    let ctx = Context {
+        stage: &stage,
+        effects: &effects,
+        file,
+        stroke_m,
+        settings,
+    };
+    let mut cases = Vec::new();
+    for &shape in &settings.shapes {
+        for &f in &settings.frequencies_hz {
+            for &mode in &settings.modes {
+                cases.push((shape, f, mode, Perturbation::Nominal));
+            }
+        }
+    }
+    let nominal = cases.len();
+    for &p in &settings.perturbations {
+        for &(shape, f) in &settings.robustness_cases {
+            cases.push((shape, f, settings.robustness_mode, p));
+        }
+    }
+    progress(&format!(
+        "learning: {} runs of {} trials",
+        cases.len(),
+        settings.iterations + 1
+    ));
+    let mut curves: Vec<Curve> = cases
+        .par_iter()
+        .map(|&(shape, f, mode, p)| run_case(&ctx, shape, f, mode, p))
+        .collect::<Result<_, String>>()?;
+    let robustness = curves.split_off(nominal);
+    Ok(LearnBenchReport {
+        curves,
+        robustness,
+        stage_toml: ctx.file.to_toml(
+            "The XY stage as learn-bench identifies it: xy-stage.toml scaled to the platform, its \
+             servo, the first mode and half a loop period of delay",
+        ),
+        sensitivity_peak: [
+            f64::from(tunings[0].sensitivity_peak),
+            f64::from(tunings[1].sensitivity_peak),
+        ],
+        settings: settings.clone(),
+        seconds: start.elapsed().as_secs_f64(),
+    })
+}
+
+/// A target of the bench: (shape, frequency, largest RMS % of stroke after the last trial).
+pub const TARGETS: [(Shape, f64, f64); 3] = [
+    (Shape::Sine, 100.0, 0.01),
+    (Shape::Triangle, 100.0, 0.1),
+    (Shape::Triangle, 10.0, 0.01),
+];
+
+impl LearnBenchReport {
+    /// The nominal curve of a case.
+    pub fn curve(&self, mode: LearnMode, shape: Shape, freq_hz: f64) -> Option<&Curve> {
+        self.curves
+            .iter()
+            .find(|c| c.mode == mode && c.shape == shape && c.freq_hz == freq_hz)
+    }
+
+    /// The table as printed.
+    pub fn table(&self) -> String {
+        let n = self.settings.iterations;
+        let mut s = format!(
+            "rule: {}\nlearned+feedback: factor |S| * |Q(1 - LG)|, servo |S| peak x {:.2}, y {:.2}\n\n",
+            rule_text(&self.settings.params),
+            self.sensitivity_peak[0],
+            self.sensitivity_peak[1]
+        );
+        s += "RMS error per trial [% of stroke, worse axis] (trial 0: the compensator's command)\n\n";
+        s += "| mode | signal | freq [Hz] | Q cut-off x/y [Hz] |";
+        for k in 0..=n {
+            s += &format!(" {k} |");
+        }
+        s += " max after last [%] | above cut-off [%] | worst ratio after 3 |\n|---|---|---|---|";
+        s += &"---|".repeat(n + 4);
+        s += "\n";
+        for c in &self.curves {
+            s += &self.row(c, &format!("| {} ", c.mode.name()));
+        }
+        s += "\nRobustness (stage file perturbed; final / nominal final):\n\n";
+        s += "| perturbation | mode | signal | freq [Hz] | Q cut-off x/y [Hz] | first | last | \
+              worst ratio after 1 | final / nominal |\n|---|---|---|---|---|---|---|---|---|\n";
+        for c in &self.robustness {
+            let nominal = self
+                .curve(c.mode, c.shape, c.freq_hz)
+                .map_or(f64::NAN, Curve::last);
+            s += &format!(
+                "| {} | {} | {} | {} | {:.0}/{:.0} | {:.4} | {:.5} | {:.3} | {:.2} |\n",
+                c.perturbation.label(),
+                c.mode.name(),
+                c.shape.name(),
+                c.freq_hz,
+                c.cutoff_hz[0],
+                c.cutoff_hz[1],
+                c.rms_percent[0],
+                c.last(),
+                c.worst_ratio_after(1),
+                c.last() / nominal
+            );
+        }
+        s += "\nTargets (RMS after the last trial, the better mode):\n";
+        for (shape, f, limit) in TARGETS {
+            let best = self
+                .curves
+                .iter()
+                .filter(|c| c.shape == shape && c.freq_hz == f)
+                .map(|c| (c.last(), c.mode.name()))
+                .min_by(|a, b| a.0.total_cmp(&b.0));
+            if let Some((v, mode)) = best {
+                s += &format!(
+                    "  {f} Hz {}: {v:.5} % ({mode}) <= {limit} %: {}\n",
+                    shape.name(),
+                    if v <= limit { "met" } else { "NOT met" }
+                );
+            }
+        }
+        s += &format!("({:.1} s)\n", self.seconds);
+        s
+    }
+
+    fn row(&self, c: &Curve, start: &str) -> String {
+        let mut s = format!(
+            "{start}| {} | {} | {:.0}/{:.0} |",
+            c.shape.name(),
+            c.freq_hz,
+            c.cutoff_hz[0],
+            c.cutoff_hz[1]
+        );
+        for v in &c.rms_percent {
+            s += &format!(" {v:.4} |");
+        }
+        s += &format!(
+            " {:.4} | {:.4} | {:.3} |\n",
+            c.max_percent.last().copied().unwrap_or(f64::NAN),
+            c.above_cutoff_percent,
+            c.worst_ratio_after(3)
+        );
+        s
+    }
+
+    /// `learn.json`: every curve.
+    pub fn json(&self) -> serde_json::Value {
+        let curve = |c: &Curve| {
+            serde_json::json!({
+                "mode": c.mode.name(),
+                "signal": c.shape.name(),
+                "freq_hz": c.freq_hz,
+                "perturbation": c.perturbation.label(),
+                "q_cutoff_hz": c.cutoff_hz,
+                "periods_per_trial": c.periods_per_trial,
+                "rms_percent": c.rms_percent,
+                "max_percent": c.max_percent,
+                "above_cutoff_percent": c.above_cutoff_percent,
+            })
+        };
+        serde_json::json!({
+            "rule": rule_text(&self.settings.params),
+            "curves": self.curves.iter().map(curve).collect::<Vec<_>>(),
+            "robustness": self.robustness.iter().map(curve).collect::<Vec<_>>(),
+        })
+    }
+
+    /// Writes `learn.json`, `learn-stage.toml` and the plot `learn-curves.*` into `dir`.
+    pub fn write(&self, dir: &Path, extensions: &[&str]) -> Result<Vec<String>, String> {
+        std::fs::create_dir_all(dir).map_err(|e| format!("--out {}: {e}", dir.display()))?;
+        let mut files = Vec::new();
+        let json = dir.join("learn.json");
+        let text = serde_json::to_string_pretty(&self.json()).map_err(|e| e.to_string())?;
+        std::fs::write(&json, text).map_err(|e| format!("{}: {e}", json.display()))?;
+        files.push(json.display().to_string());
+        let toml = dir.join("learn-stage.toml");
+        std::fs::write(&toml, &self.stage_toml).map_err(|e| format!("{}: {e}", toml.display()))?;
+        files.push(toml.display().to_string());
+        let panels = self.panels();
+        for ext in extensions {
+            let path: PathBuf = dir.join(format!("learn-curves.{ext}"));
+            plot_grid(&path, &panels, 2).map_err(|e| e.to_string())?;
+            files.push(path.display().to_string());
+        }
+        Ok(files)
+    }
+
+    fn panels(&self) -> Vec<Chart> {
+        let points = |c: &Curve| -> Vec<(f64, f64)> {
+            c.rms_percent
+                .iter()
+                .enumerate()
+                .map(|(k, &v)| (k as f64, v))
+                .collect()
+        };
+        let mut panels = Vec::new();
+        for &mode in &self.settings.modes {
+            for &shape in &self.settings.shapes {
+                let series: Vec<Series> = self
+                    .curves
+                    .iter()
+                    .filter(|c| c.mode == mode && c.shape == shape)
+                    .enumerate()
+                    .map(|(i, c)| {
+                        Series::line(format!("{} Hz", c.freq_hz), points(c), 100)
+                            .role(Role::Other(i))
+                    })
+                    .collect();
+                if series.is_empty() {
+                    continue;
+                }
+                panels.push(
+                    Panel::new(
+                        format!("{}: {}", mode.name(), shape.name()),
+                        "trial",
+                        "RMS error [% of stroke]",
+                        series,
+                    )
+                    .log_y()
+                    .legend(Legend::Below),
+                );
+            }
+        }
+        for &(shape, f) in &self.settings.robustness_cases {
+            let mut series: Vec<Series> = self
+                .curve(self.settings.robustness_mode, shape, f)
+                .map(|c| Series::line("nominal", points(c), 100).role(Role::Feedforward))
+                .into_iter()
+                .collect();
+            for (i, c) in self
+                .robustness
+                .iter()
+                .filter(|c| c.shape == shape && c.freq_hz == f)
+                .enumerate()
+            {
+                series.push(
+                    Series::line(c.perturbation.label(), points(c), 100).role(Role::Other(i)),
+                );
+            }
+            panels.push(
+                Panel::new(
+                    format!(
+                        "{}: {f} Hz {}, perturbed stage file",
+                        self.settings.robustness_mode.name(),
+                        shape.name()
+                    ),
+                    "trial",
+                    "RMS error [% of stroke]",
+                    series,
+                )
+                .log_y()
+                .legend(Legend::Below),
+            );
+        }
+        panels
+    }
+}
+
+/// Arguments of `learn-bench`.
+#[derive(Debug, clap::Args)]
+pub struct LearnBenchArgs {
+    /// Output directory (created if missing): learn.json, learn-stage.toml and the plot.
+    #[arg(long, default_value = "out/learn")]
+    pub out: PathBuf,
+    /// Plot format: svg, png or both.
+    #[arg(long, value_enum, default_value_t = crate::cli::PlotFormat::Svg)]
+    pub format: crate::cli::PlotFormat,
+    /// Learning steps per run.
+    #[arg(long, default_value_t = 15)]
+    pub iterations: usize,
+    /// Reference frequencies [Hz], comma-separated.
+    #[arg(long, value_delimiter = ',', default_values_t = [1.0, 10.0, 100.0])]
+    pub freq: Vec<f64>,
+    /// Skip the robustness rows.
+    #[arg(long)]
+    pub no_robustness: bool,
+    /// Effect the plant carries (host-sim effect spec, repeatable; default as servo-bench;
+    /// `none` for a clean plant).
+    #[arg(long = "plant-effect")]
+    pub plant_effects: Vec<String>,
+    /// The uncertainty the learning must converge for.
+    #[command(flatten)]
+    pub learning: crate::learn::LearningArgs,
+}
+
+/// Help after the options.
+pub const HELP: &str = "The plant is servo-bench's: host-sim's f64 XY stage (seed 002, modes at 3.2 and 2.2 kHz) with creep, \
+thermal drift, sensor noise, ADC and DAC quantisation, stepped tick by tick at 10 kHz. The stage file is servo-bench's with the \
+identified first mode and half a loop period of delay. Each run: a 50 ms fade-in, the compensator's command over >= 0.1 s, then \
+trials of whole periods (>= 0.1 s) playing the periodic table; after each trial one learning step on the averaged period. Modes \
+learned (table alone) and learned+feedback (the stage file's servo on top). Robustness: the stage file's gain x0.6 and x1.5 and its \
+mode frequency x1.15 and x0.85 on the 100 Hz sine and triangle and the 10 Hz triangle (learned+feedback).";
+
+/// Runs `learn-bench`.
+pub fn learn_bench_cmd(a: &LearnBenchArgs) -> Result<String, String> {
+    let mut settings = LearnBenchSettings {
+        iterations: a.iterations,
+        params: a.learning.params(),
+        ..Default::default()
+    };
+    if a.freq.is_empty() || a.freq.iter().any(|&f| !(f > 0.0 && f <= 1000.0)) {
+        return Err(format!("--freq {:?}: frequencies in (0, 1000] Hz", a.freq));
+    }
+    settings.frequencies_hz = a.freq.clone();
+    settings
+        .robustness_cases
+        .retain(|(_, f)| a.freq.contains(f));
+    if a.no_robustness {
+        settings.perturbations.clear();
+    }
+    if !a.plant_effects.is_empty() {
+        settings.plant_effects = a
+            .plant_effects
+            .iter()
+            .filter(|e| e.as_str() != "none")
+            .cloned()
+            .collect();
+    }
+    let report = run_learn_bench(&settings, &mut |line: &str| eprintln!("{line}"))?;
+    let files = report.write(&a.out, a.format.extensions())?;
+    Ok(format!("{}written: {}", report.table(), files.join(", ")))
+}
