@@ -15,7 +15,7 @@ use host_sim::close_loop::{
     close_loop, read_records, stage_and_io_for, write_stage_file, CloseLoopSettings, Outcome,
 };
 use host_sim::stage_file::Verdict;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 thread_local! {
     /// Each test's own directory (libtest runs every test on a thread of its own), removed when
@@ -351,15 +351,23 @@ fn strong_creep(name: &str) -> PathBuf {
     )
 }
 
-/// Without `--invertible` the final set on the strong-creep record is one the firmware refuses:
-/// the command fails, but only after writing the stage file and the report, which holds the
-/// verdict, the refusal and what to do. A stage file that cannot be written (`--out` is a
+/// A final set the firmware refuses (here: the record needs 0-120 V and `--stage` carries an io
+/// chain that drives 0-50 V): the command fails, but only after writing the stage file and the
+/// report, which holds the verdict, the refusal and what to do. A stage file that cannot be written (`--out` is a
 /// directory) and plots that cannot be made (`--plots` is a file) still leave the report, which
 /// says what was not written.
 #[test]
 fn a_refused_set_keeps_its_report_with_the_verdict() {
     let data = strong_creep("refused.csv");
     let (out, report) = (temp("refused.toml"), temp("refused.json"));
+    let stage = temp("weak-amplifier.toml");
+    let text = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../firmware/params/xy-stage.toml"),
+    )
+    .unwrap()
+    .replace("amplifier_gain_v_per_v = 24.0", "amplifier_gain_v_per_v = 10.0")
+    .replace("output_max_v = 120.0", "output_max_v = 50.0");
+    std::fs::write(&stage, text).unwrap();
     let common = [
         "close-loop",
         "--data",
@@ -368,25 +376,26 @@ fn a_refused_set_keeps_its_report_with_the_verdict() {
         "ux_V",
         "--y",
         "x_m",
+        "--stage",
+        stage.to_str().unwrap(),
     ];
     let mut args = common.to_vec();
     args.extend(["--out", out.to_str().unwrap()]);
     args.extend(["--report", report.to_str().unwrap()]);
     let e = cli(&args).expect_err("the set is refused");
     assert!(e.contains("would be refused by the firmware"), "{e}");
-    assert!(e.contains("--invertible"), "{e}");
+    assert!(e.contains("io.dac_range_v"), "{e}");
     assert!(out.exists(), "the stage file is written all the same");
     assert!(report.exists(), "the report is written all the same: {e}");
     let r = json(&report);
     assert_eq!(r["verdict"], "refused", "{r:#}");
     assert_eq!(r["stage_file_written"], true);
     let reason = r["refusal"]["reason"].as_str().unwrap();
-    assert!(reason.contains("not strictly monotone"), "{reason}");
+    assert!(reason.contains("exceeds what the DAC and amplifier drive"), "{reason}");
     assert!(r["refusal"]["remedy"]
         .as_str()
         .unwrap()
-        .contains("--invertible"));
-    assert_eq!(r["invertible"]["holds"], false);
+        .contains("io.dac_range_v"));
     assert!(!r["steps"].as_array().unwrap().is_empty());
 
     // --out a directory, --plots a file: neither can be written; the report is.
