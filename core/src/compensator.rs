@@ -49,8 +49,8 @@
 //! # Slew limit (checked when built, [`CompensatorSettings::check_slew`])
 //! A finite slew limit S must leave a full-window move at least [`MIN_WINDOW_TICKS`] ticks:
 //! `S·T·MIN_WINDOW_TICKS ≤ output_max_v − output_min_v`. A faster limit is no limit at all (one
-//! tick crosses the window), which the drive and the stack's first mode do not follow; +∞ says
-//! "no limit" explicitly (offline analyses; the firmware's chain refuses it,
+//! tick crosses the window); +∞ says "no limit" explicitly (offline analyses; the firmware's chain
+//! refuses it, and bounds a finite one by what the drive can swing,
 //! [`crate::io_chain::IoChain::check_limits`]).
 
 use crate::bouc_wen::{relax_series, BoucWenParams, HysteresisState};
@@ -60,9 +60,10 @@ use crate::math::{self, clamp};
 use crate::static_model::{ModelState, StaticMap, StaticModel};
 
 /// Fewest ticks a full-window move may take at a finite slew limit: with fewer the limit does not
-/// limit (a step across the whole window in one or two ticks is what an unlimited command does),
-/// and the stack's first mode, a few periods of a 10 kHz loop, is hit by an unshaped step.
-pub const MIN_WINDOW_TICKS: f32 = 4.0;
+/// limit (a step across the whole window in one tick is what an unlimited command does). A narrow
+/// window (say 20 V at 10 V per tick) is legitimate; how fast the drive may swing over its whole
+/// span is the chain's bound ([`crate::io_chain::MIN_DRIVE_TICKS`]).
+pub const MIN_WINDOW_TICKS: f32 = 2.0;
 
 /// Output limits of the compensator.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -78,6 +79,50 @@ pub struct CompensatorSettings {
 }
 
 impl CompensatorSettings {
+    /// The largest step per tick M \[V\] an exact output guard behind the compensator lets through
+    /// for these settings: one f32 below the largest f32 ≤ `slew_limit_v_per_s · sample_period_s`
+    /// (the product taken exactly, in f64), so M < S·T whether T is read as the f32 period or as
+    /// 1/rate. +∞ for no slew limit; NaN when the limit or the period is not finite.
+    pub fn guard_step_v(&self) -> f32 {
+        let step = f64::from(self.slew_limit_v_per_s) * f64::from(self.sample_period_s);
+        if step.is_infinite() {
+            return f32::INFINITY;
+        }
+        round_down_f32(step).next_down()
+    }
+
+    /// These settings for a controller (the compensator, the servo) in front of an exact output
+    /// guard of step [`CompensatorSettings::guard_step_v`] M: the slew limit becomes the largest
+    /// f32 S_c whose step `fl(S_c·T)` (the core computes `slew_limit_v_per_s * sample_period_s`
+    /// in f32) is at most `M − s`, with `s` the f32 spacing at the window's largest magnitude. An
+    /// output `u₋ + Δu` with `|Δu| ≤ fl(S_c·T)`, rounded to f32 inside the window, is off by at
+    /// most `s/2`, so its steps stay within M and pass the guard unchanged. At 1e5 V/s, 10 kHz
+    /// and 0–120 V the controller steps at most 9.99999 V per tick instead of 10 V (10⁻⁶ of its
+    /// largest steps). The firmware's loop and `host-sim compensate` both run the compensator
+    /// with these settings, so they command the same voltages. Settings without a finite slew
+    /// limit or period are returned unchanged.
+    pub fn inside_guard(&self) -> Self {
+        let t = self.sample_period_s;
+        let m = self.guard_step_v();
+        if !(m.is_finite() && m > 0.0 && t.is_finite() && t > 0.0) {
+            return *self;
+        }
+        let top = libm::fabsf(self.output_min_v).max(libm::fabsf(self.output_max_v));
+        let spacing = top.next_up() - top;
+        let step = round_down_f32(f64::from(m) - f64::from(spacing)).min(m.next_down());
+        let mut slew = round_down_f32(f64::from(step) / f64::from(t));
+        for _ in 0..2 {
+            if slew * t <= step {
+                break;
+            }
+            slew = slew.next_down();
+        }
+        Self {
+            slew_limit_v_per_s: slew,
+            ..*self
+        }
+    }
+
     /// The fastest finite slew limit [`CompensatorSettings::check_slew`] accepts for this window
     /// and period, `(output_max_v − output_min_v) / (MIN_WINDOW_TICKS · T)` \[V/s\].
     pub fn fastest_slew_v_per_s(&self) -> f32 {
@@ -111,10 +156,10 @@ impl CompensatorSettings {
             return Err(ParamError::Implausible {
                 field: "slew_limit_v_per_s",
                 value: slew,
-                measure: "the ticks a full-window move takes, (output_max_v − output_min_v) / \
-                          (slew_limit_v_per_s · sample_period_s),",
-                ratio: ticks,
-                limit: MIN_WINDOW_TICKS,
+                measure: "the share of the window one tick may cross, slew_limit_v_per_s · \
+                          sample_period_s / (output_max_v − output_min_v),",
+                ratio: 1.0 / ticks,
+                limit: 1.0 / MIN_WINDOW_TICKS,
             });
         }
         Ok(())
@@ -1092,5 +1137,15 @@ mod tests {
                 "n={n}: small path taken {small_taken} of {compared}"
             );
         }
+    }
+}
+
+/// The largest f32 ≤ `x`.
+fn round_down_f32(x: f64) -> f32 {
+    let f = x as f32;
+    if f64::from(f) > x {
+        f.next_down()
+    } else {
+        f
     }
 }

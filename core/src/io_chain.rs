@@ -6,10 +6,17 @@
 //! [`IoChain::check_limits`] is the one rule for an output window and slew limit against the
 //! chain, called by the stage file's validation, the firmware's build, `host-sim link upload` and
 //! the firmware's session alike: the window inside what the chain drives, the slew limit finite
-//! (a drive has one; +∞ is only for offline analyses) and within [`CompensatorSettings::check_slew`].
+//! (a drive has one; +∞ is only for offline analyses), within [`CompensatorSettings::check_slew`],
+//! and slow enough that a swing over the whole drive span takes at least [`MIN_DRIVE_TICKS`] ticks:
+//! `S·T·MIN_DRIVE_TICKS ≤ drive_max − drive_min` (at 0–120 V and 10 kHz: S ≤ 3·10⁵ V/s, 30 V per
+//! tick, about what a piezo amplifier's current limit allows into a stack's capacitance).
 
 use crate::compensator::CompensatorSettings;
 use crate::error::{positive, ParamError};
+
+/// Fewest ticks a swing over the whole drive span (`dac_range_v × amplifier_gain_v_per_v`) may
+/// take at an axis's slew limit.
+pub const MIN_DRIVE_TICKS: f32 = 4.0;
 
 /// The drive and sensing chain of a stage (both axes share it). SI units: volts, metres per volt.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -83,6 +90,17 @@ impl IoChain {
             });
         }
         let (d0, d1) = self.drive_range_v();
+        let swing_ticks = (d1 - d0) / (settings.slew_limit_v_per_s * settings.sample_period_s);
+        if !(swing_ticks >= MIN_DRIVE_TICKS) {
+            return Err(ParamError::Implausible {
+                field: "slew_limit_v_per_s",
+                value: settings.slew_limit_v_per_s,
+                measure: "the share of the drive span one tick may swing, slew_limit_v_per_s · \
+                          sample_period_s / (drive_max − drive_min),",
+                ratio: 1.0 / swing_ticks,
+                limit: 1.0 / MIN_DRIVE_TICKS,
+            });
+        }
         let (u0, u1) = (settings.output_min_v, settings.output_max_v);
         if u0 < d0 - 1e-3 || u1 > d1 + 1e-3 {
             return Err(ParamError::WindowOutsideDrive {

@@ -25,7 +25,7 @@
 //! never reached by a jump (should M be below the f32 spacing at `y₋`, no step within M exists
 //! and `y₋` is held: M ≥ 7.7 µV suffices up to 120 V, a slew limit ≥ 0.08 V/s at 10 kHz).
 //! A request inside the window whose step is at most `M` passes unchanged (a controller that
-//! limits its own steps is never overridden: see [`SafetyLimits::controller_slew_v_per_s`]).
+//! limits its own steps is never overridden: see [`piezo_core::CompensatorSettings::inside_guard`]).
 //!
 //! Settings ([`SafetyLimits`], validated once by [`SafetyLimits::new`]) are kept apart from the
 //! run-time state ([`GuardState`]: last output and [`FaultCounters`]), so limits can be swapped
@@ -149,8 +149,14 @@ impl SafetyLimits {
         if !(slew_limit_v_per_s > 0.0 && sample_period_s > 0.0) {
             return Err(LimitsError::NonPositiveSlew);
         }
-        let step = f64::from(slew_limit_v_per_s) * f64::from(sample_period_s);
-        Self::new(min_volts, max_volts, round_down(step).next_down())
+        let step = piezo_core::CompensatorSettings {
+            output_min_v: min_volts,
+            output_max_v: max_volts,
+            slew_limit_v_per_s,
+            sample_period_s,
+        }
+        .guard_step_v();
+        Self::new(min_volts, max_volts, step)
     }
 
     /// Lower end of the output window.
@@ -166,28 +172,6 @@ impl SafetyLimits {
     /// Largest change of output per tick, M (exact).
     pub fn max_step_volts(&self) -> f32 {
         self.max_step_volts
-    }
-
-    /// The slew limit S_c \[V/s\] for a controller in front of this guard (the core's
-    /// compensator and servo) at loop period `sample_period_s` T: the largest f32 whose step
-    /// `fl(S_c·T)` (the core computes `slew_limit_v_per_s * sample_period_s` in f32) is at most
-    /// `M − s`, with `s` the f32 spacing at the window's largest magnitude. A controller output
-    /// `u₋ + Δu` with `|Δu| ≤ fl(S_c·T)`, rounded to f32 inside the window, is off by at most
-    /// `s/2`, so its steps stay within M and pass the guard unchanged: in normal operation the
-    /// guard does not act. At 1e5 V/s, 10 kHz and 0–120 V the controllers step at most
-    /// 9.99999 V per tick instead of 10 V (a 10⁻⁶ relative change of their largest steps).
-    pub fn controller_slew_v_per_s(&self, sample_period_s: f32) -> f32 {
-        let s = spacing(self.min_volts.abs().max(self.max_volts.abs()));
-        let step = round_down(f64::from(self.max_step_volts) - f64::from(s))
-            .min(self.max_step_volts.next_down());
-        let mut slew = round_down(f64::from(step) / f64::from(sample_period_s));
-        for _ in 0..NUDGES {
-            if slew * sample_period_s <= step {
-                break;
-            }
-            slew = slew.next_down();
-        }
-        slew
     }
 
     /// A fresh state whose last output is `initial_volts` forced into the window (NaN gives
@@ -305,17 +289,6 @@ fn step_exceeds(a: f32, b: f32, m: f32) -> bool {
         e > 0.0
     } else {
         e < 0.0
-    }
-}
-
-/// The largest f32 not above `x` (x finite; beyond the f32 range: ±`f32::MAX` or ∓∞ as `as`
-/// rounds them, then the next one down).
-fn round_down(x: f64) -> f32 {
-    let f = x as f32;
-    if f64::from(f) > x {
-        f.next_down()
-    } else {
-        f
     }
 }
 
@@ -448,7 +421,14 @@ mod tests {
     #[test]
     fn a_controller_step_with_its_rounding_passes_unchanged() {
         let g = stage();
-        let slew = g.controller_slew_v_per_s(STAGE_PERIOD_S);
+        let slew = piezo_core::CompensatorSettings {
+            output_min_v: g.min_volts(),
+            output_max_v: g.max_volts(),
+            slew_limit_v_per_s: STAGE_SLEW_V_PER_S,
+            sample_period_s: STAGE_PERIOD_S,
+        }
+        .inside_guard()
+        .slew_limit_v_per_s;
         let step = slew * STAGE_PERIOD_S;
         assert!(f64::from(step) < f64::from(g.max_step_volts()));
         assert!(step > 9.9999 && slew < STAGE_SLEW_V_PER_S, "{slew} {step}");

@@ -44,7 +44,7 @@
 //! [`crate::safety`]: per axis, `|u_k − u_{k−1}| ≤ slew_limit_v_per_s · T` in exact arithmetic
 //! (T the loop period; the bound is the f32 just below, [`SafetyLimits::from_slew`]) and `u_k`
 //! inside the window, whatever the request (NaN, ±∞, 10³⁰, any step). The compensator and the
-//! servo run with a slew limit a hair inside ([`SafetyLimits::controller_slew_v_per_s`]: their
+//! servo run with a slew limit a hair inside ([`piezo_core::CompensatorSettings::inside_guard`]: their
 //! largest step 9.99999 V instead of 10 V at 1e5 V/s and 10 kHz), so that their outputs, f32
 //! rounding included, pass the guard unchanged: in normal tracking the guard never acts. A new
 //! parameter set ([`TwoAxisLoop::set_settings`]) whose window excludes the voltage applied is
@@ -87,8 +87,8 @@
 
 use piezo_core::effects::Effects;
 use piezo_core::{
-    CommandStatus, Compensator, CompensatorSettings, CompensatorState, ParamError, Servo,
-    ServoMode, ServoState, ServoStatus,
+    CommandStatus, Compensator, CompensatorState, ParamError, Servo, ServoMode, ServoState,
+    ServoStatus,
 };
 
 use crate::codes::{DacCode, SensorScale};
@@ -265,7 +265,7 @@ impl AxisConfig {
     /// file's window whose step never exceeds `slew_limit_v_per_s · T`
     /// ([`SafetyLimits::from_slew`]); the core's compensator, its effect chain and the servo with
     /// the same window and a slew limit a hair inside the guard's
-    /// ([`SafetyLimits::controller_slew_v_per_s`]: 10 V per tick become 9.99999 V at 1e5 V/s
+    /// ([`piezo_core::CompensatorSettings::inside_guard`]: 10 V per tick become 9.99999 V at 1e5 V/s
     /// and 10 kHz), so that their own steps, f32 rounding included, pass the guard unchanged
     /// and the guard acts only on a fault. The core's checks come first: a file it refuses gets
     /// its reason.
@@ -278,10 +278,7 @@ impl AxisConfig {
             sample_period_s,
         );
         let settings = match &limits {
-            Ok(l) => CompensatorSettings {
-                slew_limit_v_per_s: l.controller_slew_v_per_s(sample_period_s),
-                ..p.settings(sample_period_s)
-            },
+            Ok(_) => p.settings(sample_period_s).inside_guard(),
             Err(_) => p.settings(sample_period_s),
         };
         let compensator = Compensator::new(model, settings).map_err(ConfigError::Core)?;

@@ -259,7 +259,8 @@ impl WrittenStage {
 /// that could not be written is checked in memory. Never fails: the outcome says what happened.
 ///
 /// An axis's slew limit is lowered, where needed, to the fastest the core accepts at the file's
-/// loop rate (a full-window move in `MIN_WINDOW_TICKS` ticks).
+/// loop rate (a full-window move in `MIN_WINDOW_TICKS` ticks, a swing over the drive span in
+/// `io_chain::MIN_DRIVE_TICKS`).
 pub fn write_stage(path: &Path, header: &str, file: &StageFile) -> WrittenStage {
     let file = &with_feasible_slew(file);
     let written = file
@@ -282,6 +283,8 @@ pub fn write_stage(path: &Path, header: &str, file: &StageFile) -> WrittenStage 
 fn with_feasible_slew(file: &StageFile) -> StageFile {
     let mut file = file.clone();
     let period = 1.0 / file.stage.loop_rate_hz;
+    let (d0, d1) = file.io.chain().drive_range_v();
+    let drive_fastest = (d1 - d0) / (piezo_core::io_chain::MIN_DRIVE_TICKS * period);
     let lower = |a: &mut piezo_stage::Axis| {
         let l = &mut a.limits;
         let fastest = piezo_core::CompensatorSettings {
@@ -291,8 +294,10 @@ fn with_feasible_slew(file: &StageFile) -> StageFile {
             sample_period_s: period,
         }
         .fastest_slew_v_per_s();
-        if fastest.is_finite() && fastest > 0.0 {
-            l.slew_limit_v_per_s = l.slew_limit_v_per_s.min(fastest);
+        for fastest in [fastest, drive_fastest] {
+            if fastest.is_finite() && fastest > 0.0 {
+                l.slew_limit_v_per_s = l.slew_limit_v_per_s.min(fastest);
+            }
         }
     };
     lower(&mut file.x);

@@ -365,7 +365,10 @@ fn a_refused_set_keeps_its_report_with_the_verdict() {
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../firmware/params/xy-stage.toml"),
     )
     .unwrap()
-    .replace("amplifier_gain_v_per_v = 24.0", "amplifier_gain_v_per_v = 10.0")
+    .replace(
+        "amplifier_gain_v_per_v = 24.0",
+        "amplifier_gain_v_per_v = 10.0",
+    )
     .replace("output_max_v = 120.0", "output_max_v = 50.0");
     std::fs::write(&stage, text).unwrap();
     let common = [
@@ -391,7 +394,10 @@ fn a_refused_set_keeps_its_report_with_the_verdict() {
     assert_eq!(r["verdict"], "refused", "{r:#}");
     assert_eq!(r["stage_file_written"], true);
     let reason = r["refusal"]["reason"].as_str().unwrap();
-    assert!(reason.contains("exceeds what the DAC and amplifier drive"), "{reason}");
+    assert!(
+        reason.contains("exceeds what the DAC and amplifier drive"),
+        "{reason}"
+    );
     assert!(r["refusal"]["remedy"]
         .as_str()
         .unwrap()

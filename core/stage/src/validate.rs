@@ -306,7 +306,9 @@ impl StageFile {
                 sample_period_s,
             };
             if let AxisChain::Static { model, .. } = valid.chain {
-                match (Compensator::new(model, settings), check) {
+                // The compensator runs a hair inside the slew limit, as the firmware's loop runs
+                // it in front of its exact output guard (`CompensatorSettings::inside_guard`).
+                match (Compensator::new(model, settings.inside_guard()), check) {
                     (Ok(compensator), _) => valid.compensator = Some(compensator),
                     // A forward simulation needs no inverse; every other refusal (the window,
                     // the slew limit) is a value the file must not hold.
@@ -328,7 +330,7 @@ impl StageFile {
                     ));
                 }
                 valid.servo = Some(
-                    Servo::new(params, settings, valid.linear_gain_m_per_v)
+                    Servo::new(params, settings.inside_guard(), valid.linear_gain_m_per_v)
                         .map_err(|e| located(core_key(name, &e, "servo"), e))?,
                 );
             }
