@@ -8,8 +8,11 @@
 //! 2. Each step: stop when the residual RMS is within [`select::NOISE_FLOOR_FACTOR`]·σ. Otherwise
 //!    every effect not yet in the model is screened on the residual ([`diagnose`]: creep, Kelvin–Voigt
 //!    or logarithmic; drift, linear or settling, a function of time alone; delay; asymmetry, an even
-//!    term; dynamics, a second-order mode; coupling), and the best [`MAX_TRIALS`] are fitted for real
-//!    (the whole model refitted by Levenberg–Marquardt, [`full`]). A candidate is refused if a
+//!    term; dynamics, a second-order mode; coupling; rate-dependent hysteresis, a relaxation of
+//!    the hysteretic part), and the best [`MAX_TRIALS`] are fitted for real (the whole model
+//!    refitted by Levenberg–Marquardt, [`full`]), together with every phase effect the screening
+//!    cannot separate from one of them (creep, delay, rate-dependent hysteresis, dynamics:
+//!    [`choose`]); the report says of every other effect why it was not fitted. A candidate is refused if a
 //!    parameter ran to the bound of the range that makes it that effect, if its gain does not hold
 //!    on held-out blocks of the record (blocked cross-validation over time, state carried through),
 //!    or if it makes the prediction of a `--validate` record worse ([`select`]). Of those that hold,
@@ -29,6 +32,7 @@
 //! The final models are stage-file axes ([`stage`]); the in-sample, held-out and validation
 //! predictions run through piezo-stage's chain, the code `predict` and the firmware run.
 
+pub mod choose;
 mod cli;
 pub mod diagnose;
 pub mod full;
@@ -549,6 +553,11 @@ fn creep_restart(
         .find(|m| stage::compensator_check(m, rate).is_ok())
 }
 
+/// Relaxation gains g the rate-dependent hysteresis's fit is started again from
+/// ([`AxisModel::relaxation_restart`]): records slow against τ fix only k2·(1 + g) and τ·g/(1 + g),
+/// and the fit from the screening's split stays near it.
+const RELAXATION_RESTART_GAINS: [f64; 3] = [0.5, 3.0, 20.0];
+
 /// Most halvings of a creep restart's gains in search of a start the compensator accepts.
 const FEASIBLE_HALVINGS: usize = 4;
 
@@ -585,6 +594,19 @@ fn fit_candidate(
     sse0: f64,
 ) -> (AxisModel, f64) {
     let (mut fitted, mut sse1, _) = refit(&model.with_effect(cand.init), data, TRIAL_ITERATIONS);
+    // The rate-dependent hysteresis from other splits of its first-order lag into g and τ.
+    if cand.effect == EffectKind::RateDependent {
+        for gain in RELAXATION_RESTART_GAINS {
+            let Some(start) = fitted.relaxation_restart(gain) else {
+                continue;
+            };
+            let (again, sse_again, _) = refit(&start, data, TRIAL_ITERATIONS);
+            if sse_again < sse1 && Plausibility::of(&again, cand.effect).plausible() {
+                fitted = again;
+                sse1 = sse_again;
+            }
+        }
+    }
     let stuck = data.invertible_at_hz.is_some() && !(sse1 < sse0);
     if let Some(start) = creep_restart(model, &fitted, cand.init, data.invertible_at_hz, stuck) {
         let (again, sse_again, _) = refit(&start, data, TRIAL_ITERATIONS);
@@ -880,6 +902,7 @@ impl Search<'_> {
                     rms_before: self.rms(current_sse),
                     floor,
                     screened: Vec::new(),
+                    not_tried: Vec::new(),
                     trials: Vec::new(),
                     outcome: StepOutcome::Removed {
                         effect: kind,
@@ -984,6 +1007,7 @@ fn close_axis(
             rms_before: search.rms(current_sse),
             floor,
             screened: Vec::new(),
+            not_tried: Vec::new(),
             trials: Vec::new(),
             outcome: StepOutcome::Stopped(Stop::NoiseFloor),
         };
@@ -997,11 +1021,15 @@ fn close_axis(
             .iter()
             .map(|c| (c.effect, c.init.form(), c.share, c.delta_bic))
             .collect();
-        let chosen: Vec<&Candidate> = candidates
-            .iter()
-            .filter(|c| c.share >= 0.25 * s.min_share)
-            .take(MAX_TRIALS)
-            .collect();
+        let (tried, mut skipped) = choose::choose(&candidates, 0.25 * s.min_share, MAX_TRIALS);
+        skipped.extend(choose::not_screened(
+            &s.allowed,
+            &model.added,
+            other_z.is_some(),
+            &candidates,
+        ));
+        step.not_tried = skipped;
+        let chosen: Vec<&Candidate> = tried.iter().map(|&(i, _)| &candidates[i]).collect();
         if chosen.is_empty() {
             step.outcome = StepOutcome::Stopped(Stop::NoCandidates);
             steps.push(step);
@@ -1080,6 +1108,7 @@ fn search_axis(
             rms_before: last.rms_before,
             floor: last.floor,
             screened: Vec::new(),
+            not_tried: Vec::new(),
             trials: Vec::new(),
             outcome: StepOutcome::Restarted { refusal },
         });
