@@ -54,7 +54,7 @@ pub enum NotTried {
     },
     /// It is in the model already.
     InModel,
-    /// The run does not allow it (`--effects`).
+    /// The run's settings do not allow it.
     NotAllowed,
     /// Coupling needs the other axis's record.
     NoOtherAxis,
@@ -79,7 +79,7 @@ impl NotTried {
                 super::MAX_TRIALS
             ),
             Self::InModel => "it is in the model already".into(),
-            Self::NotAllowed => "not allowed in this run (--effects)".into(),
+            Self::NotAllowed => "the run's settings do not allow it".into(),
             Self::NoOtherAxis => "coupling needs the other axis's record".into(),
             Self::NoScreening => "its screening found no start".into(),
         }
@@ -252,7 +252,7 @@ mod tests {
         };
         Candidate {
             effect,
-            share: share,
+            share,
             delta_bic: 0.0,
             init,
             test: "",

@@ -893,8 +893,8 @@ pub struct FitData<'a> {
     pub other_z: Option<&'a [f64]>,
     /// First scored sample.
     pub from: usize,
-    /// A block of scored samples left out of the fit (held out), as a range of sample indices.
-    pub held_out: Option<(usize, usize)>,
+    /// A block of scored samples left out of the fit (held out).
+    pub held_out: Option<Block>,
     /// Each record (segment of the model) has its own constant sensor offset, re-estimated on the
     /// samples scored in it.
     pub free_offset: bool,
@@ -906,15 +906,53 @@ pub struct FitData<'a> {
 impl FitData<'_> {
     /// Whether sample `k` is fitted.
     pub fn fitted(&self, k: usize) -> bool {
-        k >= self.from && !matches!(self.held_out, Some((a, b)) if k >= a && k < b)
+        k >= self.from && !self.held_out.is_some_and(|b| b.contains(k))
     }
 
     /// Number of fitted samples.
     pub fn fitted_count(&self) -> usize {
         let n = self.u.len().saturating_sub(self.from);
-        n - self
-            .held_out
-            .map_or(0, |(a, b)| b.min(self.u.len()) - a.max(self.from))
+        n - self.held_out.map_or(0, |b| {
+            (self.from..self.u.len()).filter(|&k| b.contains(k)).count()
+        })
+    }
+}
+
+/// A held-out block of the cross-validation: the samples `start..end`, or with `interleave` =
+/// (segment length L, blocks K, this block i) those of them in the segments j = ⌊(k − start)/L⌋
+/// with j mod K = i (every K-th segment, so that each block sees the whole record).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Block {
+    /// First sample.
+    pub start: usize,
+    /// One past the last sample.
+    pub end: usize,
+    /// Interleaved segments (L, K, i); `None`: contiguous.
+    pub interleave: Option<(usize, usize, usize)>,
+}
+
+impl Block {
+    /// The contiguous block `start..end`.
+    pub fn contiguous(start: usize, end: usize) -> Self {
+        Self {
+            start,
+            end,
+            interleave: None,
+        }
+    }
+
+    /// Whether sample `k` is in the block.
+    pub fn contains(&self, k: usize) -> bool {
+        k >= self.start
+            && k < self.end
+            && self
+                .interleave
+                .is_none_or(|(len, blocks, i)| ((k - self.start) / len.max(1)) % blocks.max(1) == i)
+    }
+
+    /// Number of samples in the block.
+    pub fn count(&self) -> usize {
+        (self.start..self.end).filter(|&k| self.contains(k)).count()
     }
 }
 

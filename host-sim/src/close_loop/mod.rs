@@ -54,9 +54,7 @@ use diagnose::{
 };
 use full::{last_accepted_on_the_way, refit, sse, AxisModel, EffectBounds, FitData, Simulation};
 use report::{Step, StepOutcome, Trial};
-use select::{
-    folds, held_out_sse, Decision, Floor, OutOfSample, Plausibility, Refusal, RunGain, Stop,
-};
+use select::{held_out_sse, Decision, Floor, OutOfSample, Plausibility, Refusal, RunGain, Stop};
 use serde_json::{json, Value};
 use std::time::Instant;
 
@@ -212,6 +210,8 @@ pub struct AxisOutcome {
     pub fit_after: Fit,
     /// Held-out RMS (cross-validation) of the base and the final model \[m\].
     pub held_out_rms: (f64, f64),
+    /// How the held-out blocks were chosen, in words.
+    pub held_out_method: String,
     /// Per record, when several records were fitted together (one entry otherwise).
     pub records: Vec<RecordFits>,
 }
@@ -319,7 +319,7 @@ impl Outcome {
                 "before": a.fit_before.to_json(),
                 "after": a.fit_after.to_json(),
                 "held_out": {"rms_before": a.held_out_rms.0, "rms_after": a.held_out_rms.1,
-                    "method": if a.records.len() > 1 { "leave one record out: each record predicted by the model refitted on the others" } else { "blocked cross-validation over time: each block predicted by the model refitted on the others" }},
+                    "method": a.held_out_method},
                 "records": a.records.iter().map(|r| json!({"data": r.data, "before": r.before.to_json(), "after": r.after.to_json()})).collect::<Vec<_>>(),
                 "base_params": params_json(&a.base),
                 "params": params_json(&a.model),
@@ -567,7 +567,7 @@ struct Bench<'a> {
     /// The data the candidate is fitted on.
     data: &'a FitData<'a>,
     /// The held-out blocks (cross-validation).
-    blocks: &'a [(usize, usize)],
+    blocks: &'a [full::Block],
     /// The current model's held-out SSE per block.
     held_without: &'a [f64],
     /// The current model's SSE.
@@ -777,6 +777,8 @@ struct AxisSearch {
     noise_m: f64,
     /// Held-out RMS (cross-validation) of the base and the final model \[m\].
     held_out_rms: (f64, f64),
+    /// How the held-out blocks were chosen, in words.
+    held_out_method: String,
 }
 
 /// One axis's search problem: the record, its fitted data and held-out blocks, the settings and
@@ -795,7 +797,7 @@ struct Search<'a> {
     /// The data every model is fitted on.
     data: FitData<'a>,
     /// The held-out blocks (cross-validation).
-    blocks: Vec<(usize, usize)>,
+    blocks: Vec<full::Block>,
     /// Number of scored samples.
     n_scored: f64,
 }
@@ -953,6 +955,19 @@ fn close_axis(
 ) -> Result<AxisSearch, String> {
     let from = record.index_at(s.start_s);
     let u: Vec<f32> = record.u.iter().map(|&v| v as f32).collect();
+    // Several records: leave one record out; one record: blocks over time, interleaved when the
+    // input is not stationary.
+    let (blocks, held_out_method) = if record.segments.len() > 1 {
+        (
+            select::record_folds(from, &record.segments, u.len()),
+            "leave one record out: each record predicted by the model refitted on the others"
+                .to_string(),
+        )
+    } else {
+        let ts = record.sample_period_s();
+        let f_dom = diagnose::dominant_frequency_hz(&record.u[from..], ts);
+        select::single_record_folds(&record.u, from, ts, f_dom)
+    };
     let search = Search {
         name,
         record,
@@ -968,12 +983,7 @@ fn close_axis(
             free_offset: base.free_offset,
             invertible_at_hz: None,
         },
-        // Several records: leave one record out; one record: blocks over time.
-        blocks: if record.segments.len() > 1 {
-            select::record_folds(from, &record.segments, u.len())
-        } else {
-            folds(from, u.len())
-        },
+        blocks,
         n_scored: (u.len() - from) as f64,
     };
     let (data, blocks) = (&search.data, &search.blocks);
@@ -1069,6 +1079,7 @@ fn close_axis(
         steps,
         noise_m,
         held_out_rms,
+        held_out_method,
     })
 }
 
@@ -1222,6 +1233,7 @@ pub fn close_loop_validated(
             steps,
             noise_m,
             held_out_rms,
+            held_out_method,
         } = found;
         all_y.extend_from_slice(&r.y_m[from..]);
         all_b.extend_from_slice(&before[i][from..]);
@@ -1252,6 +1264,7 @@ pub fn close_loop_validated(
             before: before[i].clone(),
             after: after[i].clone(),
             held_out_rms,
+            held_out_method,
         });
     }
     let mut outcome = Outcome {
