@@ -157,7 +157,7 @@ pub fn single_record_folds(u: &[f64], from: usize, ts: f64, f_dom_hz: f64) -> (V
             contiguous,
             format!(
                 "{contiguous_words}; {why} and the record is too short to interleave \
-                 {PERIODS_PER_SEGMENT}-period segments, so each block is predicted outside the \
+                 segments of {PERIODS_PER_SEGMENT} x the input period, so each block is predicted outside the \
                  range the others were fitted on: a gain on the later blocks is an extrapolation"
             ),
         );
@@ -172,10 +172,10 @@ pub fn single_record_folds(u: &[f64], from: usize, ts: f64, f_dom_hz: f64) -> (V
     (
         blocks,
         format!(
-            "interleaved cross-validation: {why}, so segments of {seg} samples \
-             ({PERIODS_PER_SEGMENT} input periods) go to the {FOLDS} blocks in turn and each block \
-             sees the whole range; each block predicted by the model refitted on the others, state \
-             carried through"
+            "interleaved cross-validation: {why}, so segments of {seg} samples ({PERIODS_PER_SEGMENT} \
+             x the period of the dominant input frequency, {f_dom_hz:.1} Hz) go to the {FOLDS} \
+             blocks in turn and each block sees the whole range; each block predicted by the model \
+             refitted on the others, state carried through"
         ),
     )
 }
