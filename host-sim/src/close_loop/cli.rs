@@ -13,10 +13,14 @@ use std::time::Instant;
 #[command(after_help = "\
 Fits the symmetric Bouc-Wen model (identify's vp-de-lm), then repeatedly screens the residual for the \
 effects creep (Kelvin-Voigt or logarithmic), drift (linear or settling, independent of u), delay, \
-asymmetry, dynamics and (two-axis records) coupling, fits the best candidates, and adds one only if its \
-parameters stay inside the range that makes it that effect, its gain holds on held-out blocks of the \
-record (blocked cross-validation over time) and on the --validate record, and the residual is not yet \
-at the sensor noise estimated from the data. Every decision and its evidence goes into the report. \
+asymmetry, dynamics, rate-dependent hysteresis (the hysteretic part relaxes) and (two-axis records) \
+coupling, fits the best candidates and every phase effect (creep, delay, rate-dependent hysteresis, \
+dynamics) the screening cannot separate from one of them, and adds one only if its parameters stay \
+inside the range that makes it that effect, its gain holds on held-out blocks of the record (blocked \
+cross-validation over time, interleaved one-period segments when the input's amplitude or rate changes \
+along the record; several records: leave one record out) and on the --validate record, and the \
+residual is not yet at the sensor noise estimated from the data. Every decision and its evidence, and \
+why each other effect was not fitted, goes into the report. \
 Two-axis records: --u ux_V,uy_V --y x_m,y_m.")]
 pub struct CloseLoopArgs {
     /// Record to fit (CSV with unit-suffixed columns); several comma-separated records of one stage

@@ -649,10 +649,10 @@ impl<'s, 'a> Screening<'s, 'a> {
 
     /// Rate-dependent hysteresis: the residual against first-order lags of the hysteresis state h
     /// (the hysteretic part k2·h of w relaxes, the nuisance basis spans h itself), τ on a grid from
-    /// two sample periods to a tenth of the record or 50 ms.
+    /// one sample period to a tenth of the record or 50 ms.
     fn rate_dependent(&self) -> Option<Candidate> {
         let (sig, from, ts) = (self.sig, self.sig.from, self.sig.sample_period_s);
-        let taus = log_grid(2.0 * ts, (self.record_s / 10.0).min(0.05), 16);
+        let taus = log_grid(ts, (self.record_s / 10.0).clamp(4.0 * ts, 0.05), 16);
         let best = taus
             .iter()
             .map(|&tau| {

@@ -97,11 +97,14 @@ pub struct EffectBounds {
     pub mode_damping: (f64, f64),
     /// Largest |κ|.
     pub coupling_max: f64,
-    /// Rate-dependent hysteresis: time constants from two sample periods to a tenth of the
-    /// record or 50 ms \[s\].
+    /// Rate-dependent hysteresis: time constants from one sample period to a tenth of the
+    /// record or 50 ms \[s\] (0.1 ms to 50 ms for a 0.5 s record at 10 kHz).
     pub relaxation_tau_s: (f64, f64),
-    /// Largest relaxation gain g (the low-frequency output (1 + g)·w; plausible gains are > 0).
-    pub relaxation_max_gain: f64,
+    /// Relaxation gain g of the hysteretic part, G(s) = 1 + g/(1 + s·τ): from 0.01 (less: no
+    /// rate dependence) to 100 (its high-frequency response 1 % of its static one, a pure lag
+    /// of k2·h). Fitted as ln g; the core's stable-inverse bound g·tanh(T/2τ) ≤ 0.5 is the
+    /// fit's other limit (a set beyond it is refused), not this effect's.
+    pub relaxation_gain: (f64, f64),
     /// Sample period \[s\].
     pub sample_period_s: f64,
     /// Sign of the stage's static gain dy/du (±1): a creep gain of this sign keeps the output moving
@@ -137,8 +140,8 @@ impl EffectBounds {
             mode_frequency_hz: ((10.0 * f_dom).min(0.2 * nyquist), 0.85 * nyquist),
             mode_damping: (0.005, 2.0),
             coupling_max: 0.3,
-            relaxation_tau_s: (2.0 * ts, (record_s / 10.0).clamp(4.0 * ts, 0.05)),
-            relaxation_max_gain: 3.0,
+            relaxation_tau_s: (ts, (record_s / 10.0).clamp(4.0 * ts, 0.05)),
+            relaxation_gain: (0.01, 100.0),
             sample_period_s: ts,
             gain_sign: if gain_m_per_v < 0.0 { -1.0 } else { 1.0 },
         }
@@ -503,7 +506,8 @@ impl AxisModel {
                 let tau = time_constant_s.clamp(b.relaxation_tau_s.0, b.relaxation_tau_s.1);
                 // Within the core's stable-inverse bound g·tanh(T/2τ) ≤ 0.5 (at 0.4).
                 let stable = 0.4 / (0.5 * b.sample_period_s / tau).tanh();
-                e.relaxation_gain[0] = gain.clamp(0.0, b.relaxation_max_gain.min(stable)) as f32;
+                e.relaxation_gain[0] =
+                    gain.clamp(b.relaxation_gain.0, b.relaxation_gain.1.min(stable)) as f32;
                 e.relaxation_time_constant_s[0] = tau as f32;
                 // The hysteretic part relaxes; the linear strain k1·u follows at once.
                 e.relaxation_linear_m_per_v = m.map.k1_m_per_v;
@@ -511,6 +515,31 @@ impl AxisModel {
         }
         m.added.push(init.kind());
         m
+    }
+
+    /// The model with its rate-dependent hysteresis restarted at relaxation gain `gain`, its
+    /// static hysteretic gain k2·(1 + g) and its first-order lag τ·g/(1 + g) kept: on records
+    /// slow against τ (ω·τ ≪ 1) G(jω) ≈ (1 + g)·(1 − jω·τ·g/(1 + g)), so those two are what the
+    /// data fix and the split into g and τ is left to the fit; `None` without the effect, or when
+    /// the start lies outside the bounds or the core's stable-inverse bound (at 0.4).
+    pub fn relaxation_restart(&self, gain: f64) -> Option<Self> {
+        if !self.added.contains(&EffectKind::RateDependent) {
+            return None;
+        }
+        let b = self.bounds;
+        let g0 = f64::from(self.effects.relaxation_gain[0]);
+        let tau0 = f64::from(self.effects.relaxation_time_constant_s[0]);
+        let tau = tau0 * g0 / (1.0 + g0) * (1.0 + gain) / gain;
+        let stable = 0.4 / (0.5 * b.sample_period_s / tau).tanh();
+        let inside = |v: f64, (lo, hi): (f64, f64)| v > lo && v < hi;
+        if !(inside(gain, b.relaxation_gain) && inside(tau, b.relaxation_tau_s) && gain <= stable) {
+            return None;
+        }
+        let mut m = self.clone();
+        m.map.k2_m_per_h = (f64::from(self.map.k2_m_per_h) * (1.0 + g0) / (1.0 + gain)) as f32;
+        m.effects.relaxation_gain[0] = gain as f32;
+        m.effects.relaxation_time_constant_s[0] = tau as f32;
+        Some(m)
     }
 
     /// The model without `kind` (its parameters zeroed; the rest kept).
@@ -670,9 +699,14 @@ impl AxisModel {
             ),
             EffectKind::RateDependent => {
                 theta.push(
-                    f64::from(e.relaxation_gain[0]),
-                    0.1,
-                    ParamSpec::within("relaxation_gain[0]", kind, 0.0, bd.relaxation_max_gain),
+                    f64::from(e.relaxation_gain[0]).max(1e-9).ln(),
+                    10.0,
+                    ParamSpec::log_within(
+                        "relaxation_gain[0]",
+                        kind,
+                        bd.relaxation_gain.0,
+                        bd.relaxation_gain.1,
+                    ),
                 );
                 theta.push(
                     f64::from(e.relaxation_time_constant_s[0]).max(1e-9).ln(),
@@ -863,8 +897,8 @@ pub struct FitData<'a> {
     pub other_z: Option<&'a [f64]>,
     /// First scored sample.
     pub from: usize,
-    /// A block of scored samples left out of the fit (held out), as a range of sample indices.
-    pub held_out: Option<(usize, usize)>,
+    /// A block of scored samples left out of the fit (held out).
+    pub held_out: Option<Block>,
     /// Each record (segment of the model) has its own constant sensor offset, re-estimated on the
     /// samples scored in it.
     pub free_offset: bool,
@@ -876,15 +910,53 @@ pub struct FitData<'a> {
 impl FitData<'_> {
     /// Whether sample `k` is fitted.
     pub fn fitted(&self, k: usize) -> bool {
-        k >= self.from && !matches!(self.held_out, Some((a, b)) if k >= a && k < b)
+        k >= self.from && !self.held_out.is_some_and(|b| b.contains(k))
     }
 
     /// Number of fitted samples.
     pub fn fitted_count(&self) -> usize {
         let n = self.u.len().saturating_sub(self.from);
-        n - self
-            .held_out
-            .map_or(0, |(a, b)| b.min(self.u.len()) - a.max(self.from))
+        n - self.held_out.map_or(0, |b| {
+            (self.from..self.u.len()).filter(|&k| b.contains(k)).count()
+        })
+    }
+}
+
+/// A held-out block of the cross-validation: the samples `start..end`, or with `interleave` =
+/// (segment length L, blocks K, this block i) those of them in the segments j = ⌊(k − start)/L⌋
+/// with j mod K = i (every K-th segment, so that each block sees the whole record).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Block {
+    /// First sample.
+    pub start: usize,
+    /// One past the last sample.
+    pub end: usize,
+    /// Interleaved segments (L, K, i); `None`: contiguous.
+    pub interleave: Option<(usize, usize, usize)>,
+}
+
+impl Block {
+    /// The contiguous block `start..end`.
+    pub fn contiguous(start: usize, end: usize) -> Self {
+        Self {
+            start,
+            end,
+            interleave: None,
+        }
+    }
+
+    /// Whether sample `k` is in the block.
+    pub fn contains(&self, k: usize) -> bool {
+        k >= self.start
+            && k < self.end
+            && self
+                .interleave
+                .is_none_or(|(len, blocks, i)| ((k - self.start) / len.max(1)) % blocks.max(1) == i)
+    }
+
+    /// Number of samples in the block.
+    pub fn count(&self) -> usize {
+        (self.start..self.end).filter(|&k| self.contains(k)).count()
     }
 }
 

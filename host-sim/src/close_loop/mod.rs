@@ -8,8 +8,11 @@
 //! 2. Each step: stop when the residual RMS is within [`select::NOISE_FLOOR_FACTOR`]·σ. Otherwise
 //!    every effect not yet in the model is screened on the residual ([`diagnose`]: creep, Kelvin–Voigt
 //!    or logarithmic; drift, linear or settling, a function of time alone; delay; asymmetry, an even
-//!    term; dynamics, a second-order mode; coupling), and the best [`MAX_TRIALS`] are fitted for real
-//!    (the whole model refitted by Levenberg–Marquardt, [`full`]). A candidate is refused if a
+//!    term; dynamics, a second-order mode; coupling; rate-dependent hysteresis, a relaxation of
+//!    the hysteretic part), and the best [`MAX_TRIALS`] are fitted for real (the whole model
+//!    refitted by Levenberg–Marquardt, [`full`]), together with every phase effect the screening
+//!    cannot separate from one of them (creep, delay, rate-dependent hysteresis, dynamics:
+//!    [`choose`]); the report says of every other effect why it was not fitted. A candidate is refused if a
 //!    parameter ran to the bound of the range that makes it that effect, if its gain does not hold
 //!    on held-out blocks of the record (blocked cross-validation over time, state carried through),
 //!    or if it makes the prediction of a `--validate` record worse ([`select`]). Of those that hold,
@@ -29,6 +32,7 @@
 //! The final models are stage-file axes ([`stage`]); the in-sample, held-out and validation
 //! predictions run through piezo-stage's chain, the code `predict` and the firmware run.
 
+pub mod choose;
 mod cli;
 pub mod diagnose;
 pub mod full;
@@ -50,9 +54,7 @@ use diagnose::{
 };
 use full::{last_accepted_on_the_way, refit, sse, AxisModel, EffectBounds, FitData, Simulation};
 use report::{Step, StepOutcome, Trial};
-use select::{
-    folds, held_out_sse, Decision, Floor, OutOfSample, Plausibility, Refusal, RunGain, Stop,
-};
+use select::{held_out_sse, Decision, Floor, OutOfSample, Plausibility, Refusal, RunGain, Stop};
 use serde_json::{json, Value};
 use std::time::Instant;
 
@@ -208,6 +210,8 @@ pub struct AxisOutcome {
     pub fit_after: Fit,
     /// Held-out RMS (cross-validation) of the base and the final model \[m\].
     pub held_out_rms: (f64, f64),
+    /// How the held-out blocks were chosen, in words.
+    pub held_out_method: String,
     /// Per record, when several records were fitted together (one entry otherwise).
     pub records: Vec<RecordFits>,
 }
@@ -315,7 +319,7 @@ impl Outcome {
                 "before": a.fit_before.to_json(),
                 "after": a.fit_after.to_json(),
                 "held_out": {"rms_before": a.held_out_rms.0, "rms_after": a.held_out_rms.1,
-                    "method": if a.records.len() > 1 { "leave one record out: each record predicted by the model refitted on the others" } else { "blocked cross-validation over time: each block predicted by the model refitted on the others" }},
+                    "method": a.held_out_method},
                 "records": a.records.iter().map(|r| json!({"data": r.data, "before": r.before.to_json(), "after": r.after.to_json()})).collect::<Vec<_>>(),
                 "base_params": params_json(&a.base),
                 "params": params_json(&a.model),
@@ -549,6 +553,11 @@ fn creep_restart(
         .find(|m| stage::compensator_check(m, rate).is_ok())
 }
 
+/// Relaxation gains g the rate-dependent hysteresis's fit is started again from
+/// ([`AxisModel::relaxation_restart`]): records slow against τ fix only k2·(1 + g) and τ·g/(1 + g),
+/// and the fit from the screening's split stays near it.
+const RELAXATION_RESTART_GAINS: [f64; 3] = [0.5, 3.0, 20.0];
+
 /// Most halvings of a creep restart's gains in search of a start the compensator accepts.
 const FEASIBLE_HALVINGS: usize = 4;
 
@@ -558,7 +567,7 @@ struct Bench<'a> {
     /// The data the candidate is fitted on.
     data: &'a FitData<'a>,
     /// The held-out blocks (cross-validation).
-    blocks: &'a [(usize, usize)],
+    blocks: &'a [full::Block],
     /// The current model's held-out SSE per block.
     held_without: &'a [f64],
     /// The current model's SSE.
@@ -585,6 +594,19 @@ fn fit_candidate(
     sse0: f64,
 ) -> (AxisModel, f64) {
     let (mut fitted, mut sse1, _) = refit(&model.with_effect(cand.init), data, TRIAL_ITERATIONS);
+    // The rate-dependent hysteresis from other splits of its first-order lag into g and τ.
+    if cand.effect == EffectKind::RateDependent {
+        for gain in RELAXATION_RESTART_GAINS {
+            let Some(start) = fitted.relaxation_restart(gain) else {
+                continue;
+            };
+            let (again, sse_again, _) = refit(&start, data, TRIAL_ITERATIONS);
+            if sse_again < sse1 && Plausibility::of(&again, cand.effect).plausible() {
+                fitted = again;
+                sse1 = sse_again;
+            }
+        }
+    }
     let stuck = data.invertible_at_hz.is_some() && !(sse1 < sse0);
     if let Some(start) = creep_restart(model, &fitted, cand.init, data.invertible_at_hz, stuck) {
         let (again, sse_again, _) = refit(&start, data, TRIAL_ITERATIONS);
@@ -755,6 +777,8 @@ struct AxisSearch {
     noise_m: f64,
     /// Held-out RMS (cross-validation) of the base and the final model \[m\].
     held_out_rms: (f64, f64),
+    /// How the held-out blocks were chosen, in words.
+    held_out_method: String,
 }
 
 /// One axis's search problem: the record, its fitted data and held-out blocks, the settings and
@@ -773,7 +797,7 @@ struct Search<'a> {
     /// The data every model is fitted on.
     data: FitData<'a>,
     /// The held-out blocks (cross-validation).
-    blocks: Vec<(usize, usize)>,
+    blocks: Vec<full::Block>,
     /// Number of scored samples.
     n_scored: f64,
 }
@@ -880,6 +904,7 @@ impl Search<'_> {
                     rms_before: self.rms(current_sse),
                     floor,
                     screened: Vec::new(),
+                    not_tried: Vec::new(),
                     trials: Vec::new(),
                     outcome: StepOutcome::Removed {
                         effect: kind,
@@ -930,6 +955,19 @@ fn close_axis(
 ) -> Result<AxisSearch, String> {
     let from = record.index_at(s.start_s);
     let u: Vec<f32> = record.u.iter().map(|&v| v as f32).collect();
+    // Several records: leave one record out; one record: blocks over time, interleaved when the
+    // input is not stationary.
+    let (blocks, held_out_method) = if record.segments.len() > 1 {
+        (
+            select::record_folds(from, &record.segments, u.len()),
+            "leave one record out: each record predicted by the model refitted on the others"
+                .to_string(),
+        )
+    } else {
+        let ts = record.sample_period_s();
+        let f_dom = diagnose::dominant_frequency_hz(&record.u[from..], ts);
+        select::single_record_folds(&record.u, from, ts, f_dom)
+    };
     let search = Search {
         name,
         record,
@@ -945,12 +983,7 @@ fn close_axis(
             free_offset: base.free_offset,
             invertible_at_hz: None,
         },
-        // Several records: leave one record out; one record: blocks over time.
-        blocks: if record.segments.len() > 1 {
-            select::record_folds(from, &record.segments, u.len())
-        } else {
-            folds(from, u.len())
-        },
+        blocks,
         n_scored: (u.len() - from) as f64,
     };
     let (data, blocks) = (&search.data, &search.blocks);
@@ -984,6 +1017,7 @@ fn close_axis(
             rms_before: search.rms(current_sse),
             floor,
             screened: Vec::new(),
+            not_tried: Vec::new(),
             trials: Vec::new(),
             outcome: StepOutcome::Stopped(Stop::NoiseFloor),
         };
@@ -997,11 +1031,15 @@ fn close_axis(
             .iter()
             .map(|c| (c.effect, c.init.form(), c.share, c.delta_bic))
             .collect();
-        let chosen: Vec<&Candidate> = candidates
-            .iter()
-            .filter(|c| c.share >= 0.25 * s.min_share)
-            .take(MAX_TRIALS)
-            .collect();
+        let (tried, mut skipped) = choose::choose(&candidates, 0.25 * s.min_share, MAX_TRIALS);
+        skipped.extend(choose::not_screened(
+            &s.allowed,
+            &model.added,
+            other_z.is_some(),
+            &candidates,
+        ));
+        step.not_tried = skipped;
+        let chosen: Vec<&Candidate> = tried.iter().map(|&(i, _)| &candidates[i]).collect();
         if chosen.is_empty() {
             step.outcome = StepOutcome::Stopped(Stop::NoCandidates);
             steps.push(step);
@@ -1041,6 +1079,7 @@ fn close_axis(
         steps,
         noise_m,
         held_out_rms,
+        held_out_method,
     })
 }
 
@@ -1080,6 +1119,7 @@ fn search_axis(
             rms_before: last.rms_before,
             floor: last.floor,
             screened: Vec::new(),
+            not_tried: Vec::new(),
             trials: Vec::new(),
             outcome: StepOutcome::Restarted { refusal },
         });
@@ -1193,6 +1233,7 @@ pub fn close_loop_validated(
             steps,
             noise_m,
             held_out_rms,
+            held_out_method,
         } = found;
         all_y.extend_from_slice(&r.y_m[from..]);
         all_b.extend_from_slice(&before[i][from..]);
@@ -1223,6 +1264,7 @@ pub fn close_loop_validated(
             before: before[i].clone(),
             after: after[i].clone(),
             held_out_rms,
+            held_out_method,
         });
     }
     let mut outcome = Outcome {

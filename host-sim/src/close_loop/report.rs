@@ -5,6 +5,7 @@
 //! reported for reference only (with N in the thousands it favours any effect that lowers the
 //! residual at all).
 
+use super::choose::Skipped;
 use super::diagnose::{Candidate, EffectKind};
 use super::full::AxisModel;
 use super::select::{Decision, Floor, OutOfSample, Plausibility, RunGain, Stop};
@@ -182,6 +183,8 @@ pub struct Step {
     pub floor: Floor,
     /// Every screened candidate (effect, form, share, ΔBIC), best first.
     pub screened: Vec<(EffectKind, &'static str, f64, f64)>,
+    /// The effects not fitted in this step, and why ([`super::choose`]).
+    pub not_tried: Vec<Skipped>,
     /// The candidates fitted and judged.
     pub trials: Vec<Trial>,
     /// The outcome.
@@ -238,6 +241,10 @@ impl Step {
             s.push_str("\n  - ");
             s.push_str(&t.words());
         }
+        for n in &self.not_tried {
+            s.push_str("\n  - ");
+            s.push_str(&n.words());
+        }
         s
     }
 
@@ -282,6 +289,7 @@ impl Step {
                 "effect": e.name(), "form": f, "share": share, "delta_bic": bic,
             })).collect::<Vec<_>>(),
             "candidates": self.trials.iter().map(Trial::to_json).collect::<Vec<_>>(),
+            "not_tried": self.not_tried.iter().map(Skipped::to_json).collect::<Vec<_>>(),
             "words": self.words(),
         })
     }

@@ -17,6 +17,13 @@
 //! `--validate` record (another run) the model fitted on the whole record must also lower the RMS
 //! with one constant offset re-estimated on that record.
 //!
+//! **Non-stationary record.** When the contiguous blocks see different inputs (amplitudes or
+//! rates more than [`STATIONARY_RATIO`] apart: a rising-amplitude sweep), a block would be
+//! predicted outside the range the others were fitted on; the blocks then interleave segments of
+//! [`PERIODS_PER_SEGMENT`] input periods, so that each sees the whole range
+//! ([`single_record_folds`]); a record too short for that keeps its contiguous blocks and the
+//! report says the test extrapolates.
+//!
 //! **Several records.** With several records of one stage the blocks are the records themselves
 //! (leave one record out: each record predicted by the model refitted on the others, with its own
 //! offset re-estimated when offsets are free), and the t-test takes K − 1 degrees of freedom for K
@@ -35,7 +42,7 @@
 //! sensor noise estimated from the data ([`super::diagnose::noise_estimate`]).
 
 use super::diagnose::{EffectKind, ResidualFigures};
-use super::full::{refit, sse_where, AxisModel, FitData};
+use super::full::{refit, sse_where, AxisModel, Block, FitData};
 use rayon::prelude::*;
 use serde_json::{json, Value};
 
@@ -68,41 +75,128 @@ pub fn t_critical(blocks: usize) -> f64 {
 }
 
 /// The blocks of leave-one-record-out: each record's scored samples (from `from` on).
-pub fn record_folds(from: usize, segments: &[usize], n: usize) -> Vec<(usize, usize)> {
+pub fn record_folds(from: usize, segments: &[usize], n: usize) -> Vec<Block> {
     segments
         .iter()
         .enumerate()
         .map(|(i, &a)| (a.max(from), segments.get(i + 1).copied().unwrap_or(n)))
         .filter(|(a, b)| b > a)
+        .map(|(a, b)| Block::contiguous(a, b))
         .collect()
 }
 
 /// The blocks of the cross-validation: `FOLDS` contiguous ranges of samples over `from..n`.
-pub fn folds(from: usize, n: usize) -> Vec<(usize, usize)> {
+pub fn folds(from: usize, n: usize) -> Vec<Block> {
     let len = n.saturating_sub(from);
     (0..FOLDS)
         .map(|b| (from + b * len / FOLDS, from + (b + 1) * len / FOLDS))
         .filter(|(a, b)| b > a)
+        .map(|(a, b)| Block::contiguous(a, b))
         .collect()
+}
+
+/// Largest ratio between the contiguous blocks' input amplitudes (half the range of u) or input
+/// rates (largest |du/dt|) for a record to count as stationary.
+pub const STATIONARY_RATIO: f64 = 1.25;
+
+/// Input periods per interleaved segment (the shortest that holds a whole loop).
+pub const PERIODS_PER_SEGMENT: f64 = 1.0;
+
+/// The blocks of one record's cross-validation, and in words how they were chosen. Contiguous
+/// blocks ([`folds`]) when every block sees the same input: their amplitudes (half the range of
+/// u) and rates (largest |du/dt|) within [`STATIONARY_RATIO`] of each other. Otherwise (a
+/// rising-amplitude sweep, a record whose rate changes) a contiguous block would be predicted
+/// outside the range the others were fitted on, so the blocks interleave: segments of
+/// [`PERIODS_PER_SEGMENT`] periods of the dominant input frequency `f_dom_hz` (at least 10
+/// samples) go to the blocks in turn, each block sees the whole range of amplitude and rate. If
+/// there are too few segments for that (fewer than 2·FOLDS), the contiguous blocks are kept and
+/// the words say the test extrapolates.
+pub fn single_record_folds(u: &[f64], from: usize, ts: f64, f_dom_hz: f64) -> (Vec<Block>, String) {
+    let contiguous = folds(from, u.len());
+    let figures: Vec<(f64, f64)> = contiguous
+        .iter()
+        .map(|b| {
+            let s = &u[b.start..b.end];
+            let (lo, hi) = s
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &v| {
+                    (l.min(v), h.max(v))
+                });
+            let rate = s
+                .windows(2)
+                .map(|w| ((w[1] - w[0]) / ts).abs())
+                .fold(0.0, f64::max);
+            (0.5 * (hi - lo), rate)
+        })
+        .collect();
+    let spread = |f: &dyn Fn(&(f64, f64)) -> f64| {
+        let (lo, hi) = figures
+            .iter()
+            .map(f)
+            .fold((f64::INFINITY, 0.0f64), |(l, h), v| (l.min(v), h.max(v)));
+        hi / lo.max(1e-300)
+    };
+    let (amp, rate) = (spread(&|f| f.0), spread(&|f| f.1));
+    let contiguous_words = "blocked cross-validation over time: each block predicted by the model \
+                            refitted on the others";
+    if amp <= STATIONARY_RATIO && rate <= STATIONARY_RATIO {
+        return (contiguous, contiguous_words.into());
+    }
+    let seg = if f_dom_hz > 0.0 && f_dom_hz.is_finite() {
+        ((PERIODS_PER_SEGMENT / f_dom_hz / ts).round() as usize).max(10)
+    } else {
+        usize::MAX
+    };
+    let n = u.len().saturating_sub(from);
+    let why = format!(
+        "the input is not stationary: the contiguous blocks' amplitudes differ {amp:.2}x and \
+         their rates {rate:.2}x"
+    );
+    if seg == usize::MAX || n / seg < 2 * FOLDS {
+        return (
+            contiguous,
+            format!(
+                "{contiguous_words}; {why} and the record is too short to interleave \
+                 segments of {PERIODS_PER_SEGMENT} x the input period, so each block is predicted outside the \
+                 range the others were fitted on: a gain on the later blocks is an extrapolation"
+            ),
+        );
+    }
+    let blocks = (0..FOLDS)
+        .map(|i| Block {
+            start: from,
+            end: u.len(),
+            interleave: Some((seg, FOLDS, i)),
+        })
+        .collect();
+    (
+        blocks,
+        format!(
+            "interleaved cross-validation: {why}, so segments of {seg} samples ({PERIODS_PER_SEGMENT} \
+             x the period of the dominant input frequency, {f_dom_hz:.1} Hz) go to the {FOLDS} \
+             blocks in turn and each block sees the whole range; each block predicted by the model \
+             refitted on the others, state carried through"
+        ),
+    )
 }
 
 /// The held-out SSE of `model` per block: refitted on the other blocks, the whole record simulated,
 /// the block scored.
-pub fn held_out_sse(model: &AxisModel, data: &FitData, blocks: &[(usize, usize)]) -> Vec<f64> {
+pub fn held_out_sse(model: &AxisModel, data: &FitData, blocks: &[Block]) -> Vec<f64> {
     blocks
         .par_iter()
-        .map(|&(a, b)| {
+        .map(|&block| {
             let d = FitData {
                 u: data.u,
                 y: data.y,
                 other_z: data.other_z,
                 from: data.from,
-                held_out: Some((a, b)),
+                held_out: Some(block),
                 free_offset: data.free_offset,
                 invertible_at_hz: data.invertible_at_hz,
             };
             let (fitted, _, _) = refit(model, &d, FOLD_ITERATIONS);
-            sse_where(&fitted, &d, |k| k >= a && k < b)
+            sse_where(&fitted, &d, |k| block.contains(k))
         })
         .collect()
 }
@@ -129,8 +223,8 @@ pub struct OutOfSample {
 impl OutOfSample {
     /// From the per-block SSEs without and with the effect, blocks `blocks` (sample indices),
     /// times `t_s`.
-    pub fn new(without: &[f64], with: &[f64], blocks: &[(usize, usize)], t_s: &[f64]) -> Self {
-        let n: Vec<f64> = blocks.iter().map(|(a, b)| (b - a) as f64).collect();
+    pub fn new(without: &[f64], with: &[f64], blocks: &[Block], t_s: &[f64]) -> Self {
+        let n: Vec<f64> = blocks.iter().map(|b| b.count() as f64).collect();
         let mse_without: Vec<f64> = without.iter().zip(&n).map(|(s, n)| s / n).collect();
         let mse_with: Vec<f64> = with.iter().zip(&n).map(|(s, n)| s / n).collect();
         let log_ratios: Vec<f64> = mse_without
@@ -167,7 +261,7 @@ impl OutOfSample {
         Self {
             blocks_s: blocks
                 .iter()
-                .map(|&(a, b)| (t_s[a.min(last)], t_s[(b - 1).min(last)]))
+                .map(|b| (t_s[b.start.min(last)], t_s[(b.end - 1).min(last)]))
                 .collect(),
             mse_without,
             mse_with,
@@ -432,5 +526,52 @@ impl Floor {
             "noise_floor_m": NOISE_FLOOR_FACTOR * self.noise_m,
             "at_noise_floor": self.reached(),
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// 2 s of a 10 Hz sine at 1 kHz, amplitude `amp(t)`.
+    fn sine(amp: impl Fn(f64) -> f64) -> Vec<f64> {
+        (0..2000)
+            .map(|k| {
+                let t = k as f64 * 1e-3;
+                amp(t) * (2.0 * std::f64::consts::PI * 10.0 * t).sin()
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_stationary_record_keeps_contiguous_blocks() {
+        let u = sine(|_| 5.0);
+        let (blocks, words) = single_record_folds(&u, 0, 1e-3, 10.0);
+        assert_eq!(blocks, folds(0, u.len()));
+        assert!(words.starts_with("blocked"), "{words}");
+    }
+
+    #[test]
+    fn a_rising_amplitude_record_interleaves_blocks_that_see_its_whole_range() {
+        let u = sine(|t| 1.0 + 4.0 * t);
+        let (blocks, words) = single_record_folds(&u, 0, 1e-3, 10.0);
+        assert!(words.starts_with("interleaved"), "{words}");
+        assert_eq!(blocks.len(), FOLDS);
+        // Every sample in exactly one block; every block reaches 80 % of the largest amplitude
+        // (its last segment is one of the last FOLDS).
+        for k in 0..u.len() {
+            assert_eq!(blocks.iter().filter(|b| b.contains(k)).count(), 1);
+        }
+        let top = u.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        for b in &blocks {
+            let peak = (b.start..b.end)
+                .filter(|&k| b.contains(k))
+                .fold(0.0f64, |m, k| m.max(u[k].abs()));
+            assert!(peak >= 0.8 * top, "block {b:?}: peak {peak} of {top}");
+        }
+        // Too short to interleave: contiguous, and the words say why.
+        let (short, words) = single_record_folds(&u[..300], 0, 1e-3, 10.0);
+        assert_eq!(short, folds(0, 300));
+        assert!(words.contains("extrapolation"), "{words}");
     }
 }
