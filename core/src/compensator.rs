@@ -938,6 +938,16 @@ fn toward(du: f32, direction: f32, limit: f32) -> f32 {
     }
 }
 
+/// The largest f32 ≤ `x`.
+fn round_down_f32(x: f64) -> f32 {
+    let f = x as f32;
+    if f64::from(f) > x {
+        f.next_down()
+    } else {
+        f
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1137,15 +1147,5 @@ mod tests {
                 "n={n}: small path taken {small_taken} of {compared}"
             );
         }
-    }
-}
-
-/// The largest f32 ≤ `x`.
-fn round_down_f32(x: f64) -> f32 {
-    let f = x as f32;
-    if f64::from(f) > x {
-        f.next_down()
-    } else {
-        f
     }
 }

@@ -91,7 +91,7 @@ impl IoChain {
         }
         let (d0, d1) = self.drive_range_v();
         let swing_ticks = (d1 - d0) / (settings.slew_limit_v_per_s * settings.sample_period_s);
-        if !(swing_ticks >= MIN_DRIVE_TICKS) {
+        if swing_ticks.is_nan() || swing_ticks < MIN_DRIVE_TICKS {
             return Err(ParamError::Implausible {
                 field: "slew_limit_v_per_s",
                 value: settings.slew_limit_v_per_s,

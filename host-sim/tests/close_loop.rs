@@ -353,9 +353,9 @@ fn strong_creep(name: &str) -> PathBuf {
 
 /// A final set the firmware refuses (here: the record needs 0-120 V and `--stage` carries an io
 /// chain that drives 0-50 V): the command fails, but only after writing the stage file and the
-/// report, which holds the verdict, the refusal and what to do. A stage file that cannot be written (`--out` is a
-/// directory) and plots that cannot be made (`--plots` is a file) still leave the report, which
-/// says what was not written.
+/// report, which holds the verdict, the refusal and what to do. A stage file that cannot be
+/// written (`--out` is a directory) and plots that cannot be made (`--plots` is a file) still
+/// leave the report, which says what was not written.
 #[test]
 fn a_refused_set_keeps_its_report_with_the_verdict() {
     let data = strong_creep("refused.csv");
