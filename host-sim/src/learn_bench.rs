@@ -694,7 +694,7 @@ pub struct LearnBenchArgs {
     /// Learning steps per run.
     #[arg(long, default_value_t = 15)]
     pub iterations: usize,
-    /// Reference frequencies [Hz], comma-separated.
+    /// Reference frequencies \[Hz\], comma-separated.
     #[arg(long, value_delimiter = ',', default_values_t = [1.0, 10.0, 100.0])]
     pub freq: Vec<f64>,
     /// Skip the robustness rows.

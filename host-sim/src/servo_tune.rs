@@ -52,7 +52,7 @@ pub struct ServoTuneArgs {
     /// Sensor-to-actuator latency [loop periods].
     #[arg(long, default_value_t = 1.5)]
     pub latency_periods: f32,
-    /// The converters' latency, added whatever the loop rate [s].
+    /// The converters' latency, added whatever the loop rate \[s\].
     #[arg(long, default_value_t = CONVERTER_LATENCY_S)]
     pub converter_latency_s: f32,
 }

@@ -280,7 +280,7 @@ pub fn write_stage(path: &Path, header: &str, file: &StageFile) -> WrittenStage 
 
 /// `file` with each axis's slew limit lowered, where needed, to the fastest the core accepts at
 /// the file's loop rate.
-fn with_feasible_slew(file: &StageFile) -> StageFile {
+pub(crate) fn with_feasible_slew(file: &StageFile) -> StageFile {
     let mut file = file.clone();
     let period = 1.0 / file.stage.loop_rate_hz;
     let (d0, d1) = file.io.chain().drive_range_v();

@@ -277,7 +277,7 @@ fn header(outcome: &Outcome, data: &str) -> String {
 }
 
 /// The stage file of the final models: `[stage]` and `[io]` as given, an axis per record axis
-/// (with a servo tuned on a `mode` effect, [`with_servo`]).
+/// (with a servo tuned on a `mode` effect, `with_servo`).
 pub fn stage_file(
     outcome: &Outcome,
     data: &str,
@@ -349,6 +349,8 @@ pub fn compensator_check(m: &AxisModel, loop_rate_hz: f32) -> Result<(), String>
         x: stage_axis(m, None),
         y: None,
     };
+    // As it will be written: the slew limit lowered to what the chain accepts at this rate.
+    let file = crate::stage_file::with_feasible_slew(&file);
     let valid = file
         .validate()
         .map_err(|e| format!("`{}`: {}", e.key, e.message))?;
