@@ -705,9 +705,13 @@ impl Scan<'_> {
             let (re, im) = probe.response(fc);
             let l1 = self.dynamics.plant(fc, 1.0).mul(Complex { re, im }).abs();
             let servo = with(1.0 / l1)?;
-            if let Some((pm, crossover, peak, bandwidth)) =
-                margins(&servo, self.dynamics, &self.scales, fc / 100.0, self.nyquist_hz)
-            {
+            if let Some((pm, crossover, peak, bandwidth)) = margins(
+                &servo,
+                self.dynamics,
+                &self.scales,
+                fc / 100.0,
+                self.nyquist_hz,
+            ) {
                 if pm >= self.pm_goal && peak <= self.ms_goal {
                     return Ok(Some(Tuning {
                         params: servo.params(),
@@ -1060,7 +1064,10 @@ mod tests {
             "{fast:?}"
         );
         for t in [slow, fast] {
-            assert!(t.phase_margin_deg >= 60.0 && t.sensitivity_peak <= 1.6, "{t:?}");
+            assert!(
+                t.phase_margin_deg >= 60.0 && t.sensitivity_peak <= 1.6,
+                "{t:?}"
+            );
         }
         assert!(
             fast.crossover_hz > 1.4 * slow.crossover_hz,
