@@ -84,8 +84,9 @@
 //!   half step). Requires 0 < f_mode < 0.45/T and ζ > 0; absent when f_mode = 0 (then z = s).
 //! * **Delay**: D may be fractional (0 ≤ D ≤ MAX_DELAY_SAMPLES; within 1e-4 of a whole number it is
 //!   taken as that number). `z(k − D)` interpolates linearly between the two z samples around it;
-//!   z before the first sample is z\[0\]. The z samples are kept in a fixed ring of
-//!   MAX_DELAY_SAMPLES + 2 values inside [`EffectsState`].
+//!   z before the first sample is z\[0\] (the read is clamped to the first sample, so the first
+//!   sample only writes one value). The z samples are kept in a fixed ring of 128 values (the
+//!   power of two above MAX_DELAY_SAMPLES + 2, indices masked) inside [`EffectsState`].
 //! * **Drift** adds `d(t_k) = r_d·t_k + A_d·(1 − e^(−t_k/τ_d))`, t_k = k·T, k counted from the first
 //!   sample: a slow function of time that does not depend on u (linear drift and exponential
 //!   settling, e.g. thermal; a constant offset is the static map's `offset_m`). Computed as
@@ -237,8 +238,11 @@ fn plausible(
     }
 }
 
-/// Length of the ring of past z samples: the delay reads z\[k − n\] and z\[k − n − 1\], n ≤ 64.
-const RING_LEN: usize = MAX_DELAY_SAMPLES + 2;
+/// Length of the ring of past z samples: the delay reads z\[k − n\] and z\[k − n − 1\], n ≤ 64;
+/// a power of two at least MAX_DELAY_SAMPLES + 2, so that an index wraps with a mask.
+const RING_LEN: usize = (MAX_DELAY_SAMPLES + 2).next_power_of_two();
+/// `index & RING_MASK` = `index % RING_LEN`.
+const RING_MASK: usize = RING_LEN - 1;
 /// Internal signals are held within ±this \[m\] (or V) so that finite inputs give finite results.
 const SIGNAL_LIMIT: f32 = 1.0e30;
 
@@ -558,8 +562,10 @@ pub struct EffectsState {
     mode_z_m: f32,
     /// Mode scaled velocity ż/ω at t_j + T/2 \[m\].
     mode_scaled_velocity_m: f32,
-    /// The last RING_LEN z samples; `ring[head]` is the newest.
+    /// The last RING_LEN z samples; `ring[head]` is the newest, `ring[0]` the first (z\[0\])
+    /// until the ring wraps.
     ring: [f32; RING_LEN],
+    /// Index of the newest z (< RING_LEN).
     head: usize,
     /// Number of samples processed (saturating).
     samples: u32,
@@ -620,10 +626,13 @@ impl EffectsState {
         self.z_back(0)
     }
 
-    /// z\[k − back\] (back < RING_LEN), z\[0\] before the first sample.
+    /// z\[k − back\] (back < RING_LEN), z\[0\] before the first sample: `back` is clamped to
+    /// k = samples − 1, the samples written so far (0 before any: `ring[0]` = 0).
     #[inline(always)]
     fn z_back(&self, back: usize) -> f32 {
-        self.ring[(self.head + RING_LEN - back % RING_LEN) % RING_LEN]
+        let written = self.samples.saturating_sub(1) as usize;
+        let back = if back < written { back } else { written };
+        self.ring[self.head.wrapping_sub(back) & RING_MASK]
     }
 }
 
@@ -931,12 +940,11 @@ impl Effects {
             }
         };
         if state.started {
-            state.head = (state.head + 1) % RING_LEN;
-            state.ring[state.head] = z;
+            state.head = (state.head + 1) & RING_MASK;
         } else {
-            state.ring = [z; RING_LEN];
             state.head = 0;
         }
+        state.ring[state.head] = z;
         state.samples = state.samples.saturating_add(1);
         let du = bounded(u - state.input_reference_v);
         for (x, rate) in state.creep_v.iter_mut().zip(self.creep_rate.iter()) {

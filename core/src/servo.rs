@@ -611,17 +611,18 @@ pub struct TuningGoal {
     /// decade through the crossover, while a proportional part would hold the loop gain flat up
     /// to the mode, where latency and the mode's peak then cost the margins).
     pub zero_ratio: f32,
-    /// f_lp / f_n: the low-pass corner relative to the mode.
+    /// f_lp / f_n: the low-pass corner relative to the mode, unless the latency puts it higher
+    /// (at least 1/(4τ), see [`tune`]).
     pub lowpass_ratio: f32,
-    /// Q of the notch at f_n.
+    /// Q of the notch at f_n: the narrowest notch [`tune`] tries (then 0.7 and 0.5 times it).
     pub notch_q: f32,
     /// τ of the bumpless hand-over without feedback \[s\].
     pub transfer_time_constant_s: f32,
 }
 
 impl Default for TuningGoal {
-    /// φ_m = 60°, M_s = 1.6, f_n ± 10 %, pure integral action, f_lp = f_n (Butterworth),
-    /// notch Q = 1, hand-over τ = 20 ms.
+    /// φ_m = 60°, M_s = 1.6, f_n ± 10 %, pure integral action, f_lp = f_n (Butterworth; or
+    /// 1/(4τ) when higher), notch Q = 1 (or 0.7, 0.5), hand-over τ = 20 ms.
     fn default() -> Self {
         Self {
             phase_margin_deg: 60.0,
@@ -699,18 +700,95 @@ fn margins(
     nominal.map(|(pm, fc)| (pm, fc, peak, nominal_bandwidth))
 }
 
+/// The notch's Q relative to the goal's, in the order [`tune`] tries them: the goal's, then
+/// wider notches (a lower Q attenuates more over the mode's uncertainty, for more phase lag
+/// at the crossover).
+const NOTCH_WIDENING: [f32; 3] = [1.0, 0.7, 0.5];
+
+/// The crossover scan of [`tune`] for one filter shape: everything but the gains fixed.
+struct Scan<'a> {
+    dynamics: &'a StageDynamics,
+    limits: CompensatorSettings,
+    /// sgn g: the gains take the stage's sign.
+    sign: f64,
+    /// The stage's gain g \[m/V\] (the loop-gain bounds of [`Servo::new`]).
+    gain_m_per_v: f32,
+    zero_ratio: f32,
+    /// The mode at f_n and at (1 ∓ δ)·f_n.
+    scales: [f64; 3],
+    nyquist_hz: f64,
+    mode_hz: f64,
+    pm_goal: f64,
+    ms_goal: f64,
+}
+
+impl Scan<'_> {
+    /// The highest crossover f_c ≤ f_n/2 (steps of 2 % down to f_n/10⁴) whose servo of filter
+    /// shape `unit` (its ki and kp replaced) meets the goal; `None` when none does.
+    fn highest(&self, unit: ServoParams) -> Result<Option<Tuning>, ParamError> {
+        let mut fc = self.mode_hz.min(self.nyquist_hz) / 2.0;
+        while fc > self.mode_hz * 1e-4 {
+            // ki = 1, kp = 1/(2π f_z): |L(f_c)| for unit ki, then scale.
+            let wz = 2.0 * core::f64::consts::PI * fc * f64::from(self.zero_ratio);
+            let with = |ki: f64| {
+                let mut p = unit;
+                p.ki_v_per_m_s = (ki * self.sign) as f32;
+                p.kp_v_per_m = (ki * self.sign / wz) as f32;
+                Servo::new(p, self.limits, self.gain_m_per_v)
+            };
+            let probe = with(1.0)?;
+            let (re, im) = probe.response(fc);
+            let l1 = self.dynamics.plant(fc, 1.0).mul(Complex { re, im }).abs();
+            let servo = with(1.0 / l1)?;
+            if let Some((pm, crossover, peak, bandwidth)) = margins(
+                &servo,
+                self.dynamics,
+                &self.scales,
+                fc / 100.0,
+                self.nyquist_hz,
+            ) {
+                if pm >= self.pm_goal && peak <= self.ms_goal {
+                    return Ok(Some(Tuning {
+                        params: servo.params(),
+                        crossover_hz: crossover as f32,
+                        phase_margin_deg: pm as f32,
+                        sensitivity_peak: peak as f32,
+                        closed_loop_bandwidth_hz: bandwidth as f32,
+                    }));
+                }
+            }
+            fc /= 1.02;
+        }
+        Ok(None)
+    }
+}
+
 /// Servo parameters from the stage's dynamics, by loop shaping against the nominal plant
 /// `P(s) = g·ω_n²/(s² + 2ζω_n s + ω_n²)·e^{−sτ}` and the discrete controller itself.
 ///
-/// The rule: notch at f_n (Q = `notch_q`), Butterworth low-pass at `lowpass_ratio`·f_n (both
-/// capped at 0.45·f_s), PI zero at f_z = `zero_ratio`·f_c, and ki scaled so that |L(f_c)| = 1.
-/// f_c is the highest crossover, scanned downwards from f_n/2 in steps of 2 %, for which
+/// The rule: the mode is gain-stabilised by a notch at f_n, a Butterworth low-pass rolls the
+/// loop off above it, PI zero at f_z = `zero_ratio`·f_c, and ki is scaled so that |L(f_c)| = 1.
+/// The filters are placed from the loop's latency τ (which falls with the loop period):
+/// ```text
+/// f_lp = min(max(lowpass_ratio·f_n, 1/(4τ)), 0.45·f_s)     low-pass corner
+/// f_notch = min(f_n, 0.45·f_s),  Q_notch ∈ {notch_q, 0.7·notch_q, 0.5·notch_q}
+/// ```
+/// Below 1/(4τ) the delay alone turns the loop by less than 90° (e^{−jωτ}, ωτ < π/2), so a
+/// low-pass corner there would spend at the crossover phase that the delay leaves free; a slow
+/// loop (10 kHz: τ = 155 µs, 1/(4τ) = 1.6 kHz) keeps the corner at `lowpass_ratio`·f_n, a fast
+/// one moves it up (50 kHz: τ = 35 µs, 7.1 kHz). A notch of lower Q attenuates more over
+/// f_n·(1 ± δ) and costs more phase at f_c: each Q is scanned and the highest crossover wins
+/// (a tie keeps the higher Q). For each shape, f_c is the highest crossover, scanned downwards
+/// from f_n/2 in steps of 2 %, for which
 /// 1. the phase margin at f_c is at least φ_m;
 /// 2. |L| crosses 0 dB exactly once (the mode's peak stays below it after the notch);
 /// 3. |1/(1 + L)| ≤ M_s at every frequency up to Nyquist;
 ///
 /// with 2 and 3 also for the mode at (1 ± `mode_uncertainty`)·f_n. The gain g should be the
 /// largest |dy/du| of the model: a lower local gain lowers the crossover, which only adds phase.
+/// What caps f_c on a lightly damped mode is condition 3 between f_c and f_n, where the mode's
+/// quasi-static rise 1/(1 − (f/f_n)²) and the filters' lag bring L towards −1 (on the XY stage,
+/// ζ = 0.03, the peak of |1/(1 + L)| sits near f_n/2), not the latency.
 /// Refused (`OutOfRange` on `phase_margin_deg`) when no crossover above f_n/10⁴ meets the goal.
 pub fn tune(
     dynamics: &StageDynamics,
@@ -748,48 +826,48 @@ pub fn tune(
         }
     })?;
     let cap = MAX_FILTER_FRACTION as f64 * 0.999 * fs;
-    let lp = (f64::from(positive("lowpass_ratio", goal.lowpass_ratio)?) * fn_hz).min(cap);
+    let ratio = f64::from(positive("lowpass_ratio", goal.lowpass_ratio)?);
+    // Where the latency alone has turned the loop's phase by 90°: the low-pass goes no lower.
+    let quarter_turn_hz = if tau > 0.0 {
+        0.25 / f64::from(tau)
+    } else {
+        f64::INFINITY
+    };
+    let lp = (ratio * fn_hz).max(quarter_turn_hz).min(cap);
     let notch = fn_hz.min(cap);
-    let nyquist = 0.5 * fs;
-    let scales = [1.0, 1.0 - du, 1.0 + du];
-    let sign = if g > 0.0 { 1.0 } else { -1.0 };
-    let mut fc = fn_hz.min(nyquist) / 2.0;
-    while fc > fn_hz * 1e-4 {
-        let unit = ServoParams {
+    let notch_q = positive("notch_q", goal.notch_q)?;
+    let scan = Scan {
+        dynamics,
+        limits,
+        sign: if g > 0.0 { 1.0 } else { -1.0 },
+        gain_m_per_v: g,
+        zero_ratio,
+        scales: [1.0, 1.0 - du, 1.0 + du],
+        nyquist_hz: 0.5 * fs,
+        mode_hz: fn_hz,
+        pm_goal,
+        ms_goal,
+    };
+    let mut best: Option<Tuning> = None;
+    for widening in NOTCH_WIDENING {
+        let shape = ServoParams {
             kp_v_per_m: 0.0,
             ki_v_per_m_s: 1.0,
             lowpass_frequency_hz: lp as f32,
             lowpass_q: core::f32::consts::FRAC_1_SQRT_2,
             notch_frequency_hz: notch as f32,
-            notch_q: goal.notch_q,
+            notch_q: notch_q * widening,
             transfer_time_constant_s: goal.transfer_time_constant_s,
         };
-        // ki = 1, kp = 1/(2π f_z): |L(f_c)| for unit ki, then scale.
-        let wz = 2.0 * core::f64::consts::PI * fc * f64::from(zero_ratio);
-        let with = |ki: f64| {
-            let mut p = unit;
-            p.ki_v_per_m_s = (ki * sign) as f32;
-            p.kp_v_per_m = (ki * sign / wz) as f32;
-            Servo::new(p, limits, g)
-        };
-        let probe = with(1.0)?;
-        let (re, im) = probe.response(fc);
-        let l1 = dynamics.plant(fc, 1.0).mul(Complex { re, im }).abs();
-        let servo = with(1.0 / l1)?;
-        if let Some((pm, crossover, peak, bandwidth)) =
-            margins(&servo, dynamics, &scales, fc / 100.0, nyquist)
-        {
-            if pm >= pm_goal && peak <= ms_goal {
-                return Ok(Tuning {
-                    params: servo.params(),
-                    crossover_hz: crossover as f32,
-                    phase_margin_deg: pm as f32,
-                    sensitivity_peak: peak as f32,
-                    closed_loop_bandwidth_hz: bandwidth as f32,
-                });
+        if let Some(t) = scan.highest(shape)? {
+            // A tie keeps the narrower notch (tried first).
+            if best.is_none_or(|b| t.crossover_hz > b.crossover_hz) {
+                best = Some(t);
             }
         }
-        fc /= 1.02;
+    }
+    if let Some(t) = best {
+        return Ok(t);
     }
     Err(ParamError::OutOfRange {
         field: "phase_margin_deg",
@@ -1036,6 +1114,45 @@ mod tests {
             assert!((out.voltage_v - last).abs() <= 10.0 + 1e-4);
             last = out.voltage_v;
         }
+    }
+
+    /// The filters follow the latency: at 10 kHz (τ = 1.5·T + 5 µs, 1/(4τ) = 1.6 kHz below the
+    /// mode) the low-pass stays at f_n with the goal's notch; at 50 kHz (1/(4τ) = 7.1 kHz) it
+    /// moves up and a wider notch wins: x-like stage 387 → 575 Hz at the same margins.
+    #[test]
+    fn a_faster_loop_moves_the_filters_and_raises_the_crossover() {
+        let at = |rate: f32| {
+            let t = 1.0 / rate;
+            let dynamics = StageDynamics {
+                gain_m_per_v: 3.4e-7,
+                mode_frequency_hz: 3221.0,
+                mode_damping: 0.03,
+                latency_s: 1.5 * t + 5e-6,
+            };
+            let limits = CompensatorSettings {
+                sample_period_s: t,
+                ..limits()
+            };
+            tune(&dynamics, &TuningGoal::default(), limits).unwrap()
+        };
+        let slow = at(10_000.0);
+        assert_eq!(slow.params.lowpass_frequency_hz, 3221.0, "{slow:?}");
+        assert_eq!(slow.params.notch_q, 1.0, "{slow:?}");
+        let fast = at(50_000.0);
+        assert!(
+            (7_100.0..7_200.0).contains(&fast.params.lowpass_frequency_hz),
+            "{fast:?}"
+        );
+        for t in [slow, fast] {
+            assert!(
+                t.phase_margin_deg >= 60.0 && t.sensitivity_peak <= 1.6,
+                "{t:?}"
+            );
+        }
+        assert!(
+            fast.crossover_hz > 1.4 * slow.crossover_hz,
+            "{slow:?} {fast:?}"
+        );
     }
 
     #[test]

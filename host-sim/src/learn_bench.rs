@@ -29,7 +29,7 @@ use crate::learn::rule_text;
 use crate::plant::XyStage;
 use crate::plot::{plot_grid, Chart, Legend, Panel, Role, Series};
 use crate::servo_bench::{
-    controllers, identify_rig, Rig, Shape, DEFAULT_PLANT_EFFECTS, HIGH, LOW, STACK_FILE,
+    controllers, default_plant_effects, identify_rig, Rig, Shape, HIGH, LOW, STACK_FILE,
 };
 use piezo_core::{compensate_pair, Learning, LearningParams, ServoMode, ServoState, Trial};
 use piezo_stage::StageFile;
@@ -126,10 +126,7 @@ impl Default for LearnBenchSettings {
             trial_min_s: 0.1,
             warmup_min_s: 0.1,
             fade_in_s: 0.05,
-            plant_effects: DEFAULT_PLANT_EFFECTS
-                .iter()
-                .map(|s| s.to_string())
-                .collect(),
+            plant_effects: default_plant_effects(10_000.0),
             params: LearningParams::default(),
             perturbations: vec![
                 Perturbation::Gain(0.6),

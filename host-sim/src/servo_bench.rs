@@ -10,7 +10,8 @@
 //! (an AR(2) fit of the samples after the step), with a latency of 1.5 loop periods. Both go
 //! through the stage file (`[x.servo]`) and its validation.
 //!
-//! **Loop** at 10 kHz, per tick k: the sensor is sampled at t_k; the compensator is given the
+//! **Loop** at the bench's rate (10 kHz unless `--rates` says otherwise: the stack file is run at
+//! that rate, the DAC updates at it and the servo is tuned for it), per tick k: the sensor is sampled at t_k; the compensator is given the
 //! reference one tick ahead, r\[k+1\] (the voltage is held over \[t_k, t_{k+1}) and shows at
 //! t_{k+1}); the servo compares r\[k\] with the measurement; the voltage goes to the plant
 //! through the DAC (zero-order hold, quantised). The plant is host-sim's f64 XY stage, integrated
@@ -47,14 +48,21 @@ use std::time::Instant;
 /// The stack model the feedforward starts from.
 pub(crate) const STACK_FILE: &str = include_str!("../../firmware/params/xy-stage.toml");
 
-/// The effects the bench's plant carries (host-sim effect specs).
-pub const DEFAULT_PLANT_EFFECTS: [&str; 5] = [
-    "creep:tau=0.1/1,weight=0.02/0.02",
-    "drift:rate=1e-7,amplitude=3e-7,tau=0.5",
-    "noise:rms_m=2e-9,seed=11",
-    "adc:lsb_m=3.125e-9",
-    "dac:bits=16,min=0,max=120,rate_hz=10000",
-];
+/// The effects the bench's plant carries at the loop rate `loop_rate_hz` (host-sim effect
+/// specs): creep, drift, 2 nm sensor noise, a 3.125 nm ADC and a 16-bit 0–120 V DAC updated at
+/// the loop rate.
+pub fn default_plant_effects(loop_rate_hz: f64) -> Vec<String> {
+    vec![
+        "creep:tau=0.1/1,weight=0.02/0.02".into(),
+        "drift:rate=1e-7,amplitude=3e-7,tau=0.5".into(),
+        "noise:rms_m=2e-9,seed=11".into(),
+        "adc:lsb_m=3.125e-9".into(),
+        format!("dac:bits=16,min=0,max=120,rate_hz={loop_rate_hz}"),
+    ]
+}
+
+/// The loop rate of the bench when none is given \[Hz\].
+pub const DEFAULT_LOOP_RATE_HZ: f64 = 10_000.0;
 
 /// Lower end of the tracking references \[fraction of the stroke\]: above what the descending
 /// branch reaches at 0 V once creep and drift have added to it.
@@ -117,7 +125,7 @@ pub struct BenchSettings {
 impl Default for BenchSettings {
     fn default() -> Self {
         Self {
-            loop_rate_hz: 10_000.0,
+            loop_rate_hz: DEFAULT_LOOP_RATE_HZ,
             frequencies_hz: vec![1.0, 10.0, 100.0],
             shapes: vec![Shape::Triangle, Shape::Sine],
             modes: ServoMode::ALL.to_vec(),
@@ -126,10 +134,7 @@ impl Default for BenchSettings {
             fade_in_s: 0.05,
             settle_s: 0.1,
             chirp_s: 1.0,
-            plant_effects: DEFAULT_PLANT_EFFECTS
-                .iter()
-                .map(|s| s.to_string())
-                .collect(),
+            plant_effects: default_plant_effects(DEFAULT_LOOP_RATE_HZ),
         }
     }
 }
@@ -679,8 +684,10 @@ pub fn run_bench(
         effects.add_spec(spec).map_err(|e| format!("{spec}: {e}"))?;
     }
     let stage = XyStage::default();
-    let stack_file =
+    let mut stack_file =
         StageFile::parse("firmware/params/xy-stage.toml", STACK_FILE).map_err(|e| e.to_string())?;
+    // The compensator and the servo run at the bench's rate.
+    stack_file.stage.loop_rate_hz = fs as f32;
     let stack = stack_file.validate().map_err(|e| e.to_string())?;
     progress("identifying the platform gain and the first mode");
     let identified = identify_rig(&stage, &effects, &stack, fs)?;
@@ -969,11 +976,17 @@ pub struct ServoBenchArgs {
     /// noise, a 3.125 nm ADC and a 16-bit 0-120 V DAC at the loop rate; `none` for a clean plant).
     #[arg(long = "plant-effect")]
     pub plant_effects: Vec<String>,
+    /// Loop rates [Hz], comma-separated: the whole bench (identification, tuning, runs) at each;
+    /// with more than one, each rate's files go to `OUT/<rate>-hz/` and a table across the rates
+    /// follows (`rates.json`).
+    #[arg(long, value_delimiter = ',', default_value = "10000")]
+    pub rates: Vec<f64>,
 }
 
 /// Help after the options.
 pub const HELP: &str = "The plant is host-sim's f64 XY stage (seed 002, modes at 3.2 and 2.2 kHz) with creep, thermal drift, \
-sensor noise, ADC and DAC quantisation, stepped tick by tick at 10 kHz. The feedforward is piezo-core's compensator \
+sensor noise, ADC and DAC quantisation, stepped tick by tick at the loop rate (--rates, default 10 kHz; several rates run the whole bench at each and \
+add a table across them). The feedforward is piezo-core's compensator \
 (firmware/params/xy-stage.toml scaled to the platform by the identified gain), the servo piezo-core's, tuned by \
 piezo_core::servo::tune from the identified first mode. Rows: 1, 10, 100 Hz triangles and sines between 20 % and 90 % \
 of the stroke (faded in over 50 ms, scored after 0.1 s) in open-loop, feedforward, feedback and feedforward+feedback; errors in % of stroke (worse axis), \
@@ -987,16 +1000,125 @@ pub fn servo_bench_cmd(a: &ServoBenchArgs) -> Result<String, String> {
         "both" => &["svg", "png"],
         other => return Err(format!("--format {other}: expected svg, png or both")),
     };
-    let mut settings = BenchSettings::default();
-    if !a.plant_effects.is_empty() {
-        settings.plant_effects = a
-            .plant_effects
-            .iter()
-            .filter(|e| e.as_str() != "none")
-            .cloned()
-            .collect();
+    if a.rates.is_empty() {
+        return Err("--rates: give at least one loop rate".into());
     }
-    let report = run_bench(&settings, &mut |line: &str| eprintln!("{line}"))?;
-    let files = report.write(&a.out, extensions)?;
-    Ok(format!("{}written: {}", report.table(), files.join(", ")))
+    for &rate in &a.rates {
+        // The core's limit on the filters (0.45·f_s) and the firmware's loop rates.
+        if !(rate.is_finite() && (1_000.0..=1e6).contains(&rate)) {
+            return Err(format!("--rates {rate}: a loop rate in [1000, 1e6] Hz"));
+        }
+    }
+    let mut reports = Vec::new();
+    let mut out = String::new();
+    for &rate in &a.rates {
+        let mut settings = BenchSettings {
+            loop_rate_hz: rate,
+            plant_effects: default_plant_effects(rate),
+            ..BenchSettings::default()
+        };
+        if !a.plant_effects.is_empty() {
+            settings.plant_effects = a
+                .plant_effects
+                .iter()
+                .filter(|e| e.as_str() != "none")
+                .cloned()
+                .collect();
+        }
+        eprintln!("loop rate {rate} Hz");
+        let report = run_bench(&settings, &mut |line: &str| eprintln!("{line}"))?;
+        let dir = if a.rates.len() == 1 {
+            a.out.clone()
+        } else {
+            a.out.join(format!("{rate}-hz"))
+        };
+        let files = report.write(&dir, extensions)?;
+        if a.rates.len() > 1 {
+            out += &format!("## loop rate {rate} Hz\n\n");
+        }
+        out += &format!("{}written: {}\n", report.table(), files.join(", "));
+        reports.push((rate, report));
+    }
+    if reports.len() > 1 {
+        let json = a.out.join("rates.json");
+        let text =
+            serde_json::to_string_pretty(&rates_json(&reports)).map_err(|e| e.to_string())?;
+        std::fs::write(&json, text).map_err(|e| format!("{}: {e}", json.display()))?;
+        out += &format!("\n{}written: {}\n", rates_table(&reports), json.display());
+    }
+    Ok(out.trim_end().to_string())
+}
+
+/// The modes and signals of the table across rates: (mode, shape, frequency).
+const RATE_COLUMNS: [(ServoMode, Shape, f64); 4] = [
+    (ServoMode::Feedforward, Shape::Triangle, 100.0),
+    (ServoMode::Feedback, Shape::Triangle, 100.0),
+    (ServoMode::FeedforwardFeedback, Shape::Triangle, 100.0),
+    (ServoMode::FeedforwardFeedback, Shape::Triangle, 1.0),
+];
+
+/// The table across loop rates: per rate the tuned crossover and phase margin of each axis and
+/// the RMS error (% stroke, worse axis) of [`RATE_COLUMNS`]; the last column is the
+/// feedforward + feedback RMS at a 100 Hz triangle relative to the first rate's.
+pub fn rates_table(reports: &[(f64, BenchReport)]) -> String {
+    let mut s = String::from(
+        "| loop rate [Hz] | x crossover [Hz] / margin [deg] | y crossover [Hz] / margin [deg] |",
+    );
+    for (mode, shape, f) in RATE_COLUMNS {
+        s += &format!(" {} {} {f} Hz RMS [%] |", mode.name(), shape.name());
+    }
+    s += " ff+fb 100 Hz vs first rate |\n|---|---|---|";
+    s += &"---|".repeat(RATE_COLUMNS.len() + 1);
+    s += "\n";
+    let hybrid = |r: &BenchReport| {
+        r.row(ServoMode::FeedforwardFeedback, Shape::Triangle, 100.0)
+            .map_or(f64::NAN, |row| row.rms_percent)
+    };
+    let first = reports.first().map_or(f64::NAN, |(_, r)| hybrid(r));
+    for (rate, r) in reports {
+        let [x, y] = &r.tunings;
+        s += &format!(
+            "| {rate} | {:.0} / {:.1} | {:.0} / {:.1} |",
+            x.crossover_hz, x.phase_margin_deg, y.crossover_hz, y.phase_margin_deg
+        );
+        for (mode, shape, f) in RATE_COLUMNS {
+            let v = r
+                .row(mode, shape, f)
+                .map_or(f64::NAN, |row| row.rms_percent);
+            s += &format!(" {v:.4} |");
+        }
+        s += &format!(" {:.2} |\n", hybrid(r) / first);
+    }
+    s
+}
+
+/// `{"rates": [{"loop_rate_hz", "tunings": [...], "rows": [...]}]}`.
+pub fn rates_json(reports: &[(f64, BenchReport)]) -> serde_json::Value {
+    let rates: Vec<serde_json::Value> = reports
+        .iter()
+        .map(|(rate, r)| {
+            let tunings: Vec<serde_json::Value> = ["x", "y"]
+                .iter()
+                .zip(&r.tunings)
+                .map(|(axis, t)| {
+                    serde_json::json!({
+                        "axis": axis,
+                        "crossover_hz": t.crossover_hz,
+                        "phase_margin_deg": t.phase_margin_deg,
+                        "sensitivity_peak": t.sensitivity_peak,
+                        "lowpass_frequency_hz": t.params.lowpass_frequency_hz,
+                        "notch_frequency_hz": t.params.notch_frequency_hz,
+                        "notch_q": t.params.notch_q,
+                        "ki_v_per_m_s": t.params.ki_v_per_m_s,
+                    })
+                })
+                .collect();
+            serde_json::json!({
+                "loop_rate_hz": rate,
+                "tunings": tunings,
+                "rows": r.json()["rows"].clone(),
+            })
+        })
+        .collect();
+    serde_json::json!({ "rates": rates })
 }

@@ -14,8 +14,10 @@
 //!   measured on a board). A faster loop has less delay, so the same stage gets a higher
 //!   crossover at the same phase margin.
 //!
-//! The rule (core docs): notch and Butterworth low-pass at f_n, pure integral action, the highest
-//! crossover with the phase margin asked for and |1/(1 + L)| ≤ 1.6, also with f_n ± 10 %. The
+//! The rule (core docs, `piezo_core::servo::tune`): a notch at f_n (Q 1, 0.7 or 0.5, whichever
+//! reaches higher), a Butterworth low-pass at f_n or at 1/(4τ) when the latency puts that higher,
+//! pure integral action, the highest crossover with the phase margin asked for and
+//! |1/(1 + L)| ≤ 1.6, also with f_n ± 10 %. The
 //! parameters are written into the stage file and validated by the core with the rest of it.
 
 use piezo_core::servo::{tune, StageDynamics, Tuning, TuningGoal};
@@ -275,10 +277,10 @@ mod tests {
         assert!(e.contains("3 values"), "{e}");
     }
 
-    /// The same stage at 10, 20 and 50 kHz: the latency shrinks with the period, so the
-    /// crossover rises at the same phase margin: x 387 → 419 → 472 Hz, y 275 → 303 → 341 Hz
-    /// (the mode, its ±10 % and the sensitivity peak, not the latency, hold it there above
-    /// 20 kHz).
+    /// The same stage at 10, 20 and 50 kHz: the latency shrinks with the period, so the filters
+    /// move up and the crossover rises at the same phase margin: x 387 → 419 → 575 Hz, y 275 →
+    /// 335 → 425 Hz (the mode, its ±10 % and the sensitivity peak below it, not the latency,
+    /// hold it there). At 10 kHz the servo is the one the default stage file carries.
     #[test]
     fn a_faster_loop_gets_a_higher_crossover() {
         let mut crossover = Vec::new();
@@ -304,7 +306,8 @@ mod tests {
         }
         for i in 0..2 {
             assert!(crossover[1][i] > 1.05 * crossover[0][i], "{crossover:?}");
-            assert!(crossover[2][i] > 1.1 * crossover[1][i], "{crossover:?}");
+            assert!(crossover[2][i] > 1.2 * crossover[1][i], "{crossover:?}");
+            assert!(crossover[2][i] > 1.45 * crossover[0][i], "{crossover:?}");
         }
     }
 }

@@ -96,3 +96,53 @@ fn servo_table_round_trips_and_is_validated_by_the_core() {
         .to_string();
     assert!(e.contains("x.servo.ki_v_per_m_s"), "{e}");
 }
+
+/// The bench at another loop rate runs the stack file's compensator, the servo and the DAC at
+/// that rate and tunes the servo for it: at 20 kHz the shorter latency gives a higher crossover
+/// than at 10 kHz with the phase margin kept, and feedforward + feedback stays the best mode.
+#[test]
+fn the_bench_runs_and_tunes_at_the_rate_it_is_given() {
+    let at = |rate: f64| {
+        let settings = BenchSettings {
+            loop_rate_hz: rate,
+            plant_effects: host_sim::servo_bench::default_plant_effects(rate),
+            frequencies_hz: vec![100.0],
+            shapes: vec![Shape::Triangle],
+            modes: vec![ServoMode::Feedforward, ServoMode::FeedforwardFeedback],
+            periods: 2.0,
+            min_scored_s: 0.02,
+            chirp_s: 0.0,
+            ..Default::default()
+        };
+        run_bench(&settings, &mut |_: &str| {}).unwrap()
+    };
+    let slow = at(10_000.0);
+    let fast = at(20_000.0);
+    assert!(
+        host_sim::servo_bench::default_plant_effects(20_000.0)
+            .iter()
+            .any(|e| e.starts_with("dac:") && e.ends_with("rate_hz=20000")),
+        "the DAC updates at the loop rate"
+    );
+    for a in 0..2 {
+        let (s, f) = (&slow.tunings[a], &fast.tunings[a]);
+        assert!(f.crossover_hz > 1.1 * s.crossover_hz, "{s:?} {f:?}");
+        assert!(
+            f.phase_margin_deg >= 60.0 && f.sensitivity_peak <= 1.6,
+            "{f:?}"
+        );
+    }
+    for report in [&slow, &fast] {
+        let rms = |mode| {
+            report
+                .row(mode, Shape::Triangle, 100.0)
+                .unwrap()
+                .rms_percent
+        };
+        assert!(rms(ServoMode::FeedforwardFeedback) < rms(ServoMode::Feedforward));
+    }
+    println!(
+        "{}",
+        host_sim::servo_bench::rates_table(&[(10_000.0, slow), (20_000.0, fast)])
+    );
+}
