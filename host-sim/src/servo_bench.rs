@@ -976,7 +976,7 @@ pub struct ServoBenchArgs {
     /// noise, a 3.125 nm ADC and a 16-bit 0-120 V DAC at the loop rate; `none` for a clean plant).
     #[arg(long = "plant-effect")]
     pub plant_effects: Vec<String>,
-    /// Loop rates [Hz], comma-separated: the whole bench (identification, tuning, runs) at each;
+    /// Loop rates \[Hz\], comma-separated: the whole bench (identification, tuning, runs) at each;
     /// with more than one, each rate's files go to `OUT/<rate>-hz/` and a table across the rates
     /// follows (`rates.json`).
     #[arg(long, value_delimiter = ',', default_value = "10000")]
@@ -1058,7 +1058,7 @@ const RATE_COLUMNS: [(ServoMode, Shape, f64); 4] = [
 ];
 
 /// The table across loop rates: per rate the tuned crossover and phase margin of each axis and
-/// the RMS error (% stroke, worse axis) of [`RATE_COLUMNS`]; the last column is the
+/// the RMS error (% stroke, worse axis) of `RATE_COLUMNS`; the last column is the
 /// feedforward + feedback RMS at a 100 Hz triangle relative to the first rate's.
 pub fn rates_table(reports: &[(f64, BenchReport)]) -> String {
     let mut s = String::from(
