@@ -76,6 +76,14 @@ impl IoChain {
         (self.dac_range_v[0] * g, self.dac_range_v[1] * g)
     }
 
+    /// The fastest slew limit [`IoChain::check_limits`] accepts at loop period `sample_period_s`:
+    /// a swing over the whole drive span in [`MIN_DRIVE_TICKS`] ticks,
+    /// `(drive_max − drive_min) / (MIN_DRIVE_TICKS · T)` \[V/s\].
+    pub fn fastest_slew_v_per_s(&self, sample_period_s: f32) -> f32 {
+        let (d0, d1) = self.drive_range_v();
+        (d1 - d0) / (MIN_DRIVE_TICKS * sample_period_s)
+    }
+
     /// An axis's output window and slew limit against this chain: the chain itself
     /// ([`IoChain::check`]), the window and slew by [`CompensatorSettings::check_slew`], the slew
     /// limit finite, and the window inside [`IoChain::drive_range_v`] (1 mV of rounding allowed).

@@ -29,7 +29,8 @@ use crate::learn::rule_text;
 use crate::plant::XyStage;
 use crate::plot::{plot_grid, Chart, Legend, Panel, Role, Series};
 use crate::servo_bench::{
-    controllers, default_plant_effects, identify_rig, Rig, Shape, HIGH, LOW, STACK_FILE,
+    controllers, default_plant_effects, identify_rig, Rig, Shape, DEFAULT_LOOP_RATE_HZ, HIGH, LOW,
+    STACK_FILE,
 };
 use piezo_core::{compensate_pair, Learning, LearningParams, ServoMode, ServoState, Trial};
 use piezo_stage::StageFile;
@@ -118,7 +119,7 @@ pub struct LearnBenchSettings {
 impl Default for LearnBenchSettings {
     fn default() -> Self {
         Self {
-            loop_rate_hz: 10_000.0,
+            loop_rate_hz: DEFAULT_LOOP_RATE_HZ,
             frequencies_hz: vec![1.0, 10.0, 100.0],
             shapes: vec![Shape::Triangle, Shape::Sine],
             modes: vec![LearnMode::Learned, LearnMode::LearnedFeedback],
@@ -126,7 +127,7 @@ impl Default for LearnBenchSettings {
             trial_min_s: 0.1,
             warmup_min_s: 0.1,
             fade_in_s: 0.05,
-            plant_effects: default_plant_effects(10_000.0),
+            plant_effects: default_plant_effects(DEFAULT_LOOP_RATE_HZ),
             params: LearningParams::default(),
             perturbations: vec![
                 Perturbation::Gain(0.6),

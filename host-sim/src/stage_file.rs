@@ -187,9 +187,7 @@ impl Verdict {
 fn refusal_kind(e: &StageError) -> RefusalKind {
     if matches!(e.core, Some(ParamError::NotInvertible { .. })) {
         RefusalKind::NotInvertible
-    } else if matches!(e.core, Some(ParamError::WindowOutsideDrive { .. }))
-        || (e.core.is_none() && e.key.ends_with(".limits.output_max_v"))
-    {
+    } else if matches!(e.core, Some(ParamError::WindowOutsideDrive { .. })) {
         RefusalKind::IoWindow
     } else {
         RefusalKind::Other
@@ -283,8 +281,7 @@ pub fn write_stage(path: &Path, header: &str, file: &StageFile) -> WrittenStage 
 pub(crate) fn with_feasible_slew(file: &StageFile) -> StageFile {
     let mut file = file.clone();
     let period = 1.0 / file.stage.loop_rate_hz;
-    let (d0, d1) = file.io.chain().drive_range_v();
-    let drive_fastest = (d1 - d0) / (piezo_core::io_chain::MIN_DRIVE_TICKS * period);
+    let drive_fastest = file.io.chain().fastest_slew_v_per_s(period);
     let lower = |a: &mut piezo_stage::Axis| {
         let l = &mut a.limits;
         let fastest = piezo_core::CompensatorSettings {
