@@ -36,6 +36,7 @@
 //! |---|---|---|---|
 //! | creep (Kelvin–Voigt) | `creep_gain_m_per_v`, `creep_time_constant_s` | Σᵢ gᵢ·xᵢ | exact, in [`Effects::creep_m`] |
 //! | creep (logarithmic) | `log_creep_gain_m_per_v`, `log_creep_time_s` | g_log·½·Σₗ xₗ ≈ g_log·Δu·log₁₀(1 + t/t₀) after a step | exact, in [`Effects::creep_m`] |
+//! | hysteresis input lag | `hysteresis_lag_s` | the Bouc-Wen operator driven by v, τ_v·v̇ = u − v | exact, explicit ([`crate::static_model`]) |
 //! | rate-dependent hysteresis | `relaxation_gain`, `relaxation_time_constant_s` | Σᵢ g_wᵢ·vᵢ, vᵢ a first-order lag of w | exact, in [`Effects::relaxation_m`] |
 //! | even term | `even_coefficient_m_per_v2`, `even_center_v` | e·(u\[j−1\] − u_c)² | exact, [`Effects::even_term_m`] |
 //! | mode | `mode_frequency_hz`, `mode_damping` | z̈ + 2ζω·ż + ω²·z = ω²·s | central differences |
@@ -142,7 +143,7 @@
 use crate::compensator::{Compensator, CompensatorState};
 use crate::error::{finite, positive, ParamError};
 use crate::math::clamp;
-use crate::static_model::{ModelState, StaticModel};
+use crate::static_model::{ModelState, StaticModel, MAX_INPUT_LAG_S, MIN_INPUT_LAG_PERIODS};
 
 /// Largest number of creep elements.
 pub const MAX_CREEP_ELEMENTS: usize = 3;
@@ -320,6 +321,10 @@ pub struct EffectParams {
     /// k_r \[m/V\]: the relaxation is driven by w − k_r·u (0: all of w relaxes; the map's k1: only
     /// the hysteretic part; any finite value).
     pub relaxation_linear_m_per_v: f32,
+    /// τ_v \[s\] of the hysteresis's input lag: the Bouc-Wen operator is driven by a first-order
+    /// lag of the command ([`crate::static_model`], [`Effects::hysteresis_model`]); 0: none, else
+    /// between one sample period and 1 s.
+    pub hysteresis_lag_s: f32,
 }
 
 /// Reads a sequence of at most [`MAX_CREEP_ELEMENTS`] numbers (missing elements 0).
@@ -643,6 +648,14 @@ fn bounded(x: f32) -> f32 {
 }
 
 impl Effects {
+    /// The hysteresis model these effects run around: `model` (standard or asymmetric, built
+    /// without a lag) with its operator driven by the input lag `hysteresis_lag_s` when there is
+    /// one ([`StaticModel::with_input_lag`]; refused on the asymmetric model). Every builder of an
+    /// axis (stage file, firmware, identification) takes its model from here.
+    pub fn hysteresis_model(&self, model: StaticModel) -> Result<StaticModel, ParamError> {
+        model.with_input_lag(self.params.hysteresis_lag_s, self.sample_period_s)
+    }
+
     /// Validates `params` for the sample period `sample_period_s` \[s\] and their plausibility
     /// over `range` (the output window and the model's output over it; see the module doc).
     pub fn new(
@@ -652,6 +665,14 @@ impl Effects {
     ) -> Result<Self, ParamError> {
         let t = positive("sample_period_s", sample_period_s)?;
         let (span_v, stroke_m) = range.spans()?;
+        let lag = finite("hysteresis_lag_s", params.hysteresis_lag_s)?;
+        if lag != 0.0 && !(lag >= MIN_INPUT_LAG_PERIODS * t && lag <= MAX_INPUT_LAG_S) {
+            return Err(ParamError::OutOfRange {
+                field: "hysteresis_lag_s",
+                value: lag,
+                requirement: "0 (none) or between one sample period and 1 s",
+            });
+        }
 
         let mut creep_rate = [0.0f32; MAX_CREEP_ELEMENTS];
         let mut creep_gain = [0.0f32; MAX_CREEP_ELEMENTS];

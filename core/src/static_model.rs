@@ -27,6 +27,37 @@
 //! monotonicity up to there). Over one period of a time-symmetric
 //! input the δ-term integrates to zero; over an input with unequal rise and fall times it drifts
 //! until that clamp holds it.
+//!
+//! # Hysteresis driven by a lag of the input (rate-dependent hysteresis)
+//! [`StaticModel::with_input_lag`]: the Bouc-Wen operator is driven by v, a first-order lag of the
+//! command, while the linear strain k1·u follows the command at once:
+//!
+//! ```text
+//! τ_v·v̇ = u − v,   ḣ = A·v̇ − β·|v̇|·|h|^(n−1)·h − γ·v̇·|h|^n,   y = k1·u + k2·h + y0
+//! ```
+//!
+//! (a Bouc-Wen operator behind linear input dynamics, the Wiener–Hammerstein structures of
+//! rate-dependent piezo hysteresis: e.g. Rakotondrabe, "Bouc–Wen modeling and inverse multiplicative
+//! structure to compensate hysteresis nonlinearity in piezoelectric actuators", IEEE T-ASE 8(2),
+//! 2011, and the dielectric relaxation of the stack's domain switching). At low rates v = u and
+//! the model is the standard one; as the rate rises h lags the command and the loop opens and
+//! tilts. Sampled exactly for a command that ramps linearly between samples (first-order hold,
+//! as a sampled smooth drive and an amplifier's output do), with x = T/τ_v:
+//!
+//! ```text
+//! v[k] = v[k−1] + c·(u[k−1] − v[k−1]) + b·(u[k] − u[k−1]),   c = 1 − e^(−x),   b = 1 − c/x
+//! ```
+//!
+//! (c and b from f64; b ≈ x/2 for τ_v ≫ T), and h is integrated exactly along v's move. The
+//! one-step map's slope is `dy/du[k] = k1 + k2·b·dh/dv`: the compensator's Newton solve uses it.
+//! Sign convention: τ_v > 0 \[s\], 0 is no lag; v starts at rest at the first command. The
+//! state's `hysteresis.input_v` is v.
+//!
+//! The inverse's recursion through the lag (on a branch of quasi-static slope
+//! S = k1 + k2·dh/dv = k1·(1 + r)) carries an error in v by the factor
+//! `λ = (e^(−x) − r·(c − b))/(1 + r·b)` per sample: |λ| < 1 for every r > −1 since c − b < b when
+//! x ≤ 1; [`crate::compensator::Compensator::new`] asks r > −1 and λ ≥ −1/2 (no more ringing than
+//! half a step) on every branch.
 
 use crate::bouc_wen::{BoucWen, HysteresisState};
 use crate::error::{finite, positive, ParamError};
@@ -93,6 +124,12 @@ pub struct StaticModel {
     /// φ/T: the fractional input shift.
     shift_fraction: f32,
     sample_period_s: f32,
+    /// c = 1 − e^(−T/τ_v) of the input lag (0: none).
+    lag_fraction: f32,
+    /// b = 1 − c·τ_v/T: the share of the current command's step that reaches v (first-order hold).
+    lag_hold_share: f32,
+    /// τ_v \[s\] (0: none).
+    lag_s: f32,
 }
 
 /// The state of a [`StaticModel`].
@@ -114,6 +151,12 @@ impl ModelState {
     }
 }
 
+/// Shortest input lag, in sample periods: a shorter one is a one-sample delay of h, not a lag.
+pub const MIN_INPUT_LAG_PERIODS: f32 = 1.0;
+
+/// Longest input lag \[s\]: beyond it the lag is creep, not rate-dependent hysteresis.
+pub const MAX_INPUT_LAG_S: f32 = 1.0;
+
 /// Input step of [`StaticModel::first_loading`] \[V\].
 pub const FIRST_LOADING_STEP_V: f32 = 0.01;
 
@@ -127,6 +170,9 @@ impl StaticModel {
             delta_half_step: 0.0,
             shift_fraction: 0.0,
             sample_period_s: 0.0,
+            lag_fraction: 0.0,
+            lag_hold_share: 0.0,
+            lag_s: 0.0,
         })
     }
 
@@ -155,7 +201,76 @@ impl StaticModel {
             delta_half_step: 0.5 * asymmetry.delta_per_v_s * sample_period_s,
             shift_fraction: asymmetry.input_shift_s / sample_period_s,
             sample_period_s,
+            lag_fraction: 0.0,
+            lag_hold_share: 0.0,
+            lag_s: 0.0,
         })
+    }
+
+    /// This model with its Bouc-Wen operator driven by a first-order lag of the command, time
+    /// constant `lag_s` = τ_v \[s\] at the sample period `sample_period_s` (module doc). `lag_s`
+    /// = 0 leaves the model as it is. Refuses a negative or non-finite τ_v, a τ_v below
+    /// [`MIN_INPUT_LAG_PERIODS`] sample periods or above [`MAX_INPUT_LAG_S`], a lag on the
+    /// asymmetric model, and a sample period other than the asymmetric model's.
+    pub fn with_input_lag(mut self, lag_s: f32, sample_period_s: f32) -> Result<Self, ParamError> {
+        finite("hysteresis_lag_s", lag_s)?;
+        if lag_s == 0.0 {
+            self.lag_fraction = 0.0;
+            self.lag_hold_share = 0.0;
+            self.lag_s = 0.0;
+            return Ok(self);
+        }
+        let period = positive("sample_period_s", sample_period_s)?;
+        if self.is_asymmetric() {
+            return Err(ParamError::OutOfRange {
+                field: "hysteresis_lag_s",
+                value: lag_s,
+                requirement: "0 on the asymmetric model (the lag drives the standard operator)",
+            });
+        }
+        if !(lag_s >= MIN_INPUT_LAG_PERIODS * period && lag_s <= MAX_INPUT_LAG_S) {
+            return Err(ParamError::OutOfRange {
+                field: "hysteresis_lag_s",
+                value: lag_s,
+                requirement: "0 (none) or between one sample period and 1 s",
+            });
+        }
+        let x = f64::from(period) / f64::from(lag_s);
+        let c = -libm::expm1(-x);
+        self.lag_fraction = c as f32;
+        self.lag_hold_share = (1.0 - c / x) as f32;
+        self.lag_s = lag_s;
+        self.sample_period_s = period;
+        Ok(self)
+    }
+
+    /// τ_v of the input lag \[s\] (0: none).
+    pub fn input_lag_s(&self) -> f32 {
+        self.lag_s
+    }
+
+    /// c = 1 − e^(−T/τ_v): the share of the gap u\[k−1\] − v\[k−1\] the operator's input closes per
+    /// sample (0: no lag).
+    pub fn input_lag_fraction(&self) -> f32 {
+        self.lag_fraction
+    }
+
+    /// b = 1 − c·τ_v/T: the share of the current command's step that reaches v in the same
+    /// sample (0: no lag).
+    pub fn input_lag_hold_share(&self) -> f32 {
+        self.lag_hold_share
+    }
+
+    /// Whether the operator is driven by a lag of the command.
+    pub fn has_input_lag(&self) -> bool {
+        self.lag_fraction != 0.0
+    }
+
+    /// Whether the one-step map differs from the standard one (asymmetric terms or an input lag):
+    /// the state then moves while the command is held, and the compensator's small-step paths
+    /// do not apply.
+    pub(crate) fn has_extra_terms(&self) -> bool {
+        self.is_asymmetric() || self.has_input_lag()
     }
 
     /// The Bouc-Wen operator.
@@ -204,6 +319,25 @@ impl StaticModel {
     /// Shared by [`StaticModel::step`] and the inverse compensator, so both use one discretisation.
     #[inline]
     pub(crate) fn next_state(&self, state: &ModelState, u: f32) -> ModelState {
+        if self.lag_fraction != 0.0 {
+            // v[k] = v[k−1] + c·(u[k−1] − v[k−1]) + b·(u[k] − u[k−1]).
+            let v0 = state.hysteresis.input_v;
+            let v = v0
+                + self.lag_fraction * (state.input_v - v0)
+                + self.lag_hold_share * (u - state.input_v);
+            let moved = self.hysteresis.advance(state.hysteresis.h, v - v0);
+            return ModelState {
+                input_v: u,
+                hysteresis: HysteresisState {
+                    input_v: v,
+                    h: if moved.is_finite() {
+                        moved
+                    } else {
+                        state.hysteresis.h
+                    },
+                },
+            };
+        }
         let previous = state.input_v;
         let du = u - previous;
         let shifted = u - self.shift_fraction * du;
@@ -251,6 +385,13 @@ impl StaticModel {
         reached: &ModelState,
         direction: f32,
     ) -> f32 {
+        if self.lag_fraction != 0.0 {
+            // dy/du = k1 + k2·b·dh/dv, on the branch v moved along.
+            let v_move = reached.hysteresis.input_v - from.hysteresis.input_v;
+            let branch = if v_move != 0.0 { v_move } else { direction };
+            let dh_dv = self.hysteresis.slope(reached.hysteresis.h, branch);
+            return self.map.k1_m_per_v + self.map.k2_m_per_h * self.lag_hold_share * dh_dv;
+        }
         let shifted_move = reached.hysteresis.input_v - from.hysteresis.input_v;
         let branch = if shifted_move != 0.0 {
             shifted_move

@@ -74,11 +74,13 @@ impl AxisParams {
             self.output_max_v,
             STATE_LIMIT,
         )?;
-        if self.asymmetry == Asymmetry::default() {
+        let model = if self.asymmetry == Asymmetry::default() {
             StaticModel::new(hysteresis, self.static_map)
         } else {
             StaticModel::asymmetric(hysteresis, self.static_map, self.asymmetry, SAMPLE_PERIOD_S)
-        }
+        }?;
+        // The hysteresis's input lag is one of the effects; the chain owns how it is applied.
+        self.effect_chain(SAMPLE_PERIOD_S)?.hysteresis_model(model)
     }
 
     /// What the effects are validated against: the output window and the first loading's

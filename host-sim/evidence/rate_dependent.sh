@@ -2,14 +2,16 @@
 # Evidence for rate-dependent hysteresis across records: host-sim's xy-stage (x axis) with the
 # stacks' dielectric lag (dielectric-lag:tau, the Bouc-Wen operator driven by a first-order lag of
 # the voltage, which no model declares), driven by rising-amplitude raised sines 0-120 V at 20, 40
-# and 100 Hz (0.5 s at 10 kHz, 2 nm noise, sensor offsets 0, +2.5 and -1.5 um). For each rate left
+# and 100 Hz (0.5 s at 10 kHz, 2 nm noise unless NOISE_RMS_M says otherwise, sensor offsets 0, +2.5 and -1.5 um). For each rate left
 # out, `identify` (symmetric) and `close-loop` are fitted on the two other records together
 # (--free-offset) and the stage file predicts the third from rest, its offset re-estimated
 # (`predict --free-offset`, zeroed RMS). Prints fit RMS, prediction RMS and their ratio.
-# Usage (from the repository root): bash host-sim/evidence/rate_dependent.sh [OUT_DIR] [TAU_S]
+# Usage (from the repository root):
+#   bash host-sim/evidence/rate_dependent.sh [OUT_DIR] [TAU_S] [NOISE_RMS_M]
 set -euo pipefail
 OUT=${1:-out/rate-dependent}
 TAU=${2:-1e-3}
+NOISE=${3:-2e-9}
 mkdir -p "$OUT"
 cargo build --release -p host-sim -q
 B=${CARGO_TARGET_DIR:-target}/release/host-sim
@@ -17,7 +19,7 @@ offset() { case $1 in 20) echo 0;; 40) echo 2.5e-6;; 100) echo -1.5e-6;; esac; }
 for f in 20 40 100; do
   $B simulate --plant xy-stage \
     --signal "rising-sine:amp=60,offset=0,freq=$f,phase_deg=-90,raised=1,duration=0.5,rate=10000" \
-    --effect "dielectric-lag:tau=$TAU" --effect "noise:rms_m=2e-9,seed=$f" --out "$OUT/raw$f.csv" >/dev/null
+    --effect "dielectric-lag:tau=$TAU" --effect "noise:rms_m=$NOISE,seed=$f" --out "$OUT/raw$f.csv" >/dev/null
   # The sensor's zero moved between sessions: a constant offset per record.
   python3 - "$OUT/raw$f.csv" "$OUT/r$f.csv" "$(offset $f)" <<'PY'
 import csv, sys
@@ -52,8 +54,10 @@ print("|---|---|---|---|---|---|")
 for held in (20, 40, 100):
     ident = json.load(open(f"{out}/identify-{held}.json"))
     cl = json.load(open(f"{out}/close-loop-{held}.json"))
+    added = [f"{s['effect']} ({s['form']})" if s.get("form") else s["effect"]
+             for s in cl["steps"] if s.get("outcome") == "added"]
     rows = [("identify symmetric", "-", ident["fit"]["rms"]),
-            ("close-loop", ", ".join(cl["effects_added"]) or "none", cl["after"]["rms"])]
+            ("close-loop", ", ".join(added) or "none", cl["after"]["rms"])]
     for (name, added, fit), m in zip(rows, ("identify", "close-loop")):
         pred = json.load(open(f"{out}/predict-{m}-{held}.json"))["rms_zeroed_m"][0]
         print(f"| {held} Hz | {name} | {added} | {fit*1e6:.3f} | {pred*1e6:.3f} | {pred/fit:.2f} |")

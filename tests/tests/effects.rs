@@ -695,9 +695,14 @@ fn two_axis_inverse_chain_tracks_with_all_effects() {
         relaxation_gain: [0.3, 0.05],
         relaxation_time_constant_s: [2e-3, 2e-2],
         relaxation_linear_m_per_v: 2e-7,
+        // y's operator behind a 0.5 ms input lag (rate-dependent hysteresis).
+        hysteresis_lag_s: 5e-4,
     };
     let (ex, ey) = (effects(px), effects(py));
-    let (mx, my) = (x_model(), y_model());
+    let (mx, my) = (
+        ex.hysteresis_model(x_model()).unwrap(),
+        ey.hysteresis_model(y_model()).unwrap(),
+    );
     let (cx, cy) = (compensator(mx), compensator(my));
     let (kx, ky) = (px.coupling, py.coupling);
     let run = |invert: bool| {
@@ -975,6 +980,7 @@ prop_compose! {
         log_t0 in 1e-6f32..100.0,
         relaxation_gains in prop::array::uniform2(prop_oneof![Just(0.0f32), 0.0f32..4.0]),
         relaxation_taus in prop::array::uniform2(1e-3f32..100.0),
+        lag in prop_oneof![Just(0.0f32), 1e-4f32..1.0],
     ) -> EffectParams {
         EffectParams {
             creep_gain_m_per_v: gains,
@@ -993,6 +999,7 @@ prop_compose! {
             relaxation_gain: relaxation_gains,
             relaxation_time_constant_s: relaxation_taus,
             relaxation_linear_m_per_v: 0.0,
+            hysteresis_lag_s: lag,
         }
     }
 }

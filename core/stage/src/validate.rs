@@ -15,6 +15,9 @@ use piezo_core::{
 };
 
 /// The built model of one axis at one sample period.
+// Built once per validation and copied by value like the core's models: boxing the static chain
+// would cost an allocation for nothing.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone, Copy)]
 pub enum AxisChain {
     /// A static (symmetric or asymmetric) model followed by the effect chain: what the firmware runs.
@@ -171,6 +174,10 @@ impl Axis {
                     };
                     located(key, e)
                 })?;
+                // The first loading above is the quasi-static one: the lag enters here.
+                let model = effects
+                    .hysteresis_model(model)
+                    .map_err(|e| located(format!("{name}.effects.hysteresis_lag_s"), e))?;
                 linear_gain_m_per_v = gain;
                 rest_output_m = rest;
                 AxisChain::Static { model, effects }

@@ -51,6 +51,27 @@ pub enum DriftForm {
     Settling,
 }
 
+/// The form of the rate-dependent hysteresis.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RateForm {
+    /// The Bouc-Wen operator driven by a first-order lag of the command (τ_v fitted; the core's
+    /// `hysteresis_lag_s`).
+    InputLag,
+    /// A relaxation of the hysteretic part k2·h (gain g and τ_w fitted; the core's
+    /// `relaxation_gain`, `relaxation_time_constant_s`).
+    Relaxation,
+}
+
+impl RateForm {
+    /// Name in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::InputLag => "input lag",
+            Self::Relaxation => "relaxation",
+        }
+    }
+}
+
 impl CreepForm {
     /// Name in reports.
     pub fn name(self) -> &'static str {
@@ -165,6 +186,8 @@ pub struct AxisModel {
     pub creep_elements: usize,
     /// The drift's form (when added).
     pub drift_form: DriftForm,
+    /// The rate-dependent hysteresis's form (when added).
+    pub rate_form: RateForm,
     /// Input range the Bouc-Wen set is validated over \[V\].
     pub input_range_v: (f32, f32),
     /// Range of the hysteresis output w (the measured range widened by a quarter each side) \[m\].
@@ -200,6 +223,8 @@ pub struct HysteresisPath {
     bouc_wen: BoucWenParams,
     /// The input range that set was validated over \[V\].
     input_range_v: (f32, f32),
+    /// The operator's input lag τ_v \[s\] (0: none).
+    lag_s: f32,
     /// The validated operator.
     operator: BoucWen,
     /// The operator's input per sample (the command clamped into its range) \[V\].
@@ -211,7 +236,9 @@ pub struct HysteresisPath {
 impl HysteresisPath {
     /// Whether `model` has this path's operator.
     fn fits(&self, model: &AxisModel) -> bool {
-        self.bouc_wen == model.bouc_wen && self.input_range_v == model.input_range_v
+        self.bouc_wen == model.bouc_wen
+            && self.input_range_v == model.input_range_v
+            && self.lag_s == model.effects.hysteresis_lag_s
     }
 }
 
@@ -293,6 +320,9 @@ impl AxisModel {
         };
         let effects = Effects::new(self.effects, self.sample_period_s, range)
             .map_err(|e| format!("effects refused by piezo-core: {e}"))?;
+        let model = effects
+            .hysteresis_model(model)
+            .map_err(|e| format!("hysteresis input lag refused by piezo-core: {e}"))?;
         Ok((model, effects))
     }
 
@@ -347,6 +377,7 @@ impl AxisModel {
         let mut path = HysteresisPath {
             bouc_wen: self.bouc_wen,
             input_range_v: self.input_range_v,
+            lag_s: self.effects.hysteresis_lag_s,
             operator: *model.hysteresis(),
             input_v: Vec::with_capacity(u.len()),
             h: Vec::with_capacity(u.len()),
@@ -489,6 +520,14 @@ impl AxisModel {
                 e.coupling = coefficient.clamp(-b.coupling_max, b.coupling_max) as f32;
             }
             EffectInit::RateDependent {
+                time_constant_s, ..
+            } if m.rate_form == RateForm::InputLag => {
+                // A lag of h with τ and h driven by a lag of u with τ share their first-order
+                // signature, −τ·ḣ.
+                e.hysteresis_lag_s =
+                    time_constant_s.clamp(b.relaxation_tau_s.0, b.relaxation_tau_s.1) as f32;
+            }
+            EffectInit::RateDependent {
                 lag_coefficient_m,
                 time_constant_s,
             } => {
@@ -523,7 +562,9 @@ impl AxisModel {
     /// data fix and the split into g and τ is left to the fit; `None` without the effect, or when
     /// the start lies outside the bounds or the core's stable-inverse bound (at 0.4).
     pub fn relaxation_restart(&self, gain: f64) -> Option<Self> {
-        if !self.added.contains(&EffectKind::RateDependent) {
+        if !self.added.contains(&EffectKind::RateDependent)
+            || self.rate_form != RateForm::Relaxation
+        {
             return None;
         }
         let b = self.bounds;
@@ -573,6 +614,7 @@ impl AxisModel {
                 e.relaxation_gain = Default::default();
                 e.relaxation_time_constant_s = Default::default();
                 e.relaxation_linear_m_per_v = 0.0;
+                e.hysteresis_lag_s = 0.0;
             }
         }
         m
@@ -588,6 +630,7 @@ impl AxisModel {
             ),
             EffectKind::Creep => self.creep_form.name().into(),
             EffectKind::Drift => self.drift_form.name().into(),
+            EffectKind::RateDependent => self.rate_form.name().into(),
             _ => String::new(),
         }
     }
@@ -696,6 +739,16 @@ impl AxisModel {
                 f64::from(e.coupling),
                 0.1,
                 ParamSpec::within("coupling", kind, -bd.coupling_max, bd.coupling_max),
+            ),
+            EffectKind::RateDependent if self.rate_form == RateForm::InputLag => theta.push(
+                f64::from(e.hysteresis_lag_s).max(1e-9).ln(),
+                10.0,
+                ParamSpec::log_within(
+                    "hysteresis_lag_s",
+                    kind,
+                    bd.relaxation_tau_s.0,
+                    bd.relaxation_tau_s.1,
+                ),
             ),
             EffectKind::RateDependent => {
                 theta.push(
@@ -808,7 +861,7 @@ impl AxisModel {
         m.map.k2_m_per_h = th[4] as f32;
         m.map.offset_m = th[5] as f32;
         let e = &mut m.effects;
-        if m.added.contains(&EffectKind::RateDependent) {
+        if m.added.contains(&EffectKind::RateDependent) && m.rate_form == RateForm::Relaxation {
             e.relaxation_linear_m_per_v = m.map.k1_m_per_v;
         }
         for (s, &t) in spec.iter().zip(&th).skip(6) {
@@ -829,6 +882,7 @@ impl AxisModel {
                 "coupling" => e.coupling = v,
                 "relaxation_gain[0]" => e.relaxation_gain[0] = v,
                 "relaxation_time_constant_s[0]" => e.relaxation_time_constant_s[0] = v,
+                "hysteresis_lag_s" => e.hysteresis_lag_s = v,
                 _ => {}
             }
         }
@@ -1294,6 +1348,7 @@ mod tests {
             added: Vec::new(),
             creep_form: CreepForm::KelvinVoigt,
             creep_elements: 1,
+            rate_form: RateForm::InputLag,
             drift_form: DriftForm::Settling,
             input_range_v: (0.0, 20.0),
             w_range_m: (-1e-5, 1e-5),

@@ -427,6 +427,7 @@ fn base_model(
         added: Vec::new(),
         creep_form: full::CreepForm::KelvinVoigt,
         creep_elements: 1,
+        rate_form: full::RateForm::InputLag,
         drift_form: full::DriftForm::Linear,
         input_range_v: window,
         w_range_m: ((lo - pad) as f32, (hi + pad) as f32),
@@ -593,20 +594,12 @@ fn fit_candidate(
     data: &FitData,
     sse0: f64,
 ) -> (AxisModel, f64) {
-    let (mut fitted, mut sse1, _) = refit(&model.with_effect(cand.init), data, TRIAL_ITERATIONS);
-    // The rate-dependent hysteresis from other splits of its first-order lag into g and τ.
-    if cand.effect == EffectKind::RateDependent {
-        for gain in RELAXATION_RESTART_GAINS {
-            let Some(start) = fitted.relaxation_restart(gain) else {
-                continue;
-            };
-            let (again, sse_again, _) = refit(&start, data, TRIAL_ITERATIONS);
-            if sse_again < sse1 && Plausibility::of(&again, cand.effect).plausible() {
-                fitted = again;
-                sse1 = sse_again;
-            }
-        }
-    }
+    let (mut fitted, mut sse1) = if cand.effect == EffectKind::RateDependent {
+        fit_rate_dependent(model, cand, data)
+    } else {
+        let (fitted, sse1, _) = refit(&model.with_effect(cand.init), data, TRIAL_ITERATIONS);
+        (fitted, sse1)
+    };
     let stuck = data.invertible_at_hz.is_some() && !(sse1 < sse0);
     if let Some(start) = creep_restart(model, &fitted, cand.init, data.invertible_at_hz, stuck) {
         let (again, sse_again, _) = refit(&start, data, TRIAL_ITERATIONS);
@@ -618,6 +611,50 @@ fn fit_candidate(
             sse1 = sse_again;
         }
     }
+    (fitted, sse1)
+}
+
+/// The rate-dependent hysteresis fitted in both its forms ([`full::RateForm`]): the operator
+/// driven by a lag of the command, and the relaxation of its output (that one also from other
+/// splits of its first-order lag into g and τ, [`AxisModel::relaxation_restart`]). The form kept
+/// is the plausible one with the lower SSE (the lower SSE when neither is plausible): which form
+/// a stage's rate dependence takes is the data's to say.
+fn fit_rate_dependent(model: &AxisModel, cand: &Candidate, data: &FitData) -> (AxisModel, f64) {
+    let fit_form = |form: full::RateForm| {
+        let mut base = model.clone();
+        base.rate_form = form;
+        let (mut fitted, mut sse1, _) = refit(&base.with_effect(cand.init), data, TRIAL_ITERATIONS);
+        for gain in RELAXATION_RESTART_GAINS {
+            let Some(start) = fitted.relaxation_restart(gain) else {
+                continue;
+            };
+            let (again, sse_again, _) = refit(&start, data, TRIAL_ITERATIONS);
+            if sse_again < sse1 && Plausibility::of(&again, cand.effect).plausible() {
+                fitted = again;
+                sse1 = sse_again;
+            }
+        }
+        let plausible = Plausibility::of(&fitted, cand.effect).plausible();
+        (fitted, sse1, plausible)
+    };
+    let lag = fit_form(full::RateForm::InputLag);
+    let relaxation = fit_form(full::RateForm::Relaxation);
+    // Plausible first, then the lower SSE (a non-finite SSE never wins).
+    let key = |(_, sse, plausible): &(AxisModel, f64, bool)| {
+        (
+            *plausible,
+            if sse.is_finite() {
+                -sse
+            } else {
+                f64::NEG_INFINITY
+            },
+        )
+    };
+    let (fitted, sse1, _) = if key(&relaxation) > key(&lag) {
+        relaxation
+    } else {
+        lag
+    };
     (fitted, sse1)
 }
 
@@ -636,7 +673,10 @@ fn fit_held(
         return fit_candidate(model, cand, held, sse0);
     };
     let accepted = |m: &AxisModel| stage::compensator_check(m, rate).is_ok();
-    let start = last_accepted_on_the_way(&model.with_effect(cand.init), free, accepted);
+    // The start in the form the free fit took (the rate-dependent hysteresis has two).
+    let mut base = model.clone();
+    base.rate_form = free.rate_form;
+    let start = last_accepted_on_the_way(&base.with_effect(cand.init), free, accepted);
     let (on_the_way, sse_way, _) = refit(&start, held, TRIAL_ITERATIONS);
     let (again, sse_again) = fit_candidate(model, cand, held, sse0);
     if sse_again < sse_way {
