@@ -176,11 +176,15 @@ impl PositionSensor for Sensor {
     }
 }
 
-/// Either axis of either stage file in `firmware/params/`.
+/// Either axis of every stage file in `firmware/params/`.
 fn base_axes() -> Vec<AxisParams> {
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("params");
     let mut axes = Vec::new();
-    for file in ["xy-stage.toml", "xy-stage-effects.toml"] {
+    for file in [
+        "xy-stage.toml",
+        "xy-stage-effects.toml",
+        "xy-stage-lag.toml",
+    ] {
         let bytes = std::fs::read(dir.join(file)).unwrap();
         let set = stage_file::load(file, &bytes).unwrap();
         assert_eq!(set.loop_rate_hz, LOOP_RATE_HZ);

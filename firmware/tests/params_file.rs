@@ -42,11 +42,15 @@ fn built_in_consts_are_the_default_file() {
     assert!(source.contains("pub const AXES: [AxisParams; 2]"));
 }
 
-/// The build takes both example stage files at 50 kHz, the highest rate (a 20 µs period, the
+/// The build takes the example stage files at 50 kHz, the highest rate (a 20 µs period, the
 /// effects' 200 µs delay 10 samples) and refuses one hertz more.
 #[test]
 fn stage_files_build_at_50_khz() {
-    for file in [DEFAULT, "params/xy-stage-effects.toml"] {
+    for file in [
+        DEFAULT,
+        "params/xy-stage-effects.toml",
+        "params/xy-stage-lag.toml",
+    ] {
         let text = String::from_utf8(read(file)).unwrap();
         let at = |rate: &str| text.replacen("loop_rate_hz = 10000.0", rate, 1);
         let set = params::load(file, at("loop_rate_hz = 50000.0").as_bytes())
