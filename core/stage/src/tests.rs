@@ -109,6 +109,40 @@ fn relaxation_round_trips_and_its_bad_values_name_the_field() {
 }
 
 #[test]
+fn hysteresis_lag_round_trips_runs_and_its_bad_values_name_the_key_and_line() {
+    let mut stage = example();
+    stage.x.effects.hysteresis_lag_s = 1e-3;
+    let text = stage.to_toml("");
+    assert!(text.contains("hysteresis_lag_s"), "{text}");
+    let back = StageFile::parse("f.toml", &text).unwrap();
+    assert_eq!(back.x.effects, stage.x.effects);
+    // The validated chain's model carries the lag, and its compensator inverts it.
+    let valid = back.validate().unwrap();
+    match valid.axes[0].chain {
+        crate::validate::AxisChain::Static { model, .. } => {
+            assert_eq!(model.input_lag_s(), 1e-3)
+        }
+        _ => panic!("static chain expected"),
+    }
+    assert!(valid.axes[0].compensator.is_some());
+    // Shorter than a sample period (the example runs at 10 kHz) or negative: refused by the
+    // core, naming the key and its line.
+    let i = text.find("hysteresis_lag_s").unwrap();
+    let end = i + text[i..].find('\n').unwrap();
+    for bad_value in ["1e-6", "-1e-3"] {
+        let bad = format!(
+            "{}hysteresis_lag_s = {bad_value}{}",
+            &text[..i],
+            &text[end..]
+        );
+        let stage = StageFile::parse("f.toml", &bad).unwrap();
+        let e = stage.validate().unwrap_err().located("f.toml", &bad);
+        assert_eq!(e.key, "x.effects.hysteresis_lag_s", "{e}");
+        assert!(e.line.is_some(), "{e}");
+    }
+}
+
+#[test]
 fn short_creep_arrays_are_padded_and_long_ones_refused() {
     let text = example().to_toml("");
     let stage = StageFile::parse("f.toml", &text).unwrap();
