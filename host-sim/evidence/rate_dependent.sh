@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
 # Evidence for rate-dependent hysteresis across records: host-sim's xy-stage (x axis) with the
 # stacks' dielectric lag (dielectric-lag:tau, the Bouc-Wen operator driven by a first-order lag of
-# the voltage, which no model declares), driven by rising-amplitude raised sines 0-120 V at 20, 40
-# and 100 Hz (0.5 s at 10 kHz, 2 nm noise unless NOISE_RMS_M says otherwise, sensor offsets 0, +2.5 and -1.5 um). For each rate left
-# out, `identify` (symmetric) and `close-loop` are fitted on the two other records together
-# (--free-offset) and the stage file predicts the third from rest, its offset re-estimated
-# (`predict --free-offset`, zeroed RMS). Prints fit RMS, prediction RMS and their ratio.
+# the voltage; the fits are not told of it), driven by rising-amplitude raised sines 0-120 V at
+# 20, 40 and 100 Hz (0.5 s at 10 kHz, 2 nm noise unless NOISE_RMS_M says otherwise, sensor offsets
+# 0, +2.5 and -1.5 um). For each rate left out, `identify` (symmetric) and `close-loop` are fitted
+# on the two other records together (--free-offset) and the stage file predicts the third from
+# rest, its offset re-estimated (`predict --free-offset`, zeroed RMS). Prints fit RMS, prediction
+# RMS, their ratio, and the effects close-loop added with their forms.
 # Usage (from the repository root):
 #   bash host-sim/evidence/rate_dependent.sh [OUT_DIR] [TAU_S] [NOISE_RMS_M]
 set -euo pipefail
