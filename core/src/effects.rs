@@ -36,7 +36,7 @@
 //! |---|---|---|---|
 //! | creep (Kelvin–Voigt) | `creep_gain_m_per_v`, `creep_time_constant_s` | Σᵢ gᵢ·xᵢ | exact, in [`Effects::creep_m`] |
 //! | creep (logarithmic) | `log_creep_gain_m_per_v`, `log_creep_time_s` | g_log·½·Σₗ xₗ ≈ g_log·Δu·log₁₀(1 + t/t₀) after a step | exact, in [`Effects::creep_m`] |
-//! | hysteresis input lag | `hysteresis_lag_s` | the Bouc-Wen operator driven by v, τ_v·v̇ = u − v | exact, explicit ([`crate::static_model`]) |
+//! | hysteresis input lag | `hysteresis_lag_s` | the Bouc-Wen operator driven by v, τ_v·v̇ = u − v | exact, the compensator's Newton solve ([`crate::static_model`]) |
 //! | rate-dependent hysteresis | `relaxation_gain`, `relaxation_time_constant_s` | Σᵢ g_wᵢ·vᵢ, vᵢ a first-order lag of w | exact, in [`Effects::relaxation_m`] |
 //! | even term | `even_coefficient_m_per_v2`, `even_center_v` | e·(u\[j−1\] − u_c)² | exact, [`Effects::even_term_m`] |
 //! | mode | `mode_frequency_hz`, `mode_damping` | z̈ + 2ζω·ż + ω²·z = ω²·s | central differences |
@@ -143,7 +143,7 @@
 use crate::compensator::{Compensator, CompensatorState};
 use crate::error::{finite, positive, ParamError};
 use crate::math::clamp;
-use crate::static_model::{ModelState, StaticModel, MAX_INPUT_LAG_S, MIN_INPUT_LAG_PERIODS};
+use crate::static_model::{check_input_lag, ModelState, StaticModel};
 
 /// Largest number of creep elements.
 pub const MAX_CREEP_ELEMENTS: usize = 3;
@@ -325,6 +325,22 @@ pub struct EffectParams {
     /// lag of the command ([`crate::static_model`], [`Effects::hysteresis_model`]); 0: none, else
     /// between one sample period and 1 s.
     pub hysteresis_lag_s: f32,
+}
+
+impl EffectParams {
+    /// The hysteresis model these effects run around: `model` (standard or asymmetric, built
+    /// without a lag: the quasi-static model whose first loading sets the operating range) with
+    /// its operator driven by the input lag `hysteresis_lag_s` when there is one
+    /// ([`StaticModel::with_input_lag`] at the sample period `sample_period_s` \[s\]; refused on
+    /// the asymmetric model). Every builder of an axis (stage file, firmware, close-loop) takes
+    /// the model the compensator inverts from here.
+    pub fn hysteresis_model(
+        &self,
+        model: StaticModel,
+        sample_period_s: f32,
+    ) -> Result<StaticModel, ParamError> {
+        model.with_input_lag(self.hysteresis_lag_s, sample_period_s)
+    }
 }
 
 /// Reads a sequence of at most [`MAX_CREEP_ELEMENTS`] numbers (missing elements 0).
@@ -648,12 +664,9 @@ fn bounded(x: f32) -> f32 {
 }
 
 impl Effects {
-    /// The hysteresis model these effects run around: `model` (standard or asymmetric, built
-    /// without a lag) with its operator driven by the input lag `hysteresis_lag_s` when there is
-    /// one ([`StaticModel::with_input_lag`]; refused on the asymmetric model). Every builder of an
-    /// axis (stage file, firmware, identification) takes its model from here.
+    /// [`EffectParams::hysteresis_model`] at these effects' sample period.
     pub fn hysteresis_model(&self, model: StaticModel) -> Result<StaticModel, ParamError> {
-        model.with_input_lag(self.params.hysteresis_lag_s, self.sample_period_s)
+        self.params.hysteresis_model(model, self.sample_period_s)
     }
 
     /// Validates `params` for the sample period `sample_period_s` \[s\] and their plausibility
@@ -665,14 +678,7 @@ impl Effects {
     ) -> Result<Self, ParamError> {
         let t = positive("sample_period_s", sample_period_s)?;
         let (span_v, stroke_m) = range.spans()?;
-        let lag = finite("hysteresis_lag_s", params.hysteresis_lag_s)?;
-        if lag != 0.0 && !(lag >= MIN_INPUT_LAG_PERIODS * t && lag <= MAX_INPUT_LAG_S) {
-            return Err(ParamError::OutOfRange {
-                field: "hysteresis_lag_s",
-                value: lag,
-                requirement: "0 (none) or between one sample period and 1 s",
-            });
-        }
+        check_input_lag(finite("hysteresis_lag_s", params.hysteresis_lag_s)?, t)?;
 
         let mut creep_rate = [0.0f32; MAX_CREEP_ELEMENTS];
         let mut creep_gain = [0.0f32; MAX_CREEP_ELEMENTS];

@@ -157,6 +157,21 @@ pub const MIN_INPUT_LAG_PERIODS: f32 = 1.0;
 /// Longest input lag \[s\]: beyond it the lag is creep, not rate-dependent hysteresis.
 pub const MAX_INPUT_LAG_S: f32 = 1.0;
 
+/// Refuses an input lag τ_v = `lag_s` other than 0 or within
+/// \[[`MIN_INPUT_LAG_PERIODS`]·T, [`MAX_INPUT_LAG_S`]\] at the sample period `period_s` = T (NaN
+/// included), naming `hysteresis_lag_s`: the one bound of the lag, for the model and for the
+/// effect parameters that carry it.
+pub(crate) fn check_input_lag(lag_s: f32, period_s: f32) -> Result<(), ParamError> {
+    if lag_s == 0.0 || (lag_s >= MIN_INPUT_LAG_PERIODS * period_s && lag_s <= MAX_INPUT_LAG_S) {
+        return Ok(());
+    }
+    Err(ParamError::OutOfRange {
+        field: "hysteresis_lag_s",
+        value: lag_s,
+        requirement: "0 (none) or between one sample period and 1 s",
+    })
+}
+
 /// Input step of [`StaticModel::first_loading`] \[V\].
 pub const FIRST_LOADING_STEP_V: f32 = 0.01;
 
@@ -210,8 +225,8 @@ impl StaticModel {
     /// This model with its Bouc-Wen operator driven by a first-order lag of the command, time
     /// constant `lag_s` = τ_v \[s\] at the sample period `sample_period_s` (module doc). `lag_s`
     /// = 0 leaves the model as it is. Refuses a negative or non-finite τ_v, a τ_v below
-    /// [`MIN_INPUT_LAG_PERIODS`] sample periods or above [`MAX_INPUT_LAG_S`], a lag on the
-    /// asymmetric model, and a sample period other than the asymmetric model's.
+    /// [`MIN_INPUT_LAG_PERIODS`] sample periods or above [`MAX_INPUT_LAG_S`], and a lag on the
+    /// asymmetric model.
     pub fn with_input_lag(mut self, lag_s: f32, sample_period_s: f32) -> Result<Self, ParamError> {
         finite("hysteresis_lag_s", lag_s)?;
         if lag_s == 0.0 {
@@ -228,13 +243,7 @@ impl StaticModel {
                 requirement: "0 on the asymmetric model (the lag drives the standard operator)",
             });
         }
-        if !(lag_s >= MIN_INPUT_LAG_PERIODS * period && lag_s <= MAX_INPUT_LAG_S) {
-            return Err(ParamError::OutOfRange {
-                field: "hysteresis_lag_s",
-                value: lag_s,
-                requirement: "0 (none) or between one sample period and 1 s",
-            });
-        }
+        check_input_lag(lag_s, period)?;
         let x = f64::from(period) / f64::from(lag_s);
         let c = -libm::expm1(-x);
         self.lag_fraction = c as f32;

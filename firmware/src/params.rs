@@ -66,21 +66,28 @@ impl AxisParams {
         }
     }
 
-    /// The core's forward model over the output window.
-    pub fn model(&self) -> Result<StaticModel, ParamError> {
+    /// The core's quasi-static model over the output window: without the effects' input lag.
+    /// Its first loading is the axis's rest output and baseline gain, as `build.rs` and the stage
+    /// file's validation compute them.
+    pub fn quasi_static_model(&self) -> Result<StaticModel, ParamError> {
         let hysteresis = BoucWen::with_input_range(
             self.bouc_wen,
             self.output_min_v,
             self.output_max_v,
             STATE_LIMIT,
         )?;
-        let model = if self.asymmetry == Asymmetry::default() {
+        if self.asymmetry == Asymmetry::default() {
             StaticModel::new(hysteresis, self.static_map)
         } else {
             StaticModel::asymmetric(hysteresis, self.static_map, self.asymmetry, SAMPLE_PERIOD_S)
-        }?;
-        // The hysteresis's input lag is one of the effects; the chain owns how it is applied.
-        self.effect_chain(SAMPLE_PERIOD_S)?.hysteresis_model(model)
+        }
+    }
+
+    /// The core's forward model the compensator inverts: the quasi-static one with the effects'
+    /// input lag, if any ([`EffectParams::hysteresis_model`]).
+    pub fn model(&self) -> Result<StaticModel, ParamError> {
+        self.effects
+            .hysteresis_model(self.quasi_static_model()?, SAMPLE_PERIOD_S)
     }
 
     /// What the effects are validated against: the output window and the first loading's

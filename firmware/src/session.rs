@@ -183,7 +183,9 @@ fn axis_params(m: &AxisModel) -> Result<AxisParams, ParamError> {
         effects: m.effects,
         servo: m.servo,
     };
-    let (rest, gain) = p.model()?.first_loading(p.output_min_v, p.output_max_v);
+    let (rest, gain) = p
+        .quasi_static_model()?
+        .first_loading(p.output_min_v, p.output_max_v);
     p.rest_output_m = rest;
     p.linear_gain_m_per_v = gain;
     Ok(p)

@@ -151,6 +151,31 @@ fn sine_track() -> Request {
     ]))
 }
 
+/// An uploaded axis with effects (creep and the hysteresis's input lag) is accepted, and its
+/// first loading is the build's: the quasi-static model's, without the lag (as the stage file's
+/// validation computes it), so the same set gets the same baseline gain uploaded or built in;
+/// the model the compensator runs carries the lag.
+#[test]
+fn an_uploaded_axis_with_effects_gets_the_builds_first_loading() {
+    let mut set = built_in_set();
+    for a in &mut set.axes {
+        a.effects.creep_gain_m_per_v = [0.03 * a.static_map.k1_m_per_v, 0.0, 0.0];
+        a.effects.creep_time_constant_s = [0.2, 0.0, 0.0];
+        a.effects.hysteresis_lag_s = 1e-3;
+    }
+    let prepared = prepare_upload(set.clone());
+    assert!(prepared.axes.is_ok(), "{:?}", prepared.axes.err());
+    for (i, a) in set.axes.iter().enumerate() {
+        let p = axis_params(a).unwrap();
+        let built = &params::AXES[i];
+        assert_eq!(
+            (p.rest_output_m, p.linear_gain_m_per_v),
+            (built.rest_output_m, built.linear_gain_m_per_v)
+        );
+        assert_eq!(p.model().unwrap().input_lag_s(), 1e-3);
+    }
+}
+
 #[test]
 fn status_names_the_built_in_set() {
     let (mut s, _plant) = session();

@@ -118,8 +118,9 @@ pub struct EffectBounds {
     pub mode_damping: (f64, f64),
     /// Largest |κ|.
     pub coupling_max: f64,
-    /// Rate-dependent hysteresis: time constants from one sample period to a tenth of the
-    /// record or 50 ms \[s\] (0.1 ms to 50 ms for a 0.5 s record at 10 kHz).
+    /// Rate-dependent hysteresis, both forms (the relaxation's τ_w and the input lag's τ_v):
+    /// time constants from one sample period to a tenth of the record or 50 ms \[s\] (0.1 ms to
+    /// 50 ms for a 0.5 s record at 10 kHz).
     pub relaxation_tau_s: (f64, f64),
     /// Relaxation gain g of the hysteretic part, G(s) = 1 + g/(1 + s·τ): from 0.01 (less: no
     /// rate dependence) to 100 (its high-frequency response 1 % of its static one, a pure lag
