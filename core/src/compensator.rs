@@ -978,37 +978,50 @@ mod tests {
     use super::*;
     use crate::bouc_wen::{BoucWen, BoucWenParams};
 
+    /// The XY stage's x stack (host-sim's seed 002 set, n = 1) over 0–120 V with exponent `n`
+    /// (β and γ scaled by H^(1 − n), so that the saturation level H stays where it is and the
+    /// loop keeps its shape; exactly the stack's set for n = 1) and state limit `state_limit`.
+    fn x_stack(n: f32, state_limit: f32) -> BoucWen {
+        let level = 0.18522f32 / (0.029586 - 0.020710);
+        let scale = libm::powf(level, 1.0 - n);
+        BoucWen::with_input_range(
+            BoucWenParams {
+                a: 0.18522,
+                beta: 0.029586 * scale,
+                gamma: -0.020710 * scale,
+                n,
+            },
+            0.0,
+            120.0,
+            state_limit,
+        )
+        .unwrap()
+    }
+
+    /// The stage's window, 0–120 V at 1e5 V/s, at the sample period `period_s`.
+    fn window(period_s: f32) -> CompensatorSettings {
+        CompensatorSettings {
+            output_min_v: 0.0,
+            output_max_v: 120.0,
+            slew_limit_v_per_s: 1e5,
+            sample_period_s: period_s,
+        }
+    }
+
     /// `advance` gives the model's own step bit for bit, from states along a path through both
     /// branches and zero crossings of h, for small and large steps, both slope signs, the
     /// window's edges and outside it, and non-finite voltages; and it takes its small-step path.
     #[test]
     fn advance_is_the_model_step_bit_for_bit() {
         for sign in [1.0f32, -1.0] {
-            let bw = BoucWen::with_input_range(
-                BoucWenParams {
-                    a: 0.18522,
-                    beta: 0.029586,
-                    gamma: -0.020710,
-                    n: 1.0,
-                },
-                0.0,
-                120.0,
-                1e3,
-            )
-            .unwrap();
             let map = StaticMap {
                 k1_m_per_v: sign * 0.357e-6,
                 k2_m_per_h: -sign * 0.357e-6,
                 offset_m: 0.0,
             };
             let compensator = Compensator::new(
-                StaticModel::new(bw, map).unwrap(),
-                CompensatorSettings {
-                    output_min_v: 0.0,
-                    output_max_v: 120.0,
-                    slew_limit_v_per_s: 1e5,
-                    sample_period_s: 1e-4,
-                },
+                StaticModel::new(x_stack(1.0, 1e3), map).unwrap(),
+                window(1e-4),
             )
             .unwrap();
             let mut state = CompensatorState::at_rest(0.0);
@@ -1060,35 +1073,14 @@ mod tests {
     fn fast_paths_agree_with_newton() {
         for n in [1.0f32, 1.5, 2.5] {
             // Stage-like: the XY stage's x stack (n = 1); for other n, β and γ scaled to keep H.
-            let level = 0.18522f32 / (0.029586 - 0.020710);
-            let scale = libm::powf(level, 1.0 - n);
-            let bw = BoucWen::with_input_range(
-                BoucWenParams {
-                    a: 0.18522,
-                    beta: 0.029586 * scale,
-                    gamma: -0.020710 * scale,
-                    n,
-                },
-                0.0,
-                120.0,
-                1e3,
-            )
-            .unwrap();
+            let bw = x_stack(n, 1e3);
             let map = StaticMap {
                 k1_m_per_v: 0.53e-6,
                 k2_m_per_h: -0.53e-6,
                 offset_m: 0.0,
             };
-            let compensator = Compensator::new(
-                StaticModel::new(bw, map).unwrap(),
-                CompensatorSettings {
-                    output_min_v: 0.0,
-                    output_max_v: 120.0,
-                    slew_limit_v_per_s: 1e5,
-                    sample_period_s: 1e-4,
-                },
-            )
-            .unwrap();
+            let compensator =
+                Compensator::new(StaticModel::new(bw, map).unwrap(), window(1e-4)).unwrap();
             let mut state = CompensatorState::at_rest(0.0);
             let (mut small_taken, mut compared) = (0, 0);
             for k in 0..20_000 {
@@ -1176,41 +1168,20 @@ mod tests {
 
     /// The XY stage's x stack (y = d·(u − h), n = 1) with its operator behind an input lag.
     fn lagged_stage(lag_s: f32, period_s: f32) -> StaticModel {
-        let bw = BoucWen::with_input_range(
-            BoucWenParams {
-                a: 0.18522,
-                beta: 0.029586,
-                gamma: -0.020710,
-                n: 1.0,
-            },
-            0.0,
-            120.0,
-            crate::STATE_LIMIT,
-        )
-        .unwrap();
         let map = StaticMap {
             k1_m_per_v: 3.2e-7,
             k2_m_per_h: -3.2e-7,
             offset_m: 0.0,
         };
-        StaticModel::new(bw, map)
+        StaticModel::new(x_stack(1.0, crate::STATE_LIMIT), map)
             .unwrap()
             .with_input_lag(lag_s, period_s)
             .unwrap()
     }
 
-    fn window(period_s: f32) -> CompensatorSettings {
-        CompensatorSettings {
-            output_min_v: 0.0,
-            output_max_v: 120.0,
-            slew_limit_v_per_s: 2e5,
-            sample_period_s: period_s,
-        }
-    }
-
-    /// With an input lag the inverse is explicit: the forward model driven by the compensator's
-    /// voltages reproduces every reachable reference to f32 rounding, at 20 and 200 Hz, and the
-    /// state is the model's own step.
+    /// With an input lag the compensator's Newton solve (slope k1 + k2·b·dh/dv) is exact: the
+    /// forward model driven by its voltages reproduces every reachable reference to f32 rounding,
+    /// at 20 and 200 Hz, and the state is the model's own step.
     #[test]
     fn input_lag_inverse_reproduces_the_reference() {
         let period = 1e-4;
