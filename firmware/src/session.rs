@@ -45,7 +45,7 @@
 use heapless::{Deque, String};
 use piezo_core::{ParamError, ServoMode};
 use piezo_link::{
-    truncated, AxisModel, Control, Counters, Decoder, Frame, ModelSet, Packet,
+    truncated, AxisModel, Control, Counters, Decoder, Frame, Limits, ModelSet, Packet,
     Program as WireProgram, Refusal, RefusalKind, Request, Response, SequenceChecker, Setpoints,
     Status, Tracking, Uplink, Wave, MAX_FRAME, REASON_BYTES, VERSION_BYTES,
 };
@@ -189,6 +189,23 @@ fn axis_params(m: &AxisModel) -> Result<AxisParams, ParamError> {
     p.rest_output_m = rest;
     p.linear_gain_m_per_v = gain;
     Ok(p)
+}
+
+/// An axis as the link carries it: the inverse of what an upload builds (its rest output and baseline gain
+/// are what the firmware computes on upload, not carried).
+pub fn wire_axis(p: &AxisParams) -> AxisModel {
+    AxisModel {
+        bouc_wen: p.bouc_wen,
+        static_map: p.static_map,
+        asymmetry: p.asymmetry,
+        effects: p.effects,
+        limits: Limits {
+            output_min_v: p.output_min_v,
+            output_max_v: p.output_max_v,
+            slew_limit_v_per_s: p.slew_limit_v_per_s,
+        },
+        servo: p.servo,
+    }
 }
 
 /// An upload's axis checked against the firmware's chain and built by the core, as the build does.

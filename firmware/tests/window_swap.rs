@@ -15,7 +15,7 @@ use piezo_firmware::demo;
 use piezo_firmware::params::{self, AxisParams};
 use piezo_firmware::plant::{PlantAdc, PlantDac, XyPlant};
 use piezo_firmware::reference::{Program, ReferenceGenerator, Waveform};
-use piezo_firmware::session::Session;
+use piezo_firmware::session::{wire_axis, Session};
 use piezo_firmware::xy_loop::{AdcSensor, Axis, Feedforward, TickReport, TwoAxisLoop, XyIo};
 use piezo_link::{
     AxisModel, Control, Decoder, Limits, Mode, ModelSet, Packet, Program as WireProgram, Request,
@@ -194,16 +194,12 @@ fn set_with_windows(windows: [(f32, f32); 2]) -> ModelSet {
 /// The built-in set as the link carries it, with other windows and slew limits.
 fn set_with_limits(windows: [(f32, f32); 2], slew_v_per_s: [f32; 2]) -> ModelSet {
     let axis = |p: &AxisParams, (min, max): (f32, f32), slew_limit_v_per_s: f32| AxisModel {
-        bouc_wen: p.bouc_wen,
-        static_map: p.static_map,
-        asymmetry: p.asymmetry,
-        effects: p.effects,
         limits: Limits {
             output_min_v: min,
             output_max_v: max,
             slew_limit_v_per_s,
         },
-        servo: p.servo,
+        ..wire_axis(p)
     };
     ModelSet {
         version: piezo_link::truncated("window swap"),

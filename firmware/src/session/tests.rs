@@ -6,7 +6,7 @@ use crate::demo;
 use crate::plant::{PlantAdc, PlantDac, XyPlant};
 use crate::reference::ReferenceGenerator;
 use crate::xy_loop::AdcSensor;
-use piezo_link::{Limits, Mode as WireMode};
+use piezo_link::Mode as WireMode;
 
 /// The host's side: numbered requests in, decoded uplinks out.
 struct Host {
@@ -115,24 +115,12 @@ fn session() -> (Session, Cell<XyPlant>) {
 }
 
 fn built_in_set() -> ModelSet {
-    let axis = |p: &AxisParams| AxisModel {
-        bouc_wen: p.bouc_wen,
-        static_map: p.static_map,
-        asymmetry: p.asymmetry,
-        effects: p.effects,
-        limits: Limits {
-            output_min_v: p.output_min_v,
-            output_max_v: p.output_max_v,
-            slew_limit_v_per_s: p.slew_limit_v_per_s,
-        },
-        servo: p.servo,
-    };
     ModelSet {
         version: String::try_from("uploaded 2").unwrap(),
         fnv1a32: 0x1234_5678,
         loop_rate_hz: params::LOOP_RATE_HZ,
         io: params::IO,
-        axes: [axis(&params::AXES[0]), axis(&params::AXES[1])],
+        axes: [wire_axis(&params::AXES[0]), wire_axis(&params::AXES[1])],
     }
 }
 
