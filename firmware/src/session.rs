@@ -191,8 +191,8 @@ fn axis_params(m: &AxisModel) -> Result<AxisParams, ParamError> {
     Ok(p)
 }
 
-/// An axis as the link carries it: the inverse of what an upload builds (its rest output and baseline gain
-/// are what the firmware computes on upload, not carried).
+/// An axis as the link carries it: the inverse of what an upload builds (its rest output and
+/// baseline gain are what the firmware computes on upload, not carried).
 pub fn wire_axis(p: &AxisParams) -> AxisModel {
     AxisModel {
         bouc_wen: p.bouc_wen,
