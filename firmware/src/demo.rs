@@ -18,10 +18,10 @@ use core::cell::Cell;
 use crate::codes::SensorScale;
 use crate::control::TrackingStats;
 use crate::params::{self, AMPLIFIER_GAIN_V_PER_V, AXES, SAMPLE_PERIOD_S, SENSOR_M_PER_V};
-use crate::plant::{PlantAdc, PlantDac, XyPlant};
+use crate::plant::{plant_io, XyPlant};
 use crate::reference::{Program, ReferenceGenerator, Waveform};
 use crate::xy_loop::{
-    AdcSensor, Axis, ConfigError, Feedforward, LoopCounters, LoopSettings, Mode, TwoAxisLoop, XyIo,
+    Axis, ConfigError, Feedforward, LoopCounters, LoopSettings, Mode, TwoAxisLoop,
 };
 
 /// Ticks in one run.
@@ -107,15 +107,7 @@ pub fn run_demo(
     let settings = settings().map_err(DemoError::Config)?;
     let scale = sensor_scale().ok_or(DemoError::Sensor)?;
     let plant = Cell::new(XyPlant::from_params(SAMPLE_PERIOD_S).ok_or(DemoError::Sensor)?);
-    let mut io = XyIo {
-        dac: PlantDac(&plant),
-        dac_channels: Axis::ALL,
-        sensor: AdcSensor {
-            adc: PlantAdc(&plant),
-            channels: Axis::ALL,
-            scale,
-        },
-    };
+    let mut io = plant_io(&plant, scale);
     let reference = ReferenceGenerator::new(program(), SAMPLE_PERIOD_S, [0.0; 2]);
     let initial = [params::AXES[0].output_min_v, params::AXES[1].output_min_v];
     let mut lp = TwoAxisLoop::new(settings, feedforward, reference, initial);
@@ -259,15 +251,7 @@ pub fn overrun_drill() -> Result<(LoopCounters, Mode, [f32; 2], [f32; 2]), DemoE
     let settings = settings().map_err(DemoError::Config)?;
     let scale = sensor_scale().ok_or(DemoError::Sensor)?;
     let plant = Cell::new(XyPlant::from_params(SAMPLE_PERIOD_S).ok_or(DemoError::Sensor)?);
-    let mut io = XyIo {
-        dac: PlantDac(&plant),
-        dac_channels: Axis::ALL,
-        sensor: AdcSensor {
-            adc: PlantAdc(&plant),
-            channels: Axis::ALL,
-            scale,
-        },
-    };
+    let mut io = plant_io(&plant, scale);
     let reference = ReferenceGenerator::new(program(), SAMPLE_PERIOD_S, [0.0; 2]);
     let mut lp = TwoAxisLoop::new(settings, Feedforward::Compensator, reference, [0.0; 2]);
     let mut before = [0.0; 2];

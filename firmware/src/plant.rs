@@ -34,7 +34,7 @@ use piezo_core::{BoucWenParams, StaticMap};
 
 use crate::codes::{AdcCode, DacCode, SensorScale};
 use crate::converter::{AdcRead, DacWrite, ErrorType};
-use crate::xy_loop::Axis;
+use crate::xy_loop::{AdcSensor, Axis, XyIo};
 
 /// Largest input change per Euler sub-step \[V\].
 pub const MAX_SUBSTEP_V: f32 = 0.05;
@@ -233,6 +233,23 @@ fn uniform(tick: u32, axis: u32) -> f32 {
     z = (z ^ (z >> 15)).wrapping_mul(0x846C_A68B);
     z ^= z >> 16;
     (z >> 8) as f32 / (1u32 << 23) as f32 - 1.0
+}
+
+/// The loop's I/O on a shared [`XyPlant`]: its DAC and its ADC read through `scale`, channel =
+/// axis for both.
+pub fn plant_io(
+    plant: &Cell<XyPlant>,
+    scale: SensorScale,
+) -> XyIo<PlantDac<'_>, AdcSensor<PlantAdc<'_>>> {
+    XyIo {
+        dac: PlantDac(plant),
+        dac_channels: Axis::ALL,
+        sensor: AdcSensor {
+            adc: PlantAdc(plant),
+            channels: Axis::ALL,
+            scale,
+        },
+    }
 }
 
 /// DAC side of a shared [`XyPlant`]; channel = axis.

@@ -28,10 +28,10 @@ use piezo_core::ServoMode;
 use crate::codes::SensorScale;
 use crate::control::TrackingStats;
 use crate::params::{self, AMPLIFIER_GAIN_V_PER_V, AXES, SAMPLE_PERIOD_S, SENSOR_M_PER_V};
-use crate::plant::{Disturbances, PlantAdc, PlantDac, XyPlant};
+use crate::plant::{plant_io, Disturbances, XyPlant};
 use crate::reference::{Program, ReferenceGenerator, Waveform};
 use crate::xy_loop::{
-    AdcSensor, Axis, ConfigError, ControlError, Feedforward, LoopSettings, Mode, TwoAxisLoop, XyIo,
+    Axis, ConfigError, ControlError, Feedforward, LoopSettings, Mode, TwoAxisLoop,
 };
 
 /// Lower end of the tracking references \[fraction of the stroke\].
@@ -129,15 +129,7 @@ fn run(
         .ok_or(TableError::Sensor)?
         .with_disturbances(&table_disturbances(), SAMPLE_PERIOD_S);
     let plant = Cell::new(plant);
-    let mut io = XyIo {
-        dac: PlantDac(&plant),
-        dac_channels: Axis::ALL,
-        sensor: AdcSensor {
-            adc: PlantAdc(&plant),
-            channels: Axis::ALL,
-            scale,
-        },
-    };
+    let mut io = plant_io(&plant, scale);
     let initial = [params::AXES[0].output_min_v, params::AXES[1].output_min_v];
     let rest = [AXES[0].rest_output_m, AXES[1].rest_output_m];
     let reference = ReferenceGenerator::new(program, SAMPLE_PERIOD_S, rest);
@@ -367,15 +359,7 @@ mod tests {
             .unwrap()
             .with_disturbances(&table_disturbances(), SAMPLE_PERIOD_S);
         let plant = Cell::new(plant);
-        let mut io = XyIo {
-            dac: PlantDac(&plant),
-            dac_channels: Axis::ALL,
-            sensor: AdcSensor {
-                adc: PlantAdc(&plant),
-                channels: Axis::ALL,
-                scale,
-            },
-        };
+        let mut io = plant_io(&plant, scale);
         let (offset, amplitude) = band(0);
         let program = Program::PerAxis([waveform(Shape::Sine, offset, amplitude, 2.0); 2]);
         let reference = ReferenceGenerator::new(program, SAMPLE_PERIOD_S, [0.0; 2]);

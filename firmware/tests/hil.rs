@@ -12,7 +12,7 @@ use piezo_firmware::codes::{AdcCode, DacCode};
 use piezo_firmware::converter::{AdcRead, DacWrite, DriverError, ErrorType};
 use piezo_firmware::demo;
 use piezo_firmware::params::SAMPLE_PERIOD_S;
-use piezo_firmware::plant::{PlantAdc, PlantDac, XyPlant};
+use piezo_firmware::plant::{plant_io, PlantAdc, PlantDac, XyPlant};
 use piezo_firmware::reference::{Program, ReferenceGenerator, Waveform};
 use piezo_firmware::xy_loop::{
     AdcSensor, Axis, Fault, Feedforward, LoopCounters, Mode, PositionSensor, TickReport,
@@ -376,15 +376,7 @@ fn rearm_resumes_tracking_without_a_jump() {
 fn streamed_setpoints_play_and_a_nan_setpoint_is_held_not_a_fault() {
     let bench_program = Program::Streamed;
     let plant = Cell::new(XyPlant::from_params(SAMPLE_PERIOD_S).unwrap());
-    let mut io = XyIo {
-        dac: PlantDac(&plant),
-        dac_channels: Axis::ALL,
-        sensor: AdcSensor {
-            adc: PlantAdc(&plant),
-            channels: Axis::ALL,
-            scale: demo::sensor_scale().unwrap(),
-        },
-    };
+    let mut io = plant_io(&plant, demo::sensor_scale().unwrap());
     let reference = ReferenceGenerator::new(bench_program, SAMPLE_PERIOD_S, [10e-6, 10e-6]);
     let mut lp = TwoAxisLoop::new(
         demo::settings().unwrap(),

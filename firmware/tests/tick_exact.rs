@@ -28,7 +28,7 @@ use piezo_firmware::codes::{AdcCode, DacCode};
 use piezo_firmware::converter::{AdcRead, DacWrite, ErrorType};
 use piezo_firmware::demo;
 use piezo_firmware::params::{AxisParams, AMPLIFIER_GAIN_V_PER_V, AXES, SAMPLE_PERIOD_S};
-use piezo_firmware::plant::{PlantAdc, PlantDac, XyPlant};
+use piezo_firmware::plant::{plant_io, XyPlant};
 use piezo_firmware::reference::{Program, ReferenceGenerator};
 use piezo_firmware::xy_loop::{AdcSensor, Axis, Feedforward, LoopSettings, TwoAxisLoop, XyIo};
 
@@ -133,15 +133,7 @@ type Row = ([u16; 2], [f32; 2], [f32; 2]);
 /// A run on the simulated stage.
 fn record(axes: &[AxisParams; 2], mode: fn(usize) -> Option<ServoMode>) -> Vec<Row> {
     let plant = Cell::new(XyPlant::from_params(SAMPLE_PERIOD_S).unwrap());
-    let mut io = XyIo {
-        dac: PlantDac(&plant),
-        dac_channels: Axis::ALL,
-        sensor: AdcSensor {
-            adc: PlantAdc(&plant),
-            channels: Axis::ALL,
-            scale: demo::sensor_scale().unwrap(),
-        },
-    };
+    let mut io = plant_io(&plant, demo::sensor_scale().unwrap());
     let mut lp = new_loop(axes);
     (0..TICKS)
         .map(|k| {

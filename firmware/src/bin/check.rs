@@ -40,7 +40,7 @@ mod image {
     use piezo_firmware::converter::{AdcRead, DacWrite, ErrorType};
     use piezo_firmware::demo;
     use piezo_firmware::params::{AxisParams, AXES, SAMPLE_PERIOD_S};
-    use piezo_firmware::plant::{PlantAdc, PlantDac, XyPlant};
+    use piezo_firmware::plant::{plant_io, XyPlant};
     use piezo_firmware::reference::ReferenceGenerator;
     use piezo_firmware::safety::{GuardState, SafetyLimits};
     use piezo_firmware::xy_loop::{
@@ -262,15 +262,7 @@ mod image {
     ) -> Option<ReplayAdc> {
         let scale = demo::sensor_scale()?;
         let plant = Cell::new(XyPlant::from_params(SAMPLE_PERIOD_S)?);
-        let mut io = XyIo {
-            dac: PlantDac(&plant),
-            dac_channels: Axis::ALL,
-            sensor: AdcSensor {
-                adc: PlantAdc(&plant),
-                channels: Axis::ALL,
-                scale,
-            },
-        };
+        let mut io = plant_io(&plant, scale);
         let mut lp = bench_loop(settings, mode)?;
         let mut adc = ReplayAdc {
             codes: [[AdcCode(0); 2]; RECORDED],
@@ -512,15 +504,7 @@ mod image {
     fn loop_window() -> Option<u32> {
         let settings = demo::settings().ok()?;
         let plant = Cell::new(XyPlant::from_params(SAMPLE_PERIOD_S)?);
-        let mut io = XyIo {
-            dac: PlantDac(&plant),
-            dac_channels: Axis::ALL,
-            sensor: AdcSensor {
-                adc: PlantAdc(&plant),
-                channels: Axis::ALL,
-                scale: demo::sensor_scale()?,
-            },
-        };
+        let mut io = plant_io(&plant, demo::sensor_scale()?);
         let reference = ReferenceGenerator::new(demo::program(), SAMPLE_PERIOD_S, [0.0; 2]);
         let mut lp = TwoAxisLoop::new(settings, Feedforward::Compensator, reference, [0.0; 2]);
         let mut batch = heapless::Vec::<_, 8>::new();

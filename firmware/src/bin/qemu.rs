@@ -259,10 +259,10 @@ mod image {
         use piezo_firmware::cmsdk_uart::{self, Uart0};
         use piezo_firmware::demo;
         use piezo_firmware::params;
-        use piezo_firmware::plant::{PlantAdc, PlantDac, XyPlant};
+        use piezo_firmware::plant::{plant_io, XyPlant};
         use piezo_firmware::reference::{Program, ReferenceGenerator, Waveform};
         use piezo_firmware::session::Session;
-        use piezo_firmware::xy_loop::{AdcSensor, Axis, Feedforward, TwoAxisLoop, XyIo};
+        use piezo_firmware::xy_loop::{Feedforward, TwoAxisLoop};
 
         /// mps2-an386's CPU clock, SysTick's source \[Hz\].
         const CPU_CLOCK_HZ: u32 = 25_000_000;
@@ -292,15 +292,7 @@ mod image {
                 super::fail(format_args!("sensor scale refused at boot"))
             };
             let plant = Cell::new(stage);
-            let mut io = XyIo {
-                dac: PlantDac(&plant),
-                dac_channels: Axis::ALL,
-                sensor: AdcSensor {
-                    adc: PlantAdc(&plant),
-                    channels: Axis::ALL,
-                    scale,
-                },
-            };
+            let mut io = plant_io(&plant, scale);
             // At rest at the lower end of each window until told otherwise.
             let rest = [0, 1].map(|i| Waveform::Constant {
                 offset_m: params::AXES[i].rest_output_m,

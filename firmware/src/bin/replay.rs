@@ -36,9 +36,9 @@ mod image {
     use piezo_firmware::demo;
     use piezo_firmware::frames::SampleFrame;
     use piezo_firmware::params::{self, SAMPLE_PERIOD_S};
-    use piezo_firmware::plant::{PlantAdc, PlantDac, XyPlant};
+    use piezo_firmware::plant::{plant_io, XyPlant};
     use piezo_firmware::reference::{Program, ReferenceGenerator, STREAM_CAPACITY};
-    use piezo_firmware::xy_loop::{AdcSensor, Axis, Feedforward, Mode, TwoAxisLoop, XyIo};
+    use piezo_firmware::xy_loop::{Axis, Feedforward, Mode, TwoAxisLoop};
 
     include!(concat!(env!("OUT_DIR"), "/reference.rs"));
 
@@ -72,15 +72,7 @@ mod image {
             fail(format_args!("sensor gain refused at boot"))
         };
         let plant = Cell::new(stage);
-        let mut io = XyIo {
-            dac: PlantDac(&plant),
-            dac_channels: Axis::ALL,
-            sensor: AdcSensor {
-                adc: PlantAdc(&plant),
-                channels: Axis::ALL,
-                scale,
-            },
-        };
+        let mut io = plant_io(&plant, scale);
         let reference = ReferenceGenerator::new(Program::Streamed, SAMPLE_PERIOD_S, first);
         let initial = [params::AXES[0].output_min_v, params::AXES[1].output_min_v];
         let mut lp = TwoAxisLoop::new(settings, Feedforward::Compensator, reference, initial);
