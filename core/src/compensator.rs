@@ -976,27 +976,7 @@ fn round_down_f32(x: f64) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::bouc_wen::{BoucWen, BoucWenParams};
-
-    /// The XY stage's x stack (host-sim's seed 002 set, n = 1) over 0–120 V with exponent `n`
-    /// (β and γ scaled by H^(1 − n), so that the saturation level H stays where it is and the
-    /// loop keeps its shape; exactly the stack's set for n = 1) and state limit `state_limit`.
-    fn x_stack(n: f32, state_limit: f32) -> BoucWen {
-        let level = 0.18522f32 / (0.029586 - 0.020710);
-        let scale = libm::powf(level, 1.0 - n);
-        BoucWen::with_input_range(
-            BoucWenParams {
-                a: 0.18522,
-                beta: 0.029586 * scale,
-                gamma: -0.020710 * scale,
-                n,
-            },
-            0.0,
-            120.0,
-            state_limit,
-        )
-        .unwrap()
-    }
+    use crate::fixtures::x_stack;
 
     /// The stage's window, 0–120 V at 1e5 V/s, at the sample period `period_s`.
     fn window(period_s: f32) -> CompensatorSettings {

@@ -398,7 +398,7 @@ pub fn compensate_single(
 mod tests {
     use super::*;
     use crate::effects::{compensate_axis, EffectParams};
-    use crate::{BoucWen, BoucWenParams, CompensatorSettings, StaticMap, StaticModel};
+    use crate::{CompensatorSettings, StaticMap, StaticModel};
 
     const T: f32 = 1e-4;
 
@@ -498,18 +498,7 @@ mod tests {
     }
 
     fn compensator() -> Compensator {
-        let bw = BoucWen::with_input_range(
-            BoucWenParams {
-                a: 0.18522,
-                beta: 0.029586,
-                gamma: -0.020710,
-                n: 1.0,
-            },
-            0.0,
-            120.0,
-            1e6,
-        )
-        .unwrap();
+        let bw = crate::fixtures::x_stack(1.0, 1e6);
         let map = StaticMap {
             k1_m_per_v: 3.574e-7,
             k2_m_per_h: -3.574e-7,

@@ -632,15 +632,8 @@ mod tests {
 
     #[test]
     fn a_periodic_table_respects_window_and_slew_across_the_wrap() {
-        use crate::bouc_wen::{BoucWen, BoucWenParams, STATE_LIMIT};
         use crate::static_model::StaticMap;
-        let params = BoucWenParams {
-            a: 0.18522,
-            beta: 0.029586,
-            gamma: -0.020710,
-            n: 1.0,
-        };
-        let bw = BoucWen::with_input_range(params, 0.0, 120.0, STATE_LIMIT).unwrap();
+        let bw = crate::fixtures::x_stack(1.0, crate::STATE_LIMIT);
         let map = StaticMap {
             k1_m_per_v: 3.57e-7,
             k2_m_per_h: -3.57e-7,

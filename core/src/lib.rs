@@ -22,6 +22,8 @@ pub mod compensator;
 pub mod dynamic_model;
 pub mod effects;
 pub mod error;
+#[cfg(test)]
+mod fixtures;
 pub mod inverse_chain;
 pub mod io_chain;
 pub mod learning;
