@@ -485,7 +485,8 @@ fn invertible_holds_for_the_whole_set_with_effects() {
 /// driven by a first-order lag of the voltage), two records of rising-amplitude raised sines
 /// 0-120 V at 40 and 100 Hz (0.25 s at 10 kHz each, from rest), fitted together with their own
 /// offsets: close-loop names the rate-dependent hysteresis first (as the operator's input lag),
-/// lowers the RMS fiftyfold, predicts a 20 Hz record it did not see within twice its fit, and
+/// lowers the RMS fiftyfold, then adds the stage's first mode, predicts a 20 Hz record it did
+/// not see within 1.3x its fit, and
 /// its report fits the phase effects the screening cannot separate (delay and
 /// dynamics with it) and says why each other effect was not fitted.
 #[test]
@@ -539,8 +540,17 @@ fn rate_dependent_hysteresis_is_named_across_two_records() {
         "rms {before:.4e} -> {after:.4e}\n{words}"
     );
     assert_eq!(r["steps"][0]["form"], "input lag", "{words}");
+    // Then the stage's first mode (≈ 3.4 kHz): at 100 Hz its response is a few nm, at 40 Hz below
+    // the noise, so the two records' held-out gains differ and the two-record rule judges it.
+    assert_eq!(added.get(1).copied(), Some("dynamics"), "{words}");
+    let (file, _) = piezo_stage::StageFile::load(&temp("lag.toml")).unwrap();
+    let mode_hz = file.x.effects.mode_frequency_hz;
+    assert!(
+        (3000.0..3800.0).contains(&mode_hz),
+        "mode {mode_hz} Hz\n{words}"
+    );
     // The stage file predicts the rate it did not see (20 Hz) from rest, its offset re-estimated,
-    // near its fit: the rate dependence is the plant's, not a fit of two records.
+    // within 1.3x its fit: the rate dependence is the plant's, not a fit of two records.
     let unseen = record(20);
     let predicted = temp("lag-predict.json");
     cli(&[
@@ -560,7 +570,7 @@ fn rate_dependent_hysteresis_is_named_across_two_records() {
     .unwrap();
     let rms_unseen = json(&predicted)["rms_zeroed_m"][0].as_f64().unwrap();
     assert!(
-        rms_unseen <= 2.0 * after && rms_unseen <= 0.02 * before,
+        rms_unseen <= 1.3 * after && rms_unseen <= 0.02 * before,
         "20 Hz predicted at {rms_unseen:.4e} m, fit {after:.4e} m, base {before:.4e} m"
     );
     let first = &r["steps"][0];

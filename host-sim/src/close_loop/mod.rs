@@ -53,6 +53,7 @@ use diagnose::{
     noise_estimate, screen, Candidate, EffectInit, EffectKind, ResidualFigures, Signals,
 };
 use full::{last_accepted_on_the_way, refit, sse, AxisModel, EffectBounds, FitData, Simulation};
+use rayon::prelude::*;
 use report::{Step, StepOutcome, Trial};
 use select::{held_out_sse, Decision, Floor, OutOfSample, Plausibility, Refusal, RunGain, Stop};
 use serde_json::{json, Value};
@@ -596,6 +597,8 @@ fn fit_candidate(
 ) -> (AxisModel, f64) {
     let (mut fitted, mut sse1) = if cand.effect == EffectKind::RateDependent {
         fit_rate_dependent(model, cand, data)
+    } else if cand.effect == EffectKind::Dynamics {
+        fit_dynamics(model, cand, data)
     } else {
         let (fitted, sse1, _) = refit(&model.with_effect(cand.init), data, TRIAL_ITERATIONS);
         (fitted, sse1)
@@ -612,6 +615,60 @@ fn fit_candidate(
         }
     }
     (fitted, sse1)
+}
+
+/// Mode frequencies, spread geometrically over the plausible range, from which the mode is also
+/// fitted: a mode whose response lies near the noise in a record (far above the input's band)
+/// leaves a shallow SSE over its frequency, and a fit from the screening's start alone may slide
+/// to a bound of the range while the stage's own mode lies between.
+const MODE_RESTARTS: usize = 4;
+
+/// Damping ratio of the restarts' starts.
+const MODE_RESTART_DAMPING: f64 = 0.02;
+
+/// The mode fitted from the screening's start and from [`MODE_RESTARTS`] frequencies across its
+/// plausible range; kept: the plausible fit with the lowest SSE (the lowest SSE when none is
+/// plausible).
+fn fit_dynamics(model: &AxisModel, cand: &Candidate, data: &FitData) -> (AxisModel, f64) {
+    let (lo, hi) = model.bounds.mode_frequency_hz;
+    let mut starts = vec![cand.init];
+    if lo > 0.0 && hi > lo {
+        starts.extend((0..MODE_RESTARTS).map(|i| {
+            let share = (i as f64 + 0.5) / MODE_RESTARTS as f64;
+            EffectInit::Dynamics {
+                frequency_hz: lo * (hi / lo).powf(share),
+                damping: MODE_RESTART_DAMPING,
+            }
+        }));
+    }
+    let fits: Vec<(AxisModel, f64, bool)> = starts
+        .par_iter()
+        .map(|&init| {
+            let (fitted, sse, _) = refit(&model.with_effect(init), data, TRIAL_ITERATIONS);
+            let plausible = Plausibility::of(&fitted, cand.effect).plausible();
+            (fitted, sse, plausible)
+        })
+        .collect();
+    let key = |(_, sse, plausible): &(AxisModel, f64, bool)| {
+        (
+            *plausible,
+            if sse.is_finite() {
+                -sse
+            } else {
+                f64::NEG_INFINITY
+            },
+        )
+    };
+    let mut fits = fits.into_iter();
+    let Some(mut best) = fits.next() else {
+        return (model.clone(), f64::INFINITY);
+    };
+    for fit in fits {
+        if key(&fit) > key(&best) {
+            best = fit;
+        }
+    }
+    (best.0, best.1)
 }
 
 /// The rate-dependent hysteresis fitted in both its forms ([`full::RateForm`]): the operator
