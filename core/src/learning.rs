@@ -17,6 +17,10 @@
 //! `Q·(u_k + L·e_k)`. Q acts on what was learned, not on the compensator's own command, so the
 //! error outside Q's band is the compensator's rather than the whole reference. The contraction
 //! is the same: with δ_k = u_k − u_0 and e_k = e_0 − G·δ_k, δ_{k+1} = Q·((1 − L·G)·δ_k + L·e_0).
+//! A base the output window held (u_0 at `output_min_v` or `output_max_v` over at least
+//! [`LIMITED_BASE_SHARE`] of the trial: the model asks for more than the window, its gain is off)
+//! has corners that are the window's, not the stage's, and above Q's cut-off nothing would ever
+//! remove them; such a base is filtered too, `u_{k+1} = Q·(u_k + L·e_k)` (the textbook form).
 //! Sign convention: e = r − y; for a stage whose output rises with voltage (g > 0) a positive
 //! error raises the command.
 //!
@@ -53,6 +57,9 @@ use crate::math::clamp;
 use crate::static_model::{ModelState, StaticModel};
 use core::f64::consts::PI;
 
+/// A base held at a window bound over at least this share of the trial is filtered by Q with the
+/// learned part (module doc).
+pub const LIMITED_BASE_SHARE: f64 = 0.01;
 /// Frequencies at which the cut-off rule checks the convergence condition.
 pub const RULE_FREQUENCIES: usize = 2048;
 /// Mode frequencies (relative, spread over the tolerance) the rule checks per frequency.
@@ -227,6 +234,8 @@ pub struct StepSummary {
     pub max_abs_error_m: f64,
     /// Samples of the new command moved by the window or the slew limit.
     pub limited: usize,
+    /// Whether the base was held at the window and filtered with the learned part (module doc).
+    pub base_filtered: bool,
 }
 
 /// One trial, per axis: all slices of the same length.
@@ -460,7 +469,16 @@ impl Learning {
                 base(j)
             }
         };
-        self.learned_update(trial.periodic, &error, &command, &base, next_v);
+        let held = (0..n)
+            .filter(|&j| {
+                let b = base(j);
+                b <= self.limits.output_min_v || b >= self.limits.output_max_v
+            })
+            .count();
+        let filter_base = held as f64 >= LIMITED_BASE_SHARE * n as f64;
+        let zero = |_: usize| 0.0f32;
+        let kept: &dyn Fn(usize) -> f32 = if filter_base { &zero } else { &base };
+        self.learned_update(trial.periodic, &error, &command, kept, next_v);
         for section in &self.sections {
             section.filter(next_v, false, trial.periodic);
         }
@@ -468,13 +486,14 @@ impl Learning {
             section.filter(next_v, true, trial.periodic);
         }
         for (j, v) in next_v.iter_mut().enumerate() {
-            *v += base(j);
+            *v += kept(j);
         }
         let limited = self.limit(next_v, trial.periodic);
         Ok(StepSummary {
             rms_error_m: libm::sqrt(sq / n as f64),
             max_abs_error_m: max,
             limited,
+            base_filtered: filter_base,
         })
     }
 
@@ -675,5 +694,68 @@ mod tests {
         let mut u = [50.0f32; 10];
         learning.limit(&mut u, false);
         assert_eq!(u[0], 2.0);
+    }
+
+    #[test]
+    fn a_base_the_window_held_is_filtered_and_one_inside_it_is_kept() {
+        use crate::static_model::StaticMap;
+        let bw = crate::fixtures::x_stack(1.0, crate::STATE_LIMIT);
+        let map = StaticMap {
+            k1_m_per_v: 3.57e-7,
+            k2_m_per_h: -3.57e-7,
+            offset_m: 0.0,
+        };
+        let settings = CompensatorSettings {
+            output_min_v: 0.0,
+            output_max_v: 120.0,
+            slew_limit_v_per_s: 5e5,
+            sample_period_s: 1e-4,
+        };
+        let compensator = Compensator::new(StaticModel::new(bw, map).unwrap(), settings).unwrap();
+        let range = crate::effects::OperatingRange {
+            input_v: (0.0, 120.0),
+            output_m: (0.0, 50e-6),
+        };
+        let effects = Effects::new(Default::default(), 1e-4, range).unwrap();
+        let learning = Learning::new(&compensator, &effects, LearningParams::default()).unwrap();
+        let next = |base: &[f32; 100]| {
+            // No error: the next command is the base plus Q of nothing learned, or Q of the base.
+            let r = [1e-5f32; 100];
+            let trial = Trial {
+                reference_m: &r,
+                command_v: base,
+                measured_m: &r,
+                base_v: base,
+                periodic: true,
+            };
+            let mut out = [0.0f32; 100];
+            let summary = learning.step(&trial, &mut out).unwrap();
+            (out, summary.base_filtered)
+        };
+        // A 100 Hz sine clipped at 120 V for a third of its period: its corners lie above Q's
+        // cut-off, and they are the window's.
+        let clipped: [f32; 100] = core::array::from_fn(|j| {
+            (80.0 + 60.0 * libm::sin(2.0 * PI * j as f64 / 100.0)).min(120.0) as f32
+        });
+        let (out, filtered) = next(&clipped);
+        assert!(filtered);
+        let moved = (0..100)
+            .map(|j| (out[j] - clipped[j]).abs())
+            .fold(0.0, f32::max);
+        assert!(moved > 0.01, "the corners were kept: {moved} V");
+        // Filtered with Q, not replaced: the level and the fundamental stay.
+        assert!(
+            (0..100).all(|j| (out[j] - clipped[j]).abs() < 5.0),
+            "{out:?}"
+        );
+        // The same sine inside the window is the base, kept exactly.
+        let inside: [f32; 100] =
+            core::array::from_fn(|j| (60.0 + 40.0 * libm::sin(2.0 * PI * j as f64 / 100.0)) as f32);
+        let (out, filtered) = next(&inside);
+        assert!(!filtered);
+        assert!(
+            (0..100).all(|j| (out[j] - inside[j]).abs() < 1e-4),
+            "{out:?}"
+        );
     }
 }

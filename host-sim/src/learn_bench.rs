@@ -698,6 +698,10 @@ pub struct LearnBenchArgs {
     /// Skip the robustness rows.
     #[arg(long)]
     pub no_robustness: bool,
+    /// A trial is the fewest whole periods lasting at least this \[s\]; the learning step sees
+    /// their average (sensor noise falls as the square root of the periods).
+    #[arg(long, default_value_t = 0.1)]
+    pub trial_s: f64,
     /// Effect the plant carries (host-sim effect spec, repeatable; default as servo-bench;
     /// `none` for a clean plant).
     #[arg(long = "plant-effect")]
@@ -725,6 +729,10 @@ pub fn learn_bench_cmd(a: &LearnBenchArgs) -> Result<String, String> {
     if a.freq.is_empty() || a.freq.iter().any(|&f| !(f > 0.0 && f <= 1000.0)) {
         return Err(format!("--freq {:?}: frequencies in (0, 1000] Hz", a.freq));
     }
+    if !(a.trial_s > 0.0 && a.trial_s <= 10.0) {
+        return Err(format!("--trial-s {}: a trial lasts (0, 10] s", a.trial_s));
+    }
+    settings.trial_min_s = a.trial_s;
     settings.frequencies_hz = a.freq.clone();
     settings
         .robustness_cases
