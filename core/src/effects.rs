@@ -809,6 +809,14 @@ impl Effects {
             && self.relaxation.is_absent()
     }
 
+    /// The rate-dependent hysteresis's elements as (1 − bᵢ, g_wᵢ) with k_r \[m/V\] (gains 0
+    /// without it): c_w = Σ g_wᵢ·vᵢ, vᵢ\[j\] = vᵢ\[j−1\] + (1 − bᵢ)·(p\[j−1\] − p_ref − vᵢ\[j−1\]),
+    /// p = w − k_r·u.
+    pub(crate) fn relaxation_elements(&self) -> ([(f32, f32); MAX_RELAXATION_ELEMENTS], f32) {
+        let r = &self.relaxation;
+        (core::array::from_fn(|i| (r.rate[i], r.gain[i])), r.linear)
+    }
+
     /// Whether the second-order mode is present.
     pub fn has_mode(&self) -> bool {
         self.mode.is_some()

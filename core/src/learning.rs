@@ -24,6 +24,15 @@
 //! Sign convention: e = r − y; for a stage whose output rises with voltage (g > 0) a positive
 //! error raises the command.
 //!
+//! * **Rate-dependent hysteresis**: L inverts the model's linearised dynamics along u_k, not only
+//!   its one-sample slope g. With the operator's input lag (`hysteresis_lag_s`, v\[j\] =
+//!   v\[j−1\] + c·(u\[j−1\] − v\[j−1\]) + b·(u\[j\] − u\[j−1\])) a correction Δu moves the
+//!   output by `g[j]·Δu[j] + k2·(dh/dv)[j]·Δv⁻[j]`, Δv⁻\[j\] = Δv\[j−1\] + c·(Δu\[j−1\] − Δv\[j−1\])
+//!   − b·Δu\[j−1\] (the lag's memory of earlier corrections); with the relaxation of the effects
+//!   (Σ g_wᵢ·vᵢ, vᵢ a lag of p = w − k_r·u) it also moves by Σ g_wᵢ·Δvᵢ\[j\], Δvᵢ\[j+1\] = Δvᵢ\[j\] +
+//!   (1 − bᵢ)·(Δp\[j\] − Δvᵢ\[j\]). `(L·e)[j] = λ·Δu[j]` with Δu solved sample by sample so that
+//!   the model moves by s\[j\]; a periodic trial runs this recursion over the period twice and
+//!   keeps the second pass (its memory in the periodic state). Without either, Δu = s/g as above.
 //! * **Learning gain** λ = 2/(γ_min + γ_max): the plant's gain is γ times the model's, γ in
 //!   `[gain_min, gain_max]`; λ balances the two ends, max|1 − λγ| = (γ_max − γ_min)/(γ_max + γ_min).
 //! * **Q** is a zero-phase low-pass: a 4th-order Butterworth (two biquads, bilinear transform
@@ -51,7 +60,7 @@
 //! a non-finite command sample as the compensator's.
 
 use crate::compensator::{Compensator, CompensatorSettings};
-use crate::effects::Effects;
+use crate::effects::{Effects, MAX_RELAXATION_ELEMENTS};
 use crate::error::{finite, ParamError};
 use crate::math::clamp;
 use crate::static_model::{ModelState, StaticModel};
@@ -219,6 +228,8 @@ pub struct Learning {
     delay_fraction: f64,
     /// (f_mode \[Hz\], ζ) of the model's mode.
     mode: Option<(f64, f64)>,
+    /// The rate-dependent hysteresis of the effects: (1 − bᵢ, g_wᵢ) per element and k_r \[m/V\].
+    relaxation: ([(f64, f64); MAX_RELAXATION_ELEMENTS], f64),
     params: LearningParams,
     learning_gain: f64,
     cutoff_hz: f64,
@@ -318,6 +329,13 @@ impl Learning {
             mode: effects
                 .has_mode()
                 .then(|| (f64::from(p.mode_frequency_hz), f64::from(p.mode_damping))),
+            relaxation: {
+                let (elements, linear) = effects.relaxation_elements();
+                (
+                    elements.map(|(r, g)| (f64::from(r), f64::from(g))),
+                    f64::from(linear),
+                )
+            },
             params,
             learning_gain: 2.0 / (f64::from(lo) + f64::from(hi)),
             cutoff_hz: 0.0,
@@ -525,35 +543,92 @@ impl Learning {
             (zeta / wt, 1.0 / (wt * wt))
         });
         // The model along u_k: a periodic trial starts from the state one period of u_k leaves.
-        let mut state = ModelState::at_rest(if periodic {
+        let mut start = ModelState::at_rest(if periodic {
             command(0)
         } else {
             self.limits.output_min_v
         });
         if periodic {
             for j in 0..n {
-                self.model.step(&mut state, command(j));
+                self.model.step(&mut start, command(j));
             }
         }
-        let mut direction = 1.0f32;
-        for (j, o) in out.iter_mut().enumerate() {
-            let from = state;
-            let u = command(j);
-            self.model.step(&mut state, u);
-            let du = state.input_v - from.input_v;
-            if du != 0.0 {
-                direction = if du > 0.0 { 1.0 } else { -1.0 };
+        let lag = self.model.has_input_lag().then(|| {
+            (
+                f64::from(self.model.input_lag_fraction()),
+                f64::from(self.model.input_lag_hold_share()),
+            )
+        });
+        let (elements, relaxation_linear) = self.relaxation;
+        let relaxes = elements.iter().any(|&(_, g)| g != 0.0);
+        // The linearised model's memory of the learned correction Δu (module doc, "Rate-dependent
+        // hysteresis"): the lagged input's Δv, the last Δu, and the relaxation elements' Δvᵢ.
+        let mut dv = 0.0f64;
+        let mut du_last = 0.0f64;
+        let mut relaxed = [0.0f64; MAX_RELAXATION_ELEMENTS];
+        // A periodic trial's memory starts in its periodic state: one pass to reach it.
+        let passes = if periodic && (lag.is_some() || relaxes) {
+            2
+        } else {
+            1
+        };
+        for pass in 0..passes {
+            let write = pass + 1 == passes;
+            let mut state = start;
+            let mut direction = 1.0f32;
+            for (j, o) in out.iter_mut().enumerate() {
+                let from = state;
+                let u = command(j);
+                self.model.step(&mut state, u);
+                let du = state.input_v - from.input_v;
+                if du != 0.0 {
+                    direction = if du > 0.0 { 1.0 } else { -1.0 };
+                }
+                let slope = f64::from(self.model.step_slope(&from, &state, direction));
+                let i = j as isize;
+                let (zm, z0, zp) = (shifted(i - 1), shifted(i), shifted(i + 1));
+                let s = z0 + velocity * (zp - zm) + curvature * (zp - 2.0 * z0 + zm);
+                // Δy = slope·Δu + k2·(dh/dv)·Δv_pre + Σ g_wᵢ·Δvᵢ, solved for Δu.
+                let (dv_pre, lag_coefficient) = match lag {
+                    Some((c, b)) => (
+                        dv + c * (du_last - dv) - b * du_last,
+                        f64::from(self.model.map().k2_m_per_h)
+                            * f64::from(self.model.lagged_input_slope(&from, &state, direction)),
+                    ),
+                    None => (0.0, 0.0),
+                };
+                let relaxation: f64 = elements
+                    .iter()
+                    .zip(&relaxed)
+                    .map(|(&(_, g), v)| g * v)
+                    .sum();
+                let mut correction = if slope.is_finite() && slope.abs() > 0.0 {
+                    (s - lag_coefficient * dv_pre - relaxation) / slope
+                } else {
+                    0.0
+                };
+                if !correction.is_finite() {
+                    // A model the linearisation cannot follow here: nothing learned, memory reset.
+                    correction = 0.0;
+                    dv = 0.0;
+                    relaxed = [0.0; MAX_RELAXATION_ELEMENTS];
+                }
+                if let Some((_, b)) = lag {
+                    dv = dv_pre + b * correction;
+                }
+                if relaxes {
+                    // Δp = Δw − k_r·Δu, Δw = Δy − Σ g_wᵢ·Δvᵢ = s − relaxation.
+                    let dp = s - relaxation - relaxation_linear * correction;
+                    for (v, &(rate, _)) in relaxed.iter_mut().zip(&elements) {
+                        *v += rate * (dp - *v);
+                    }
+                }
+                du_last = correction;
+                if write {
+                    let learned = self.learning_gain * correction;
+                    *o = (f64::from(u) - f64::from(base(j)) + learned) as f32;
+                }
             }
-            let slope = f64::from(self.model.step_slope(&from, &state, direction));
-            let i = j as isize;
-            let (zm, z0, zp) = (shifted(i - 1), shifted(i), shifted(i + 1));
-            let s = z0 + velocity * (zp - zm) + curvature * (zp - 2.0 * z0 + zm);
-            let learned = if slope.is_finite() && slope.abs() > 0.0 {
-                self.learning_gain * s / slope
-            } else {
-                0.0
-            };
-            *o = (f64::from(u) - f64::from(base(j)) + learned) as f32;
         }
     }
 
@@ -757,5 +832,100 @@ mod tests {
             (0..100).all(|j| (out[j] - inside[j]).abs() < 1e-4),
             "{out:?}"
         );
+    }
+
+    /// A stage whose hysteresis is rate-dependent, played by the core's own forward chain: the
+    /// relaxation of the whole w (g_w = 2, τ_w = 5 ms: at low rates the output moves 3× what the
+    /// model's w moves, at high rates 1×) or the operator's input lag (τ_v = 2 ms). The learning
+    /// inverts the linearised dynamics, not only the one-sample slope. With the one-sample slope
+    /// the relaxation's trials grow (1.8 → 20 µm over eight trials: L is up to 3× too large at
+    /// low rates) and the lag's fall by 0.29 per trial instead of 1 − λ ≈ 0.13.
+    #[test]
+    fn rate_dependent_models_are_inverted_by_the_learning() {
+        use crate::effects::{EffectParams, EffectsState, OperatingRange};
+        use crate::static_model::StaticMap;
+        let period_s = 1e-4f32;
+        let settings = CompensatorSettings {
+            output_min_v: 0.0,
+            output_max_v: 120.0,
+            slew_limit_v_per_s: 1e5,
+            sample_period_s: period_s,
+        };
+        let range = OperatingRange {
+            input_v: (0.0, 120.0),
+            output_m: (0.0, 50e-6),
+        };
+        let map = StaticMap {
+            k1_m_per_v: 3.57e-7,
+            k2_m_per_h: -3.57e-7,
+            offset_m: 0.0,
+        };
+        let bw = crate::fixtures::x_stack(1.0, crate::STATE_LIMIT);
+        let relaxing = EffectParams {
+            relaxation_gain: [2.0, 0.0],
+            relaxation_time_constant_s: [5e-3, 0.0],
+            ..EffectParams::default()
+        };
+        // (model, effects, largest error ratio from one trial to the next over the first five,
+        // largest final / first error)
+        let cases = [
+            (StaticModel::new(bw, map).unwrap(), relaxing, 1.0, 0.05),
+            (
+                StaticModel::new(bw, map)
+                    .unwrap()
+                    .with_input_lag(2e-3, period_s)
+                    .unwrap(),
+                EffectParams::default(),
+                0.2,
+                1e-3,
+            ),
+        ];
+        for (model, params, ratio, final_share) in cases {
+            let effects = Effects::new(params, period_s, range).unwrap();
+            let compensator = Compensator::new(model, settings).unwrap();
+            let learning =
+                Learning::new(&compensator, &effects, LearningParams::default()).unwrap();
+            const N: usize = 500; // one 20 Hz period at 10 kHz
+            let sine = |phase: f64, j: usize| {
+                (60.0 + 40.0 * libm::sin(2.0 * PI * j as f64 / N as f64 + phase)) as f32
+            };
+            // The stage's output over the third period of `u` played in a loop from rest.
+            let play = |u: &[f32; N]| -> [f32; N] {
+                let mut state = ModelState::at_rest(u[0]);
+                let mut chain = EffectsState::new();
+                let mut y = [0.0f32; N];
+                for k in 0..3 * N {
+                    model.step(&mut state, u[k % N]);
+                    let w = model.map().output(state.input_v, state.hysteresis.h);
+                    let z = effects.forward_z(&mut chain, u[k % N], w);
+                    if k >= 2 * N {
+                        y[k - 2 * N] = z;
+                    }
+                }
+                y
+            };
+            let reference = play(&core::array::from_fn(|j| sine(0.05, j)));
+            let base: [f32; N] = core::array::from_fn(|j| sine(0.0, j));
+            let mut command = base;
+            let mut errors = [0.0f64; 9];
+            for error in errors.iter_mut() {
+                let measured = play(&command);
+                let trial = Trial {
+                    reference_m: &reference,
+                    command_v: &command,
+                    measured_m: &measured,
+                    base_v: &base,
+                    periodic: true,
+                };
+                let mut next = [0.0f32; N];
+                *error = learning.step(&trial, &mut next).unwrap().rms_error_m;
+                command = next;
+            }
+            for k in 1..errors.len() {
+                let bound = if k <= 5 { ratio } else { 1.05 };
+                assert!(errors[k] <= bound * errors[k - 1], "trial {k}: {errors:?}");
+            }
+            assert!(errors[8] <= final_share * errors[0], "{errors:?}");
+        }
     }
 }

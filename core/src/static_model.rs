@@ -396,9 +396,7 @@ impl StaticModel {
     ) -> f32 {
         if self.lag_fraction != 0.0 {
             // dy/du = k1 + k2·b·dh/dv, on the branch v moved along.
-            let v_move = reached.hysteresis.input_v - from.hysteresis.input_v;
-            let branch = if v_move != 0.0 { v_move } else { direction };
-            let dh_dv = self.hysteresis.slope(reached.hysteresis.h, branch);
+            let dh_dv = self.lagged_input_slope(from, reached, direction);
             return self.map.k1_m_per_v + self.map.k2_m_per_h * self.lag_hold_share * dh_dv;
         }
         let shifted_move = reached.hysteresis.input_v - from.hysteresis.input_v;
@@ -417,6 +415,20 @@ impl StaticModel {
         let s = if direction < 0.0 { -1.0 } else { 1.0 };
         self.map.k1_m_per_v
             + self.map.k2_m_per_h * ((1.0 - self.shift_fraction) * dh_du + self.delta_half_step * s)
+    }
+
+    /// dh/dv \[1/V\]: the operator's slope with respect to its input v (the lagged command of a
+    /// model with an input lag), at the state `reached` on the branch v moved along from `from`
+    /// (`direction` when it did not move).
+    pub(crate) fn lagged_input_slope(
+        &self,
+        from: &ModelState,
+        reached: &ModelState,
+        direction: f32,
+    ) -> f32 {
+        let v_move = reached.hysteresis.input_v - from.hysteresis.input_v;
+        let branch = if v_move != 0.0 { v_move } else { direction };
+        self.hysteresis.slope(reached.hysteresis.h, branch)
     }
 
     /// The sample period the asymmetric terms were discretised at \[s\] (0 for the symmetric model).

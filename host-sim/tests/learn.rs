@@ -399,3 +399,85 @@ fn the_q_rule_margin_holds_for_the_model() {
     // The rule is not vacuous: somewhere it is close to its bound.
     assert!(worst > 0.5, "{worst}");
 }
+
+/// The stage's hysteresis is rate-dependent (the stacks' dielectric lag, τ_v = 2 ms, in the plant)
+/// and the stage file says so (`hysteresis_lag_s`, as close-loop writes it). The learning's gain
+/// inverts the lag's dynamics (its memory of earlier corrections), not only the one-sample slope
+/// (≈ k1: the part of the hysteresis that follows within a sample is b ≈ T/(2τ_v)).
+#[test]
+fn learning_converges_on_a_stage_with_rate_dependent_hysteresis() {
+    let scratch = scratch("lag");
+    let dir = scratch.path();
+    let mut plant = XyStage::default();
+    plant.dielectric_lag_s = 2e-3;
+    let gain = plant.static_gain();
+    let stroke_m = gain.map(|g| g * 38e-6);
+    let params = stage_file(
+        dir,
+        "stage.toml",
+        gain,
+        [(3200.0, 0.03), (2200.0, 0.03)],
+        0.0,
+    );
+    let mut file = StageFile::load(&params).unwrap().0;
+    file.x.effects.hysteresis_lag_s = 2e-3;
+    file.y.as_mut().unwrap().effects.hysteresis_lag_s = 2e-3;
+    std::fs::write(&params, file.to_toml("learn test stage, rate-dependent")).unwrap();
+    let reference = dir.join("r.csv");
+    let r = write_reference(&reference, stroke_m);
+    let mut command = dir.join("u0.csv");
+    cli(&[
+        "compensate",
+        "--params",
+        p(&params),
+        "--reference",
+        p(&reference),
+        "--out",
+        p(&command),
+    ])
+    .unwrap();
+    let mut errors = Vec::new();
+    for k in 0..=10 {
+        let measured = dir.join(format!("y{k}.csv"));
+        errors.push(play(&plant, &command, &measured, &r));
+        if k == 10 {
+            break;
+        }
+        let next = dir.join(format!("u{}.csv", k + 1));
+        cli(&[
+            "learn",
+            "--params",
+            p(&params),
+            "--reference",
+            p(&reference),
+            "--command",
+            p(&command),
+            "--measured",
+            p(&measured),
+            "--out",
+            p(&next),
+            "--report",
+            p(&dir.join(format!("step{k}.json"))),
+        ])
+        .unwrap();
+        command = next;
+    }
+    println!("RMS error per trial [m]: {errors:?}");
+    // The first step takes the lag's memory into account: 0.17 of trial 0's error here (0.29
+    // with the one-sample slope alone, which is ≈ k1 behind the lag).
+    assert!(errors[1] <= 0.25 * errors[0], "{errors:?}");
+    for k in 1..errors.len() {
+        assert!(
+            errors[k] <= 1.1 * errors[k - 1],
+            "trial {k}: {:.3e} m after {:.3e} m: {errors:?}",
+            errors[k],
+            errors[k - 1]
+        );
+    }
+    assert!(
+        errors[10] <= 0.2 * errors[0],
+        "after 10 steps {:.3e} m, first {:.3e} m: {errors:?}",
+        errors[10],
+        errors[0]
+    );
+}
