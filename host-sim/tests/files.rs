@@ -314,3 +314,99 @@ fn a_csv_signal_plays_the_whole_file() {
     ));
     assert_eq!(cut, 0.999);
 }
+
+/// Column units: the suffixes of every quantity (ms, mV, µm, …) are converted; a suffix that is
+/// unknown, missing or of another quantity is refused naming the column and what the suffix is;
+/// metres written under a `_um` header make a 36 pm stroke, which the reader warns of and the
+/// stage file's check refuses (naming the stroke and asking for the unit).
+#[test]
+fn column_units_are_converted_checked_and_a_wrong_unit_is_refused() {
+    let dir = scratch("units");
+    let dir = dir.path();
+    let identify = |data: &Path, t: &str, u: &str, y: &str, out: &Path| {
+        let report = out.with_extension("json");
+        cli(&[
+            "identify",
+            "--data",
+            s(data),
+            "--t",
+            t,
+            "--u",
+            u,
+            "--y",
+            y,
+            "--model",
+            "symmetric",
+            "--out",
+            s(out),
+            "--report",
+            s(&report),
+        ])
+    };
+    // `record` with a header of its own.
+    let with_header = |name: &str, header: &str, scale: [f64; 5]| {
+        let path = record(&dir.join(name), |_, cells| {
+            for (c, f) in cells.iter_mut().zip(scale) {
+                *c = (c.parse::<f64>().unwrap() * f).to_string();
+            }
+        });
+        let text = std::fs::read_to_string(&path).unwrap();
+        let (_, rest) = text.split_once('\n').unwrap();
+        std::fs::write(&path, format!("{header}\n{rest}")).unwrap();
+        path
+    };
+    // Milliseconds, millivolts and micrometres: the same set as seconds, volts and metres.
+    let si = with_header("si.csv", "t_s,ux_V,uy_V,x_m,y_m", [1.0; 5]);
+    let scaled = with_header(
+        "scaled.csv",
+        "t_ms,ux_mV,uy_mV,x_µm,y_µm",
+        [1e3, 1e3, 1e3, 1e6, 1e6],
+    );
+    let (a, b) = (dir.join("si.toml"), dir.join("scaled.toml"));
+    identify(&si, "t_s", "ux_V", "x_m", &a).unwrap();
+    identify(&scaled, "t_ms", "ux_mV", "x_µm", &b).unwrap();
+    let k1 = |p: &Path| {
+        let (file, _) = piezo_stage::StageFile::load(p).unwrap();
+        file.x.static_map.unwrap().k1_m_per_v
+    };
+    assert!(
+        (k1(&a) / k1(&b) - 1.0).abs() < 1e-3,
+        "{} vs {}",
+        k1(&a),
+        k1(&b)
+    );
+    // Unknown, missing, of another quantity: refused, naming the column and why.
+    for (header, y, says) in [
+        (
+            "t_s,ux_V,uy_V,x_furlong,y_m",
+            "x_furlong",
+            "has an unknown unit suffix `furlong`",
+        ),
+        ("t_s,ux_V,uy_V,xpos,y_m", "xpos", "has no unit suffix"),
+        (
+            "t_s,ux_V,uy_V,x_V,y_m",
+            "x_V",
+            "its unit is a voltage, --y needs a length or a force",
+        ),
+    ] {
+        let path = with_header(&format!("{y}.csv"), header, [1.0; 5]);
+        let err = identify(&path, "t_s", "ux_V", y, &dir.join("bad.toml")).unwrap_err();
+        assert!(
+            err.contains(says) && err.contains(&format!("`{y}`")) && err.contains("µm"),
+            "{err}"
+        );
+    }
+    // Metres under a micrometre header: a 36 pm stroke, refused by the stage file's check.
+    let wrong = with_header("wrong.csv", "t_s,ux_V,uy_V,x_um,y_um", [1.0; 5]);
+    let err = identify(&wrong, "t_s", "ux_V", "x_um", &dir.join("wrong.toml")).unwrap_err();
+    assert!(
+        err.contains("x.static_map.k1_m_per_v") && err.contains("outside the 1e-8–1e-2 m"),
+        "{err}"
+    );
+    let warnings =
+        host_sim::identify::scale_warnings(&wrong, "ux_V", &[0.0, 120.0], "x_um", &[0.0, 3.6e-11]);
+    assert!(
+        warnings.len() == 1 && warnings[0].contains("`x_um` spans 3.600e-11 m"),
+        "{warnings:?}"
+    );
+}

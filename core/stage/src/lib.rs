@@ -72,7 +72,7 @@ mod error;
 mod validate;
 
 pub use error::{StageError, StageErrorKind};
-pub use validate::{simulate_pair, AxisChain, Check, ValidAxis, ValidStage};
+pub use validate::{simulate_pair, AxisChain, Check, ValidAxis, ValidStage, PLAUSIBLE_STROKE_M};
 
 use piezo_core::effects::EffectParams;
 use piezo_core::{

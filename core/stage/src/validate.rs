@@ -14,6 +14,10 @@ use piezo_core::{
     IoChain, ModelState, OscillatorState, ParamError, Servo, StaticModel,
 };
 
+/// Strokes a piezo stage plausibly has over its output window \[m\]: 10 nm to 10 mm. A stage
+/// file whose model gives a stroke outside is refused (a record read in the wrong unit).
+pub const PLAUSIBLE_STROKE_M: (f64, f64) = (1e-8, 1e-2);
+
 /// The built model of one axis at one sample period.
 // Built once per validation and copied by value like the core's models: boxing the static chain
 // would cost an allocation for nothing.
@@ -155,6 +159,20 @@ impl Axis {
                         StageErrorKind::Invalid,
                         &format!("{name}.limits"),
                         format!("the model gives no stroke over the output window (first-loading gain {gain} m/V)"),
+                    ));
+                }
+                let stroke_m = f64::from(gain).abs() * (f64::from(u1) - f64::from(u0));
+                let (lo, hi) = PLAUSIBLE_STROKE_M;
+                if !(lo..=hi).contains(&stroke_m) {
+                    return Err(StageError::new(
+                        "",
+                        StageErrorKind::Invalid,
+                        &format!("{name}.static_map.k1_m_per_v"),
+                        format!(
+                            "the model's stroke over the output window {u0}–{u1} V is {stroke_m:.3e} m \
+                             (first-loading gain {gain:.3e} m/V), outside the {lo:.0e}–{hi:.0e} m a piezo \
+                             stage has: was the record's output read in the unit its column name says?"
+                        ),
                     ));
                 }
                 let range = OperatingRange::first_loading(rest, gain, (u0, u1));

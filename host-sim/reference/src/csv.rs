@@ -23,10 +23,92 @@ pub const MAX_STEP_RATIO: f64 = 1.5;
 /// describe a sampled actuator (and in the core's f32 they round towards zero).
 pub const MIN_SAMPLE_PERIOD_S: f64 = 1e-9;
 
-/// Units accepted as column suffixes.
-pub const UNITS: &[&str] = &[
-    "s", "V", "m", "mm", "um", "nm", "N", "Hz", "V_per_s", "m_per_s", "1",
+/// What a column measures, from its unit suffix.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Quantity {
+    /// s, ms, us/µs, ns.
+    Time,
+    /// V, mV, kV.
+    Voltage,
+    /// N, mN, kN.
+    Force,
+    /// m, mm, um/µm, nm, pm.
+    Length,
+    /// Hz.
+    Frequency,
+    /// V_per_s.
+    VoltageRate,
+    /// m_per_s.
+    Speed,
+    /// 1 (no dimension).
+    Ratio,
+}
+
+impl Quantity {
+    /// "a time", "a voltage", ….
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Time => "a time",
+            Self::Voltage => "a voltage",
+            Self::Force => "a force",
+            Self::Length => "a length",
+            Self::Frequency => "a frequency",
+            Self::VoltageRate => "a voltage rate",
+            Self::Speed => "a speed",
+            Self::Ratio => "a ratio",
+        }
+    }
+}
+
+/// Units accepted as column suffixes (after the `_` that ends the name): suffix, SI factor,
+/// quantity.
+pub const UNITS: [(&str, f64, Quantity); 21] = [
+    ("s", 1.0, Quantity::Time),
+    ("ms", 1e-3, Quantity::Time),
+    ("us", 1e-6, Quantity::Time),
+    ("µs", 1e-6, Quantity::Time),
+    ("ns", 1e-9, Quantity::Time),
+    ("V", 1.0, Quantity::Voltage),
+    ("mV", 1e-3, Quantity::Voltage),
+    ("kV", 1e3, Quantity::Voltage),
+    ("N", 1.0, Quantity::Force),
+    ("mN", 1e-3, Quantity::Force),
+    ("kN", 1e3, Quantity::Force),
+    ("m", 1.0, Quantity::Length),
+    ("mm", 1e-3, Quantity::Length),
+    ("um", 1e-6, Quantity::Length),
+    ("µm", 1e-6, Quantity::Length),
+    ("nm", 1e-9, Quantity::Length),
+    ("pm", 1e-12, Quantity::Length),
+    ("Hz", 1.0, Quantity::Frequency),
+    ("V_per_s", 1.0, Quantity::VoltageRate),
+    ("m_per_s", 1.0, Quantity::Speed),
+    ("1", 1.0, Quantity::Ratio),
 ];
+
+/// The unit of column `name`: the [`UNITS`] suffix it ends in after a `_` (the longest, so
+/// `u_V_per_s` is a voltage rate), its SI factor and quantity; `None` without one.
+pub fn unit_of(name: &str) -> Option<(f64, Quantity)> {
+    UNITS
+        .iter()
+        .filter(|(u, _, _)| {
+            name.len() > u.len() + 1
+                && name.ends_with(u)
+                && name[..name.len() - u.len()].ends_with('_')
+        })
+        .max_by_key(|(u, _, _)| u.len())
+        .map(|&(_, f, q)| (f, q))
+}
+
+/// The suffixes of `wanted` (all when empty), comma-separated, for messages.
+pub fn unit_names(wanted: &[Quantity]) -> String {
+    UNITS
+        .iter()
+        .filter(|(_, _, q)| wanted.is_empty() || wanted.contains(q))
+        .map(|(u, _, _)| *u)
+        .collect::<Vec<_>>()
+        .join(", ")
+}
 
 /// CSV errors.
 #[derive(Debug, Clone, PartialEq)]
@@ -186,35 +268,76 @@ impl fmt::Display for CsvError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             Self::Io { path, message } => write!(f, "{}: {message}", path.display()),
-            Self::Empty { path } => write!(f, "{}: empty file, expected a header line", path.display()),
+            Self::Empty { path } => {
+                write!(f, "{}: empty file, expected a header line", path.display())
+            }
             Self::NoUnit { path, column, name } => write!(
                 f,
-                "{}:1: column {column} `{name}` has no unit suffix (expected name_UNIT with UNIT one of {})",
+                "{}:1: column {column} `{name}` {} (expected name_UNIT with UNIT one of {})",
                 path.display(),
-                UNITS.join(", ")
+                match name.rsplit_once('_') {
+                    Some((_, unit)) => format!("has an unknown unit suffix `{unit}`"),
+                    None => "has no unit suffix".to_string(),
+                },
+                unit_names(&[])
             ),
-            Self::BadNumber { path, line, column, name, given } => write!(
+            Self::BadNumber {
+                path,
+                line,
+                column,
+                name,
+                given,
+            } => write!(
                 f,
                 "{}:{line}: column {column} (`{name}`): `{given}` is not a finite number",
                 path.display()
             ),
-            Self::WrongCellCount { path, line, expected, found } => {
-                write!(f, "{}:{line}: expected {expected} cells, found {found}", path.display())
+            Self::WrongCellCount {
+                path,
+                line,
+                expected,
+                found,
+            } => {
+                write!(
+                    f,
+                    "{}:{line}: expected {expected} cells, found {found}",
+                    path.display()
+                )
             }
-            Self::BeyondF32 { path, line, column, name, given } => write!(
+            Self::BeyondF32 {
+                path,
+                line,
+                column,
+                name,
+                given,
+            } => write!(
                 f,
                 "{}:{line}: column {column} (`{name}`): {given:e} is beyond the range of the f32 \
                  the core computes in (|v| <= {:e} in SI units)",
                 path.display(),
                 f32::MAX
             ),
-            Self::Time { path, line, column, name, fault } => write!(
+            Self::Time {
+                path,
+                line,
+                column,
+                name,
+                fault,
+            } => write!(
                 f,
                 "{}:{line}: column {column} (`{name}`): {fault}",
                 path.display()
             ),
-            Self::MissingColumn { path, name, available } => {
-                write!(f, "{}: no column `{name}`; columns: {available}", path.display())
+            Self::MissingColumn {
+                path,
+                name,
+                available,
+            } => {
+                write!(
+                    f,
+                    "{}: no column `{name}`; columns: {available}",
+                    path.display()
+                )
             }
         }
     }
@@ -257,9 +380,7 @@ impl Table {
 }
 
 fn has_unit(name: &str) -> bool {
-    UNITS.iter().any(|u| {
-        name.len() > u.len() + 1 && name.ends_with(u) && name[..name.len() - u.len()].ends_with('_')
-    })
+    unit_of(name).is_some()
 }
 
 /// Reads a CSV file written by [`write_csv`] (comma separated, header first, `#` comment lines

@@ -66,16 +66,11 @@ pub struct Record {
     pub sources: Vec<PathBuf>,
 }
 
-/// SI factor of a column's unit suffix.
+pub use crate::csv::{unit_of, Quantity};
+
+/// SI factor of a column's unit suffix ([`unit_of`]).
 pub fn unit_factor(name: &str) -> Option<f64> {
-    let unit = name.rsplit('_').next()?;
-    Some(match unit {
-        "s" | "V" | "m" | "N" => 1.0,
-        "mm" => 1e-3,
-        "um" => 1e-6,
-        "nm" => 1e-9,
-        _ => return None,
-    })
+    unit_of(name).map(|(f, _)| f)
 }
 
 fn pick(table: &Table, given: Option<&str>, prefix: &str, flag: &str) -> Result<String, String> {
@@ -97,15 +92,76 @@ fn pick(table: &Table, given: Option<&str>, prefix: &str, flag: &str) -> Result<
         })
 }
 
-/// The SI factor of column `name`'s unit, or an error naming the file, the column and the flag.
-fn si_factor(path: &Path, name: &str, flag: &str) -> Result<f64, String> {
-    unit_factor(name).ok_or_else(|| {
-        format!(
-            "{flag}: {}: column `{name}` has no SI-convertible unit (s, V, N, m, mm, um, nm)",
-            path.display()
-        )
-    })
+/// The SI factor of column `name`'s unit, which must measure one of `wanted`, or an error naming
+/// the file, the column, the flag and what the suffix is: none, unknown, or of another quantity.
+fn si_factor(path: &Path, name: &str, flag: &str, wanted: &[Quantity]) -> Result<f64, String> {
+    let expected = wanted
+        .iter()
+        .map(|q| q.name())
+        .collect::<Vec<_>>()
+        .join(" or ");
+    let why = match (name.rsplit_once('_'), unit_of(name)) {
+        (_, Some((factor, q))) if wanted.contains(&q) => return Ok(factor),
+        (_, Some((_, q))) => format!("its unit is {}, {flag} needs {expected}", q.name()),
+        (Some((_, unit)), None) => format!("its unit suffix `{unit}` is unknown"),
+        (None, None) => "it has no unit suffix (`name_unit`)".to_string(),
+    };
+    Err(format!(
+        "{flag}: {}: column `{name}`: {why} (units: {})",
+        path.display(),
+        crate::csv::unit_names(wanted)
+    ))
 }
+
+/// Warnings for a record whose values look read in the wrong unit: an output span outside
+/// [`PLAUSIBLE_STROKE_M`] or an input span outside [`PLAUSIBLE_INPUT_SPAN_V`] (volts only), each
+/// naming the column and the unit it was read with.
+pub fn scale_warnings(
+    path: &Path,
+    u_name: &str,
+    u: &[f64],
+    y_name: &str,
+    y_m: &[f64],
+) -> Vec<String> {
+    let mut out = Vec::new();
+    let span = |v: &[f64]| {
+        let (lo, hi) = min_max(v);
+        hi - lo
+    };
+    let (y_span, (lo, hi)) = (span(y_m), PLAUSIBLE_STROKE_M);
+    if y_span.is_finite()
+        && y_span > 0.0
+        && !(lo..=hi).contains(&y_span)
+        && unit_of(y_name).is_some_and(|(_, q)| q == Quantity::Length)
+    {
+        out.push(format!(
+            "{}: column `{y_name}` spans {:.3e} m as read with its unit suffix: outside {lo:.0e}–{hi:.0e} m, \
+             implausible for a piezo stage's stroke; are its values in the unit its name says?",
+            path.display(),
+            y_span
+        ));
+    }
+    let (u_span, (lo, hi)) = (span(u), PLAUSIBLE_INPUT_SPAN_V);
+    if u_span.is_finite()
+        && u_span > 0.0
+        && !(lo..=hi).contains(&u_span)
+        && unit_of(u_name).is_some_and(|(_, q)| q == Quantity::Voltage)
+    {
+        out.push(format!(
+            "{}: column `{u_name}` spans {:.3e} V as read with its unit suffix: outside {lo:.0e}–{hi:.0e} V, \
+             implausible for a piezo drive; are its values in the unit its name says?",
+            path.display(),
+            u_span
+        ));
+    }
+    out
+}
+
+/// Output spans a piezo stage's record plausibly has \[m\]: the stroke the stage file's
+/// validation accepts.
+pub use piezo_stage::PLAUSIBLE_STROKE_M;
+/// Input spans a piezo drive plausibly has \[V\]: 10 mV to 10 kV.
+pub const PLAUSIBLE_INPUT_SPAN_V: (f64, f64) = (1e-2, 1e4);
 
 impl Record {
     /// Reads a one-axis record; columns default to the first `t_*`, `u_*` and `y_*` of the header.
@@ -168,7 +224,7 @@ impl Record {
             })
             .collect::<Result<Vec<_>, String>>()?;
         let t_s: Vec<f64> = {
-            let factor = si_factor(path, &t_name, "--t")?;
+            let factor = si_factor(path, &t_name, "--t", &[Quantity::Time])?;
             let t = rows.time(&t_name, factor).map_err(|e| e.to_string())?;
             t.iter().map(|v| v * factor).collect()
         };
@@ -183,15 +239,22 @@ impl Record {
             .into_iter()
             .map(|(u_name, y_name)| {
                 let u = rows
-                    .f32_column(&u_name, si_factor(path, &u_name, "--u")?)
+                    .f32_column(
+                        &u_name,
+                        si_factor(path, &u_name, "--u", &[Quantity::Voltage, Quantity::Force])?,
+                    )
                     .map_err(|e| e.to_string())?;
-                let factor = si_factor(path, &y_name, "--y")?;
-                let y_m = table
+                let factor = si_factor(path, &y_name, "--y", &[Quantity::Length, Quantity::Force])?;
+                let y_m: Vec<f64> = table
                     .column(&y_name)
                     .map_err(|e| e.to_string())?
                     .iter()
                     .map(|v| v * factor)
                     .collect();
+                let warnings = scale_warnings(path, &u_name, &u, &y_name, &y_m);
+                for w in &warnings {
+                    eprintln!("warning: {w}");
+                }
                 Ok(Self {
                     path: path.into(),
                     t_s: t_s.clone(),
