@@ -172,6 +172,8 @@ fn looks(series: &[Series]) -> Vec<Look> {
                 colour: role.colour(),
                 width: if markers || role == Role::Reference {
                     style::THIN_WIDTH
+                } else if role == Role::Measured {
+                    style::MEASURED_WIDTH
                 } else {
                     style::LINE_WIDTH
                 },

@@ -9,7 +9,8 @@
 //! title, axis labels with units and [`Series`]; a series has a [`Role`] that fixes its colour in every
 //! figure (measured, model, reference, residual, and one per controller mode: open-loop,
 //! feed-forward, feedback, feed-forward + feedback); the reference is drawn dashed and on top of the
-//! other curves. Curves are clipped to the data area; legends sit outside it; "um" in an axis label is
+//! other curves, and a measured series as a broad light band under them, so that a model lying on
+//! the measurement shows inside it instead of hiding it. Curves are clipped to the data area; legends sit outside it; "um" in an axis label is
 //! written µm; tick labels carry the decimals their step needs and never read "−0.0".
 //!
 //! Panel options ([`PanelOptions`]; a [`Panel`] with options is a [`Chart`], built with the same
@@ -477,13 +478,7 @@ impl std::error::Error for PlotError {}
 /// hysteresis loop).
 pub fn simulation_panels(out: &SimOutput, title: &str) -> Vec<Chart> {
     let axis = |name: &str| name.trim_end_matches("_m").to_string();
-    let role = |i: usize| {
-        if out.outputs_m.len() == 1 {
-            Role::Measured
-        } else {
-            Role::Other(i)
-        }
-    };
+    let role = Role::Other;
     let time = out
         .output_names
         .iter()

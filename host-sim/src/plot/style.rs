@@ -26,6 +26,9 @@ pub const LEGEND_FONT: u32 = 24;
 pub const LINE_WIDTH: u32 = 3;
 /// Width of the line joining markers and of reference lines, px.
 pub const THIN_WIDTH: u32 = 2;
+/// Line width of a measured series \[px\]: a broad band under the thinner lines drawn over it, so
+/// that a model lying on the measurement shows as a line inside the band, not hiding it.
+pub const MEASURED_WIDTH: u32 = 9;
 /// Marker radius, px.
 pub const MARKER_RADIUS: u32 = 6;
 /// Dash and gap of dashed lines, px.
@@ -98,7 +101,7 @@ impl Role {
     /// The colour of this role.
     pub fn colour(self) -> RGBColor {
         match self {
-            Role::Measured => RGBColor(70, 70, 70),
+            Role::Measured => RGBColor(175, 175, 175),
             Role::Model => RGBColor(213, 94, 0),
             Role::Reference => RGBColor(0, 0, 0),
             Role::Residual => RGBColor(117, 112, 179),
