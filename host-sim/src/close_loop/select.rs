@@ -46,7 +46,10 @@
 //! refused.
 //!
 //! **Noise floor.** Nothing is added once the residual RMS is within [`NOISE_FLOOR_FACTOR`] of the
-//! sensor noise estimated from the data ([`super::diagnose::noise_estimate`]).
+//! sensor noise estimated from the data ([`super::diagnose::noise_estimate`]) and the residual is
+//! white (Ljung–Box Q over 20 lags below its 95 % limit): a residual near the noise in RMS whose
+//! samples are still correlated holds structure, and the candidates are tried on it (they must
+//! still hold out of sample).
 
 use super::diagnose::{EffectKind, ResidualFigures};
 use super::full::{refit, sse_where, AxisModel, Block, FitData};
@@ -526,9 +529,12 @@ pub struct Floor {
 }
 
 impl Floor {
-    /// Whether the residual is at the noise floor.
+    /// Whether the residual is at the noise floor: its RMS within [`NOISE_FLOOR_FACTOR`] of the
+    /// noise estimate and white (a residual near the noise in RMS whose samples are still
+    /// correlated holds structure a candidate may explain).
     pub fn reached(&self) -> bool {
         self.residual.rms <= NOISE_FLOOR_FACTOR * self.noise_m
+            && self.residual.ljung_box_q20 < super::diagnose::LJUNG_BOX_LIMIT_20
     }
 
     /// JSON for the report.
