@@ -27,8 +27,8 @@
 #![allow(clippy::needless_range_loop)]
 
 use super::diagnose::{EffectInit, EffectKind};
-use crate::identify::fit::solve_dense_pub;
 use crate::identify::model::bouc_wen;
+use crate::optimise::{LeastSquares, Marquardt, NormalEquations};
 use piezo_core::effects::{EffectParams, Effects, EffectsState};
 use piezo_core::{BoucWen, BoucWenParams, ModelState, StaticMap, StaticModel};
 use rayon::prelude::*;
@@ -1221,95 +1221,125 @@ pub fn last_accepted_on_the_way(
     }
 }
 
-/// Levenberg–Marquardt on every parameter of `model` over the fitted samples of `d`; returns the
-/// refitted model, its SSE and the number of model evaluations.
+/// Levenberg–Marquardt ([`Marquardt`]) on every parameter of `model` over the fitted samples of
+/// `d`: forward-difference Jacobian, λ from 1e-3 (÷3 on success down to 1e-9, ×4 on failure or a
+/// singular system), twelve tries per iteration, the Marquardt scale floored at 1e-30; an
+/// iteration without an accepted step takes the Jacobian again with tenfold difference steps (at
+/// most twice), and the fit stops after two accepted steps in a row that gain less than 1e-6.
+/// Returns the refitted model, its SSE and the number of model evaluations.
 pub fn refit(model: &AxisModel, d: &FitData, max_iterations: usize) -> (AxisModel, f64, u64) {
     let (th0, typ, spec) = model.encode();
-    let mut th: Vec<f64> = th0
+    let th: Vec<f64> = th0
         .iter()
         .zip(&spec)
         .map(|(t, s)| t.clamp(s.lo, s.hi))
         .collect();
-    let p = th.len();
-    let problem = RefitProblem {
-        model,
-        d,
-        idx: (0..d.u.len()).filter(|&k| d.fitted(k)).collect(),
+    let mut lm = RefitSteps {
+        problem: RefitProblem {
+            model,
+            d,
+            idx: (0..d.u.len()).filter(|&k| d.fitted(k)).collect(),
+        },
+        typ,
+        bounds: spec.iter().map(|s| (s.lo, s.hi)).collect(),
+        spec,
+        step_scale: 1.0,
+        current: None,
+        base: None,
+        tried: None,
+        evals: 1,
     };
-    let mut evals = 1u64;
-    // The prediction at the current θ, kept from the accepted trial for the next Jacobian.
-    let mut current = problem.predict(&th, None);
-    let mut best = problem.sse_of(&current);
-    if !best.is_finite() || problem.idx.is_empty() {
-        return (model.decode(&th), best, evals);
+    lm.current = lm.problem.predict(&th, None);
+    let best = lm.problem.sse_of(&lm.current);
+    if !best.is_finite() || lm.problem.idx.is_empty() {
+        return (model.decode(&th), best, lm.evals);
     }
-    let mut lambda = 1e-3;
-    let mut stalls = 0;
-    // Difference steps grow tenfold (at most twice) when no step of an iteration improves: with the
-    // f32 simulation, too small a step gives a Jacobian of rounding noise.
-    let mut step_scale = 1.0;
-    let mut it = 0;
-    while it < max_iterations {
-        it += 1;
-        let Some(base) = current.take().or_else(|| problem.predict(&th, None)) else {
-            break;
-        };
-        let steps = difference_steps(&th, &typ, &spec, step_scale);
-        let cols = problem.jacobian(&th, &steps, &base);
-        evals += p as u64;
-        let r: Vec<f64> = problem
+    let settings = Marquardt {
+        lambda: 1e-3,
+        lambda_min: 1e-9,
+        scale_floor: 1e-30,
+        tries: 12,
+        singular_factor: 4.0,
+        iterations: max_iterations,
+        min_gain: 0.0,
+        small_steps: Some((1e-6, 2)),
+        predicted_gain: None,
+        hold_at_bounds: false,
+    };
+    let bounds = lm.bounds.clone();
+    let (th, best) = settings.run(&mut lm, th, best, &bounds);
+    (model.decode(&th), best, lm.evals)
+}
+
+/// [`refit`]'s least-squares problem: the forward-difference Jacobian of [`RefitProblem`] and the
+/// predictions it keeps between iterations.
+struct RefitSteps<'a> {
+    /// The model and the fitted samples.
+    problem: RefitProblem<'a>,
+    /// The typical size of each θ entry.
+    typ: Vec<f64>,
+    /// What each θ entry is.
+    spec: Vec<ParamSpec>,
+    /// Each θ entry's range.
+    bounds: Vec<(f64, f64)>,
+    /// Difference steps grow tenfold (at most twice) when no step of an iteration improves: with
+    /// the f32 simulation, too small a step gives a Jacobian of rounding noise.
+    step_scale: f64,
+    /// The prediction at the current θ, kept from the accepted trial for the next Jacobian.
+    current: Option<Prediction>,
+    /// The prediction the last Jacobian was taken at.
+    base: Option<Prediction>,
+    /// The last tried step's prediction.
+    tried: Option<Prediction>,
+    /// Model evaluations so far.
+    evals: u64,
+}
+
+impl LeastSquares for RefitSteps<'_> {
+    fn sse(&mut self, theta: &[f64], _abandon_above: f64) -> f64 {
+        self.tried = self.problem.predict(theta, None);
+        self.evals += 1;
+        self.problem.sse_of(&self.tried)
+    }
+
+    /// JᵀJ and Jᵀ(ŷ − y) of the forward-difference Jacobian of the prediction ŷ (the residual
+    /// r = ŷ − y, so the gradient is −Jᵀ(y − ŷ)).
+    fn normal_equations(&mut self, th: &[f64]) -> Option<NormalEquations> {
+        let base = self
+            .current
+            .take()
+            .or_else(|| self.problem.predict(th, None))?;
+        let steps = difference_steps(th, &self.typ, &self.spec, self.step_scale);
+        let cols = self.problem.jacobian(th, &steps, &base);
+        self.evals += th.len() as u64;
+        let y = self.problem.d.y;
+        let r: Vec<f64> = self
+            .problem
             .idx
             .iter()
             .zip(&base.y)
-            .map(|(&k, b)| d.y[k] - b)
+            .map(|(&k, b)| y[k] - b)
             .collect();
         let (jtj, jtr) = normal_equations(&cols, &r);
-        let mut improved = false;
-        for _ in 0..12 {
-            let mut a: Vec<Vec<f64>> = (0..p)
-                .map(|i| {
-                    let mut row = jtj[i].clone();
-                    row[i] += lambda * jtj[i][i].max(1e-30);
-                    row.push(jtr[i]);
-                    row
-                })
-                .collect();
-            let Some(delta) = solve_dense_pub(&mut a, p) else {
-                lambda *= 4.0;
-                continue;
-            };
-            let trial: Vec<f64> = th
-                .iter()
-                .zip(&delta)
-                .zip(&spec)
-                .map(|((a, b), s)| (a + b).clamp(s.lo, s.hi))
-                .collect();
-            let prediction = problem.predict(&trial, None);
-            let s = problem.sse_of(&prediction);
-            evals += 1;
-            if s < best {
-                let gain = (best - s) / best;
-                th = trial;
-                current = prediction;
-                best = s;
-                lambda = (lambda / 3.0).max(1e-9);
-                improved = true;
-                stalls = if gain < 1e-6 { stalls + 1 } else { 0 };
-                break;
-            }
-            lambda *= 4.0;
-        }
-        if !improved && step_scale < 100.0 {
-            step_scale *= 10.0;
-            lambda = 1e-3;
-            current = Some(base);
-            continue;
-        }
-        if !improved || stalls >= 2 {
-            break;
-        }
+        self.base = Some(base);
+        Some(NormalEquations {
+            jtj,
+            gradient: jtr.iter().map(|v| -v).collect(),
+        })
     }
-    (model.decode(&th), best, evals)
+
+    fn accepted(&mut self, _theta: &[f64], _sse: f64, _gain: f64, _lambda: f64) {
+        self.current = self.tried.take();
+    }
+
+    fn retry(&mut self) -> bool {
+        if self.step_scale >= 100.0 {
+            return false;
+        }
+        self.step_scale *= 10.0;
+        self.current = self.base.take();
+        true
+    }
 }
 
 #[cfg(test)]
