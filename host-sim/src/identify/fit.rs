@@ -1,5 +1,6 @@
 //! The objective and the optimisers: variable projection, differential evolution,
-//! Levenberg–Marquardt, and seed 001's genetic algorithm.
+//! Levenberg–Marquardt (both [`crate::optimise`]'s, with the settings below), and seed 001's
+//! genetic algorithm.
 //!
 //! # Objective (variable projection)
 //! For the static models the output is linear in (k1, k2, y0) once h is known:

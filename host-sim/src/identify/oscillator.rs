@@ -23,6 +23,7 @@
 //! per parameter), a parameter at a bound held there while its gradient points outwards: first on
 //! the input upsampled by 4 (a fifth of the cost per iteration) to within 1e-6 of the SSE, then
 //! polished at the full rate until a step gains less than 1e-9 or the linear model promises less.
+//! Both optimisers are [`crate::optimise`]'s, with the settings above.
 //! Never fit on test data: this sees only the record it is given.
 
 // Index loops for the small dense algebra; `%` rather than `is_multiple_of` (rust-version 1.80).

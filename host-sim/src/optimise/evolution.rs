@@ -215,3 +215,106 @@ impl Evolution {
             .collect()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand_core::SeedableRng;
+
+    const BOUNDS: [(f64, f64); 3] = [(-5.0, 5.0), (-5.0, 5.0), (0.0, 3.0)];
+
+    /// (x − 1)² + (y + 2)² + (z − 2.5)², minimum 0 at (1, −2, 2.5).
+    fn bowl(x: &[f64]) -> f64 {
+        (x[0] - 1.0).powi(2) + (x[1] + 2.0).powi(2) + (x[2] - 2.5).powi(2)
+    }
+
+    fn run(settings: Evolution, seed: u64, size: usize) -> ((Vec<f64>, f64), usize) {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let members = random_population(&BOUNDS, size, &mut rng);
+        let sse = members.iter().map(|m| bowl(m)).collect();
+        let mut generations = 0;
+        let best = settings.run(
+            Population { members, sse },
+            &BOUNDS,
+            &mut rng,
+            |x, _| bowl(x),
+            |p| {
+                generations += 1;
+                assert!(p.members.iter().flatten().all(|v| v.is_finite()));
+            },
+        );
+        (best, generations)
+    }
+
+    fn settings() -> Evolution {
+        Evolution {
+            weight: 0.6,
+            crossover: Some(0.9),
+            distinct_donors: true,
+            boundary: Boundary::BounceBack,
+            generations: 200,
+            stall: None,
+            spread: None,
+        }
+    }
+
+    #[test]
+    fn finds_the_minimum_of_a_bowl_inside_the_bounds_in_every_variant() {
+        for (crossover, distinct_donors, boundary) in [
+            (Some(0.9), true, Boundary::BounceBack),
+            (Some(0.9), false, Boundary::Clamp),
+            (None, false, Boundary::Clamp),
+        ] {
+            let s = Evolution {
+                crossover,
+                distinct_donors,
+                boundary,
+                ..settings()
+            };
+            let ((x, f), _) = run(s, 3, 20);
+            assert!(f < 1e-8, "{s:?}: {x:?} {f:e}");
+            for (v, (lo, hi)) in x.iter().zip(BOUNDS) {
+                assert!((lo..=hi).contains(v));
+            }
+        }
+    }
+
+    #[test]
+    fn a_seed_gives_the_same_run_and_another_seed_another() {
+        // Three generations: far from converged, so the runs still differ by seed.
+        let short = Evolution {
+            generations: 3,
+            ..settings()
+        };
+        assert_eq!(run(short, 5, 15), run(short, 5, 15));
+        assert_ne!(run(short, 5, 15).0 .0, run(short, 6, 15).0 .0);
+    }
+
+    #[test]
+    fn the_stopping_rules_end_the_run() {
+        let stall = Evolution {
+            stall: Some(Stall {
+                gain: 1e-4,
+                generations: 5,
+            }),
+            ..settings()
+        };
+        let (_, stalled) = run(stall, 1, 15);
+        assert!(stalled < 200, "{stalled}");
+        let spread = Evolution {
+            spread: Some(1e-3),
+            ..settings()
+        };
+        let (_, collapsed) = run(spread, 1, 15);
+        assert!(collapsed < 200, "{collapsed}");
+        assert_eq!(run(settings(), 1, 15).1, 200);
+    }
+
+    #[test]
+    fn a_population_too_small_for_distinct_donors_still_evolves() {
+        // Two members have no r1 ≠ i and r2 ∉ {i, r1}: drawing until they are would never end.
+        let ((_, f), generations) = run(settings(), 2, 2);
+        assert_eq!(generations, 200);
+        assert!(f.is_finite());
+    }
+}

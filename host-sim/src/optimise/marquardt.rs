@@ -195,3 +195,169 @@ impl Marquardt {
         Some(d)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// y = a·e^(−b·t) on 40 samples, exact data; counts the calls.
+    struct Decay {
+        t: Vec<f64>,
+        y: Vec<f64>,
+        normal_calls: usize,
+        /// The first this-many normal equations are useless (zero), until a retry.
+        useless: usize,
+        retries: usize,
+    }
+
+    impl Decay {
+        fn new(a: f64, b: f64) -> Self {
+            let t: Vec<f64> = (0..40).map(|k| 0.05 * k as f64).collect();
+            let y = t.iter().map(|&t| a * (-b * t).exp()).collect();
+            Self {
+                t,
+                y,
+                normal_calls: 0,
+                useless: 0,
+                retries: 0,
+            }
+        }
+        fn residual(&self, th: &[f64]) -> Vec<f64> {
+            self.t
+                .iter()
+                .zip(&self.y)
+                .map(|(&t, &y)| th[0] * (-th[1] * t).exp() - y)
+                .collect()
+        }
+    }
+
+    impl LeastSquares for Decay {
+        fn sse(&mut self, th: &[f64], _: f64) -> f64 {
+            self.residual(th).iter().map(|r| r * r).sum()
+        }
+        fn normal_equations(&mut self, th: &[f64]) -> Option<NormalEquations> {
+            self.normal_calls += 1;
+            let mut jtj = vec![vec![0.0; 2]; 2];
+            let mut gradient = vec![0.0; 2];
+            if self.useless > 0 {
+                return Some(NormalEquations { jtj, gradient });
+            }
+            for (&t, r) in self.t.iter().zip(self.residual(th)) {
+                let e = (-th[1] * t).exp();
+                let j = [e, -th[0] * t * e];
+                for a in 0..2 {
+                    gradient[a] += j[a] * r;
+                    for b in 0..2 {
+                        jtj[a][b] += j[a] * j[b];
+                    }
+                }
+            }
+            Some(NormalEquations { jtj, gradient })
+        }
+        fn retry(&mut self) -> bool {
+            if self.useless == 0 {
+                return false;
+            }
+            self.useless -= 1;
+            self.retries += 1;
+            true
+        }
+    }
+
+    fn settings() -> Marquardt {
+        Marquardt {
+            lambda: 1e-3,
+            lambda_min: 1e-12,
+            scale_floor: 1e-30,
+            tries: 10,
+            singular_factor: 10.0,
+            iterations: 100,
+            min_gain: 0.0,
+            small_steps: None,
+            predicted_gain: None,
+            hold_at_bounds: false,
+        }
+    }
+
+    const BOX: [(f64, f64); 2] = [(0.0, 10.0), (0.0, 10.0)];
+
+    #[test]
+    fn fits_an_exponential_decay_from_afar() {
+        let mut p = Decay::new(2.0, 1.5);
+        let start = vec![0.5, 0.2];
+        let s0 = p.sse(&start, f64::INFINITY);
+        let (th, sse) = settings().run(&mut p, start, s0, &BOX);
+        assert!(
+            (th[0] - 2.0).abs() < 1e-6 && (th[1] - 1.5).abs() < 1e-6,
+            "{th:?}"
+        );
+        assert!(sse < 1e-12 * s0, "{sse:e}");
+    }
+
+    #[test]
+    fn a_parameter_pushing_out_of_the_box_is_held_at_its_bound() {
+        // The best b is 1.5, above the box's 1.0: b stays at 1.0, a is the best for it.
+        let mut p = Decay::new(2.0, 1.5);
+        let bounds = [(0.0, 10.0), (0.0, 1.0)];
+        let start = vec![1.0, 1.0];
+        let s0 = p.sse(&start, f64::INFINITY);
+        let held = Marquardt {
+            hold_at_bounds: true,
+            ..settings()
+        };
+        let (th, _) = held.run(&mut p, start, s0, &bounds);
+        assert_eq!(th[1], 1.0);
+        // ∂SSE/∂a = 0 at b = 1: a = Σ y·e^(−t) / Σ e^(−2t).
+        let num: f64 = p.t.iter().zip(&p.y).map(|(t, y)| y * (-t).exp()).sum();
+        let den: f64 = p.t.iter().map(|t| (-2.0 * t).exp()).sum();
+        assert!((th[0] - num / den).abs() < 1e-9, "{th:?}");
+    }
+
+    #[test]
+    fn an_iteration_without_a_step_takes_the_normal_equations_again_when_asked() {
+        let mut p = Decay::new(2.0, 1.5);
+        p.useless = 2;
+        let start = vec![0.5, 0.2];
+        let s0 = p.sse(&start, f64::INFINITY);
+        let (th, _) = settings().run(&mut p, start, s0, &BOX);
+        assert_eq!(p.retries, 2);
+        assert!((th[0] - 2.0).abs() < 1e-6, "{th:?}");
+        // Without a retry the fit stops at the start.
+        let mut q = Decay::new(2.0, 1.5);
+        q.useless = 1;
+        let mut once = Marquardt {
+            iterations: 1,
+            ..settings()
+        };
+        let (th, sse) = once.run(&mut q, vec![0.5, 0.2], s0, &BOX);
+        assert_eq!((th, sse), (vec![0.5, 0.2], s0));
+        once.iterations = 0;
+        assert_eq!(once.run(&mut q, vec![0.5, 0.2], s0, &BOX).1, s0);
+    }
+
+    #[test]
+    fn a_start_without_a_finite_sse_is_returned_as_it_is() {
+        let mut p = Decay::new(2.0, 1.5);
+        let (th, sse) = settings().run(&mut p, vec![0.5, 0.2], f64::NAN, &BOX);
+        assert_eq!(th, vec![0.5, 0.2]);
+        assert!(sse.is_nan());
+        assert_eq!(p.normal_calls, 0);
+    }
+
+    #[test]
+    fn small_gains_in_a_row_stop_the_fit() {
+        let start = vec![0.5, 0.2];
+        let mut free = Decay::new(2.0, 1.5);
+        let s0 = free.sse(&start, f64::INFINITY);
+        settings().run(&mut free, start.clone(), s0, &BOX);
+        let mut stopped = Decay::new(2.0, 1.5);
+        let early = Marquardt {
+            small_steps: Some((1.0, 2)),
+            ..settings()
+        };
+        early.run(&mut stopped, start, s0, &BOX);
+        // Every gain is below 100 %: two accepted steps, then the stop.
+        assert_eq!(stopped.normal_calls, 2);
+        assert!(free.normal_calls > 2);
+    }
+}
