@@ -1377,16 +1377,7 @@ mod tests {
     /// core's f32), whichever forms the effects take; together the forms cover every [`Param`].
     #[test]
     fn every_theta_entry_reaches_its_own_field() {
-        use EffectKind::*;
-        let every_effect = vec![
-            Creep,
-            Drift,
-            Delay,
-            Asymmetry,
-            Dynamics,
-            Coupling,
-            RateDependent,
-        ];
+        let every_effect = EffectKind::ALL.to_vec();
         let mut kelvin_voigt = model_with_effects();
         kelvin_voigt.added = every_effect.clone();
         kelvin_voigt.creep_elements = 2;
