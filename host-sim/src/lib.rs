@@ -9,7 +9,8 @@
 //! reference plants; [`capture`] and [`link`] talk to the firmware (its log, its command link);
 //! [`servo_tune`] writes the feedback servo of the stage file; [`learn`] takes one step of iterative
 //! learning control and [`learn_bench`] runs it on the XY stage; [`stage_file`] writes the stage file;
-//! [`plot`] draws the figures; [`cli`] is the command line.
+//! [`plot`] draws the figures; [`cli`] is the command line; [`optimise`] is the one differential
+//! evolution, Levenberg–Marquardt and linear solver their fits share.
 //!
 //! The plants, effects, signals, solver and CSV files live in `piezo-reference` (`host-sim/reference`),
 //! which does not depend on the core; they are re-exported here ([`plant`], [`sim`], [`signal`],
@@ -28,6 +29,7 @@ pub mod identify;
 pub mod learn;
 pub mod learn_bench;
 pub mod link;
+pub mod optimise;
 pub mod plot;
 pub mod reproduce;
 pub mod servo_bench;

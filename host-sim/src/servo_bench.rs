@@ -370,7 +370,15 @@ fn mode_from_step(y: &[f64], period_s: f64) -> Option<(f64, f64)> {
             atb[i] += row[i] * y[k];
         }
     }
-    let [a1, a2, _] = solve3(ata, atb)?;
+    let mut augmented: [[f64; 4]; 3] = std::array::from_fn(|i| {
+        let [a, b, c] = ata[i];
+        [a, b, c, atb[i]]
+    });
+    let mut x = [0.0; 3];
+    if !crate::optimise::linear::solve_augmented(&mut augmented, &mut x) {
+        return None;
+    }
+    let [a1, a2, _] = x;
     let disc = a1 * a1 + 4.0 * a2;
     if disc >= 0.0 {
         return None;
@@ -380,27 +388,6 @@ fn mode_from_step(y: &[f64], period_s: f64) -> Option<(f64, f64)> {
     let (sr, si) = (r.ln() / period_s, theta / period_s);
     let wn = (sr * sr + si * si).sqrt();
     Some((wn / (2.0 * std::f64::consts::PI), -sr / wn))
-}
-
-fn solve3(mut a: [[f64; 3]; 3], mut b: [f64; 3]) -> Option<[f64; 3]> {
-    for i in 0..3 {
-        let p = (i..3).max_by(|&r, &s| a[r][i].abs().total_cmp(&a[s][i].abs()))?;
-        a.swap(i, p);
-        b.swap(i, p);
-        if a[i][i] == 0.0 {
-            return None;
-        }
-        for r in 0..3 {
-            if r != i {
-                let f = a[r][i] / a[i][i];
-                for c in 0..3 {
-                    a[r][c] -= f * a[i][c];
-                }
-                b[r] -= f * b[i];
-            }
-        }
-    }
-    Some([b[0] / a[0][0], b[1] / a[1][1], b[2] / a[2][2]])
 }
 
 /// The identification experiments: a 1 Hz raised cosine 0–120 V (1 s), then 0 V held for 0.2 s

@@ -237,7 +237,7 @@ pub fn least_squares(basis: &[&[f64]], r: &[f64]) -> (f64, Vec<f64>) {
         // Tiny ridge against exactly collinear columns.
         a[i][i] += 1e-12 * (a[i][i] + 1e-300);
     }
-    let coef = crate::identify::fit::solve_dense_pub(&mut a, p)
+    let coef = crate::optimise::linear::solve(&mut a, p)
         .unwrap_or_else(|| vec![0.0; p])
         .iter()
         .zip(&scale)

@@ -13,9 +13,12 @@
 //!
 //! Parameter vector θ: (β, γ, n, k1, k2, y0), then per added effect: creep (g_i, ln τ_i) per element
 //! or g_log, drift r or (A, ln τ), delay D \[s\], asymmetry e \[m/V²\] (u_c held), dynamics (ln f, ln ζ),
-//! coupling κ. Every effect parameter has a range that makes it that effect ([`EffectBounds`]);
-//! [`AxisModel::decode`] holds θ inside it and [`AxisModel::effect_parameters`] names the parameters a fit
-//! ran to. The Jacobian is by forward differences (one core simulation per column, in parallel),
+//! coupling κ. Each entry is a named [`Param`] (its [`ParamSpec`]: range, log scale, effect).
+//! Every effect parameter has a range that makes it that effect ([`EffectBounds`]);
+//! [`AxisModel::decode`] holds θ inside it and writes each entry into its field
+//! ([`Param::set`]), and [`AxisModel::effect_parameters`] names the parameters a fit
+//! ran to. [`refit`] is the shared Levenberg–Marquardt ([`crate::optimise::Marquardt`]); its
+//! Jacobian is by forward differences (one core simulation per column, in parallel),
 //! steps Marquardt-scaled; a set the core refuses scores an infinite SSE and the step is rejected
 //! (with `--invertible`, [`FitData::invertible_at_hz`], so does a set the compensator refuses: the
 //! fit stays inside the sets `host-sim compensate` runs).
@@ -27,8 +30,9 @@
 #![allow(clippy::needless_range_loop)]
 
 use super::diagnose::{EffectInit, EffectKind};
-use crate::identify::fit::solve_dense_pub;
+use super::param::Param;
 use crate::identify::model::bouc_wen;
+use crate::optimise::{LeastSquares, Marquardt, NormalEquations};
 use piezo_core::effects::{EffectParams, Effects, EffectsState};
 use piezo_core::{BoucWen, BoucWenParams, ModelState, StaticMap, StaticModel};
 use rayon::prelude::*;
@@ -243,11 +247,11 @@ impl HysteresisPath {
     }
 }
 
-/// One entry of θ: its name, its range (infinite: free) and whether it is a logarithm.
+/// One entry of θ: which parameter, its range (infinite: free) and whether it is a logarithm.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ParamSpec {
-    /// Name in reports.
-    pub name: &'static str,
+    /// The parameter (its name in reports: [`Param::name`]).
+    pub param: Param,
     /// Lower end (in θ's coordinate).
     pub lo: f64,
     /// Upper end (in θ's coordinate).
@@ -259,27 +263,27 @@ pub struct ParamSpec {
 }
 
 impl ParamSpec {
-    fn free(name: &'static str) -> Self {
+    fn free(param: Param) -> Self {
         Self {
-            name,
+            param,
             lo: f64::NEG_INFINITY,
             hi: f64::INFINITY,
             log: false,
             effect: None,
         }
     }
-    fn within(name: &'static str, effect: EffectKind, lo: f64, hi: f64) -> Self {
+    fn within(param: Param, effect: EffectKind, lo: f64, hi: f64) -> Self {
         Self {
-            name,
+            param,
             lo,
             hi,
             log: false,
             effect: Some(effect),
         }
     }
-    fn log_within(name: &'static str, effect: EffectKind, lo: f64, hi: f64) -> Self {
+    fn log_within(param: Param, effect: EffectKind, lo: f64, hi: f64) -> Self {
         Self {
-            name,
+            param,
             lo: lo.max(1e-300).ln(),
             hi: hi.max(1e-300).ln(),
             log: true,
@@ -677,9 +681,16 @@ impl AxisModel {
             ],
             typ: vec![bg, bg, 1.0, k, k, stroke],
             spec: {
-                let mut spec = ["beta", "gamma", "n", "k1_m_per_v", "k2_m_per_h", "offset_m"]
-                    .map(ParamSpec::free)
-                    .to_vec();
+                let mut spec = [
+                    Param::Beta,
+                    Param::Gamma,
+                    Param::Exponent,
+                    Param::LinearGain,
+                    Param::HysteresisGain,
+                    Param::Offset,
+                ]
+                .map(ParamSpec::free)
+                .to_vec();
                 // With free offsets each record's offset is re-estimated on its samples, so y0 is
                 // held (its column would be zero).
                 if self.free_offset {
@@ -702,13 +713,13 @@ impl AxisModel {
             EffectKind::Delay => theta.push(
                 f64::from(e.delay_s),
                 10.0 * ts,
-                ParamSpec::within("delay_s", kind, 0.0, bd.delay_max_s),
+                ParamSpec::within(Param::Delay, kind, 0.0, bd.delay_max_s),
             ),
             EffectKind::Asymmetry => theta.push(
                 f64::from(e.even_coefficient_m_per_v2),
                 0.01 * f64::from(self.map.k1_m_per_v).abs() / sc.span,
                 ParamSpec::within(
-                    "even_coefficient_m_per_v2",
+                    Param::EvenCoefficient,
                     kind,
                     -bd.even_max_m_per_v2,
                     bd.even_max_m_per_v2,
@@ -719,7 +730,7 @@ impl AxisModel {
                     f64::from(e.mode_frequency_hz).max(1e-9).ln(),
                     10.0,
                     ParamSpec::log_within(
-                        "mode_frequency_hz",
+                        Param::ModeFrequency,
                         kind,
                         bd.mode_frequency_hz.0,
                         bd.mode_frequency_hz.1,
@@ -729,7 +740,7 @@ impl AxisModel {
                     f64::from(e.mode_damping).max(1e-9).ln(),
                     10.0,
                     ParamSpec::log_within(
-                        "mode_damping",
+                        Param::ModeDamping,
                         kind,
                         bd.mode_damping.0,
                         bd.mode_damping.1,
@@ -739,13 +750,13 @@ impl AxisModel {
             EffectKind::Coupling => theta.push(
                 f64::from(e.coupling),
                 0.1,
-                ParamSpec::within("coupling", kind, -bd.coupling_max, bd.coupling_max),
+                ParamSpec::within(Param::Coupling, kind, -bd.coupling_max, bd.coupling_max),
             ),
             EffectKind::RateDependent if self.rate_form == RateForm::InputLag => theta.push(
                 f64::from(e.hysteresis_lag_s).max(1e-9).ln(),
                 10.0,
                 ParamSpec::log_within(
-                    "hysteresis_lag_s",
+                    Param::HysteresisLag,
                     kind,
                     bd.relaxation_tau_s.0,
                     bd.relaxation_tau_s.1,
@@ -756,7 +767,7 @@ impl AxisModel {
                     f64::from(e.relaxation_gain[0]).max(1e-9).ln(),
                     10.0,
                     ParamSpec::log_within(
-                        "relaxation_gain[0]",
+                        Param::RelaxationGain,
                         kind,
                         bd.relaxation_gain.0,
                         bd.relaxation_gain.1,
@@ -766,7 +777,7 @@ impl AxisModel {
                     f64::from(e.relaxation_time_constant_s[0]).max(1e-9).ln(),
                     10.0,
                     ParamSpec::log_within(
-                        "relaxation_time_constant_s[0]",
+                        Param::RelaxationTimeConstant,
                         kind,
                         bd.relaxation_tau_s.0,
                         bd.relaxation_tau_s.1,
@@ -786,7 +797,7 @@ impl AxisModel {
                 f64::from(e.log_creep_gain_m_per_v),
                 0.01 * sc.k,
                 ParamSpec::within(
-                    "log_creep_gain_m_per_v",
+                    Param::LogCreepGain,
                     kind,
                     -bd.log_creep_max_gain_m_per_v,
                     bd.log_creep_max_gain_m_per_v,
@@ -794,8 +805,8 @@ impl AxisModel {
             );
             return;
         }
-        const G: [&str; 2] = ["creep_gain_m_per_v[0]", "creep_gain_m_per_v[1]"];
-        const T: [&str; 2] = ["creep_time_constant_s[0]", "creep_time_constant_s[1]"];
+        const G: [Param; 2] = Param::CREEP_GAINS;
+        const T: [Param; 2] = Param::CREEP_TIME_CONSTANTS;
         for i in 0..self.creep_elements {
             theta.push(
                 f64::from(e.creep_gain_m_per_v[i]),
@@ -824,13 +835,13 @@ impl AxisModel {
             theta.push(
                 f64::from(e.drift_settling_m),
                 0.01 * sc.stroke,
-                ParamSpec::within("drift_settling_m", kind, -bd.drift_max_m, bd.drift_max_m),
+                ParamSpec::within(Param::DriftSettling, kind, -bd.drift_max_m, bd.drift_max_m),
             );
             theta.push(
                 f64::from(e.drift_settling_time_constant_s).max(1e-9).ln(),
                 10.0,
                 ParamSpec::log_within(
-                    "drift_settling_time_constant_s",
+                    Param::DriftSettlingTimeConstant,
                     kind,
                     bd.settling_tau_s.0,
                     bd.settling_tau_s.1,
@@ -841,7 +852,7 @@ impl AxisModel {
             theta.push(
                 f64::from(e.drift_rate_m_per_s),
                 0.01 * sc.stroke,
-                ParamSpec::within("drift_rate_m_per_s", kind, -max, max),
+                ParamSpec::within(Param::DriftRate, kind, -max, max),
             );
         }
     }
@@ -855,46 +866,17 @@ impl AxisModel {
             .map(|(t, s)| t.clamp(s.lo, s.hi))
             .collect();
         let mut m = self.clone();
-        m.bouc_wen.beta = th[0] as f32;
-        m.bouc_wen.gamma = th[1] as f32;
-        m.bouc_wen.n = th[2] as f32;
-        m.map.k1_m_per_v = th[3] as f32;
-        m.map.k2_m_per_h = th[4] as f32;
-        m.map.offset_m = th[5] as f32;
-        let e = &mut m.effects;
-        if m.added.contains(&EffectKind::RateDependent) && m.rate_form == RateForm::Relaxation {
-            e.relaxation_linear_m_per_v = m.map.k1_m_per_v;
+        for (s, &t) in spec.iter().zip(&th) {
+            s.param.set(&mut m, s.value(t));
         }
-        for (s, &t) in spec.iter().zip(&th).skip(6) {
-            let v = s.value(t) as f32;
-            match s.name {
-                "log_creep_gain_m_per_v" => e.log_creep_gain_m_per_v = v,
-                "creep_gain_m_per_v[0]" => e.creep_gain_m_per_v[0] = v,
-                "creep_gain_m_per_v[1]" => e.creep_gain_m_per_v[1] = v,
-                "creep_time_constant_s[0]" => e.creep_time_constant_s[0] = v,
-                "creep_time_constant_s[1]" => e.creep_time_constant_s[1] = v,
-                "drift_settling_m" => e.drift_settling_m = v,
-                "drift_settling_time_constant_s" => e.drift_settling_time_constant_s = v,
-                "drift_rate_m_per_s" => e.drift_rate_m_per_s = v,
-                "delay_s" => e.delay_s = v,
-                "even_coefficient_m_per_v2" => e.even_coefficient_m_per_v2 = v,
-                "mode_frequency_hz" => e.mode_frequency_hz = v,
-                "mode_damping" => e.mode_damping = v,
-                "coupling" => e.coupling = v,
-                "relaxation_gain[0]" => e.relaxation_gain[0] = v,
-                "relaxation_time_constant_s[0]" => e.relaxation_time_constant_s[0] = v,
-                "hysteresis_lag_s" => e.hysteresis_lag_s = v,
-                _ => {}
-            }
+        if m.added.contains(&EffectKind::RateDependent) && m.rate_form == RateForm::Relaxation {
+            m.effects.relaxation_linear_m_per_v = m.map.k1_m_per_v;
         }
         m
     }
 
-    /// The fitted parameters of `kind`: (name, value, plausible range, ran to a bound).
-    pub fn effect_parameters(
-        &self,
-        kind: EffectKind,
-    ) -> Vec<(&'static str, f64, (f64, f64), bool)> {
+    /// The fitted parameters of `kind`: (parameter, value, plausible range, ran to a bound).
+    pub fn effect_parameters(&self, kind: EffectKind) -> Vec<(Param, f64, (f64, f64), bool)> {
         let (th, _, spec) = self.encode();
         spec.iter()
             .zip(&th)
@@ -906,8 +888,8 @@ impl AxisModel {
                 // Creep keeps the output moving the way a command change moved it: a gain of the
                 // other sign than the static gain dy/du, or 0 (fitted freely, so that the fit is
                 // not stuck at 0), is not creep.
-                let at = at || (s.name.contains("creep_gain") && t * self.bounds.gain_sign <= 0.0);
-                (s.name, s.value(t), s.range(), at)
+                let at = at || (s.param.is_creep_gain() && t * self.bounds.gain_sign <= 0.0);
+                (s.param, s.value(t), s.range(), at)
             })
             .collect()
     }
@@ -1221,95 +1203,125 @@ pub fn last_accepted_on_the_way(
     }
 }
 
-/// Levenberg–Marquardt on every parameter of `model` over the fitted samples of `d`; returns the
-/// refitted model, its SSE and the number of model evaluations.
+/// Levenberg–Marquardt ([`Marquardt`]) on every parameter of `model` over the fitted samples of
+/// `d`: forward-difference Jacobian, λ from 1e-3 (÷3 on success down to 1e-9, ×4 on failure or a
+/// singular system), twelve tries per iteration, the Marquardt scale floored at 1e-30; an
+/// iteration without an accepted step takes the Jacobian again with tenfold difference steps (at
+/// most twice), and the fit stops after two accepted steps in a row that gain less than 1e-6.
+/// Returns the refitted model, its SSE and the number of model evaluations.
 pub fn refit(model: &AxisModel, d: &FitData, max_iterations: usize) -> (AxisModel, f64, u64) {
     let (th0, typ, spec) = model.encode();
-    let mut th: Vec<f64> = th0
+    let th: Vec<f64> = th0
         .iter()
         .zip(&spec)
         .map(|(t, s)| t.clamp(s.lo, s.hi))
         .collect();
-    let p = th.len();
-    let problem = RefitProblem {
-        model,
-        d,
-        idx: (0..d.u.len()).filter(|&k| d.fitted(k)).collect(),
+    let mut lm = RefitSteps {
+        problem: RefitProblem {
+            model,
+            d,
+            idx: (0..d.u.len()).filter(|&k| d.fitted(k)).collect(),
+        },
+        typ,
+        bounds: spec.iter().map(|s| (s.lo, s.hi)).collect(),
+        spec,
+        step_scale: 1.0,
+        current: None,
+        base: None,
+        tried: None,
+        evals: 1,
     };
-    let mut evals = 1u64;
-    // The prediction at the current θ, kept from the accepted trial for the next Jacobian.
-    let mut current = problem.predict(&th, None);
-    let mut best = problem.sse_of(&current);
-    if !best.is_finite() || problem.idx.is_empty() {
-        return (model.decode(&th), best, evals);
+    lm.current = lm.problem.predict(&th, None);
+    let best = lm.problem.sse_of(&lm.current);
+    if !best.is_finite() || lm.problem.idx.is_empty() {
+        return (model.decode(&th), best, lm.evals);
     }
-    let mut lambda = 1e-3;
-    let mut stalls = 0;
-    // Difference steps grow tenfold (at most twice) when no step of an iteration improves: with the
-    // f32 simulation, too small a step gives a Jacobian of rounding noise.
-    let mut step_scale = 1.0;
-    let mut it = 0;
-    while it < max_iterations {
-        it += 1;
-        let Some(base) = current.take().or_else(|| problem.predict(&th, None)) else {
-            break;
-        };
-        let steps = difference_steps(&th, &typ, &spec, step_scale);
-        let cols = problem.jacobian(&th, &steps, &base);
-        evals += p as u64;
-        let r: Vec<f64> = problem
+    let settings = Marquardt {
+        lambda: 1e-3,
+        lambda_min: 1e-9,
+        scale_floor: 1e-30,
+        tries: 12,
+        singular_factor: 4.0,
+        iterations: max_iterations,
+        min_gain: 0.0,
+        small_steps: Some((1e-6, 2)),
+        predicted_gain: None,
+        hold_at_bounds: false,
+    };
+    let bounds = lm.bounds.clone();
+    let (th, best) = settings.run(&mut lm, th, best, &bounds);
+    (model.decode(&th), best, lm.evals)
+}
+
+/// [`refit`]'s least-squares problem: the forward-difference Jacobian of [`RefitProblem`] and the
+/// predictions it keeps between iterations.
+struct RefitSteps<'a> {
+    /// The model and the fitted samples.
+    problem: RefitProblem<'a>,
+    /// The typical size of each θ entry.
+    typ: Vec<f64>,
+    /// What each θ entry is.
+    spec: Vec<ParamSpec>,
+    /// Each θ entry's range.
+    bounds: Vec<(f64, f64)>,
+    /// Difference steps grow tenfold (at most twice) when no step of an iteration improves: with
+    /// the f32 simulation, too small a step gives a Jacobian of rounding noise.
+    step_scale: f64,
+    /// The prediction at the current θ, kept from the accepted trial for the next Jacobian.
+    current: Option<Prediction>,
+    /// The prediction the last Jacobian was taken at.
+    base: Option<Prediction>,
+    /// The last tried step's prediction.
+    tried: Option<Prediction>,
+    /// Model evaluations so far.
+    evals: u64,
+}
+
+impl LeastSquares for RefitSteps<'_> {
+    fn sse(&mut self, theta: &[f64], _abandon_above: f64) -> f64 {
+        self.tried = self.problem.predict(theta, None);
+        self.evals += 1;
+        self.problem.sse_of(&self.tried)
+    }
+
+    /// JᵀJ and Jᵀ(ŷ − y) of the forward-difference Jacobian of the prediction ŷ (the residual
+    /// r = ŷ − y, so the gradient is −Jᵀ(y − ŷ)).
+    fn normal_equations(&mut self, th: &[f64]) -> Option<NormalEquations> {
+        let base = self
+            .current
+            .take()
+            .or_else(|| self.problem.predict(th, None))?;
+        let steps = difference_steps(th, &self.typ, &self.spec, self.step_scale);
+        let cols = self.problem.jacobian(th, &steps, &base);
+        self.evals += th.len() as u64;
+        let y = self.problem.d.y;
+        let r: Vec<f64> = self
+            .problem
             .idx
             .iter()
             .zip(&base.y)
-            .map(|(&k, b)| d.y[k] - b)
+            .map(|(&k, b)| y[k] - b)
             .collect();
         let (jtj, jtr) = normal_equations(&cols, &r);
-        let mut improved = false;
-        for _ in 0..12 {
-            let mut a: Vec<Vec<f64>> = (0..p)
-                .map(|i| {
-                    let mut row = jtj[i].clone();
-                    row[i] += lambda * jtj[i][i].max(1e-30);
-                    row.push(jtr[i]);
-                    row
-                })
-                .collect();
-            let Some(delta) = solve_dense_pub(&mut a, p) else {
-                lambda *= 4.0;
-                continue;
-            };
-            let trial: Vec<f64> = th
-                .iter()
-                .zip(&delta)
-                .zip(&spec)
-                .map(|((a, b), s)| (a + b).clamp(s.lo, s.hi))
-                .collect();
-            let prediction = problem.predict(&trial, None);
-            let s = problem.sse_of(&prediction);
-            evals += 1;
-            if s < best {
-                let gain = (best - s) / best;
-                th = trial;
-                current = prediction;
-                best = s;
-                lambda = (lambda / 3.0).max(1e-9);
-                improved = true;
-                stalls = if gain < 1e-6 { stalls + 1 } else { 0 };
-                break;
-            }
-            lambda *= 4.0;
-        }
-        if !improved && step_scale < 100.0 {
-            step_scale *= 10.0;
-            lambda = 1e-3;
-            current = Some(base);
-            continue;
-        }
-        if !improved || stalls >= 2 {
-            break;
-        }
+        self.base = Some(base);
+        Some(NormalEquations {
+            jtj,
+            gradient: jtr.iter().map(|v| -v).collect(),
+        })
     }
-    (model.decode(&th), best, evals)
+
+    fn accepted(&mut self, _theta: &[f64], _sse: f64, _gain: f64, _lambda: f64) {
+        self.current = self.tried.take();
+    }
+
+    fn retry(&mut self) -> bool {
+        if self.step_scale >= 100.0 {
+            return false;
+        }
+        self.step_scale *= 10.0;
+        self.current = self.base.take();
+        true
+    }
 }
 
 #[cfg(test)]
@@ -1358,6 +1370,56 @@ mod tests {
             segments: vec![0],
             free_offset: false,
         }
+    }
+
+    /// Every entry of θ reaches its own field of the model: each one moved inside its range (or
+    /// by a tenth of its typical size when free), decoded and encoded again, comes back (to the
+    /// core's f32), whichever forms the effects take; together the forms cover every [`Param`].
+    #[test]
+    fn every_theta_entry_reaches_its_own_field() {
+        let every_effect = EffectKind::ALL.to_vec();
+        let mut kelvin_voigt = model_with_effects();
+        kelvin_voigt.added = every_effect.clone();
+        kelvin_voigt.creep_elements = 2;
+        kelvin_voigt.effects.creep_gain_m_per_v[1] = 1e-9;
+        kelvin_voigt.effects.creep_time_constant_s[1] = 0.05;
+        kelvin_voigt.rate_form = RateForm::Relaxation;
+        kelvin_voigt.effects.relaxation_gain[0] = 0.5;
+        kelvin_voigt.effects.relaxation_time_constant_s[0] = 0.01;
+        let mut logarithmic = model_with_effects();
+        logarithmic.added = every_effect;
+        logarithmic.creep_form = CreepForm::Logarithmic;
+        logarithmic.effects.log_creep_gain_m_per_v = 1e-9;
+        logarithmic.drift_form = DriftForm::Linear;
+        logarithmic.effects.hysteresis_lag_s = 0.01;
+        let mut seen = std::collections::HashSet::new();
+        for model in [kelvin_voigt, logarithmic] {
+            let (th, typ, spec) = model.encode();
+            let moved: Vec<f64> = th
+                .iter()
+                .zip(&typ)
+                .zip(&spec)
+                .map(|((&t, &size), s)| {
+                    if (s.hi - s.lo).is_finite() {
+                        s.lo + 0.37 * (s.hi - s.lo)
+                    } else {
+                        t + 0.1 * size
+                    }
+                })
+                .collect();
+            let (back, _, _) = model.decode(&moved).encode();
+            assert_eq!(back.len(), moved.len());
+            for ((s, &m), &b) in spec.iter().zip(&moved).zip(&back) {
+                let tol = 1e-6 * if s.log { m.abs().max(1.0) } else { m.abs() };
+                assert!(
+                    (m - b).abs() <= tol,
+                    "{}: set {m:e}, read back {b:e}",
+                    s.param
+                );
+                seen.insert(s.param);
+            }
+        }
+        assert_eq!(seen.len(), Param::ALL.len(), "{seen:?}");
     }
 
     fn record() -> (Vec<f32>, Vec<f64>) {

@@ -36,6 +36,7 @@ pub mod choose;
 mod cli;
 pub mod diagnose;
 pub mod full;
+pub mod param;
 mod plots;
 pub mod report;
 pub mod select;

@@ -8,6 +8,7 @@
 use super::choose::Skipped;
 use super::diagnose::{Candidate, EffectKind};
 use super::full::AxisModel;
+use super::param::Param;
 use super::select::{Decision, Floor, OutOfSample, Plausibility, RunGain, Stop};
 use serde_json::{json, Map, Value};
 
@@ -21,7 +22,7 @@ pub struct Trial {
     /// Its screening on the residual.
     pub screening: Candidate,
     /// The fitted effect parameters (name, value).
-    pub parameters: Vec<(&'static str, f64)>,
+    pub parameters: Vec<(Param, f64)>,
     /// In-sample RMS before \[m\].
     pub rms_before: f64,
     /// In-sample RMS with the effect, whole model refitted \[m\].
@@ -109,7 +110,7 @@ impl Trial {
         }
         let mut parameters = Map::new();
         for (k, v) in &self.parameters {
-            parameters.insert((*k).into(), json!(v));
+            parameters.insert(k.name().into(), json!(v));
         }
         json!({
             "effect": self.effect.name(),

@@ -53,6 +53,7 @@
 
 use super::diagnose::{EffectKind, ResidualFigures};
 use super::full::{refit, sse_where, AxisModel, Block, FitData};
+use super::param::Param;
 use rayon::prelude::*;
 use serde_json::{json, Value};
 
@@ -338,8 +339,8 @@ impl OutOfSample {
 /// One parameter against the range that makes the effect that effect.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Check {
-    /// Parameter name (the core's field).
-    pub parameter: &'static str,
+    /// The parameter (its name in reports: the core's field).
+    pub parameter: Param,
     /// Fitted value (SI).
     pub value: f64,
     /// The plausible range.
@@ -404,7 +405,7 @@ impl Plausibility {
         json!({
             "plausible": self.plausible(),
             "checks": self.checks.iter().map(|c| json!({
-                "parameter": c.parameter, "value": c.value, "range": [c.range.0, c.range.1],
+                "parameter": c.parameter.name(), "value": c.value, "range": [c.range.0, c.range.1],
                 "at_bound": c.at_bound,
             })).collect::<Vec<_>>(),
         })

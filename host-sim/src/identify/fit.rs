@@ -1,5 +1,6 @@
 //! The objective and the optimisers: variable projection, differential evolution,
-//! Levenberg–Marquardt, and seed 001's genetic algorithm.
+//! Levenberg–Marquardt (both [`crate::optimise`]'s, with the settings below), and seed 001's
+//! genetic algorithm.
 //!
 //! # Objective (variable projection)
 //! For the static models the output is linear in (k1, k2, y0) once h is known:
@@ -50,6 +51,10 @@
 #![allow(clippy::needless_range_loop)]
 
 use super::model::{bouc_wen, CoreModel, Identified, ModelKind};
+use crate::optimise::evolution::{self, uniform};
+use crate::optimise::{
+    linear, Boundary, Evolution, LeastSquares, Marquardt, NormalEquations, Population, Stall,
+};
 use piezo_core::{static_sensitivities, SENSITIVITY_PARAMETERS};
 use piezo_core::{
     Asymmetry, BoucWenParams, Compensator, CompensatorSettings, DynamicModel,
@@ -166,10 +171,6 @@ impl Sums {
         let n = self.g[c][c].max(1.0);
         (self.rhs[c] - (0..c).map(|a| lin[a] * self.g[a][c]).sum::<f64>()) / n
     }
-}
-
-fn uniform(rng: &mut ChaCha8Rng) -> f64 {
-    (rng.next_u64() >> 11) as f64 / (1u64 << 53) as f64
 }
 
 impl Problem {
@@ -792,8 +793,9 @@ impl SimState {
     }
 }
 
-/// Solves the symmetric positive (semi)definite system g·x = b of size `n` ≤ 3 (Gaussian elimination
-/// with partial pivoting and a tiny ridge). On the stack: an evaluation makes no heap allocation.
+/// Solves the symmetric positive (semi)definite system g·x = b of size `n` ≤ 3 (the shared
+/// Gaussian elimination, [`crate::optimise::linear`], after a tiny ridge). On the stack: an
+/// evaluation makes no heap allocation.
 fn solve(g: &[[f64; 3]; 3], b: &[f64; 3], n: usize) -> Option<[f64; 3]> {
     let mut a = [[0.0f64; 4]; 3];
     for i in 0..n {
@@ -802,55 +804,17 @@ fn solve(g: &[[f64; 3]; 3], b: &[f64; 3], n: usize) -> Option<[f64; 3]> {
         a[i][n] = b[i];
     }
     let mut x = [0.0f64; 3];
-    eliminate(&mut a[..n], n, &mut x[..n]).then_some(x)
-}
-
-/// Gaussian elimination on an augmented n×(n+1) matrix (for the oscillator's LM).
-pub fn solve_dense_pub(a: &mut [Vec<f64>], n: usize) -> Option<Vec<f64>> {
-    solve_dense(a, n)
-}
-
-/// Gaussian elimination on an augmented n×(n+1) matrix.
-fn solve_dense(a: &mut [Vec<f64>], n: usize) -> Option<Vec<f64>> {
-    let mut x = vec![0.0; n];
-    eliminate(&mut a[..n], n, &mut x).then_some(x)
-}
-
-/// Gaussian elimination with partial pivoting on the augmented rows `a` (n×(n+1), as stack arrays
-/// or vectors); writes the solution into `x` and says whether it is finite.
-fn eliminate<R: AsRef<[f64]> + AsMut<[f64]>>(a: &mut [R], n: usize, x: &mut [f64]) -> bool {
-    for c in 0..n {
-        let Some(p) =
-            (c..n).max_by(|&i, &j| a[i].as_ref()[c].abs().total_cmp(&a[j].as_ref()[c].abs()))
-        else {
-            return false;
-        };
-        let pivot = a[p].as_ref()[c];
-        if pivot.abs() < 1e-300 || !pivot.is_finite() {
-            return false;
-        }
-        a.swap(c, p);
-        for r in c + 1..n {
-            let (upper, lower) = a.split_at_mut(r);
-            let (top, row) = (upper[c].as_ref(), lower[0].as_mut());
-            let f = row[c] / top[c];
-            for k in c..=n {
-                row[k] -= f * top[k];
-            }
-        }
-    }
-    for r in (0..n).rev() {
-        let row = a[r].as_ref();
-        let s: f64 = (r + 1..n).map(|k| row[k] * x[k]).sum();
-        x[r] = (row[n] - s) / row[r];
-    }
-    x.iter().all(|v| v.is_finite())
+    linear::solve_augmented(&mut a[..n], &mut x[..n]).then_some(x)
 }
 
 /// Progress reporting (an indicatif bar on stderr, hidden when stderr is not a terminal).
 pub type Progress = indicatif::ProgressBar;
 
-/// Differential evolution (DE/current-to-best/1/bin) on the decimated record; returns the best θ.
+/// Differential evolution (DE/current-to-best/1/bin, F = 0.6, CR = 0.9, donors distinct, a
+/// coordinate past a bound set back between its parent and the bound) on the decimated record,
+/// population max(5·dim, 15); stops after `generations`, after 5 generations in a row that gain
+/// less than 1e-4 of the best SSE, or once the worst member is within 0.1 % of the best. Returns
+/// the best θ and its SSE.
 pub fn differential_evolution(
     problem: &Problem,
     bounds: &[(f64, f64)],
@@ -859,89 +823,45 @@ pub fn differential_evolution(
     progress: &Progress,
 ) -> (Vec<f64>, f64) {
     let stride = problem.u.len().div_ceil(2500).max(1);
-    let dim = bounds.len();
-    let pop = (5 * dim).max(15);
+    let pop = (5 * bounds.len()).max(15);
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let mut x: Vec<Vec<f64>> = (0..pop)
-        .map(|_| {
-            bounds
-                .iter()
-                .map(|&(lo, hi)| lo + (hi - lo) * uniform(&mut rng))
-                .collect()
-        })
-        .collect();
-    let mut f: Vec<f64> = x.par_iter().map(|t| problem.sse(t, stride)).collect();
-    let record = |x: &[Vec<f64>], f: &[f64]| {
-        let best = (0..pop).min_by(|&a, &b| f[a].total_cmp(&f[b])).unwrap_or(0);
-        problem.record("de", &x[best], f[best], stride);
+    let members = evolution::random_population(bounds, pop, &mut rng);
+    let sse: Vec<f64> = members.par_iter().map(|t| problem.sse(t, stride)).collect();
+    let population = Population { members, sse };
+    let record = |p: &Population| {
+        let (theta, sse) = p.best();
+        problem.record("de", theta, sse, stride);
     };
-    record(&x, &f);
-    let mut stall = 0;
-    for _ in 0..generations {
-        let best = (0..pop).min_by(|&a, &b| f[a].total_cmp(&f[b])).unwrap_or(0);
-        let trials: Vec<Vec<f64>> = (0..pop)
-            .map(|i| {
-                let pick = |rng: &mut ChaCha8Rng| (rng.next_u64() % pop as u64) as usize;
-                let (mut r1, mut r2) = (pick(&mut rng), pick(&mut rng));
-                while r1 == i {
-                    r1 = pick(&mut rng);
-                }
-                while r2 == i || r2 == r1 {
-                    r2 = pick(&mut rng);
-                }
-                let jrand = (rng.next_u64() % dim as u64) as usize;
-                (0..dim)
-                    .map(|j| {
-                        let (lo, hi) = bounds[j];
-                        if j == jrand || uniform(&mut rng) < 0.9 {
-                            let v = x[i][j]
-                                + 0.6 * (x[best][j] - x[i][j])
-                                + 0.6 * (x[r1][j] - x[r2][j]);
-                            if v < lo {
-                                lo + (x[i][j] - lo) * uniform(&mut rng)
-                            } else if v > hi {
-                                hi - (hi - x[i][j]) * uniform(&mut rng)
-                            } else {
-                                v
-                            }
-                        } else {
-                            x[i][j]
-                        }
-                    })
-                    .collect()
-            })
-            .collect();
-        let ft: Vec<f64> = trials
-            .par_iter()
-            .zip(f.par_iter())
-            .map(|(t, &parent)| problem.sse_unless_above(t, stride, parent))
-            .collect();
-        let before = f[best];
-        for (i, (t, v)) in trials.into_iter().zip(ft).enumerate() {
-            if v <= f[i] {
-                x[i] = t;
-                f[i] = v;
-            }
-        }
-        let after = f.iter().copied().fold(f64::INFINITY, f64::min);
-        record(&x, &f);
-        progress.inc(1);
-        stall = if after < before * (1.0 - 1e-4) {
-            0
-        } else {
-            stall + 1
-        };
-        let worst = f.iter().copied().fold(0.0f64, f64::max);
-        if stall >= 5 || (worst.is_finite() && worst <= after * 1.001) {
-            break;
-        }
-    }
-    let best = (0..pop).min_by(|&a, &b| f[a].total_cmp(&f[b])).unwrap_or(0);
-    (x[best].clone(), f[best])
+    record(&population);
+    let settings = Evolution {
+        weight: 0.6,
+        crossover: Some(0.9),
+        distinct_donors: true,
+        boundary: Boundary::BounceBack,
+        generations,
+        stall: Some(Stall {
+            gain: 1e-4,
+            generations: 5,
+        }),
+        spread: Some(1e-3),
+    };
+    settings.run(
+        population,
+        bounds,
+        &mut rng,
+        |t, parent| problem.sse_unless_above(t, stride, parent),
+        |p| {
+            record(p);
+            progress.inc(1);
+        },
+    )
 }
 
-/// Levenberg–Marquardt on the full record from `theta` (module doc: sensitivity Jacobian for the
-/// static models, forward differences for the dynamic one).
+/// Levenberg–Marquardt ([`Marquardt`]) on the full record from `theta` (module doc: sensitivity
+/// Jacobian for the static models, forward differences for the dynamic one): λ from 1e-3 (÷3 on
+/// success down to 1e-9, ×4 on failure, ×10 on a singular system), ten tries per iteration, the
+/// Marquardt scale floored at 1e-12; stops when an iteration fails to improve, on a gain ≤ 1e-10,
+/// or after two steps in a row that gain less than 0.1·SSE/N.
 pub fn levenberg_marquardt(
     problem: &Problem,
     bounds: &[(f64, f64)],
@@ -951,104 +871,117 @@ pub fn levenberg_marquardt(
 ) -> (Vec<f64>, f64) {
     let dim = theta.len();
     let m = problem.scored();
-    // Buffers allocated once per run, reused every iteration: the base point's, and every
-    // difference column's (dynamic model, or when a static model falls back to differences) or
-    // the state and its sensitivities (static models).
     // Several records (each from rest) take differences too: the core's sensitivities run from
     // rest over one record.
     let dynamic = problem.kind == ModelKind::Dynamic || problem.segments.len() > 1;
     let buffers = if dynamic { dim + 1 } else { 1 };
-    let mut resid: Vec<Vec<f64>> = vec![vec![0.0; m]; buffers];
-    let mut basis: Vec<Vec<[f64; 3]>> = vec![vec![[0.0; 3]; m]; buffers];
     let states = if dynamic { 0 } else { problem.u.len() };
-    let mut work = (
-        vec![0.0; states],
-        vec![[0.0; SENSITIVITY_PARAMETERS]; states],
-    );
-    let clampv = |t: &mut Vec<f64>| {
-        for (v, &(lo, hi)) in t.iter_mut().zip(bounds) {
-            *v = v.clamp(lo, hi);
-        }
+    let mut full = FullRecord {
+        problem,
+        bounds,
+        dynamic,
+        resid: vec![vec![0.0; m]; buffers],
+        basis: vec![vec![[0.0; 3]; m]; buffers],
+        work: (
+            vec![0.0; states],
+            vec![[0.0; SENSITIVITY_PARAMETERS]; states],
+        ),
+        progress,
     };
-    clampv(&mut theta);
-    let mut f = problem.sse(&theta, 1);
+    for (v, &(lo, hi)) in theta.iter_mut().zip(bounds) {
+        *v = v.clamp(lo, hi);
+    }
+    let f = problem.sse(&theta, 1);
     problem.record("lm", &theta, f, 1);
-    let mut lambda = 1e-3;
-    // Stop once two iterations in a row gain less than a tenth of the residual variance
-    // (ΔSSE < 0.1·SSE/N): such steps move θ by well under its one-σ uncertainty and are at the level
-    // of the f32 simulation's own rounding, so they only chase noise (and the iteration that then
-    // fails costs a Jacobian plus up to ten trial points).
-    let small_gain = 0.1 / m.max(1) as f64;
-    let mut small_steps = 0;
-    for _ in 0..iterations {
-        progress.inc(1);
-        let normal = if dynamic {
+    let settings = Marquardt {
+        lambda: 1e-3,
+        lambda_min: 1e-9,
+        scale_floor: 1e-12,
+        tries: 10,
+        singular_factor: 10.0,
+        iterations,
+        min_gain: 1e-10,
+        // Stop once two iterations in a row gain less than a tenth of the residual variance
+        // (ΔSSE < 0.1·SSE/N): such steps move θ by well under its one-σ uncertainty and are at
+        // the level of the f32 simulation's own rounding, so they only chase noise (and the
+        // iteration that then fails costs a Jacobian plus up to ten trial points).
+        small_steps: Some((0.1 / m.max(1) as f64, 2)),
+        predicted_gain: None,
+        hold_at_bounds: false,
+    };
+    settings.run(&mut full, theta, f, bounds)
+}
+
+/// The full-record fit of [`levenberg_marquardt`] as a least-squares problem, with its buffers
+/// allocated once per run and reused every iteration: the base point's, and every difference
+/// column's (dynamic model, several records, or a static model whose sensitivities are not
+/// finite) or the state and its sensitivities (static models).
+struct FullRecord<'a> {
+    problem: &'a Problem,
+    bounds: &'a [(f64, f64)],
+    /// Forward differences only (dynamic model or several records).
+    dynamic: bool,
+    resid: Vec<Vec<f64>>,
+    basis: Vec<Vec<[f64; 3]>>,
+    work: (Vec<f64>, Vec<[f64; SENSITIVITY_PARAMETERS]>),
+    progress: &'a Progress,
+}
+
+impl LeastSquares for FullRecord<'_> {
+    fn sse(&mut self, theta: &[f64], _abandon_above: f64) -> f64 {
+        self.problem.sse(theta, 1)
+    }
+
+    fn normal_equations(&mut self, theta: &[f64]) -> Option<NormalEquations> {
+        let problem = self.problem;
+        let normal = if self.dynamic {
             None
         } else {
             // The base point and the sensitivity pass, side by side.
-            let (r0, b0) = (&mut resid[0], &mut basis[0]);
+            let (r0, b0) = (&mut self.resid[0], &mut self.basis[0]);
+            let work = &mut self.work;
             let (base, have) = rayon::join(
-                || problem.evaluate(&theta, 1, Some((r0, b0)), f64::INFINITY),
-                || problem.sensitivities(&theta, &mut work),
+                || problem.evaluate(theta, 1, Some((r0, b0)), f64::INFINITY),
+                || problem.sensitivities(theta, work),
             );
             if !base.sse.is_finite() || !have {
-                break;
+                return None;
             }
-            problem.sensitivity_normal_equations(&theta, &base.lin, &basis[0], &resid[0], &work.1)
+            problem.sensitivity_normal_equations(
+                theta,
+                &base.lin,
+                &self.basis[0],
+                &self.resid[0],
+                &self.work.1,
+            )
         };
-        let (jtj, jtr) = match normal {
+        let (jtj, gradient) = match normal {
             Some(ne) => ne,
             None => {
                 // A static model whose sensitivities are not finite falls back to differences too.
-                resid.resize(dim + 1, vec![0.0; m]);
-                basis.resize(dim + 1, vec![[0.0; 3]; m]);
-                let Some(ne) =
-                    difference_normal_equations(problem, &theta, bounds, &mut resid, &mut basis)
-                else {
-                    break;
-                };
-                ne
+                let (dim, m) = (theta.len(), problem.scored());
+                self.resid.resize(dim + 1, vec![0.0; m]);
+                self.basis.resize(dim + 1, vec![[0.0; 3]; m]);
+                difference_normal_equations(
+                    problem,
+                    theta,
+                    self.bounds,
+                    &mut self.resid,
+                    &mut self.basis,
+                )?
             }
         };
-        let mut improved = false;
-        for _ in 0..10 {
-            let mut aug: Vec<Vec<f64>> = (0..dim)
-                .map(|a| {
-                    let mut row = jtj[a].clone();
-                    row[a] += lambda * jtj[a][a].max(1e-12);
-                    row.push(-jtr[a]);
-                    row
-                })
-                .collect();
-            let Some(delta) = solve_dense(&mut aug, dim) else {
-                lambda *= 10.0;
-                continue;
-            };
-            let mut trial: Vec<f64> = theta.iter().zip(&delta).map(|(a, b)| a + b).collect();
-            clampv(&mut trial);
-            let ft = problem.sse(&trial, 1);
-            if ft < f {
-                let gain = (f - ft) / f;
-                theta = trial;
-                f = ft;
-                lambda = (lambda / 3.0).max(1e-9);
-                improved = gain > 1e-10;
-                small_steps = if gain < small_gain {
-                    small_steps + 1
-                } else {
-                    0
-                };
-                super::trace(|| format!("LM gain {gain:.3e} lambda {lambda:.1e} theta {theta:?}"));
-                problem.record("lm", &theta, f, 1);
-                break;
-            }
-            lambda *= 4.0;
-        }
-        if !improved || small_steps >= 2 {
-            break;
-        }
+        Some(NormalEquations { jtj, gradient })
     }
-    (theta, f)
+
+    fn iteration(&mut self) {
+        self.progress.inc(1);
+    }
+
+    fn accepted(&mut self, theta: &[f64], sse: f64, gain: f64, lambda: f64) {
+        super::trace(|| format!("LM gain {gain:.3e} lambda {lambda:.1e} theta {theta:?}"));
+        self.problem.record("lm", theta, sse, 1);
+    }
 }
 
 /// The normal equations (JᵀJ, Jᵀr) of the projected residual at θ from a forward-difference

@@ -852,34 +852,71 @@ pub fn identify_traced(
     Ok((Identification { set, summary }, problem.trace()))
 }
 
-/// The names of the search coordinates that ended within 0.1 % of the box's width of a bound.
-fn at_search_bounds(model: ModelKind, theta: &[f64], bounds: &[(f64, f64)]) -> Vec<&'static str> {
-    let mut names = vec![
-        "the saturation level log10(H / input span)",
-        "the loop shape (beta - gamma) / (beta + gamma)",
-        "the exponent n",
-    ];
-    match model {
-        ModelKind::Asymmetric => {
-            names.extend(["the asymmetric factor delta", "the input shift phi"])
+/// A coordinate of the `vp-de-lm` search (the static models' θ, [`fit`]'s module doc; the
+/// dynamic model adds its three).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SearchCoordinate {
+    /// log10(H/U): the state bound over the input span.
+    SaturationLevel,
+    /// r = (β − γ)/(β + γ).
+    LoopShape,
+    /// The Bouc-Wen exponent n.
+    Exponent,
+    /// The asymmetric factor δ (asymmetric model).
+    AsymmetricFactor,
+    /// The input shift φ (asymmetric model).
+    InputShift,
+    /// A/k1 (dynamic model).
+    HysteresisGain,
+    /// The natural frequency (dynamic model).
+    NaturalFrequency,
+    /// The damping ratio (dynamic model).
+    DampingRatio,
+}
+
+impl SearchCoordinate {
+    /// The coordinates of `model`'s search, in θ's order.
+    pub fn of(model: ModelKind) -> Vec<Self> {
+        let mut all = vec![Self::SaturationLevel, Self::LoopShape, Self::Exponent];
+        match model {
+            ModelKind::Asymmetric => all.extend([Self::AsymmetricFactor, Self::InputShift]),
+            ModelKind::Dynamic => all.extend([
+                Self::HysteresisGain,
+                Self::NaturalFrequency,
+                Self::DampingRatio,
+            ]),
+            ModelKind::Symmetric | ModelKind::Oscillator => {}
         }
-        ModelKind::Dynamic => names.extend([
-            "the hysteresis gain A / k1",
-            "the natural frequency",
-            "the damping ratio",
-        ]),
-        _ => {}
+        all
     }
+
+    /// In words, for reports.
+    pub fn description(self) -> &'static str {
+        match self {
+            Self::SaturationLevel => "the saturation level log10(H / input span)",
+            Self::LoopShape => "the loop shape (beta - gamma) / (beta + gamma)",
+            Self::Exponent => "the exponent n",
+            Self::AsymmetricFactor => "the asymmetric factor delta",
+            Self::InputShift => "the input shift phi",
+            Self::HysteresisGain => "the hysteresis gain A / k1",
+            Self::NaturalFrequency => "the natural frequency",
+            Self::DampingRatio => "the damping ratio",
+        }
+    }
+}
+
+/// The search coordinates that ended within 0.1 % of the box's width of a bound, in words. The
+/// exponent at its lower bound n = 1 is a common, exact value, not a sign of trouble.
+fn at_search_bounds(model: ModelKind, theta: &[f64], bounds: &[(f64, f64)]) -> Vec<&'static str> {
     theta
         .iter()
         .zip(bounds)
-        .zip(names)
-        .filter(|((&t, &(lo, hi)), name)| {
+        .zip(SearchCoordinate::of(model))
+        .filter(|((&t, &(lo, hi)), c)| {
             let tol = 1e-3 * (hi - lo);
-            // n = 1 (the lower bound) is a common, exact value, not a sign of trouble.
-            (t - lo < tol && !name.contains("exponent")) || hi - t < tol
+            (t - lo < tol && *c != SearchCoordinate::Exponent) || hi - t < tol
         })
-        .map(|(_, name)| name)
+        .map(|(_, c)| c.description())
         .collect()
 }
 
@@ -1456,4 +1493,35 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
         lines.join("\n"),
         written.join(", ")
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_exponent_at_one_is_no_bound_warning_but_other_bounds_are() {
+        let bounds = [(-1.5, 1.0), (-1.0, 30.0), (1.0, 5.0)];
+        let at = |theta: &[f64]| at_search_bounds(ModelKind::Symmetric, theta, &bounds);
+        assert!(at(&[0.0, 1.0, 1.0]).is_empty());
+        assert_eq!(
+            at(&[0.0, 1.0, 5.0]),
+            [SearchCoordinate::Exponent.description()]
+        );
+        assert_eq!(
+            at(&[0.0, -1.0, 2.0]),
+            [SearchCoordinate::LoopShape.description()]
+        );
+        let dynamic = [
+            (-1.5, 1.0),
+            (-1.0, 30.0),
+            (1.0, 5.0),
+            (-2.0, 2.0),
+            (-2.5, -0.31),
+        ];
+        assert_eq!(
+            at_search_bounds(ModelKind::Dynamic, &[0.0, 1.0, 2.0, 0.0, -0.31], &dynamic),
+            [SearchCoordinate::NaturalFrequency.description()]
+        );
+    }
 }

@@ -23,6 +23,7 @@
 //! per parameter), a parameter at a bound held there while its gradient points outwards: first on
 //! the input upsampled by 4 (a fifth of the cost per iteration) to within 1e-6 of the SSE, then
 //! polished at the full rate until a step gains less than 1e-9 or the linear model promises less.
+//! Both optimisers are [`crate::optimise`]'s, with the settings above.
 //! Never fit on test data: this sees only the record it is given.
 
 // Index loops for the small dense algebra; `%` rather than `is_multiple_of` (rust-version 1.80).
@@ -32,9 +33,13 @@ use super::{
     fit_block, FitBlock, Identification, IdentifyError, IdentifySettings, IdentifySummary, Record,
 };
 use crate::identify::model::Identified;
+use crate::optimise::{
+    evolution, linear, Boundary, Evolution, LeastSquares, Marquardt, NormalEquations, Population,
+    Stall,
+};
 use piezo_core::{HystereticOscillator, OscillatorParams, OscillatorState};
 use rand_chacha::ChaCha8Rng;
-use rand_core::{RngCore, SeedableRng};
+use rand_core::SeedableRng;
 use rayon::prelude::*;
 use rustfft::num_complex::Complex;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -326,10 +331,19 @@ struct Objective<'a> {
     evaluations: &'a AtomicU64,
 }
 
-/// The Gauss–Newton normal equations at one θ: JᵀJ and Jᵀr.
+/// The Gauss–Newton normal equations at one θ, accumulated on the stack: JᵀJ and Jᵀr.
 struct Normal {
     jtj: [[f64; DIM]; DIM],
     jtr: [f64; DIM],
+}
+
+impl From<Normal> for NormalEquations {
+    fn from(n: Normal) -> Self {
+        Self {
+            jtj: n.jtj.iter().map(|row| row.to_vec()).collect(),
+            gradient: n.jtr.to_vec(),
+        }
+    }
 }
 
 impl Objective<'_> {
@@ -396,18 +410,6 @@ impl Objective<'_> {
     }
 }
 
-impl Normal {
-    /// The SSE reduction the linear model predicts for the step d: −(2·dᵀJᵀr + dᵀJᵀJ·d).
-    fn predicted_gain(&self, d: &[f64; DIM]) -> f64 {
-        let mut gain = 0.0;
-        for a in 0..DIM {
-            let jd: f64 = (0..DIM).map(|b| self.jtj[a][b] * d[b]).sum();
-            gain -= d[a] * (2.0 * self.jtr[a] + jd);
-        }
-        gain
-    }
-}
-
 /// One stage of Levenberg–Marquardt: its starting damping, the relative SSE gain below which it
 /// stops, and its iteration cap.
 struct LmStage {
@@ -416,97 +418,67 @@ struct LmStage {
     iterations: usize,
 }
 
-/// The damped Gauss–Newton step `(JᵀJ + λ·diag JᵀJ)·d = −Jᵀr` on the free parameters: one at a
-/// bound whose gradient points out of the box is held there (d = 0) instead of being clamped after
-/// the solve, which would spoil the step of the others.
-fn damped_step(normal: &Normal, theta: &[f64], lambda: f64) -> Option<[f64; DIM]> {
-    let free: Vec<usize> = (0..DIM)
-        .filter(|&j| {
-            let (lo, hi) = BOUNDS[j];
-            let g = normal.jtr[j];
-            !((theta[j] <= lo && g > 0.0) || (theta[j] >= hi && g < 0.0))
-        })
-        .collect();
-    let mut aug: Vec<Vec<f64>> = free
-        .iter()
-        .map(|&a| {
-            let mut row: Vec<f64> = free.iter().map(|&b| normal.jtj[a][b]).collect();
-            row.push(-normal.jtr[a]);
-            row
-        })
-        .collect();
-    for (i, &a) in free.iter().enumerate() {
-        aug[i][i] += lambda * normal.jtj[a][a].max(1e-30);
-    }
-    let solved = super::fit::solve_dense_pub(&mut aug, free.len())?;
-    let mut d = [0.0; DIM];
-    for (&j, v) in free.iter().zip(solved) {
-        d[j] = v;
-    }
-    Some(d)
+/// The scored samples `from..limit` of an objective as a least-squares problem.
+struct Samples<'a, 'o> {
+    obj: &'a Objective<'o>,
+    limit: usize,
+    pb: &'a indicatif::ProgressBar,
 }
 
-/// Levenberg–Marquardt on the scored samples `from..limit` of `obj`, the Jacobian by the
-/// sensitivity equations; returns θ and its SSE.
+impl LeastSquares for Samples<'_, '_> {
+    fn sse(&mut self, theta: &[f64], abandon_above: f64) -> f64 {
+        // A trial is abandoned once it passes the best SSE (it would be rejected).
+        self.obj.residuals(theta, self.limit, abandon_above)
+    }
+
+    fn normal_equations(&mut self, theta: &[f64]) -> Option<NormalEquations> {
+        self.obj.normal_equations(theta, self.limit).map(Into::into)
+    }
+
+    fn iteration(&mut self) {
+        self.pb.inc(1);
+    }
+
+    fn tried(&mut self, lambda: f64, sse: f64) {
+        let factor = self.obj.factor;
+        super::trace(|| format!("oscillator LM (x{factor}): lambda {lambda:.1e}, SSE {sse:.9e}"));
+    }
+}
+
+/// Levenberg–Marquardt ([`Marquardt`]) on the scored samples `from..limit` of `obj`, the
+/// Jacobian by the sensitivity equations; λ from the stage's (÷3 on success down to 1e-12, ×4 on
+/// failure, ×10 on a singular system), ten tries per iteration, a parameter at a bound whose
+/// gradient points outwards held there; stops when a step gains at most the stage's tolerance or
+/// the linear model promises less. Returns θ and its SSE.
 fn levenberg_marquardt(
     obj: &Objective,
-    mut theta: Vec<f64>,
+    theta: Vec<f64>,
     limit: usize,
     stage: LmStage,
     pb: &indicatif::ProgressBar,
 ) -> (Vec<f64>, f64) {
-    let mut fbest = obj.residuals(&theta, limit, f64::INFINITY);
-    let mut lambda = stage.lambda;
-    for _ in 0..stage.iterations {
-        pb.inc(1);
-        let Some(normal) = obj.normal_equations(&theta, limit) else {
-            break;
-        };
-        let mut improved = false;
-        for _ in 0..10 {
-            let Some(d) = damped_step(&normal, &theta, lambda) else {
-                lambda *= 10.0;
-                continue;
-            };
-            // Converged when the linear model promises less than the tolerance.
-            if normal.predicted_gain(&d) <= stage.tolerance * fbest {
-                break;
-            }
-            let trial: Vec<f64> = theta
-                .iter()
-                .zip(&d)
-                .zip(&BOUNDS)
-                .map(|((a, b), &(lo, hi))| (a + b).clamp(lo, hi))
-                .collect();
-            // A trial is abandoned once it passes the best SSE (it would be rejected).
-            let ft = obj.residuals(&trial, limit, fbest);
-            super::trace(|| {
-                format!(
-                    "oscillator LM (x{}): lambda {lambda:.1e}, SSE {ft:.9e}",
-                    obj.factor
-                )
-            });
-            if ft < fbest {
-                improved = (fbest - ft) / fbest > stage.tolerance;
-                theta = trial;
-                fbest = ft;
-                lambda = (lambda / 3.0).max(1e-12);
-                break;
-            }
-            lambda *= 4.0;
-        }
-        if !improved {
-            break;
-        }
-    }
-    (theta, fbest)
+    let sse = obj.residuals(&theta, limit, f64::INFINITY);
+    let settings = Marquardt {
+        lambda: stage.lambda,
+        lambda_min: 1e-12,
+        scale_floor: 1e-30,
+        tries: 10,
+        singular_factor: 10.0,
+        iterations: stage.iterations,
+        min_gain: stage.tolerance,
+        small_steps: None,
+        predicted_gain: Some(stage.tolerance),
+        hold_at_bounds: true,
+    };
+    settings.run(&mut Samples { obj, limit, pb }, theta, sse, &BOUNDS)
 }
 
-/// Differential evolution on the samples `from..limit` of `obj`, one member started at `start`.
-/// When `start` already beats every member of the random initial population (each of those is
-/// abandoned once it passes the start's SSE), the generations are skipped: on the benchmark's two
-/// training files they never improved on it. Else at most 200 generations, fewer once 10 in a row
-/// each gain less than 1e-7 of the best SSE.
+/// Differential evolution ([`Evolution`]: current-to-best/1/bin, F = 0.5, CR = 0.9, any two
+/// donors, mutants clamped into the bounds; population 40) on the samples `from..limit` of `obj`,
+/// one member started at `start`. When `start` already beats every member of the random initial
+/// population (each of those is abandoned once it passes the start's SSE), the generations are
+/// skipped: on the benchmark's two training files they never improved on it. Else at most 200
+/// generations, fewer once 10 in a row each gain less than 1e-7 of the best SSE.
 fn differential_evolution(
     obj: &Objective,
     start: Option<Vec<f64>>,
@@ -516,23 +488,17 @@ fn differential_evolution(
 ) -> Vec<f64> {
     let pop = 40;
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let unif = |rng: &mut ChaCha8Rng| (rng.next_u64() >> 11) as f64 / (1u64 << 53) as f64;
-    let mut x: Vec<Vec<f64>> = (0..pop)
-        .map(|_| {
-            BOUNDS
-                .iter()
-                .map(|&(lo, hi)| lo + (hi - lo) * unif(&mut rng))
-                .collect()
-        })
-        .collect();
+    let mut x = evolution::random_population(&BOUNDS, pop, &mut rng);
     let mut f = vec![f64::INFINITY; pop];
     let mut abandon_above = f64::INFINITY;
+    let mut first = 0;
     if let Some(start) = start {
         f[0] = obj.residuals(&start, limit, f64::INFINITY);
         abandon_above = f[0];
         x[0] = start;
+        first = 1;
     }
-    let rest: Vec<f64> = x[1..]
+    let rest: Vec<f64> = x[first..]
         .par_iter()
         .map(|th| obj.residuals(th, limit, abandon_above))
         .collect();
@@ -544,8 +510,8 @@ fn differential_evolution(
         return x.swap_remove(0);
     }
     // The abandoned members' SSE in full.
-    f[1..].copy_from_slice(&rest);
-    let again: Vec<(usize, f64)> = (1..pop)
+    f[first..].copy_from_slice(&rest);
+    let again: Vec<(usize, f64)> = (first..pop)
         .into_par_iter()
         .filter(|&i| f[i] > abandon_above && f[i].is_finite())
         .map(|i| (i, obj.residuals(&x[i], limit, f64::INFINITY)))
@@ -553,56 +519,29 @@ fn differential_evolution(
     for (i, v) in again {
         f[i] = v;
     }
-    let mut stall = 0;
-    for _ in 0..200 {
-        pb.inc(1);
-        let best = (0..pop).min_by(|&a, &b| f[a].total_cmp(&f[b])).unwrap_or(0);
-        let trials: Vec<Vec<f64>> = (0..pop)
-            .map(|i| {
-                let r1 = (rng.next_u64() % pop as u64) as usize;
-                let r2 = (rng.next_u64() % pop as u64) as usize;
-                let jr = (rng.next_u64() % DIM as u64) as usize;
-                (0..DIM)
-                    .map(|j| {
-                        let (lo, hi) = BOUNDS[j];
-                        if j == jr || unif(&mut rng) < 0.9 {
-                            let v = x[i][j]
-                                + 0.5 * (x[best][j] - x[i][j])
-                                + 0.5 * (x[r1][j] - x[r2][j]);
-                            v.clamp(lo, hi)
-                        } else {
-                            x[i][j]
-                        }
-                    })
-                    .collect()
-            })
-            .collect();
-        let ft: Vec<f64> = trials
-            .par_iter()
-            .zip(f.par_iter())
-            .map(|(th, &parent)| obj.residuals(th, limit, parent))
-            .collect();
-        let before = f[best];
-        for (i, (th, v)) in trials.into_iter().zip(ft).enumerate() {
-            if v <= f[i] {
-                x[i] = th;
-                f[i] = v;
-            }
-        }
-        let after = f.iter().copied().fold(f64::INFINITY, f64::min);
-        super::trace(|| format!("oscillator DE: best SSE {after:.6e}"));
+    let settings = Evolution {
+        weight: 0.5,
+        crossover: Some(0.9),
+        distinct_donors: false,
+        boundary: Boundary::Clamp,
+        generations: 200,
         // Converged: the best gained less than 1e-7 (relative) in each of 10 generations.
-        stall = if after < before * (1.0 - 1e-7) {
-            0
-        } else {
-            stall + 1
-        };
-        if stall >= 10 {
-            break;
-        }
-    }
-    let best = (0..pop).min_by(|&a, &b| f[a].total_cmp(&f[b])).unwrap_or(0);
-    x.swap_remove(best)
+        stall: Some(Stall {
+            gain: 1e-7,
+            generations: 10,
+        }),
+        spread: None,
+    };
+    let population = Population { members: x, sse: f };
+    let objective = |th: &[f64], parent: f64| obj.residuals(th, limit, parent);
+    let generation = |p: &Population| {
+        pb.inc(1);
+        let (_, after) = p.best();
+        super::trace(|| format!("oscillator DE: best SSE {after:.6e}"));
+    };
+    settings
+        .run(population, &BOUNDS, &mut rng, objective, generation)
+        .0
 }
 
 /// The record's input upsampled band-limited by `factor`, in f32 as the core steps it.
@@ -812,7 +751,7 @@ fn equation_error_start(record: &Record, bounds: &[(f64, f64)]) -> Option<Vec<f6
                 r
             })
             .collect();
-        match super::fit::solve_dense_pub(&mut aug, 3) {
+        match linear::solve(&mut aug, 3) {
             Some(x) => (
                 tt - (0..3).map(|a| x[a] * b[a]).sum::<f64>(),
                 [x[0], x[1], x[2]],
@@ -820,53 +759,35 @@ fn equation_error_start(record: &Record, bounds: &[(f64, f64)]) -> Option<Vec<f6
             None => (f64::INFINITY, [0.0; 3]),
         }
     };
+    // Differential evolution over (log10 m, log10 c, log10 k): F = 0.5, every coordinate from the
+    // mutant (no crossover), any two donors, clamped into the bounds, 24 members, 150 generations.
     let mut rng = ChaCha8Rng::seed_from_u64(7);
-    let unif = |rng: &mut ChaCha8Rng| (rng.next_u64() >> 11) as f64 / (1u64 << 53) as f64;
-    let pop = 24;
-    let mut x: Vec<Vec<f64>> = (0..pop)
-        .map(|_| {
-            bounds[..3]
-                .iter()
-                .map(|&(lo, hi)| lo + (hi - lo) * unif(&mut rng))
-                .collect()
-        })
-        .collect();
-    let mut f: Vec<f64> = x.par_iter().map(|v| cost(v).0).collect();
-    for _ in 0..150 {
-        let best = (0..pop).min_by(|&a, &b| f[a].total_cmp(&f[b])).unwrap_or(0);
-        let trials: Vec<Vec<f64>> = (0..pop)
-            .map(|i| {
-                let r1 = (rng.next_u64() % pop as u64) as usize;
-                let r2 = (rng.next_u64() % pop as u64) as usize;
-                (0..3)
-                    .map(|j| {
-                        let v =
-                            x[i][j] + 0.5 * (x[best][j] - x[i][j]) + 0.5 * (x[r1][j] - x[r2][j]);
-                        v.clamp(bounds[j].0, bounds[j].1)
-                    })
-                    .collect()
-            })
-            .collect();
-        let ft: Vec<f64> = trials.par_iter().map(|v| cost(v).0).collect();
-        for (i, (v, c)) in trials.into_iter().zip(ft).enumerate() {
-            if c <= f[i] {
-                x[i] = v;
-                f[i] = c;
-            }
-        }
-    }
-    let best = (0..pop).min_by(|&a, &b| f[a].total_cmp(&f[b])).unwrap_or(0);
-    let (_, lin) = cost(&x[best]);
+    let members = evolution::random_population(&bounds[..3], 24, &mut rng);
+    let sse: Vec<f64> = members.par_iter().map(|v| cost(v).0).collect();
+    let settings = Evolution {
+        weight: 0.5,
+        crossover: None,
+        distinct_donors: false,
+        boundary: Boundary::Clamp,
+        generations: 150,
+        stall: None,
+        spread: None,
+    };
+    let (mck, _) = settings.run(
+        Population { members, sse },
+        &bounds[..3],
+        &mut rng,
+        |v, _| cost(v).0,
+        |_| {},
+    );
+    let (_, lin) = cost(&mck);
     super::trace(|| {
-        format!(
-            "equation-error (m, c, k) = {:?}, (alpha, p, q) = {lin:?}, f_max {f_max} Hz",
-            x[best]
-        )
+        format!("equation-error (m, c, k) = {mck:?}, (alpha, p, q) = {lin:?}, f_max {f_max} Hz")
     });
     if !(lin[0] > 0.0) {
         return None;
     }
-    let mut theta = x[best].clone();
+    let mut theta = mck;
     theta.push(lin[0].log10().clamp(bounds[3].0, bounds[3].1));
     theta.push(lin[1].clamp(bounds[4].0, bounds[4].1));
     theta.push(lin[2].clamp(bounds[5].0, bounds[5].1));
