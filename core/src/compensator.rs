@@ -1114,12 +1114,26 @@ mod tests {
         }
     }
 
-    /// The small-step paths (n = 1 and general n) and the fast n = 1 solve give the same voltage
-    /// and state as the general bracketed Newton solve, and their state is the forward model's.
-    #[test]
+    /// The solve's direction and step limit from `u0` for the output error `error_at_hold`, as
+    /// `Compensator::solve` takes them, in the 0–120 V window.
+    fn direction_and_limit(compensator: &Compensator, u0: f32, error_at_hold: f32) -> (f32, f32) {
+        let direction = if error_at_hold * compensator.slope_sign < 0.0 {
+            1.0
+        } else {
+            -1.0
+        };
+        let limit = if direction > 0.0 {
+            (120.0 - u0).min(compensator.max_step_v)
+        } else {
+            (0.0 - u0).max(-compensator.max_step_v)
+        };
+        (direction, limit)
+    }
+
     /// Targets anywhere in the stroke every tick (steps of up to 50 µm): the fast n = 1 solve
     /// takes its large-step path (|κΔu| ≥ 0.1, exact `expm1f`) more than a thousand times and
     /// lands on the general Newton solve's voltage within 1e-4 V every time.
+    #[test]
     fn large_steps_of_the_fast_solve_agree_with_newton() {
         let bw = x_stack(1.0, 1e3);
         let map = StaticMap {
@@ -1142,16 +1156,7 @@ mod tests {
             let u0 = hold.input_v;
             let error_at_hold = compensator.model.output(&hold) - y_d;
             if error_at_hold != 0.0 {
-                let direction = if error_at_hold * compensator.slope_sign < 0.0 {
-                    1.0
-                } else {
-                    -1.0
-                };
-                let limit = if direction > 0.0 {
-                    (120.0 - u0).min(compensator.max_step_v)
-                } else {
-                    (0.0 - u0).max(-compensator.max_step_v)
-                };
+                let (direction, limit) = direction_and_limit(&compensator, u0, error_at_hold);
                 let newton = compensator.solve_newton(
                     &hold,
                     &hold,
@@ -1184,6 +1189,8 @@ mod tests {
         assert!(large > 1000, "{large}");
     }
 
+    /// The small-step paths (n = 1 and general n) and the fast n = 1 solve give the same voltage
+    /// and state as the general bracketed Newton solve, and their state is the forward model's.
     #[test]
     fn fast_paths_agree_with_newton() {
         for n in [1.0f32, 1.5, 2.5] {
@@ -1206,16 +1213,7 @@ mod tests {
                 let u0 = before.model.input_v;
                 let hold = before.model;
                 let error_at_hold = compensator.model.output(&hold) - y_d;
-                let direction = if error_at_hold * compensator.slope_sign < 0.0 {
-                    1.0
-                } else {
-                    -1.0
-                };
-                let limit = if direction > 0.0 {
-                    (120.0 - u0).min(compensator.max_step_v)
-                } else {
-                    (0.0 - u0).max(-compensator.max_step_v)
-                };
+                let (direction, limit) = direction_and_limit(&compensator, u0, error_at_hold);
                 let mut small = before;
                 let small_result = if n == 1.0 {
                     compensator.compensate_small_n1(&mut small, y_d)

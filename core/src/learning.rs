@@ -683,6 +683,40 @@ mod tests {
         BUTTERWORTH4_Q.map(|q| Biquad::lowpass(2.0 * PI * cutoff_hz * 1e-4, q))
     }
 
+    /// The XY stage's x stack (y = 3.57e-7·(u − h) m) at 10 kHz in a 0–120 V window with the
+    /// slew limit `slew_limit_v_per_s`, its operator driven by a lag of `lag_s` (0: none), the
+    /// effects `params`: the model, the effects and the learning with the default parameters.
+    fn x_stage(
+        slew_limit_v_per_s: f32,
+        lag_s: f32,
+        params: crate::effects::EffectParams,
+    ) -> (StaticModel, Effects, Learning) {
+        let map = crate::static_model::StaticMap {
+            k1_m_per_v: 3.57e-7,
+            k2_m_per_h: -3.57e-7,
+            offset_m: 0.0,
+        };
+        let bw = crate::fixtures::x_stack(1.0, crate::STATE_LIMIT);
+        let model = StaticModel::new(bw, map)
+            .unwrap()
+            .with_input_lag(lag_s, 1e-4)
+            .unwrap();
+        let settings = CompensatorSettings {
+            output_min_v: 0.0,
+            output_max_v: 120.0,
+            slew_limit_v_per_s,
+            sample_period_s: 1e-4,
+        };
+        let range = crate::effects::OperatingRange {
+            input_v: (0.0, 120.0),
+            output_m: (0.0, 50e-6),
+        };
+        let effects = Effects::new(params, 1e-4, range).unwrap();
+        let compensator = Compensator::new(model, settings).unwrap();
+        let learning = Learning::new(&compensator, &effects, LearningParams::default()).unwrap();
+        (model, effects, learning)
+    }
+
     #[test]
     fn circular_forward_backward_is_zero_phase_with_the_stated_gain() {
         // One period of a sinusoid, filtered circularly: every sample is |Q(f)| times the input
@@ -726,30 +760,7 @@ mod tests {
 
     #[test]
     fn a_periodic_table_respects_window_and_slew_across_the_wrap() {
-        use crate::static_model::StaticMap;
-        let bw = crate::fixtures::x_stack(1.0, crate::STATE_LIMIT);
-        let map = StaticMap {
-            k1_m_per_v: 3.57e-7,
-            k2_m_per_h: -3.57e-7,
-            offset_m: 0.0,
-        };
-        let settings = CompensatorSettings {
-            output_min_v: 0.0,
-            output_max_v: 120.0,
-            slew_limit_v_per_s: 2e4,
-            sample_period_s: 1e-4,
-        };
-        let compensator = Compensator::new(StaticModel::new(bw, map).unwrap(), settings).unwrap();
-        let effects = Effects::new(
-            Default::default(),
-            1e-4,
-            crate::effects::OperatingRange {
-                input_v: (0.0, 120.0),
-                output_m: (0.0, 50e-6),
-            },
-        )
-        .unwrap();
-        let learning = Learning::new(&compensator, &effects, LearningParams::default()).unwrap();
+        let (_, _, learning) = x_stage(2e4, 0.0, Default::default());
         // A rising ramp from −20 V to 150 V: out of the window at both ends, steps of 0.85 V
         // within it, and a 170 V fall across the wrap.
         let mut u: [f32; 200] = core::array::from_fn(|j| -20.0 + 0.85 * j as f32);
@@ -773,26 +784,7 @@ mod tests {
 
     #[test]
     fn a_base_the_window_held_is_filtered_and_one_inside_it_is_kept() {
-        use crate::static_model::StaticMap;
-        let bw = crate::fixtures::x_stack(1.0, crate::STATE_LIMIT);
-        let map = StaticMap {
-            k1_m_per_v: 3.57e-7,
-            k2_m_per_h: -3.57e-7,
-            offset_m: 0.0,
-        };
-        let settings = CompensatorSettings {
-            output_min_v: 0.0,
-            output_max_v: 120.0,
-            slew_limit_v_per_s: 5e5,
-            sample_period_s: 1e-4,
-        };
-        let compensator = Compensator::new(StaticModel::new(bw, map).unwrap(), settings).unwrap();
-        let range = crate::effects::OperatingRange {
-            input_v: (0.0, 120.0),
-            output_m: (0.0, 50e-6),
-        };
-        let effects = Effects::new(Default::default(), 1e-4, range).unwrap();
-        let learning = Learning::new(&compensator, &effects, LearningParams::default()).unwrap();
+        let (_, _, learning) = x_stage(5e5, 0.0, Default::default());
         let next = |base: &[f32; 100]| {
             // No error: the next command is the base plus Q of nothing learned, or Q of the base.
             let r = [1e-5f32; 100];
@@ -842,49 +834,20 @@ mod tests {
     /// low rates) and the lag's fall by 0.29 per trial instead of 1 − λ ≈ 0.13.
     #[test]
     fn rate_dependent_models_are_inverted_by_the_learning() {
-        use crate::effects::{EffectParams, EffectsState, OperatingRange};
-        use crate::static_model::StaticMap;
-        let period_s = 1e-4f32;
-        let settings = CompensatorSettings {
-            output_min_v: 0.0,
-            output_max_v: 120.0,
-            slew_limit_v_per_s: 1e5,
-            sample_period_s: period_s,
-        };
-        let range = OperatingRange {
-            input_v: (0.0, 120.0),
-            output_m: (0.0, 50e-6),
-        };
-        let map = StaticMap {
-            k1_m_per_v: 3.57e-7,
-            k2_m_per_h: -3.57e-7,
-            offset_m: 0.0,
-        };
-        let bw = crate::fixtures::x_stack(1.0, crate::STATE_LIMIT);
+        use crate::effects::{EffectParams, EffectsState};
         let relaxing = EffectParams {
             relaxation_gain: [2.0, 0.0],
             relaxation_time_constant_s: [5e-3, 0.0],
             ..EffectParams::default()
         };
-        // (model, effects, largest error ratio from one trial to the next over the first five,
+        // (lag, effects, largest error ratio from one trial to the next over the first five,
         // largest final / first error)
         let cases = [
-            (StaticModel::new(bw, map).unwrap(), relaxing, 1.0, 0.05),
-            (
-                StaticModel::new(bw, map)
-                    .unwrap()
-                    .with_input_lag(2e-3, period_s)
-                    .unwrap(),
-                EffectParams::default(),
-                0.2,
-                1e-3,
-            ),
+            (0.0, relaxing, 1.0, 0.05),
+            (2e-3, EffectParams::default(), 0.2, 1e-3),
         ];
-        for (model, params, ratio, final_share) in cases {
-            let effects = Effects::new(params, period_s, range).unwrap();
-            let compensator = Compensator::new(model, settings).unwrap();
-            let learning =
-                Learning::new(&compensator, &effects, LearningParams::default()).unwrap();
+        for (lag_s, params, ratio, final_share) in cases {
+            let (model, effects, learning) = x_stage(1e5, lag_s, params);
             const N: usize = 500; // one 20 Hz period at 10 kHz
             let sine = |phase: f64, j: usize| {
                 (60.0 + 40.0 * libm::sin(2.0 * PI * j as f64 / N as f64 + phase)) as f32

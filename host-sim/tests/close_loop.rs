@@ -481,6 +481,74 @@ fn invertible_holds_for_the_whole_set_with_effects() {
     assert!(voltages.exists());
 }
 
+/// The XY stage's x axis with the stacks' dielectric lag (τ_v = 1 ms) under a rising-amplitude
+/// raised sine 0–120 V at `f` Hz for `duration_s` at 10 kHz, from rest, 2 nm sensor noise.
+fn lag_record(name: &str, f: u32, duration_s: f64) -> PathBuf {
+    simulate(
+        &format!("{name}{f}.csv"),
+        "xy-stage",
+        &format!(
+            "rising-sine:amp=60,offset=0,freq={f},phase_deg=-90,raised=1,duration={duration_s},rate=10000"
+        ),
+        &["dielectric-lag:tau=1e-3", &format!("noise:rms_m=2e-9,seed={f}")],
+    )
+}
+
+/// `close-loop --data DATA --free-offset` on the x axis: its report and the stage file written.
+fn close_loop_records(name: &str, data: &str) -> (serde_json::Value, PathBuf) {
+    let (report, stage) = (temp(&format!("{name}.json")), temp(&format!("{name}.toml")));
+    cli(&[
+        "close-loop",
+        "--data",
+        data,
+        "--free-offset",
+        "--u",
+        "ux_V",
+        "--y",
+        "x_m",
+        "--report",
+        report.to_str().unwrap(),
+        "--out",
+        stage.to_str().unwrap(),
+    ])
+    .unwrap();
+    (json(&report), stage)
+}
+
+/// The zeroed RMS with which `stage` predicts `record` from rest, its offset re-estimated \[m\].
+fn predicted_rms(stage: &Path, record: &Path) -> f64 {
+    let report = temp(&format!(
+        "{}-predict.json",
+        stage.file_stem().unwrap().to_str().unwrap()
+    ));
+    cli(&[
+        "predict",
+        "--params",
+        stage.to_str().unwrap(),
+        "--data",
+        record.to_str().unwrap(),
+        "--u",
+        "ux_V",
+        "--y",
+        "x_m",
+        "--free-offset",
+        "--report",
+        report.to_str().unwrap(),
+    ])
+    .unwrap();
+    json(&report)["rms_zeroed_m"][0].as_f64().unwrap()
+}
+
+/// The effects a close-loop report added, in order.
+fn added(report: &serde_json::Value) -> Vec<String> {
+    report["effects_added"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| e.as_str().unwrap().to_string())
+        .collect()
+}
+
 /// The XY stage's x axis with the stacks' dielectric lag (τ_v = 1 ms: the Bouc-Wen operator
 /// driven by a first-order lag of the voltage), two records of rising-amplitude raised sines
 /// 0-120 V at 40 and 100 Hz (0.25 s at 10 kHz each, from rest), fitted together with their own
@@ -491,43 +559,13 @@ fn invertible_holds_for_the_whole_set_with_effects() {
 /// dynamics with it) and says why each other effect was not fitted.
 #[test]
 fn rate_dependent_hysteresis_is_named_across_two_records() {
-    let record = |f: u32| {
-        simulate(
-            &format!("lag{f}.csv"),
-            "xy-stage",
-            &format!(
-                "rising-sine:amp=60,offset=0,freq={f},phase_deg=-90,raised=1,duration=0.25,rate=10000"
-            ),
-            &["dielectric-lag:tau=1e-3", &format!("noise:rms_m=2e-9,seed={f}")],
-        )
-    };
+    let record = |f: u32| lag_record("lag", f, 0.25);
     let data = format!("{},{}", record(40).display(), record(100).display());
-    let report = temp("lag.json");
-    cli(&[
-        "close-loop",
-        "--data",
-        &data,
-        "--free-offset",
-        "--u",
-        "ux_V",
-        "--y",
-        "x_m",
-        "--report",
-        report.to_str().unwrap(),
-        "--out",
-        temp("lag.toml").to_str().unwrap(),
-    ])
-    .unwrap();
-    let r = json(&report);
+    let (r, stage) = close_loop_records("lag", &data);
     let words = r["words"].to_string();
-    let added: Vec<&str> = r["effects_added"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|e| e.as_str().unwrap())
-        .collect();
+    let added = added(&r);
     assert_eq!(
-        added.first().copied(),
+        added.first().map(String::as_str),
         Some("rate-dependent hysteresis"),
         "{words}"
     );
@@ -542,8 +580,12 @@ fn rate_dependent_hysteresis_is_named_across_two_records() {
     assert_eq!(r["steps"][0]["form"], "input lag", "{words}");
     // Then the stage's first mode (≈ 3.4 kHz): at 100 Hz its response is a few nm, at 40 Hz below
     // the noise, so the two records' held-out gains differ and the two-record rule judges it.
-    assert_eq!(added.get(1).copied(), Some("dynamics"), "{words}");
-    let (file, _) = piezo_stage::StageFile::load(&temp("lag.toml")).unwrap();
+    assert_eq!(
+        added.get(1).map(String::as_str),
+        Some("dynamics"),
+        "{words}"
+    );
+    let (file, _) = piezo_stage::StageFile::load(&stage).unwrap();
     let mode_hz = file.x.effects.mode_frequency_hz;
     assert!(
         (3000.0..3800.0).contains(&mode_hz),
@@ -551,24 +593,7 @@ fn rate_dependent_hysteresis_is_named_across_two_records() {
     );
     // The stage file predicts the rate it did not see (20 Hz) from rest, its offset re-estimated,
     // within 1.3x its fit: the rate dependence is the plant's, not a fit of two records.
-    let unseen = record(20);
-    let predicted = temp("lag-predict.json");
-    cli(&[
-        "predict",
-        "--params",
-        temp("lag.toml").to_str().unwrap(),
-        "--data",
-        unseen.to_str().unwrap(),
-        "--u",
-        "ux_V",
-        "--y",
-        "x_m",
-        "--free-offset",
-        "--report",
-        predicted.to_str().unwrap(),
-    ])
-    .unwrap();
-    let rms_unseen = json(&predicted)["rms_zeroed_m"][0].as_f64().unwrap();
+    let rms_unseen = predicted_rms(&stage, &record(20));
     assert!(
         rms_unseen <= 1.3 * after && rms_unseen <= 0.02 * before,
         "20 Hz predicted at {rms_unseen:.4e} m, fit {after:.4e} m, base {before:.4e} m"
@@ -599,61 +624,17 @@ fn rate_dependent_hysteresis_is_named_across_two_records() {
 /// did not see is then predicted within 2.5× the fit (5.2× without the mode).
 #[test]
 fn a_residual_at_the_noise_rms_that_is_not_white_is_still_explained() {
-    let record = |f: u32| {
-        simulate(
-            &format!("white{f}.csv"),
-            "xy-stage",
-            &format!(
-                "rising-sine:amp=60,offset=0,freq={f},phase_deg=-90,raised=1,duration=0.5,rate=10000"
-            ),
-            &["dielectric-lag:tau=1e-3", &format!("noise:rms_m=2e-9,seed={f}")],
-        )
-    };
+    let record = |f: u32| lag_record("white", f, 0.5);
     let data = format!("{},{}", record(20).display(), record(40).display());
-    let report = temp("white.json");
-    let stage = temp("white.toml");
-    cli(&[
-        "close-loop",
-        "--data",
-        &data,
-        "--free-offset",
-        "--u",
-        "ux_V",
-        "--y",
-        "x_m",
-        "--report",
-        report.to_str().unwrap(),
-        "--out",
-        stage.to_str().unwrap(),
-    ])
-    .unwrap();
-    let r = json(&report);
+    let (r, stage) = close_loop_records("white", &data);
     let words = r["words"].to_string();
-    let added: Vec<&str> = r["effects_added"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|e| e.as_str().unwrap())
-        .collect();
-    assert_eq!(added, ["rate-dependent hysteresis", "dynamics"], "{words}");
+    assert_eq!(
+        added(&r),
+        ["rate-dependent hysteresis", "dynamics"],
+        "{words}"
+    );
     let fit = r["after"]["rms"].as_f64().unwrap();
-    let predicted = temp("white-predict.json");
-    cli(&[
-        "predict",
-        "--params",
-        stage.to_str().unwrap(),
-        "--data",
-        record(100).to_str().unwrap(),
-        "--u",
-        "ux_V",
-        "--y",
-        "x_m",
-        "--free-offset",
-        "--report",
-        predicted.to_str().unwrap(),
-    ])
-    .unwrap();
-    let unseen = json(&predicted)["rms_zeroed_m"][0].as_f64().unwrap();
+    let unseen = predicted_rms(&stage, &record(100));
     assert!(
         unseen <= 2.5 * fit,
         "100 Hz predicted at {unseen:.4e} m, fit {fit:.4e} m\n{words}"

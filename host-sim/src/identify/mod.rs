@@ -123,38 +123,41 @@ pub fn scale_warnings(
     y_name: &str,
     y_m: &[f64],
 ) -> Vec<String> {
-    let mut out = Vec::new();
-    let span = |v: &[f64]| {
-        let (lo, hi) = min_max(v);
-        hi - lo
-    };
-    let (y_span, (lo, hi)) = (span(y_m), PLAUSIBLE_STROKE_M);
-    if y_span.is_finite()
-        && y_span > 0.0
-        && !(lo..=hi).contains(&y_span)
-        && unit_of(y_name).is_some_and(|(_, q)| q == Quantity::Length)
-    {
-        out.push(format!(
-            "{}: column `{y_name}` spans {:.3e} m as read with its unit suffix: outside {lo:.0e}–{hi:.0e} m, \
-             implausible for a piezo stage's stroke; are its values in the unit its name says?",
-            path.display(),
-            y_span
-        ));
-    }
-    let (u_span, (lo, hi)) = (span(u), PLAUSIBLE_INPUT_SPAN_V);
-    if u_span.is_finite()
-        && u_span > 0.0
-        && !(lo..=hi).contains(&u_span)
-        && unit_of(u_name).is_some_and(|(_, q)| q == Quantity::Voltage)
-    {
-        out.push(format!(
-            "{}: column `{u_name}` spans {:.3e} V as read with its unit suffix: outside {lo:.0e}–{hi:.0e} V, \
-             implausible for a piezo drive; are its values in the unit its name says?",
-            path.display(),
-            u_span
-        ));
-    }
-    out
+    // (column, values, quantity checked, plausible span, SI unit, what it would be implausible for)
+    let checks = [
+        (
+            y_name,
+            y_m,
+            Quantity::Length,
+            PLAUSIBLE_STROKE_M,
+            "m",
+            "a piezo stage's stroke",
+        ),
+        (
+            u_name,
+            u,
+            Quantity::Voltage,
+            PLAUSIBLE_INPUT_SPAN_V,
+            "V",
+            "a piezo drive",
+        ),
+    ];
+    checks
+        .into_iter()
+        .filter_map(|(name, values, quantity, (lo, hi), unit, what)| {
+            let (min, max) = min_max(values);
+            let span = max - min;
+            let checked = unit_of(name).is_some_and(|(_, q)| q == quantity);
+            (checked && span.is_finite() && span > 0.0 && !(lo..=hi).contains(&span)).then(|| {
+                format!(
+                    "{}: column `{name}` spans {span:.3e} {unit} as read with its unit suffix: \
+                     outside {lo:.0e}–{hi:.0e} {unit}, implausible for {what}; are its values in \
+                     the unit its name says?",
+                    path.display()
+                )
+            })
+        })
+        .collect()
 }
 
 /// Output spans a piezo stage's record plausibly has \[m\]: the stroke the stage file's
