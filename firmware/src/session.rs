@@ -303,7 +303,7 @@ fn learned_refusal(what: &str, e: LearnedError) -> Response {
             RefusalKind::Learned,
             axis(a),
             format_args!(
-                "{what}: learned entry {entry}, {}: not a finite voltage",
+                "{what}: learned table entry {entry}, {}: not a finite voltage",
                 name(a)
             ),
         ),
@@ -316,7 +316,7 @@ fn learned_refusal(what: &str, e: LearnedError) -> Response {
             RefusalKind::Learned,
             axis(a),
             format_args!(
-                "{what}: learned entry {entry}, {}: {value_v} V outside the window [{}, {}] V",
+                "{what}: learned table entry {entry}, {}: {value_v} V outside the window [{}, {}] V",
                 name(a),
                 window_v[0],
                 window_v[1]
@@ -332,12 +332,20 @@ fn learned_refusal(what: &str, e: LearnedError) -> Response {
             RefusalKind::Learned,
             axis(a),
             format_args!(
-                "{what}: learned entry {entry}{}, {}: step {step_v} V over the slew limit's {limit_v} V at {ticks_per_entry} ticks per entry",
+                "{what}: learned table entry {entry}{}, {}: step {step_v} V over the slew limit's {limit_v} V at {ticks_per_entry} ticks per entry",
                 if entry == 0 { " (wrap)" } else { "" },
                 name(a)
             ),
         ),
     }
+}
+
+/// `mode NAME`, as refusals name a control mode.
+fn mode_name(control: Control) -> String<24> {
+    let mut name = String::new();
+    let _ = name.push_str("mode ");
+    let _ = name.push_str(control.name());
+    name
 }
 
 /// The refusal of a control mode.
@@ -362,7 +370,7 @@ fn control_refusal(control: Control, e: ControlError) -> Response {
                 control.name()
             ),
         ),
-        ControlError::Learned(e) => learned_refusal(control.name(), e),
+        ControlError::Learned(e) => learned_refusal(mode_name(control).as_str(), e),
     }
 }
 
@@ -678,7 +686,7 @@ impl Session {
             .reference
             .check_learned(ticks_per_entry, repeat, &limits)
         {
-            return learned_refusal(control.name(), e);
+            return learned_refusal(mode_name(control).as_str(), e);
         }
         self.start(program, Feedforward::Learned)
     }
@@ -769,7 +777,7 @@ impl Session {
                 .reference
                 .check_learned(ticks_per_entry, repeat, &limits)
             {
-                return learned_refusal("with this set's limits", e);
+                return learned_refusal("this set's limits", e);
             }
         }
         let settings = LoopSettings {

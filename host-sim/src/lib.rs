@@ -28,6 +28,7 @@ pub mod identify;
 pub mod learn;
 pub mod learn_bench;
 pub mod link;
+pub mod link_learn;
 pub mod plot;
 pub mod reproduce;
 pub mod servo_bench;

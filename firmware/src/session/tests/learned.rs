@@ -157,17 +157,17 @@ fn a_table_that_fails_its_check_is_refused_and_never_played() {
         (
             bad(123, 1, f32::NAN),
             Some(1),
-            "learned entry 123, y: not a finite",
+            "learned table entry 123, y: not a finite",
         ),
         (
             bad(7, 0, 120.5),
             Some(0),
-            "learned entry 7, x: 120.5 V outside the window [0, 120] V",
+            "learned table entry 7, x: 120.5 V outside the window [0, 120] V",
         ),
         (
             bad(300, 1, -0.25),
             Some(1),
-            "learned entry 300, y: -0.25 V outside",
+            "learned table entry 300, y: -0.25 V outside",
         ),
         // A 30 V spike: the step into entry 200 is over the 9.999998 V of one tick.
         (
@@ -177,13 +177,13 @@ fn a_table_that_fails_its_check_is_refused_and_never_played() {
                 t
             },
             Some(0),
-            "learned entry 200, x: step",
+            "learned table entry 200, x: step",
         ),
         // The wrap of a repeating table: the last entry 40 V from the first.
         (
             wrap_broken(&table),
             Some(1),
-            "learned entry 0 (wrap), y: step",
+            "learned table entry 0 (wrap), y: step",
         ),
     ];
     for (t, axis, expected) in cases {
@@ -219,7 +219,7 @@ fn a_table_that_fails_its_check_is_refused_and_never_played() {
     // In the learned mode, Track takes a checked table program only.
     let r = refusal(host.ask(&mut s, Request::Track(PROGRAM)));
     assert!(
-        r.reason.contains("learned entry 0 (wrap), y"),
+        r.reason.contains("learned table entry 0 (wrap), y"),
         "{}",
         r.reason
     );
@@ -280,7 +280,7 @@ fn a_playing_table_is_not_changed_under_the_loop() {
     let r = refusal(host.ask(&mut s, Request::Upload(narrow.clone())));
     assert!(
         r.reason
-            .starts_with("with this set's limits: learned entry"),
+            .starts_with("this set's limits: learned table entry"),
         "{}",
         r.reason
     );
