@@ -957,9 +957,8 @@ impl TwoAxisLoop {
                     Feedforward::Linear => {
                         axis.min_v + (reference[i] - axis.rest_output_m) / axis.linear_gain_m_per_v
                     }
-                    Feedforward::OpenLoop => reference[i],
-                    // Only in the learned copy of the body (above); NaN: the guard holds.
-                    Feedforward::Learned => learned_v[i],
+                    // Learned only reaches the learned copy of the body (above).
+                    Feedforward::OpenLoop | Feedforward::Learned => reference[i],
                 };
                 let feedforward = requested;
                 let requested = match axis.servo.as_ref() {
