@@ -352,7 +352,8 @@ impl ReferenceGenerator {
             for (axis, l) in limits.iter().enumerate() {
                 let step = (f64::from(now[axis]) - f64::from(before[axis])).abs();
                 let limit = f64::from(m) * f64::from(l.max_step_v);
-                if !(step <= limit) {
+                // Finite: every entry was checked above.
+                if step > limit {
                     return Err(LearnedError::Slew {
                         entry,
                         axis,

@@ -379,15 +379,25 @@ fn measured_columns(table: &Table, y: Option<&str>, axes: usize) -> Result<Vec<S
     Ok(names)
 }
 
+/// A command file as [`read_learned_table`] reads it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LearnedTable {
+    /// Its iteration (0 for `compensate`'s output).
+    pub iteration: u32,
+    /// Its time column \[s\].
+    pub t_s: Vec<f64>,
+    /// Per axis the voltages \[V\].
+    pub voltages_v: Vec<Vec<f32>>,
+}
+
 /// A command for `axes` axes read from `path` (`compensate`'s output, iteration 0, or a table
 /// `learn` or `link learn` wrote), refused when its length is not the reference's or it was
-/// learned for another stage file or reference (both named): its iteration, its time column and
-/// its voltages per axis.
+/// learned for another stage file or reference (both named).
 pub fn read_learned_table(
     path: &Path,
     c: &TableContext<'_>,
     axes: usize,
-) -> Result<(u32, Vec<f64>, Vec<Vec<f32>>), String> {
+) -> Result<LearnedTable, String> {
     let command = read_command(path)?;
     let n = c.reference.t_s.len();
     let t_u = command.table.column("t_s").map_err(|e| e.to_string())?;
@@ -400,8 +410,12 @@ pub fn read_learned_table(
         ));
     }
     check_table_belongs(&command, path, c)?;
-    let u = command_columns(&command, path, axes)?;
-    Ok((command.iteration, t_u.to_vec(), u))
+    let voltages_v = command_columns(&command, path, axes)?;
+    Ok(LearnedTable {
+        iteration: command.iteration,
+        t_s: t_u.to_vec(),
+        voltages_v,
+    })
 }
 
 /// u_0, the compensator's command for the reference at `reference`: [`compensate`]'s from rest
@@ -491,7 +505,11 @@ pub fn learn(a: &LearnArgs) -> Result<LearnStep, String> {
         reference_path: &a.reference,
         reference: &reference,
     };
-    let (iteration, t_u, u) = read_learned_table(&a.command, &context, axes.len())?;
+    let LearnedTable {
+        iteration,
+        t_s: t_u,
+        voltages_v: u,
+    } = read_learned_table(&a.command, &context, axes.len())?;
     let measured = read_csv(&a.measured).map_err(|e| e.to_string())?;
     let t_y = measured.column("t_s").map_err(|e| e.to_string())?;
     if t_y.len() != n {

@@ -204,6 +204,16 @@ fn play(client: &mut Client, table: &[Vec<f32>], control: Control) -> Result<(),
     }
 }
 
+/// A trial's record, averaged over its passes.
+struct TrialRecord {
+    /// Per axis the voltages applied \[V\].
+    command_v: Vec<Vec<f32>>,
+    /// Per axis the readings that answer them \[m\].
+    measured_m: Vec<Vec<f32>>,
+    /// Per axis the RMS of r − y over the passes unaveraged \[m\].
+    rms_raw_m: Vec<f64>,
+}
+
 /// A trial: after `settle` whole passes, `periods` whole passes recorded and averaged per
 /// entry. Per axis the applied voltages and the readings that answer them, and every
 /// reading's error against the reference (unaveraged).
@@ -212,7 +222,7 @@ fn record(
     reference: &Reference,
     settle: u32,
     periods: u32,
-) -> Result<(Vec<Vec<f32>>, Vec<Vec<f32>>, Vec<f64>), String> {
+) -> Result<TrialRecord, String> {
     let n = reference.t_s.len();
     let first = match client.expect(Request::Frames { decimation: 1 })? {
         Response::Streaming { next_frame, .. } => next_frame,
@@ -279,7 +289,11 @@ fn record(
             .collect()
     };
     let raw = sq.map(|s| (s / (m * n as f64)).sqrt()).to_vec();
-    Ok((average(u), average(y), raw))
+    Ok(TrialRecord {
+        command_v: average(u),
+        measured_m: average(y),
+        rms_raw_m: raw,
+    })
 }
 
 /// Runs the learning over `client` (nothing written but `DIR/reference.csv` for `--signal`);
@@ -349,8 +363,8 @@ pub fn link_learn(
                 reference_path: &reference_path,
                 reference: &reference,
             };
-            let (iteration, _, u) = read_learned_table(path, &context, 2)?;
-            (iteration, u)
+            let table = read_learned_table(path, &context, 2)?;
+            (table.iteration, table.voltages_v)
         }
         // u_0 limited as every table is: a step with no error.
         None => (
@@ -375,7 +389,7 @@ pub fn link_learn(
     let (mut stall, mut stopped_early) = (0, false);
     for k in 0..=a.iterations {
         play(client, &table, mode(a))?;
-        let (u, y, raw) = record(client, &reference, a.settle_periods, a.periods)?;
+        let trial_record = record(client, &reference, a.settle_periods, a.periods)?;
         let status = client.status()?;
         if status.mode != piezo_link::Mode::Running {
             return Err(format!(
@@ -383,11 +397,19 @@ pub fn link_learn(
                 status.mode
             ));
         }
-        let (axes_error, next) = step_axes(&learnings, &names, &reference, &u, &y, &base_v, true)?;
+        let (axes_error, next) = step_axes(
+            &learnings,
+            &names,
+            &reference,
+            &trial_record.command_v,
+            &trial_record.measured_m,
+            &base_v,
+            true,
+        )?;
         let trial = TrialError {
             iteration: first_iteration + k as u32,
             axes: axes_error,
-            rms_raw_m: raw,
+            rms_raw_m: trial_record.rms_raw_m,
         };
         let error = trial.combined_m();
         let best_error = best.as_ref().map(|(b, _)| trials[*b].combined_m());

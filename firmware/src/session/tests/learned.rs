@@ -371,11 +371,10 @@ fn an_unchecked_table_cannot_drive_an_unsafe_voltage() {
     let step = s.lp.settings().axes[0].limits().max_step_volts();
     let mut previous = [0.0f32; 2];
     for f in &host.frames {
-        for axis in 0..2 {
-            let u = f.commanded_v[axis];
+        for (&u, last) in f.commanded_v.iter().zip(&mut previous) {
             assert!((0.0..=120.0).contains(&u), "{f:?}");
-            assert!((u - previous[axis]).abs() <= step, "{f:?}");
-            previous[axis] = u;
+            assert!((u - *last).abs() <= step, "{f:?}");
+            *last = u;
         }
     }
     assert!(host.status(&mut s).counters.guard_interventions > 0);
