@@ -399,3 +399,74 @@ fn the_q_rule_margin_holds_for_the_model() {
     // The rule is not vacuous: somewhere it is close to its bound.
     assert!(worst > 0.5, "{worst}");
 }
+
+/// A periodic trial learns from the compensator's command of the period it settles to, played
+/// in a loop: from rest the command's first quarter period rides the first-loading branch, so
+/// the table would jump at the wrap (1.1 V here); the settled period closes on itself (2 mV),
+/// and a trial that measured no error gives it back unchanged.
+#[test]
+fn a_periodic_trial_starts_from_the_settled_period() {
+    let scratch = scratch("periodic");
+    let dir = scratch.path();
+    let params = Path::new(env!("CARGO_MANIFEST_DIR")).join("../firmware/params/xy-stage.toml");
+    let n = 500;
+    let t: Vec<f64> = (0..n).map(|k| k as f64 / RATE_HZ).collect();
+    let r: Vec<f64> = t
+        .iter()
+        .map(|&t| f64::from((19e-6 - 12e-6 * (std::f64::consts::TAU * 20.0 * t).cos()) as f32))
+        .collect();
+    let reference = dir.join("r.csv");
+    write_table(
+        &reference,
+        &["t_s", "rx_m", "ry_m"],
+        vec![t.clone(), r.clone(), r.clone()],
+    );
+    let from_rest = host_sim::learn::base_command(&params, &reference, false).unwrap();
+    let settled = host_sim::learn::base_command(&params, &reference, true).unwrap();
+    let wrap = |u: &[f32]| (u[0] - u[n - 1]).abs();
+    let largest_step = |u: &[f32]| {
+        u.windows(2)
+            .map(|w| (w[1] - w[0]).abs())
+            .fold(0.0, f32::max)
+    };
+    for axis in 0..2 {
+        let (rest, periodic) = (&from_rest.voltages_v[axis].1, &settled.voltages_v[axis].1);
+        println!(
+            "axis {axis}: wrap from rest {} V, settled {} V (largest step {} V)",
+            wrap(rest),
+            wrap(periodic),
+            largest_step(periodic)
+        );
+        assert!(wrap(rest) > 0.5, "{}", wrap(rest));
+        assert!(wrap(periodic) < 0.05, "{}", wrap(periodic));
+    }
+    let command = dir.join("u0.csv");
+    write_csv(&command, &settled.to_table()).unwrap();
+    let measured = dir.join("y0.csv");
+    write_table(&measured, &["t_s", "x_m", "y_m"], vec![t, r.clone(), r]);
+    let next = dir.join("u1.csv");
+    cli(&[
+        "learn",
+        "--params",
+        p(&params),
+        "--reference",
+        p(&reference),
+        "--command",
+        p(&command),
+        "--measured",
+        p(&measured),
+        "--out",
+        p(&next),
+        "--report",
+        p(&dir.join("step.json")),
+        "--periodic",
+    ])
+    .unwrap();
+    let table = read_csv(&next).unwrap();
+    for (axis, name) in ["ux_V", "uy_V"].iter().enumerate() {
+        let got = table.column(name).unwrap();
+        for (j, (&g, &u)) in got.iter().zip(&settled.voltages_v[axis].1).enumerate() {
+            assert!((g - f64::from(u)).abs() < 1e-3, "{name}[{j}]: {g} vs {u}");
+        }
+    }
+}
