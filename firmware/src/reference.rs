@@ -12,7 +12,18 @@
 //!   the queue runs dry the last setpoint is held and the underrun is counted;
 //! - a wave table of up to [`TABLE_CAPACITY`] `[x, y]` entries (16 KiB), filled by the host
 //!   link: entry j at tick j·m, linear in between, then held at the last entry or started again;
-//!   at m = 10 and 10 kHz it holds 2 s.
+//!   at m = 10 and 10 kHz it holds 2 s. The completed passes over a repeating table are counted
+//!   ([`ReferenceGenerator::pass`]: the trial a tick belongs to);
+//! - with the wave table, a *learned voltage table* of as many `[u_x, u_y]` stack voltages
+//!   ([`ReferenceGenerator::learned_append`], another 16 KiB): entry j is the command for wave
+//!   table entry j, played at the same ticks with the same interpolation,
+//!   `u(t) = u[j] + (t − j·m)/m·(u[j+1] − u[j])` for `j·m ≤ t < (j+1)·m` (u[j+1] = u[0] after
+//!   the last entry of a repeating table) ([`ReferenceGenerator::next_learned`]). It is checked
+//!   before it is played ([`ReferenceGenerator::check_learned`]): its length is the wave table's,
+//!   every entry finite and inside each axis's window, and every step between consecutive
+//!   entries, `|u[j+1] − u[j]|`, at most `m·M` (M the output guard's step bound per tick, m the
+//!   ticks per entry), including the wrap `|u[0] − u[n−1]|` of a repeating table; the first
+//!   entry that fails is named.
 //!
 //! [`ReferenceGenerator::next_setpoint`] never panics and does not allocate. A non-finite setpoint is
 //! passed on: the compensator holds its voltage for it and the safety guard counts it.
@@ -200,6 +211,64 @@ pub struct ReferenceGenerator {
     table: heapless::Vec<[f32; 2], TABLE_CAPACITY>,
     /// Table: ticks since the program started (wrapped or held at the end).
     table_tick: u32,
+    /// Table: passes completed before the entry of the last setpoint (wraps).
+    pass: u32,
+    /// Table: passes completed before the entry of the next setpoint (wraps).
+    passes: u32,
+    /// The learned voltage table \[V\], entry j for wave table entry j.
+    learned: heapless::Vec<[f32; 2], TABLE_CAPACITY>,
+}
+
+/// Why the learned voltage table cannot be played (the first entry that fails).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum LearnedError {
+    /// Its length is not the wave table's (or both are empty).
+    Length {
+        /// Learned entries held.
+        learned: usize,
+        /// Wave table entries held.
+        wave: usize,
+    },
+    /// An entry is NaN or infinite.
+    NotFinite {
+        /// Entry index.
+        entry: usize,
+        /// 0 for x, 1 for y.
+        axis: usize,
+    },
+    /// An entry is outside the axis's output window.
+    Window {
+        /// Entry index.
+        entry: usize,
+        /// 0 for x, 1 for y.
+        axis: usize,
+        /// The entry \[V\].
+        value_v: f32,
+        /// The window \[V\].
+        window_v: [f32; 2],
+    },
+    /// The step into an entry exceeds the slew limit at the entry spacing.
+    Slew {
+        /// Entry index the step leads to (0: the wrap from the last entry).
+        entry: usize,
+        /// 0 for x, 1 for y.
+        axis: usize,
+        /// |u[entry] − u[entry − 1]| \[V\].
+        step_v: f32,
+        /// The bound m·M \[V\].
+        limit_v: f32,
+        /// Ticks per entry m.
+        ticks_per_entry: u32,
+    },
+}
+
+/// One axis's limits as [`ReferenceGenerator::check_learned`] reads them.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LearnedLimits {
+    /// Output window \[V\].
+    pub window_v: [f32; 2],
+    /// The largest step per tick the output guard lets through, M \[V\].
+    pub max_step_v: f32,
 }
 
 impl ReferenceGenerator {
@@ -216,7 +285,92 @@ impl ReferenceGenerator {
             underruns: 0,
             table: heapless::Vec::new(),
             table_tick: 0,
+            pass: 0,
+            passes: 0,
+            learned: heapless::Vec::new(),
         }
+    }
+
+    /// Empties the learned voltage table.
+    pub fn learned_clear(&mut self) {
+        self.learned.clear();
+    }
+
+    /// Appends `[u_x, u_y]` entries \[V\] to the learned voltage table; if they do not all fit,
+    /// nothing is appended and `Err` gives the room left.
+    pub fn learned_append(&mut self, entries: &[[f32; 2]]) -> Result<(), TableFull> {
+        self.learned
+            .extend_from_slice(entries)
+            .map_err(|()| TableFull {
+                room: TABLE_CAPACITY - self.learned.len(),
+            })
+    }
+
+    /// Learned voltage table entries held.
+    pub fn learned_len(&self) -> usize {
+        self.learned.len()
+    }
+
+    /// Checks the learned voltage table for playing with the wave table at `ticks_per_entry`
+    /// (0 is taken as 1; see the module docs): the same length as the wave table, each entry
+    /// finite and inside `limits[axis].window_v`, each step at most `m · max_step_v` (compared
+    /// in f64, exact for f32 operands), the wrap too when `repeat`. Names the first entry that
+    /// fails, entries in order, x before y.
+    pub fn check_learned(
+        &self,
+        ticks_per_entry: u32,
+        repeat: bool,
+        limits: &[LearnedLimits; 2],
+    ) -> Result<(), LearnedError> {
+        let n = self.learned.len();
+        if n == 0 || n != self.table.len() {
+            return Err(LearnedError::Length {
+                learned: n,
+                wave: self.table.len(),
+            });
+        }
+        let m = ticks_per_entry.max(1);
+        for (entry, u) in self.learned.iter().enumerate() {
+            for (axis, (&v, l)) in u.iter().zip(limits).enumerate() {
+                if !v.is_finite() {
+                    return Err(LearnedError::NotFinite { entry, axis });
+                }
+                if !(v >= l.window_v[0] && v <= l.window_v[1]) {
+                    return Err(LearnedError::Window {
+                        entry,
+                        axis,
+                        value_v: v,
+                        window_v: l.window_v,
+                    });
+                }
+            }
+        }
+        let steps = (1..n).chain(repeat.then_some(0));
+        for entry in steps {
+            let before = self.learned[(entry + n - 1) % n];
+            let now = self.learned[entry];
+            for (axis, l) in limits.iter().enumerate() {
+                let step = (f64::from(now[axis]) - f64::from(before[axis])).abs();
+                let limit = f64::from(m) * f64::from(l.max_step_v);
+                // Finite: every entry was checked above.
+                if step > limit {
+                    return Err(LearnedError::Slew {
+                        entry,
+                        axis,
+                        step_v: step as f32,
+                        limit_v: limit as f32,
+                        ticks_per_entry: m,
+                    });
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Passes completed over a repeating wave table before the entry of the last setpoint
+    /// (0 since [`ReferenceGenerator::set_program`]; 0 for the other programs; wraps).
+    pub fn pass(&self) -> u32 {
+        self.pass
     }
 
     /// Empties the wave table.
@@ -240,18 +394,9 @@ impl ReferenceGenerator {
     }
 
     /// The table's value `tick` ticks after its start.
+    #[inline(always)]
     fn table_at(&self, tick: u32, ticks_per_entry: u32) -> [f32; 2] {
-        let m = ticks_per_entry.max(1);
-        let (j, within) = ((tick / m) as usize, tick % m);
-        let Some(&a) = self.table.get(j) else {
-            return self.table.last().copied().unwrap_or(self.last_streamed);
-        };
-        let b = match self.table.get(j + 1) {
-            Some(&b) => b,
-            None => self.table.first().copied().unwrap_or(a),
-        };
-        let f = within as f32 / m as f32;
-        [a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1])]
+        interpolate(&self.table, tick, ticks_per_entry).unwrap_or(self.last_streamed)
     }
 
     /// The program.
@@ -265,6 +410,8 @@ impl ReferenceGenerator {
         self.phase = [0.0; 2];
         self.line = 0;
         self.table_tick = 0;
+        self.pass = 0;
+        self.passes = 0;
     }
 
     /// Queues one streamed setpoint; gives it back if the queue is full.
@@ -321,18 +468,7 @@ impl ReferenceGenerator {
                 repeat,
             } => {
                 let out = self.table_at(self.table_tick, ticks_per_entry);
-                let m = ticks_per_entry.max(1);
-                let length = u32::try_from(self.table.len()).unwrap_or(u32::MAX);
-                let next = self.table_tick.saturating_add(1);
-                self.table_tick = if repeat {
-                    if next >= length.saturating_mul(m) {
-                        0
-                    } else {
-                        next
-                    }
-                } else {
-                    next.min(length.saturating_sub(1).saturating_mul(m))
-                };
+                self.advance_table(ticks_per_entry, repeat);
                 out
             }
             Program::Streamed => {
@@ -344,6 +480,66 @@ impl ReferenceGenerator {
             }
         }
     }
+}
+
+impl ReferenceGenerator {
+    /// One tick on: the wave table's position, and the pass when a repeating table starts
+    /// again.
+    #[inline(always)]
+    fn advance_table(&mut self, ticks_per_entry: u32, repeat: bool) {
+        let m = ticks_per_entry.max(1);
+        let length = u32::try_from(self.table.len()).unwrap_or(u32::MAX);
+        let next = self.table_tick.saturating_add(1);
+        self.pass = self.passes;
+        self.table_tick = if repeat {
+            if next >= length.saturating_mul(m) {
+                self.passes = self.passes.wrapping_add(1);
+                0
+            } else {
+                next
+            }
+        } else {
+            next.min(length.saturating_sub(1).saturating_mul(m))
+        };
+    }
+
+    /// The setpoint of this tick and the learned voltage table's command for it \[V\], then
+    /// advances one tick. With a table program both come from the same position (module docs);
+    /// with any other program, or an empty learned table, the command is NaN (the output guard
+    /// holds the voltage for it). Never panics.
+    pub fn next_learned(&mut self) -> ([f32; 2], [f32; 2]) {
+        match self.program {
+            Program::Table {
+                ticks_per_entry,
+                repeat,
+            } => {
+                let tick = self.table_tick;
+                let out = self.table_at(tick, ticks_per_entry);
+                let u = interpolate(&self.learned, tick, ticks_per_entry).unwrap_or([f32::NAN; 2]);
+                self.advance_table(ticks_per_entry, repeat);
+                (out, u)
+            }
+            _ => (self.next_setpoint(), [f32::NAN; 2]),
+        }
+    }
+}
+
+/// `table`'s value `tick` ticks after its start at `ticks_per_entry` (0 taken as 1): entry j at
+/// tick j·m, linear towards the next (the first after the last), the last entry beyond the end;
+/// `None` for an empty table.
+#[inline(always)]
+fn interpolate(table: &[[f32; 2]], tick: u32, ticks_per_entry: u32) -> Option<[f32; 2]> {
+    let m = ticks_per_entry.max(1);
+    let (j, within) = ((tick / m) as usize, tick % m);
+    let Some(&a) = table.get(j) else {
+        return table.last().copied();
+    };
+    let b = match table.get(j + 1) {
+        Some(&b) => b,
+        None => table.first().copied().unwrap_or(a),
+    };
+    let f = within as f32 / m as f32;
+    Some([a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1])])
 }
 
 /// Phase into `[0, 1)`; non-finite phases restart at 0.
@@ -517,6 +713,183 @@ mod tests {
         assert!(g.table_append(&[[0.0; 2]; TABLE_CAPACITY]).is_ok());
         assert!(g.table_append(&[[0.0; 2]]).is_err());
         assert_eq!(g.table_len(), TABLE_CAPACITY);
+    }
+
+    /// The learned table at the wave table's position: the same entry, the same interpolation,
+    /// the wrap to the first entry of a repeating table; the passes are counted at the entry
+    /// played, and start again with the program.
+    #[test]
+    fn the_learned_table_plays_at_the_wave_tables_position() {
+        let mut g = ReferenceGenerator::new(
+            Program::Table {
+                ticks_per_entry: 2,
+                repeat: true,
+            },
+            T,
+            [0.0; 2],
+        );
+        g.table_append(&[[0.0, 10.0], [2.0, 20.0], [4.0, 30.0]])
+            .unwrap();
+        g.learned_append(&[[10.0, 1.0], [30.0, 2.0], [20.0, 3.0]])
+            .unwrap();
+        assert_eq!(g.learned_len(), 3);
+        let mut played = std::vec::Vec::new();
+        for _ in 0..14 {
+            let (r, u) = g.next_learned();
+            played.push((r[0], u[0], u[1], g.pass()));
+        }
+        let expected = [
+            (0.0, 10.0, 1.0, 0),
+            (1.0, 20.0, 1.5, 0),
+            (2.0, 30.0, 2.0, 0),
+            (3.0, 25.0, 2.5, 0),
+            (4.0, 20.0, 3.0, 0),
+            (2.0, 15.0, 2.0, 0),
+            (0.0, 10.0, 1.0, 1),
+            (1.0, 20.0, 1.5, 1),
+            (2.0, 30.0, 2.0, 1),
+            (3.0, 25.0, 2.5, 1),
+            (4.0, 20.0, 3.0, 1),
+            (2.0, 15.0, 2.0, 1),
+            (0.0, 10.0, 1.0, 2),
+            (1.0, 20.0, 1.5, 2),
+        ];
+        assert_eq!(played, expected);
+        // The plain setpoint path counts the passes the same way.
+        g.set_program(g.program());
+        assert_eq!(g.pass(), 0);
+        let passes: std::vec::Vec<u32> = (0..13)
+            .map(|_| {
+                g.next_setpoint();
+                g.pass()
+            })
+            .collect();
+        assert_eq!(passes, [0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 1, 1, 2]);
+        // Held at the end without repeat: no pass completes.
+        g.set_program(Program::Table {
+            ticks_per_entry: 1,
+            repeat: false,
+        });
+        for _ in 0..10 {
+            g.next_learned();
+        }
+        assert_eq!((g.pass(), g.next_learned().1), (0, [20.0, 3.0]));
+        // No learned table, or another program: NaN (the guard holds).
+        g.learned_clear();
+        assert!(g.next_learned().1.iter().all(|u| u.is_nan()));
+        g.learned_append(&[[1.0; 2]; 3]).unwrap();
+        g.set_program(Program::PerAxis([Waveform::Constant { offset_m: 5.0 }; 2]));
+        let (r, u) = g.next_learned();
+        assert_eq!(r, [5.0; 2]);
+        assert!(u.iter().all(|u| u.is_nan()));
+        assert!(g.learned_append(&[[0.0; 2]; TABLE_CAPACITY - 2]).is_err());
+        assert_eq!(g.learned_len(), 3);
+    }
+
+    /// The check's limits, at their edges: a step of exactly m·M passes and the next f32 up
+    /// fails; the window's ends pass; the first failure in entry order is named.
+    #[test]
+    fn the_learned_check_holds_at_its_edges() {
+        let limits = [
+            LearnedLimits {
+                window_v: [0.0, 120.0],
+                max_step_v: 9.999998,
+            },
+            LearnedLimits {
+                window_v: [-10.0, 100.0],
+                max_step_v: 5.0,
+            },
+        ];
+        let mut g = ReferenceGenerator::new(Program::Streamed, T, [0.0; 2]);
+        assert_eq!(
+            g.check_learned(1, true, &limits),
+            Err(LearnedError::Length {
+                learned: 0,
+                wave: 0
+            })
+        );
+        g.table_append(&[[0.0; 2]; 4]).unwrap();
+        let check = |table: &[[f32; 2]], m: u32, repeat: bool| {
+            let mut g = ReferenceGenerator::new(Program::Streamed, T, [0.0; 2]);
+            g.table_append(&[[0.0; 2]; 4]).unwrap();
+            g.learned_append(table).unwrap();
+            g.check_learned(m, repeat, &limits)
+        };
+        let m = 9.999998f32;
+        assert_eq!(
+            check(
+                &[[0.0, -10.0], [m, -5.0], [2.0 * m, 0.0], [m, -5.0]],
+                1,
+                true
+            ),
+            Ok(())
+        );
+        assert_eq!(
+            check(
+                &[[0.0, 0.0], [m.next_up(), 0.0], [0.0; 2], [0.0; 2]],
+                1,
+                false
+            ),
+            Err(LearnedError::Slew {
+                entry: 1,
+                axis: 0,
+                step_v: m.next_up(),
+                limit_v: m,
+                ticks_per_entry: 1,
+            })
+        );
+        // Three ticks per entry: 3·M.
+        assert_eq!(
+            check(
+                &[[120.0, 100.0], [95.0, 85.0], [70.0, 70.0], [89.0, 85.0]],
+                3,
+                true
+            ),
+            Err(LearnedError::Slew {
+                entry: 0,
+                axis: 0,
+                step_v: 31.0,
+                limit_v: (3.0 * f64::from(m)) as f32,
+                ticks_per_entry: 3,
+            })
+        );
+        assert_eq!(
+            check(
+                &[[120.0, 100.0], [95.0, 85.0], [70.0, 70.0], [89.0, 85.0]],
+                3,
+                false
+            ),
+            Ok(())
+        );
+        assert_eq!(
+            check(
+                &[[0.0, 100.0], [0.0, 100.0f32.next_up()], [0.0; 2], [0.0; 2]],
+                9,
+                false
+            ),
+            Err(LearnedError::Window {
+                entry: 1,
+                axis: 1,
+                value_v: 100.0f32.next_up(),
+                window_v: [-10.0, 100.0],
+            })
+        );
+        // Entry order first: the NaN of entry 2 before the window of entry 3.
+        assert_eq!(
+            check(
+                &[[0.0; 2], [0.0; 2], [0.0, f32::NAN], [-1.0, 0.0]],
+                1,
+                false
+            ),
+            Err(LearnedError::NotFinite { entry: 2, axis: 1 })
+        );
+        assert_eq!(
+            check(&[[0.0; 2]; 3], 1, false),
+            Err(LearnedError::Length {
+                learned: 3,
+                wave: 4
+            })
+        );
     }
 
     #[test]

@@ -33,6 +33,16 @@
 //! - `Control(mode)`: switches the control mode bumplessly between two ticks
 //!   ([`TwoAxisLoop::set_control_mode`]); refused with the axis when a mode with feedback finds
 //!   no servo. An upload without a servo is refused while a feedback mode runs.
+//! - `LearnedClear`, `LearnedAppend`: the learned voltage table (one `[u_x, u_y]` per wave table
+//!   entry, [`TABLE_CAPACITY`]). `Control(Learned | LearnedFeedback)` plays it with the wave
+//!   table from the tick after ([`TwoAxisLoop::set_learned_mode`]) and makes it the mode of
+//!   `Track`, which then takes table programs only. Both check the table first
+//!   ([`crate::reference::ReferenceGenerator::check_learned`]: the wave table's length, every
+//!   entry finite and inside each axis's window, every step within the slew limit at the entry
+//!   spacing, the wrap of a repeating table) and are refused with the first entry, axis and
+//!   limit that fail ([`RefusalKind::Learned`]); a refused table is never played. While the loop
+//!   plays it, requests that would change either table, and an upload whose limits the table
+//!   fails, are refused. Frames carry the pass over the wave table (`trial`).
 //! - `Rearm`, `InjectOverrun` (the next tick is told the previous one overran: a fault drill),
 //!   `Frames { decimation }`, `Status`, `Shutdown`.
 //!
@@ -53,7 +63,7 @@ use piezo_link::{
 use crate::control::TrackingStats;
 use crate::converter::DacWrite;
 use crate::params::{self, AxisParams};
-use crate::reference::{Program, Waveform, STREAM_CAPACITY, TABLE_CAPACITY};
+use crate::reference::{LearnedError, Program, Waveform, STREAM_CAPACITY, TABLE_CAPACITY};
 use crate::xy_loop::{
     Axis, AxisConfig, ConfigError, ControlError, Fault, Feedforward, LoopSettings, Mode,
     PositionSensor, TickReport, TwoAxisLoop, XyIo,
@@ -68,8 +78,10 @@ pub const SETTLE_TICKS: u32 = 1_000;
 pub struct Session {
     /// The loop (public: the image ticks it through [`Session::tick`] and reads its state).
     pub lp: TwoAxisLoop,
-    /// The control mode of `Track`.
+    /// The control mode of `Track` (the servo's part of it).
     control: ServoMode,
+    /// The control mode of `Track` plays the learned voltage table.
+    learned: bool,
     tick_cycles_max: u32,
     inject_overrun: bool,
     decoder: Decoder,
@@ -158,13 +170,14 @@ fn wire_fault(fault: Fault) -> piezo_link::Fault {
     }
 }
 
-fn frame(f: &crate::frames::SampleFrame) -> Frame {
+fn frame(f: &crate::frames::SampleFrame, trial: u32) -> Frame {
     let [x, y] = f.axes;
     Frame {
         sequence: f.sequence,
         reference_m: [x.reference_m, y.reference_m],
         commanded_v: [x.commanded_v, y.commanded_v],
         sensor_m: [x.sensor_m, y.sensor_m],
+        trial,
     }
 }
 
@@ -249,24 +262,127 @@ fn prepare_upload(set: ModelSet) -> PreparedUpload {
     PreparedUpload { set, axes }
 }
 
-/// piezo-core's mode for the wire's.
-fn servo_mode(c: Control) -> ServoMode {
+/// piezo-core's mode for the wire's, and whether it plays the learned voltage table (the
+/// servo runs as with the compensator's feed-forward).
+fn servo_mode(c: Control) -> (ServoMode, bool) {
     match c {
-        Control::OpenLoop => ServoMode::OpenLoop,
-        Control::Feedforward => ServoMode::Feedforward,
-        Control::Feedback => ServoMode::Feedback,
-        Control::FeedforwardFeedback => ServoMode::FeedforwardFeedback,
+        Control::OpenLoop => (ServoMode::OpenLoop, false),
+        Control::Feedforward => (ServoMode::Feedforward, false),
+        Control::Feedback => (ServoMode::Feedback, false),
+        Control::FeedforwardFeedback => (ServoMode::FeedforwardFeedback, false),
+        Control::Learned => (ServoMode::Feedforward, true),
+        Control::LearnedFeedback => (ServoMode::FeedforwardFeedback, true),
     }
 }
 
-/// The wire's mode for piezo-core's.
-fn wire_control(m: ServoMode) -> Control {
-    match m {
-        ServoMode::OpenLoop => Control::OpenLoop,
-        ServoMode::Feedforward => Control::Feedforward,
-        ServoMode::Feedback => Control::Feedback,
-        ServoMode::FeedforwardFeedback => Control::FeedforwardFeedback,
+/// The wire's mode for piezo-core's, with or without the learned voltage table.
+fn wire_control(m: ServoMode, learned: bool) -> Control {
+    match (m, learned) {
+        (ServoMode::OpenLoop, false) => Control::OpenLoop,
+        (ServoMode::Feedforward, false) => Control::Feedforward,
+        (ServoMode::Feedback, false) => Control::Feedback,
+        (ServoMode::FeedforwardFeedback, false) => Control::FeedforwardFeedback,
+        (ServoMode::FeedforwardFeedback | ServoMode::Feedback, true) => Control::LearnedFeedback,
+        (ServoMode::OpenLoop | ServoMode::Feedforward, true) => Control::Learned,
     }
+}
+
+/// The refusal of a learned voltage table that fails its check, `what` saying when.
+fn learned_refusal(what: &str, e: LearnedError) -> Response {
+    let name = |axis: usize| ["x", "y"][axis & 1];
+    let axis = |axis: usize| Some((axis & 1) as u8);
+    match e {
+        LearnedError::Length { learned, wave } => refused(
+            RefusalKind::Learned,
+            None,
+            format_args!(
+                "{what}: the learned table has {learned} entries, the wave table {wave}: one per wave table entry"
+            ),
+        ),
+        LearnedError::NotFinite { entry, axis: a } => refused(
+            RefusalKind::Learned,
+            axis(a),
+            format_args!(
+                "{what}: learned table entry {entry}, {}: not a finite voltage",
+                name(a)
+            ),
+        ),
+        LearnedError::Window {
+            entry,
+            axis: a,
+            value_v,
+            window_v,
+        } => refused(
+            RefusalKind::Learned,
+            axis(a),
+            format_args!(
+                "{what}: learned table entry {entry}, {}: {value_v} V outside the window [{}, {}] V",
+                name(a),
+                window_v[0],
+                window_v[1]
+            ),
+        ),
+        LearnedError::Slew {
+            entry,
+            axis: a,
+            step_v,
+            limit_v,
+            ticks_per_entry,
+        } => refused(
+            RefusalKind::Learned,
+            axis(a),
+            format_args!(
+                "{what}: learned table entry {entry}{}, {}: step {step_v} V over the slew limit's {limit_v} V at {ticks_per_entry} ticks per entry",
+                if entry == 0 { " (wrap)" } else { "" },
+                name(a)
+            ),
+        ),
+    }
+}
+
+/// `mode NAME`, as refusals name a control mode.
+fn mode_name(control: Control) -> String<24> {
+    let mut name = String::new();
+    let _ = name.push_str("mode ");
+    let _ = name.push_str(control.name());
+    name
+}
+
+/// The refusal of a control mode.
+fn control_refusal(control: Control, e: ControlError) -> Response {
+    match e {
+        ControlError::NoServo(axis) => {
+            let name = ["x", "y"][axis.index()];
+            refused(
+                RefusalKind::Program,
+                Some(axis.index() as u8),
+                format_args!(
+                    "{} needs a servo: the running set has no [{name}.servo]",
+                    control.name()
+                ),
+            )
+        }
+        ControlError::NotTable => refused(
+            RefusalKind::Learned,
+            None,
+            format_args!(
+                "{} plays the wave table: track a table program first",
+                control.name()
+            ),
+        ),
+        ControlError::Learned(e) => learned_refusal(mode_name(control).as_str(), e),
+    }
+}
+
+/// The refusal of a request that would change a table the loop plays.
+fn playing_refusal() -> Response {
+    refused(
+        RefusalKind::Learned,
+        None,
+        format_args!(
+            "the loop plays the learned table with the wave table: switch the control mode first"
+        ),
+    )
 }
 
 fn config_refusal(axis: usize, e: ConfigError) -> Response {
@@ -351,6 +467,7 @@ impl Session {
     pub fn new(lp: TwoAxisLoop, version: &str, fnv1a32: u32) -> Self {
         Self {
             control: lp.control_mode(),
+            learned: lp.feedforward() == Feedforward::Learned,
             tick_cycles_max: 0,
             lp,
             inject_overrun: false,
@@ -401,6 +518,7 @@ impl Session {
     {
         let missed = deadline_missed || core::mem::take(&mut self.inject_overrun);
         let report = self.lp.tick(io, missed);
+        let trial = self.lp.reference.pass();
         let tracking = self.lp.feedforward() != Feedforward::OpenLoop;
         if tracking && report.mode == Mode::Running {
             if self.settle_left > 0 {
@@ -419,7 +537,7 @@ impl Session {
             let mut batch = heapless::Vec::<crate::frames::SampleFrame, 4>::new();
             while self.lp.frames.drain_into(&mut batch) > 0 {
                 for f in &batch {
-                    if self.has_room_for_frame() && self.send(Uplink::Frame(frame(f))) {
+                    if self.has_room_for_frame() && self.send(Uplink::Frame(frame(f, trial))) {
                         self.counters.frames_sent = self.counters.frames_sent.saturating_add(1);
                     } else {
                         self.counters.frames_dropped =
@@ -544,6 +662,35 @@ impl Session {
         }
     }
 
+    /// `Track` in a learned control mode: a table program whose learned table passes its check,
+    /// played from its start; otherwise refused, nothing changed.
+    fn start_learned(&mut self, program: WireProgram) -> Response {
+        let control = wire_control(self.control, true);
+        let WireProgram::Table {
+            ticks_per_entry,
+            repeat,
+        } = program
+        else {
+            return refused(
+                RefusalKind::Learned,
+                None,
+                format_args!(
+                    "the control mode {} plays the wave table: track a table program",
+                    control.name()
+                ),
+            );
+        };
+        let limits = self.lp.learned_limits();
+        if let Err(e) = self
+            .lp
+            .reference
+            .check_learned(ticks_per_entry, repeat, &limits)
+        {
+            return learned_refusal(mode_name(control).as_str(), e);
+        }
+        self.start(program, Feedforward::Learned)
+    }
+
     fn queue(&mut self, setpoints: &Setpoints, table: bool) -> Response {
         let reference = &mut self.lp.reference;
         let (held, capacity) = if table {
@@ -616,6 +763,23 @@ impl Session {
             Ok(valid) => valid,
             Err((i, e)) => return config_refusal(i, e),
         };
+        if let (
+            Feedforward::Learned,
+            Program::Table {
+                ticks_per_entry,
+                repeat,
+            },
+        ) = (self.lp.feedforward(), self.lp.reference.program())
+        {
+            let limits = axes.map(|a| a.learned_limits());
+            if let Err(e) = self
+                .lp
+                .reference
+                .check_learned(ticks_per_entry, repeat, &limits)
+            {
+                return learned_refusal("this set's limits", e);
+            }
+        }
         let settings = LoopSettings {
             axes,
             ..*self.lp.settings()
@@ -632,6 +796,7 @@ impl Session {
     fn handle(&mut self, request: Request) -> Response {
         match request {
             Request::Status => Response::Status(self.status()),
+            Request::Track(program) if self.learned => self.start_learned(program),
             Request::Track(program) => {
                 let ff = match self.control {
                     ServoMode::Feedforward | ServoMode::FeedforwardFeedback => {
@@ -642,6 +807,14 @@ impl Session {
                 self.start(program, ff)
             }
             Request::Excite(program) => self.start(program, Feedforward::OpenLoop),
+            Request::TableClear
+            | Request::TableAppend(_)
+            | Request::LearnedClear
+            | Request::LearnedAppend(_)
+                if self.lp.feedforward() == Feedforward::Learned =>
+            {
+                playing_refusal()
+            }
             Request::TableClear => {
                 self.lp.reference.table_clear();
                 Response::Queued {
@@ -651,24 +824,45 @@ impl Session {
             }
             Request::TableAppend(setpoints) => self.queue(&setpoints, true),
             Request::Stream(setpoints) => self.queue(&setpoints, false),
+            Request::LearnedClear => {
+                self.lp.reference.learned_clear();
+                Response::Queued {
+                    held: 0,
+                    capacity: TABLE_CAPACITY as u32,
+                }
+            }
+            Request::LearnedAppend(entries) => {
+                let reference = &mut self.lp.reference;
+                match reference.learned_append(&entries) {
+                    Ok(()) => Response::Queued {
+                        held: reference.learned_len() as u32,
+                        capacity: TABLE_CAPACITY as u32,
+                    },
+                    Err(_) => refused(
+                        RefusalKind::Full,
+                        None,
+                        format_args!(
+                            "the learned table holds {} of {TABLE_CAPACITY} entries: {} more do not fit",
+                            reference.learned_len(),
+                            entries.len()
+                        ),
+                    ),
+                }
+            }
             Request::Control(control) => {
-                let mode = servo_mode(control);
-                match self.lp.set_control_mode(mode) {
+                let (mode, learned) = servo_mode(control);
+                let switched = if learned {
+                    self.lp.set_learned_mode(mode.feedback())
+                } else {
+                    self.lp.set_control_mode(mode)
+                };
+                match switched {
                     Ok(()) => {
                         self.control = mode;
+                        self.learned = learned;
                         Response::Done
                     }
-                    Err(ControlError::NoServo(axis)) => {
-                        let name = ["x", "y"][axis.index()];
-                        refused(
-                            RefusalKind::Program,
-                            Some(axis.index() as u8),
-                            format_args!(
-                                "{} needs a servo: the running set has no [{name}.servo]",
-                                mode.name()
-                            ),
-                        )
-                    }
+                    Err(e) => control_refusal(control, e),
                 }
             }
             Request::Rearm => {
@@ -731,6 +925,7 @@ impl Session {
             Feedforward::Compensator => piezo_link::Feedforward::Compensator,
             Feedforward::Linear => piezo_link::Feedforward::Linear,
             Feedforward::OpenLoop => piezo_link::Feedforward::OpenLoop,
+            Feedforward::Learned => piezo_link::Feedforward::Learned,
         };
         let last = self.last;
         Status {
@@ -739,7 +934,7 @@ impl Session {
             loop_rate_hz: params::LOOP_RATE_HZ,
             mode,
             feedforward,
-            control: wire_control(self.control),
+            control: wire_control(self.control, self.learned),
             tick_cycles_max: self.tick_cycles_max,
             counters,
             tracking: self.tracking.map(|s| Tracking {
@@ -761,6 +956,10 @@ impl Session {
             stream: [
                 self.lp.reference.queued() as u32,
                 (STREAM_CAPACITY - 1) as u32,
+            ],
+            learned: [
+                self.lp.reference.learned_len() as u32,
+                TABLE_CAPACITY as u32,
             ],
         }
     }

@@ -40,6 +40,16 @@
 //! the servo restarts at rest at the applied voltage. Without feedback and outside a hand-over
 //! the servo is not run: the tick is exactly the feed-forward one.
 //!
+//! # Learned table
+//! [`Feedforward::Learned`] ([`TwoAxisLoop::set_learned_mode`]) plays a learned voltage table
+//! (iterative learning control, computed on the host) with the wave table: per tick
+//! `(r, u_ff) = reference.next_learned()`, entry j of both tables at the same tick, linear in
+//! between (`crate::reference`); the compensator is not run (its model follows the applied
+//! voltage, so a switch back to it is bumpless), no inverse effect chain (the table has the
+//! effects in it). With feedback the servo adds its correction on `r₋ − x_meas` as it does to
+//! the compensator's `u_ff`. The table is checked before it is played (length, window, slew at
+//! the entry spacing, the wrap); the guard still stands after it.
+//!
 //! # Output guard
 //! [`crate::safety`]: per axis, `|u_k − u_{k−1}| ≤ slew_limit_v_per_s · T` in exact arithmetic
 //! (T the loop period; the bound is the f32 just below, [`SafetyLimits::from_slew`]) and `u_k`
@@ -96,7 +106,7 @@ use crate::converter::{AdcRead, DacWrite, Error, ErrorKind, ErrorType};
 use crate::frames::{AxisSample, FrameQueue};
 use crate::inverse_chain::InverseChain;
 use crate::params::AxisParams;
-use crate::reference::ReferenceGenerator;
+use crate::reference::{LearnedError, LearnedLimits, Program, ReferenceGenerator};
 use crate::safety::{GuardState, LimitsError, SafetyLimits};
 
 /// An axis of the stage.
@@ -217,6 +227,11 @@ pub enum Feedforward {
     Linear,
     /// Open-loop excitation: the reference is the stack voltage itself (for identification).
     OpenLoop,
+    /// The learned voltage table played with the wave table
+    /// ([`ReferenceGenerator::next_learned`]): `u_ff` is the table's voltage at the wave table's
+    /// position, the compensator is not used (its model follows the applied voltage). Switched
+    /// on with [`TwoAxisLoop::set_learned_mode`], which checks the table first.
+    Learned,
 }
 
 /// When a frozen sensor reading counts as stuck.
@@ -322,6 +337,14 @@ impl AxisConfig {
     /// The guard's limits.
     pub fn limits(&self) -> &SafetyLimits {
         &self.limits
+    }
+
+    /// The guard's window and step bound, as the learned voltage table is checked against them.
+    pub fn learned_limits(&self) -> LearnedLimits {
+        LearnedLimits {
+            window_v: [self.limits.min_volts(), self.limits.max_volts()],
+            max_step_v: self.limits.max_step_volts(),
+        }
     }
 
     /// The effect chain (the identity when the parameter file has none).
@@ -479,10 +502,14 @@ fn restart_at(servo: &mut ServoState, applied_v: f32) {
 pub const HANDOVER_TIME_CONSTANTS: f32 = 10.0;
 
 /// Why a control mode was refused.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub enum ControlError {
     /// The mode needs feedback and this axis has no servo in the parameter set.
     NoServo(Axis),
+    /// A learned mode, but the loop does not track a table program.
+    NotTable,
+    /// A learned mode, but the learned voltage table fails its check.
+    Learned(LearnedError),
 }
 
 /// What one tick did.
@@ -541,7 +568,7 @@ impl TwoAxisLoop {
                 [settings.axes[0].effects, settings.axes[1].effects],
                 [guard[0].last_safe_volts(), guard[1].last_safe_volts()],
             ),
-            Feedforward::Linear | Feedforward::OpenLoop => None,
+            Feedforward::Linear | Feedforward::OpenLoop | Feedforward::Learned => None,
         };
         let mode = if feedforward == Feedforward::Linear {
             ServoMode::OpenLoop
@@ -630,7 +657,8 @@ impl TwoAxisLoop {
     /// The control mode of [`Feedforward::Compensator`]/[`Feedforward::Linear`] with feedback on
     /// or off (feedback alone runs the linear feed-forward, which the servo ignores, so that the
     /// compensator's model only follows the applied voltage). During an excitation, the mode the
-    /// loop returns to.
+    /// loop returns to. [`Feedforward::Learned`] runs the servo as the compensator's feed-forward
+    /// does: feedforward, or feedforward + feedback with feedback on.
     pub fn control_mode(&self) -> ServoMode {
         match (self.feedforward, self.feedback) {
             (Feedforward::Linear, false) => ServoMode::OpenLoop,
@@ -667,6 +695,59 @@ impl TwoAxisLoop {
                 self.chain = self.chain_at_applied();
             }
         }
+        if self.feedback && !was_feedback {
+            self.restart_servo();
+        } else {
+            self.servo.iter_mut().for_each(|s| s.set_mode(mode));
+            if was_feedback && !self.feedback {
+                self.handover_ticks = self.handover_length();
+            }
+        }
+        Ok(())
+    }
+
+    /// Each axis's window and guard step bound, as the learned voltage table is checked against
+    /// them ([`ReferenceGenerator::check_learned`]).
+    pub fn learned_limits(&self) -> [LearnedLimits; 2] {
+        self.settings.axes.map(|a| a.learned_limits())
+    }
+
+    /// Switches to the learned voltage table ([`Feedforward::Learned`]), with the servo's
+    /// correction added when `feedback`, between two ticks, from the wave table's current
+    /// position (the same phase: entry j with reference entry j). Refused, nothing changed,
+    /// unless the loop tracks a table program ([`Program::Table`], not an excitation), the
+    /// learned table passes [`ReferenceGenerator::check_learned`] for that program and this
+    /// set's limits, and, with `feedback`, both axes have a servo. A switch from the
+    /// compensator hands over from the voltage applied: the guard slews to the table's voltage
+    /// should they differ by more than a step.
+    pub fn set_learned_mode(&mut self, feedback: bool) -> Result<(), ControlError> {
+        if feedback {
+            for axis in Axis::ALL {
+                if self.settings.axes[axis.index()].servo.is_none() {
+                    return Err(ControlError::NoServo(axis));
+                }
+            }
+        }
+        let Program::Table {
+            ticks_per_entry,
+            repeat,
+        } = self.reference.program()
+        else {
+            return Err(ControlError::NotTable);
+        };
+        if self.feedforward == Feedforward::OpenLoop {
+            return Err(ControlError::NotTable);
+        }
+        self.reference
+            .check_learned(ticks_per_entry, repeat, &self.learned_limits())
+            .map_err(ControlError::Learned)?;
+        let was_feedback = self.feedback;
+        self.feedback = feedback;
+        if self.feedforward != Feedforward::Learned {
+            self.feedforward = Feedforward::Learned;
+            self.chain = None;
+        }
+        let mode = self.control_mode();
         if self.feedback && !was_feedback {
             self.restart_servo();
         } else {
@@ -736,7 +817,7 @@ impl TwoAxisLoop {
                     self.guard[1].last_safe_volts(),
                 ],
             ),
-            Feedforward::Linear | Feedforward::OpenLoop => None,
+            Feedforward::Linear | Feedforward::OpenLoop | Feedforward::Learned => None,
         }
     }
 
@@ -763,11 +844,14 @@ impl TwoAxisLoop {
         D: DacWrite,
         S: PositionSensor,
     {
-        // Two copies of the body: without effects it is exactly the tick without the chain.
-        if self.chain.is_none() {
-            self.tick_body::<false, D, S>(io, deadline_missed)
+        // Three copies of the body: without effects it is exactly the tick without the chain,
+        // and only the learned table's copy reads it.
+        if self.chain.is_some() {
+            self.tick_body::<true, false, D, S>(io, deadline_missed)
+        } else if self.feedforward == Feedforward::Learned {
+            self.tick_body::<false, true, D, S>(io, deadline_missed)
         } else {
-            self.tick_body::<true, D, S>(io, deadline_missed)
+            self.tick_body::<false, false, D, S>(io, deadline_missed)
         }
     }
 
@@ -777,7 +861,7 @@ impl TwoAxisLoop {
     /// simulated stage), the state copies the DAC-failure path needs no longer staying in
     /// registers.
     #[inline(always)]
-    fn tick_body<const EFFECTS: bool, D, S>(
+    fn tick_body<const EFFECTS: bool, const LEARNED: bool, D, S>(
         &mut self,
         io: &mut XyIo<D, S>,
         deadline_missed: bool,
@@ -833,10 +917,16 @@ impl TwoAxisLoop {
             && (self.feedback || self.handover_ticks > 0);
         if self.mode == Mode::Running {
             let previous_reference = self.last_reference_m;
+            let mut learned_v = [f32::NAN; 2];
             let (reference, target) = match self.chain.as_mut() {
                 Some(chain) if EFFECTS => {
                     let reference = &mut self.reference;
                     chain.next_targets(|| reference.next_setpoint())
+                }
+                _ if LEARNED => {
+                    let (r, u) = self.reference.next_learned();
+                    learned_v = u;
+                    (r, r)
                 }
                 _ => {
                     let r = self.reference.next_setpoint();
@@ -847,6 +937,7 @@ impl TwoAxisLoop {
             for i in 0..2 {
                 let axis = &self.settings.axes[i];
                 let requested = match self.feedforward {
+                    _ if LEARNED => learned_v[i],
                     Feedforward::Compensator => {
                         let command = axis
                             .compensator
@@ -866,7 +957,8 @@ impl TwoAxisLoop {
                     Feedforward::Linear => {
                         axis.min_v + (reference[i] - axis.rest_output_m) / axis.linear_gain_m_per_v
                     }
-                    Feedforward::OpenLoop => reference[i],
+                    // Learned only reaches the learned copy of the body (above).
+                    Feedforward::OpenLoop | Feedforward::Learned => reference[i],
                 };
                 let feedforward = requested;
                 let requested = match axis.servo.as_ref() {

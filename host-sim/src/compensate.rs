@@ -246,6 +246,58 @@ pub fn compensate(params: &Path, reference: &Path) -> Result<Compensation, Strin
     Ok(result)
 }
 
+/// Warm-up of [`compensate_periodic`]: whole periods lasting at least this \[s\] (and at least
+/// [`MIN_WARMUP_PERIODS`]).
+pub const WARMUP_S: f64 = 0.1;
+/// Fewest warm-up periods of [`compensate_periodic`].
+pub const MIN_WARMUP_PERIODS: usize = 2;
+
+/// The compensator's command for a reference played in a loop: the record at `reference` is
+/// one period; the chain of [`compensate`] runs from rest over it repeated, `p` warm-up periods
+/// (the fewest whole periods lasting at least [`WARMUP_S`], at least [`MIN_WARMUP_PERIODS`]:
+/// the hysteresis leaves its first-loading branch and settles on the periodic loop), the period
+/// taken, and one more (so that the look-ahead of the period's end reads the next period, not
+/// the record's held end); the taken period, `t_s` the record's. `counts` are of the whole run.
+pub fn compensate_periodic(params: &Path, reference: &Path) -> Result<Compensation, String> {
+    let (file, valid) = StageFile::load(params).map_err(|e| e.to_string())?;
+    let record = read_reference(reference)?;
+    check_period(reference, &record, params, file.stage.loop_rate_hz)?;
+    let axes = feedforward_axes(&file, &valid, params)?;
+    let n = record.t_s.len();
+    let period_s = n as f64 / f64::from(file.stage.loop_rate_hz);
+    let warm = ((WARMUP_S / period_s).ceil() as usize).max(MIN_WARMUP_PERIODS);
+    let total = (warm + 2) * n;
+    let repeated = Reference {
+        t_s: (0..total)
+            .map(|k| {
+                record.t_s[0] + (k / n) as f64 * period_s + (record.t_s[k % n] - record.t_s[0])
+            })
+            .collect(),
+        lines: (0..total).map(|k| record.lines[k % n]).collect(),
+        axes: record
+            .axes
+            .iter()
+            .map(|(name, r)| (name.clone(), (0..total).map(|k| r[k % n]).collect()))
+            .collect(),
+    };
+    let mut result = run_chain(&axes, params, reference, &repeated)?;
+    for (name, u) in &mut result.voltages_v {
+        let taken: Vec<f32> = u[warm * n..(warm + 1) * n].to_vec();
+        if let Some(k) = taken.iter().position(|v| !v.is_finite()) {
+            return Err(format!(
+                "{name} is not a finite number at tick {k} of the period (t = {} s, line {} of \
+                 {}), played in a loop: nothing is written",
+                record.t_s[k],
+                record.lines[k],
+                reference.display()
+            ));
+        }
+        *u = taken;
+    }
+    result.t_s = record.t_s.clone();
+    Ok(result)
+}
+
 /// The chain of `axes` (from `params`) over `record` (from `reference`).
 fn run_chain(
     axes: &[FeedforwardAxis],

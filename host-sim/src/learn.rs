@@ -7,9 +7,10 @@
 //!     --out U_NEXT.csv --report STEP.json [--periodic]
 //! ```
 //!
-//! * `R.csv` as `compensate` reads it; iteration 0's command u_0 is `compensate`'s for it, and
-//!   `U.csv` is either that (as `compensate` writes it: `t_s,u_V` or `t_s,ux_V,uy_V`) or a table
-//!   this command wrote.
+//! * `R.csv` as `compensate` reads it; iteration 0's command u_0 is `compensate`'s for it (with
+//!   `--periodic`: the period it settles to with the record played in a loop,
+//!   `compensate::compensate_periodic`), and `U.csv` is either that (as `compensate` writes it:
+//!   `t_s,u_V` or `t_s,ux_V,uy_V`) or a table this command or `link learn` wrote.
 //! * `Y.csv`: a record as `identify` reads it: `t_s` and the measured output, `--y` naming the
 //!   columns (default: the first `y_*` for one axis, `x_m,y_m` for two), the same length and
 //!   sample period as `U.csv`; sample j is the output of command sample j (the stage file's delay
@@ -23,11 +24,13 @@
 //! * `STEP.json`: per axis the error of the trial just measured (`rms_m`, `max_abs_m`), the
 //!   cut-off `q_cutoff_hz`, the learning gain and the samples limited; the rule.
 
-use crate::compensate::{compensate, feedforward_axes, read_reference, Reference};
+use crate::compensate::{
+    compensate, compensate_periodic, feedforward_axes, read_reference, Compensation, Reference,
+};
 use crate::csv::{read_csv, write_csv, Table};
 use crate::identify::unit_factor;
 use crate::link::fnv1a32;
-use piezo_core::{Learning, LearningParams, Trial};
+use piezo_core::{FeedforwardAxis, Learning, LearningParams, Trial};
 use piezo_stage::StageFile;
 use std::path::{Path, PathBuf};
 
@@ -286,21 +289,34 @@ fn command_columns(file: &CommandFile, path: &Path, axes: usize) -> Result<Vec<V
         .collect()
 }
 
-/// Refuses a table learned for another stage file or reference.
+/// The files a table is checked against: the stage file and its FNV-1a 32, the reference.
+#[derive(Debug, Clone, Copy)]
+pub struct TableContext<'a> {
+    /// The stage file.
+    pub params: &'a Path,
+    /// FNV-1a 32 of its bytes.
+    pub stage_hash: u32,
+    /// The reference record's file.
+    pub reference_path: &'a Path,
+    /// The reference.
+    pub reference: &'a Reference,
+}
+
+/// Refuses a table learned for another stage file or reference, naming both.
 fn check_table_belongs(
     file: &CommandFile,
-    a: &LearnArgs,
-    stage_hash: u32,
-    reference: &Reference,
+    command: &Path,
+    c: &TableContext<'_>,
 ) -> Result<(), String> {
+    let (stage_hash, reference) = (c.stage_hash, c.reference);
     if let Some((hash, name)) = &file.stage {
         if *hash != stage_hash {
             return Err(format!(
                 "{} was learned with the stage file {name} (fnv1a32 {hash:#010x}), not with {} \
                  (fnv1a32 {stage_hash:#010x}): learn from that file's table, or start again from \
                  `host-sim compensate` with this one",
-                a.command.display(),
-                a.params.display()
+                command.display(),
+                c.params.display()
             ));
         }
     }
@@ -315,7 +331,7 @@ fn check_table_belongs(
             if file.stage.is_some() {
                 return Err(format!(
                     "{}: a learned table without its reference column `{name}`",
-                    a.command.display()
+                    command.display()
                 ));
             }
             continue;
@@ -324,8 +340,8 @@ fn check_table_belongs(
             return Err(format!(
                 "{} was learned for another reference than {}: at t_s = {} s the table's `{name}` \
                  is {} m, the reference's `{given}` {} m",
-                a.command.display(),
-                a.reference.display(),
+                command.display(),
+                c.reference_path.display(),
                 t[j],
                 stored[j],
                 r[j]
@@ -363,75 +379,100 @@ fn measured_columns(table: &Table, y: Option<&str>, axes: usize) -> Result<Vec<S
     Ok(names)
 }
 
-/// Runs one learning step (nothing written).
-pub fn learn(a: &LearnArgs) -> Result<LearnStep, String> {
-    let base = compensate(&a.params, &a.reference)?;
-    let (file, valid) = StageFile::load(&a.params).map_err(|e| e.to_string())?;
-    let stage_hash =
-        fnv1a32(&std::fs::read(&a.params).map_err(|e| format!("{}: {e}", a.params.display()))?);
-    let axes = feedforward_axes(&file, &valid, &a.params)?;
-    let reference = read_reference(&a.reference)?;
-    let command = read_command(&a.command)?;
-    let n = reference.t_s.len();
+/// A command file as [`read_learned_table`] reads it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LearnedTable {
+    /// Its iteration (0 for `compensate`'s output).
+    pub iteration: u32,
+    /// Its time column \[s\].
+    pub t_s: Vec<f64>,
+    /// Per axis the voltages \[V\].
+    pub voltages_v: Vec<Vec<f32>>,
+}
+
+/// A command for `axes` axes read from `path` (`compensate`'s output, iteration 0, or a table
+/// `learn` or `link learn` wrote), refused when its length is not the reference's or it was
+/// learned for another stage file or reference (both named).
+pub fn read_learned_table(
+    path: &Path,
+    c: &TableContext<'_>,
+    axes: usize,
+) -> Result<LearnedTable, String> {
+    let command = read_command(path)?;
+    let n = c.reference.t_s.len();
     let t_u = command.table.column("t_s").map_err(|e| e.to_string())?;
     if t_u.len() != n {
         return Err(format!(
             "{} has {} samples but the reference {} has {n}",
-            a.command.display(),
+            path.display(),
             t_u.len(),
-            a.reference.display()
+            c.reference_path.display()
         ));
     }
-    check_table_belongs(&command, a, stage_hash, &reference)?;
-    let u = command_columns(&command, &a.command, axes.len())?;
-    let measured = read_csv(&a.measured).map_err(|e| e.to_string())?;
-    let t_y = measured.column("t_s").map_err(|e| e.to_string())?;
-    if t_y.len() != n {
-        return Err(format!(
-            "{}: {} samples, but the command {} has {n}: record one trial of the table",
-            a.measured.display(),
-            t_y.len(),
-            a.command.display()
-        ));
+    check_table_belongs(&command, path, c)?;
+    let voltages_v = command_columns(&command, path, axes)?;
+    Ok(LearnedTable {
+        iteration: command.iteration,
+        t_s: t_u.to_vec(),
+        voltages_v,
+    })
+}
+
+/// u_0, the compensator's command for the reference at `reference`: [`compensate`]'s from rest
+/// for a trial from rest, [`compensate_periodic`]'s (the period it settles to, played in a loop)
+/// for a periodic one.
+pub fn base_command(
+    params: &Path,
+    reference: &Path,
+    periodic: bool,
+) -> Result<Compensation, String> {
+    if periodic {
+        compensate_periodic(params, reference)
+    } else {
+        compensate(params, reference)
     }
-    let (period_u, period_y) = (mean_period(t_u), mean_period(t_y));
-    if !((period_y - period_u).abs() <= 1e-6 * period_u.abs()) {
-        return Err(format!(
-            "{}: sample period {period_y} s differs from the command {}'s {period_u} s",
-            a.measured.display(),
-            a.command.display()
-        ));
-    }
-    let columns = measured_columns(&measured, a.y.as_deref(), axes.len())?;
-    let params = a.learning.params();
+}
+
+/// Each axis's learning, from the stage file's feed-forward (`names`: the axes' names).
+pub fn axis_learnings(
+    axes: &[FeedforwardAxis],
+    names: &[&str],
+    params: LearningParams,
+) -> Result<Vec<Learning>, String> {
+    axes.iter()
+        .zip(names)
+        .map(|(axis, name)| {
+            Learning::new(&axis.compensator, &axis.effects, params)
+                .map_err(|e| format!("learning settings of axis {name}: {e}"))
+        })
+        .collect()
+}
+
+/// One learning step per axis: the next command from the trial's `command_v` and `measured_m`
+/// (per axis, the reference's length), `base_v` the compensator's command u_0. The error of
+/// the trial and the next command per axis.
+pub fn step_axes(
+    learnings: &[Learning],
+    names: &[&'static str],
+    reference: &Reference,
+    command_v: &[Vec<f32>],
+    measured_m: &[Vec<f32>],
+    base_v: &[Vec<f32>],
+    periodic: bool,
+) -> Result<(Vec<AxisStep>, Vec<Vec<f32>>), String> {
     let mut steps = Vec::new();
     let mut next_v = Vec::new();
-    for (i, axis) in axes.iter().enumerate() {
-        let name = valid.axes[i].name;
-        let learning = Learning::new(&axis.compensator, &axis.effects, params)
-            .map_err(|e| format!("learning settings of axis {name}: {e}"))?;
-        let factor = unit_factor(&columns[i]).ok_or_else(|| {
-            format!(
-                "{}: column `{}` has no length unit (m, mm, um, nm)",
-                a.measured.display(),
-                columns[i]
-            )
-        })?;
-        let y: Vec<f32> = measured
-            .column(&columns[i])
-            .map_err(|e| format!("--y: {e}"))?
-            .iter()
-            .map(|&v| (v * factor) as f32)
-            .collect();
-        let mut next = vec![0.0f32; n];
+    for (i, learning) in learnings.iter().enumerate() {
+        let name = names[i];
+        let mut next = vec![0.0f32; reference.t_s.len()];
         let summary = learning
             .step(
                 &Trial {
                     reference_m: &reference.axes[i].1,
-                    command_v: &u[i],
-                    measured_m: &y,
-                    base_v: &base.voltages_v[i].1,
-                    periodic: a.periodic,
+                    command_v: &command_v[i],
+                    measured_m: &measured_m[i],
+                    base_v: &base_v[i],
+                    periodic,
                 },
                 &mut next,
             )
@@ -444,13 +485,84 @@ pub fn learn(a: &LearnArgs) -> Result<LearnStep, String> {
             learning_gain: learning.learning_gain(),
             limited: summary.limited,
         });
-        next_v.push((base.voltages_v[i].0.clone(), next));
+        next_v.push(next);
     }
+    Ok((steps, next_v))
+}
+
+/// Runs one learning step (nothing written).
+pub fn learn(a: &LearnArgs) -> Result<LearnStep, String> {
+    let base = base_command(&a.params, &a.reference, a.periodic)?;
+    let (file, valid) = StageFile::load(&a.params).map_err(|e| e.to_string())?;
+    let stage_hash =
+        fnv1a32(&std::fs::read(&a.params).map_err(|e| format!("{}: {e}", a.params.display()))?);
+    let axes = feedforward_axes(&file, &valid, &a.params)?;
+    let reference = read_reference(&a.reference)?;
+    let n = reference.t_s.len();
+    let context = TableContext {
+        params: &a.params,
+        stage_hash,
+        reference_path: &a.reference,
+        reference: &reference,
+    };
+    let LearnedTable {
+        iteration,
+        t_s: t_u,
+        voltages_v: u,
+    } = read_learned_table(&a.command, &context, axes.len())?;
+    let measured = read_csv(&a.measured).map_err(|e| e.to_string())?;
+    let t_y = measured.column("t_s").map_err(|e| e.to_string())?;
+    if t_y.len() != n {
+        return Err(format!(
+            "{}: {} samples, but the command {} has {n}: record one trial of the table",
+            a.measured.display(),
+            t_y.len(),
+            a.command.display()
+        ));
+    }
+    let (period_u, period_y) = (mean_period(&t_u), mean_period(t_y));
+    if !((period_y - period_u).abs() <= 1e-6 * period_u.abs()) {
+        return Err(format!(
+            "{}: sample period {period_y} s differs from the command {}'s {period_u} s",
+            a.measured.display(),
+            a.command.display()
+        ));
+    }
+    let columns = measured_columns(&measured, a.y.as_deref(), axes.len())?;
+    let params = a.learning.params();
+    let names: Vec<&'static str> = valid.axes.iter().map(|v| v.name).collect();
+    let learnings = axis_learnings(&axes, &names, params)?;
+    let mut y = Vec::new();
+    for column in &columns {
+        let factor = unit_factor(column).ok_or_else(|| {
+            format!(
+                "{}: column `{}` has no length unit (m, mm, um, nm)",
+                a.measured.display(),
+                column
+            )
+        })?;
+        y.push(
+            measured
+                .column(column)
+                .map_err(|e| format!("--y: {e}"))?
+                .iter()
+                .map(|&v| (v * factor) as f32)
+                .collect(),
+        );
+    }
+    let base_v: Vec<Vec<f32>> = base.voltages_v.iter().map(|(_, u)| u.clone()).collect();
+    let (steps, next) = step_axes(&learnings, &names, &reference, &u, &y, &base_v, a.periodic)?;
+    let next_v = base
+        .voltages_v
+        .iter()
+        .map(|(name, _)| name.clone())
+        .zip(next)
+        .collect();
     Ok(LearnStep {
         t_s: reference.t_s.clone(),
         next_v,
         reference,
-        iteration: command.iteration + 1,
+        iteration: iteration + 1,
         stage_fnv1a32: stage_hash,
         axes: steps,
         params,
@@ -458,12 +570,18 @@ pub fn learn(a: &LearnArgs) -> Result<LearnStep, String> {
     })
 }
 
+/// Writes `step`'s table to `out` with its `#` lines (the iteration, the stage file `params`'s
+/// fingerprint and name): the file `learn` reads as `--command`.
+pub fn write_learned_table(out: &Path, step: &LearnStep, params: &Path) -> Result<(), String> {
+    write_csv(out, &step.to_table()).map_err(|e| format!("{}: {e}", out.display()))?;
+    let text = std::fs::read_to_string(out).map_err(|e| format!("{}: {e}", out.display()))?;
+    std::fs::write(out, step.header(params) + &text).map_err(|e| format!("{}: {e}", out.display()))
+}
+
 /// `host-sim learn`: computes and writes the next command and the report; returns a summary.
 pub fn learn_cmd(a: &LearnArgs) -> Result<String, String> {
     let step = learn(a)?;
-    write_csv(&a.out, &step.to_table()).map_err(|e| format!("--out: {e}"))?;
-    let text = std::fs::read_to_string(&a.out).map_err(|e| format!("--out: {e}"))?;
-    std::fs::write(&a.out, step.header(&a.params) + &text).map_err(|e| format!("--out: {e}"))?;
+    write_learned_table(&a.out, &step, &a.params).map_err(|e| format!("--out {e}"))?;
     let json = serde_json::to_string_pretty(&step.json()).map_err(|e| e.to_string())?;
     if let Some(dir) = a.report.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).map_err(|e| format!("--report {}: {e}", dir.display()))?;

@@ -29,6 +29,7 @@ pub mod identify;
 pub mod learn;
 pub mod learn_bench;
 pub mod link;
+pub mod link_learn;
 pub mod optimise;
 pub mod plot;
 pub mod reproduce;

@@ -43,7 +43,7 @@ pub const MAX_RECORD_FRAMES: u64 = 1 << 26;
 
 /// The parts of a device's status a run is sized by, checked: a finite loop rate in
 /// (0, [`MAX_LOOP_RATE_HZ`]] and a table capacity in [2, [`MAX_TABLE_ENTRIES`]].
-fn run_limits(status: &Status) -> Result<(f64, u32), String> {
+pub fn run_limits(status: &Status) -> Result<(f64, u32), String> {
     let rate = f64::from(status.loop_rate_hz);
     if !(rate > 0.0 && rate <= MAX_LOOP_RATE_HZ) {
         return Err(format!(
@@ -62,7 +62,7 @@ fn run_limits(status: &Status) -> Result<(f64, u32), String> {
 
 /// Help after `host-sim link --help`.
 pub const HELP: &str = "Connect: tcp:HOST:PORT (the QEMU image: firmware/run-qemu.sh --link PORT ELF) or serial:PATH (the board's USB serial device).\n\
-Commands: status (JSON: params_fnv1a32, params_version, mode, feedforward, control, counters, tracking, ...), excite, track, upload, rearm, control, inject-overrun, shutdown.\n\
+Commands: status (JSON: params_fnv1a32, params_version, mode, feedforward, control, counters, tracking, ...), excite, track, upload, rearm, control, inject-overrun, learn, shutdown.\n\
 excite --signal SPEC (volts, compensator off) and track --signal SPEC (metres) write --record CSV (t_s, ux_V, uy_V, x_m, y_m[, rx_m, ry_m]) that identify reads with --u ux_V,uy_V --y x_m,y_m.";
 
 /// Arguments of `link`.
@@ -99,15 +99,20 @@ pub enum LinkCommand {
     /// Leaves the safe state.
     Rearm,
     /// The control mode of `track`, switched bumplessly: open-loop (the linear baseline),
-    /// feedforward (the compensator), feedback (the servo alone), feedforward+feedback. The
-    /// modes with feedback need `[x.servo]`/`[y.servo]` in the running set.
+    /// feedforward (the compensator), feedback (the servo alone), feedforward+feedback; learned
+    /// and learned+feedback play the learned voltage table with the wave table (while it tracks
+    /// a table program; `learn` loads one). The modes with feedback need
+    /// `[x.servo]`/`[y.servo]` in the running set.
     Control {
-        /// open-loop | feedforward | feedback | feedforward+feedback.
-        #[arg(value_parser = ["open-loop", "feedforward", "feedback", "feedforward+feedback"])]
+        /// open-loop | feedforward | feedback | feedforward+feedback | learned | learned+feedback.
+        #[arg(value_parser = ["open-loop", "feedforward", "feedback", "feedforward+feedback", "learned", "learned+feedback"])]
         mode: String,
     },
     /// Tells the next tick that the previous one overran (a fault drill: the safe state).
     InjectOverrun,
+    /// Iterative learning control over the link: learns a voltage table for a periodic
+    /// reference, trial by trial, and leaves the best one playing.
+    Learn(crate::link_learn::LinkLearnArgs),
     /// Ends the firmware's run (the QEMU image exits).
     Shutdown,
 }
@@ -162,6 +167,17 @@ pub struct Client {
     frames: Vec<Frame>,
     /// Frames refused (COBS, CRC, body).
     pub rejected: u32,
+    /// The TCP connection, shut down when the client is dropped (its reader thread holds a
+    /// clone, which alone would keep it open: QEMU serves one connection at a time).
+    tcp: Option<std::net::TcpStream>,
+}
+
+impl Drop for Client {
+    fn drop(&mut self) {
+        if let Some(stream) = &self.tcp {
+            let _ = stream.shutdown(std::net::Shutdown::Both);
+        }
+    }
 }
 
 /// A recorded run.
@@ -187,12 +203,14 @@ pub struct Recording {
 impl Client {
     /// Connects to `tcp:HOST:PORT` or `serial:PATH`.
     pub fn connect(spec: &str, timeout: Duration) -> Result<Self, String> {
+        let mut tcp = None;
         let (reader, writer): (Box<dyn Read + Send>, Box<dyn Write + Send>) =
             if let Some(address) = spec.strip_prefix("tcp:") {
                 let stream = std::net::TcpStream::connect(address)
                     .map_err(|e| format!("--connect {spec}: {e}"))?;
                 let _ = stream.set_nodelay(true);
                 let reader = stream.try_clone().map_err(|e| e.to_string())?;
+                tcp = Some(stream.try_clone().map_err(|e| e.to_string())?);
                 (Box::new(reader), Box::new(stream))
             } else if let Some(path) = spec.strip_prefix("serial:") {
                 raw_mode(path).map_err(|e| format!("--connect {spec}: {e}"))?;
@@ -229,6 +247,7 @@ impl Client {
             packets: SequenceChecker::default(),
             frames: Vec::new(),
             rejected: 0,
+            tcp,
         })
     }
 
@@ -325,6 +344,50 @@ impl Client {
     /// The frames received so far (and forgets them).
     pub fn take_frames(&mut self) -> Vec<Frame> {
         std::mem::take(&mut self.frames)
+    }
+
+    /// Fills the wave table (`learned` false) or the learned voltage table with `entries`,
+    /// in chunks; a refusal is an error with the firmware's reason.
+    pub fn load_table(&mut self, entries: &[[f32; 2]], learned: bool) -> Result<(), String> {
+        let clear = if learned {
+            Request::LearnedClear
+        } else {
+            Request::TableClear
+        };
+        self.expect(clear)?;
+        for chunk in entries.chunks(SETPOINT_CHUNK) {
+            let chunk = chunk.iter().copied().collect();
+            self.expect(if learned {
+                Request::LearnedAppend(chunk)
+            } else {
+                Request::TableAppend(chunk)
+            })?;
+        }
+        Ok(())
+    }
+
+    /// The frames received so far and then as they arrive, up to and including the first for
+    /// which `last` is true (each wait bounded by the timeout).
+    pub fn frames_through(
+        &mut self,
+        mut last: impl FnMut(&Frame) -> bool,
+    ) -> Result<Vec<Frame>, String> {
+        let mut out = Vec::new();
+        for f in self.take_frames() {
+            out.push(f);
+            if last(&f) {
+                return Ok(out);
+            }
+        }
+        loop {
+            let deadline = Instant::now() + self.timeout;
+            if let Uplink::Frame(f) = self.next(deadline)? {
+                out.push(f);
+                if last(&f) {
+                    return Ok(out);
+                }
+            }
+        }
     }
 
     /// Waits for frames until `count` numbered from `first` on have arrived (earlier ones are
@@ -586,11 +649,13 @@ pub fn link_cmd(a: &LinkArgs) -> Result<String, String> {
         LinkCommand::Control { mode } => {
             let control = Control::ALL
                 .into_iter()
+                .chain(Control::LEARNED)
                 .find(|c| c.name() == mode)
                 .ok_or_else(|| format!("unknown control mode {mode:?}"))?;
             json(&client.expect(Request::Control(control))?)
         }
         LinkCommand::InjectOverrun => json(&client.expect(Request::InjectOverrun)?),
+        LinkCommand::Learn(l) => crate::link_learn::link_learn_cmd(&mut client, l),
         LinkCommand::Shutdown => json(&client.expect(Request::Shutdown)?),
     }
 }
@@ -658,6 +723,7 @@ mod tests {
             next_frame: 0,
             table: [0, table],
             stream: [0, 63],
+            learned: [0, table],
         }
     }
 

@@ -122,29 +122,19 @@ fn play(plant: &XyStage, u: &Path, y: &Path, r: &[Vec<f64>; 2]) -> f64 {
     rms
 }
 
-#[test]
-fn learning_converges_on_the_reference_plant() {
-    let scratch = scratch("converges");
-    let dir = scratch.path();
-    let plant = XyStage::default();
-    let gain = plant.static_gain();
-    let stroke_m = gain.map(|g| g * 38e-6);
-    // The platform model with the stage's first modes (±10 % of what the plant has is well
-    // inside the rule's ±20 %).
-    let params = stage_file(
-        dir,
-        "stage.toml",
-        gain,
-        [(3200.0, 0.03), (2200.0, 0.03)],
-        0.0,
-    );
+/// Ten learning steps on `plant` with the stage file `params`: trial 0 plays `compensate`'s
+/// command for a 20 Hz triangle (`write_reference`), each next trial the table `host-sim learn`
+/// wrote from the last; each step's report must give the error of the trial just played. Returns
+/// the RMS error of each of the 11 trials (worse axis) \[m\].
+fn learning_trials(plant: &XyStage, dir: &Path, params: &Path) -> Vec<f64> {
+    let stroke_m = plant.static_gain().map(|g| g * 38e-6);
     let reference = dir.join("r.csv");
     let r = write_reference(&reference, stroke_m);
     let mut command = dir.join("u0.csv");
     cli(&[
         "compensate",
         "--params",
-        p(&params),
+        p(params),
         "--reference",
         p(&reference),
         "--out",
@@ -154,7 +144,7 @@ fn learning_converges_on_the_reference_plant() {
     let mut errors = Vec::new();
     for k in 0..=10 {
         let measured = dir.join(format!("y{k}.csv"));
-        errors.push(play(&plant, &command, &measured, &r));
+        errors.push(play(plant, &command, &measured, &r));
         if k == 10 {
             break;
         }
@@ -163,7 +153,7 @@ fn learning_converges_on_the_reference_plant() {
         cli(&[
             "learn",
             "--params",
-            p(&params),
+            p(params),
             "--reference",
             p(&reference),
             "--command",
@@ -191,6 +181,23 @@ fn learning_converges_on_the_reference_plant() {
         command = next;
     }
     println!("RMS error per trial [m]: {errors:?}");
+    errors
+}
+
+#[test]
+fn learning_converges_on_the_reference_plant() {
+    let scratch = scratch("converges");
+    let plant = XyStage::default();
+    // The platform model with the stage's first modes (±10 % of what the plant has is well
+    // inside the rule's ±20 %).
+    let params = stage_file(
+        scratch.path(),
+        "stage.toml",
+        plant.static_gain(),
+        [(3200.0, 0.03), (2200.0, 0.03)],
+        0.0,
+    );
+    let errors = learning_trials(&plant, scratch.path(), &params);
     assert!(
         errors[10] <= 0.2 * errors[0],
         "after 10 steps {:.3e} m, first {:.3e} m",
@@ -407,15 +414,12 @@ fn the_q_rule_margin_holds_for_the_model() {
 #[test]
 fn learning_converges_on_a_stage_with_rate_dependent_hysteresis() {
     let scratch = scratch("lag");
-    let dir = scratch.path();
     let mut plant = XyStage::default();
     plant.dielectric_lag_s = 2e-3;
-    let gain = plant.static_gain();
-    let stroke_m = gain.map(|g| g * 38e-6);
     let params = stage_file(
-        dir,
+        scratch.path(),
         "stage.toml",
-        gain,
+        plant.static_gain(),
         [(3200.0, 0.03), (2200.0, 0.03)],
         0.0,
     );
@@ -423,46 +427,7 @@ fn learning_converges_on_a_stage_with_rate_dependent_hysteresis() {
     file.x.effects.hysteresis_lag_s = 2e-3;
     file.y.as_mut().unwrap().effects.hysteresis_lag_s = 2e-3;
     std::fs::write(&params, file.to_toml("learn test stage, rate-dependent")).unwrap();
-    let reference = dir.join("r.csv");
-    let r = write_reference(&reference, stroke_m);
-    let mut command = dir.join("u0.csv");
-    cli(&[
-        "compensate",
-        "--params",
-        p(&params),
-        "--reference",
-        p(&reference),
-        "--out",
-        p(&command),
-    ])
-    .unwrap();
-    let mut errors = Vec::new();
-    for k in 0..=10 {
-        let measured = dir.join(format!("y{k}.csv"));
-        errors.push(play(&plant, &command, &measured, &r));
-        if k == 10 {
-            break;
-        }
-        let next = dir.join(format!("u{}.csv", k + 1));
-        cli(&[
-            "learn",
-            "--params",
-            p(&params),
-            "--reference",
-            p(&reference),
-            "--command",
-            p(&command),
-            "--measured",
-            p(&measured),
-            "--out",
-            p(&next),
-            "--report",
-            p(&dir.join(format!("step{k}.json"))),
-        ])
-        .unwrap();
-        command = next;
-    }
-    println!("RMS error per trial [m]: {errors:?}");
+    let errors = learning_trials(&plant, scratch.path(), &params);
     // The first step takes the lag's memory into account: 0.17 of trial 0's error here (0.29
     // with the one-sample slope alone, which is ≈ k1 behind the lag).
     assert!(errors[1] <= 0.25 * errors[0], "{errors:?}");
@@ -480,4 +445,75 @@ fn learning_converges_on_a_stage_with_rate_dependent_hysteresis() {
         errors[10],
         errors[0]
     );
+}
+
+/// A periodic trial learns from the compensator's command of the period it settles to, played
+/// in a loop: from rest the command's first quarter period rides the first-loading branch, so
+/// the table would jump at the wrap (1.1 V here); the settled period closes on itself (2 mV),
+/// and a trial that measured no error gives it back unchanged.
+#[test]
+fn a_periodic_trial_starts_from_the_settled_period() {
+    let scratch = scratch("periodic");
+    let dir = scratch.path();
+    let params = Path::new(env!("CARGO_MANIFEST_DIR")).join("../firmware/params/xy-stage.toml");
+    let n = 500;
+    let t: Vec<f64> = (0..n).map(|k| k as f64 / RATE_HZ).collect();
+    let r: Vec<f64> = t
+        .iter()
+        .map(|&t| f64::from((19e-6 - 12e-6 * (std::f64::consts::TAU * 20.0 * t).cos()) as f32))
+        .collect();
+    let reference = dir.join("r.csv");
+    write_table(
+        &reference,
+        &["t_s", "rx_m", "ry_m"],
+        vec![t.clone(), r.clone(), r.clone()],
+    );
+    let from_rest = host_sim::learn::base_command(&params, &reference, false).unwrap();
+    let settled = host_sim::learn::base_command(&params, &reference, true).unwrap();
+    let wrap = |u: &[f32]| (u[0] - u[n - 1]).abs();
+    let largest_step = |u: &[f32]| {
+        u.windows(2)
+            .map(|w| (w[1] - w[0]).abs())
+            .fold(0.0, f32::max)
+    };
+    for axis in 0..2 {
+        let (rest, periodic) = (&from_rest.voltages_v[axis].1, &settled.voltages_v[axis].1);
+        println!(
+            "axis {axis}: wrap from rest {} V, settled {} V (largest step {} V)",
+            wrap(rest),
+            wrap(periodic),
+            largest_step(periodic)
+        );
+        assert!(wrap(rest) > 0.5, "{}", wrap(rest));
+        assert!(wrap(periodic) < 0.05, "{}", wrap(periodic));
+    }
+    let command = dir.join("u0.csv");
+    write_csv(&command, &settled.to_table()).unwrap();
+    let measured = dir.join("y0.csv");
+    write_table(&measured, &["t_s", "x_m", "y_m"], vec![t, r.clone(), r]);
+    let next = dir.join("u1.csv");
+    cli(&[
+        "learn",
+        "--params",
+        p(&params),
+        "--reference",
+        p(&reference),
+        "--command",
+        p(&command),
+        "--measured",
+        p(&measured),
+        "--out",
+        p(&next),
+        "--report",
+        p(&dir.join("step.json")),
+        "--periodic",
+    ])
+    .unwrap();
+    let table = read_csv(&next).unwrap();
+    for (axis, name) in ["ux_V", "uy_V"].iter().enumerate() {
+        let got = table.column(name).unwrap();
+        for (j, (&g, &u)) in got.iter().zip(&settled.voltages_v[axis].1).enumerate() {
+            assert!((g - f64::from(u)).abs() < 1e-3, "{name}[{j}]: {g} vs {u}");
+        }
+    }
 }

@@ -8,14 +8,15 @@ use piezo_core::effects::{EffectParams, MAX_CREEP_ELEMENTS, MAX_RELAXATION_ELEME
 use piezo_core::{Asymmetry, BoucWenParams, IoChain, ServoParams, StaticMap};
 use serde::{Deserialize, Serialize};
 
-/// Setpoints per [`Request::TableAppend`] or [`Request::Stream`] message.
+/// Setpoints per [`Request::TableAppend`], [`Request::Stream`] or [`Request::LearnedAppend`]
+/// message.
 pub const SETPOINT_CHUNK: usize = 32;
 /// Bytes of a refusal's reason.
 pub const REASON_BYTES: usize = 160;
 /// Bytes of a parameter set's version string.
 pub const VERSION_BYTES: usize = 48;
 
-/// Setpoints `[x, y]`, one per tick (or per table entry).
+/// Setpoints `[x, y]`, one per tick (or per table entry; stack volts for the learned table).
 pub type Setpoints = Vec<[f32; 2], SETPOINT_CHUNK>;
 
 /// `text` cut to the first `N` bytes that end a character (for versions and reasons).
@@ -170,6 +171,15 @@ pub enum Request {
     },
     /// Ends the run (the QEMU image exits). Answered with [`Response::Done`].
     Shutdown,
+    /// Empties the learned voltage table. Answered with [`Response::Queued`], or refused
+    /// ([`RefusalKind::Learned`]) while the loop plays it.
+    LearnedClear,
+    /// Appends `[ux, uy]` stack voltages \[V\] to the learned voltage table: entry j is the
+    /// command for wave table entry j (same ticks per entry, same phase, linear in between).
+    /// Answered with [`Response::Queued`], or refused when it would overflow (nothing appended)
+    /// or while the loop plays the table. Checked when a learned control mode is switched on or
+    /// a table program starts in one, never played unchecked.
+    LearnedAppend(Setpoints),
 }
 
 /// Why a request was refused.
@@ -183,6 +193,10 @@ pub enum RefusalKind {
     Full,
     /// A table program with an empty table, or zero ticks per entry.
     Program,
+    /// The learned voltage table: missing, not the wave table's length, an entry outside an
+    /// axis's window or not finite, a step beyond the slew limit at the entry spacing; or a
+    /// request that would change a table the loop plays.
+    Learned,
 }
 
 /// A refusal: its kind, the axis if one, and a sentence.
@@ -243,10 +257,16 @@ pub enum Control {
     Feedback,
     /// The compensator plus the servo's correction.
     FeedforwardFeedback,
+    /// The learned voltage table ([`Request::LearnedAppend`]) played with the wave table: the
+    /// stack voltage of a tick is the table's, the compensator is not used.
+    Learned,
+    /// The learned voltage table plus the servo's correction on r − y (as
+    /// [`Control::FeedforwardFeedback`] adds it to the compensator's command).
+    LearnedFeedback,
 }
 
 impl Control {
-    /// The four, in the order of the servo benchmark's table.
+    /// The four of piezo-core's servo, in the order of the servo benchmark's table.
     pub const ALL: [Self; 4] = [
         Self::OpenLoop,
         Self::Feedforward,
@@ -254,14 +274,25 @@ impl Control {
         Self::FeedforwardFeedback,
     ];
 
-    /// `open-loop`, `feedforward`, `feedback`, `feedforward+feedback` (as piezo-core names them).
+    /// The two that play the learned voltage table.
+    pub const LEARNED: [Self; 2] = [Self::Learned, Self::LearnedFeedback];
+
+    /// `open-loop`, `feedforward`, `feedback`, `feedforward+feedback` (as piezo-core names them),
+    /// `learned`, `learned+feedback`.
     pub fn name(self) -> &'static str {
         match self {
             Self::OpenLoop => "open-loop",
             Self::Feedforward => "feedforward",
             Self::Feedback => "feedback",
             Self::FeedforwardFeedback => "feedforward+feedback",
+            Self::Learned => "learned",
+            Self::LearnedFeedback => "learned+feedback",
         }
+    }
+
+    /// True for the modes that play the learned voltage table.
+    pub fn learned(self) -> bool {
+        matches!(self, Self::Learned | Self::LearnedFeedback)
     }
 }
 
@@ -274,6 +305,8 @@ pub enum Feedforward {
     Linear,
     /// Open-loop excitation (reference in stack volts).
     OpenLoop,
+    /// The learned voltage table (reference in metres, for the record and the servo).
+    Learned,
 }
 
 /// Event counts since boot (saturating).
@@ -368,6 +401,8 @@ pub struct Status {
     pub table: [u32; 2],
     /// Streamed setpoints queued, and the queue's capacity.
     pub stream: [u32; 2],
+    /// Learned voltage table entries held, and its capacity.
+    pub learned: [u32; 2],
 }
 
 /// An answer to one request.
@@ -423,6 +458,10 @@ pub struct Frame {
     pub commanded_v: [f32; 2],
     /// Sensor reading at the start of the tick \[m\] (NaN if the read failed).
     pub sensor_m: [f32; 2],
+    /// The trial: passes completed over the wave table since the program started (0 for the
+    /// other programs), counted at the entry this tick plays; the host cuts a record of a
+    /// repeating table into periods with it.
+    pub trial: u32,
 }
 
 /// What the firmware sends.

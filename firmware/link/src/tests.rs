@@ -114,6 +114,7 @@ fn full_status() -> Status {
         next_frame: u32::MAX,
         table: [2048, 2048],
         stream: [0, 63],
+        learned: [2048, 2048],
     }
 }
 
@@ -179,7 +180,15 @@ fn every_message_round_trips_and_fits() {
         reference_m: [1e-6, 2e-6],
         commanded_v: [60.0, 0.5],
         sensor_m: [1.1e-6, -0.0],
+        trial: u32::MAX,
     }));
+    round_trip(Request::LearnedClear);
+    round_trip(Request::LearnedAppend(
+        (0..SETPOINT_CHUNK).map(|i| [i as f32, 120.0]).collect(),
+    ));
+    for control in Control::LEARNED {
+        round_trip(Request::Control(control));
+    }
 }
 
 #[test]

@@ -581,3 +581,5 @@ fn a_request_with_trailing_bytes_is_refused() {
     assert_eq!(st.counters.rejected_packets, 1);
     assert_eq!(st.mode, WireMode::Running, "the overrun drill did not run");
 }
+
+mod learned;
