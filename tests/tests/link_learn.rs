@@ -13,62 +13,20 @@
 //! QEMU is stopped at the end (shutdown request, then SIGTERM). Skipped, with a message, when
 //! `qemu-system-arm` or the thumbv7em-none-eabihf target is missing.
 
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::path::Path;
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
+mod common;
+
 use clap::Parser as _;
+use common::{connect, firmware_dir, Qemu, TempDir, TIMEOUT};
 use host_sim::link::{fnv1a32, Client};
-use integration_tests::qemu::{missing_tools, outer_target_dir, say, workspace, TARGET};
+use integration_tests::qemu::{missing_tools, outer_target_dir, say, TARGET};
 use piezo_link::{Control, Feedforward, Program, RefusalKind, Request, Response};
 
-const TIMEOUT: Duration = Duration::from_secs(20);
 const SIGNAL: &str = "sine:amp=12e-6,offset=19e-6,freq=20,phase_deg=-90";
 const ITERATIONS: usize = 6;
-
-fn firmware_dir() -> PathBuf {
-    workspace().join("firmware")
-}
-
-/// QEMU, stopped when dropped (SIGTERM to `timeout`, which passes it on to QEMU).
-struct Qemu(Child);
-
-impl Drop for Qemu {
-    fn drop(&mut self) {
-        if let Ok(None) = self.0.try_wait() {
-            let _ = Command::new("kill").arg(self.0.id().to_string()).status();
-        }
-        let _ = self.0.wait();
-    }
-}
-
-/// A temporary directory, removed when dropped.
-struct TempDir(PathBuf);
-
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
-
-fn connect(port: u16) -> Client {
-    let started = Instant::now();
-    loop {
-        match Client::connect(&format!("tcp:127.0.0.1:{port}"), TIMEOUT) {
-            Ok(mut c) => match c.status() {
-                Ok(_) => return c,
-                Err(e) if started.elapsed() > Duration::from_secs(15) => {
-                    panic!("QEMU on port {port} does not answer: {e}")
-                }
-                Err(_) => std::thread::sleep(Duration::from_millis(100)),
-            },
-            Err(_) if started.elapsed() < Duration::from_secs(15) => {
-                std::thread::sleep(Duration::from_millis(100))
-            }
-            Err(e) => panic!("cannot connect to QEMU: {e}"),
-        }
-    }
-}
 
 /// `host-sim link --connect tcp:127.0.0.1:PORT learn ARGS...` as the command line runs it.
 fn link_learn(port: u16, args: &[String]) -> Result<String, String> {

@@ -14,60 +14,17 @@
 //! Skipped, with a message, when `qemu-system-arm` or the thumbv7em-none-eabihf target is
 //! missing.
 
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::path::Path;
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
+mod common;
+
 use clap::Parser as _;
+use common::{connect, firmware_dir, Qemu, TempDir};
 use host_sim::link::{fnv1a32, model_set, upload, Client};
-use integration_tests::qemu::{missing_tools, outer_target_dir, say, workspace, TARGET};
+use integration_tests::qemu::{missing_tools, outer_target_dir, say, TARGET};
 use piezo_link::{Control, Fault, Feedforward, Mode, Request, Response, Status};
-
-const TIMEOUT: Duration = Duration::from_secs(20);
-
-fn firmware_dir() -> PathBuf {
-    workspace().join("firmware")
-}
-
-/// QEMU, stopped when dropped (SIGTERM to `timeout`, which passes it on to QEMU).
-struct Qemu(Child);
-
-impl Drop for Qemu {
-    fn drop(&mut self) {
-        if let Ok(None) = self.0.try_wait() {
-            let _ = Command::new("kill").arg(self.0.id().to_string()).status();
-        }
-        let _ = self.0.wait();
-    }
-}
-
-/// A temporary directory, removed when dropped.
-struct TempDir(PathBuf);
-
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
-
-fn connect(port: u16) -> Client {
-    let started = Instant::now();
-    loop {
-        match Client::connect(&format!("tcp:127.0.0.1:{port}"), TIMEOUT) {
-            Ok(mut c) => match c.status() {
-                Ok(_) => return c,
-                Err(e) if started.elapsed() > Duration::from_secs(15) => {
-                    panic!("QEMU on port {port} does not answer: {e}")
-                }
-                Err(_) => std::thread::sleep(Duration::from_millis(100)),
-            },
-            Err(_) if started.elapsed() < Duration::from_secs(15) => {
-                std::thread::sleep(Duration::from_millis(100))
-            }
-            Err(e) => panic!("cannot connect to QEMU: {e}"),
-        }
-    }
-}
 
 /// Tracks the demo's reference for 1 s and returns the firmware's status after it.
 fn track(client: &mut Client) -> Status {
