@@ -17,7 +17,7 @@
 //! - with the wave table, a *learned voltage table* of as many `[u_x, u_y]` stack voltages
 //!   ([`ReferenceGenerator::learned_append`], another 16 KiB): entry j is the command for wave
 //!   table entry j, played at the same ticks with the same interpolation,
-//!   `u(t) = u[j] + (t − j·m)/m·(u[j+1] − u[j])` for `j·m ≤ t < (j+1)·m` (u[j+1] = u[0] after
+//!   `u(t) = u[j] + (t − j·m)/m·(u[j+1] − u[j])` for `j·m ≤ t < (j+1)·m` (u\[j+1\] = u\[0\] after
 //!   the last entry of a repeating table) ([`ReferenceGenerator::next_learned`]). It is checked
 //!   before it is played ([`ReferenceGenerator::check_learned`]): its length is the wave table's,
 //!   every entry finite and inside each axis's window, and every step between consecutive
@@ -253,7 +253,7 @@ pub enum LearnedError {
         entry: usize,
         /// 0 for x, 1 for y.
         axis: usize,
-        /// |u[entry] − u[entry − 1]| \[V\].
+        /// `|u[entry] − u[entry − 1]|` \[V\].
         step_v: f32,
         /// The bound m·M \[V\].
         limit_v: f32,
