@@ -668,17 +668,36 @@ impl TwoAxisLoop {
         }
     }
 
-    /// Switches the control mode between two ticks, bumplessly (see the module docs, Feedback).
-    /// A mode with feedback needs a servo on both axes; refused, nothing changes. During an
-    /// excitation only the mode to return to changes.
-    pub fn set_control_mode(&mut self, mode: ServoMode) -> Result<(), ControlError> {
-        if mode.feedback() {
+    /// `Ok` unless `feedback` is asked for and an axis has no servo.
+    fn servos_for(&self, feedback: bool) -> Result<(), ControlError> {
+        if feedback {
             for axis in Axis::ALL {
                 if self.settings.axes[axis.index()].servo.is_none() {
                     return Err(ControlError::NoServo(axis));
                 }
             }
         }
+        Ok(())
+    }
+
+    /// The servos after a mode change from `was_feedback` to `self.feedback` in `mode`: started
+    /// from the voltage applied when feedback comes on, faded out when it goes off.
+    fn switch_servo(&mut self, was_feedback: bool, mode: ServoMode) {
+        if self.feedback && !was_feedback {
+            self.restart_servo();
+        } else {
+            self.servo.iter_mut().for_each(|s| s.set_mode(mode));
+            if was_feedback && !self.feedback {
+                self.handover_ticks = self.handover_length();
+            }
+        }
+    }
+
+    /// Switches the control mode between two ticks, bumplessly (see the module docs, Feedback).
+    /// A mode with feedback needs a servo on both axes; refused, nothing changes. During an
+    /// excitation only the mode to return to changes.
+    pub fn set_control_mode(&mut self, mode: ServoMode) -> Result<(), ControlError> {
+        self.servos_for(mode.feedback())?;
         let was_feedback = self.feedback;
         self.feedback = mode.feedback();
         if self.feedforward != Feedforward::OpenLoop {
@@ -695,14 +714,7 @@ impl TwoAxisLoop {
                 self.chain = self.chain_at_applied();
             }
         }
-        if self.feedback && !was_feedback {
-            self.restart_servo();
-        } else {
-            self.servo.iter_mut().for_each(|s| s.set_mode(mode));
-            if was_feedback && !self.feedback {
-                self.handover_ticks = self.handover_length();
-            }
-        }
+        self.switch_servo(was_feedback, mode);
         Ok(())
     }
 
@@ -721,13 +733,7 @@ impl TwoAxisLoop {
     /// compensator hands over from the voltage applied: the guard slews to the table's voltage
     /// should they differ by more than a step.
     pub fn set_learned_mode(&mut self, feedback: bool) -> Result<(), ControlError> {
-        if feedback {
-            for axis in Axis::ALL {
-                if self.settings.axes[axis.index()].servo.is_none() {
-                    return Err(ControlError::NoServo(axis));
-                }
-            }
-        }
+        self.servos_for(feedback)?;
         let Program::Table {
             ticks_per_entry,
             repeat,
@@ -748,14 +754,7 @@ impl TwoAxisLoop {
             self.chain = None;
         }
         let mode = self.control_mode();
-        if self.feedback && !was_feedback {
-            self.restart_servo();
-        } else {
-            self.servo.iter_mut().for_each(|s| s.set_mode(mode));
-            if was_feedback && !self.feedback {
-                self.handover_ticks = self.handover_length();
-            }
-        }
+        self.switch_servo(was_feedback, mode);
         Ok(())
     }
 
