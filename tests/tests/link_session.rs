@@ -15,15 +15,14 @@
 //! missing.
 
 use std::path::Path;
-use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 mod common;
 
 use clap::Parser as _;
-use common::{connect, firmware_dir, Qemu, TempDir};
+use common::{build_link_image, connect, firmware_dir, run_link_image, TempDir};
 use host_sim::link::{fnv1a32, model_set, upload, Client};
-use integration_tests::qemu::{missing_tools, outer_target_dir, say, TARGET};
+use integration_tests::qemu::{missing_tools, say};
 use piezo_link::{Control, Fault, Feedforward, Mode, Request, Response, Status};
 
 /// Tracks the demo's reference for 1 s and returns the firmware's status after it.
@@ -58,38 +57,12 @@ fn a_whole_session_over_the_link() {
         return;
     }
     let started = Instant::now();
-    let target_dir = outer_target_dir().join("link-session");
-    let build = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()))
-        .current_dir(firmware_dir())
-        .args(["build", "--release", "--features", "qemu", "--bin", "qemu"])
-        .env("CARGO_TARGET_DIR", &target_dir)
-        .env_remove("PIEZO_PARAMS")
-        .output()
-        .expect("run cargo");
-    assert!(
-        build.status.success(),
-        "building the qemu image failed:\n{}",
-        String::from_utf8_lossy(&build.stderr)
-    );
+    let elf = build_link_image();
     let built = started.elapsed();
     let dir = TempDir(std::env::temp_dir().join(format!("link_session_{}", std::process::id())));
     std::fs::create_dir_all(&dir.0).expect("temporary directory");
 
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .expect("a free port")
-        .port();
-    let elf = target_dir.join(TARGET).join("release/qemu");
-    let mut qemu = Qemu(
-        Command::new(firmware_dir().join("run-qemu.sh"))
-            .args(["--link", &port.to_string()])
-            .arg(&elf)
-            .env("QEMU_TIMEOUT", "300")
-            .stdout(Stdio::piped())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("run firmware/run-qemu.sh"),
-    );
+    let (mut qemu, port) = run_link_image(&elf);
     let mut client = connect(port);
 
     // 1. Status: the built-in set, running.

@@ -2,12 +2,12 @@
 //! temporary directory removed when dropped, and a link client that waits for the image to
 //! answer.
 
-use std::path::PathBuf;
-use std::process::{Child, Command};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use host_sim::link::Client;
-use integration_tests::qemu::workspace;
+use integration_tests::qemu::{outer_target_dir, workspace, TARGET};
 
 /// How long one request may take.
 pub const TIMEOUT: Duration = Duration::from_secs(20);
@@ -56,4 +56,44 @@ pub fn connect(port: u16) -> Client {
             Err(e) => panic!("cannot connect to QEMU: {e}"),
         }
     }
+}
+
+/// Builds the `qemu` image with its built-in stage file in `<outer target dir>/link-session` (the
+/// link tests share it; the test binaries of one `cargo test` run one after the other); returns
+/// the ELF. Panics with cargo's stderr if the build fails.
+pub fn build_link_image() -> PathBuf {
+    let target_dir = outer_target_dir().join("link-session");
+    let build = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()))
+        .current_dir(firmware_dir())
+        .args(["build", "--release", "--features", "qemu", "--bin", "qemu"])
+        .env("CARGO_TARGET_DIR", &target_dir)
+        .env_remove("PIEZO_PARAMS")
+        .output()
+        .expect("run cargo");
+    assert!(
+        build.status.success(),
+        "building the qemu image failed:\n{}",
+        String::from_utf8_lossy(&build.stderr)
+    );
+    target_dir.join(TARGET).join("release/qemu")
+}
+
+/// Runs `elf` with `firmware/run-qemu.sh --link PORT` on a free loopback port (its stdout piped,
+/// at most 300 s); returns QEMU and the port.
+pub fn run_link_image(elf: &Path) -> (Qemu, u16) {
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .expect("a free port")
+        .port();
+    let qemu = Qemu(
+        Command::new(firmware_dir().join("run-qemu.sh"))
+            .args(["--link", &port.to_string()])
+            .arg(elf)
+            .env("QEMU_TIMEOUT", "300")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("run firmware/run-qemu.sh"),
+    );
+    (qemu, port)
 }
