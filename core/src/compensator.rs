@@ -962,15 +962,13 @@ impl Compensator {
         let mut settled = false;
         for _ in 0..LARGE_STEP_NEWTON {
             let z = kappa * du;
-            let em1 = if z.abs() < 0.1 {
-                -z * relax_series(z)
+            // e^(−z) − 1 and g(z) = (1 − e^(−z))/z: the series below |z| = 0.1, as `relax_factor`.
+            let (em1, g) = if z.abs() < 0.1 {
+                let g = relax_series(z);
+                (-z * g, g)
             } else {
-                libm::expm1f(-z)
-            };
-            let g = if z.abs() < 0.1 {
-                relax_series(z)
-            } else {
-                -em1 / z
+                let em1 = libm::expm1f(-z);
+                (em1, -em1 / z)
             };
             let residual = du * (k1 + k2q * g) - error;
             let slope = k1 + k2q * (1.0 + em1);

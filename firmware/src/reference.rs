@@ -198,6 +198,16 @@ pub enum Program {
     },
 }
 
+/// Appends all of `entries` to `table`, or none of them with the room left as the error.
+fn append_all(
+    table: &mut heapless::Vec<[f32; 2], TABLE_CAPACITY>,
+    entries: &[[f32; 2]],
+) -> Result<(), TableFull> {
+    table.extend_from_slice(entries).map_err(|()| TableFull {
+        room: TABLE_CAPACITY - table.len(),
+    })
+}
+
 /// The generator: program, phase and the stream queue.
 pub struct ReferenceGenerator {
     program: Program,
@@ -299,11 +309,7 @@ impl ReferenceGenerator {
     /// Appends `[u_x, u_y]` entries \[V\] to the learned voltage table; if they do not all fit,
     /// nothing is appended and `Err` gives the room left.
     pub fn learned_append(&mut self, entries: &[[f32; 2]]) -> Result<(), TableFull> {
-        self.learned
-            .extend_from_slice(entries)
-            .map_err(|()| TableFull {
-                room: TABLE_CAPACITY - self.learned.len(),
-            })
+        append_all(&mut self.learned, entries)
     }
 
     /// Learned voltage table entries held.
@@ -381,11 +387,7 @@ impl ReferenceGenerator {
     /// Appends entries to the wave table; if they do not all fit, nothing is appended and
     /// `Err` gives the room left.
     pub fn table_append(&mut self, entries: &[[f32; 2]]) -> Result<(), TableFull> {
-        self.table
-            .extend_from_slice(entries)
-            .map_err(|()| TableFull {
-                room: TABLE_CAPACITY - self.table.len(),
-            })
+        append_all(&mut self.table, entries)
     }
 
     /// Wave table entries held.
