@@ -45,6 +45,11 @@
 //!   own frequency response (the interpolated shift and the central-difference inverse above),
 //!   `W(f) = max |1 − λ·γ·M_μ(f)·M̂⁻¹(f)·S_D(f)·e^(−j2πfDT)|` over γ ∈ {γ_min, γ_max} and
 //!   μ ∈ [1 − t, 1 + t] (t = `mode_frequency_tolerance`; 33 values and μ = f/f_mode);
+//!   **without a mode in the effects** the model claims no dynamics, which nothing checked: the
+//!   plant may still have a lightly damped mode it lacks. The set then holds, besides no mode,
+//!   every mode at or above f_u = `unmodelled_mode_fraction`/T with damping
+//!   [`UNMODELLED_MODE_DAMPING`] (f_u itself, f itself when f ≥ f_u, and 33 frequencies spaced
+//!   geometrically from f_u to 2/T), with M̂⁻¹ = 1 (L inverts no mode);
 //!   f_c is the largest cut-off with `|Q(f)|·W(f) ≤ 1 − m` at 2048 frequencies across
 //!   (0, 1/(2T)), in closed form per frequency:
 //!   `f_c = min over f with W(f) > 1 − m of atan(tan(πfT)/(W(f)/(1 − m) − 1)^(1/8))/(πT)`,
@@ -73,6 +78,8 @@ pub const LIMITED_BASE_SHARE: f64 = 0.01;
 pub const RULE_FREQUENCIES: usize = 2048;
 /// Mode frequencies (relative, spread over the tolerance) the rule checks per frequency.
 pub const RULE_MODE_SAMPLES: usize = 33;
+/// Damping ratio of the mode a model without one may lack (module doc): light, as a flexure's.
+pub const UNMODELLED_MODE_DAMPING: f64 = 0.02;
 /// Highest cut-off, as a fraction of the sample rate.
 pub const MAX_CUTOFF_FRACTION: f64 = 0.4;
 /// Q of the two biquads of the 4th-order Butterworth: 1/(2·sin(π/8)), 1/(2·sin(3π/8)).
@@ -90,17 +97,24 @@ pub struct LearningParams {
     pub mode_frequency_tolerance: f32,
     /// m in |Q·(1 − L·G)| ≤ 1 − m, 0 < m < 1.
     pub margin: f32,
+    /// Without a mode in the effects: the plant may have one at or above this fraction of the
+    /// sample rate, f_u = fraction/T (module doc), 0 < fraction; 0.5 or more trusts the model's
+    /// claim of no dynamics up to the Nyquist frequency.
+    pub unmodelled_mode_fraction: f32,
 }
 
 impl Default for LearningParams {
     /// γ in [0.6, 1.7] (a stage file whose gain is ×1.5 or ×0.6 off stays inside), mode ±20 %,
-    /// margin 0.1.
+    /// margin 0.1; without a mode, one may lie at or above 1/20 of the sample rate (500 Hz at
+    /// 10 kHz: a piezo stage's first flexure or load mode lies between a few hundred hertz and
+    /// tens of kilohertz).
     fn default() -> Self {
         Self {
             gain_min: 0.6,
             gain_max: 1.7,
             mode_frequency_tolerance: 0.2,
             margin: 0.1,
+            unmodelled_mode_fraction: 0.05,
         }
     }
 }
@@ -318,6 +332,14 @@ impl Learning {
                 requirement: "in [0, 0.9)",
             });
         }
+        let unmodelled = finite("unmodelled_mode_fraction", params.unmodelled_mode_fraction)?;
+        if unmodelled <= 0.0 {
+            return Err(ParamError::OutOfRange {
+                field: "unmodelled_mode_fraction",
+                value: unmodelled,
+                requirement: "> 0",
+            });
+        }
         let limits = compensator.settings();
         let d = f64::from(effects.delay_samples());
         let p = effects.params();
@@ -404,8 +426,23 @@ impl Learning {
                 })
                 .fold(0.0, f64::max)
         };
+        let mode = |f_mode: f64, zeta: f64| {
+            let wt = 2.0 * PI * f_mode;
+            C(wt * wt, 0.0).div(C(wt * wt - w * w, 2.0 * zeta * wt * w))
+        };
         let Some((fm, zeta)) = self.mode else {
-            return factor(C(1.0, 0.0));
+            // No mode in the model: none in the plant, or one at or above f_u.
+            let fraction = f64::from(self.params.unmodelled_mode_fraction);
+            if fraction >= 0.5 {
+                return factor(C(1.0, 0.0));
+            }
+            let f_u = fraction / t;
+            let span = 2.0 / (t * f_u);
+            let at = |f_mode: f64| factor(mode(f_mode, UNMODELLED_MODE_DAMPING));
+            return (0..RULE_MODE_SAMPLES)
+                .map(|i| f_u * libm::pow(span, i as f64 / (RULE_MODE_SAMPLES - 1) as f64))
+                .map(at)
+                .fold(factor(C(1.0, 0.0)).max(at(f_hz.max(f_u))), f64::max);
         };
         let wm = 2.0 * PI * fm;
         // L's mode inverse: 1 + j·2ζ·sin(ωT)/(ω_m·T) − 4·sin²(ωT/2)/(ω_m·T)².
@@ -415,11 +452,7 @@ impl Learning {
             2.0 * zeta * libm::sin(w * t) / (wm * t),
         );
         let tol = f64::from(self.params.mode_frequency_tolerance);
-        let mode_at = |mu: f64| {
-            let wt = mu * wm;
-            let m = C(wt * wt, 0.0).div(C(wt * wt - w * w, 2.0 * zeta * wt * w));
-            factor(m.mul(inverse))
-        };
+        let mode_at = |mu: f64| factor(mode(mu * fm, zeta).mul(inverse));
         let on_peak = (f_hz / fm).clamp(1.0 - tol, 1.0 + tol);
         (0..RULE_MODE_SAMPLES)
             .map(|i| 1.0 - tol + 2.0 * tol * i as f64 / (RULE_MODE_SAMPLES - 1) as f64)

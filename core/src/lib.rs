@@ -46,7 +46,7 @@ pub use inverse_chain::{
     compensate_pair, compensate_single, FeedforwardAxis, FeedforwardCounts, InverseChain,
 };
 pub use io_chain::IoChain;
-pub use learning::{Learning, LearningParams, StepSummary, Trial};
+pub use learning::{Learning, LearningParams, StepSummary, Trial, UNMODELLED_MODE_DAMPING};
 pub use oscillator::{HystereticOscillator, OscillatorParams, OscillatorState};
 pub use sensitivity::{static_sensitivities, SENSITIVITY_PARAMETERS};
 pub use servo::{Servo, ServoMode, ServoOutput, ServoParams, ServoState, ServoStatus};

@@ -83,6 +83,10 @@ pub struct LearningArgs {
     /// Margin m of the monotone convergence |Q(1 - LG)| <= 1 - m.
     #[arg(long, default_value_t = LearningParams::default().margin)]
     pub margin: f32,
+    /// A stage file without a mode: the plant may still have one at or above this fraction of the
+    /// loop rate (0.5 trusts the file's claim of no dynamics up to the Nyquist frequency).
+    #[arg(long, default_value_t = LearningParams::default().unmodelled_mode_fraction)]
+    pub unmodelled_mode_fraction: f32,
 }
 
 impl LearningArgs {
@@ -93,6 +97,7 @@ impl LearningArgs {
             gain_max: self.gain_max,
             mode_frequency_tolerance: self.mode_tolerance,
             margin: self.margin,
+            unmodelled_mode_fraction: self.unmodelled_mode_fraction,
         }
     }
 }
@@ -102,7 +107,7 @@ pub const HELP: &str = "One step of iterative learning control per axis: u_next 
 u_0 the compensator's command for the reference, L the inverse of the stage file's model along u (slope dy/du, \
 mode, the error taken D samples later, gain 2/(gain_min + gain_max)), Q a zero-phase 4th-order Butterworth \
 low-pass (forward and backward, circular with --periodic) whose cut-off is the highest with |Q(1 - LG)| <= 1 - margin \
-for plant gains in [gain_min, gain_max] times the model's and its mode within +-mode-tolerance. The table is clamped \
+for plant gains in [gain_min, gain_max] times the model's and its mode within +-mode-tolerance (a file without a mode: none, or one at or above unmodelled-mode-fraction times the loop rate, damping 0.02). The table is clamped \
 to the output window and slew limit, and carries its reference and the stage file's FNV-1a 32: a table learned \
 for another reference or stage file is refused.";
 
@@ -151,7 +156,11 @@ pub fn rule_text(p: &LearningParams) -> String {
          f_c the highest (at most 0.4/T) with |Q(f)| * max |1 - lambda*gamma*G_mu(f)*Lhat(f)| <= 1 - {m} at 2048 \
          frequencies up to 1/(2T), over gamma in [{lo}, {hi}] (plant/model gain) and the mode at (1 +- {t}) f_mode \
          (33 values and f itself); lambda = 2/(gamma_min + gamma_max); G_mu = continuous mode * exp(-j 2 pi f D T), \
-         Lhat = the learning's own shift by D (linear interpolation) and central-difference mode inverse",
+         Lhat = the learning's own shift by D (linear interpolation) and central-difference mode inverse; \
+         a stage file without a mode: none in the plant or one at or above {u}/T, damping {z} (33 values from there \
+         to 2/T, and f itself)",
+        u = p.unmodelled_mode_fraction,
+        z = piezo_core::UNMODELLED_MODE_DAMPING,
         m = p.margin,
         lo = p.gain_min,
         hi = p.gain_max,
