@@ -56,6 +56,16 @@
 //!   at most 0.4/T. Then ‖e_{k+1}‖ ≤ (1 − m)·‖e_k‖ for every plant in that set (the linear
 //!   part, on a periodic trial). With a feedback servo whose sensitivity is S, learning on the
 //!   applied command gives the factor |S·Q·(1 − L·G)| instead.
+//! * **Sensor noise**: the measured error carries the sensor's noise, and L passes it into the
+//!   next command: at full gain the table gathers noise trial after trial, and once the error is
+//!   down at the noise the trials rise and fall with it. Each step therefore learns the share
+//!   `s = max(0, 1 − σ̂²·b/⟨(Q·e)²⟩)` of L·e (a Wiener gain: the error inside Q's band against the
+//!   noise expected there), `(L·e)[j] = s·λ·Δu[j]`. σ̂ is the white noise's standard deviation,
+//!   estimated robustly from the fourth differences of e (a smooth error has none; a white noise
+//!   has `var(Δ⁴n) = 70σ²`): `σ̂ = P25(|Δ⁴e|)/(0.3186·√70)`, the 25th percentile so that rings and
+//!   corners over up to three quarters of the trial do not count as noise; `b = ⟨|Q(f)|²⟩` over
+//!   (0, 1/(2T)) is the share of a white noise Q passes. s ≤ 1 keeps the contraction
+//!   (|1 − s·z| ≤ (1 − s) + s·|1 − z|). A trial far above the noise learns with s ≈ 1.
 //! * **Limits**: the result is clamped to `[output_min_v, output_max_v]` and to the slew limit S_r:
 //!   a forward pass `u[j] ∈ u[j−1] ± S_r·T` (from rest at `output_min_v` for a trial from rest),
 //!   and for a periodic table a backward pass from the first sample, which also holds the wrap
@@ -80,6 +90,10 @@ pub const RULE_FREQUENCIES: usize = 2048;
 pub const RULE_MODE_SAMPLES: usize = 33;
 /// Damping ratio of the mode a model without one may lack (module doc): light, as a flexure's.
 pub const UNMODELLED_MODE_DAMPING: f64 = 0.02;
+/// Fourth differences of a white noise: var(Δ⁴n) = C(8, 4)·σ² = 70·σ².
+const FOURTH_DIFFERENCE_VARIANCE: f64 = 70.0;
+/// The 25th percentile of |N(0, 1)|: Φ⁻¹(0.625).
+const ABS_NORMAL_P25: f64 = 0.318_639_363_964_375_4;
 /// Highest cut-off, as a fraction of the sample rate.
 pub const MAX_CUTOFF_FRACTION: f64 = 0.4;
 /// Q of the two biquads of the 4th-order Butterworth: 1/(2·sin(π/8)), 1/(2·sin(3π/8)).
@@ -247,6 +261,8 @@ pub struct Learning {
     params: LearningParams,
     learning_gain: f64,
     cutoff_hz: f64,
+    /// b = ⟨|Q(f)|²⟩ over (0, 1/(2T)): the share of a white noise's variance Q passes.
+    noise_band_share: f64,
     sections: [Biquad; 2],
 }
 
@@ -261,6 +277,10 @@ pub struct StepSummary {
     pub limited: usize,
     /// Whether the base was held at the window and filtered with the learned part (module doc).
     pub base_filtered: bool,
+    /// σ̂: the sensor noise estimated from the trial's error \[m\] (module doc).
+    pub noise_rms_m: f64,
+    /// s: the share of L·e learned in this step, in \[0, 1\] (module doc).
+    pub learned_share: f64,
 }
 
 /// One trial, per axis: all slices of the same length.
@@ -361,6 +381,7 @@ impl Learning {
             params,
             learning_gain: 2.0 / (f64::from(lo) + f64::from(hi)),
             cutoff_hz: 0.0,
+            noise_band_share: 1.0,
             sections: [Biquad::lowpass(0.1, 1.0); 2],
         };
         let t = f64::from(limits.sample_period_s);
@@ -378,6 +399,13 @@ impl Learning {
         learning.cutoff_hz = cutoff;
         let w0 = 2.0 * PI * cutoff * t;
         learning.sections = BUTTERWORTH4_Q.map(|q| Biquad::lowpass(w0, q));
+        learning.noise_band_share = (0..RULE_FREQUENCIES)
+            .map(|i| {
+                let q = learning.filter_gain((i as f64 + 0.5) / RULE_FREQUENCIES as f64 * 0.5 / t);
+                q * q
+            })
+            .sum::<f64>()
+            / RULE_FREQUENCIES as f64;
         Ok(learning)
     }
 
@@ -529,7 +557,15 @@ impl Learning {
         let filter_base = held as f64 >= LIMITED_BASE_SHARE * n as f64;
         let zero = |_: usize| 0.0f32;
         let kept: &dyn Fn(usize) -> f32 = if filter_base { &zero } else { &base };
-        self.learned_update(trial.periodic, &error, &command, kept, next_v);
+        let (noise_rms_m, learned_share) = self.learned_share(trial.periodic, &error, next_v);
+        self.learned_update(
+            trial.periodic,
+            learned_share * self.learning_gain,
+            &error,
+            &command,
+            kept,
+            next_v,
+        );
         for section in &self.sections {
             section.filter(next_v, false, trial.periodic);
         }
@@ -545,13 +581,59 @@ impl Learning {
             max_abs_error_m: max,
             limited,
             base_filtered: filter_base,
+            noise_rms_m,
+            learned_share,
         })
     }
 
-    /// `out[j] = u_k[j] − u_0[j] + (L·e)[j]` (module doc).
+    /// (σ̂, s): the noise in the error and the share of L·e to learn (module doc, "Sensor
+    /// noise"); `scratch` is overwritten.
+    fn learned_share(
+        &self,
+        periodic: bool,
+        error: &dyn Fn(usize) -> f64,
+        scratch: &mut [f32],
+    ) -> (f64, f64) {
+        let n = scratch.len();
+        let count = if periodic { n } else { n.saturating_sub(4) };
+        if count < 8 {
+            return (0.0, 1.0);
+        }
+        for (j, d) in scratch.iter_mut().take(count).enumerate() {
+            let e = |k: usize| error((j + k) % n);
+            *d = libm::fabs(e(0) - 4.0 * e(1) + 6.0 * e(2) - 4.0 * e(3) + e(4)) as f32;
+        }
+        let rank = count / 4;
+        let (_, p25, _) = scratch[..count].select_nth_unstable_by(rank, f32::total_cmp);
+        let sigma = f64::from(*p25) / (ABS_NORMAL_P25 * libm::sqrt(FOURTH_DIFFERENCE_VARIANCE));
+        for (j, v) in scratch.iter_mut().enumerate() {
+            *v = error(j) as f32;
+        }
+        for section in &self.sections {
+            section.filter(scratch, false, periodic);
+        }
+        for section in &self.sections {
+            section.filter(scratch, true, periodic);
+        }
+        let in_band = scratch
+            .iter()
+            .map(|&v| f64::from(v) * f64::from(v))
+            .sum::<f64>()
+            / n as f64;
+        let noise = sigma * sigma * self.noise_band_share;
+        let share = if in_band > 0.0 {
+            (1.0 - noise / in_band).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        (sigma, share)
+    }
+
+    /// `out[j] = u_k[j] − u_0[j] + gain·Δu[j]` (module doc; gain = s·λ).
     fn learned_update(
         &self,
         periodic: bool,
+        gain: f64,
         error: &dyn Fn(usize) -> f64,
         command: &dyn Fn(usize) -> f32,
         base: &dyn Fn(usize) -> f32,
@@ -658,7 +740,7 @@ impl Learning {
                 }
                 du_last = correction;
                 if write {
-                    let learned = self.learning_gain * correction;
+                    let learned = gain * correction;
                     *o = (f64::from(u) - f64::from(base(j)) + learned) as f32;
                 }
             }
@@ -865,6 +947,61 @@ mod tests {
     /// inverts the linearised dynamics, not only the one-sample slope. With the one-sample slope
     /// the relaxation's trials grow (1.8 → 20 µm over eight trials: L is up to 3× too large at
     /// low rates) and the lag's fall by 0.29 per trial instead of 1 − λ ≈ 0.13.
+    /// The share learned: a trial whose error is the sensor's white noise learns (almost)
+    /// nothing and estimates the noise; one whose error is a smooth deviation far above it learns
+    /// all of it.
+    #[test]
+    fn a_trial_at_the_noise_learns_nothing_and_one_above_it_everything() {
+        let (_, _, learning) = x_stage(1e5, 0.0, Default::default());
+        const N: usize = 1000;
+        let sigma = 5e-9f64;
+        // A reproducible Gaussian noise (Box–Muller over splitmix64).
+        let mut seed = 12_345u64;
+        let mut uniform = || {
+            seed = seed.wrapping_add(0x9e37_79b9_7f4a_7c15);
+            let mut z = seed;
+            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            z ^= z >> 31;
+            ((z >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+        };
+        let noise: [f64; N] = core::array::from_fn(|_| {
+            let (a, b) = (uniform(), uniform());
+            libm::sqrt(-2.0 * libm::log(a)) * libm::cos(2.0 * PI * b) * sigma
+        });
+        let command = [60.0f32; N];
+        let mut next = [0.0f32; N];
+        for (deviation_m, share) in [(0.0, (0.0, 0.1)), (2e-7, (0.95, 1.0))] {
+            let measured: [f32; N] = core::array::from_fn(|j| {
+                let smooth = deviation_m * libm::sin(2.0 * PI * j as f64 / N as f64);
+                (3e-6 + smooth + noise[j]) as f32
+            });
+            let reference = [3e-6f32; N];
+            let summary = learning
+                .step(
+                    &Trial {
+                        reference_m: &reference,
+                        command_v: &command,
+                        measured_m: &measured,
+                        base_v: &command,
+                        periodic: true,
+                    },
+                    &mut next,
+                )
+                .unwrap();
+            assert!(
+                (summary.noise_rms_m / sigma - 1.0).abs() < 0.15,
+                "noise {:.3e} m",
+                summary.noise_rms_m
+            );
+            assert!(
+                (share.0..=share.1).contains(&summary.learned_share),
+                "deviation {deviation_m}: share {}",
+                summary.learned_share
+            );
+        }
+    }
+
     #[test]
     fn rate_dependent_models_are_inverted_by_the_learning() {
         use crate::effects::{EffectParams, EffectsState};

@@ -22,7 +22,8 @@
 //!   after `#` lines with the iteration and the FNV-1a 32 of the stage file's bytes (as the
 //!   firmware's build logs it): a table learned for another reference or stage file is refused.
 //! * `STEP.json`: per axis the error of the trial just measured (`rms_m`, `max_abs_m`), the
-//!   cut-off `q_cutoff_hz`, the learning gain and the samples limited; the rule.
+//!   cut-off `q_cutoff_hz`, the learning gain, the samples limited, the sensor noise estimated from
+//!   the error (`noise_rms_m`) and the share of L·e learned (`learned_share`); the rule.
 
 use crate::compensate::{
     compensate, compensate_periodic, feedforward_axes, read_reference, Compensation, Reference,
@@ -107,7 +108,7 @@ pub const HELP: &str = "One step of iterative learning control per axis: u_next 
 u_0 the compensator's command for the reference, L the inverse of the stage file's model along u (slope dy/du, \
 mode, the error taken D samples later, gain 2/(gain_min + gain_max)), Q a zero-phase 4th-order Butterworth \
 low-pass (forward and backward, circular with --periodic) whose cut-off is the highest with |Q(1 - LG)| <= 1 - margin \
-for plant gains in [gain_min, gain_max] times the model's and its mode within +-mode-tolerance (a file without a mode: none, or one at or above unmodelled-mode-fraction times the loop rate, damping 0.02). The table is clamped \
+for plant gains in [gain_min, gain_max] times the model's and its mode within +-mode-tolerance (a file without a mode: none, or one at or above unmodelled-mode-fraction times the loop rate, damping 0.02). Each step learns the share s = max(0, 1 - noise/in-band error) of L(r - y): the sensor noise estimated from the error's fourth differences, so that a trial at the noise does not fill the table with it. The table is clamped \
 to the output window and slew limit, and carries its reference and the stage file's FNV-1a 32: a table learned \
 for another reference or stage file is refused.";
 
@@ -126,6 +127,10 @@ pub struct AxisStep {
     pub learning_gain: f64,
     /// Samples of the new command moved by the window or the slew limit.
     pub limited: usize,
+    /// The sensor noise estimated from the trial's error \[m\].
+    pub noise_rms_m: f64,
+    /// The share of L·e learned (1 far above the noise, 0 at it).
+    pub learned_share: f64,
 }
 
 /// What a step computed.
@@ -158,7 +163,8 @@ pub fn rule_text(p: &LearningParams) -> String {
          (33 values and f itself); lambda = 2/(gamma_min + gamma_max); G_mu = continuous mode * exp(-j 2 pi f D T), \
          Lhat = the learning's own shift by D (linear interpolation) and central-difference mode inverse; \
          a stage file without a mode: none in the plant or one at or above {u}/T, damping {z} (33 values from there \
-         to 2/T, and f itself)",
+         to 2/T, and f itself); each step learns the share s = max(0, 1 - sigma^2 b/<(Q e)^2>) of L e, sigma the \
+         noise from the 25th percentile of the error's fourth differences, b the share of a white noise Q passes",
         u = p.unmodelled_mode_fraction,
         z = piezo_core::UNMODELLED_MODE_DAMPING,
         m = p.margin,
@@ -215,6 +221,8 @@ impl LearnStep {
                     "q_cutoff_hz": a.q_cutoff_hz,
                     "learning_gain": a.learning_gain,
                     "limited": a.limited,
+                    "noise_rms_m": a.noise_rms_m,
+                    "learned_share": a.learned_share,
                 }),
             );
         }
@@ -493,6 +501,8 @@ pub fn step_axes(
             q_cutoff_hz: learning.cutoff_hz(),
             learning_gain: learning.learning_gain(),
             limited: summary.limited,
+            noise_rms_m: summary.noise_rms_m,
+            learned_share: summary.learned_share,
         });
         next_v.push(next);
     }
@@ -601,8 +611,8 @@ pub fn learn_cmd(a: &LearnArgs) -> Result<String, String> {
         .iter()
         .map(|s| {
             format!(
-                "{}: rms {:.3e} m, max {:.3e} m, Q cut-off {:.0} Hz, {} limited",
-                s.axis, s.rms_m, s.max_abs_m, s.q_cutoff_hz, s.limited
+                "{}: rms {:.3e} m, max {:.3e} m, noise {:.2e} m, learned share {:.2}, Q cut-off {:.0} Hz, {} limited",
+                s.axis, s.rms_m, s.max_abs_m, s.noise_rms_m, s.learned_share, s.q_cutoff_hz, s.limited
             )
         })
         .collect();
