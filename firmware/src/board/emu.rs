@@ -35,6 +35,7 @@
 //! ARR is written (CNT is 32 bits wide here and wraps every 4.3 s: [`LoopTimer`] extends it).
 
 use core::cell::Cell;
+use core::convert::Infallible;
 use core::mem::MaybeUninit;
 use core::sync::atomic::{AtomicU32, Ordering};
 
@@ -44,8 +45,6 @@ use stm32f4xx_hal::pac;
 
 use super::usart_link::UsartLink;
 use super::LOOP_RATE_HZ;
-use core::convert::Infallible;
-
 use crate::codes::{AdcCode, DacCode, SensorScale};
 use crate::converter::{AdcRead, DacWrite, ErrorType};
 use crate::plant::{plant_io, PlantAdc, PlantDac, XyPlant};
@@ -284,7 +283,9 @@ pub struct Parts {
 
 /// SysTick as the cycle counter; TIM2 and USART1 clocks enabled (RCC writes QEMU ignores; no
 /// clock is waited for); the simulated stage of the built-in stage file, at rest at the lower
-/// end of each window, as the loop's converters (read through `scale`); USART1 as the link.
+/// end of each window, as the loop's converters (read through `scale`); USART1 as the link,
+/// announced by a semihosting line (`board-emu: parameters …, command link on USART1`) once it
+/// receives.
 pub fn bring_up(
     core: cortex_m::Peripherals,
     dp: pac::Peripherals,
@@ -317,6 +318,17 @@ pub fn bring_up(
         },
     };
     let link = UsartLink::new(dp.USART1);
+    // From here on the link receives: bytes that came before USART1 was enabled were dropped by
+    // QEMU (as a disabled USART would), so a host waits for this line before it talks.
+    cortex_m_semihosting::hprintln!(
+        "board-emu: parameters {} ({}), fnv1a32 {:#010x}, loop {} Hz (TIM2 ARR {} at {} Hz), command link on USART1",
+        crate::params::VERSION,
+        crate::params::SOURCE,
+        crate::params::FNV1A32,
+        LOOP_RATE_HZ,
+        TIMER_TICKS_PER_PERIOD,
+        TIMER_HZ
+    );
     let mut cycles = CycleCounter {
         _syst: syst,
         last: 0,

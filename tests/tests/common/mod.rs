@@ -2,8 +2,10 @@
 //! temporary directory removed when dropped, and a link client that waits for the image to
 //! answer.
 
+use std::io::{BufRead as _, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 use host_sim::link::Client;
@@ -100,10 +102,32 @@ pub fn run_link_image(elf: &Path) -> (Qemu, u16) {
 }
 
 /// Runs the emulated board image `elf` with `firmware/run-board-emu.sh --link PORT` (QEMU
-/// netduinoplus2, USART1 on the port) as [`run_link_image`] does.
+/// netduinoplus2, USART1 on the port) as [`run_link_image`] does, and waits (60 s at most) for
+/// its line saying the link receives (QEMU drops bytes that reach USART1 before the image has
+/// enabled it). Returns QEMU, the port and QEMU's stdout, line by line (read by a thread).
 #[allow(dead_code)] // not every test binary runs every image
-pub fn run_board_emu_image(elf: &Path) -> (Qemu, u16) {
-    run_image("run-board-emu.sh", elf)
+pub fn run_board_emu_image(elf: &Path) -> (Qemu, u16, mpsc::Receiver<String>) {
+    let (mut qemu, port) = run_image("run-board-emu.sh", elf);
+    let stdout = qemu.0.stdout.take().expect("QEMU's stdout is piped");
+    let (lines, received) = mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines() {
+            let Ok(line) = line else { break };
+            if lines.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let left = deadline.saturating_duration_since(Instant::now());
+        match received.recv_timeout(left) {
+            Ok(line) if line.contains("command link on USART1") => break,
+            Ok(_) => {}
+            Err(e) => panic!("the emulated board did not say its link receives: {e}"),
+        }
+    }
+    (qemu, port, received)
 }
 
 /// Runs `elf` with `firmware/<script> --link PORT` on a free loopback port (its stdout piped, at
