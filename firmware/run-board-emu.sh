@@ -5,12 +5,12 @@
 # after a semihosting line with the deadline figures and TIM2's measured rate) or QEMU_TIMEOUT
 # seconds (default none; exit 124).
 #
-# -icount shift=3,sleep=off: QEMU's virtual clock advances 2^3 = 8 ns per guest instruction
+# -icount "shift=${QEMU_ICOUNT_SHIFT:-3},sleep=off": QEMU's virtual clock advances 2^3 = 8 ns per guest instruction
 # (125 M instructions per virtual second, about 1.3 core cycles each at the 168 MHz the image
 # assumes) and jumps ahead while the core sleeps. TIM2, SysTick and so the deadline monitor run
 # on that clock, so a tick's cost and its deadline are the image's own instruction counts, not
 # the host's load; the emulation itself runs as fast as the host allows (slower or faster than
-# real time).
+# real time). QEMU_ICOUNT_SHIFT sets another shift (2: 4 ns per instruction).
 #
 # usage: run-board-emu.sh --link PORT FIRMWARE.elf
 set -euo pipefail
@@ -22,4 +22,4 @@ port=${2:?usage: run-board-emu.sh --link PORT FIRMWARE.elf}
 elf=${3:?usage: run-board-emu.sh --link PORT FIRMWARE.elf}
 exec timeout "${QEMU_TIMEOUT:-0}" qemu-system-arm -machine netduinoplus2 -nographic \
   -monitor none -serial "tcp:127.0.0.1:$port,server=on,wait=off,nodelay=on" \
-  -icount shift=3,sleep=off -semihosting-config enable=on,target=native -kernel "$elf"
+  -icount "shift=${QEMU_ICOUNT_SHIFT:-3},sleep=off" -semihosting-config enable=on,target=native -kernel "$elf"

@@ -75,7 +75,7 @@ fn session(
         )
         .expect("track");
     let after = client.status().expect("status");
-    assert_eq!(after.mode, Mode::Running);
+    assert_eq!(after.mode, Mode::Running, "{:?}", after.counters);
     assert_eq!(recording.frames.len(), 5_000);
     assert_eq!((recording.gaps, recording.lost), (0, 0));
 

@@ -2,7 +2,8 @@
 //! → x/y piezo amplifiers, displacement sensors → one ADS8681 per axis), paced by TIM2 at the
 //! stage file's loop rate, and the command link ([`piezo_firmware::session`], the same endpoint
 //! the QEMU image serves) over USB CDC-ACM. Wiring and clocks are in `piezo_firmware::board`,
-//! the loop in `piezo_firmware::xy_loop`.
+//! the loop in `piezo_firmware::xy_loop`. The RTIC application is `src/bin/board/app.rs`, which
+//! `src/bin/board_emu.rs` builds too, on QEMU's netduinoplus2 (feature `board-emu`).
 //!
 //! # Tasks (RTIC 2, NVIC priorities: higher preempts lower)
 //!
