@@ -135,8 +135,6 @@ pub const LINK_DESCRIPTION: &str = "USART1 (QEMU's first -serial)";
 pub enum BoardError {
     /// The built-in stage file gives no simulated stage (sensor scale refused).
     Stage,
-    /// The loop rate gives no ARR (zero).
-    Timer,
 }
 
 /// TIM2 as the loop timer under QEMU's model (see the module docs).
@@ -350,11 +348,9 @@ pub fn bring_up(
 
 /// Starts TIM2 at the loop rate with its update interrupt on (DIER.UIE, CR1.CEN, then ARR: the
 /// write that schedules QEMU's first update, one period later). PSC, CNT and EGR stay
-/// unwritten (see the module docs).
+/// unwritten (see the module docs). Cannot fail (ARR ≥ 1 by the loop-rate check at build time);
+/// a `Result` as the board's.
 pub fn start_loop_timer(timer: &mut LoopTimer) -> Result<(), BoardError> {
-    if TIMER_TICKS_PER_PERIOD == 0 {
-        return Err(BoardError::Timer);
-    }
     let tim = &timer.tim;
     tim.dier().write(|w| w.uie().enabled());
     tim.cr1().write(|w| w.cen().enabled());
