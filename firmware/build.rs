@@ -22,6 +22,8 @@
 //! cortex-m-rt's `link.x` does `INCLUDE memory.x`. In a workspace the linker runs from the
 //! workspace root, so the file has to be put on the search path explicitly:
 //! - feature `board` (or no image feature): `../memory.x` at the repository root (STM32F407);
+//! - feature `board-emu`: the same root `memory.x` (QEMU netduinoplus2's STM32F405 has the
+//!   F407's 1 MiB flash at 0x0800_0000 and 128 KiB SRAM at 0x2000_0000);
 //! - feature `qemu`: `firmware/memory-mps2-an386.x` (QEMU mps2-an386).
 //!
 //! The chosen file is copied to `OUT_DIR/memory.x` and `OUT_DIR` is added to the search path.
@@ -32,7 +34,7 @@
 //! the mps2-an386 layout instead. Check with `readelf -S`: `.vector_table` at 0x00000000 (QEMU)
 //! or 0x08000000 (board).
 //!
-//! Enabling both image features on a thumb target is an error. On the host (`cargo test` at
+//! Enabling more than one image feature on a thumb target is an error. On the host (`cargo test` at
 //! the root) this script does nothing.
 use std::env;
 use std::fs;
@@ -64,8 +66,9 @@ fn main() {
     }
     let qemu = env::var_os("CARGO_FEATURE_QEMU").is_some();
     let board = env::var_os("CARGO_FEATURE_BOARD").is_some();
-    if qemu && board {
-        panic!("features `qemu` and `board` select different memory layouts: enable only one");
+    let board_emu = env::var_os("CARGO_FEATURE_BOARD_EMU").is_some();
+    if usize::from(qemu) + usize::from(board) + usize::from(board_emu) > 1 {
+        panic!("features `qemu`, `board` and `board-emu` select different images: enable only one");
     }
     let chosen = if qemu { qemu_layout } else { board_layout };
     fs::copy(&chosen, out_dir.join("memory.x"))
@@ -77,8 +80,9 @@ fn main() {
             out_dir.join("memory.x").display()
         );
     }
-    // defmt's linker script is only needed (and only found) where defmt is linked: the board image.
-    if board {
+    // defmt's linker script is only needed (and only found) where defmt is linked: the board
+    // image and its emulated variant.
+    if board || board_emu {
         println!("cargo:rustc-link-arg-bins=-Tdefmt.x");
     }
 }

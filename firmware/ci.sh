@@ -4,15 +4,17 @@
 # image (bench windows) likewise; checks that no panic path is
 # reachable in the check image (panic handler -> undefined symbol; surviving sites listed by
 # panic-sites.sh must be in panic-sites.allowed); runs clippy on the images for the target;
-# builds the STM32F407 board image (RTIC 2: checks its TIM2 and OTG_FS handlers); prints image
-# sizes. Installs nothing: it checks prerequisites and says what is missing.
+# builds the STM32F407 board image (RTIC 2: checks its TIM2 and OTG_FS handlers) and its
+# emulated variant for QEMU netduinoplus2 (board-emu: TIM2 and USART1 handlers); prints image
+# sizes. (The emulated board's link session runs in `cargo test`: tests/tests/board_emu.rs.) Installs nothing: it checks prerequisites and says what is missing.
 #
 # Prerequisites (what .ci/run installs):
 #   rustup target add thumbv7em-none-eabihf
 #   apt-get install -y --no-install-recommends qemu-system-arm binutils
 #
 # usage: firmware/ci.sh            (from anywhere; honours CARGO_TARGET_DIR, QEMU_TIMEOUT)
-#   SKIP_BOARD=1 firmware/ci.sh    skips the board image (stm32f4xx-hal: ~25 s cold build)
+#   SKIP_BOARD=1 firmware/ci.sh    skips the board image and its emulated variant (stm32f4xx-hal:
+#                                  ~25 s cold build)
 #
 # The host side of this crate (library tests, clippy --all-targets) runs in the workspace's
 # `cargo test` / `cargo clippy` at the root; the images are feature-gated and target-only.
@@ -41,10 +43,11 @@ done
 target_dir=${CARGO_TARGET_DIR:-$(cd .. && pwd)/target}
 out=$target_dir/$target/release
 
-echo "== firmware: clippy (target $target, features qemu, board)"
+echo "== firmware: clippy (target $target, features qemu, board, board-emu)"
 cargo clippy --release --features qemu --lib --bins -- -D warnings
 cargo clippy --release --features panic-never --bin check -- -D warnings
 cargo clippy --release --features board --lib --bins -- -D warnings
+cargo clippy --release --features board-emu --lib --bin board-emu -- -D warnings
 
 echo "== firmware: QEMU image (mps2-an386) and check image"
 cargo build --release --features qemu --bin qemu --bin check
@@ -123,5 +126,21 @@ else
     fi
   done
   size "$out/board"
+
+  echo "== firmware: board image under emulation (QEMU netduinoplus2, board-emu)"
+  cargo build --release --features board-emu --bin board-emu
+  if ! readelf -S "$out/board-emu" | grep -q '\.vector_table.* 08000000 '; then
+    echo "ci.sh: the board-emu image is not linked at 0x08000000 (wrong memory.x?)" >&2
+    exit 1
+  fi
+  # The same RTIC application: the control tick on TIM2, the link on USART1.
+  symbols=$(nm "$out/board-emu")
+  for handler in TIM2 USART1; do
+    if ! grep -q " T $handler\$" <<<"$symbols"; then
+      echo "ci.sh: the board-emu image has no $handler handler (RTIC task binding lost)" >&2
+      exit 1
+    fi
+  done
+  size "$out/board-emu"
 fi
 echo "ci.sh: firmware OK (QEMU self-check passed, images built)"

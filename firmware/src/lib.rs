@@ -21,9 +21,10 @@
 //! - [`plant`], [`demo`]: a simulated two-axis stage (independent f32 Bouc-Wen + lag) and the
 //!   fixed run the QEMU image checks itself with.
 //!
-//! Board code (STM32F407, `board` feature, target only) is in `board`. The images are
-//! `src/bin/qemu.rs` (feature `qemu`) and `src/bin/board.rs` (feature `board`); see
-//! `firmware/ci.sh`.
+//! Board code (STM32F407, `board` feature; or QEMU netduinoplus2, `board-emu`; target only) is
+//! in `board`. The images are `src/bin/qemu.rs` (feature `qemu`), `src/bin/board.rs` (feature
+//! `board`) and `src/bin/board_emu.rs` (feature `board-emu`, the board image's application
+//! under QEMU); see `firmware/ci.sh`.
 #![cfg_attr(not(test), no_std)]
 
 pub mod ads8681;
@@ -42,7 +43,7 @@ pub mod servo_table;
 pub mod session;
 pub mod xy_loop;
 
-#[cfg(all(target_os = "none", feature = "board"))]
+#[cfg(all(target_os = "none", any(feature = "board", feature = "board-emu")))]
 pub mod board;
 #[cfg(all(target_os = "none", feature = "qemu"))]
 pub mod cmsdk_uart;

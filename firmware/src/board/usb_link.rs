@@ -28,6 +28,7 @@ use usbd_serial::SerialPort;
 
 use piezo_link::{Decoder, Packet, Request};
 
+use super::LinkCounters;
 use crate::session::{self, Session};
 
 /// The USB bus of the board.
@@ -74,25 +75,13 @@ impl Staged {
     }
 }
 
-/// What the link has counted (logged by the board image).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct UsbCounters {
-    /// Bytes received and handed to the session.
-    pub bytes_in: u32,
-    /// Bytes accepted by the serial port.
-    pub bytes_out: u32,
-    /// USB errors other than "would block" on a write (the staged bytes are dropped; the host
-    /// sees one bad packet and resynchronises on the next delimiter).
-    pub errors: u32,
-}
-
 /// The CDC-ACM device and what it has staged.
 pub struct UsbLink {
     device: UsbDevice<'static, Bus>,
     serial: SerialPort<'static, Bus>,
     decoder: Decoder,
     staged: Staged,
-    counters: UsbCounters,
+    counters: LinkCounters,
 }
 
 impl UsbLink {
@@ -117,12 +106,12 @@ impl UsbLink {
                 start: 0,
                 end: 0,
             },
-            counters: UsbCounters::default(),
+            counters: LinkCounters::default(),
         })
     }
 
     /// What the link has counted.
-    pub fn counters(&self) -> UsbCounters {
+    pub fn counters(&self) -> LinkCounters {
         self.counters
     }
 

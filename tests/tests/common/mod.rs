@@ -2,8 +2,10 @@
 //! temporary directory removed when dropped, and a link client that waits for the image to
 //! answer.
 
+use std::io::{BufRead as _, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 use host_sim::link::Client;
@@ -61,39 +63,89 @@ pub fn connect(port: u16) -> Client {
 /// Builds the `qemu` image with its built-in stage file in `<outer target dir>/link-session` (the
 /// link tests share it; the test binaries of one `cargo test` run one after the other); returns
 /// the ELF. Panics with cargo's stderr if the build fails.
+#[allow(dead_code)] // not every test binary runs every image
 pub fn build_link_image() -> PathBuf {
+    build_image("qemu", "qemu")
+}
+
+/// Builds the emulated board image (`board-emu`: the board image's RTIC application on QEMU's
+/// netduinoplus2) with its built-in stage file, as [`build_link_image`] does; returns the ELF.
+#[allow(dead_code)] // not every test binary runs every image
+pub fn build_board_emu_image() -> PathBuf {
+    build_image("board-emu", "board-emu")
+}
+
+/// Builds `bin` of the firmware with `feature` and the built-in stage file in
+/// `<outer target dir>/link-session`; returns the ELF.
+fn build_image(feature: &str, bin: &str) -> PathBuf {
     let target_dir = outer_target_dir().join("link-session");
     let build = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()))
         .current_dir(firmware_dir())
-        .args(["build", "--release", "--features", "qemu", "--bin", "qemu"])
+        .args(["build", "--release", "--features", feature, "--bin", bin])
         .env("CARGO_TARGET_DIR", &target_dir)
         .env_remove("PIEZO_PARAMS")
         .output()
         .expect("run cargo");
     assert!(
         build.status.success(),
-        "building the qemu image failed:\n{}",
+        "building the {bin} image failed:\n{}",
         String::from_utf8_lossy(&build.stderr)
     );
-    target_dir.join(TARGET).join("release/qemu")
+    target_dir.join(TARGET).join("release").join(bin)
 }
 
 /// Runs `elf` with `firmware/run-qemu.sh --link PORT` on a free loopback port (its stdout piped,
 /// at most 300 s); returns QEMU and the port.
+#[allow(dead_code)] // not every test binary runs every image
 pub fn run_link_image(elf: &Path) -> (Qemu, u16) {
+    run_image("run-qemu.sh", elf)
+}
+
+/// Runs the emulated board image `elf` with `firmware/run-board-emu.sh --link PORT` (QEMU
+/// netduinoplus2, USART1 on the port) as [`run_link_image`] does, and waits (60 s at most) for
+/// its line saying the link receives (QEMU drops bytes that reach USART1 before the image has
+/// enabled it). Returns QEMU, the port and QEMU's stdout, line by line (read by a thread).
+#[allow(dead_code)] // not every test binary runs every image
+pub fn run_board_emu_image(elf: &Path) -> (Qemu, u16, mpsc::Receiver<String>) {
+    let (mut qemu, port) = run_image("run-board-emu.sh", elf);
+    let stdout = qemu.0.stdout.take().expect("QEMU's stdout is piped");
+    let (lines, received) = mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines() {
+            let Ok(line) = line else { break };
+            if lines.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let left = deadline.saturating_duration_since(Instant::now());
+        match received.recv_timeout(left) {
+            Ok(line) if line.contains("command link on USART1") => break,
+            Ok(_) => {}
+            Err(e) => panic!("the emulated board did not say its link receives: {e}"),
+        }
+    }
+    (qemu, port, received)
+}
+
+/// Runs `elf` with `firmware/<script> --link PORT` on a free loopback port (its stdout piped, at
+/// most 300 s); returns QEMU and the port.
+fn run_image(script: &str, elf: &Path) -> (Qemu, u16) {
     let port = std::net::TcpListener::bind("127.0.0.1:0")
         .and_then(|l| l.local_addr())
         .expect("a free port")
         .port();
     let qemu = Qemu(
-        Command::new(firmware_dir().join("run-qemu.sh"))
+        Command::new(firmware_dir().join(script))
             .args(["--link", &port.to_string()])
             .arg(elf)
             .env("QEMU_TIMEOUT", "300")
             .stdout(Stdio::piped())
             .stderr(Stdio::null())
             .spawn()
-            .expect("run firmware/run-qemu.sh"),
+            .unwrap_or_else(|e| panic!("run firmware/{script}: {e}")),
     );
     (qemu, port)
 }

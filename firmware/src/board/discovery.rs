@@ -1,0 +1,368 @@
+//! STM32F4-Discovery (STM32F407VG) bring-up: clocks, the two SPI buses, chip selects, the loop
+//! timer, the USB OTG_FS peripheral, and the DAC8563/ADS8681 drivers on them. Target only
+//! (`board` feature; its items are re-exported as `piezo_firmware::board::*`). The tasks that use
+//! them are in `src/bin/board/app.rs` (RTIC 2).
+//!
+//! Wiring (RM0090 / STM32F407 datasheet alternate-function table, AF5 for SPI1/SPI2; the
+//! Discovery user manual UM1472 for pins already used on the board):
+//!
+//! | signal                | MCU pin | notes                                                   |
+//! |-----------------------|---------|---------------------------------------------------------|
+//! | SPI1 SCK → ADS8681    | PA5     | SPI mode 0, 21 MHz (84 MHz APB2 / 4)                    |
+//! | SPI1 MISO ← ADS8681   | PA6     | ADS8681 SDO-0                                           |
+//! | SPI1 MOSI → ADS8681   | PA7     | ADS8681 SDI                                             |
+//! | ADS8681 CONVST/CS     | PE7     | chip select; rising edge starts a conversion            |
+//! | LIS3DSH CS (on board) | PE3     | held high so the on-board accelerometer stays off SPI1  |
+//! | SPI3 SCK → ADS8681 y  | PC10    | second sensor (y axis), SPI mode 0, 21 MHz (42 MHz / 2)  |
+//! | SPI3 MISO ← ADS8681 y | PC11    | AF6                                                     |
+//! | SPI3 MOSI → ADS8681 y | PC12    | AF6                                                     |
+//! | ADS8681 y CONVST/CS   | PD0     | chip select                                             |
+//! | CS43L22 RESET (board) | PD4     | held low: the on-board audio DAC shares PC10/PC12 (I2S3) |
+//! | SPI2 SCK → DAC8563    | PB13    | SPI mode 1, 21 MHz (42 MHz APB1 / 2)                    |
+//! | SPI2 MOSI → DAC8563   | PB15    | DAC8563 DIN (the DAC has no data output; PB14 unused)   |
+//! | DAC8563 SYNC          | PB12    | chip select                                             |
+//! | DAC8563 LDAC, CLR     | —       | tie LDAC low, CLR high (LDAC register set to ignore pin) |
+//! | OTG_FS D− / D+ (board)| PA11/PA12 | AF10, the micro-USB socket CN5: the command link (USB CDC-ACM) |
+//! | OTG_FS VBUS (board)   | PA9     | not used: the USB core's VBUS sensing is off (synopsys-usb-otg) |
+//! | VBUS switch EN (board)| PC0     | held high: the STMPS2141's active-low enable, so the board never drives VBUS |
+//!
+//! DAC8563 channel A drives the x amplifier, channel B the y amplifier.
+//!
+//! The two converters sit on separate buses because they need different SPI modes (ADS8681
+//! mode 0 at power-on, DAC8563 mode 1).
+//!
+//! Clocks: 8 MHz HSE crystal → PLL (VCO 336 MHz) → SYSCLK 168 MHz (/2), 48 MHz for USB (/7);
+//! AHB 168 MHz, APB2 84 MHz, APB1 42 MHz (TIM2 kernel clock 84 MHz). The DWT cycle counter runs
+//! at SYSCLK ([`SYSCLK_HZ`]).
+//!
+//! Loop timer: TIM2 counts at [`TIMER_HZ`] and updates every [`TIMER_TICKS_PER_PERIOD`] counts,
+//! at [`LOOP_RATE_HZ`], the stage file's loop rate (10 kHz for the default file; a rate that
+//! does not divide 84 MHz stops the build). Each update raises the TIM2 interrupt, the control
+//! tick. Deadline: a tick must have written both DAC codes within one period
+//! ([`PERIOD_CYCLES`] core cycles, 100 µs at 10 kHz) of the update that started it; [`super::deadline`]
+//! measures that with the DWT cycle counter. Expected cost: two 32-bit ADC frames (1.5 µs each at
+//! 21 MHz), two 24-bit DAC frames (1.1 µs each) and the loop body (2 375 instructions for the
+//! two-axis tick under QEMU, `firmware/bench.sh`), i.e. roughly 15–25 µs at 168 MHz; the measured
+//! worst case is logged once a second (`src/bin/board.rs`).
+
+use embedded_hal_bus::spi::{ExclusiveDevice, NoDelay};
+use stm32f4xx_hal::gpio::{Output, PB12, PD0, PE7};
+use stm32f4xx_hal::otg_fs::{UsbBus, USB};
+use stm32f4xx_hal::pac;
+use stm32f4xx_hal::prelude::*;
+use stm32f4xx_hal::rcc::Config;
+use stm32f4xx_hal::spi::{Mode, Phase, Polarity, Spi};
+use stm32f4xx_hal::timer::{Counter, Event, Flag};
+
+use core::mem::MaybeUninit;
+
+use cortex_m::peripheral::DWT;
+use usb_device::bus::UsbBusAllocator;
+
+use super::usb_link::{Bus as UsbBusType, UsbLink};
+use super::LOOP_RATE_HZ;
+use crate::ads8681::{Ads8681, InputRange};
+use crate::codes::SensorScale;
+use crate::converter::DriverError;
+use crate::dac8563::{Dac8563, Dac8563Channel};
+use crate::xy_loop::{AdcPair, XyIo};
+
+/// Core clock, the DWT cycle counter's rate \[Hz\].
+pub const SYSCLK_HZ: u32 = 168_000_000;
+
+/// TIM2's counting rate: its kernel clock, prescaler 1 \[Hz\].
+pub const TIMER_HZ: u32 = 84_000_000;
+
+/// TIM2 counts per loop period.
+pub const TIMER_TICKS_PER_PERIOD: u32 = TIMER_HZ / LOOP_RATE_HZ;
+
+/// Core cycles per TIM2 count.
+pub const CYCLES_PER_TIMER_TICK: u32 = SYSCLK_HZ / TIMER_HZ;
+
+/// The loop period, the tick's deadline \[core cycles\] (16 800 at 10 kHz).
+pub const PERIOD_CYCLES: u32 = TIMER_TICKS_PER_PERIOD * CYCLES_PER_TIMER_TICK;
+
+const _: () = assert!(
+    LOOP_RATE_HZ > 0 && TIMER_HZ.is_multiple_of(LOOP_RATE_HZ),
+    "the stage file's loop rate must divide TIM2's 84 MHz (the board's tick would run at another rate than the model's sample period)"
+);
+
+/// TIM2 as the loop timer: counts at [`TIMER_HZ`], from 0 at each update.
+pub struct LoopTimer(Counter<pac::TIM2, TIMER_HZ>);
+
+impl LoopTimer {
+    /// True if TIM2's update flag is set (an update the tick has not served yet).
+    #[inline]
+    pub fn update_pending(&self) -> bool {
+        self.0.flags().contains(Flag::Update)
+    }
+
+    /// Clears the update flag (the tick serves the update).
+    #[inline]
+    pub fn clear_update(&mut self) {
+        self.0.clear_flags(Flag::Update);
+    }
+
+    /// TIM2's counter: timer counts since the latest update ([`CYCLES_PER_TIMER_TICK`] core
+    /// cycles each).
+    #[inline]
+    pub fn count(&mut self) -> u32 {
+        self.0.now().ticks()
+    }
+}
+
+/// The DWT cycle counter (CYCCNT, [`SYSCLK_HZ`]), enabled by [`bring_up`].
+pub struct CycleCounter(());
+
+impl CycleCounter {
+    /// Core cycles, wrapping every 2³² (25.6 s).
+    #[inline]
+    pub fn now(&mut self) -> u32 {
+        DWT::cycle_count()
+    }
+}
+
+/// The board's converters as the loop sees them.
+pub type Io = XyIo<Dac8563<DacSpi>, AdcPair<Ads8681<AdcSpi>, Ads8681<AdcYSpi>>>;
+
+/// The command link's transport: USB CDC-ACM.
+pub type Link = UsbLink;
+
+/// The interrupt the link task is bound to; the tick pends it when bytes wait.
+pub const LINK_INTERRUPT: pac::Interrupt = pac::Interrupt::OTG_FS;
+
+/// How the boot log names the link.
+pub const LINK_DESCRIPTION: &str = "USB CDC-ACM";
+
+/// Words of OTG_FS endpoint memory (the HAL's examples' size).
+const EP_MEMORY_WORDS: usize = 1024;
+
+/// Memory the bring-up hands out for the rest of the run (an RTIC `init` local).
+pub struct Statics {
+    ep_memory: [u32; EP_MEMORY_WORDS],
+    usb_bus: MaybeUninit<UsbBusAllocator<UsbBusType>>,
+}
+
+impl Statics {
+    /// Not yet used.
+    pub const fn new() -> Self {
+        Self {
+            ep_memory: [0; EP_MEMORY_WORDS],
+            usb_bus: MaybeUninit::uninit(),
+        }
+    }
+}
+
+impl Default for Statics {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// What the RTIC tasks own after [`bring_up`].
+pub struct Parts {
+    /// The loop's converters.
+    pub io: Io,
+    /// TIM2, not started ([`start_loop_timer`]).
+    pub loop_timer: LoopTimer,
+    /// The command link's transport.
+    pub link: Link,
+    /// The deadline monitor's clock.
+    pub cycles: CycleCounter,
+}
+
+/// The DWT cycle counter, then [`Board::init`] (clocks, pins, converters), the converters as
+/// the loop's I/O (DAC channel A → x, B → y; one ADS8681 per axis through `scale`) and the USB
+/// CDC-ACM device. `statics` is used once (RTIC's `init` runs once).
+pub fn bring_up(
+    mut core: cortex_m::Peripherals,
+    dp: pac::Peripherals,
+    statics: &'static mut Statics,
+    scale: SensorScale,
+) -> Result<Parts, BoardError> {
+    core.DCB.enable_trace();
+    core.DWT.enable_cycle_counter();
+    let Board {
+        dac,
+        adc,
+        adc_y,
+        loop_timer,
+        usb,
+    } = Board::init(dp)?;
+    let io = XyIo {
+        dac,
+        dac_channels: [Dac8563Channel::A, Dac8563Channel::B],
+        sensor: AdcPair {
+            x: adc,
+            y: adc_y,
+            scale,
+        },
+    };
+    let bus: &'static UsbBusAllocator<UsbBusType> = statics
+        .usb_bus
+        .write(UsbBus::new(usb, &mut statics.ep_memory));
+    let link = UsbLink::new(bus).map_err(BoardError::Usb)?;
+    Ok(Parts {
+        io,
+        loop_timer,
+        link,
+        cycles: CycleCounter(()),
+    })
+}
+
+/// After each tick: nothing (the real stage moves on its own).
+#[inline(always)]
+pub fn end_of_tick(_io: &mut Io) {}
+
+/// The ADS8681 as an SPI device on SPI1 with CS on PE7.
+pub type AdcSpi = ExclusiveDevice<Spi<pac::SPI1>, PE7<Output>, NoDelay>;
+/// The y-axis ADS8681 as an SPI device on SPI3 with CS on PD0.
+pub type AdcYSpi = ExclusiveDevice<Spi<pac::SPI3>, PD0<Output>, NoDelay>;
+/// The DAC8563 as an SPI device on SPI2 with SYNC on PB12.
+pub type DacSpi = ExclusiveDevice<Spi<pac::SPI2>, PB12<Output>, NoDelay>;
+
+/// SPI error of the board's devices (GPIO chip selects are infallible on this MCU).
+pub type AdcError = DriverError<<AdcSpi as embedded_hal::spi::ErrorType>::Error>;
+/// SPI error of the y-axis ADC (same kind as [`AdcError`]).
+pub type AdcYError = DriverError<<AdcYSpi as embedded_hal::spi::ErrorType>::Error>;
+/// SPI error of the board's DAC.
+pub type DacError = DriverError<<DacSpi as embedded_hal::spi::ErrorType>::Error>;
+
+/// Why bring-up failed.
+#[derive(Debug)]
+pub enum BoardError {
+    /// The DAC init sequence failed.
+    Dac(DacError),
+    /// The x ADC init (range write and readback) failed.
+    Adc(AdcError),
+    /// The y ADC init failed.
+    AdcY(AdcYError),
+    /// TIM2's kernel clock is not [`TIMER_HZ`], or the timer could not be started.
+    Timer,
+    /// The PLL's 48 MHz output is off by more than USB's ±0.25 %.
+    UsbClock,
+    /// usb-device refused the CDC-ACM device's descriptors.
+    Usb(usb_device::prelude::BuilderError),
+}
+
+/// Everything the loop needs.
+pub struct Board {
+    /// Piezo amplifier DAC (channel A).
+    pub dac: Dac8563<DacSpi>,
+    /// Displacement sensor ADC, x axis.
+    pub adc: Ads8681<AdcSpi>,
+    /// Displacement sensor ADC, y axis.
+    pub adc_y: Ads8681<AdcYSpi>,
+    /// TIM2, counting at [`TIMER_HZ`], not started ([`start_loop_timer`]).
+    pub loop_timer: LoopTimer,
+    /// The OTG_FS peripheral and its pins, for the USB bus.
+    pub usb: USB,
+}
+
+impl Board {
+    /// Clocks, pins, buses, timer, USB peripheral; then the DAC init (outputs to 0 V) and the
+    /// ADC init (range ±10.24 V, read back).
+    pub fn init(dp: pac::Peripherals) -> Result<Self, BoardError> {
+        let mut rcc = dp.RCC.freeze(
+            Config::hse(8.MHz())
+                .sysclk(SYSCLK_HZ.Hz())
+                .pclk1(42.MHz())
+                .pclk2(84.MHz())
+                .require_pll48clk(),
+        );
+        if !rcc.clocks.is_pll48clk_valid() {
+            return Err(BoardError::UsbClock);
+        }
+        if rcc.clocks.timclk1().raw() != TIMER_HZ || rcc.clocks.sysclk().raw() != SYSCLK_HZ {
+            return Err(BoardError::Timer);
+        }
+        let gpioa = dp.GPIOA.split(&mut rcc);
+        let gpiob = dp.GPIOB.split(&mut rcc);
+        let gpioc = dp.GPIOC.split(&mut rcc);
+        let gpiod = dp.GPIOD.split(&mut rcc);
+        let gpioe = dp.GPIOE.split(&mut rcc);
+        // Keep the board's VBUS power switch off (active-low enable): the host powers VBUS.
+        let mut vbus_switch = gpioc.pc0.into_push_pull_output();
+        vbus_switch.set_high();
+        // Keep the on-board CS43L22 audio DAC in reset: its I2S3 pins are SPI3's.
+        let mut audio_reset = gpiod.pd4.into_push_pull_output();
+        audio_reset.set_low();
+
+        // Keep the on-board LIS3DSH deselected for good; it shares SPI1. Dropping the pin
+        // handle leaves the pin configured and high.
+        let mut accel_cs = gpioe.pe3.into_push_pull_output();
+        accel_cs.set_high();
+
+        let mode0 = Mode {
+            polarity: Polarity::IdleLow,
+            phase: Phase::CaptureOnFirstTransition,
+        };
+        let mode1 = Mode {
+            polarity: Polarity::IdleLow,
+            phase: Phase::CaptureOnSecondTransition,
+        };
+        let spi1 = Spi::new(
+            dp.SPI1,
+            (Some(gpioa.pa5), Some(gpioa.pa6), Some(gpioa.pa7)),
+            mode0,
+            21.MHz(),
+            &mut rcc,
+        );
+        let spi2 = Spi::new(
+            dp.SPI2,
+            (Some(gpiob.pb13), Some(gpiob.pb14), Some(gpiob.pb15)),
+            mode1,
+            21.MHz(),
+            &mut rcc,
+        );
+        let spi3 = Spi::new(
+            dp.SPI3,
+            (Some(gpioc.pc10), Some(gpioc.pc11), Some(gpioc.pc12)),
+            mode0,
+            21.MHz(),
+            &mut rcc,
+        );
+        // Chip selects start high (ExclusiveDevice sets them high; GPIO errors are Infallible).
+        let adc_cs = gpioe.pe7.into_push_pull_output();
+        let dac_sync = gpiob.pb12.into_push_pull_output();
+        let Ok(adc_spi) = ExclusiveDevice::new_no_delay(spi1, adc_cs);
+        let Ok(dac_spi) = ExclusiveDevice::new_no_delay(spi2, dac_sync);
+        let adc_y_cs = gpiod.pd0.into_push_pull_output();
+        let Ok(adc_y_spi) = ExclusiveDevice::new_no_delay(spi3, adc_y_cs);
+
+        let mut dac = Dac8563::new(dac_spi);
+        dac.init().map_err(BoardError::Dac)?;
+        let range = InputRange::from_range_v(crate::params::ADC_RANGE_V);
+        let mut adc = Ads8681::new(adc_spi, range);
+        adc.init().map_err(BoardError::Adc)?;
+        let mut adc_y = Ads8681::new(adc_y_spi, range);
+        adc_y.init().map_err(BoardError::AdcY)?;
+
+        let usb = USB::new(
+            (dp.OTG_FS_GLOBAL, dp.OTG_FS_DEVICE, dp.OTG_FS_PWRCLK),
+            (gpioa.pa11, gpioa.pa12),
+            &rcc.clocks,
+        );
+        Ok(Self {
+            dac,
+            adc,
+            adc_y,
+            loop_timer: LoopTimer(dp.TIM2.counter(&mut rcc)),
+            usb,
+        })
+    }
+}
+
+/// Starts TIM2 at the loop rate with its update interrupt on: the first tick comes one period
+/// later (starting it raises no update flag).
+pub fn start_loop_timer(timer: &mut LoopTimer) -> Result<(), BoardError> {
+    let timer = &mut timer.0;
+    timer
+        .start(fugit::TimerDurationU32::<TIMER_HZ>::from_ticks(
+            TIMER_TICKS_PER_PERIOD,
+        ))
+        .map_err(|_| BoardError::Timer)?;
+    timer.clear_flags(Flag::Update);
+    timer.listen(Event::Update);
+    Ok(())
+}
