@@ -66,6 +66,13 @@
 //!   corners over up to three quarters of the trial do not count as noise; `b = ⟨|Q(f)|²⟩` over
 //!   (0, 1/(2T)) is the share of a white noise Q passes. s ≤ 1 keeps the contraction
 //!   (|1 − s·z| ≤ (1 − s) + s·|1 − z|). A trial far above the noise learns with s ≈ 1.
+//! * **The model's gain, from the trial** ([`Learning::gain_ratio`]): the measured output against
+//!   the model's own output for the trial's command, `y_k ≈ γ̂·ŷ(u_k) + ĉ` (least squares; ŷ from
+//!   the model's state at rest, or in its periodic state for a periodic trial). Given when the
+//!   model explains the trial (R² ≥ [`GAIN_FIT_MIN_R2`]): a caller may re-solve u_0 for
+//!   (r − ĉ)/γ̂ and learn with L's gain λ/γ̂ ([`Learning::with_model_gain`]): a stage file
+//!   whose gain is off then starts each step from a base that fits the stage, and learns as fast
+//!   as a right one. Q is not changed: the rule's gain set then bounds the estimate's error.
 //! * **Limits**: the result is clamped to `[output_min_v, output_max_v]` and to the slew limit S_r:
 //!   a forward pass `u[j] ∈ u[j−1] ± S_r·T` (from rest at `output_min_v` for a trial from rest),
 //!   and for a periodic table a backward pass from the first sample, which also holds the wrap
@@ -90,6 +97,8 @@ pub const RULE_FREQUENCIES: usize = 2048;
 pub const RULE_MODE_SAMPLES: usize = 33;
 /// Damping ratio of the mode a model without one may lack (module doc): light, as a flexure's.
 pub const UNMODELLED_MODE_DAMPING: f64 = 0.02;
+/// Least R² of `y ≈ γ̂·ŷ + c` for [`Learning::gain_ratio`] to give γ̂.
+pub const GAIN_FIT_MIN_R2: f64 = 0.9;
 /// Fourth differences of a white noise: var(Δ⁴n) = C(8, 4)·σ² = 70·σ².
 const FOURTH_DIFFERENCE_VARIANCE: f64 = 70.0;
 /// The 25th percentile of |N(0, 1)|: Φ⁻¹(0.625).
@@ -486,6 +495,76 @@ impl Learning {
             .map(|i| 1.0 - tol + 2.0 * tol * i as f64 / (RULE_MODE_SAMPLES - 1) as f64)
             .map(mode_at)
             .fold(mode_at(on_peak), f64::max)
+    }
+
+    /// This learning for a stage whose gain is `gain_ratio` (γ̂ > 0, finite) times the model's:
+    /// L's gain becomes λ/γ̂ (Q and its cut-off stay: the rule's set of gains then stands for the
+    /// estimate's error, not the model's). Refuses a γ̂ outside \[gain_min, gain_max\].
+    pub fn with_model_gain(&self, gain_ratio: f64) -> Result<Self, ParamError> {
+        let (lo, hi) = (
+            f64::from(self.params.gain_min),
+            f64::from(self.params.gain_max),
+        );
+        if !(gain_ratio >= lo && gain_ratio <= hi) {
+            return Err(ParamError::OutOfRange {
+                field: "gain_ratio",
+                value: gain_ratio as f32,
+                requirement: "in [gain_min, gain_max]",
+            });
+        }
+        let mut scaled = *self;
+        scaled.learning_gain = self.learning_gain / gain_ratio;
+        Ok(scaled)
+    }
+
+    /// (γ̂, ĉ \[m\]): the plant/model gain ratio and offset the trial shows, `y ≈ γ̂·ŷ + ĉ`
+    /// (module doc), or `None` when the model does
+    /// not explain the trial (R² below [`GAIN_FIT_MIN_R2`], a constant prediction, a slice
+    /// shorter than 2 or of another length, or a non-finite result). Non-finite samples are left
+    /// out of the fit.
+    pub fn gain_ratio(&self, trial: &Trial<'_>) -> Option<(f64, f64)> {
+        let n = trial.command_v.len();
+        if n < 2 || trial.measured_m.len() != n {
+            return None;
+        }
+        let mut state = ModelState::at_rest(if trial.periodic {
+            trial.command_v[0]
+        } else {
+            self.limits.output_min_v
+        });
+        if trial.periodic {
+            for &u in trial.command_v {
+                self.model.step(&mut state, u);
+            }
+        }
+        let (mut count, mut sp, mut sy, mut spp, mut syy, mut spy) =
+            (0.0f64, 0.0, 0.0, 0.0, 0.0, 0.0);
+        for (&u, &y) in trial.command_v.iter().zip(trial.measured_m) {
+            let predicted = f64::from(self.model.step(&mut state, u));
+            let y = f64::from(y);
+            if predicted.is_finite() && y.is_finite() {
+                count += 1.0;
+                sp += predicted;
+                sy += y;
+                spp += predicted * predicted;
+                syy += y * y;
+                spy += predicted * y;
+            }
+        }
+        if count < 2.0 {
+            return None;
+        }
+        let var_p = spp - sp * sp / count;
+        let var_y = syy - sy * sy / count;
+        let cov = spy - sp * sy / count;
+        if !(var_p > 0.0 && var_y > 0.0) {
+            return None;
+        }
+        let gamma = cov / var_p;
+        let offset = (sy - gamma * sp) / count;
+        let r2 = cov * cov / (var_p * var_y);
+        (gamma.is_finite() && gamma > 0.0 && offset.is_finite() && r2 >= GAIN_FIT_MIN_R2)
+            .then_some((gamma, offset))
     }
 
     /// |Q(f)|·W(f): the worst contraction of the error at `f_hz` per trial.
@@ -1000,6 +1079,43 @@ mod tests {
                 summary.learned_share
             );
         }
+    }
+
+    /// The gain a trial shows: a stage whose output is 1.5 × the model's plus 2 µm gives (1.5,
+    /// 2 µm); L's gain follows it, and a ratio outside the rule's gain set is refused.
+    #[test]
+    fn the_trial_shows_the_model_gain_and_l_follows_it() {
+        let (model, _, learning) = x_stage(1e5, 0.0, Default::default());
+        const N: usize = 500;
+        let command: [f32; N] = core::array::from_fn(|j| {
+            60.0 + 50.0 * libm::sinf(2.0 * core::f32::consts::PI * j as f32 / N as f32)
+        });
+        let mut state = ModelState::at_rest(command[0]);
+        for &u in &command {
+            model.step(&mut state, u);
+        }
+        let measured: [f32; N] =
+            core::array::from_fn(|j| 1.5 * model.step(&mut state, command[j]) + 2e-6);
+        let trial = Trial {
+            reference_m: &measured,
+            command_v: &command,
+            measured_m: &measured,
+            base_v: &command,
+            periodic: true,
+        };
+        let (gain, offset) = learning.gain_ratio(&trial).unwrap();
+        assert!((gain - 1.5).abs() < 1e-4, "{gain}");
+        assert!((offset - 2e-6).abs() < 1e-9, "{offset}");
+        let scaled = learning.with_model_gain(gain).unwrap();
+        assert!((scaled.learning_gain() * gain - learning.learning_gain()).abs() < 1e-12);
+        assert!(learning.with_model_gain(2.0).is_err());
+        // A measured output the model does not explain gives no ratio.
+        let unrelated: [f32; N] = core::array::from_fn(|j| if j % 2 == 0 { 1e-6 } else { 0.0 });
+        let noise = Trial {
+            measured_m: &unrelated,
+            ..trial
+        };
+        assert!(learning.gain_ratio(&noise).is_none());
     }
 
     #[test]

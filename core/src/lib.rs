@@ -46,7 +46,9 @@ pub use inverse_chain::{
     compensate_pair, compensate_single, FeedforwardAxis, FeedforwardCounts, InverseChain,
 };
 pub use io_chain::IoChain;
-pub use learning::{Learning, LearningParams, StepSummary, Trial, UNMODELLED_MODE_DAMPING};
+pub use learning::{
+    Learning, LearningParams, StepSummary, Trial, GAIN_FIT_MIN_R2, UNMODELLED_MODE_DAMPING,
+};
 pub use oscillator::{HystereticOscillator, OscillatorParams, OscillatorState};
 pub use sensitivity::{static_sensitivities, SENSITIVITY_PARAMETERS};
 pub use servo::{Servo, ServoMode, ServoOutput, ServoParams, ServoState, ServoStatus};

@@ -227,11 +227,20 @@ impl Compensation {
 /// Runs the firmware's chain for the stage file at `params` over the record at `reference`;
 /// every voltage must be finite (refused naming the tick, its time and the reference's line).
 pub fn compensate(params: &Path, reference: &Path) -> Result<Compensation, String> {
+    compensate_record(params, reference, &read_reference(reference)?)
+}
+
+/// [`compensate`] over `record`, read from `reference` (perhaps then changed; errors name that
+/// file's lines).
+fn compensate_record(
+    params: &Path,
+    reference: &Path,
+    record: &Reference,
+) -> Result<Compensation, String> {
     let (file, valid) = StageFile::load(params).map_err(|e| e.to_string())?;
-    let record = read_reference(reference)?;
-    check_period(reference, &record, params, file.stage.loop_rate_hz)?;
+    check_period(reference, record, params, file.stage.loop_rate_hz)?;
     let axes = feedforward_axes(&file, &valid, params)?;
-    let result = run_chain(&axes, params, reference, &record)?;
+    let result = run_chain(&axes, params, reference, record)?;
     for (name, u) in &result.voltages_v {
         if let Some(k) = u.iter().position(|v| !v.is_finite()) {
             return Err(format!(
@@ -244,6 +253,28 @@ pub fn compensate(params: &Path, reference: &Path) -> Result<Compensation, Strin
         }
     }
     Ok(result)
+}
+
+/// The compensator's command (from rest, or periodic as [`compensate_periodic`]) for a stage
+/// whose output is `γ·y_model + c` per axis (`gain_offset[axis] = (γ, c)`, γ > 0): the chain runs
+/// over `(r − c)/γ`, the output the model must give for the stage to give r.
+pub fn compensate_for_gain(
+    params: &Path,
+    reference: &Path,
+    periodic: bool,
+    gain_offset: &[(f64, f64)],
+) -> Result<Compensation, String> {
+    let mut record = read_reference(reference)?;
+    for ((_, r), &(gain, offset)) in record.axes.iter_mut().zip(gain_offset) {
+        for v in r.iter_mut() {
+            *v = ((f64::from(*v) - offset) / gain) as f32;
+        }
+    }
+    if periodic {
+        compensate_periodic_record(params, reference, &record)
+    } else {
+        compensate_record(params, reference, &record)
+    }
 }
 
 /// Warm-up of [`compensate_periodic`]: whole periods lasting at least this \[s\] (and at least
@@ -259,9 +290,17 @@ pub const MIN_WARMUP_PERIODS: usize = 2;
 /// taken, and one more (so that the look-ahead of the period's end reads the next period, not
 /// the record's held end); the taken period, `t_s` the record's. `counts` are of the whole run.
 pub fn compensate_periodic(params: &Path, reference: &Path) -> Result<Compensation, String> {
+    compensate_periodic_record(params, reference, &read_reference(reference)?)
+}
+
+/// [`compensate_periodic`] over `record`, read from `reference` (perhaps then changed).
+fn compensate_periodic_record(
+    params: &Path,
+    reference: &Path,
+    record: &Reference,
+) -> Result<Compensation, String> {
     let (file, valid) = StageFile::load(params).map_err(|e| e.to_string())?;
-    let record = read_reference(reference)?;
-    check_period(reference, &record, params, file.stage.loop_rate_hz)?;
+    check_period(reference, record, params, file.stage.loop_rate_hz)?;
     let axes = feedforward_axes(&file, &valid, params)?;
     let n = record.t_s.len();
     let period_s = n as f64 / f64::from(file.stage.loop_rate_hz);

@@ -26,7 +26,8 @@
 //!   the error (`noise_rms_m`) and the share of L·e learned (`learned_share`); the rule.
 
 use crate::compensate::{
-    compensate, compensate_periodic, feedforward_axes, read_reference, Compensation, Reference,
+    compensate, compensate_for_gain, compensate_periodic, feedforward_axes, read_reference,
+    Compensation, Reference,
 };
 use crate::csv::{read_csv, write_csv, Table};
 use crate::identify::unit_factor;
@@ -131,6 +132,9 @@ pub struct AxisStep {
     pub noise_rms_m: f64,
     /// The share of L·e learned (1 far above the noise, 0 at it).
     pub learned_share: f64,
+    /// (γ̂, ĉ \[m\]): the stage's output against the model's for the trial's command, when the
+    /// model explains the trial (`Learning::gain_ratio`).
+    pub model_gain: Option<(f64, f64)>,
 }
 
 /// What a step computed.
@@ -223,6 +227,8 @@ impl LearnStep {
                     "limited": a.limited,
                     "noise_rms_m": a.noise_rms_m,
                     "learned_share": a.learned_share,
+                    "model_gain_ratio": a.model_gain.map(|g| g.0),
+                    "base_resolved": rebase(&[a.model_gain], &self.params).is_some(),
                 }),
             );
         }
@@ -450,6 +456,68 @@ pub fn base_command(
     }
 }
 
+/// u_0 is re-solved when the trial shows the stage's gain more than this factor away from the
+/// model's (either way).
+pub const REBASE_MIN_RATIO: f64 = 1.1;
+
+/// Per axis, (γ̂, ĉ) of `Learning::gain_ratio` for the trial (`None` where the model does not
+/// explain it).
+pub fn model_gains(
+    learnings: &[Learning],
+    reference: &Reference,
+    command_v: &[Vec<f32>],
+    measured_m: &[Vec<f32>],
+    periodic: bool,
+) -> Vec<Option<(f64, f64)>> {
+    learnings
+        .iter()
+        .enumerate()
+        .map(|(i, learning)| {
+            learning.gain_ratio(&Trial {
+                reference_m: &reference.axes[i].1,
+                command_v: &command_v[i],
+                measured_m: &measured_m[i],
+                base_v: &command_v[i],
+                periodic,
+            })
+        })
+        .collect()
+}
+
+/// The (γ, c) per axis to re-solve u_0 for (`compensate::compensate_for_gain`), when some axis's
+/// γ̂ lies more than [`REBASE_MIN_RATIO`] from 1: that axis's (γ̂ held to the learning's
+/// [gain_min, gain_max], ĉ), (1, 0) for the others. `None`: u_0 stands. The learning's L and Q
+/// are those of the stage file either way (their rule's promise is for the file's model).
+pub fn rebase(gains: &[Option<(f64, f64)>], params: &LearningParams) -> Option<Vec<(f64, f64)>> {
+    let off = |g: &Option<(f64, f64)>| {
+        g.is_some_and(|(gamma, _)| gamma.ln().abs() > REBASE_MIN_RATIO.ln())
+    };
+    gains.iter().any(off).then(|| {
+        gains
+            .iter()
+            .map(|g| match g {
+                Some((gamma, c)) if off(g) => (
+                    gamma.clamp(f64::from(params.gain_min), f64::from(params.gain_max)),
+                    *c,
+                ),
+                _ => (1.0, 0.0),
+            })
+            .collect()
+    })
+}
+
+/// The learnings for the (γ, c) of [`rebase`]: L's gain divided by γ (`Learning::with_model_gain`).
+pub fn rescaled(
+    learnings: &[Learning],
+    gain_offset: &[(f64, f64)],
+) -> Result<Vec<Learning>, String> {
+    learnings
+        .iter()
+        .zip(gain_offset)
+        .map(|(learning, &(gain, _))| learning.with_model_gain(gain).map_err(|e| e.to_string()))
+        .collect()
+}
+
 /// Each axis's learning, from the stage file's feed-forward (`names`: the axes' names).
 pub fn axis_learnings(
     axes: &[FeedforwardAxis],
@@ -503,10 +571,69 @@ pub fn step_axes(
             limited: summary.limited,
             noise_rms_m: summary.noise_rms_m,
             learned_share: summary.learned_share,
+            model_gain: None,
         });
         next_v.push(next);
     }
     Ok((steps, next_v))
+}
+
+/// Where u_0 comes from: the stage file and the reference file, and whether it is periodic.
+#[derive(Debug, Clone, Copy)]
+pub struct StepFiles<'a> {
+    /// The stage file.
+    pub params: &'a Path,
+    /// The reference record (one period when `periodic`).
+    pub reference: &'a Path,
+    /// Periodic trials.
+    pub periodic: bool,
+}
+
+/// One learning step per axis, the model's gain checked against the trial first: when the trial
+/// shows a stage gain more than [`REBASE_MIN_RATIO`] off the model's ([`model_gains`],
+/// [`rebase`]), u_0 is re-solved for it (`compensate_for_gain`) and L's gain divided by it
+/// ([`rescaled`]); else the step of [`step_axes`] with `base_v`. Each axis's step carries its γ̂.
+pub fn step_checked(
+    learnings: &[Learning],
+    names: &[&'static str],
+    reference: &Reference,
+    files: &StepFiles<'_>,
+    command_v: &[Vec<f32>],
+    measured_m: &[Vec<f32>],
+    base_v: &[Vec<f32>],
+) -> Result<(Vec<AxisStep>, Vec<Vec<f32>>), String> {
+    let gains = model_gains(learnings, reference, command_v, measured_m, files.periodic);
+    let params = learnings.first().map(|l| *l.params()).unwrap_or_default();
+    let (mut steps, next) = match rebase(&gains, &params) {
+        Some(gain_offset) => {
+            let base =
+                compensate_for_gain(files.params, files.reference, files.periodic, &gain_offset)?;
+            let base_v: Vec<Vec<f32>> = base.voltages_v.into_iter().map(|(_, u)| u).collect();
+            let learnings = rescaled(learnings, &gain_offset)?;
+            step_axes(
+                &learnings,
+                names,
+                reference,
+                command_v,
+                measured_m,
+                &base_v,
+                files.periodic,
+            )?
+        }
+        None => step_axes(
+            learnings,
+            names,
+            reference,
+            command_v,
+            measured_m,
+            base_v,
+            files.periodic,
+        )?,
+    };
+    for (step, gain) in steps.iter_mut().zip(gains) {
+        step.model_gain = gain;
+    }
+    Ok((steps, next))
 }
 
 /// Runs one learning step (nothing written).
@@ -570,7 +697,12 @@ pub fn learn(a: &LearnArgs) -> Result<LearnStep, String> {
         );
     }
     let base_v: Vec<Vec<f32>> = base.voltages_v.iter().map(|(_, u)| u.clone()).collect();
-    let (steps, next) = step_axes(&learnings, &names, &reference, &u, &y, &base_v, a.periodic)?;
+    let files = StepFiles {
+        params: &a.params,
+        reference: &a.reference,
+        periodic: a.periodic,
+    };
+    let (steps, next) = step_checked(&learnings, &names, &reference, &files, &u, &y, &base_v)?;
     let next_v = base
         .voltages_v
         .iter()

@@ -25,7 +25,7 @@
 
 use crate::compensate::feedforward_axes;
 use crate::effects::Effects;
-use crate::learn::rule_text;
+use crate::learn::{rebase, rescaled, rule_text};
 use crate::plant::XyStage;
 use crate::plot::{plot_grid, Chart, Legend, Panel, Role, Series};
 use crate::servo_bench::{
@@ -286,7 +286,24 @@ fn run_case(
         [&mut ux, &mut uy],
     );
     let warm = lead + warm_periods * period;
-    let base: [Vec<f32>; 2] = [&ux, &uy].map(|u| u[warm..warm + period].to_vec());
+    let mut base: [Vec<f32>; 2] = [&ux, &uy].map(|u| u[warm..warm + period].to_vec());
+    // u_0 re-solved for the gain and offset a trial shows (`learn::rebase`, as `host-sim learn`).
+    let rebased = |gain_offset: &[(f64, f64)]| -> [Vec<f32>; 2] {
+        let scaled: [Vec<f32>; 2] = [0, 1].map(|a| {
+            let (gain, offset) = gain_offset[a];
+            full_r[a]
+                .iter()
+                .map(|&v| ((f64::from(v) - offset) / gain) as f32)
+                .collect()
+        });
+        let (mut ux, mut uy) = (vec![0.0f32; full], vec![0.0f32; full]);
+        compensate_pair(
+            [&axes[0], &axes[1]],
+            [&scaled[0], &scaled[1]],
+            [&mut ux, &mut uy],
+        );
+        [&ux, &uy].map(|u| u[warm..warm + period].to_vec())
+    };
     let mut table = base.clone();
     let mut rig = Rig::new(ctx.stage, ctx.effects, fs);
     let mut states = [0, 1].map(|a| ServoState::at_rest(axes[a].rest_v, mode.servo_mode()));
@@ -345,15 +362,30 @@ fn run_case(
             }
             break;
         }
+        let y: [Vec<f32>; 2] = [0, 1].map(|a| y_sum[a].iter().map(|v| (v / m) as f32).collect());
+        let u: [Vec<f32>; 2] = [0, 1].map(|a| u_sum[a].iter().map(|v| (v / m) as f32).collect());
+        let gains = [0, 1].map(|a| {
+            learning[a].gain_ratio(&Trial {
+                reference_m: &r[a],
+                command_v: &u[a],
+                measured_m: &y[a],
+                base_v: &base[a],
+                periodic: true,
+            })
+        });
+        let mut stepping = learning.clone();
+        if let Some(gain_offset) = rebase(&gains, &s.params) {
+            base = rebased(&gain_offset);
+            stepping = rescaled(&learning, &gain_offset)?;
+        }
         for a in 0..2 {
-            let y: Vec<f32> = y_sum[a].iter().map(|v| (v / m) as f32).collect();
-            let u: Vec<f32> = u_sum[a].iter().map(|v| (v / m) as f32).collect();
-            learning[a]
+            let (y, u) = (&y[a], &u[a]);
+            stepping[a]
                 .step(
                     &Trial {
                         reference_m: &r[a],
-                        command_v: &u,
-                        measured_m: &y,
+                        command_v: u,
+                        measured_m: y,
                         base_v: &base[a],
                         periodic: true,
                     },

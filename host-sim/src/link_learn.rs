@@ -36,8 +36,8 @@
 use crate::compensate::{feedforward_axes, read_reference, Reference};
 use crate::csv::{write_csv, Table};
 use crate::learn::{
-    axis_learnings, base_command, read_learned_table, rule_text, step_axes, write_learned_table,
-    AxisStep, LearnStep, LearningArgs, TableContext,
+    axis_learnings, base_command, read_learned_table, rule_text, step_axes, step_checked,
+    write_learned_table, AxisStep, LearnStep, LearningArgs, StepFiles, TableContext,
 };
 use crate::link::{fnv1a32, run_limits, Client};
 use crate::plot::{plot_grid, Chart, Legend, Panel, Role, Series};
@@ -397,14 +397,19 @@ pub fn link_learn(
                 status.mode
             ));
         }
-        let (axes_error, next) = step_axes(
+        let files = StepFiles {
+            params: &a.params,
+            reference: &reference_path,
+            periodic: true,
+        };
+        let (axes_error, next) = step_checked(
             &learnings,
             &names,
             &reference,
+            &files,
             &trial_record.command_v,
             &trial_record.measured_m,
             &base_v,
-            true,
         )?;
         let trial = TrialError {
             iteration: first_iteration + k as u32,

@@ -602,3 +602,38 @@ fn a_periodic_trial_starts_from_the_settled_period() {
         }
     }
 }
+
+/// A stage file whose gain is 0.6 × the stage's: the compensator's command asks for 1.67 × the
+/// voltage and is held at the window. Each step reads the stage's gain from the trial (the
+/// model's own output for the command against the measured one), re-solves u_0 for it and
+/// divides L's gain by it: the tenth trial is at the nominal file's error (11.4 nm), where it
+/// was 476 nm with the file's gain.
+#[test]
+fn a_stage_file_whose_gain_is_off_learns_as_fast_as_a_right_one() {
+    let plant = XyStage::default();
+    let modes = [(3200.0, 0.03), (2200.0, 0.03)];
+    let run = |scale: f64| {
+        let scratch = scratch("gain");
+        let gain = plant.static_gain().map(|g| g * scale);
+        let params = stage_file(scratch.path(), "stage.toml", gain, modes, 0.0);
+        let errors = learning_trials(&plant, scratch.path(), &params);
+        let json: serde_json::Value = serde_json::from_str(
+            &std::fs::read_to_string(scratch.path().join("step0.json")).unwrap(),
+        )
+        .unwrap();
+        (errors, json)
+    };
+    let (nominal, _) = run(1.0);
+    let (off, step0) = run(0.6);
+    for axis in ["x", "y"] {
+        let ratio = step0[axis]["model_gain_ratio"].as_f64().unwrap();
+        assert!((ratio - 1.0 / 0.6).abs() < 0.02, "{axis}: {ratio}");
+        assert_eq!(step0[axis]["base_resolved"], true);
+    }
+    assert!(
+        off[10] <= 2.0 * nominal[10],
+        "gain x0.6: {:.3e} m after 10 steps, nominal {:.3e} m: {off:?}",
+        off[10],
+        nominal[10]
+    );
+}
