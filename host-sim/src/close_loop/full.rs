@@ -613,6 +613,7 @@ impl AxisModel {
             EffectKind::Dynamics => {
                 e.mode_frequency_hz = 0.0;
                 e.mode_damping = 0.0;
+                e.mode_relative_damping = 0.0;
             }
             EffectKind::Coupling => e.coupling = 0.0,
             EffectKind::RateDependent => {
@@ -636,6 +637,9 @@ impl AxisModel {
             EffectKind::Creep => self.creep_form.name().into(),
             EffectKind::Drift => self.drift_form.name().into(),
             EffectKind::RateDependent => self.rate_form.name().into(),
+            EffectKind::Dynamics if self.effects.mode_relative_damping > 0.0 => {
+                "stack-driven".into()
+            }
             _ => String::new(),
         }
     }
