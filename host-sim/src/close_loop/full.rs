@@ -12,7 +12,8 @@
 //! optimiser runs in f64.
 //!
 //! Parameter vector θ: (β, γ, n, k1, k2, y0), then per added effect: creep (g_i, ln τ_i) per element
-//! or g_log, drift r or (A, ln τ), delay D \[s\], asymmetry e \[m/V²\] (u_c held), dynamics (ln f, ln ζ),
+//! or g_log, drift r or (A, ln τ), delay D \[s\], asymmetry e \[m/V²\] (u_c held), dynamics (ln f, ln ζ;
+//! its form ρ = `mode_relative_damping` held, 0 or 1, chosen by fitting both),
 //! coupling κ. Each entry is a named [`Param`] (its [`ParamSpec`]: range, log scale, effect).
 //! Every effect parameter has a range that makes it that effect ([`EffectBounds`]);
 //! [`AxisModel::decode`] holds θ inside it and writes each entry into its field

@@ -8,7 +8,8 @@
 //! 2. Each step: stop when the residual RMS is within [`select::NOISE_FLOOR_FACTOR`]·σ. Otherwise
 //!    every effect not yet in the model is screened on the residual ([`diagnose`]: creep, Kelvin–Voigt
 //!    or logarithmic; drift, linear or settling, a function of time alone; delay; asymmetry, an even
-//!    term; dynamics, a second-order mode; coupling; rate-dependent hysteresis, a relaxation of
+//!    term; dynamics, a second-order mode, force-driven or stack-driven (its damping on the motion
+//!    relative to the drive), both fitted; coupling; rate-dependent hysteresis, a relaxation of
 //!    the hysteretic part), and the best [`MAX_TRIALS`] are fitted for real (the whole model
 //!    refitted by Levenberg–Marquardt, [`full`]), together with every phase effect the screening
 //!    cannot separate from one of them (creep, delay, rate-dependent hysteresis, dynamics:
