@@ -15,14 +15,16 @@
 //!        vᵢ[j] = bᵢ·vᵢ[j−1] + (1 − bᵢ)·(p[j−1] − p_ref),  bᵢ = exp(−T/τ_wᵢ),  vᵢ[0] = 0
 //!        p[j] = w[j] − k_r·u[j]  MAX_RELAXATION_ELEMENTS elements, p_ref the first p
 //! s[j] = w[j] + e·(u[j−1] − u_c)² + c[j] + c_w[j],   u[−1] := u_c       even-order term
-//! z[j] = M(s)[j]            second-order mode  z̈ + 2ζω·ż + ω²·z = ω²·s,  ω = 2π·f_mode
+//! z[j] = M(s)[j]            second-order mode  z̈ + 2ζω·ż + ω²·z = ω²·s + 2ρζω·ṡ,  ω = 2π·f_mode
 //! y[k] = z(k − D) + d(k·T) + κ·z_other(k − D)                           output sample k
 //! d(t) = r_d·t + A_d·(1 − exp(−t/τ_d))                                  drift
 //! ```
 //!
 //! Signs and units: gᵢ \[m/V\] (positive: the output keeps moving in the direction of a command
 //! change), τᵢ \[s\]; e \[m/V²\], u_c \[V\] (e > 0 adds upwards on both sides of u_c); f_mode \[Hz\],
-//! ζ \[1\] (unit DC gain: a constant s gives z = s); D = delay_s/T \[samples\] (the output lags);
+//! ζ \[1\] (unit DC gain: a constant s gives z = s), ρ ∈ \[0, 1\] the share of the damping that acts on the
+//! relative motion z − s (0: all of it on z, a force-driven mode; 1: all of it on z − s, a mode
+//! driven through a stack's own spring and damper); D = delay_s/T \[samples\] (the output lags);
 //! drift r_d \[m/s\] from t = 0 at the first output sample; A_d \[m\] (positive: the output settles
 //! upwards), τ_d \[s\]; g_log \[m/V per decade of time\] (positive: the output keeps moving in the
 //! direction of a command change), t₀ \[s\]; κ \[1\] the part of the *other* axis's z that appears on
@@ -39,7 +41,7 @@
 //! | hysteresis input lag | `hysteresis_lag_s` | the Bouc-Wen operator driven by v, τ_v·v̇ = u − v | exact, the compensator's Newton solve ([`crate::static_model`]) |
 //! | rate-dependent hysteresis | `relaxation_gain`, `relaxation_time_constant_s` | Σᵢ g_wᵢ·vᵢ, vᵢ a first-order lag of w | exact, in [`Effects::relaxation_m`] |
 //! | even term | `even_coefficient_m_per_v2`, `even_center_v` | e·(u\[j−1\] − u_c)² | exact, [`Effects::even_term_m`] |
-//! | mode | `mode_frequency_hz`, `mode_damping` | z̈ + 2ζω·ż + ω²·z = ω²·s | central differences |
+//! | mode | `mode_frequency_hz`, `mode_damping`, `mode_relative_damping` | z̈ + 2ζω·(ż − ρ·ṡ) + ω²·(z − s) = 0 | central differences |
 //! | delay | `delay_s` | z(k − D) | reference taken ahead |
 //! | drift (linear) | `drift_rate_m_per_s` | r_d·t | subtracted, [`Effects::drift_for_command_m`] |
 //! | drift (settling) | `drift_settling_m`, `drift_settling_time_constant_s` | A_d·(1 − e^(−t/τ_d)) | subtracted, [`Effects::drift_for_command_m`] |
@@ -83,6 +85,20 @@
 //!   lag (a converter's zero-order-hold lag of T/2 belongs to the delay D), so the sampled mode
 //!   differs from the continuous one by O((ωT)²) only. Stable for every T (|λ| = e^(−ζωT/2) per
 //!   half step). Requires 0 < f_mode < 0.45/T and ζ > 0; absent when f_mode = 0 (then z = s).
+//!   **With relative damping** (ρ > 0) the mode passes 2ρζω·ṡ, so its input must be continuous
+//!   (a staircase would kick the mode at every step): between t_{j−1} and t_j, s follows the
+//!   parabola through s\[j−1\] and s\[j\] with the curvature of the last three samples,
+//!   s(t_{j−1} + τ) = s\[j−1\] + Δ₁·τ/T + ½·Δ₂·τ·(τ − T)/T², Δ₁ = s\[j\] − s\[j−1\],
+//!   Δ₂ = s\[j\] − 2s\[j−1\] + s\[j−2\] (s\[−1\] := s\[0\]): a smooth drive between samples, whose
+//!   curvature a straight ramp would miss (it lowers a mode's response by ≈ (ω_in·T)²/12 of the
+//!   drive, as large as the mode's own (ω_in/ω)² when ωT ≈ 2). With x = \[z − s, ż/ω\],
+//!   ẋ = ω·A·x + b·ṡ, A = \[\[0, 1\], \[−1, −2ζ\]\], b = \[−1, 2ρζ\], one sample is exactly
+//!   `x[j] = Φ·x[j−1] + g₁·Δ₁ + g₂·Δ₂`, Φ = exp(ωT·A) (kept as Φ − I),
+//!   g₁ = A⁻¹·(Φ − I)·b/(ωT), g₂ = A⁻¹·(g₁ − b)/(ωT) − g₁/2 (≈ −ωT·A·b/12 for ωT ≪ 1), and
+//!   z\[j\] = s\[j\] + x₀\[j\]. Its transfer function
+//!   (1 + 2ρζ·s/ω)/(1 + 2ζ·s/ω + s²/ω²) has the phase −2(1 − ρ)ζ·f/f_mode well below the mode
+//!   (zero at ρ = 1: a stack's internal, stiffness-proportional damping delays nothing) while the
+//!   ring after a disturbance decays at ζ.
 //! * **Delay**: D may be fractional (0 ≤ D ≤ MAX_DELAY_SAMPLES; within 1e-4 of a whole number it is
 //!   taken as that number). `z(k − D)` interpolates linearly between the two z samples around it;
 //!   z before the first sample is z\[0\] (the read is clamped to the first sample, so the first
@@ -106,9 +122,11 @@
 //!    axis: [`Effects::desired_z_m`];
 //! 3. **coupling**: for two axes, `(zx*, zy*) = decouple(κ_x, κ_y, ·, ·)` (exact 2×2 inverse);
 //! 4. **mode**: the continuous-time inverse with central differences over T,
-//!    `s* = z*[j] + (2ζ/ω)·(z*[j+1] − z*[j−1])/(2T) + (z*[j+1] − 2z*[j] + z*[j−1])/(ωT)²`;
-//!    truncation error `(ζ/(3ω))·T²·z⃛ + T²·z⁗/(12ω²)`, second order in T, plus the O((ωT)²)
-//!    difference between the sampled and the continuous mode; s* = z*\[j\] without a mode;
+//!    `s* = z*[j] + (2(1 − ρ)ζ/ω)·(z*[j+1] − z*[j−1])/(2T) + (z*[j+1] − 2z*[j] + z*[j−1])/(ωT)²`;
+//!    truncation error `((1 − ρ)ζ/(3ω))·T²·z⃛ + T²·z⁗/(12ω²)`, second order in T, plus the O((ωT)²)
+//!    difference between the sampled and the continuous mode; with relative damping the exact
+//!    inverse (1 + 2ζ·s/ω + s²/ω²)/(1 + 2ρζ·s/ω) is taken to second order in s/ω (the term left
+//!    out is −(2ρζ/ω)·z⃛*/ω², 2ρζ·f/f_mode of the curvature term); s* = z*\[j\] without a mode;
 //! 5. **creep, rate-dependent hysteresis and even term**:
 //!    `w* = s* − c[j] − c_w[j] − e·(u[j−1] − u_c)²`, exact and explicit (the terms depend only on
 //!    commands and w before sample j: [`Effects::creep_m`], [`Effects::relaxation_m`],
@@ -286,6 +304,10 @@ pub struct EffectParams {
     pub mode_frequency_hz: f32,
     /// ζ \[1\]: damping ratio of the mode, > 0 when the mode is present.
     pub mode_damping: f32,
+    /// ρ \[1\] in \[0, 1\]: the share of the mode's damping that acts on the relative motion z − s
+    /// (module doc): 0 a force-driven mode (centred hold), 1 a mode driven through the stack's own
+    /// spring and damper (first-order hold); ignored, but in \[0, 1\], without a mode.
+    pub mode_relative_damping: f32,
     /// Input delay \[s\], 0 ≤ delay ≤ 64 sample periods.
     pub delay_s: f32,
     /// Linear drift of the output \[m/s\], from t = 0 at the first sample.
@@ -457,11 +479,17 @@ fn check_plausible(
     Ok(())
 }
 
-/// The precomputed mode: Φ − I of one half step, and the inverse's difference coefficients.
+/// The precomputed mode: Φ − I of one half step (centred hold) or of one step (first-order hold,
+/// with relative damping), and the inverse's difference coefficients.
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct Mode {
-    /// exp(ω·T/2·\[\[0, 1\], \[−1, −2ζ\]\]) − I, row-major, acting on \[z − s, ż/ω\].
+    /// exp(ω·T/2·\[\[0, 1\], \[−1, −2ζ\]\]) − I, row-major, acting on \[z − s, ż/ω\]; with
+    /// relative damping exp(ω·T·\[\[0, 1\], \[−1, −2ζ\]\]) − I instead.
     half_step_minus_identity: [[f32; 2]; 2],
+    /// With relative damping: \[g₁, g₂\], the state's response to the input's change
+    /// Δ₁ = s\[j\] − s\[j−1\] and curvature Δ₂ = s\[j\] − 2s\[j−1\] + s\[j−2\] over the sample
+    /// (module doc); None: centred hold.
+    ramp_gain: Option<[[f32; 2]; 2]>,
     /// ζ/(ω·T): multiplies z*\[j+1\] − z*\[j−1\] (= (2ζ/ω)·ż* by central differences).
     velocity_coefficient: f32,
     /// 1/(ω·T)²: multiplies z*\[j+1\] − 2z*\[j\] + z*\[j−1\] (= z̈*/ω²).
@@ -475,6 +503,27 @@ impl Mode {
         let d = &self.half_step_minus_identity;
         let e = z - s;
         (z + d[0][0] * e + d[0][1] * v, v + d[1][0] * e + d[1][1] * v)
+    }
+
+    /// One whole step of the smooth hold from z\[j−1\], v = ż/ω at t_{j−1}, the inputs
+    /// s\[j−2\] (`s_before`) and s\[j−1\] (`s_prev`) to t_j with the input s\[j\]; `g` is
+    /// [`Mode::ramp_gain`].
+    #[inline(always)]
+    fn ramp_step(
+        &self,
+        g: &[[f32; 2]; 2],
+        (z, v): (f32, f32),
+        s_before: f32,
+        s_prev: f32,
+        s: f32,
+    ) -> (f32, f32) {
+        let d = &self.half_step_minus_identity;
+        let e = z - s_prev;
+        let d1 = s - s_prev;
+        let d2 = d1 - (s_prev - s_before);
+        let e_next = e + d[0][0] * e + d[0][1] * v + g[0][0] * d1 + g[1][0] * d2;
+        let v_next = v + d[1][0] * e + d[1][1] * v + g[0][1] * d1 + g[1][1] * d2;
+        (s + e_next, v_next)
     }
 }
 
@@ -581,8 +630,12 @@ pub struct EffectsState {
     rested: bool,
     /// Mode output z at t_j + T/2 \[m\].
     mode_z_m: f32,
-    /// Mode scaled velocity ż/ω at t_j + T/2 \[m\].
+    /// Mode scaled velocity ż/ω at t_j + T/2 \[m\] (at t_j with relative damping).
     mode_scaled_velocity_m: f32,
+    /// The mode's input s\[j\] of the last sample \[m\] (with relative damping).
+    mode_input_m: f32,
+    /// The mode's input s\[j − 1\] of the sample before \[m\] (with relative damping).
+    mode_input_before_m: f32,
     /// The last RING_LEN z samples; `ring[head]` is the newest, `ring[0]` the first (z\[0\])
     /// until the ring wraps.
     ring: [f32; RING_LEN],
@@ -615,6 +668,8 @@ impl EffectsState {
             rested: false,
             mode_z_m: 0.0,
             mode_scaled_velocity_m: 0.0,
+            mode_input_m: 0.0,
+            mode_input_before_m: 0.0,
             ring: [0.0; RING_LEN],
             head: 0,
             samples: 0,
@@ -700,6 +755,14 @@ impl Effects {
 
         let f = finite("mode_frequency_hz", params.mode_frequency_hz)?;
         let zeta = finite("mode_damping", params.mode_damping)?;
+        let rho = finite("mode_relative_damping", params.mode_relative_damping)?;
+        if !(0.0..=1.0).contains(&rho) {
+            return Err(ParamError::OutOfRange {
+                field: "mode_relative_damping",
+                value: rho,
+                requirement: "in [0, 1]",
+            });
+        }
         let mode = if f == 0.0 {
             None
         } else {
@@ -717,7 +780,7 @@ impl Effects {
                     requirement: "> 0",
                 });
             }
-            Some(discretise_mode(f, zeta, t)?)
+            Some(discretise_mode(f, zeta, rho, t)?)
         };
 
         let delay = finite("delay_s", params.delay_s)?;
@@ -964,14 +1027,34 @@ impl Effects {
                     // At rest at the first s.
                     state.mode_z_m = s;
                     state.mode_scaled_velocity_m = 0.0;
+                    state.mode_input_m = s;
+                    state.mode_input_before_m = s;
                 }
-                let (z_mid, v_mid) =
-                    mode.half_step(state.mode_z_m, state.mode_scaled_velocity_m, s);
-                let (z_mid, v_mid) = (bounded(z_mid), bounded(v_mid));
-                let (z_end, v_end) = mode.half_step(z_mid, v_mid, s);
-                state.mode_z_m = bounded(z_end);
-                state.mode_scaled_velocity_m = bounded(v_end);
-                z_mid
+                match &mode.ramp_gain {
+                    Some(g) => {
+                        let (z, v) = mode.ramp_step(
+                            g,
+                            (state.mode_z_m, state.mode_scaled_velocity_m),
+                            state.mode_input_before_m,
+                            state.mode_input_m,
+                            s,
+                        );
+                        state.mode_z_m = bounded(z);
+                        state.mode_scaled_velocity_m = bounded(v);
+                        state.mode_input_before_m = state.mode_input_m;
+                        state.mode_input_m = s;
+                        state.mode_z_m
+                    }
+                    None => {
+                        let (z_mid, v_mid) =
+                            mode.half_step(state.mode_z_m, state.mode_scaled_velocity_m, s);
+                        let (z_mid, v_mid) = (bounded(z_mid), bounded(v_mid));
+                        let (z_end, v_end) = mode.half_step(z_mid, v_mid, s);
+                        state.mode_z_m = bounded(z_end);
+                        state.mode_scaled_velocity_m = bounded(v_end);
+                        z_mid
+                    }
+                }
             }
         };
         if state.started {
@@ -1080,17 +1163,22 @@ impl Effects {
     }
 }
 
-/// Φ_half − I for the mode and the inverse's coefficients; f64, 2×2 matrix exponential.
+/// Φ − I for the mode (of a half step for the centred hold, of a whole step and the ramp gain g
+/// for the first-order hold when ρ > 0) and the inverse's coefficients; f64, 2×2 matrix
+/// exponential.
 fn discretise_mode(
     frequency_hz: f32,
     damping: f32,
+    relative_damping: f32,
     sample_period_s: f32,
 ) -> Result<Mode, ParamError> {
     let omega = 2.0 * core::f64::consts::PI * f64::from(frequency_hz);
     let zeta = f64::from(damping);
+    let rho = f64::from(relative_damping);
     let t = f64::from(sample_period_s);
-    let half = 0.5 * omega * t;
-    let x = [[0.0, half], [-half, -2.0 * zeta * half]];
+    let ramp = rho > 0.0;
+    let step = if ramp { omega * t } else { 0.5 * omega * t };
+    let x = [[0.0, step], [-step, -2.0 * zeta * step]];
     let e = crate::math::expm_minus_identity(&x)
         .ok_or(ParamError::Discretisation { sample_period_s })?;
     let mut half_step_minus_identity = [[0.0f32; 2]; 2];
@@ -1099,9 +1187,24 @@ fn discretise_mode(
             half_step_minus_identity[r][c] = e[r][c] as f32;
         }
     }
+    // g₁ = A⁻¹·(Φ − I)·b/(ωT), g₂ = A⁻¹·(g₁ − b)/(ωT) − g₁/2; A⁻¹ = [[−2ζ, −1], [1, 0]],
+    // b = [−1, 2ρζ].
+    let ramp_gain = ramp.then(|| {
+        let a_inv = |x: [f64; 2]| [-2.0 * zeta * x[0] - x[1], x[0]];
+        let b = [-1.0, 2.0 * rho * zeta];
+        let pb = [
+            e[0][0] * b[0] + e[0][1] * b[1],
+            e[1][0] * b[0] + e[1][1] * b[1],
+        ];
+        let g1 = a_inv([pb[0] / step, pb[1] / step]);
+        let c = a_inv([(g1[0] - b[0]) / step, (g1[1] - b[1]) / step]);
+        let g2 = [c[0] - 0.5 * g1[0], c[1] - 0.5 * g1[1]];
+        [[g1[0] as f32, g1[1] as f32], [g2[0] as f32, g2[1] as f32]]
+    });
     let mode = Mode {
         half_step_minus_identity,
-        velocity_coefficient: (zeta / (omega * t)) as f32,
+        ramp_gain,
+        velocity_coefficient: ((1.0 - rho) * zeta / (omega * t)) as f32,
         curvature_coefficient: (1.0 / ((omega * t) * (omega * t))) as f32,
     };
     let coefficients = [mode.velocity_coefficient, mode.curvature_coefficient];
@@ -1109,6 +1212,7 @@ fn discretise_mode(
         .iter()
         .flatten()
         .chain(coefficients.iter())
+        .chain(ramp_gain.iter().flatten().flatten())
         .all(|v| v.is_finite())
     {
         return Err(ParamError::Discretisation { sample_period_s });
@@ -1322,6 +1426,126 @@ mod tests {
             z = effects.forward_z(&mut state, 1.0, 1e-5);
         }
         assert!((z - 1e-5).abs() < 1e-11, "{z}");
+    }
+
+    /// A mode with ω·T ≈ 2 (3.2 kHz at 10 kHz), all its damping relative (ρ = 1), driven by a
+    /// smooth 100 Hz sine: the continuous mode z̈ + 2ζω·(ż − ṡ) + ω²·(z − s) = 0, integrated
+    /// finely in f64 from the analytic drive.
+    fn stack_driven_reference<const N: usize>(f_hz: f64, zeta: f64, drive_hz: f64) -> [f64; N] {
+        let (omega, wd, t) = (
+            2.0 * core::f64::consts::PI * f_hz,
+            2.0 * core::f64::consts::PI * drive_hz,
+            1e-4,
+        );
+        let drive = |t: f64| (1e-5 * libm::sin(wd * t), 1e-5 * wd * libm::cos(wd * t));
+        let rhs = |t: f64, x: [f64; 2]| {
+            let (s, ds) = drive(t);
+            [
+                x[1],
+                omega * omega * (s - x[0]) + 2.0 * zeta * omega * (ds - x[1]),
+            ]
+        };
+        // At rest at s = 0 with ż = ṡ(0): the steady motion's start, no transient.
+        let mut x = [0.0, drive(0.0).1];
+        let mut out = [0.0; N];
+        let sub = 200;
+        let h = t / sub as f64;
+        for j in 0..N - 1 {
+            for i in 0..sub {
+                let t0 = (j * sub + i) as f64 * h;
+                let k1 = rhs(t0, x);
+                let k2 = rhs(
+                    t0 + h / 2.0,
+                    [x[0] + h / 2.0 * k1[0], x[1] + h / 2.0 * k1[1]],
+                );
+                let k3 = rhs(
+                    t0 + h / 2.0,
+                    [x[0] + h / 2.0 * k2[0], x[1] + h / 2.0 * k2[1]],
+                );
+                let k4 = rhs(t0 + h, [x[0] + h * k3[0], x[1] + h * k3[1]]);
+                for r in 0..2 {
+                    x[r] += h / 6.0 * (k1[r] + 2.0 * k2[r] + 2.0 * k3[r] + k4[r]);
+                }
+            }
+            out[j + 1] = x[0];
+        }
+        out
+    }
+
+    #[test]
+    fn a_stack_driven_mode_follows_a_smooth_drive_as_the_continuous_mode_does() {
+        const N: usize = 400;
+        let (f_hz, zeta, drive_hz) = (3200.0, 0.035, 100.0);
+        let effects = Effects::new(
+            EffectParams {
+                mode_frequency_hz: f_hz as f32,
+                mode_damping: zeta as f32,
+                mode_relative_damping: 1.0,
+                ..EffectParams::default()
+            },
+            period(),
+            range(2e-5),
+        )
+        .unwrap();
+        let reference = stack_driven_reference::<N>(f_hz, zeta, drive_hz);
+        let mut state = EffectsState::new();
+        let wd = 2.0 * core::f64::consts::PI * drive_hz;
+        let mut worst = 0.0f64;
+        for (j, want) in reference.iter().enumerate() {
+            let s = 1e-5 * libm::sin(wd * j as f64 * 1e-4);
+            let z = f64::from(effects.forward_z(&mut state, 0.0, s as f32));
+            // After the start's ring (the first samples carry no curvature) has decayed.
+            if j >= 200 {
+                worst = worst.max((z - want).abs());
+            }
+        }
+        // The mode's own response is (f/f_mode)² ≈ 1e-3 of the drive (10 nm here); the smooth
+        // hold is within ≈ 1e-10 m of the continuous mode, a straight ramp between samples
+        // misses ≈ (ω_in·T)²/12 ≈ 3e-4 of the drive (3.5e-9 m).
+        assert!(
+            worst < 5e-10,
+            "worst {worst:e} m against the continuous mode"
+        );
+        // The inverse, from the mode's output three samples at a time, returns the drive: no
+        // phase term for damping that acts on the relative motion.
+        let mut state = EffectsState::new();
+        let mut z = [0.0f32; N];
+        for (j, z) in z.iter_mut().enumerate() {
+            let s = 1e-5 * libm::sin(wd * j as f64 * 1e-4);
+            *z = effects.forward_z(&mut state, 0.0, s as f32);
+        }
+        let mut worst_inverse = 0.0f64;
+        for j in 200..N - 1 {
+            let s = 1e-5 * libm::sin(wd * j as f64 * 1e-4);
+            let target = effects.inverse_target_w(&state, z[j - 1], z[j], z[j + 1]);
+            worst_inverse = worst_inverse.max((f64::from(target) - s).abs());
+        }
+        assert!(
+            worst_inverse < 5e-10,
+            "worst {worst_inverse:e} m of the inverse"
+        );
+    }
+
+    #[test]
+    fn relative_damping_outside_its_range_is_refused_naming_the_field() {
+        for rho in [-0.1, 1.5, f32::NAN, f32::INFINITY] {
+            let e = Effects::new(
+                EffectParams {
+                    mode_frequency_hz: 500.0,
+                    mode_damping: 0.05,
+                    mode_relative_damping: rho,
+                    ..EffectParams::default()
+                },
+                period(),
+                range(1e-5),
+            )
+            .unwrap_err();
+            let field = match e {
+                ParamError::OutOfRange { field, .. } | ParamError::NonFinite { field } => field,
+                other => panic!("{rho}: {other:?}"),
+            };
+            assert_eq!(field, "mode_relative_damping", "{rho}: {e:?}");
+        }
     }
 
     #[test]

@@ -7,9 +7,10 @@
 //! e_k[j]     = r[j] − y_k[j]                                       error of trial k [m]
 //! z[j]       = e_k(j + D)          the error D samples later (linear interpolation between
 //!                                  e[j + ⌊D⌋] and e[j + ⌊D⌋ + 1]): u[j] shows at output sample j + D
-//! s[j]       = z[j] + (ζ/(ωT))·(z[j+1] − z[j−1]) + (z[j+1] − 2z[j] + z[j−1])/(ωT)²
-//!                                  inverse of the mode z̈ + 2ζω·ż + ω²·z = ω²·s (central
-//!                                  differences, as the inverse chain; s = z without a mode)
+//! s[j]       = z[j] + ((1 − ρ)ζ/(ωT))·(z[j+1] − z[j−1]) + (z[j+1] − 2z[j] + z[j−1])/(ωT)²
+//!                                  inverse of the mode z̈ + 2ζω·(ż − ρ·ṡ) + ω²·(z − s) = 0
+//!                                  (central differences, as the inverse chain; s = z without
+//!                                  a mode)
 //! (L·e_k)[j] = λ · s[j] / g[j]     g[j] = dy/du of the hysteresis model at step j along u_k
 //! u_{k+1}    = u_0 + Q·(u_k − u_0 + L·e_k),   then limited to the window and the slew limit
 //! ```
@@ -41,8 +42,9 @@
 //!   circularly (each pass starts from its periodic steady state, solved exactly); a trial from
 //!   rest starts each pass in the steady state of its first sample.
 //! * **The cut-off rule** (monotone convergence with a margin m): with the model's
-//!   `G(f) = γ·g·M_μ(f)·e^(−j2πfDT)` (M_μ the continuous mode at μ·f_mode, damping ζ) and L's
-//!   own frequency response (the interpolated shift and the central-difference inverse above),
+//!   `G(f) = γ·g·M_μ(f)·e^(−j2πfDT)` (M_μ the continuous mode at μ·f_mode, damping ζ, the share ρ
+//!   of it on the relative motion) and L's own frequency response (the interpolated shift and the
+//!   central-difference inverse above),
 //!   `W(f) = max |1 − λ·γ·M_μ(f)·M̂⁻¹(f)·S_D(f)·e^(−j2πfDT)|` over γ ∈ {γ_min, γ_max} and
 //!   μ ∈ [1 − t, 1 + t] (t = `mode_frequency_tolerance`; 33 values and μ = f/f_mode);
 //!   **without a mode in the effects** the model claims no dynamics, which nothing checked: the
@@ -263,8 +265,8 @@ pub struct Learning {
     /// ⌊D⌋ and D − ⌊D⌋.
     delay_whole: usize,
     delay_fraction: f64,
-    /// (f_mode \[Hz\], ζ) of the model's mode.
-    mode: Option<(f64, f64)>,
+    /// (f_mode \[Hz\], ζ, ρ) of the model's mode (ρ the share of ζ on the relative motion).
+    mode: Option<(f64, f64, f64)>,
     /// The rate-dependent hysteresis of the effects: (1 − bᵢ, g_wᵢ) per element and k_r \[m/V\].
     relaxation: ([(f64, f64); MAX_RELAXATION_ELEMENTS], f64),
     params: LearningParams,
@@ -377,9 +379,13 @@ impl Learning {
             limits,
             delay_whole: effects.reference_index_offset(),
             delay_fraction: d - libm::floor(d),
-            mode: effects
-                .has_mode()
-                .then(|| (f64::from(p.mode_frequency_hz), f64::from(p.mode_damping))),
+            mode: effects.has_mode().then(|| {
+                (
+                    f64::from(p.mode_frequency_hz),
+                    f64::from(p.mode_damping),
+                    f64::from(p.mode_relative_damping),
+                )
+            }),
             relaxation: {
                 let (elements, linear) = effects.relaxation_elements();
                 (
@@ -463,11 +469,11 @@ impl Learning {
                 })
                 .fold(0.0, f64::max)
         };
-        let mode = |f_mode: f64, zeta: f64| {
+        let mode = |f_mode: f64, zeta: f64, rho: f64| {
             let wt = 2.0 * PI * f_mode;
-            C(wt * wt, 0.0).div(C(wt * wt - w * w, 2.0 * zeta * wt * w))
+            C(wt * wt, 2.0 * rho * zeta * wt * w).div(C(wt * wt - w * w, 2.0 * zeta * wt * w))
         };
-        let Some((fm, zeta)) = self.mode else {
+        let Some((fm, zeta, rho)) = self.mode else {
             // No mode in the model: none in the plant, or one at or above f_u.
             let fraction = f64::from(self.params.unmodelled_mode_fraction);
             if fraction >= 0.5 {
@@ -475,21 +481,21 @@ impl Learning {
             }
             let f_u = fraction / t;
             let span = 2.0 / (t * f_u);
-            let at = |f_mode: f64| factor(mode(f_mode, UNMODELLED_MODE_DAMPING));
+            let at = |f_mode: f64| factor(mode(f_mode, UNMODELLED_MODE_DAMPING, 0.0));
             return (0..RULE_MODE_SAMPLES)
                 .map(|i| f_u * libm::pow(span, i as f64 / (RULE_MODE_SAMPLES - 1) as f64))
                 .map(at)
                 .fold(factor(C(1.0, 0.0)).max(at(f_hz.max(f_u))), f64::max);
         };
         let wm = 2.0 * PI * fm;
-        // L's mode inverse: 1 + j·2ζ·sin(ωT)/(ω_m·T) − 4·sin²(ωT/2)/(ω_m·T)².
+        // L's mode inverse: 1 + j·2(1 − ρ)ζ·sin(ωT)/(ω_m·T) − 4·sin²(ωT/2)/(ω_m·T)².
         let half = libm::sin(0.5 * w * t);
         let inverse = C(
             1.0 - 4.0 * half * half / (wm * t * wm * t),
-            2.0 * zeta * libm::sin(w * t) / (wm * t),
+            2.0 * (1.0 - rho) * zeta * libm::sin(w * t) / (wm * t),
         );
         let tol = f64::from(self.params.mode_frequency_tolerance);
-        let mode_at = |mu: f64| factor(mode(mu * fm, zeta).mul(inverse));
+        let mode_at = |mu: f64| factor(mode(mu * fm, zeta, rho).mul(inverse));
         let on_peak = (f_hz / fm).clamp(1.0 - tol, 1.0 + tol);
         (0..RULE_MODE_SAMPLES)
             .map(|i| 1.0 - tol + 2.0 * tol * i as f64 / (RULE_MODE_SAMPLES - 1) as f64)
@@ -732,9 +738,9 @@ impl Learning {
             a + self.delay_fraction * (b - a)
         };
         let t = f64::from(self.limits.sample_period_s);
-        let (velocity, curvature) = self.mode.map_or((0.0, 0.0), |(f, zeta)| {
+        let (velocity, curvature) = self.mode.map_or((0.0, 0.0), |(f, zeta, rho)| {
             let wt = 2.0 * PI * f * t;
-            (zeta / wt, 1.0 / (wt * wt))
+            ((1.0 - rho) * zeta / wt, 1.0 / (wt * wt))
         });
         // The model along u_k: a periodic trial starts from the state one period of u_k leaves.
         let mut start = ModelState::at_rest(if periodic {

@@ -619,9 +619,11 @@ fn rate_dependent_hysteresis_is_named_across_two_records() {
 }
 
 /// The same stage from 20 and 40 Hz records (0.5 s each): after the rate-dependent hysteresis the
-/// residual is within 1.2× the noise in RMS but not white (the 3.4 kHz mode's quasi-static
-/// response, a few nm at 40 Hz), so close-loop goes on and adds the mode; the 100 Hz record it
-/// did not see is then predicted within 2.5× the fit (5.2× without the mode).
+/// residual is within 1.2× the noise in RMS but not white (the 3.2 kHz mode's quasi-static
+/// response, a few nm at 40 Hz), so close-loop goes on and adds the mode, in the form whose
+/// damping acts on the motion relative to the drive (the stage's own: stiffness-proportional
+/// damping, no phase lag below the mode); the 100 Hz record it did not see is then predicted
+/// within 1.3× the fit (1.1× measured; 1.8× with the force-driven mode alone, 5.2× without a mode).
 #[test]
 fn a_residual_at_the_noise_rms_that_is_not_white_is_still_explained() {
     let record = |f: u32| lag_record("white", f, 0.5);
@@ -633,10 +635,12 @@ fn a_residual_at_the_noise_rms_that_is_not_white_is_still_explained() {
         ["rate-dependent hysteresis", "dynamics"],
         "{words}"
     );
+    let (file, _) = piezo_stage::StageFile::load(&stage).unwrap();
+    assert_eq!(file.x.effects.mode_relative_damping, 1.0, "{words}");
     let fit = r["after"]["rms"].as_f64().unwrap();
     let unseen = predicted_rms(&stage, &record(100));
     assert!(
-        unseen <= 2.5 * fit,
+        unseen <= 1.3 * fit,
         "100 Hz predicted at {unseen:.4e} m, fit {fit:.4e} m\n{words}"
     );
 }

@@ -685,6 +685,8 @@ fn two_axis_inverse_chain_tracks_with_all_effects() {
         even_center_v: 40.0,
         mode_frequency_hz: 250.0,
         mode_damping: 0.06,
+        // y's mode damped relative to its drive (a stack-driven mode).
+        mode_relative_damping: 1.0,
         delay_s: 1.25e-4,
         drift_rate_m_per_s: -0.5e-6,
         coupling: -0.03,
@@ -981,6 +983,7 @@ prop_compose! {
         relaxation_gains in prop::array::uniform2(prop_oneof![Just(0.0f32), 0.0f32..4.0]),
         relaxation_taus in prop::array::uniform2(1e-3f32..100.0),
         lag in prop_oneof![Just(0.0f32), 1e-4f32..1.0],
+        relative in prop_oneof![Just(0.0f32), Just(1.0f32), 0.0f32..=1.0],
     ) -> EffectParams {
         EffectParams {
             creep_gain_m_per_v: gains,
@@ -989,6 +992,7 @@ prop_compose! {
             even_center_v: center,
             mode_frequency_hz: mode,
             mode_damping: damping,
+            mode_relative_damping: relative,
             delay_s: delay,
             drift_rate_m_per_s: drift,
             coupling,

@@ -30,7 +30,8 @@
 //! [x.asymmetry]                      # delta_per_v_s, input_shift_s (asymmetric)
 //! [x.mass_spring_damper]             # mass_kg, damping_n_s_per_m, ... (dynamic)
 //! [x.oscillator]                     # the benchmark oscillator (oscillator; substeps below)
-//! [x.effects]                        # optional: creep, even term, mode, delay, drift, coupling,
+//! [x.effects]                        # optional: creep, even term, mode (mode_frequency_hz,
+//!                                    # mode_damping, mode_relative_damping), delay, drift, coupling,
 //!                                    # rate-dependent hysteresis (hysteresis_lag_s, relaxation_*)
 //! [x.limits]                         # output_min_v, output_max_v, slew_limit_v_per_s
 //! [x.servo]                          # optional: kp_v_per_m, ki_v_per_m_s, lowpass_*, notch_*,

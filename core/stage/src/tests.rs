@@ -109,6 +109,31 @@ fn relaxation_round_trips_and_its_bad_values_name_the_field() {
 }
 
 #[test]
+fn a_stack_driven_mode_round_trips_and_a_bad_share_names_the_key_and_line() {
+    let mut stage = example();
+    stage.x.effects.mode_frequency_hz = 3200.0;
+    stage.x.effects.mode_damping = 0.035;
+    stage.x.effects.mode_relative_damping = 1.0;
+    let text = stage.to_toml("");
+    let back = StageFile::parse("f.toml", &text).unwrap();
+    assert_eq!(back.x.effects, stage.x.effects);
+    assert!(back.validate().is_ok());
+    let i = text.find("mode_relative_damping").unwrap();
+    let end = i + text[i..].find('\n').unwrap();
+    for bad_value in ["1.5", "-0.2"] {
+        let bad = format!(
+            "{}mode_relative_damping = {bad_value}{}",
+            &text[..i],
+            &text[end..]
+        );
+        let stage = StageFile::parse("f.toml", &bad).unwrap();
+        let e = stage.validate().unwrap_err().located("f.toml", &bad);
+        assert_eq!(e.key, "x.effects.mode_relative_damping", "{e}");
+        assert!(e.line.is_some(), "{e}");
+    }
+}
+
+#[test]
 fn hysteresis_lag_round_trips_runs_and_its_bad_values_name_the_key_and_line() {
     let mut stage = example();
     stage.x.effects.hysteresis_lag_s = 1e-3;

@@ -13,7 +13,8 @@ use std::time::Instant;
 #[command(after_help = "\
 Fits the symmetric Bouc-Wen model (identify's vp-de-lm), then repeatedly screens the residual for the \
 effects creep (Kelvin-Voigt or logarithmic), drift (linear or settling, independent of u), delay, \
-asymmetry, dynamics, rate-dependent hysteresis (the hysteretic part relaxes) and (two-axis records) \
+asymmetry, dynamics (a mode, force-driven or stack-driven), rate-dependent hysteresis (the hysteretic \
+part relaxes, or the Bouc-Wen operator is driven by a lag of the command) and (two-axis records) \
 coupling, fits the best candidates and every phase effect (creep, delay, rate-dependent hysteresis, \
 dynamics) the screening cannot separate from one of them, and adds one only if its parameters stay \
 inside the range that makes it that effect, its gain holds on held-out blocks of the record (blocked \

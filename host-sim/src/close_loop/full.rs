@@ -12,7 +12,8 @@
 //! optimiser runs in f64.
 //!
 //! Parameter vector θ: (β, γ, n, k1, k2, y0), then per added effect: creep (g_i, ln τ_i) per element
-//! or g_log, drift r or (A, ln τ), delay D \[s\], asymmetry e \[m/V²\] (u_c held), dynamics (ln f, ln ζ),
+//! or g_log, drift r or (A, ln τ), delay D \[s\], asymmetry e \[m/V²\] (u_c held), dynamics (ln f, ln ζ;
+//! its form ρ = `mode_relative_damping` held, 0 or 1, chosen by fitting both),
 //! coupling κ. Each entry is a named [`Param`] (its [`ParamSpec`]: range, log scale, effect).
 //! Every effect parameter has a range that makes it that effect ([`EffectBounds`]);
 //! [`AxisModel::decode`] holds θ inside it and writes each entry into its field
@@ -613,6 +614,7 @@ impl AxisModel {
             EffectKind::Dynamics => {
                 e.mode_frequency_hz = 0.0;
                 e.mode_damping = 0.0;
+                e.mode_relative_damping = 0.0;
             }
             EffectKind::Coupling => e.coupling = 0.0,
             EffectKind::RateDependent => {
@@ -636,6 +638,9 @@ impl AxisModel {
             EffectKind::Creep => self.creep_form.name().into(),
             EffectKind::Drift => self.drift_form.name().into(),
             EffectKind::RateDependent => self.rate_form.name().into(),
+            EffectKind::Dynamics if self.effects.mode_relative_damping > 0.0 => {
+                "stack-driven".into()
+            }
             _ => String::new(),
         }
     }

@@ -8,7 +8,8 @@
 //! 2. Each step: stop when the residual RMS is within [`select::NOISE_FLOOR_FACTOR`]·σ. Otherwise
 //!    every effect not yet in the model is screened on the residual ([`diagnose`]: creep, Kelvin–Voigt
 //!    or logarithmic; drift, linear or settling, a function of time alone; delay; asymmetry, an even
-//!    term; dynamics, a second-order mode; coupling; rate-dependent hysteresis, a relaxation of
+//!    term; dynamics, a second-order mode, force-driven or stack-driven (its damping on the motion
+//!    relative to the drive), both fitted; coupling; rate-dependent hysteresis, a relaxation of
 //!    the hysteretic part), and the best [`MAX_TRIALS`] are fitted for real (the whole model
 //!    refitted by Levenberg–Marquardt, [`full`]), together with every phase effect the screening
 //!    cannot separate from one of them (creep, delay, rate-dependent hysteresis, dynamics:
@@ -627,9 +628,17 @@ const MODE_RESTARTS: usize = 4;
 /// Damping ratio of the restarts' starts.
 const MODE_RESTART_DAMPING: f64 = 0.02;
 
-/// The mode fitted from the screening's start and from [`MODE_RESTARTS`] frequencies across its
-/// plausible range; kept: the plausible fit with the lowest SSE (the lowest SSE when none is
-/// plausible).
+/// The mode's two forms (`mode_relative_damping` ρ, piezo-core's effects): 0, the damping acts on
+/// the mode's own motion (a force-driven mode, z̈ + 2ζω·ż + ω²·(z − s) = 0); 1, it acts on the
+/// motion relative to the drive (a mode driven through the stack's own spring and damper,
+/// z̈ + 2ζω·(ż − ṡ) + ω²·(z − s) = 0, whose phase well below the mode is zero).
+const MODE_FORMS: [f32; 2] = [0.0, 1.0];
+
+/// The mode fitted in both its forms ([`MODE_FORMS`]), each from the screening's start and from
+/// [`MODE_RESTARTS`] frequencies across its plausible range; kept: the plausible fit with the
+/// lowest SSE (the lowest SSE when none is plausible). Which form a stage's mode takes is the
+/// data's to say: below the mode the two differ by the phase lag 2ζ·f/f_mode of the force-driven
+/// form, and after a reversal by how long the mode rings.
 fn fit_dynamics(model: &AxisModel, cand: &Candidate, data: &FitData) -> (AxisModel, f64) {
     let (lo, hi) = model.bounds.mode_frequency_hz;
     let mut starts = vec![cand.init];
@@ -642,10 +651,16 @@ fn fit_dynamics(model: &AxisModel, cand: &Candidate, data: &FitData) -> (AxisMod
             }
         }));
     }
+    let starts: Vec<(EffectInit, f32)> = MODE_FORMS
+        .iter()
+        .flat_map(|&rho| starts.iter().map(move |&init| (init, rho)))
+        .collect();
     let fits: Vec<(AxisModel, f64, bool)> = starts
         .par_iter()
-        .map(|&init| {
-            let (fitted, sse, _) = refit(&model.with_effect(init), data, TRIAL_ITERATIONS);
+        .map(|&(init, rho)| {
+            let mut start = model.with_effect(init);
+            start.effects.mode_relative_damping = rho;
+            let (fitted, sse, _) = refit(&start, data, TRIAL_ITERATIONS);
             let plausible = Plausibility::of(&fitted, cand.effect).plausible();
             (fitted, sse, plausible)
         })
