@@ -11,8 +11,10 @@
 //! **Run** (one continuous run per row, tick by tick at the loop rate): a fade-in from rest to
 //! the reference's first sample (50 ms), the compensator's own command over whole periods of at
 //! least 0.1 s (`compensate`'s chain on that reference), then trials: trial k plays the periodic
-//! table u_k over the fewest whole periods lasting ≥ 0.1 s; the table of trial 0 is the
-//! compensator's command of the next period. After each trial the readings and the applied
+//! table u_k over the fewest whole periods lasting ≥ 0.1 s, after `settle_periods` whole periods
+//! (0 by default) in which the new table settles (the switch's transient — with feedback the
+//! servo unwinding the correction the table took over — is then not counted; `link learn` settles
+//! one); the table of trial 0 is the compensator's command of the next period. After each trial the readings and the applied
 //! voltages (table + servo correction with feedback) are averaged over its periods, and the
 //! learning step (periodic) gives u_{k+1}. Modes: **learned** (the table alone) and
 //! **learned+feedback** (the servo of the stage file adds its correction to the table; the
@@ -100,6 +102,10 @@ pub struct LearnBenchSettings {
     pub iterations: usize,
     /// A trial is the fewest whole periods lasting at least this \[s\].
     pub trial_min_s: f64,
+    /// Whole periods each new table plays before its trial is recorded (`link learn`'s
+    /// `--settle-periods`): the switch's transient, the servo unwinding the correction the table
+    /// took over, is not the table's error.
+    pub settle_periods: usize,
     /// The compensator's warm-up: whole periods lasting at least this \[s\].
     pub warmup_min_s: f64,
     /// Fade-in from rest \[s\].
@@ -125,6 +131,7 @@ impl Default for LearnBenchSettings {
             modes: vec![LearnMode::Learned, LearnMode::LearnedFeedback],
             iterations: 15,
             trial_min_s: 0.1,
+            settle_periods: 0,
             warmup_min_s: 0.1,
             fade_in_s: 0.05,
             plant_effects: default_plant_effects(DEFAULT_LOOP_RATE_HZ),
@@ -324,6 +331,13 @@ fn run_case(
     let (mut rms_percent, mut max_percent) = (Vec::new(), Vec::new());
     let mut above_cutoff_percent = 0.0f64;
     for trial in 0..=s.iterations {
+        if trial > 0 {
+            for _ in 0..s.settle_periods {
+                for j in 0..period {
+                    tick(&mut states, [r[0][j], r[1][j]], [table[0][j], table[1][j]])?;
+                }
+            }
+        }
         let mut y_sum = [vec![0.0f64; period], vec![0.0f64; period]];
         let mut u_sum = [vec![0.0f64; period], vec![0.0f64; period]];
         let (mut sq, mut max) = ([0.0f64; 2], [0.0f64; 2]);
@@ -734,6 +748,10 @@ pub struct LearnBenchArgs {
     /// their average (sensor noise falls as the square root of the periods).
     #[arg(long, default_value_t = 0.1)]
     pub trial_s: f64,
+    /// Whole periods each new table plays before its trial is recorded (the switch's transient is
+    /// not the table's error), as `link learn --settle-periods`.
+    #[arg(long, default_value_t = 0)]
+    pub settle_periods: usize,
     /// Effect the plant carries (host-sim effect spec, repeatable; default as servo-bench;
     /// `none` for a clean plant).
     #[arg(long = "plant-effect")]
@@ -747,7 +765,8 @@ pub struct LearnBenchArgs {
 pub const HELP: &str = "The plant is servo-bench's: host-sim's f64 XY stage (seed 002, modes at 3.2 and 2.2 kHz) with creep, \
 thermal drift, sensor noise, ADC and DAC quantisation, stepped tick by tick at 10 kHz. The stage file is servo-bench's with the \
 identified first mode and half a loop period of delay. Each run: a 50 ms fade-in, the compensator's command over >= 0.1 s, then \
-trials of whole periods (>= 0.1 s) playing the periodic table; after each trial one learning step on the averaged period. Modes \
+trials of whole periods (>= 0.1 s) playing the periodic table, each new table first settling over --settle-periods periods; after each \
+trial one learning step on the averaged period. Modes \
 learned (table alone) and learned+feedback (the stage file's servo on top). Robustness: the stage file's gain x0.6 and x1.5 and its \
 mode frequency x1.15 and x0.85 on the 100 Hz sine and triangle and the 10 Hz triangle (learned+feedback).";
 
@@ -765,6 +784,7 @@ pub fn learn_bench_cmd(a: &LearnBenchArgs) -> Result<String, String> {
         return Err(format!("--trial-s {}: a trial lasts (0, 10] s", a.trial_s));
     }
     settings.trial_min_s = a.trial_s;
+    settings.settle_periods = a.settle_periods;
     settings.frequencies_hz = a.freq.clone();
     settings
         .robustness_cases
