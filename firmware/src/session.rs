@@ -965,5 +965,8 @@ impl Session {
     }
 }
 
+mod lock_hold;
+pub use lock_hold::{LockHolds, RequestKind};
+
 #[cfg(test)]
 mod tests;

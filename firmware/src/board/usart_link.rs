@@ -15,8 +15,8 @@ use stm32f4xx_hal::pac;
 
 use piezo_link::{Decoder, Packet, Request};
 
-use super::LinkCounters;
-use crate::session::{self, Session};
+use super::{timed_lock, LinkCounters};
+use crate::session::{self, RequestKind, Session};
 
 /// Bytes taken from the session under one lock.
 pub const BATCH_BYTES: usize = 64;
@@ -86,6 +86,7 @@ impl UsartLink {
     where
         M: rtic::Mutex<T = &'static mut Session>,
     {
+        let holds = &mut self.counters.lock_holds;
         while self.usart.sr().read().rxne().bit_is_set() {
             let byte = self.usart.dr().read().dr().bits() as u8;
             self.counters.bytes_in = self.counters.bytes_in.wrapping_add(1);
@@ -93,16 +94,23 @@ impl UsartLink {
                 None => {}
                 Some(Ok(Packet { sequence, body })) => {
                     let prepared = session::prepare(body);
-                    session.lock(|s| s.apply(sequence, prepared));
+                    let kind = RequestKind::of_prepared(&prepared);
+                    timed_lock(session, holds, kind, |s| s.apply(sequence, prepared));
                 }
-                Some(Err(_)) => session.lock(|s| s.note_rejected_packet()),
+                Some(Err(_)) => timed_lock(session, holds, RequestKind::Other, |s| {
+                    s.note_rejected_packet()
+                }),
             }
         }
         loop {
             if self.start == self.end {
-                let (staged, end) = (&mut self.staged, &mut self.end);
+                let (staged, end, holds) = (
+                    &mut self.staged,
+                    &mut self.end,
+                    &mut self.counters.lock_holds,
+                );
                 self.start = 0;
-                *end = session.lock(|s| {
+                *end = timed_lock(session, holds, RequestKind::Transmit, |s| {
                     let mut n = 0;
                     s.transmit(|b| {
                         if n == BATCH_BYTES {

@@ -28,8 +28,8 @@ use usbd_serial::SerialPort;
 
 use piezo_link::{Decoder, Packet, Request};
 
-use super::LinkCounters;
-use crate::session::{self, Session};
+use super::{timed_lock, LinkCounters};
+use crate::session::{self, RequestKind, Session};
 
 /// The USB bus of the board.
 pub type Bus = UsbBus<USB>;
@@ -131,14 +131,18 @@ impl UsbLink {
         self.device.poll(&mut [&mut self.serial]);
         let mut received = [0u8; PACKET_BYTES];
         while let Ok(n @ 1..) = self.serial.read(&mut received) {
+            let holds = &mut self.counters.lock_holds;
             for &byte in &received[..n] {
                 match self.decoder.push::<Request>(byte) {
                     None => {}
                     Some(Ok(Packet { sequence, body })) => {
                         let prepared = session::prepare(body);
-                        session.lock(|s| s.apply(sequence, prepared));
+                        let kind = RequestKind::of_prepared(&prepared);
+                        timed_lock(session, holds, kind, |s| s.apply(sequence, prepared));
                     }
-                    Some(Err(_)) => session.lock(|s| s.note_rejected_packet()),
+                    Some(Err(_)) => timed_lock(session, holds, RequestKind::Other, |s| {
+                        s.note_rejected_packet()
+                    }),
                 }
             }
             self.counters.bytes_in = self.counters.bytes_in.wrapping_add(n as u32);
@@ -148,8 +152,10 @@ impl UsbLink {
         }
         loop {
             if self.staged.pending().is_empty() {
-                let staged = &mut self.staged;
-                session.lock(|s| s.transmit(|b| staged.push(b)));
+                let (staged, holds) = (&mut self.staged, &mut self.counters.lock_holds);
+                timed_lock(session, holds, RequestKind::Transmit, |s| {
+                    s.transmit(|b| staged.push(b))
+                });
                 if staged.pending().is_empty() {
                     return;
                 }
