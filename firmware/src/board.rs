@@ -16,7 +16,7 @@
 
 pub mod deadline;
 
-use crate::session::{LockHolds, RequestKind, Session};
+use crate::session::{LockHolds, Prepared, RequestKind, Session};
 
 #[cfg(feature = "board")]
 mod discovery;
@@ -41,6 +41,22 @@ pub const LOOP_RATE_HZ: u32 = crate::params::LOOP_RATE_HZ as u32;
 #[inline]
 pub fn elapsed_cycles(start: u32, end: u32) -> u32 {
     end.wrapping_sub(start) & STAMP_MASK
+}
+
+/// Serves one request the link decoded and prepared ([`crate::session::prepare`]): its effect
+/// and its reply's copy under one lock ([`Session::answer`]), the encoding with no lock held
+/// ([`crate::session::Reply::encode`]), the encoded bytes queued under a second lock
+/// ([`Session::queue_reply`]). Both holds are noted in `holds` under the request's kind.
+pub fn serve<M>(session: &mut M, holds: &mut LockHolds, sequence: u32, prepared: Prepared)
+where
+    M: rtic::Mutex<T = &'static mut Session>,
+{
+    let kind = RequestKind::of_prepared(&prepared);
+    let reply = timed_lock(session, holds, kind, |s| s.answer(sequence, &prepared));
+    let mut out = [0u8; piezo_link::MAX_FRAME];
+    let n = reply.encode(&mut out);
+    let bytes = n.map(|n| &out[..n]);
+    timed_lock(session, holds, kind, |s| s.queue_reply(&reply, bytes));
 }
 
 /// Runs `f` on the session under its lock and notes in `holds`, as `kind`, how long the lock was

@@ -97,6 +97,51 @@ pub struct Session {
     version: String<VERSION_BYTES>,
     fnv1a32: u32,
     shutdown: bool,
+    /// A [`Reply`] has been taken and its bytes not yet queued: the tick leaves its frames in
+    /// the loop's frame queue meanwhile, so that the reply keeps its packet number's place.
+    reply_out: bool,
+}
+
+/// Frames the tick encodes at most per tick: one produced (decimation 1) and one of a backlog
+/// left while a [`Reply`] was being encoded, so a backlog drains one per tick.
+pub const FRAMES_PER_TICK: usize = 2;
+
+/// The answer to a request, taken out of the session under its lock by [`Session::answer`]:
+/// the response (a copy of the state it reports, e.g. `Status`) and the packet number reserved
+/// for it. Encoded outside the lock ([`Reply::encode`]) and queued under it
+/// ([`Session::queue_reply`]), so that the lock is held for the request's effect and a copy, not
+/// for the encoding (postcard, CRC-32, COBS: ≈ 6 800 core cycles for a 102-byte status answer).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Reply {
+    packet: u32,
+    request: u32,
+    response: Response,
+}
+
+impl Reply {
+    /// The packet number the reply goes out under.
+    pub fn packet(&self) -> u32 {
+        self.packet
+    }
+
+    /// The response.
+    pub fn response(&self) -> &Response {
+        &self.response
+    }
+
+    /// Encodes the reply's packet (`{packet, Uplink::Response {request, response}}`, as
+    /// [`piezo_link::encode`]) into `out`; its length, or `None` if it does not fit (no response
+    /// is longer than [`MAX_FRAME`]: the link's tests check every message).
+    pub fn encode(&self, out: &mut [u8; MAX_FRAME]) -> Option<usize> {
+        let packet = Packet {
+            sequence: self.packet,
+            body: Uplink::Response {
+                request: self.request,
+                response: self.response.clone(),
+            },
+        };
+        piezo_link::encode(&packet, out).ok()
+    }
 }
 
 /// A reason in words, cut to the link's size.
@@ -484,6 +529,7 @@ impl Session {
             version: truncated(version),
             fnv1a32,
             shutdown: false,
+            reply_out: false,
         }
     }
 
@@ -517,6 +563,7 @@ impl Session {
         S: PositionSensor,
     {
         let missed = deadline_missed || core::mem::take(&mut self.inject_overrun);
+        let first_new = self.lp.frames.next_sequence();
         let report = self.lp.tick(io, missed);
         let trial = self.lp.reference.pass();
         let tracking = self.lp.feedforward() != Feedforward::OpenLoop;
@@ -532,17 +579,18 @@ impl Session {
         self.previous_reference_m = report.reference_m;
         self.last = Some(report);
         if self.frame_decimation == 0 {
-            self.lp.frames.discard();
-        } else {
-            let mut batch = heapless::Vec::<crate::frames::SampleFrame, 4>::new();
-            while self.lp.frames.drain_into(&mut batch) > 0 {
-                for f in &batch {
-                    if self.has_room_for_frame() && self.send(Uplink::Frame(frame(f, trial))) {
-                        self.counters.frames_sent = self.counters.frames_sent.saturating_add(1);
-                    } else {
-                        self.counters.frames_dropped =
-                            self.counters.frames_dropped.saturating_add(1);
-                    }
+            // Frames off: this tick's frame goes; one produced while frames were on and held
+            // back by a reply still goes out.
+            self.lp.frames.discard_from(first_new);
+        }
+        if !self.reply_out {
+            let mut batch = heapless::Vec::<crate::frames::SampleFrame, FRAMES_PER_TICK>::new();
+            self.lp.frames.drain_into(&mut batch);
+            for f in &batch {
+                if self.has_room_for_frame() && self.send(Uplink::Frame(frame(f, trial))) {
+                    self.counters.frames_sent = self.counters.frames_sent.saturating_add(1);
+                } else {
+                    self.counters.frames_dropped = self.counters.frames_dropped.saturating_add(1);
                 }
             }
         }
@@ -566,9 +614,45 @@ impl Session {
     /// upload's validation then does not hold the loop), with [`Session::note_rejected_packet`]
     /// for packets its decoder refused.
     pub fn apply(&mut self, sequence: u32, prepared: Prepared) {
+        let reply = self.answer(sequence, &prepared);
+        let mut out = [0u8; MAX_FRAME];
+        let n = reply.encode(&mut out);
+        self.queue_reply(&reply, n.map(|n| &out[..n]));
+    }
+
+    /// Applies a request prepared by [`prepare`] (numbered `sequence` by the host), exactly as
+    /// [`Session::apply`] does, and returns its reply to be encoded outside the session
+    /// ([`Reply::encode`]) and queued with [`Session::queue_reply`]; until then the tick holds
+    /// its frames back (in the loop's frame queue, [`crate::frames::FRAME_QUEUE_CAPACITY`]
+    /// frames), so the reply goes out under the packet number it was given.
+    /// `prepared` is borrowed: a request is not moved (copied) under the lock.
+    pub fn answer(&mut self, sequence: u32, prepared: &Prepared) -> Reply {
+        let response = self.respond(sequence, prepared);
+        self.reply_out = true;
+        Reply {
+            packet: self.tx_sequence,
+            request: sequence,
+            response,
+        }
+    }
+
+    /// Queues the encoded `bytes` of `reply` (from [`Session::answer`]) and lets the tick send
+    /// frames again; false if they were not queued: `None` (not encoded), no room in the transmit
+    /// buffer, or a reply whose packet number is no longer the next one (another reply went out
+    /// first). A reply not queued is lost as a packet that did not fit always was (the host
+    /// times out; its packet number is not used).
+    pub fn queue_reply(&mut self, reply: &Reply, bytes: Option<&[u8]>) -> bool {
+        self.reply_out = false;
+        match bytes {
+            Some(b) if reply.packet == self.tx_sequence => self.queue_packet(b),
+            _ => false,
+        }
+    }
+
+    fn respond(&mut self, sequence: u32, prepared: &Prepared) -> Response {
         let c = &mut self.counters;
         c.requests = c.requests.saturating_add(1);
-        let response = match self.requests.admit(sequence) {
+        match self.requests.admit(sequence) {
             Err(next) => {
                 c.replayed_requests = c.replayed_requests.saturating_add(1);
                 Response::Replayed { next }
@@ -579,14 +663,10 @@ impl Session {
                 }
                 match prepared {
                     Prepared::Request(request) => self.handle(request),
-                    Prepared::Upload(upload) => self.upload(&upload),
+                    Prepared::Upload(upload) => self.upload(upload),
                 }
             }
-        };
-        self.send(Uplink::Response {
-            request: sequence,
-            response,
-        });
+        }
     }
 
     /// Counts a packet the link's decoder refused (COBS, CRC, length, body).
@@ -618,10 +698,15 @@ impl Session {
         let Ok(n) = piezo_link::encode(&packet, &mut out) else {
             return false;
         };
-        if TX_CAPACITY - self.tx.len() < n {
+        self.queue_packet(&out[..n])
+    }
+
+    /// Queues one encoded packet numbered `tx_sequence`; false if it did not fit.
+    fn queue_packet(&mut self, bytes: &[u8]) -> bool {
+        if TX_CAPACITY - self.tx.len() < bytes.len() {
             return false;
         }
-        for &b in out.iter().take(n) {
+        for &b in bytes {
             // Cannot fail: the room was checked above.
             let _ = self.tx.push_back(b);
         }
@@ -793,8 +878,8 @@ impl Session {
         }
     }
 
-    fn handle(&mut self, request: Request) -> Response {
-        match request {
+    fn handle(&mut self, request: &Request) -> Response {
+        match *request {
             Request::Status => Response::Status(self.status()),
             Request::Track(program) if self.learned => self.start_learned(program),
             Request::Track(program) => {
@@ -822,8 +907,8 @@ impl Session {
                     capacity: TABLE_CAPACITY as u32,
                 }
             }
-            Request::TableAppend(setpoints) => self.queue(&setpoints, true),
-            Request::Stream(setpoints) => self.queue(&setpoints, false),
+            Request::TableAppend(ref setpoints) => self.queue(setpoints, true),
+            Request::Stream(ref setpoints) => self.queue(setpoints, false),
             Request::LearnedClear => {
                 self.lp.reference.learned_clear();
                 Response::Queued {
@@ -831,9 +916,9 @@ impl Session {
                     capacity: TABLE_CAPACITY as u32,
                 }
             }
-            Request::LearnedAppend(entries) => {
+            Request::LearnedAppend(ref entries) => {
                 let reference = &mut self.lp.reference;
-                match reference.learned_append(&entries) {
+                match reference.learned_append(entries) {
                     Ok(()) => Response::Queued {
                         held: reference.learned_len() as u32,
                         capacity: TABLE_CAPACITY as u32,
@@ -874,7 +959,8 @@ impl Session {
                 self.inject_overrun = true;
                 Response::Done
             }
-            Request::Upload(set) => self.upload(&prepare_upload(set)),
+            // Not on a link's path: `prepare` makes an upload a `Prepared::Upload`.
+            Request::Upload(ref set) => self.upload(&prepare_upload(set.clone())),
             Request::Frames { decimation } => {
                 if decimation > 0 {
                     self.lp.frames.set_decimation(decimation);

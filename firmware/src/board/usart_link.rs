@@ -15,7 +15,7 @@ use stm32f4xx_hal::pac;
 
 use piezo_link::{Decoder, Packet, Request};
 
-use super::{timed_lock, LinkCounters};
+use super::{serve, timed_lock, LinkCounters};
 use crate::session::{self, RequestKind, Session};
 
 /// Bytes taken from the session under one lock.
@@ -93,9 +93,7 @@ impl UsartLink {
             match self.decoder.push::<Request>(byte) {
                 None => {}
                 Some(Ok(Packet { sequence, body })) => {
-                    let prepared = session::prepare(body);
-                    let kind = RequestKind::of_prepared(&prepared);
-                    timed_lock(session, holds, kind, |s| s.apply(sequence, prepared));
+                    serve(session, holds, sequence, session::prepare(body));
                 }
                 Some(Err(_)) => timed_lock(session, holds, RequestKind::Other, |s| {
                     s.note_rejected_packet()
