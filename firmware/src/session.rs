@@ -9,6 +9,15 @@
 //! resource): a new program, feed-forward or parameter set takes effect at the next tick, and a
 //! tick never sees half of one.
 //!
+//! On the board the link holds the loop only for a request's effect: it decodes and prepares the
+//! request outside ([`prepare`]: an upload validated by the core), applies it and copies out
+//! its reply under the lock ([`Session::answer`]: the reply is a snapshot, e.g. the `Status` of
+//! that moment, with the packet number it goes out under), encodes the reply outside
+//! ([`Reply::encode`]) and queues its bytes under the lock again ([`Session::queue_reply`]).
+//! Meanwhile the tick keeps its frames in the frame queue, so the packets leave in the order of
+//! their numbers; it then sends up to [`FRAMES_PER_TICK`] a tick. [`Session::apply`] does the
+//! three steps at once (the QEMU image, host tests).
+//!
 //! # Requests ([`Request`])
 //! - `Track(program)`: reference in metres, in the control mode set by `Control` (feedforward,
 //!   the compensator, until told otherwise; open loop: the linear baseline; feedback and
@@ -50,9 +59,10 @@
 //! With frames on, every frame the loop produces is encoded into the transmit buffer
 //! ([`TX_CAPACITY`] bytes) if it fits with room to spare for a response; otherwise it is dropped
 //! and counted, and the receiver sees the gap in the frame numbers. With frames off they are
-//! discarded (the numbers keep counting).
+//! discarded (the numbers keep counting); a frame produced while frames were on and held back by
+//! a reply still goes out.
 
-use heapless::{Deque, String};
+use heapless::String;
 use piezo_core::{ParamError, ServoMode};
 use piezo_link::{
     truncated, AxisModel, Control, Counters, Decoder, Frame, Limits, ModelSet, Packet,
@@ -86,7 +96,7 @@ pub struct Session {
     inject_overrun: bool,
     decoder: Decoder,
     requests: SequenceChecker,
-    tx: Deque<u8, TX_CAPACITY>,
+    tx: TxRing<TX_CAPACITY>,
     tx_sequence: u32,
     frame_decimation: u32,
     counters: Counters,
@@ -518,7 +528,7 @@ impl Session {
             inject_overrun: false,
             decoder: Decoder::new(),
             requests: SequenceChecker::default(),
-            tx: Deque::new(),
+            tx: TxRing::new(),
             tx_sequence: 0,
             frame_decimation: 0,
             counters: Counters::default(),
@@ -547,7 +557,7 @@ impl Session {
     /// True if the transmit buffer has room for one more frame besides a response (the QEMU
     /// image waits for this before a tick while frames are on).
     pub fn has_room_for_frame(&self) -> bool {
-        TX_CAPACITY - self.tx.len() >= 2 * MAX_FRAME
+        self.tx.room() >= 2 * MAX_FRAME
     }
 
     /// Bytes waiting to be sent.
@@ -676,16 +686,8 @@ impl Session {
     }
 
     /// Hands queued bytes to `put` until it refuses one (returns false); returns how many went.
-    pub fn transmit(&mut self, mut put: impl FnMut(u8) -> bool) -> usize {
-        let mut sent = 0;
-        while let Some(&byte) = self.tx.front() {
-            if !put(byte) {
-                break;
-            }
-            self.tx.pop_front();
-            sent += 1;
-        }
-        sent
+    pub fn transmit(&mut self, put: impl FnMut(u8) -> bool) -> usize {
+        self.tx.drain_with(put)
     }
 
     /// Encodes and queues one packet; false if it did not fit.
@@ -703,12 +705,8 @@ impl Session {
 
     /// Queues one encoded packet numbered `tx_sequence`; false if it did not fit.
     fn queue_packet(&mut self, bytes: &[u8]) -> bool {
-        if TX_CAPACITY - self.tx.len() < bytes.len() {
+        if !self.tx.push_slice(bytes) {
             return false;
-        }
-        for &b in bytes {
-            // Cannot fail: the room was checked above.
-            let _ = self.tx.push_back(b);
         }
         self.tx_sequence = self.tx_sequence.wrapping_add(1);
         true
@@ -1052,7 +1050,9 @@ impl Session {
 }
 
 mod lock_hold;
+mod tx_ring;
 pub use lock_hold::{LockHolds, RequestKind};
+use tx_ring::TxRing;
 
 #[cfg(test)]
 mod tests;

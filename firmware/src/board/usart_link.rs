@@ -4,8 +4,9 @@
 //!
 //! [`UsartLink::service`] runs in the USART1 interrupt (RXNE: a byte came) and whenever the
 //! control tick pends it because the session has bytes to send, as the USB link does: received
-//! bytes are decoded here, each request prepared outside the session ([`session::prepare`]) and
-//! applied under its lock ([`Session::apply`]); bytes out are taken from
+//! bytes are decoded here, each request prepared outside the session ([`session::prepare`]),
+//! applied under its lock with its reply copied out, the reply encoded outside and queued under
+//! the lock again ([`super::serve`]); bytes out are taken from
 //! [`Session::transmit`] in batches of at most [`BATCH_BYTES`] under the lock and written to DR
 //! while TXE is set, never waiting for it: what DR cannot take yet stays staged, and TXEIE is on
 //! only while bytes are staged (QEMU's USART writes each byte at once, TXE is always set there,
@@ -80,8 +81,9 @@ impl UsartLink {
         self.end - self.start
     }
 
-    /// Decodes the received bytes (each request prepared, then applied under one lock of
-    /// `session`), then writes what the session has while DR takes it.
+    /// Decodes the received bytes (each request prepared, then served: [`super::serve`]), then
+    /// writes what the session has while DR takes it. Every hold of `session`'s lock is
+    /// measured ([`LinkCounters::lock_holds`]).
     pub fn service<M>(&mut self, session: &mut M)
     where
         M: rtic::Mutex<T = &'static mut Session>,
