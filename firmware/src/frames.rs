@@ -206,6 +206,18 @@ impl FrameQueue {
         batch.len()
     }
 
+    /// Drops the queued frames numbered `first` and after (those produced since
+    /// [`Self::next_sequence`] was `first`), keeping older ones; not counted as dropped.
+    pub fn discard_from(&mut self, first: u32) {
+        let produced = self.next_sequence.wrapping_sub(first);
+        while let Some(f) = self.frames.back() {
+            if self.next_sequence.wrapping_sub(f.sequence) > produced {
+                break;
+            }
+            self.frames.pop_back();
+        }
+    }
+
     /// One frame every `decimation` ticks from now on (0 is taken as 1).
     pub fn set_decimation(&mut self, decimation: u32) {
         self.decimation = decimation.max(1);
@@ -356,6 +368,33 @@ mod tests {
         q.drain_into(&mut batch);
         assert_eq!(rx.accept(batch[0].sequence), 5);
         assert_eq!((rx.gaps, rx.lost), (1, 5));
+    }
+
+    #[test]
+    fn discard_from_keeps_the_older_frames() {
+        let mut q = FrameQueue::new(1);
+        for _ in 0..3 {
+            q.offer(|| axes(1.0));
+        }
+        let first_new = q.next_sequence();
+        for _ in 0..2 {
+            q.offer(|| axes(2.0));
+        }
+        q.discard_from(first_new);
+        let mut batch = heapless::Vec::<SampleFrame, 8>::new();
+        assert_eq!(q.drain_into(&mut batch), 3);
+        assert_eq!(
+            batch
+                .iter()
+                .map(|f| f.sequence)
+                .collect::<heapless::Vec<u32, 8>>(),
+            [0, 1, 2]
+        );
+        // Nothing new: nothing dropped.
+        q.offer(|| axes(3.0));
+        q.discard_from(q.next_sequence());
+        assert_eq!(q.len(), 1);
+        assert_eq!(q.dropped(), 0);
     }
 
     #[test]

@@ -16,10 +16,12 @@
 //!
 //! The session (the loop inside it) is one RTIC shared resource. The tick has the highest
 //! priority of its users, so it never waits for it; the link and telemetry lock it for one
-//! request's application, one batch of ≤ 64 bytes out or one status, and those locks delay the
-//! tick. The link decodes and prepares each request before it locks (`session::prepare`: an
-//! upload's validation runs there, preempted by the tick), so requests are applied between two
-//! ticks, as `Session` requires, and none holds the loop for long.
+//! request's application with a copy of its reply, one reply's bytes queued, one batch of ≤ 64
+//! bytes out or one status, and those locks delay the tick. The link decodes and prepares each
+//! request before it locks (`session::prepare`: an upload's validation runs there, preempted by
+//! the tick) and encodes each reply after it unlocks (`board::serve`), so requests are applied
+//! between two ticks, as `Session` requires, and none holds the loop for long: the longest hold
+//! per kind of request is measured and logged (`link lock held worst …`).
 //!
 //! # Deadline and its measurement
 //! Deadline: one loop period, T = 1/`loop_rate_hz` (100 µs, 16 800 core cycles at 10 kHz), from

@@ -20,10 +20,10 @@
 //!    the mps2-an386 QEMU image) behind the same converter traits instead of the DAC8563 and the
 //!    two ADS8681 on SPI; it moves one loop period on after each tick.
 //! 5. **Link**: USART1 (QEMU's first `-serial`), task `usart_link` bound to USART1, instead of
-//!    USB CDC-ACM on OTG_FS (QEMU does not model OTG_FS). Same decoding, preparation outside the
-//!    lock and batches of 64 bytes out.
-//! 6. **Shutdown**: after answering `shutdown` the link task prints the deadline figures and
-//!    TIM2's measured rate over semihosting and exits QEMU with success (the board keeps
+//!    USB CDC-ACM on OTG_FS (QEMU does not model OTG_FS). Same decoding, preparation and reply
+//!    encoding outside the lock and batches of 64 bytes out.
+//! 6. **Shutdown**: after answering `shutdown` the link task prints the deadline figures,
+//!    TIM2's measured rate and the link's longest lock hold per kind of request over semihosting and exits QEMU with success (the board keeps
 //!    running).
 //! 7. **Logging**: the defmt calls are compiled and run as on the board, into defmt-rtt's RAM
 //!    buffer, which nothing reads under QEMU (non-blocking: records are dropped once it is

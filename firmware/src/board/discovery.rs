@@ -122,6 +122,15 @@ impl CycleCounter {
     }
 }
 
+/// Bits of [`stamp`]'s count: the DWT's 32.
+pub const STAMP_MASK: u32 = u32::MAX;
+
+/// The DWT cycle counter, free-running, for differences from any task ([`super::timed_lock`]).
+#[inline]
+pub fn stamp() -> u32 {
+    DWT::cycle_count()
+}
+
 /// The board's converters as the loop sees them.
 pub type Io = XyIo<Dac8563<DacSpi>, AdcPair<Ads8681<AdcSpi>, Ads8681<AdcYSpi>>>;
 

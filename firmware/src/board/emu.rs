@@ -201,6 +201,16 @@ impl CycleCounter {
     }
 }
 
+/// Bits of [`stamp`]'s count: SysTick's 24.
+pub const STAMP_MASK: u32 = SYST_RELOAD;
+
+/// SysTick's count as a free-running 24-bit cycle count (up: `reload − current`), for
+/// differences shorter than one wrap (2²⁴ cycles, 99.9 ms) from any task ([`super::timed_lock`]).
+#[inline]
+pub fn stamp() -> u32 {
+    SYST_RELOAD - SYST::get_current()
+}
+
 /// TIM2's rate as served, measured with SysTick: the updates the tick served and the core
 /// cycles between the first and the latest (written by the tick only).
 struct Rate {
@@ -373,9 +383,14 @@ pub fn end_of_tick(io: &mut Io) {
     stage.set(s);
 }
 
-/// Prints the run's deadline figures and TIM2's measured rate over semihosting and exits QEMU
+/// Prints the run's deadline figures, TIM2's measured rate and the link's worst lock holds per
+/// kind of request over semihosting and exits QEMU
 /// with success (the variant's answer to a `shutdown` request; the board keeps running).
-pub fn exit(stats: &super::deadline::TickStats, overruns: u32) -> ! {
+pub fn exit(
+    stats: &super::deadline::TickStats,
+    overruns: u32,
+    holds: &crate::session::LockHolds,
+) -> ! {
     let (served, span) = measured_rate();
     let rate_mhz = if span > 0 && served > 1 {
         u64::from(served - 1) * u64::from(SYSCLK_HZ) * 1000 / span
@@ -397,6 +412,19 @@ pub fn exit(stats: &super::deadline::TickStats, overruns: u32) -> ! {
         stats.worst_cycles,
         stats.worst_latency_cycles,
         stats.worst_completion_cycles
+    );
+    let h = |kind| holds.worst(kind);
+    use crate::session::RequestKind as K;
+    cortex_m_semihosting::hprintln!(
+        "board-emu: link lock held worst {} cycles: status {}, upload {}, table {}, control {}, track {}, other {}, transmit {}",
+        holds.worst_of_all(),
+        h(K::Status),
+        h(K::Upload),
+        h(K::Table),
+        h(K::Control),
+        h(K::Track),
+        h(K::Other),
+        h(K::Transmit)
     );
     cortex_m_semihosting::debug::exit(cortex_m_semihosting::debug::EXIT_SUCCESS);
     #[allow(clippy::empty_loop)]

@@ -4,8 +4,9 @@
 //!
 //! [`UsartLink::service`] runs in the USART1 interrupt (RXNE: a byte came) and whenever the
 //! control tick pends it because the session has bytes to send, as the USB link does: received
-//! bytes are decoded here, each request prepared outside the session ([`session::prepare`]) and
-//! applied under its lock ([`Session::apply`]); bytes out are taken from
+//! bytes are decoded here, each request prepared outside the session ([`session::prepare`]),
+//! applied under its lock with its reply copied out, the reply encoded outside and queued under
+//! the lock again ([`super::serve`]); bytes out are taken from
 //! [`Session::transmit`] in batches of at most [`BATCH_BYTES`] under the lock and written to DR
 //! while TXE is set, never waiting for it: what DR cannot take yet stays staged, and TXEIE is on
 //! only while bytes are staged (QEMU's USART writes each byte at once, TXE is always set there,
@@ -15,8 +16,8 @@ use stm32f4xx_hal::pac;
 
 use piezo_link::{Decoder, Packet, Request};
 
-use super::LinkCounters;
-use crate::session::{self, Session};
+use super::{serve, timed_lock, LinkCounters};
+use crate::session::{self, RequestKind, Session};
 
 /// Bytes taken from the session under one lock.
 pub const BATCH_BYTES: usize = 64;
@@ -80,29 +81,36 @@ impl UsartLink {
         self.end - self.start
     }
 
-    /// Decodes the received bytes (each request prepared, then applied under one lock of
-    /// `session`), then writes what the session has while DR takes it.
+    /// Decodes the received bytes (each request prepared, then served: [`super::serve`]), then
+    /// writes what the session has while DR takes it. Every hold of `session`'s lock is
+    /// measured ([`LinkCounters::lock_holds`]).
     pub fn service<M>(&mut self, session: &mut M)
     where
         M: rtic::Mutex<T = &'static mut Session>,
     {
+        let holds = &mut self.counters.lock_holds;
         while self.usart.sr().read().rxne().bit_is_set() {
             let byte = self.usart.dr().read().dr().bits() as u8;
             self.counters.bytes_in = self.counters.bytes_in.wrapping_add(1);
             match self.decoder.push::<Request>(byte) {
                 None => {}
                 Some(Ok(Packet { sequence, body })) => {
-                    let prepared = session::prepare(body);
-                    session.lock(|s| s.apply(sequence, prepared));
+                    serve(session, holds, sequence, session::prepare(body));
                 }
-                Some(Err(_)) => session.lock(|s| s.note_rejected_packet()),
+                Some(Err(_)) => timed_lock(session, holds, RequestKind::Other, |s| {
+                    s.note_rejected_packet()
+                }),
             }
         }
         loop {
             if self.start == self.end {
-                let (staged, end) = (&mut self.staged, &mut self.end);
+                let (staged, end, holds) = (
+                    &mut self.staged,
+                    &mut self.end,
+                    &mut self.counters.lock_holds,
+                );
                 self.start = 0;
-                *end = session.lock(|s| {
+                *end = timed_lock(session, holds, RequestKind::Transmit, |s| {
                     let mut n = 0;
                     s.transmit(|b| {
                         if n == BATCH_BYTES {

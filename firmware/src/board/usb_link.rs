@@ -7,10 +7,12 @@
 //! because the session has bytes to send): it polls the USB device, decodes the received bytes
 //! into requests itself, prepares each one outside the session ([`session::prepare`]: an
 //! upload's validation by the core, several loop periods of work, happens here while the loop
-//! keeps ticking) and applies it under the session's lock ([`Session::apply`]: the swap between
-//! two ticks), and moves bytes from [`Session::transmit`] to the serial port. The session is
-//! taken through an RTIC lock for one request or one batch of at most [`PACKET_BYTES`] bytes
-//! out, never while waiting for the bus, so a slow or absent host never holds up the tick; what
+//! keeps ticking) and serves it ([`super::serve`]: the request's effect and a copy of its reply
+//! under the session's lock, between two ticks; the reply's encoding outside it; its bytes
+//! queued under the lock again), and moves bytes from [`Session::transmit`] to the serial port.
+//! The session is taken through an RTIC lock for one of those two steps or one batch of at most
+//! [`PACKET_BYTES`] bytes out, never while encoding a packet or waiting for the bus, so a slow or
+//! absent host never holds up the tick (each hold is measured: [`LinkCounters::lock_holds`]); what
 //! the host does not read stays in the session's transmit buffer, which drops frames (counted)
 //! when full.
 //!
@@ -28,8 +30,8 @@ use usbd_serial::SerialPort;
 
 use piezo_link::{Decoder, Packet, Request};
 
-use super::LinkCounters;
-use crate::session::{self, Session};
+use super::{serve, timed_lock, LinkCounters};
+use crate::session::{self, RequestKind, Session};
 
 /// The USB bus of the board.
 pub type Bus = UsbBus<USB>;
@@ -120,10 +122,10 @@ impl UsbLink {
         self.device.state() == UsbDeviceState::Configured
     }
 
-    /// Polls the device, decodes and prepares received requests and applies them to the session,
-    /// and sends what the session has, until the serial port would block. `session` is locked
-    /// once per request (after its preparation) and once per batch of at most [`PACKET_BYTES`]
-    /// bytes out.
+    /// Polls the device, decodes and prepares received requests and serves them
+    /// ([`super::serve`]), and sends what the session has, until the serial port would block.
+    /// `session` is locked twice per request (after its preparation, and after its reply's
+    /// encoding) and once per batch of at most [`PACKET_BYTES`] bytes out.
     pub fn service<M>(&mut self, session: &mut M)
     where
         M: rtic::Mutex<T = &'static mut Session>,
@@ -131,14 +133,16 @@ impl UsbLink {
         self.device.poll(&mut [&mut self.serial]);
         let mut received = [0u8; PACKET_BYTES];
         while let Ok(n @ 1..) = self.serial.read(&mut received) {
+            let holds = &mut self.counters.lock_holds;
             for &byte in &received[..n] {
                 match self.decoder.push::<Request>(byte) {
                     None => {}
                     Some(Ok(Packet { sequence, body })) => {
-                        let prepared = session::prepare(body);
-                        session.lock(|s| s.apply(sequence, prepared));
+                        serve(session, holds, sequence, session::prepare(body));
                     }
-                    Some(Err(_)) => session.lock(|s| s.note_rejected_packet()),
+                    Some(Err(_)) => timed_lock(session, holds, RequestKind::Other, |s| {
+                        s.note_rejected_packet()
+                    }),
                 }
             }
             self.counters.bytes_in = self.counters.bytes_in.wrapping_add(n as u32);
@@ -148,8 +152,10 @@ impl UsbLink {
         }
         loop {
             if self.staged.pending().is_empty() {
-                let staged = &mut self.staged;
-                session.lock(|s| s.transmit(|b| staged.push(b)));
+                let (staged, holds) = (&mut self.staged, &mut self.counters.lock_holds);
+                timed_lock(session, holds, RequestKind::Transmit, |s| {
+                    s.transmit(|b| staged.push(b))
+                });
                 if staged.pending().is_empty() {
                     return;
                 }

@@ -582,4 +582,151 @@ fn a_request_with_trailing_bytes_is_refused() {
     assert_eq!(st.mode, WireMode::Running, "the overrun drill did not run");
 }
 
+/// Ticks the session `ticks` times on the simulated stage and returns every packet it queued,
+/// decoded, with its packet number.
+fn tick_packets(
+    s: &mut Session,
+    plant: &Cell<XyPlant>,
+    ticks: u32,
+) -> std::vec::Vec<Packet<Uplink>> {
+    let mut io = XyIo {
+        dac: PlantDac(plant),
+        dac_channels: Axis::ALL,
+        sensor: AdcSensor {
+            adc: PlantAdc(plant),
+            channels: Axis::ALL,
+            scale: SensorScale::new(params::SENSOR_M_PER_V).unwrap(),
+        },
+    };
+    for _ in 0..ticks {
+        s.tick(&mut io, false);
+        let mut p = plant.get();
+        p.advance();
+        plant.set(p);
+    }
+    packets(s)
+}
+
+/// The packets queued in the session's transmit buffer, decoded.
+fn packets(s: &mut Session) -> std::vec::Vec<Packet<Uplink>> {
+    let mut decoder = Decoder::new();
+    let mut out = std::vec::Vec::new();
+    s.transmit(|b| {
+        if let Some(p) = decoder.push::<Uplink>(b) {
+            out.push(p.unwrap());
+        }
+        true
+    });
+    out
+}
+
+/// The board's link answers a request in two holds of the session's lock, encoding in between
+/// while ticks run: the reply keeps the packet number it was given, frames produced meanwhile
+/// wait in the frame queue and follow it, none lost, and the backlog drains at most
+/// [`FRAMES_PER_TICK`] a tick.
+#[test]
+fn a_reply_encoded_between_ticks_keeps_its_place_and_no_frame_is_lost() {
+    let (mut s, plant) = session();
+    let mut host = Host::new();
+    host.ask(&mut s, Request::Frames { decimation: 1 });
+    host.ask(&mut s, sine_track());
+    let mut all = tick_packets(&mut s, &plant, 5);
+    assert_eq!(all.len(), 5);
+
+    let prepared = prepare(Request::Status);
+    let reply = s.answer(host.sequence, &prepared);
+    let Response::Status(snapshot) = reply.response().clone() else {
+        panic!("{:?}", reply.response());
+    };
+    // Three ticks while the reply is encoded: their frames wait.
+    assert!(tick_packets(&mut s, &plant, 3).is_empty());
+    let mut out = [0u8; MAX_FRAME];
+    let n = reply.encode(&mut out).unwrap();
+    assert!(s.queue_reply(&reply, Some(&out[..n])));
+    // The status is the state when the request was applied, not when it was sent.
+    assert_eq!(snapshot.counters.ticks, 5);
+    all.extend(packets(&mut s));
+    for k in 0..3 {
+        let p = tick_packets(&mut s, &plant, 1);
+        // Three held and one new a tick: two go a tick until the backlog is gone.
+        assert_eq!(p.len(), 2, "tick {k}");
+        all.extend(p);
+    }
+    let numbers: std::vec::Vec<u32> = all.iter().map(|p| p.sequence).collect();
+    assert_eq!(
+        numbers,
+        (numbers[0]..numbers[0] + 12).collect::<std::vec::Vec<_>>()
+    );
+    assert_eq!(
+        all[5].body,
+        Uplink::Response {
+            request: host.sequence,
+            response: Response::Status(snapshot)
+        }
+    );
+    let frames: std::vec::Vec<u32> = all
+        .iter()
+        .filter_map(|p| match p.body {
+            Uplink::Frame(f) => Some(f.sequence),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(
+        frames,
+        (frames[0]..frames[0] + 11).collect::<std::vec::Vec<_>>()
+    );
+    host.sequence += 1;
+    assert_eq!(s.lp.frames.len(), 0);
+    assert_eq!(host.status(&mut s).counters.frames_dropped, 0);
+}
+
+/// Frames produced while frames were on still go out when a request turns them off before the
+/// tick could send them (held back by a reply); the ones after it do not.
+#[test]
+fn frames_held_back_by_a_reply_still_go_out_after_frames_off() {
+    let (mut s, plant) = session();
+    let mut host = Host::new();
+    host.ask(&mut s, Request::Frames { decimation: 1 });
+    host.ask(&mut s, sine_track());
+    tick_packets(&mut s, &plant, 2);
+    let reply = s.answer(host.sequence, &prepare(Request::Status));
+    host.sequence += 1;
+    assert!(tick_packets(&mut s, &plant, 3).is_empty());
+    let mut out = [0u8; MAX_FRAME];
+    let n = reply.encode(&mut out).unwrap();
+    assert!(s.queue_reply(&reply, Some(&out[..n])));
+    packets(&mut s);
+    let next = match host.ask(&mut s, Request::Frames { decimation: 0 }) {
+        Response::Streaming { next_frame, .. } => next_frame,
+        other => panic!("{other:?}"),
+    };
+    let frames: std::vec::Vec<u32> = tick_packets(&mut s, &plant, 4)
+        .iter()
+        .filter_map(|p| match p.body {
+            Uplink::Frame(f) => Some(f.sequence),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(frames, [next - 3, next - 2, next - 1]);
+}
+
+/// A reply whose packet number is no longer the next (another packet went out under it) is not
+/// queued: two packets never carry one number.
+#[test]
+fn a_stale_reply_is_not_queued() {
+    let (mut s, _plant) = session();
+    let first = s.answer(0, &prepare(Request::Status));
+    let second = s.answer(1, &prepare(Request::Rearm));
+    assert_eq!(first.packet(), second.packet());
+    let mut out = [0u8; MAX_FRAME];
+    let n = second.encode(&mut out).unwrap();
+    assert!(s.queue_reply(&second, Some(&out[..n])));
+    let n = first.encode(&mut out).unwrap();
+    assert!(!s.queue_reply(&first, Some(&out[..n])));
+    assert!(!s.queue_reply(&first, None));
+    let sent = packets(&mut s);
+    assert_eq!(sent.len(), 1);
+    assert_eq!(sent[0].sequence, second.packet());
+}
+
 mod learned;

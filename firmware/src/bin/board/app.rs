@@ -18,7 +18,7 @@ mod app {
     use piezo_firmware::demo;
     use piezo_firmware::params;
     use piezo_firmware::reference::{Program, ReferenceGenerator, Waveform};
-    use piezo_firmware::session::Session;
+    use piezo_firmware::session::{RequestKind, Session};
     use piezo_firmware::xy_loop::{Feedforward, TwoAxisLoop};
 
     /// The link's state as telemetry reports it.
@@ -191,11 +191,11 @@ mod app {
         };
         cx.shared.link_report.lock(|r| *r = report);
         let shutdown = cx.shared.session.lock(|s| {
-            (s.shutdown_requested() && s.pending_tx() == 0).then(|| s.status().counters.overruns)
+            (s.shutdown_requested() && s.pending_tx() == 0).then(|| s.lp.counters().overruns)
         });
         if let (Some(overruns), 0) = (shutdown, link.staged()) {
             let stats = cx.shared.tick_stats.lock(|t| *t);
-            board::exit(&stats, overruns);
+            board::exit(&stats, overruns, &report.counters.lock_holds);
         }
     }
 
@@ -238,6 +238,17 @@ mod app {
             link.counters.bytes_in,
             link.counters.bytes_out,
             link.counters.errors
+        );
+        let holds = |kind: RequestKind| link.counters.lock_holds.worst(kind);
+        defmt::info!(
+            "link lock held worst (cycles): status {=u32} upload {=u32} table {=u32} control {=u32} track {=u32} other {=u32} transmit {=u32}",
+            holds(RequestKind::Status),
+            holds(RequestKind::Upload),
+            holds(RequestKind::Table),
+            holds(RequestKind::Control),
+            holds(RequestKind::Track),
+            holds(RequestKind::Other),
+            holds(RequestKind::Transmit)
         );
         if link.configured != *cx.local.reported_configured {
             *cx.local.reported_configured = link.configured;
