@@ -227,17 +227,21 @@ impl Compensation {
 /// Runs the firmware's chain for the stage file at `params` over the record at `reference`;
 /// every voltage must be finite (refused naming the tick, its time and the reference's line).
 pub fn compensate(params: &Path, reference: &Path) -> Result<Compensation, String> {
-    compensate_record(params, reference, &read_reference(reference)?)
+    compensate_record(params, reference, &|| read_reference(reference))
 }
 
-/// [`compensate`] over `record`, read from `reference` (perhaps then changed; errors name that
-/// file's lines).
+/// The record `read` gives, from `reference` (perhaps changed; errors name that file's lines),
+/// read after the stage file loaded.
+type ReadRecord<'a> = &'a dyn Fn() -> Result<Reference, String>;
+
+/// [`compensate`] over the record `read` gives.
 fn compensate_record(
     params: &Path,
     reference: &Path,
-    record: &Reference,
+    read: ReadRecord<'_>,
 ) -> Result<Compensation, String> {
     let (file, valid) = StageFile::load(params).map_err(|e| e.to_string())?;
+    let record = &read()?;
     check_period(reference, record, params, file.stage.loop_rate_hz)?;
     let axes = feedforward_axes(&file, &valid, params)?;
     let result = run_chain(&axes, params, reference, record)?;
@@ -264,16 +268,19 @@ pub fn compensate_for_gain(
     periodic: bool,
     gain_offset: &[(f64, f64)],
 ) -> Result<Compensation, String> {
-    let mut record = read_reference(reference)?;
-    for ((_, r), &(gain, offset)) in record.axes.iter_mut().zip(gain_offset) {
-        for v in r.iter_mut() {
-            *v = ((f64::from(*v) - offset) / gain) as f32;
+    let read = || {
+        let mut record = read_reference(reference)?;
+        for ((_, r), &(gain, offset)) in record.axes.iter_mut().zip(gain_offset) {
+            for v in r.iter_mut() {
+                *v = ((f64::from(*v) - offset) / gain) as f32;
+            }
         }
-    }
+        Ok(record)
+    };
     if periodic {
-        compensate_periodic_record(params, reference, &record)
+        compensate_periodic_record(params, reference, &read)
     } else {
-        compensate_record(params, reference, &record)
+        compensate_record(params, reference, &read)
     }
 }
 
@@ -290,16 +297,17 @@ pub const MIN_WARMUP_PERIODS: usize = 2;
 /// taken, and one more (so that the look-ahead of the period's end reads the next period, not
 /// the record's held end); the taken period, `t_s` the record's. `counts` are of the whole run.
 pub fn compensate_periodic(params: &Path, reference: &Path) -> Result<Compensation, String> {
-    compensate_periodic_record(params, reference, &read_reference(reference)?)
+    compensate_periodic_record(params, reference, &|| read_reference(reference))
 }
 
-/// [`compensate_periodic`] over `record`, read from `reference` (perhaps then changed).
+/// [`compensate_periodic`] over the record `read` gives.
 fn compensate_periodic_record(
     params: &Path,
     reference: &Path,
-    record: &Reference,
+    read: ReadRecord<'_>,
 ) -> Result<Compensation, String> {
     let (file, valid) = StageFile::load(params).map_err(|e| e.to_string())?;
+    let record = &read()?;
     check_period(reference, record, params, file.stage.loop_rate_hz)?;
     let axes = feedforward_axes(&file, &valid, params)?;
     let n = record.t_s.len();
