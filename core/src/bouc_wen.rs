@@ -534,6 +534,21 @@ impl BoucWen {
         (a - kappa * h0, kappa, sigma)
     }
 
+    /// For n = 1, the input increment at which h reaches zero from `h0` on the branch κ (h moving
+    /// toward zero): dh/du = A − κ·h gives `Δu₀ = ln(1 + x)/κ` with x = −κ·h₀/A, written as
+    /// `Δu₀ = −(h₀/A)·ln(1 + x)/x` so that κ → 0 is regular. `None` when x ≤ −1 (h never
+    /// reaches zero on this branch). The model's own step ([`BoucWen::advance`]) splits a step
+    /// that crosses zero here.
+    #[inline]
+    pub(crate) fn n1_zero_reach(&self, h0: f32, kappa: f32) -> Option<f32> {
+        let a = self.params.a;
+        let x = -kappa * h0 / a;
+        if x <= -1.0 {
+            return None;
+        }
+        Some(-(h0 / a) * log1p_ratio(x))
+    }
+
     /// Sign used while `h` is zero: the state leaves zero in the direction of `A·Δu`.
     #[inline]
     fn branch_sign(&self, h: f32, du: f32) -> f32 {
@@ -553,13 +568,10 @@ impl BoucWen {
         if h1 * sigma >= 0.0 {
             return h1;
         }
-        // h crossed zero inside the step: dh/du = A − κh reaches h = 0 at Δu₀ = ln(1 + x)/κ,
-        // x = −κh₀/A, written as −(h₀/A)·ln(1 + x)/x so that κ → 0 is regular.
-        let x = -kappa * h0 / a;
-        if x <= -1.0 {
+        // h crossed zero inside the step (see `n1_zero_reach`).
+        let Some(du0) = self.n1_zero_reach(h0, kappa) else {
             return h1;
-        }
-        let du0 = -(h0 / a) * log1p_ratio(x);
+        };
         let rest = if (du - du0) * s > 0.0 { du - du0 } else { 0.0 };
         let kappa_after = beta * s - gamma * sigma;
         a * rest * relax_factor(kappa_after * rest)
