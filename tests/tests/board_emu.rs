@@ -24,13 +24,13 @@
 use std::io::Read as _;
 use std::path::Path;
 use std::sync::mpsc;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 mod common;
 
 use common::{
     build_board_emu_image, build_link_image, connect, firmware_dir, run_board_emu_image,
-    run_link_image, Qemu, TempDir,
+    run_link_image, shut_down, Qemu, TempDir,
 };
 use host_sim::link::{fnv1a32, upload, Client, Recording};
 use integration_tests::qemu::{missing_tools, say};
@@ -94,7 +94,7 @@ fn session(
         *rms = (errors.iter().map(|e| e * e).sum::<f64>() / errors.len() as f64).sqrt();
     }
 
-    let stdout = shut_down(client, qemu, lines);
+    let stdout = shut_down_reading(client, qemu, lines);
     Outcome {
         before,
         after,
@@ -106,20 +106,12 @@ fn session(
 
 /// Sends `shutdown`, waits for QEMU to exit (10 s at most) with success, and returns its stdout
 /// (from `lines` when the caller's thread reads it).
-fn shut_down(mut client: Client, mut qemu: Qemu, lines: Option<mpsc::Receiver<String>>) -> String {
-    assert_eq!(client.request(Request::Shutdown).unwrap(), Response::Done);
-    let deadline = Instant::now() + Duration::from_secs(10);
-    let exit = loop {
-        if let Some(status) = qemu.0.try_wait().unwrap() {
-            break status;
-        }
-        assert!(
-            Instant::now() < deadline,
-            "QEMU did not exit after shutdown"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    };
-    assert!(exit.success(), "QEMU exit {exit:?}");
+fn shut_down_reading(
+    mut client: Client,
+    mut qemu: Qemu,
+    lines: Option<mpsc::Receiver<String>>,
+) -> String {
+    shut_down(&mut client, &mut qemu);
     let mut stdout = String::new();
     if let Some(lines) = lines {
         // The reader thread ends with QEMU's stdout.
@@ -340,7 +332,7 @@ fn requests_served_during_a_recording_never_make_a_tick_late() {
     };
     let after = client.status().expect("status");
     let frames = client.take_frames();
-    let stdout = shut_down(client, qemu, Some(lines));
+    let stdout = shut_down_reading(client, qemu, Some(lines));
 
     let deadline = line_of(&stdout, "board-emu: TIM2");
     let holds = line_of(&stdout, "board-emu: link lock");

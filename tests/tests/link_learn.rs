@@ -19,7 +19,9 @@ use std::time::{Duration, Instant};
 mod common;
 
 use clap::Parser as _;
-use common::{build_link_image, connect, firmware_dir, run_link_image, TempDir, TIMEOUT};
+use common::{
+    build_link_image, connect, firmware_dir, run_link_image, shut_down, TempDir, TIMEOUT,
+};
 use host_sim::link::{fnv1a32, Client};
 use integration_tests::qemu::{missing_tools, say};
 use piezo_link::{Control, Feedforward, Program, RefusalKind, Request, Response};
@@ -269,19 +271,7 @@ fn learning_over_the_link_lowers_the_error() {
     let session = session_started.elapsed();
 
     // 5. Shutdown.
-    assert_eq!(client.request(Request::Shutdown).unwrap(), Response::Done);
-    let deadline = Instant::now() + Duration::from_secs(10);
-    let exit = loop {
-        if let Some(status) = qemu.0.try_wait().unwrap() {
-            break status;
-        }
-        assert!(
-            Instant::now() < deadline,
-            "QEMU did not exit after shutdown"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    };
-    assert!(exit.success(), "QEMU exit {exit:?}");
+    shut_down(&mut client, &mut qemu);
     say(&format!(
         "link_learn: image built in {:.1} s, session {:.1} s",
         built.as_secs_f64(),

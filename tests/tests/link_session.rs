@@ -20,7 +20,7 @@ use std::time::{Duration, Instant};
 mod common;
 
 use clap::Parser as _;
-use common::{build_link_image, connect, firmware_dir, run_link_image, TempDir};
+use common::{build_link_image, connect, firmware_dir, run_link_image, shut_down, TempDir};
 use host_sim::link::{fnv1a32, model_set, upload, Client};
 use integration_tests::qemu::{missing_tools, say};
 use piezo_link::{Control, Fault, Feedforward, Mode, Request, Response, Status};
@@ -236,19 +236,7 @@ fn a_whole_session_over_the_link() {
     let session = session_started.elapsed();
 
     // 9. Shutdown: QEMU exits with success.
-    assert_eq!(client.request(Request::Shutdown).unwrap(), Response::Done);
-    let deadline = Instant::now() + Duration::from_secs(10);
-    let exit = loop {
-        if let Some(status) = qemu.0.try_wait().unwrap() {
-            break status;
-        }
-        assert!(
-            Instant::now() < deadline,
-            "QEMU did not exit after shutdown"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    };
-    assert!(exit.success(), "QEMU exit {exit:?}");
+    shut_down(&mut client, &mut qemu);
     say(&format!(
         "link_session: image built in {:.1} s, session {:.1} s, {} ticks",
         built.as_secs_f64(),

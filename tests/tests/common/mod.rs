@@ -1,6 +1,6 @@
 //! What the link sessions under QEMU share: the firmware folder, QEMU stopped when dropped, a
-//! temporary directory removed when dropped, and a link client that waits for the image to
-//! answer.
+//! temporary directory removed when dropped, a link client that waits for the image to answer,
+//! and the shutdown that QEMU must exit from with success.
 
 use std::io::{BufRead as _, BufReader};
 use std::path::{Path, PathBuf};
@@ -10,9 +10,27 @@ use std::time::{Duration, Instant};
 
 use host_sim::link::Client;
 use integration_tests::qemu::{outer_target_dir, workspace, TARGET};
+use piezo_link::{Request, Response};
 
 /// How long one request may take.
 pub const TIMEOUT: Duration = Duration::from_secs(20);
+
+/// Sends `shutdown` and waits for QEMU to exit (10 s at most); the exit must be a success.
+pub fn shut_down(client: &mut Client, qemu: &mut Qemu) {
+    assert_eq!(client.request(Request::Shutdown).unwrap(), Response::Done);
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let exit = loop {
+        if let Some(status) = qemu.0.try_wait().unwrap() {
+            break status;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "QEMU did not exit after shutdown"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert!(exit.success(), "QEMU exit {exit:?}");
+}
 
 /// The firmware's folder.
 pub fn firmware_dir() -> PathBuf {
