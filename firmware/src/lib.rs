@@ -47,6 +47,8 @@ pub mod xy_loop;
 pub mod board;
 #[cfg(all(target_os = "none", feature = "qemu"))]
 pub mod cmsdk_uart;
+#[cfg(all(target_os = "none", any(feature = "qemu", feature = "board-emu")))]
+pub mod semihosting_exit;
 
 #[cfg(test)]
 mod test_support;

@@ -28,10 +28,9 @@
 #[cfg(target_os = "none")]
 mod image {
     use core::cell::Cell;
-    use core::fmt::Write as _;
 
     use cortex_m_rt::{entry, exception, ExceptionFrame};
-    use cortex_m_semihosting::{debug, hio, hprintln};
+    use cortex_m_semihosting::{debug, hprintln};
 
     use piezo_firmware::demo;
     use piezo_firmware::frames::SampleFrame;
@@ -127,16 +126,7 @@ mod image {
         loop {}
     }
 
-    fn fail(what: core::fmt::Arguments<'_>) -> ! {
-        // Best effort: an error while printing must not stop the exit.
-        if let Ok(mut err) = hio::hstderr() {
-            let _ = err.write_fmt(what);
-            let _ = err.write_str("\n");
-        }
-        debug::exit(debug::EXIT_FAILURE);
-        #[allow(clippy::empty_loop)]
-        loop {}
-    }
+    use piezo_firmware::semihosting_exit::fail;
 
     #[panic_handler]
     fn panic(info: &core::panic::PanicInfo<'_>) -> ! {
