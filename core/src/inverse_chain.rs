@@ -49,6 +49,7 @@
 
 use crate::compensator::{CommandStatus, Compensator, CompensatorState};
 use crate::effects::{decouple, Effects, EffectsState};
+use crate::math::max;
 
 /// Reference samples kept: a power of two above the largest lead (1 + 64 samples) + 1.
 pub const REFERENCE_RING: usize = 128;
@@ -298,7 +299,7 @@ fn run(
     mut chain: Option<InverseChain>,
     ticks: usize,
     mut next_reference: impl FnMut() -> [f32; 2],
-    mut write: impl FnMut(usize, [f32; 2]),
+    mut write: impl FnMut(usize, [f32; 2]) -> bool,
 ) -> FeedforwardCounts {
     let mut state = axes.map(|a| CompensatorState::at_rest(a.rest_v));
     let mut counts = FeedforwardCounts {
@@ -336,7 +337,10 @@ fn run(
             }
             *u = command.voltage_v;
         }
-        write(j, u);
+        if !write(j, u) {
+            counts.ticks = j + 1;
+            break;
+        }
     }
     counts
 }
@@ -370,6 +374,7 @@ pub fn compensate_pair(
         if let (Some(x), Some(y)) = (ux.get_mut(j), uy.get_mut(j)) {
             (*x, *y) = (u[0], u[1]);
         }
+        true
     })
 }
 
@@ -391,7 +396,141 @@ pub fn compensate_single(
         if let Some(x) = u_out_v.get_mut(j) {
             *x = u[0];
         }
+        true
     })
+}
+
+/// When the feed-forward of a reference played in a loop has settled
+/// ([`compensate_periodic_pair`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PeriodicSettings {
+    /// Fewest whole periods run before the period taken (the hysteresis leaves its
+    /// first-loading branch in the first).
+    pub min_periods: usize,
+    /// Most whole periods run before the period taken, settled or not.
+    pub max_periods: usize,
+    /// The period is settled when no command moved more than this from the period before \[V\].
+    pub tolerance_v: f32,
+}
+
+/// How the feed-forward played in a loop settled.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PeriodicSettling {
+    /// Whole periods run before the period taken.
+    pub periods: usize,
+    /// `max_j |u_p[j] − u_{p−1}[j]|` over the axes: how far the period taken moved from the one
+    /// before \[V\] (a stage file with drift or creep never settles below the drift's share).
+    pub change_v: f32,
+    /// Whether `change_v` is within the tolerance (else `max_periods` was reached).
+    pub settled: bool,
+    /// What the compensators did over the whole run.
+    pub counts: FeedforwardCounts,
+}
+
+/// The period the feed-forward of a reference played in a loop settles to: the chain of
+/// [`compensate_pair`] from rest over `reference_m` repeated (one period, P = the shortest of the
+/// four lengths; the chain's look-ahead reads the next period), run period by period until
+/// period p ≥ `min_periods` moved no command more than `tolerance_v` from period p − 1, or p =
+/// `max_periods`; period p is written to `u_out_v`. Without settling, a table cut from the
+/// first periods jumps at its wrap by what the hysteresis state still moves per period (a
+/// Bouc-Wen loop forgets its start only geometrically, by exp(−(β ± γ)·Δu) per branch).
+pub fn compensate_periodic_pair(
+    axes: [&FeedforwardAxis; 2],
+    reference_m: [&[f32]; 2],
+    settings: PeriodicSettings,
+    u_out_v: [&mut [f32]; 2],
+) -> PeriodicSettling {
+    let [rx, ry] = reference_m;
+    let [ux, uy] = u_out_v;
+    let period = rx.len().min(ry.len()).min(ux.len()).min(uy.len());
+    let chain = InverseChain::new(
+        [axes[0].effects, axes[1].effects],
+        [axes[0].rest_v, axes[1].rest_v],
+    );
+    let mut k = 0;
+    let next = || {
+        let s = if period == 0 {
+            [f32::NAN; 2]
+        } else {
+            [rx[k % period], ry[k % period]]
+        };
+        k += 1;
+        s
+    };
+    settle(axes, chain, period, settings, next, &mut [ux, uy])
+}
+
+/// [`compensate_periodic_pair`] for one axis (no coupling).
+pub fn compensate_periodic_single(
+    axis: &FeedforwardAxis,
+    reference_m: &[f32],
+    settings: PeriodicSettings,
+    u_out_v: &mut [f32],
+) -> PeriodicSettling {
+    let period = reference_m.len().min(u_out_v.len());
+    let chain = InverseChain::single(axis.effects, axis.rest_v);
+    let mut k = 0;
+    let next = || {
+        let r = if period == 0 {
+            f32::NAN
+        } else {
+            reference_m[k % period]
+        };
+        k += 1;
+        [r, r]
+    };
+    settle([axis, axis], chain, period, settings, next, &mut [u_out_v])
+}
+
+/// The period loop of [`compensate_periodic_pair`]: one table per lane in `out` (1 or 2), each
+/// at least `period` long.
+fn settle(
+    axes: [&FeedforwardAxis; 2],
+    chain: Option<InverseChain>,
+    period: usize,
+    settings: PeriodicSettings,
+    next_reference: impl FnMut() -> [f32; 2],
+    out: &mut [&mut [f32]],
+) -> PeriodicSettling {
+    let lanes = out.len().min(2);
+    if period == 0 {
+        return PeriodicSettling::default();
+    }
+    let last = settings.max_periods.max(settings.min_periods);
+    let ticks = (last + 1).saturating_mul(period);
+    let mut change = 0.0f32;
+    let mut result = PeriodicSettling::default();
+    let counts = run(axes, lanes, chain, ticks, next_reference, |k, u| {
+        let (p, j) = (k / period, k % period);
+        if j == 0 {
+            change = 0.0;
+        }
+        for (table, &v) in out.iter_mut().zip(u.iter()) {
+            let Some(entry) = table.get_mut(j) else {
+                continue;
+            };
+            if p > 0 {
+                let moved = libm::fabsf(v - *entry);
+                // A NaN (held reference) counts as unsettled.
+                change = if moved.is_nan() {
+                    f32::INFINITY
+                } else {
+                    max(change, moved)
+                };
+            }
+            *entry = v;
+        }
+        if j + 1 < period {
+            return true;
+        }
+        let settled = p >= settings.min_periods && p > 0 && change <= settings.tolerance_v;
+        result.periods = p;
+        result.change_v = change;
+        result.settled = settled;
+        !settled && p < last
+    });
+    result.counts = counts;
+    result
 }
 
 #[cfg(test)]
@@ -561,6 +700,76 @@ mod tests {
             assert_eq!(counts.held, 0);
             assert_eq!(u, expected);
         }
+    }
+
+    #[test]
+    fn a_looped_reference_settles_to_a_period_that_closes_at_its_wrap() {
+        extern crate std;
+        let axis = FeedforwardAxis {
+            compensator: compensator(),
+            effects: effects(EffectParams {
+                mode_frequency_hz: 800.0,
+                mode_damping: 0.2,
+                delay_s: 1.5 * T,
+                ..EffectParams::default()
+            }),
+            rest_v: 0.0,
+        };
+        let one = triangle(200);
+        let reference = &one[..200];
+        let settings = PeriodicSettings {
+            min_periods: 1,
+            max_periods: 60,
+            tolerance_v: 1e-4,
+        };
+        let mut table = [0.0f32; 200];
+        let settled = compensate_periodic_single(&axis, reference, settings, &mut table);
+        assert!(settled.settled, "{settled:?}");
+        assert!(settled.change_v <= 1e-4, "{settled:?}");
+        assert_eq!(settled.counts.ticks, (settled.periods + 1) * 200);
+        // The same chain over the record repeated, read as a plain slice: the periods after the
+        // one taken repeat it, and the first period (from rest) does not.
+        let periods = settled.periods + 3;
+        let looped: std::vec::Vec<f32> = (0..periods * 200).map(|k| reference[k % 200]).collect();
+        let mut u = std::vec![0.0f32; periods * 200];
+        compensate_single(&axis, &looped, &mut u);
+        let moved = |p: usize| {
+            (0..200)
+                .map(|j| (u[p * 200 + j] - table[j]).abs())
+                .fold(0.0f32, f32::max)
+        };
+        assert_eq!(moved(settled.periods), 0.0);
+        assert!(
+            moved(settled.periods + 1) <= 2e-4,
+            "{}",
+            moved(settled.periods + 1)
+        );
+        // The first period from rest is not the loop: cut there, the table would jump at its
+        // wrap by what the hysteresis still moves per period.
+        assert!(moved(0) > 100.0 * settings.tolerance_v, "{}", moved(0));
+        // A cap below what settling needs: the change is reported, not hidden.
+        let capped = compensate_periodic_single(
+            &axis,
+            reference,
+            PeriodicSettings {
+                max_periods: 1,
+                ..settings
+            },
+            &mut table,
+        );
+        assert!(!capped.settled && capped.change_v > 1e-4, "{capped:?}");
+        assert_eq!(capped.periods, 1);
+        // The pair runs each uncoupled axis as the single axis does.
+        let (mut tx, mut ty) = ([0.0f32; 200], [0.0f32; 200]);
+        let pair = compensate_periodic_pair(
+            [&axis, &axis],
+            [reference, reference],
+            settings,
+            [&mut tx, &mut ty],
+        );
+        let mut single = [0.0f32; 200];
+        compensate_periodic_single(&axis, reference, settings, &mut single);
+        assert_eq!((tx, ty, pair.periods), (single, single, settled.periods));
     }
 
     #[test]

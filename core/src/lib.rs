@@ -43,7 +43,8 @@ pub use compensator::{
 pub use dynamic_model::{DynamicModel, DynamicState, MassSpringDamperParams};
 pub use error::{ParamError, MIN_SLOPE_RATIO};
 pub use inverse_chain::{
-    compensate_pair, compensate_single, FeedforwardAxis, FeedforwardCounts, InverseChain,
+    compensate_pair, compensate_periodic_pair, compensate_periodic_single, compensate_single,
+    FeedforwardAxis, FeedforwardCounts, InverseChain, PeriodicSettings, PeriodicSettling,
 };
 pub use io_chain::IoChain;
 pub use learning::{

@@ -240,6 +240,20 @@ impl ServoState {
         }
     }
 
+    /// The feedforward steps by `delta_v` \[V\] at the next tick by a change the servo should
+    /// not answer: a new learned voltage table that has taken over the correction the servo was
+    /// holding (Δ = new − old table entry at that tick). In feedforward + feedback the stored correction
+    /// drops by as much, `c ← c − Δ`, so that the sum `u = u_ff + c` continues without a jump
+    /// and without a held tick, and the PI goes on from there; in the other modes (no
+    /// feedback, or feedback alone, which ignores the feedforward), or for a non-finite Δ,
+    /// nothing changes.
+    pub fn take_over(&mut self, delta_v: f32) {
+        if self.mode == ServoMode::FeedforwardFeedback && delta_v.is_finite() {
+            self.pi.y[0] -= delta_v;
+            self.pi.y[1] -= delta_v;
+        }
+    }
+
     /// The mode in force.
     pub fn mode(&self) -> ServoMode {
         self.mode
@@ -1089,6 +1103,46 @@ mod tests {
             last = u;
             y = g * u + 1e-7;
         }
+    }
+
+    #[test]
+    fn a_feedforward_that_takes_over_the_correction_leaves_the_sum_unchanged() {
+        // The same run twice with feedback: once with the feedforward as it is, once with a
+        // feedforward that steps up by Δ at tick 3000 (a new learned table) and the servo told
+        // so. The sums agree to rounding; without `take_over` the sum jumps by Δ at once.
+        let servo = Servo::new(params(), limits(), G).unwrap();
+        let g = 0.5e-6;
+        let delta = 3.0f32;
+        let run = |told: bool, stepped: bool| {
+            let mut state = ServoState::at_rest(60.0, ServoMode::FeedforwardFeedback);
+            let mut y = 30e-6f32;
+            let mut out = [0.0f32; 4000];
+            for (k, u) in out.iter_mut().enumerate() {
+                let r = 30e-6 + 10e-6 * libm::sinf(k as f32 * 0.001);
+                let mut ff = r / (g * 1.1) + 2.0;
+                if stepped && k >= 3000 {
+                    ff += delta;
+                }
+                if told && k == 3000 {
+                    state.take_over(delta);
+                }
+                *u = servo.step(&mut state, r, y, ff).voltage_v;
+                y = g * *u + 1e-7;
+            }
+            out
+        };
+        let (plain, handed) = (run(false, false), run(true, true));
+        for k in 0..4000 {
+            assert!((plain[k] - handed[k]).abs() < 1e-3, "tick {k}");
+        }
+        let jumped = run(false, true);
+        assert!((jumped[3000] - plain[3000] - delta).abs() < 0.1);
+        // Without feedback the feedforward passes through: nothing to take over.
+        let mut state = ServoState::at_rest(60.0, ServoMode::Feedforward);
+        servo.step(&mut state, 30e-6, 30e-6, 60.0);
+        let before = state;
+        state.take_over(delta);
+        assert_eq!(state, before);
     }
 
     #[test]

@@ -38,7 +38,8 @@
 use crate::csv::{read_rows, write_csv, Table};
 use crate::identify::unit_factor;
 use piezo_core::{
-    compensate_pair, compensate_single, FeedforwardAxis, FeedforwardCounts, InverseChain,
+    compensate_pair, compensate_periodic_pair, compensate_periodic_single, compensate_single,
+    FeedforwardAxis, FeedforwardCounts, InverseChain, PeriodicSettings, PeriodicSettling,
 };
 use piezo_stage::{AxisChain, StageError, StageErrorKind, StageFile, ValidStage};
 use std::path::{Path, PathBuf};
@@ -205,6 +206,8 @@ pub struct Compensation {
     pub counts: FeedforwardCounts,
     /// L: ticks the reference is read ahead of the current tick.
     pub lead_ticks: u32,
+    /// For a reference played in a loop ([`compensate_periodic`]): how the period settled.
+    pub settling: Option<PeriodicSettling>,
 }
 
 impl Compensation {
@@ -289,13 +292,41 @@ pub fn compensate_for_gain(
 pub const WARMUP_S: f64 = 0.1;
 /// Fewest warm-up periods of [`compensate_periodic`].
 pub const MIN_WARMUP_PERIODS: usize = 2;
+/// Longest settling of [`compensate_periodic`]: whole periods lasting at most this \[s\] (and
+/// at least the warm-up).
+pub const MAX_SETTLING_S: f64 = 20.0;
+/// The period is settled when no command moves more than this share of the output window from
+/// the period before (1.2 mV for a 0–120 V window, below a 16-bit DAC's step).
+pub const SETTLED_WINDOW_SHARE: f64 = 1e-5;
+
+/// The settling rule of [`compensate_periodic`] for a period of `period_s` and the output
+/// windows of `axes`.
+pub fn periodic_settings(axes: &[FeedforwardAxis], period_s: f64) -> PeriodicSettings {
+    let periods = |s: f64| (s / period_s).ceil().clamp(0.0, 1e6) as usize;
+    let min_periods = periods(WARMUP_S).max(MIN_WARMUP_PERIODS);
+    let span = axes
+        .iter()
+        .map(|a| {
+            let s = a.compensator.settings();
+            f64::from(s.output_max_v - s.output_min_v)
+        })
+        .fold(f64::INFINITY, f64::min);
+    PeriodicSettings {
+        min_periods,
+        max_periods: periods(MAX_SETTLING_S).max(min_periods),
+        tolerance_v: (SETTLED_WINDOW_SHARE * span) as f32,
+    }
+}
 
 /// The compensator's command for a reference played in a loop: the record at `reference` is
-/// one period; the chain of [`compensate`] runs from rest over it repeated, `p` warm-up periods
-/// (the fewest whole periods lasting at least [`WARMUP_S`], at least [`MIN_WARMUP_PERIODS`]:
-/// the hysteresis leaves its first-loading branch and settles on the periodic loop), the period
-/// taken, and one more (so that the look-ahead of the period's end reads the next period, not
-/// the record's held end); the taken period, `t_s` the record's. `counts` are of the whole run.
+/// one period; the chain of [`compensate`] runs from rest over it repeated
+/// ([`piezo_core::compensate_periodic_pair`]) until a period moves no command more than
+/// [`SETTLED_WINDOW_SHARE`] of the window from the one before, after at least the warm-up (the
+/// fewest whole periods lasting [`WARMUP_S`], at least [`MIN_WARMUP_PERIODS`]: the hysteresis
+/// leaves its first-loading branch and settles on the periodic loop, which a Bouc-Wen loop
+/// does only geometrically) and at most [`MAX_SETTLING_S`]; the look-ahead of the period's end
+/// reads the next period. The period taken, `t_s` the record's; `counts` are of the whole run,
+/// `settling` says how it ended (a stage file with drift moves every period).
 pub fn compensate_periodic(params: &Path, reference: &Path) -> Result<Compensation, String> {
     compensate_periodic_record(params, reference, &|| read_reference(reference))
 }
@@ -312,25 +343,29 @@ fn compensate_periodic_record(
     let axes = feedforward_axes(&file, &valid, params)?;
     let n = record.t_s.len();
     let period_s = n as f64 / f64::from(file.stage.loop_rate_hz);
-    let warm = ((WARMUP_S / period_s).ceil() as usize).max(MIN_WARMUP_PERIODS);
-    let total = (warm + 2) * n;
-    let repeated = Reference {
-        t_s: (0..total)
-            .map(|k| {
-                record.t_s[0] + (k / n) as f64 * period_s + (record.t_s[k % n] - record.t_s[0])
-            })
-            .collect(),
-        lines: (0..total).map(|k| record.lines[k % n]).collect(),
-        axes: record
-            .axes
-            .iter()
-            .map(|(name, r)| (name.clone(), (0..total).map(|k| r[k % n]).collect()))
-            .collect(),
+    let settings = periodic_settings(&axes, period_s);
+    let (voltages_v, settling, lead_ticks) = match (axes.as_slice(), record.axes.as_slice()) {
+        ([x], [(_, r)]) => {
+            let mut u = vec![0.0; n];
+            let settling = compensate_periodic_single(x, r, settings, &mut u);
+            let lead = InverseChain::single(x.effects, x.rest_v).map_or(0, |c| c.lead_ticks());
+            (vec![("u_V".to_string(), u)], settling, lead)
+        }
+        ([x, y], [(_, rx), (_, ry)]) => {
+            let (mut ux, mut uy) = (vec![0.0; n], vec![0.0; n]);
+            let settling = compensate_periodic_pair([x, y], [rx, ry], settings, [&mut ux, &mut uy]);
+            let lead = InverseChain::new([x.effects, y.effects], [x.rest_v, y.rest_v])
+                .map_or(0, |c| c.lead_ticks());
+            (
+                vec![("ux_V".to_string(), ux), ("uy_V".to_string(), uy)],
+                settling,
+                lead,
+            )
+        }
+        (stage_axes, columns) => return Err(axes_mismatch(params, stage_axes, reference, columns)),
     };
-    let mut result = run_chain(&axes, params, reference, &repeated)?;
-    for (name, u) in &mut result.voltages_v {
-        let taken: Vec<f32> = u[warm * n..(warm + 1) * n].to_vec();
-        if let Some(k) = taken.iter().position(|v| !v.is_finite()) {
+    for (name, u) in &voltages_v {
+        if let Some(k) = u.iter().position(|v| !v.is_finite()) {
             return Err(format!(
                 "{name} is not a finite number at tick {k} of the period (t = {} s, line {} of \
                  {}), played in a loop: nothing is written",
@@ -339,10 +374,36 @@ fn compensate_periodic_record(
                 reference.display()
             ));
         }
-        *u = taken;
     }
-    result.t_s = record.t_s.clone();
-    Ok(result)
+    Ok(Compensation {
+        t_s: record.t_s.clone(),
+        voltages_v,
+        counts: settling.counts,
+        lead_ticks,
+        settling: Some(settling),
+    })
+}
+
+/// A stage file's axes and a reference's columns that do not match.
+fn axes_mismatch(
+    params: &Path,
+    stage_axes: &[FeedforwardAxis],
+    reference: &Path,
+    columns: &[(String, Vec<f32>)],
+) -> String {
+    format!(
+        "{} has {} axis(es) but {} has {} reference column(s) ({}): give `r_m` for a one-axis \
+         stage file, `rx_m` and `ry_m` for a two-axis one",
+        params.display(),
+        stage_axes.len(),
+        reference.display(),
+        columns.len(),
+        columns
+            .iter()
+            .map(|(name, _)| name.as_str())
+            .collect::<Vec<_>>()
+            .join(", ")
+    )
 }
 
 /// The chain of `axes` (from `params`) over `record` (from `reference`).
@@ -362,6 +423,7 @@ fn run_chain(
                 voltages_v: vec![("u_V".into(), u)],
                 counts,
                 lead_ticks: InverseChain::single(x.effects, x.rest_v).map_or(0, |c| c.lead_ticks()),
+                settling: None,
             })
         }
         ([x, y], [(_, rx), (_, ry)]) => {
@@ -373,21 +435,10 @@ fn run_chain(
                 counts,
                 lead_ticks: InverseChain::new([x.effects, y.effects], [x.rest_v, y.rest_v])
                     .map_or(0, |c| c.lead_ticks()),
+                settling: None,
             })
         }
-        (stage_axes, columns) => Err(format!(
-            "{} has {} axis(es) but {} has {} reference column(s) ({}): give `r_m` for a \
-             one-axis stage file, `rx_m` and `ry_m` for a two-axis one",
-            params.display(),
-            stage_axes.len(),
-            reference.display(),
-            columns.len(),
-            columns
-                .iter()
-                .map(|(name, _)| name.as_str())
-                .collect::<Vec<_>>()
-                .join(", ")
-        )),
+        (stage_axes, columns) => Err(axes_mismatch(params, stage_axes, reference, columns)),
     }
 }
 

@@ -450,7 +450,18 @@ pub fn base_command(
     periodic: bool,
 ) -> Result<Compensation, String> {
     if periodic {
-        compensate_periodic(params, reference)
+        let base = compensate_periodic(params, reference)?;
+        if let Some(s) = base.settling.filter(|s| !s.settled) {
+            eprintln!(
+                "note: the compensator's command for {} played in a loop still moved {:.3e} V \
+                 per period after {} periods (drift or creep in the stage file move it every \
+                 period): the table's wrap carries that step",
+                reference.display(),
+                s.change_v,
+                s.periods
+            );
+        }
+        Ok(base)
     } else {
         compensate(params, reference)
     }

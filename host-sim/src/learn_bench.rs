@@ -25,7 +25,7 @@
 
 #![allow(clippy::needless_range_loop)] // axis indices run over parallel per-axis arrays
 
-use crate::compensate::feedforward_axes;
+use crate::compensate::{feedforward_axes, periodic_settings};
 use crate::effects::Effects;
 use crate::learn::{rebase, rescaled, rule_text};
 use crate::plant::XyStage;
@@ -34,7 +34,10 @@ use crate::servo_bench::{
     controllers, default_plant_effects, identify_rig, Rig, Shape, DEFAULT_LOOP_RATE_HZ, HIGH, LOW,
     STACK_FILE,
 };
-use piezo_core::{compensate_pair, Learning, LearningParams, ServoMode, ServoState, Trial};
+use piezo_core::{
+    compensate_pair, compensate_periodic_pair, Learning, LearningParams, ServoMode, ServoState,
+    Trial,
+};
 use piezo_stage::StageFile;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -273,10 +276,9 @@ fn run_case(
             })
             .collect()
     });
-    // The compensator over the fade-in and warm_periods + 2 periods: its command of period
-    // warm_periods + 1 is the table (the last period's end sees the reference held, not the
-    // next period, so it is not taken).
-    let full = lead + (warm_periods + 2) * period;
+    // The stage's warm-up: the compensator over the fade-in and warm_periods periods (then the
+    // table for as many).
+    let full = lead + warm_periods * period;
     let reference = |a: usize, k: usize| -> f32 {
         if k < lead {
             let fade = 0.5 - 0.5 * (std::f64::consts::PI * k as f64 / lead as f64).cos();
@@ -293,24 +295,27 @@ fn run_case(
         [&mut ux, &mut uy],
     );
     let warm = lead + warm_periods * period;
-    let mut base: [Vec<f32>; 2] = [&ux, &uy].map(|u| u[warm..warm + period].to_vec());
-    // u_0 re-solved for the gain and offset a trial shows (`learn::rebase`, as `host-sim learn`).
-    let rebased = |gain_offset: &[(f64, f64)]| -> [Vec<f32>; 2] {
+    // u_0: the period the compensator settles to with the reference played in a loop (as
+    // `host-sim learn --periodic`), re-solved for the gain and offset a trial shows
+    // (`learn::rebase`, as `host-sim learn`).
+    let settings = periodic_settings(&axes, period as f64 / fs);
+    let periodic_base = |gain_offset: &[(f64, f64)]| -> [Vec<f32>; 2] {
         let scaled: [Vec<f32>; 2] = [0, 1].map(|a| {
             let (gain, offset) = gain_offset[a];
-            full_r[a]
-                .iter()
+            r[a].iter()
                 .map(|&v| ((f64::from(v) - offset) / gain) as f32)
                 .collect()
         });
-        let (mut ux, mut uy) = (vec![0.0f32; full], vec![0.0f32; full]);
-        compensate_pair(
+        let (mut ux, mut uy) = (vec![0.0f32; period], vec![0.0f32; period]);
+        compensate_periodic_pair(
             [&axes[0], &axes[1]],
             [&scaled[0], &scaled[1]],
+            settings,
             [&mut ux, &mut uy],
         );
-        [&ux, &uy].map(|u| u[warm..warm + period].to_vec())
+        [ux, uy]
     };
+    let mut base = periodic_base(&[(1.0, 0.0); 2]);
     let mut table = base.clone();
     let mut rig = Rig::new(ctx.stage, ctx.effects, fs);
     let mut states = [0, 1].map(|a| ServoState::at_rest(axes[a].rest_v, mode.servo_mode()));
@@ -327,6 +332,12 @@ fn run_case(
     };
     for k in 0..warm {
         tick(&mut states, [full_r[0][k], full_r[1][k]], [ux[k], uy[k]])?;
+    }
+    // Then the table itself, so that the stage's hysteresis settles on its loop before trial 0.
+    for _ in 0..warm_periods {
+        for j in 0..period {
+            tick(&mut states, [r[0][j], r[1][j]], [base[0][j], base[1][j]])?;
+        }
     }
     let (mut rms_percent, mut max_percent) = (Vec::new(), Vec::new());
     let mut above_cutoff_percent = 0.0f64;
@@ -387,9 +398,10 @@ fn run_case(
                 periodic: true,
             })
         });
+        let previous = table.clone();
         let mut stepping = learning.clone();
         if let Some(gain_offset) = rebase(&gains, &s.params) {
-            base = rebased(&gain_offset);
+            base = periodic_base(&gain_offset);
             stepping = rescaled(&learning, &gain_offset)?;
         }
         for a in 0..2 {
@@ -406,6 +418,9 @@ fn run_case(
                     &mut table[a],
                 )
                 .map_err(|e| e.to_string())?;
+            // The new table carries the correction the servo held over the last trial: the
+            // servo hands it over at the switch (entry 0).
+            states[a].take_over(table[a][0] - previous[a][0]);
         }
     }
     Ok(Curve {
