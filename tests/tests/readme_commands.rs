@@ -7,7 +7,8 @@
 //! `<tmp>/shared` to the real `shared/` (the first one found beside the checkout or above it),
 //! and runs each block there with `bash -e -o pipefail`, from the folder its marker names, with
 //! the test run's `CARGO_TARGET_DIR` (or the workspace's target directory), in a process group
-//! of its own that is killed when the block ends (a QEMU it started in the background). The
+//! of its own; when the block ends, that group and every process that inherited the block's
+//! `PIEZO_README_BLOCK` variable are killed (a QEMU it started in the background). The
 //! temporary directory is removed at the end, also on failure.
 //!
 //! `readme_short_commands_run` runs the blocks not marked `long` (part of `cargo test`);
@@ -118,10 +119,33 @@ fn tail(path: &Path, n: usize) -> String {
     lines[lines.len().saturating_sub(n)..].join("\n")
 }
 
-/// Sends `signal` to the process group `group` (ignoring a group that is gone).
-fn kill_group(group: u32, signal: &str) {
+/// The variable every process a block starts inherits: `tag` names the block's run.
+const TAG_VARIABLE: &str = "PIEZO_README_BLOCK";
+
+/// Sends `signal` to the process group `group` and to every process whose environment holds
+/// `PIEZO_README_BLOCK=tag` (a process that left the group: `timeout`, which `run-qemu.sh`
+/// runs QEMU under, puts itself in a group of its own). Processes that are gone are ignored.
+fn kill_block(group: u32, tag: &str, signal: &str) {
+    let mut targets = vec![format!("-{group}")];
+    let wanted = format!("{TAG_VARIABLE}={tag}");
+    if let Ok(entries) = std::fs::read_dir("/proc") {
+        for entry in entries.flatten() {
+            let name = entry.file_name().to_string_lossy().to_string();
+            if name.parse::<u32>().is_err() {
+                continue;
+            }
+            let Ok(environ) = std::fs::read(entry.path().join("environ")) else {
+                continue;
+            };
+            if environ.split(|b| *b == 0).any(|v| v == wanted.as_bytes()) {
+                targets.push(name);
+            }
+        }
+    }
     let _ = Command::new("kill")
-        .args([signal, "--", &format!("-{group}")])
+        .arg(signal)
+        .arg("--")
+        .args(&targets)
         .stderr(Stdio::null())
         .status();
 }
@@ -138,6 +162,7 @@ fn run_block(tmp: &Path, file: &str, n: usize, block: &Block) -> Result<(), Stri
         ));
     }
     let mut script = String::new();
+    let mut sourced = String::new();
     if let Some(source) = &block.marker.source {
         let path = checkout.join(source);
         if !path.is_file() {
@@ -147,20 +172,37 @@ fn run_block(tmp: &Path, file: &str, n: usize, block: &Block) -> Result<(), Stri
             ));
         }
         writeln!(script, "source {:?}", path.display().to_string()).unwrap();
+        sourced = std::fs::read_to_string(&path).unwrap_or_default();
     }
     script.push_str(&block.script);
+    // A port the block serves the link on must be free: else its QEMU fails in the background
+    // and its commands talk to whatever holds the port.
+    for port in [script.as_str(), sourced.as_str()]
+        .iter()
+        .flat_map(|text| text.split("--link ").skip(1))
+        .filter_map(|rest| rest.split_whitespace().next()?.parse::<u16>().ok())
+    {
+        if std::net::TcpListener::bind(("127.0.0.1", port)).is_err() {
+            return Err(format!(
+                "{file}:{}: port {port}, which the block serves the link on, is in use",
+                block.line
+            ));
+        }
+    }
     let (script_path, out, err) = (
         tmp.join(format!("block-{n}.sh")),
         tmp.join(format!("block-{n}.out")),
         tmp.join(format!("block-{n}.err")),
     );
     std::fs::write(&script_path, &script).unwrap();
+    let tag = format!("{}/{n}", tmp.display());
     let mut command = Command::new("bash");
     command
         .args(["-e", "-o", "pipefail"])
         .arg(&script_path)
         .current_dir(&dir)
         .env("CARGO_TARGET_DIR", target_dir())
+        .env(TAG_VARIABLE, &tag)
         .env_remove("PIEZO_PARAMS")
         .stdin(Stdio::null())
         .stdout(std::fs::File::create(&out).unwrap())
@@ -201,9 +243,9 @@ fn run_block(tmp: &Path, file: &str, n: usize, block: &Block) -> Result<(), Stri
         std::thread::sleep(Duration::from_millis(100));
     };
     // Whatever the block left running in the background (QEMU) ends with it.
-    kill_group(group, "-TERM");
-    std::thread::sleep(Duration::from_millis(200));
-    kill_group(group, "-KILL");
+    kill_block(group, &tag, "-TERM");
+    std::thread::sleep(Duration::from_millis(300));
+    kill_block(group, &tag, "-KILL");
     let _ = child.wait();
     let outcome = match status {
         Some(s) if s.success() => return Ok(()),
@@ -452,8 +494,9 @@ fn a_failing_block_is_reported() {
         line: 7,
         language: "sh".into(),
         script: format!(
-            "sleep 600 &\necho $! > {}\necho to stdout\necho to stderr >&2\nfalse\necho never\n",
-            pid_file.display()
+            "sleep 600 &\necho $! > {pids}\ntimeout 600 sleep 600 &\necho $! >> {pids}\n\
+             echo to stdout\necho to stderr >&2\nfalse\necho never\n",
+            pids = pid_file.display()
         ),
         marker: Marker {
             dir: "sub".into(),
@@ -469,17 +512,21 @@ fn a_failing_block_is_reported() {
     ] {
         assert!(e.contains(part), "{part:?} not in:\n{e}");
     }
-    let pid = std::fs::read_to_string(&pid_file).unwrap();
-    // Gone, or a zombie waiting for its new parent to reap it.
-    let stat = std::fs::read_to_string(Path::new("/proc").join(pid.trim()).join("stat"));
-    let alive = stat.is_ok_and(|s| {
-        !s.rsplit(')')
-            .next()
-            .unwrap_or("")
-            .trim_start()
-            .starts_with('Z')
-    });
-    assert!(!alive, "the block's background process {pid} still runs");
+    // The background processes, one in the block's group and one (`timeout`) in a group of
+    // its own, are gone, or zombies waiting for their new parent to reap them.
+    let pids = std::fs::read_to_string(&pid_file).unwrap();
+    assert_eq!(pids.lines().count(), 2, "{pids}");
+    for pid in pids.lines() {
+        let stat = std::fs::read_to_string(Path::new("/proc").join(pid).join("stat"));
+        let alive = stat.is_ok_and(|s| {
+            !s.rsplit(')')
+                .next()
+                .unwrap_or("")
+                .trim_start()
+                .starts_with('Z')
+        });
+        assert!(!alive, "the block's background process {pid} still runs");
+    }
     let ok = Block {
         script: "test \"$(basename \"$PWD\")\" = sub\n".into(),
         ..block
