@@ -12,6 +12,10 @@
 //! `--allow-gaps`).
 //!
 //! Every read has a timeout (`--timeout`); a request that is not answered in time is an error.
+//! `--wait S` waits for a firmware that is still starting (QEMU not yet listening, or an image
+//! whose link drops the bytes it receives before it is up): it connects and asks for the status
+//! again, every 0.2 s with a 1 s answer timeout per try, until one is answered or S seconds have
+//! passed, and then runs the command on that connection.
 //! Every request starts with a 0x00 delimiter (`piezo_link::encode_request`), so half a frame a
 //! previous client left in the firmware's decoder does not swallow it. The client starts counting
 //! its requests at 0; the firmware answers a number it already handled with `Replayed { next }`,
@@ -75,6 +79,10 @@ pub struct LinkArgs {
     /// Longest wait for any answer (s).
     #[arg(long, default_value_t = 10.0)]
     pub timeout: f64,
+    /// Wait up to this long (s) for the firmware to answer a status request before the command
+    /// (retries the connection and the request; for an image that is still starting).
+    #[arg(long, default_value_t = 0.0)]
+    pub wait: f64,
     /// What to do.
     #[command(subcommand)]
     pub command: LinkCommand,
@@ -249,6 +257,34 @@ impl Client {
             rejected: 0,
             tcp,
         })
+    }
+
+    /// Connects as [`Client::connect`] and waits up to `wait` for the firmware to answer a status
+    /// request: each try connects, asks with an answer timeout of at most 1 s, and on failure
+    /// drops the connection and tries again 0.2 s later. The error after `wait` names the last
+    /// failure. The client returned waits `timeout` for every later answer.
+    pub fn connect_waiting(spec: &str, timeout: Duration, wait: Duration) -> Result<Self, String> {
+        let deadline = Instant::now() + wait;
+        let per_try = timeout.min(Duration::from_secs(1));
+        loop {
+            let last = match Client::connect(spec, per_try) {
+                Ok(mut client) => match client.status() {
+                    Ok(_) => {
+                        client.timeout = timeout;
+                        return Ok(client);
+                    }
+                    Err(e) => e,
+                },
+                Err(e) => e,
+            };
+            if Instant::now() >= deadline {
+                return Err(format!(
+                    "--connect {spec}: the firmware did not answer within --wait {:.1} s: {last}",
+                    wait.as_secs_f64()
+                ));
+            }
+            std::thread::sleep(Duration::from_millis(200));
+        }
     }
 
     /// The next packet from the firmware, by `deadline`.
@@ -616,7 +652,15 @@ pub fn link_cmd(a: &LinkArgs) -> Result<String, String> {
     if !(a.timeout > 0.0 && a.timeout.is_finite()) {
         return Err("--timeout must be > 0".into());
     }
-    let mut client = Client::connect(&a.connect, Duration::from_secs_f64(a.timeout))?;
+    if !(a.wait >= 0.0 && a.wait.is_finite()) {
+        return Err("--wait must be ≥ 0".into());
+    }
+    let timeout = Duration::from_secs_f64(a.timeout);
+    let mut client = if a.wait > 0.0 {
+        Client::connect_waiting(&a.connect, timeout, Duration::from_secs_f64(a.wait))?
+    } else {
+        Client::connect(&a.connect, timeout)?
+    };
     match &a.command {
         LinkCommand::Status => json(&client.status()?),
         LinkCommand::Excite(r) | LinkCommand::Track(r) => {
@@ -788,6 +832,78 @@ mod tests {
             starts, 1,
             "two requests, the second right after the first's delimiter"
         );
+    }
+
+    /// `--wait`: a device that is not listening yet, and whose first connection takes the
+    /// request without answering (bytes lost while its link comes up), is reached on a later try.
+    #[test]
+    fn waiting_connects_once_the_device_answers() {
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .and_then(|l| l.local_addr())
+            .unwrap()
+            .port();
+        let address = format!("tcp:127.0.0.1:{port}");
+        let device = std::thread::spawn(move || {
+            std::thread::sleep(Duration::from_millis(600));
+            let listener = std::net::TcpListener::bind(("127.0.0.1", port)).unwrap();
+            // First connection: the request is swallowed, no answer.
+            let (mut deaf, _) = listener.accept().unwrap();
+            let mut buffer = [0u8; 1024];
+            let _ = deaf.read(&mut buffer);
+            drop(deaf);
+            let (mut stream, _) = listener.accept().unwrap();
+            stream
+                .set_read_timeout(Some(Duration::from_secs(1)))
+                .unwrap();
+            let mut decoder = Decoder::new();
+            let mut answered = 0;
+            while let Ok(n) = stream.read(&mut buffer) {
+                if n == 0 {
+                    break;
+                }
+                for &b in &buffer[..n] {
+                    if let Some(Ok(packet)) = decoder.push::<Request>(b) {
+                        let body = Uplink::Response {
+                            request: packet.sequence,
+                            response: Response::Status(status(10_000.0, 2048)),
+                        };
+                        let mut out = [0u8; MAX_FRAME];
+                        let n = piezo_link::encode(
+                            &Packet {
+                                sequence: answered,
+                                body,
+                            },
+                            &mut out,
+                        )
+                        .unwrap();
+                        answered += 1;
+                        stream.write_all(&out[..n]).unwrap();
+                    }
+                }
+            }
+            answered
+        });
+        let e = Client::connect(&address, Duration::from_secs(5))
+            .err()
+            .expect("nothing listens yet");
+        assert!(e.contains(&address), "{e}");
+        let mut client =
+            Client::connect_waiting(&address, Duration::from_secs(5), Duration::from_secs(10))
+                .unwrap();
+        assert_eq!(client.timeout, Duration::from_secs(5));
+        assert_eq!(client.status().unwrap().loop_rate_hz, 10_000.0);
+        drop(client);
+        assert_eq!(
+            device.join().unwrap(),
+            2,
+            "the waiting status and the command's"
+        );
+        // Nothing answering: the error after the wait names the last failure.
+        let e =
+            Client::connect_waiting(&address, Duration::from_secs(5), Duration::from_millis(300))
+                .err()
+                .expect("nothing listens any more");
+        assert!(e.contains("did not answer within --wait 0.3 s"), "{e}");
     }
 
     #[test]

@@ -194,6 +194,8 @@ pub mod fixtures {
 /// What the tests that build and run a firmware image under QEMU share: whether the tools are
 /// here, where to build (a target directory of its own beside the outer `cargo test`'s, so the two
 /// never wait for each other's lock), and a line on the real stderr.
+pub mod readme;
+
 pub mod qemu {
     use std::io::Write as _;
     use std::path::{Path, PathBuf};
