@@ -31,8 +31,8 @@ use crate::learn::{rebase, rescaled, rule_text};
 use crate::plant::XyStage;
 use crate::plot::{plot_grid, Chart, Legend, Panel, Role, Series};
 use crate::servo_bench::{
-    controllers, default_plant_effects, identify_rig, Rig, Shape, DEFAULT_LOOP_RATE_HZ, HIGH, LOW,
-    STACK_FILE,
+    controllers, default_plant_effects, identify_rig, stack_file_at, Rig, Shape,
+    DEFAULT_LOOP_RATE_HZ, HIGH, LOW,
 };
 use piezo_core::{
     compensate_pair, compensate_periodic_pair, Learning, LearningParams, ServoMode, ServoState,
@@ -466,8 +466,7 @@ pub fn run_learn_bench(
         effects.add_spec(spec).map_err(|e| format!("{spec}: {e}"))?;
     }
     let stage = XyStage::default();
-    let stack_file =
-        StageFile::parse("firmware/params/xy-stage.toml", STACK_FILE).map_err(|e| e.to_string())?;
+    let stack_file = stack_file_at(fs)?;
     let stack = stack_file.validate().map_err(|e| e.to_string())?;
     progress("identifying the platform gain and the first mode");
     let identified = identify_rig(&stage, &effects, &stack, fs)?;
@@ -759,6 +758,9 @@ pub struct LearnBenchArgs {
     /// Skip the robustness rows.
     #[arg(long)]
     pub no_robustness: bool,
+    /// Loop rate \[Hz\]: the stage file, the servo's tuning, the DAC and the plant's steps.
+    #[arg(long, default_value_t = DEFAULT_LOOP_RATE_HZ)]
+    pub rate: f64,
     /// A trial is the fewest whole periods lasting at least this \[s\]; the learning step sees
     /// their average (sensor noise falls as the square root of the periods).
     #[arg(long, default_value_t = 0.1)]
@@ -798,6 +800,11 @@ pub fn learn_bench_cmd(a: &LearnBenchArgs) -> Result<String, String> {
     if !(a.trial_s > 0.0 && a.trial_s <= 10.0) {
         return Err(format!("--trial-s {}: a trial lasts (0, 10] s", a.trial_s));
     }
+    if !(a.rate.is_finite() && (1_000.0..=1e6).contains(&a.rate)) {
+        return Err(format!("--rate {}: a loop rate in [1000, 1e6] Hz", a.rate));
+    }
+    settings.loop_rate_hz = a.rate;
+    settings.plant_effects = default_plant_effects(a.rate);
     settings.trial_min_s = a.trial_s;
     settings.settle_periods = a.settle_periods;
     settings.frequencies_hz = a.freq.clone();

@@ -472,6 +472,15 @@ impl AxisController {
 
 /// The controllers of both axes: the stack file scaled to the platform, its servo tuned from
 /// the identified mode, both validated through the stage file.
+/// The stack file (`firmware/params/xy-stage.toml`) with its compensator and servo at the loop
+/// rate `fs` \[Hz\], whatever rate the file itself runs at.
+pub(crate) fn stack_file_at(fs: f64) -> Result<StageFile, String> {
+    let mut file =
+        StageFile::parse("firmware/params/xy-stage.toml", STACK_FILE).map_err(|e| e.to_string())?;
+    file.stage.loop_rate_hz = fs as f32;
+    Ok(file)
+}
+
 pub(crate) fn controllers(
     stack_file: &StageFile,
     identified: &[(f64, f64, f64); 2],
@@ -671,10 +680,7 @@ pub fn run_bench(
         effects.add_spec(spec).map_err(|e| format!("{spec}: {e}"))?;
     }
     let stage = XyStage::default();
-    let mut stack_file =
-        StageFile::parse("firmware/params/xy-stage.toml", STACK_FILE).map_err(|e| e.to_string())?;
-    // The compensator and the servo run at the bench's rate.
-    stack_file.stage.loop_rate_hz = fs as f32;
+    let stack_file = stack_file_at(fs)?;
     let stack = stack_file.validate().map_err(|e| e.to_string())?;
     progress("identifying the platform gain and the first mode");
     let identified = identify_rig(&stage, &effects, &stack, fs)?;
