@@ -120,7 +120,17 @@ pub struct BenchSettings {
     pub chirp_s: f64,
     /// Effect specs the plant carries.
     pub plant_effects: Vec<String>,
+    /// Steps whose settling is measured, as fractions of the stroke (from the low end of the
+    /// tracking range, both axes at once); empty: none.
+    pub step_fractions: Vec<f64>,
+    /// The reference holds its start this long after the fade-in before it steps \[s\].
+    pub step_hold_s: f64,
+    /// How long after the step the settling is watched \[s\].
+    pub step_watch_s: f64,
 }
+
+/// The settling band of a step: |true position − reference| within this share of the step.
+pub const SETTLING_BAND: f64 = 0.02;
 
 impl Default for BenchSettings {
     fn default() -> Self {
@@ -135,7 +145,32 @@ impl Default for BenchSettings {
             settle_s: 0.1,
             chirp_s: 1.0,
             plant_effects: default_plant_effects(DEFAULT_LOOP_RATE_HZ),
+            step_fractions: vec![0.01, 0.1, 0.5],
+            step_hold_s: 0.1,
+            step_watch_s: 0.1,
         }
+    }
+}
+
+/// The settling of one step in one mode.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Settling {
+    /// Mode.
+    pub mode: ServoMode,
+    /// The step, a fraction of the stroke.
+    pub fraction: f64,
+    /// Per axis: the time from the step until |true position − reference| stays within
+    /// [`SETTLING_BAND`] of the step \[s\]; `None` when it is still outside at the end of the watch.
+    pub settle_s: [Option<f64>; 2],
+}
+
+/// The settling time of `error` (from the step on, one sample per tick of `fs`): the time after
+/// which |error| stays within `band`; `None` if the last sample is outside.
+pub fn settling_time(error: &[f64], band: f64, fs: f64) -> Option<f64> {
+    match error.iter().rposition(|e| !(e.abs() <= band)) {
+        None => Some(0.0),
+        Some(k) if k + 1 == error.len() => None,
+        Some(k) => Some((k + 1) as f64 / fs),
     }
 }
 
@@ -201,6 +236,10 @@ pub struct BenchReport {
     pub tunings: [Tuning; 2],
     /// Stroke per axis \[m\].
     pub stroke_m: [f64; 2],
+    /// Step settling per mode and step size.
+    pub settling: Vec<Settling>,
+    /// How long after each step the settling was watched \[s\].
+    pub step_watch_s: f64,
     /// Wall-clock seconds.
     pub seconds: f64,
 }
@@ -759,7 +798,46 @@ pub fn run_bench(
         })
         .collect::<Result<_, String>>()?;
     let (rows, traces) = runs.into_iter().unzip();
+    let steps: Vec<(ServoMode, f64)> = settings
+        .modes
+        .iter()
+        .flat_map(|&m| settings.step_fractions.iter().map(move |&f| (m, f)))
+        .collect();
+    if !steps.is_empty() {
+        progress(&format!("steps: {} runs", steps.len()));
+    }
+    let step_k = ((settings.fade_in_s + settings.step_hold_s) * fs).round() as usize;
+    let n_steps = step_k + (settings.step_watch_s * fs).round() as usize;
+    let settling: Vec<Settling> = steps
+        .par_iter()
+        .map(|&(mode, fraction)| {
+            let reference = |k: usize| {
+                let t = k as f64 / fs;
+                let fade = if t < settings.fade_in_s {
+                    0.5 - 0.5 * (std::f64::consts::PI * t / settings.fade_in_s).cos()
+                } else {
+                    1.0
+                };
+                let level = if k >= step_k { LOW + fraction } else { LOW };
+                [0, 1].map(|a| stroke_m[a] * level * fade)
+            };
+            let y = run_loop(&stage, &effects, fs, &ctl, mode, n_steps, &reference)?;
+            let settle_s = [0, 1].map(|a| {
+                let error: Vec<f64> = (step_k..n_steps)
+                    .map(|k| y[a][k] - reference(k)[a])
+                    .collect();
+                settling_time(&error, SETTLING_BAND * fraction * stroke_m[a], fs)
+            });
+            Ok(Settling {
+                mode,
+                fraction,
+                settle_s,
+            })
+        })
+        .collect::<Result<_, String>>()?;
     Ok(BenchReport {
+        settling,
+        step_watch_s: settings.step_watch_s,
         rows,
         responses,
         traces,
@@ -808,6 +886,29 @@ impl BenchReport {
                 r.bandwidth_hz
             );
         }
+        if !self.settling.is_empty() {
+            s += &format!(
+                "\nStep settling: the time until |true position - reference| stays within {:.0} % \
+                 of the step (steps from {:.0} % of the stroke, both axes):\n\n",
+                100.0 * SETTLING_BAND,
+                100.0 * LOW
+            );
+            s += "| mode | step [% stroke] | settling x [ms] | settling y [ms] |\n|---|---|---|---|\n";
+            let ms = |v: Option<f64>| {
+                v.map_or(format!("> {:.0}", 1e3 * self.step_watch_s), |t| {
+                    format!("{:.2}", 1e3 * t)
+                })
+            };
+            for st in &self.settling {
+                s += &format!(
+                    "| {} | {} | {} | {} |\n",
+                    st.mode.name(),
+                    100.0 * st.fraction,
+                    ms(st.settle_s[0]),
+                    ms(st.settle_s[1])
+                );
+            }
+        }
         s += &format!("({:.1} s)\n", self.seconds);
         s
     }
@@ -832,7 +933,20 @@ impl BenchReport {
                 })
             })
             .collect();
-        serde_json::json!({ "rows": rows })
+        let settling: Vec<serde_json::Value> = self
+            .settling
+            .iter()
+            .map(|st| {
+                let t = |v: Option<f64>| v.map_or(serde_json::Value::Null, num);
+                serde_json::json!({
+                    "mode": st.mode.name(),
+                    "step_fraction": num(st.fraction),
+                    "band_fraction_of_step": num(SETTLING_BAND),
+                    "settle_s": [t(st.settle_s[0]), t(st.settle_s[1])],
+                })
+            })
+            .collect();
+        serde_json::json!({ "rows": rows, "settling": settling })
     }
 
     /// Writes `servo.json` and the plots (`servo-error.*`, `servo-bode.*`) into `dir`.
@@ -1114,4 +1228,19 @@ pub fn rates_json(reports: &[(f64, BenchReport)]) -> serde_json::Value {
         })
         .collect();
     serde_json::json!({ "rates": rates })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn settling_is_the_time_after_the_last_sample_outside_the_band() {
+        let fs = 1000.0;
+        assert_eq!(settling_time(&[0.5, 0.3, 0.01, 0.0], 0.1, fs), Some(0.002));
+        assert_eq!(settling_time(&[0.05, 0.0], 0.1, fs), Some(0.0));
+        // Outside at the end: not settled; a NaN counts as outside.
+        assert_eq!(settling_time(&[0.0, 0.5], 0.1, fs), None);
+        assert_eq!(settling_time(&[f64::NAN, 0.0], 0.1, fs), Some(0.001));
+    }
 }
