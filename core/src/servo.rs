@@ -240,6 +240,14 @@ impl ServoState {
         }
     }
 
+    /// The next tick hands over bumplessly from the last output, in the same mode, as after a
+    /// mode change: for a feedforward whose source changes under a running servo (the
+    /// compensator's command replaced by a learned table, or back) by an amount the caller does
+    /// not know. With feedback the PI's output history becomes `c = u[k−1] − u_ff[k]`.
+    pub fn hand_over(&mut self) {
+        self.transfer = true;
+    }
+
     /// The feedforward steps by `delta_v` \[V\] at the next tick by a change the servo should
     /// not answer: a new learned voltage table that has taken over the correction the servo was
     /// holding (Δ = new − old table entry at that tick). In feedforward + feedback the stored correction

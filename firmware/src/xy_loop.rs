@@ -34,7 +34,10 @@
 //! voltage written in a tick shows in the next tick's reading) with this tick's reading
 //! x_meas, error `e = r₋ − x_meas` \[m\], and adds its correction to the feed-forward
 //! `u_ff`; its own window and slew limit are the compensator's, so the guard only acts on a
-//! fault. Switching feedback on hands over from the voltage applied; switching it off fades the
+//! fault. Switching feedback on hands over from the voltage applied, and so does a change of the
+//! feed-forward's source under feedback (compensator ↔ learned table: the table carries the
+//! correction the servo held, so the servo's correction restarts from the last output instead of
+//! being added to it); switching feedback off fades the
 //! correction out with the servo's `transfer_time_constant_s` τ over [`HANDOVER_TIME_CONSTANTS`]·τ;
 //! after a fault, an excitation, a new parameter set or a tick in which the guard overrode it
 //! the servo restarts at rest at the applied voltage. Without feedback and outside a hand-over
@@ -651,6 +654,7 @@ impl TwoAxisLoop {
         } else {
             let mode = self.control_mode();
             self.servo.iter_mut().for_each(|s| s.set_mode(mode));
+            self.hand_over_if(true);
         }
     }
 
@@ -700,6 +704,7 @@ impl TwoAxisLoop {
         self.servos_for(mode.feedback())?;
         let was_feedback = self.feedback;
         self.feedback = mode.feedback();
+        let mut source_changed = false;
         if self.feedforward != Feedforward::OpenLoop {
             let feedforward = if matches!(
                 mode,
@@ -712,10 +717,21 @@ impl TwoAxisLoop {
             if feedforward != self.feedforward {
                 self.feedforward = feedforward;
                 self.chain = self.chain_at_applied();
+                source_changed = true;
             }
         }
         self.switch_servo(was_feedback, mode);
+        self.hand_over_if(source_changed && was_feedback);
         Ok(())
+    }
+
+    /// With feedback on before and after a change of the feedforward's source, the servo hands
+    /// over from the last output (its correction belonged to the old feedforward: a learned
+    /// table carries what the servo held for the compensator, and back).
+    fn hand_over_if(&mut self, source_changed_under_feedback: bool) {
+        if source_changed_under_feedback && self.feedback {
+            self.servo.iter_mut().for_each(ServoState::hand_over);
+        }
     }
 
     /// Each axis's window and guard step bound, as the learned voltage table is checked against
@@ -749,12 +765,14 @@ impl TwoAxisLoop {
             .map_err(ControlError::Learned)?;
         let was_feedback = self.feedback;
         self.feedback = feedback;
-        if self.feedforward != Feedforward::Learned {
+        let source_changed = self.feedforward != Feedforward::Learned;
+        if source_changed {
             self.feedforward = Feedforward::Learned;
             self.chain = None;
         }
         let mode = self.control_mode();
         self.switch_servo(was_feedback, mode);
+        self.hand_over_if(source_changed && was_feedback);
         Ok(())
     }
 

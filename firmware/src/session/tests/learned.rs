@@ -345,6 +345,52 @@ fn learned_feedback_adds_the_servos_correction() {
     }
 }
 
+/// Between the learned table and the compensator with feedback on, the servo hands its
+/// correction over: the applied voltage moves at the switch by what the wave moves in a tick,
+/// not by the 2 V the servo held against a table 2 V too high.
+#[test]
+fn switching_between_table_and_compensator_under_feedback_does_not_jump() {
+    let (mut s, plant) = session();
+    let mut host = Host::new();
+    let table = compensator_table(&mut host, &mut s, &plant);
+    let high: Vec2 = table
+        .iter()
+        .map(|u| u.map(|v| (v + 2.0).min(120.0)))
+        .collect();
+    load(&mut host, &mut s, &high, true);
+    assert_eq!(
+        host.ask(&mut s, Request::Control(Control::LearnedFeedback)),
+        Response::Done
+    );
+    host.ask(&mut s, Request::Track(PROGRAM));
+    run(&mut s, &plant, &mut host, 4000);
+    // The largest step between frames k − 1 and k over `frames`.
+    let steps = |frames: &[piezo_link::Frame]| -> std::vec::Vec<f32> {
+        frames
+            .windows(2)
+            .map(|w| {
+                (0..2)
+                    .map(|a| (w[1].commanded_v[a] - w[0].commanded_v[a]).abs())
+                    .fold(0.0f32, f32::max)
+            })
+            .collect()
+    };
+    for control in [Control::FeedforwardFeedback, Control::LearnedFeedback] {
+        host.frames.clear();
+        run(&mut s, &plant, &mut host, 200);
+        assert_eq!(host.ask(&mut s, Request::Control(control)), Response::Done);
+        run(&mut s, &plant, &mut host, 200);
+        let d = steps(&host.frames);
+        let before = d[..190].iter().fold(0.0f32, |m, &v| m.max(v));
+        let at_switch = d[195..210].iter().fold(0.0f32, |m, &v| m.max(v));
+        println!("{control:?}: largest step before {before} V, at the switch {at_switch} V");
+        assert!(
+            at_switch < before + 0.5,
+            "{control:?}: {at_switch} V vs {before} V"
+        );
+    }
+}
+
 /// The learned copy of the tick behind the output guard: whatever the table holds (it is
 /// switched on here without its check), every output is finite, inside the window and at most
 /// one step from the one before.
