@@ -17,7 +17,11 @@
 #   windows 7 .. 6 + WORST_TICKS: one feedforward + feedback tick each, from rest: the
 #             largest is the tick's worst case, stated against the stage file's loop period at
 #             168 MHz (instructions, not cycles: the board's DWT counter gives cycles, see
-#             firmware/README.md), and as a share of a 20 kHz and a 50 kHz period
+#             firmware/README.md), and as a share of a 20 kHz and a 50 kHz period; with it the
+#             converters' SPI frames inside a tick (two 32-bit ADS8681 reads and two 24-bit
+#             DAC8563 writes at the board's 21 MHz SPI clock, src/board/discovery.rs: 5.33 µs
+#             in all, from the datasheets' frame formats, not measured on a board) and the time
+#             a period leaves after both
 #   then STAGE_WINDOWS windows: the stages of a feedforward + feedback tick one by one, each over
 #             BENCH_TICKS ticks with the inputs of the same run (check.rs `stage_windows`); what
 #             the whole tick (window 5) costs beyond their sum is its bookkeeping
@@ -56,6 +60,9 @@ awk -v stages="$stages" -v wt="$worst_ticks" -v a="$n1" -v b="$nx" -v c="$loop" 
   budget = 168e6 / rate
   printf "worst feedforward + feedback tick of %d from rest: %d instructions = %.1f %% of the %d cycles one period of %s Hz has at 168 MHz\n", wt, w - e, 100 * (w - e) / budget, budget, rate
   printf "  the same as a share of one period at 168 MHz: %.1f %% at 20 kHz (8400 cycles), %.1f %% at 50 kHz (3360 cycles)\n", 100 * (w - e) / 8400, 100 * (w - e) / 3360
+  # SPI frames: 2 x 32 bits (ADS8681) + 2 x 24 bits (DAC8563) at 21 MHz, in core cycles at 168 MHz.
+  spi = (2 * 32 + 2 * 24) / 21e6; spi_cycles = spi * 168e6
+  printf "  converter frames inside the tick (2 x 32-bit ADS8681 + 2 x 24-bit DAC8563 at 21 MHz SPI): %.2f us = %d cycles; left of the period after them and the worst tick (one instruction per cycle): %d cycles (%.1f us) at 20 kHz, %d cycles (%.1f us) at 50 kHz\n", spi * 1e6, spi_cycles, 8400 - spi_cycles - (w - e), (8400 - spi_cycles - (w - e)) / 168, 3360 - spi_cycles - (w - e), (3360 - spi_cycles - (w - e)) / 168
   split(stages, g, " ")
   name[1] = "reference generator"; name[2] = "inverse effect chain: targets"; name[3] = "sensor reads"
   name[4] = "compensators"; name[5] = "servos"; name[6] = "models advanced by the applied voltage"

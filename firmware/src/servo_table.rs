@@ -364,17 +364,20 @@ mod tests {
         let program = Program::PerAxis([waveform(Shape::Sine, offset, amplitude, 2.0); 2]);
         let reference = ReferenceGenerator::new(program, SAMPLE_PERIOD_S, [0.0; 2]);
         let mut lp = TwoAxisLoop::new(settings, Feedforward::Compensator, reference, [0.0; 2]);
-        // 2 Hz sine of 35 % of the stroke: ≈ 0.3 V per tick at most on the feed-forward.
+        // 2 Hz sine of 35 % of the stroke: ≈ 0.3 V per 100 µs at most on the feed-forward.
+        // The switches at fixed times (0.2 s … 0.7 s), so that they meet the same phase of the
+        // sine, and the same errors, at any loop rate.
+        let tick = |t_s: f32| (t_s / SAMPLE_PERIOD_S).round() as u32;
         let switches = [
-            (2_000, ServoMode::FeedforwardFeedback),
-            (3_000, ServoMode::Feedback),
-            (4_000, ServoMode::Feedforward),
-            (5_000, ServoMode::OpenLoop),
-            (6_000, ServoMode::FeedforwardFeedback),
-            (7_000, ServoMode::Feedforward),
+            (tick(0.2), ServoMode::FeedforwardFeedback),
+            (tick(0.3), ServoMode::Feedback),
+            (tick(0.4), ServoMode::Feedforward),
+            (tick(0.5), ServoMode::OpenLoop),
+            (tick(0.6), ServoMode::FeedforwardFeedback),
+            (tick(0.7), ServoMode::Feedforward),
         ];
         let mut last = [0.0f32; 2];
-        for k in 0..8_000u32 {
+        for k in 0..tick(0.8) {
             if let Some(&(_, mode)) = switches.iter().find(|(at, _)| *at == k) {
                 lp.set_control_mode(mode).unwrap();
                 assert_eq!(lp.control_mode(), mode);
@@ -384,10 +387,11 @@ mod tests {
             p.advance();
             plant.set(p);
             lp.frames.discard();
-            if k > 1_000 {
+            if k > tick(0.1) {
                 // At a switch the voltage moves as the feed-forward alone would; after it, the
                 // feedback closes what error the previous mode left (the open loop's: several
-                // % of the stroke) at its own pace, well inside the 10 V per tick slew limit.
+                // % of the stroke) at its own pace, well inside the slew limit (10 V per tick
+                // at 10 kHz, 5 V at 20 kHz).
                 let limit = if switches.iter().any(|(at, _)| *at == k) {
                     0.5
                 } else {
@@ -401,7 +405,7 @@ mod tests {
             last = r.applied_v;
         }
         assert_eq!(lp.counters().faults(), 0);
-        // Open loop → feed-forward at 5 000 switched the model feed-forward in: the baseline's
+        // Open loop → feed-forward + feedback at 0.6 s switched the model feed-forward in: the baseline's
         // error was several % of the stroke, so the hand-over itself is what kept the step small.
         let mut without = settings;
         without.axes[1] = without.axes[1].without_servo();

@@ -187,7 +187,13 @@ fn base_axes() -> Vec<AxisParams> {
     ] {
         let bytes = std::fs::read(dir.join(file)).unwrap();
         let set = stage_file::load(file, &bytes).unwrap();
-        assert_eq!(set.loop_rate_hz, LOOP_RATE_HZ);
+        // The loop runs every file's axes at the built file's rate (the default file's, 20 kHz;
+        // the others are written for 10 kHz): the slew step per tick only gets smaller.
+        assert!(
+            set.loop_rate_hz <= LOOP_RATE_HZ,
+            "{file}: {}",
+            set.loop_rate_hz
+        );
         assert_eq!(set.amplifier_gain_v_per_v, AMPLIFIER_GAIN_V_PER_V);
         for a in set.axes {
             axes.push(AxisParams {

@@ -52,7 +52,12 @@ fn stage_files_build_at_50_khz() {
         "params/xy-stage-lag.toml",
     ] {
         let text = String::from_utf8(read(file)).unwrap();
-        let at = |rate: &str| text.replacen("loop_rate_hz = 10000.0", rate, 1);
+        // The file's own rate line (20 kHz in the default file, 10 kHz in the others).
+        let line = text
+            .lines()
+            .find(|l| l.starts_with("loop_rate_hz = "))
+            .unwrap();
+        let at = |rate: &str| text.replacen(line, rate, 1);
         let set = params::load(file, at("loop_rate_hz = 50000.0").as_bytes())
             .unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(set.loop_rate_hz, 50_000.0);
@@ -119,18 +124,18 @@ fn refusals_name_the_file_line_and_key() {
             "`x.limits",
         ),
         (
-            "loop_rate_hz = 10000.0",
+            "loop_rate_hz = 20000.0",
             "loop_rate_hz = 0.0",
             "`stage.loop_rate_hz`",
         ),
         (
-            "loop_rate_hz = 10000.0",
+            "loop_rate_hz = 20000.0",
             "loop_rate_hz = 100000.0",
             "whole-hertz loop rates",
         ),
         (
-            "loop_rate_hz = 10000.0",
-            "loop_rate_hz = 10000.5",
+            "loop_rate_hz = 20000.0",
+            "loop_rate_hz = 20000.5",
             "whole-hertz loop rates",
         ),
         (

@@ -253,8 +253,10 @@ fn a_window_that_excludes_the_held_voltage_is_slewed_into() {
             }
         }
     }
-    // 100 V at 9.999998 V per tick: 11 ticks begin outside the window.
-    assert_eq!(ticks_outside, [11, 11]);
+    // 100 V at the guard's step (9.999998 V per tick at 10 kHz: 11 ticks begin outside the
+    // window; 4.999999 V at 20 kHz: 21).
+    let outside = (100.0 / bound_v(params::AXES[0].slew_limit_v_per_s)).ceil() as u32;
+    assert_eq!(ticks_outside, [outside; 2]);
     assert_eq!(b.applied_v, [100.0, 20.0]);
     let counted = b.guard_interventions() - before;
     assert!(counted >= 20, "{counted} guard interventions");

@@ -917,7 +917,7 @@ mod tests {
     fn the_stage_file_becomes_the_upload_message() {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../firmware/params/xy-stage.toml");
         let set = model_set(&path).unwrap();
-        assert_eq!(set.loop_rate_hz, 10_000.0);
+        assert_eq!(set.loop_rate_hz, 20_000.0);
         assert!(set.version.starts_with("xy-stage"));
         assert_ne!(set.axes[0].bouc_wen, set.axes[1].bouc_wen);
         assert_eq!(set.axes[0].limits.output_max_v, 120.0);

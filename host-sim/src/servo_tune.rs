@@ -280,16 +280,17 @@ mod tests {
     /// The same stage at 10, 20 and 50 kHz: the latency shrinks with the period, so the filters
     /// move up and the crossover rises at the same phase margin: x 387 → 419 → 575 Hz, y 275 →
     /// 335 → 425 Hz (the mode, its ±10 % and the sensitivity peak below it, not the latency,
-    /// hold it there). At 10 kHz the servo is the one the default stage file carries.
+    /// hold it there). At 20 kHz the servo is the one the default stage file carries.
     #[test]
     fn a_faster_loop_gets_a_higher_crossover() {
         let mut crossover = Vec::new();
         for rate in ["10000.0", "20000.0", "50000.0"] {
-            let text = XY.replacen(
-                "loop_rate_hz = 10000.0",
-                &format!("loop_rate_hz = {rate}"),
-                1,
-            );
+            // The file's own rate line (20 kHz in the default file).
+            let line = XY
+                .lines()
+                .find(|l| l.starts_with("loop_rate_hz = "))
+                .unwrap();
+            let text = XY.replacen(line, &format!("loop_rate_hz = {rate}"), 1);
             let mut file = StageFile::parse("xy-stage.toml", &text).unwrap();
             let goal = TuningGoal::default();
             let t = tune_file(&mut file, &[3221.0, 2197.0], 0.03, &goal, Latency::DEFAULT).unwrap();

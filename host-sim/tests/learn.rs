@@ -23,8 +23,9 @@ fn scratch(name: &str) -> tempfile::TempDir {
         .unwrap()
 }
 
-/// xy-stage.toml with its maps scaled by `gain` per axis and, per axis, the mode (Hz, ζ) and
-/// delay \[s\] given; written to `dir/name`.
+/// xy-stage.toml at the tests' loop rate [`RATE_HZ`] (the file's own is 20 kHz) with its maps
+/// scaled by `gain` per axis and, per axis, the mode (Hz, ζ) and delay \[s\] given; written to
+/// `dir/name`.
 fn stage_file(
     dir: &Path,
     name: &str,
@@ -33,6 +34,7 @@ fn stage_file(
     delay_s: f32,
 ) -> PathBuf {
     let mut file = StageFile::parse("xy-stage.toml", STACK_FILE).unwrap();
+    file.stage.loop_rate_hz = RATE_HZ as f32;
     let axes = [Some(&mut file.x), file.y.as_mut()];
     for ((axis, g), (f, zeta)) in axes.into_iter().zip(gain).zip(mode) {
         let axis = axis.unwrap();
@@ -531,7 +533,7 @@ fn learning_converges_on_a_stage_with_rate_dependent_hysteresis() {
 fn a_periodic_trial_starts_from_the_settled_period() {
     let scratch = scratch("periodic");
     let dir = scratch.path();
-    let params = Path::new(env!("CARGO_MANIFEST_DIR")).join("../firmware/params/xy-stage.toml");
+    let params = stage_file(dir, "stage.toml", [1.0; 2], [(0.0, 0.0); 2], 0.0);
     let n = 500;
     let t: Vec<f64> = (0..n).map(|k| k as f64 / RATE_HZ).collect();
     let r: Vec<f64> = t

@@ -35,15 +35,20 @@ use std::time::Instant;
 
 use integration_tests::qemu::{build_replay, missing_tools, say, workspace};
 
-/// The stage file whose `[stage]` and `[io]` (10 kHz loop, DAC8563 + 24 V/V, ADS8681 + 10 µm/V)
+/// The stage file whose `[stage]` and `[io]` (20 kHz loop, DAC8563 + 24 V/V, ADS8681 + 10 µm/V)
 /// the fits carry over.
 const STAGE: &str = "firmware/params/xy-stage.toml";
 /// Identification record: raised cosine 0–120 V at 1 Hz on both axes, 6 s at 5 kHz (30 000
 /// samples per axis: six seconds let close-loop's held-out blocks see the creep settle).
 const ID_SIGNAL: &str = "sine:amp=60,offset=60,freq=1,phase_deg=-90,duration=6,rate=5000";
-/// The reference the image tracks: 1.5 s at the stage's 10 kHz loop.
+/// The reference the image tracks: 1.5 s at the stage file's loop rate.
 const REFERENCE_S: f64 = 1.5;
-const RATE_HZ: f64 = 10_000.0;
+
+/// The stage file's loop rate \[Hz\].
+fn rate_hz() -> f64 {
+    let (file, _) = piezo_stage::StageFile::load(&workspace().join(STAGE)).expect(STAGE);
+    f64::from(file.stage.loop_rate_hz)
+}
 
 /// Runs a host-sim command line as the binary would.
 fn host_sim(args: &[&str]) -> String {
@@ -143,7 +148,7 @@ fn model_distance(a: &Base, b: &Base) -> (f64, f64) {
 /// Two-axis reference at the loop rate: per axis a raised cosine between 10 % and 90 % of the
 /// stroke whose amplitude shrinks (nested loops), x at 2 Hz, y at 1.4 Hz from a lower start.
 fn write_reference(path: &Path, strokes: [(f64, f64); 2]) -> usize {
-    let ticks = (REFERENCE_S * RATE_HZ).round() as usize;
+    let ticks = (REFERENCE_S * rate_hz()).round() as usize;
     let mut text = String::from("t_s,rx_m,ry_m\n");
     let shape = |t: f64, f: f64, (lo, hi): (f64, f64)| {
         let envelope = 1.0 - 0.6 * t / REFERENCE_S;
@@ -153,7 +158,7 @@ fn write_reference(path: &Path, strokes: [(f64, f64); 2]) -> usize {
         lo + (hi - lo) * (0.1 * ramp + 0.8 * envelope * c)
     };
     for k in 0..ticks {
-        let t = k as f64 / RATE_HZ;
+        let t = k as f64 / rate_hz();
         let x = shape(t, 2.0, strokes[0]);
         let y = shape(t, 1.4, strokes[1]);
         text.push_str(&format!("{t},{x},{y}\n"));
@@ -260,7 +265,7 @@ fn identify_close_loop_firmware_capture_identify() {
         let stroke = hi - lo;
         // Tracking: frame k's sensor reads the stage before tick k's command, so r_k is paired
         // with sensor_{k+1}; the first 10 ms (the rise from rest) are left out.
-        let skip = (0.01 * RATE_HZ) as usize;
+        let skip = (0.01 * rate_hz()) as usize;
         let e: Vec<f64> = (skip..r.len() - 1).map(|k| y[k + 1] - r[k]).collect();
         let rms = (e.iter().map(|v| v * v).sum::<f64>() / e.len() as f64).sqrt();
         let max = e.iter().fold(0.0f64, |m, v| m.max(v.abs()));

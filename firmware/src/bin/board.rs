@@ -24,7 +24,7 @@
 //! per kind of request is measured and logged (`link lock held worst …`).
 //!
 //! # Deadline and its measurement
-//! Deadline: one loop period, T = 1/`loop_rate_hz` (100 µs, 16 800 core cycles at 10 kHz), from
+//! Deadline: one loop period, T = 1/`loop_rate_hz` (50 µs, 8 400 core cycles at the default file's 20 kHz), from
 //! the TIM2 update to the end of the tick (both DAC codes written). The tick stamps its entry and
 //! end with the DWT cycle counter (CYCCNT, 168 MHz) and reads TIM2's counter to date the update
 //! it serves (`piezo_firmware::board::deadline`). If the update flag is set again when the tick

@@ -36,14 +36,15 @@
 //! at SYSCLK ([`SYSCLK_HZ`]).
 //!
 //! Loop timer: TIM2 counts at [`TIMER_HZ`] and updates every [`TIMER_TICKS_PER_PERIOD`] counts,
-//! at [`LOOP_RATE_HZ`], the stage file's loop rate (10 kHz for the default file; a rate that
+//! at [`LOOP_RATE_HZ`], the stage file's loop rate (20 kHz for the default file; a rate that
 //! does not divide 84 MHz stops the build). Each update raises the TIM2 interrupt, the control
 //! tick. Deadline: a tick must have written both DAC codes within one period
-//! ([`PERIOD_CYCLES`] core cycles, 100 µs at 10 kHz) of the update that started it; [`super::deadline`]
+//! ([`PERIOD_CYCLES`] core cycles, 50 µs at 20 kHz) of the update that started it; [`super::deadline`]
 //! measures that with the DWT cycle counter. Expected cost: two 32-bit ADC frames (1.5 µs each at
-//! 21 MHz), two 24-bit DAC frames (1.1 µs each) and the loop body (2 375 instructions for the
-//! two-axis tick under QEMU, `firmware/bench.sh`), i.e. roughly 15–25 µs at 168 MHz; the measured
-//! worst case is logged once a second (`src/bin/board.rs`).
+//! 21 MHz), two 24-bit DAC frames (1.1 µs each) and the loop body (1 311 instructions on average,
+//! 1 924 at worst from rest, for the two-axis feedforward + feedback tick under QEMU,
+//! `firmware/bench.sh`), i.e. roughly 13–17 µs at 168 MHz; the measured worst case is logged once
+//! a second (`src/bin/board.rs`).
 
 use embedded_hal_bus::spi::{ExclusiveDevice, NoDelay};
 use stm32f4xx_hal::gpio::{Output, PB12, PD0, PE7};
@@ -79,7 +80,7 @@ pub const TIMER_TICKS_PER_PERIOD: u32 = TIMER_HZ / LOOP_RATE_HZ;
 /// Core cycles per TIM2 count.
 pub const CYCLES_PER_TIMER_TICK: u32 = SYSCLK_HZ / TIMER_HZ;
 
-/// The loop period, the tick's deadline \[core cycles\] (16 800 at 10 kHz).
+/// The loop period, the tick's deadline \[core cycles\] (8 400 at the default file's 20 kHz).
 pub const PERIOD_CYCLES: u32 = TIMER_TICKS_PER_PERIOD * CYCLES_PER_TIMER_TICK;
 
 const _: () = assert!(

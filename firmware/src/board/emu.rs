@@ -62,7 +62,7 @@ pub const TIMER_TICKS_PER_PERIOD: u32 = TIMER_HZ / LOOP_RATE_HZ;
 /// [`LoopTimer::count`] already counts core cycles.
 pub const CYCLES_PER_TIMER_TICK: u32 = 1;
 
-/// The loop period, the tick's deadline \[core cycles\] (16 800 at 10 kHz).
+/// The loop period, the tick's deadline \[core cycles\] (8 400 at the default file's 20 kHz).
 pub const PERIOD_CYCLES: u32 = SYSCLK_HZ / LOOP_RATE_HZ;
 
 const _: () = assert!(

@@ -6,8 +6,8 @@ use super::*;
 use piezo_link::SETPOINT_CHUNK;
 
 /// One period of a 20 Hz sine, 19 ± 12 µm on both axes (y a quarter period later), one entry
-/// per tick.
-const ENTRIES: usize = 500;
+/// per tick: 500 entries at 10 kHz, 1 000 at 20 kHz.
+const ENTRIES: usize = (crate::params::LOOP_RATE_HZ / 20.0) as usize;
 
 fn wave() -> std::vec::Vec<[f32; 2]> {
     (0..ENTRIES)
@@ -139,14 +139,19 @@ fn a_table_that_fails_its_check_is_refused_and_never_played() {
     let table = compensator_table(&mut host, &mut s, &plant);
     let r = refusal(host.ask(&mut s, Request::Control(Control::Learned)));
     assert!(
-        r.reason
-            .contains("learned table has 0 entries, the wave table 500"),
+        r.reason.contains(&std::format!(
+            "learned table has 0 entries, the wave table {ENTRIES}"
+        )),
         "{}",
         r.reason
     );
     load(&mut host, &mut s, &table[..ENTRIES - 1], true);
     let r = refusal(host.ask(&mut s, Request::Control(Control::Learned)));
-    assert!(r.reason.contains("499 entries"), "{}", r.reason);
+    assert!(
+        r.reason.contains(&std::format!("{} entries", ENTRIES - 1)),
+        "{}",
+        r.reason
+    );
 
     let bad = |j: usize, axis: usize, v: f32| {
         let mut t = table.clone();
@@ -225,10 +230,12 @@ fn a_table_that_fails_its_check_is_refused_and_never_played() {
     );
     let r = refusal(host.ask(&mut s, sine_track()));
     assert!(r.reason.contains("track a table program"), "{}", r.reason);
-    // A 15 V step is over the slew limit at 1 tick per entry, within it at 2 (2 × 9.999998 V).
+    // A step of 1.5 guard steps (15 V at 10 kHz, 7.5 V at 20 kHz) is over the slew limit at 1
+    // tick per entry, within it at 2 (2 × 9.999998 V at 10 kHz).
     host.ask(&mut s, Request::Control(Control::Feedforward));
+    let guard_step = crate::params::AXES[0].slew_limit_v_per_s * crate::params::SAMPLE_PERIOD_S;
     let mut spike = table.clone();
-    spike[200][0] = (spike[199][0] + 15.0).min(119.0);
+    spike[200][0] = (spike[199][0] + 1.5 * guard_step).min(119.0);
     spike[201][0] = spike[200][0];
     load(&mut host, &mut s, &spike, true);
     let r = refusal(host.ask(&mut s, Request::Control(Control::Learned)));
@@ -326,7 +333,13 @@ fn learned_feedback_adds_the_servos_correction() {
     let mut tracked = |control: Control| {
         assert_eq!(host.ask(&mut s, Request::Control(control)), Response::Done);
         host.ask(&mut s, Request::Track(PROGRAM));
-        run(&mut s, &plant, &mut host, 4000);
+        // 0.4 s, whatever the loop rate (the servo's integral settles in time, not in ticks).
+        run(
+            &mut s,
+            &plant,
+            &mut host,
+            (0.4 / crate::params::SAMPLE_PERIOD_S) as u32,
+        );
         host.status(&mut s).tracking
     };
     let learned = tracked(Control::Learned);
