@@ -23,7 +23,7 @@
 //!   the compensator, until told otherwise; open loop: the linear baseline; feedback and
 //!   feedforward + feedback: piezo-core's servo on the sensor, which needs `[x.servo]` and
 //!   `[y.servo]` in the running set); the tracking error per axis (sensor of tick k minus reference
-//!   of tick k − 1) is accumulated from [`SETTLE_TICKS`] after it, reported by `Status`.
+//!   of tick k − 1) is accumulated from [`SETTLE_S`] after it, reported by `Status`.
 //! - `Excite(program)`: stack volts, open loop (compensator off), for identification; the
 //!   compensator's model still follows the applied voltage, so going back to `Track` is bumpless.
 //! - `TableClear`, `TableAppend`: the wave table ([`TABLE_CAPACITY`] entries); `Stream`: the
@@ -79,10 +79,21 @@ use crate::xy_loop::{
     PositionSensor, TickReport, TwoAxisLoop, XyIo,
 };
 
+/// [`SETTLE_S`] in ticks of the loop's period.
+fn settle_ticks(lp: &TwoAxisLoop) -> u32 {
+    let ticks = libm::roundf(SETTLE_S / lp.sample_period_s());
+    if ticks.is_finite() && ticks >= 0.0 {
+        ticks.min(u32::MAX as f32) as u32
+    } else {
+        0
+    }
+}
+
 /// Bytes of the transmit buffer.
 pub const TX_CAPACITY: usize = 8 * MAX_FRAME;
-/// Ticks after a `Track` before the tracking error counts (the start-up transient).
-pub const SETTLE_TICKS: u32 = 1_000;
+/// Time after a `Track` before the tracking error counts (the start-up transient) \[s\]: 1 000
+/// ticks at 10 kHz, 2 000 at 20 kHz.
+pub const SETTLE_S: f32 = 0.1;
 
 /// The link endpoint around the loop.
 pub struct Session {
@@ -520,6 +531,7 @@ impl Session {
     /// A session around `lp`, which runs the parameter set `version` (FNV-1a `fnv1a32`). Frames
     /// start off.
     pub fn new(lp: TwoAxisLoop, version: &str, fnv1a32: u32) -> Self {
+        let settle_left = settle_ticks(&lp);
         Self {
             control: lp.control_mode(),
             learned: lp.feedforward() == Feedforward::Learned,
@@ -534,7 +546,7 @@ impl Session {
             counters: Counters::default(),
             tracking: [TrackingStats::default(); 2],
             previous_reference_m: [f32::NAN; 2],
-            settle_left: SETTLE_TICKS,
+            settle_left,
             last: None,
             version: truncated(version),
             fnv1a32,
@@ -739,7 +751,7 @@ impl Session {
         self.lp.set_feedforward(feedforward);
         self.lp.reference.set_program(program);
         self.tracking = [TrackingStats::default(); 2];
-        self.settle_left = SETTLE_TICKS;
+        self.settle_left = settle_ticks(&self.lp);
         Response::Started {
             first_frame: self.lp.frames.next_sequence(),
         }
@@ -950,7 +962,7 @@ impl Session {
             }
             Request::Rearm => {
                 self.lp.rearm();
-                self.settle_left = SETTLE_TICKS;
+                self.settle_left = settle_ticks(&self.lp);
                 Response::Done
             }
             Request::InjectOverrun => {

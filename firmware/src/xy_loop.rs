@@ -617,6 +617,11 @@ impl TwoAxisLoop {
         &self.guard[axis.index()]
     }
 
+    /// T: the loop's period \[s\] (the parameter set's).
+    pub fn sample_period_s(&self) -> f32 {
+        self.settings.axes[0].compensator.settings().sample_period_s
+    }
+
     /// The settings.
     pub fn settings(&self) -> &LoopSettings {
         &self.settings

@@ -36,8 +36,8 @@ use host_sim::link::{fnv1a32, upload, Client, Recording};
 use integration_tests::qemu::{missing_tools, say};
 use piezo_link::{Control, Mode, Program, Request, Response, Status, Wave};
 
-/// Settling ticks the firmware leaves out of its tracking statistics (`session::SETTLE_TICKS`).
-const SETTLE_TICKS: usize = 1_000;
+/// Settling time the firmware leaves out of its tracking statistics (`session::SETTLE_S`) \[s\].
+const SETTLE_S: f64 = 0.1;
 
 /// What one image did in the session.
 struct Outcome {
@@ -86,12 +86,13 @@ fn session(
     );
     assert_eq!((recording.gaps, recording.lost), (0, 0));
 
+    let settle = (SETTLE_S * f64::from(loaded.loop_rate_hz)).round() as usize;
     let mut frames_rms_m = [0.0; 2];
     for (axis, rms) in frames_rms_m.iter_mut().enumerate() {
         let errors: Vec<f64> = recording
             .frames
             .windows(2)
-            .skip(SETTLE_TICKS)
+            .skip(settle)
             .map(|w| f64::from(w[1].sensor_m[axis]) - f64::from(w[0].reference_m[axis]))
             .collect();
         *rms = (errors.iter().map(|e| e * e).sum::<f64>() / errors.len() as f64).sqrt();
