@@ -93,17 +93,51 @@ pub fn build_board_emu_image() -> PathBuf {
     build_image("board-emu", "board-emu")
 }
 
+/// The built-in stage file at `rate_hz` instead of its own rate, and the board-emu and mps2 link
+/// images built with it in `<outer target dir>/board-emu-<rate>`: (the file, board-emu's ELF,
+/// mps2's ELF). The file is rewritten only when its text changes, so a second call builds
+/// nothing.
+#[allow(dead_code)] // not every test binary runs every image
+pub fn build_images_at_rate(rate_hz: u32) -> (PathBuf, PathBuf, PathBuf) {
+    let dir = format!("board-emu-{rate_hz}");
+    let built_in = std::fs::read_to_string(firmware_dir().join("params/xy-stage.toml"))
+        .expect("the built-in stage file");
+    let stage =
+        piezo_stage::StageFile::parse("xy-stage.toml", &built_in).expect("the built-in stage file");
+    let from = format!("loop_rate_hz = {:?}", stage.stage.loop_rate_hz);
+    assert!(built_in.contains(&from), "{from}");
+    let text = built_in.replace(&from, &format!("loop_rate_hz = {:?}", rate_hz as f32));
+    let folder = outer_target_dir().join(&dir);
+    std::fs::create_dir_all(&folder).expect("image folder");
+    let params = folder.join(format!("xy-stage-{rate_hz}.toml"));
+    if std::fs::read_to_string(&params).ok().as_deref() != Some(text.as_str()) {
+        std::fs::write(&params, &text).expect("write the stage file");
+    }
+    let emu = build_image_with("board-emu", "board-emu", Some(&params), &dir);
+    let mps2 = build_image_with("qemu", "qemu", Some(&params), &dir);
+    (params, emu, mps2)
+}
+
 /// Builds `bin` of the firmware with `feature` and the built-in stage file in
 /// `<outer target dir>/link-session`; returns the ELF.
 fn build_image(feature: &str, bin: &str) -> PathBuf {
-    let target_dir = outer_target_dir().join("link-session");
-    let build = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()))
+    build_image_with(feature, bin, None, "link-session")
+}
+
+/// Builds `bin` of the firmware with `feature` and the stage file `params` (the built-in one
+/// for `None`) in `<outer target dir>/<dir>`; returns the ELF.
+fn build_image_with(feature: &str, bin: &str, params: Option<&Path>, dir: &str) -> PathBuf {
+    let target_dir = outer_target_dir().join(dir);
+    let mut command = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()));
+    command
         .current_dir(firmware_dir())
         .args(["build", "--release", "--features", feature, "--bin", bin])
-        .env("CARGO_TARGET_DIR", &target_dir)
-        .env_remove("PIEZO_PARAMS")
-        .output()
-        .expect("run cargo");
+        .env("CARGO_TARGET_DIR", &target_dir);
+    match params {
+        Some(p) => command.env("PIEZO_PARAMS", p),
+        None => command.env_remove("PIEZO_PARAMS"),
+    };
+    let build = command.output().expect("run cargo");
     assert!(
         build.status.success(),
         "building the {bin} image failed:\n{}",
