@@ -164,6 +164,16 @@ mod app {
         *countdown -= 1;
     }
 
+    /// The end of a DAC frame sent by DMA (SPI2's receive stream has clocked its last bit):
+    /// SYNC high, and the second frame of the tick's pair starts. At the tick's priority, so it
+    /// never lengthens a tick: the end of the pair's first frame is served when the tick
+    /// returns.
+    #[cfg(feature = "board")]
+    #[task(binds = DMA1_STREAM3, priority = 3)]
+    fn dac_frame_done(_cx: dac_frame_done::Context) {
+        board::dac_frame_done();
+    }
+
     /// The command link on USB: USB events, and bytes the tick queued.
     #[cfg(feature = "board")]
     #[task(binds = OTG_FS, priority = 2, shared = [session, link_report], local = [usb])]
@@ -250,6 +260,17 @@ mod app {
             holds(RequestKind::Other),
             holds(RequestKind::Transmit)
         );
+        #[cfg(feature = "board")]
+        {
+            let d = board::dac_counters();
+            defmt::info!(
+                "dac dma: pairs {=u32} refused busy {=u32} aborted {=u32} spurious ends {=u32}",
+                d.pairs_sent,
+                d.busy_refusals,
+                d.aborted,
+                d.spurious_ends
+            );
+        }
         if link.configured != *cx.local.reported_configured {
             *cx.local.reported_configured = link.configured;
             defmt::info!("link: configured {=bool}", link.configured);
