@@ -117,6 +117,7 @@ mod tests {
         assert_eq!(SPI_SCLK_HZ, 21_000_000);
         assert_eq!(ADS8681_T_ACQ_MIN_NS, 335);
         assert_eq!(DAC8563_SYNC_HIGH_CYCLES, 17);
+        assert_eq!(DAC_PAIR_CYCLES, 401);
     }
 
     #[test]

@@ -38,12 +38,69 @@
 //! Loop timer: TIM2 counts at [`TIMER_HZ`] and updates every [`TIMER_TICKS_PER_PERIOD`] counts,
 //! at [`LOOP_RATE_HZ`], the stage file's loop rate (10 kHz for the default file; a rate that
 //! does not divide 84 MHz stops the build). Each update raises the TIM2 interrupt, the control
-//! tick. Deadline: a tick must have written both DAC codes within one period
-//! ([`PERIOD_CYCLES`] core cycles, 100 µs at 10 kHz) of the update that started it; [`super::deadline`]
-//! measures that with the DWT cycle counter. Expected cost: two 32-bit ADC frames (1.5 µs each at
-//! 21 MHz), two 24-bit DAC frames (1.1 µs each) and the loop body (2 375 instructions for the
-//! two-axis tick under QEMU, `firmware/bench.sh`), i.e. roughly 15–25 µs at 168 MHz; the measured
-//! worst case is logged once a second (`src/bin/board.rs`).
+//! tick. Deadline: a tick must have staged both DAC codes and started their transfer within
+//! one period ([`PERIOD_CYCLES`] core cycles, 100 µs at 10 kHz) of the update that started it;
+//! [`super::deadline`] measures that with the DWT cycle counter; the measured worst case is
+//! logged once a second (`src/bin/board/app.rs`).
+//!
+//! # Converters: what the tick waits for
+//!
+//! The two ADS8681 are read at once ([`crate::concurrent_adc`]): both CONVST/CS low, a 32-bit
+//! NOP frame clocked on SPI1 and SPI3 together, both high. The DAC8563's two 24-bit frames go
+//! out by DMA ([`crate::dac_dma`]): DMA1 stream 4 channel 0 feeds SPI2's TX, stream 3 channel 0
+//! drains its RX; staging the tick's second DAC code lowers SYNC and starts frame A, and the RX
+//! stream's transfer-complete interrupt (`DMA1_STREAM3`, [`dac_frame_done`], at the tick's
+//! priority) raises SYNC, holds it high, lowers it and starts frame B, then raises it at B's
+//! end. A tick whose DAC write finds the previous pair still going out gets `Busy`: the loop
+//! counts a DAC error and holds its outputs (safe state). The buffers are in `.bss` (SRAM,
+//! which DMA1 reaches; not the CCM).
+//!
+//! Budget, all figures in [`crate::converter_timing`] (its tests check the arithmetic):
+//!
+//! | item | datasheet / clock tree | time | core cycles (168 MHz) |
+//! |---|---|---|---|
+//! | SPI1 SCLK | APB2 84 MHz / 4 (RM0090 BR = 001) | 21 MHz | 8 per bit |
+//! | SPI2, SPI3 SCLK | APB1 42 MHz / 2 (BR = 000) | 21 MHz | 8 per bit |
+//! | ADS8681 frame | 32 bits (SBAS633, data transfer frame) | 1.52 µs | 256 |
+//! | ADS8681 t_conv | ≤ 665 ns after CONVST/CS rises | — | — |
+//! | ADS8681 t_cyc, t_acq | ≥ 1 µs (1 MSPS), t_acq ≥ t_cyc − t_conv = 335 ns | — | — |
+//! | DAC8563 frame | 24 bits per SYNC low (SLAS719) | 1.14 µs | 192 |
+//! | DAC8563 SYNC high between frames | above the datasheet minimum (tens of ns) | 100 ns | 17 |
+//! | DAC8563 settling | 7 µs to ±½ LSB (full-scale step, typical) | — | — |
+//!
+//! What the tick holds, per tick: before, the four frames one after the other, 2 · 256 + 2 · 192
+//! = 896 cycles (5.33 µs; [`converter_timing::CONVERTER_CYCLES_IN_TICK_BLOCKING`], a lower
+//! bound: the HAL's blocking transfers leave a gap after every byte). Now one ADC frame time,
+//! 256 cycles (1.52 µs, [`converter_timing::CONVERTER_CYCLES_IN_TICK`]): the x and y frames
+//! overlap and each bus keeps two bytes in flight, so SCLK runs without gaps; the DAC frames
+//! cost the tick only the instructions that stage the codes and start the two streams (a
+//! critical section, two stream reprogrammings). At 50 kHz (3 360 cycles a period) that is 7.6 %
+//! of the period instead of 26.7 %. `firmware/bench.sh` counts the loop's instructions under
+//! QEMU with simulated converters; it adds [`converter_timing::CONVERTER_CYCLES_IN_TICK`] to the
+//! worst tick for the board's share of the period.
+//!
+//! Sample and output times: a tick reads the conversions started when the previous tick raised
+//! both CS (pipelined, one period earlier; t_conv + t_acq ≪ one period at 50 kHz); channel A (x)
+//! updates at the end of frame A, 1.14 µs after the tick's DAC step; channel B (y) one SYNC high
+//! time and one frame after the frame-A interrupt, which runs when the tick returns (it has the
+//! tick's priority), so about 1.3 µs after the tick ends. Both are inside the period; the pair
+//! is [`converter_timing::DAC_PAIR_CYCLES`] = 401 cycles of bus time plus the interrupt's latency.
+//!
+//! Only a board verifies: that the DMA streams, their interrupt and SYNC produce the frames on
+//! the pins (a logic analyser on PB12/PB13/PB15: SYNC low for exactly 24 SCLK edges, high ≥ the
+//! DAC8563's minimum between the frames) and that the DAC8563 takes both; that the two ADC
+//! frames run gap-free at 21 MHz with no overrun (the polling round must stay under one byte
+//! time, 64 cycles; an overrun is reported as a sensor error); the tick's cycles with the
+//! converters (DWT, logged once a second), the `dac dma` counters (pairs sent, refused busy,
+//! aborted) in the log, and the sample-to-output latency. The host tests check the sequencer,
+//! the frames and the byte pipelining against a model of the SPI peripheral; this image's build
+//! checks the DMA stream/channel mapping (the HAL's `DMASet` for SPI2 TX and RX) and the
+//! interrupt binding.
+//!
+//! Not done: starting the conversions from TIM2 in hardware. CONVST/CS is PE7 and PD0, which are
+//! no TIM2 outputs, and the same pin is the frame's chip select; a timer-driven CONVST needs a
+//! rewiring (a TIM2 channel on CS) and a DMA-driven ADC frame, so the sample instant is still
+//! the previous tick's end of frame, a fixed point of the tick's code path after its start.
 
 use core::cell::RefCell;
 use core::convert::Infallible;
