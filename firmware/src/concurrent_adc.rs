@@ -428,4 +428,49 @@ mod tests {
         assert_eq!(p.bus_x.spans.len(), 4);
         assert_eq!(p.bus_y.spans.len(), 4);
     }
+
+    /// A DAC that takes every code.
+    struct NullDac;
+
+    impl ErrorType for NullDac {
+        type Error = Infallible;
+    }
+
+    impl crate::converter::DacWrite for NullDac {
+        type Channel = u8;
+        fn write_code(&mut self, _: u8, _: crate::codes::DacCode) -> Result<(), Infallible> {
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn a_loop_tick_clocks_one_frame_on_each_bus() {
+        use crate::params;
+        use crate::reference::{Program, ReferenceGenerator, Waveform};
+        use crate::xy_loop::{Feedforward, TwoAxisLoop, XyIo};
+        let (sensor, _) = pair(&[0x80, 0x00, 0, 0], &[0x80, 0x00, 0, 0]);
+        let reference = ReferenceGenerator::new(
+            Program::PerAxis([Waveform::Constant { offset_m: 0.0 }; 2]),
+            params::SAMPLE_PERIOD_S,
+            [0.0; 2],
+        );
+        let initial = [params::AXES[0].output_min_v, params::AXES[1].output_min_v];
+        let mut lp = TwoAxisLoop::new(
+            crate::demo::settings().unwrap(),
+            Feedforward::Compensator,
+            reference,
+            initial,
+        );
+        let mut io = XyIo {
+            dac: NullDac,
+            dac_channels: [0, 1],
+            sensor,
+        };
+        let report = lp.tick(&mut io, false);
+        assert_eq!(report.measured_m, [0.0; 2]);
+        // One exchange: four bytes on each bus, not one frame per axis on both.
+        assert_eq!(io.sensor.bus_x.spans.len(), 4);
+        assert_eq!(io.sensor.bus_y.spans.len(), 4);
+        assert_eq!(lp.counters().sensor_errors, 0);
+    }
 }
