@@ -2,8 +2,10 @@
 //! priorities and bodies (see the crate docs of `src/bin/board.rs`). The hardware behind them is
 //! `piezo_firmware::board`: the STM32F407 with its converters and USB (feature `board`), or
 //! QEMU's netduinoplus2 with the simulated stage and USART1 (feature `board-emu`). The two
-//! differ here only in the link task's interrupt (`usb_link` on OTG_FS, `usart_link` on USART1)
-//! and in what `usart_link` does on a `shutdown` request (exits QEMU).
+//! differ here only in the link task's interrupt (`usb_link` on OTG_FS, `usart_link` on USART1),
+//! in what `usart_link` does on a `shutdown` request (exits QEMU), and in the board's DMA task
+//! for the DAC's frames (`dac_frame_done` on DMA1_STREAM3, with its counters in the telemetry;
+//! the emulated board's DAC is the simulated stage's).
 
 #[rtic::app(device = stm32f4xx_hal::pac, peripherals = true, dispatchers = [USART6])]
 mod app {
