@@ -25,6 +25,9 @@
 #   then STAGE_WINDOWS windows: the stages of a feedforward + feedback tick one by one, each over
 #             BENCH_TICKS ticks with the inputs of the same run (check.rs `stage_windows`); what
 #             the whole tick (window 5) costs beyond their sum is its bookkeeping
+# Then the converter time that still lies inside the board's tick (src/converter_timing.rs, from
+# the ADS8681/DAC8563 datasheets and the SPI clocks: QEMU's converters are simulated), and the
+# worst tick with it as a share of a 20 kHz and a 50 kHz period.
 # Not cycles: see the tool's README. Needs qemu-system-arm, gcc, nm.
 # usage: firmware/bench.sh   (COUNT_SH=path/to/count.sh to override the tool's location)
 set -euo pipefail
@@ -35,6 +38,9 @@ count_sh=${COUNT_SH:-$here/../../shared/tools/qemu-insn-count/count.sh}
 const() { sed -n "s/^ *pub const $1: [a-z0-9]* = \([0-9_.]*\);/\1/p" src/bin/check.rs | tr -d _; }
 steps=$(const BENCH_STEPS) ticks=$(const BENCH_TICKS) general_n=$(const GENERAL_N)
 worst_ticks=$(const WORST_TICKS) stage_windows=$(const STAGE_WINDOWS)
+timing() { sed -n "s/^pub const $1: u32 = \([0-9_]*\);/\1/p" src/converter_timing.rs | tr -d _; }
+conv=$(timing CONVERTER_CYCLES_IN_TICK) conv_blocking=$(timing CONVERTER_CYCLES_IN_TICK_BLOCKING)
+[[ -n $conv && -n $conv_blocking ]] || { echo "bench.sh: converter cycles not found in src/converter_timing.rs" >&2; exit 1; }
 rate=$(sed -n 's/^loop_rate_hz = \([0-9.e]*\).*/\1/p' "${PIEZO_PARAMS:-params/xy-stage.toml}" | head -1)
 cargo build --release --features qemu --bin check
 elf=${CARGO_TARGET_DIR:-$here/../target}/thumbv7em-none-eabihf/release/check
@@ -50,7 +56,7 @@ worst=$(awk -v last="$last_worst" '$2 == "window" && $3 >= 7 && $3 <= last {sub(
   || { echo "bench.sh: expected $((last_worst + stage_windows + 1)) windows" >&2; exit 1; }
 stages=$(for k in $(seq 1 "$stage_windows"); do win $((last_worst + k)); done | tr '\n' ' ')
 awk -v stages="$stages" -v wt="$worst_ticks" -v a="$n1" -v b="$nx" -v c="$loop" -v sv="$servo" -v f="$ff" -v fb="$both" -v w="$worst" \
-    -v e="$empty" -v s="$steps" -v t="$ticks" -v n="$general_n" -v rate="$rate" 'BEGIN {
+    -v e="$empty" -v cv="$conv" -v cvb="$conv_blocking" -v s="$steps" -v t="$ticks" -v n="$general_n" -v rate="$rate" 'BEGIN {
   printf "instructions per axis-step (n = 1, compensator + safety guard): %.1f\n", (a - e) / (2 * s)
   printf "instructions per axis-step (n = %s, compensator + safety guard): %.1f\n", n, (b - e) / (2 * s)
   printf "instructions per axis-step (n = 1, compensator + servo + safety guard): %.1f (servo: %.1f)\n", (sv - e) / (2 * s), (sv - a) / (2 * s)
@@ -60,9 +66,8 @@ awk -v stages="$stages" -v wt="$worst_ticks" -v a="$n1" -v b="$nx" -v c="$loop" 
   budget = 168e6 / rate
   printf "worst feedforward + feedback tick of %d from rest: %d instructions = %.1f %% of the %d cycles one period of %s Hz has at 168 MHz\n", wt, w - e, 100 * (w - e) / budget, budget, rate
   printf "  the same as a share of one period at 168 MHz: %.1f %% at 20 kHz (8400 cycles), %.1f %% at 50 kHz (3360 cycles)\n", 100 * (w - e) / 8400, 100 * (w - e) / 3360
-  # SPI frames: 2 x 32 bits (ADS8681) + 2 x 24 bits (DAC8563) at 21 MHz, in core cycles at 168 MHz.
-  spi = (2 * 32 + 2 * 24) / 21e6; spi_cycles = spi * 168e6
-  printf "  converter frames inside the tick (2 x 32-bit ADS8681 + 2 x 24-bit DAC8563 at 21 MHz SPI): %.2f us = %d cycles; left of the period after them and the worst tick (one instruction per cycle): %d cycles (%.1f us) at 20 kHz, %d cycles (%.1f us) at 50 kHz\n", spi * 1e6, spi_cycles, 8400 - spi_cycles - (w - e), (8400 - spi_cycles - (w - e)) / 168, 3360 - spi_cycles - (w - e), (3360 - spi_cycles - (w - e)) / 168
+  printf "converter time still inside the tick on the board (src/converter_timing.rs): %d cycles = %.2f us (both ADC frames at once, DAC frames by DMA; %d cycles = %.2f us with blocking transfers)\n", cv, cv / 168, cvb, cvb / 168
+  printf "  worst tick + converter time: %d = %.1f %% of the period at %s Hz, %.1f %% at 20 kHz, %.1f %% at 50 kHz\n", w - e + cv, 100 * (w - e + cv) / budget, rate, 100 * (w - e + cv) / 8400, 100 * (w - e + cv) / 3360
   split(stages, g, " ")
   name[1] = "reference generator"; name[2] = "inverse effect chain: targets"; name[3] = "sensor reads"
   name[4] = "compensators"; name[5] = "servos"; name[6] = "models advanced by the applied voltage"

@@ -117,9 +117,10 @@ else
     echo "ci.sh: the board image is not linked at 0x08000000 (wrong memory.x?)" >&2
     exit 1
   fi
-  # The RTIC tasks are bound to their interrupts: the control tick to TIM2, the link to OTG_FS.
+  # The RTIC tasks are bound to their interrupts: the control tick to TIM2, the link to OTG_FS,
+  # the end of a DAC frame sent by DMA to DMA1_STREAM3 (SPI2 RX).
   symbols=$(nm "$out/board")
-  for handler in TIM2 OTG_FS; do
+  for handler in TIM2 OTG_FS DMA1_STREAM3; do
     if ! grep -q " T $handler\$" <<<"$symbols"; then
       echo "ci.sh: the board image has no $handler handler (RTIC task binding lost)" >&2
       exit 1

@@ -18,6 +18,12 @@ pub enum ErrorKind {
     Readback,
     /// The channel does not exist on this converter.
     InvalidChannel,
+    /// The previous transfer had not finished when the next one was asked for (a DAC written by
+    /// DMA whose frames were still going out one loop period later).
+    Busy,
+    /// A transfer did not finish within its bound (a bus that stopped clocking), or was
+    /// aborted by its DMA stream.
+    Timeout,
     /// Anything else.
     Other,
 }
@@ -45,7 +51,10 @@ pub trait DacWrite: ErrorType {
     /// Channel selector (for example `Dac8563Channel::A`, or `()` for a single channel).
     type Channel: Copy;
 
-    /// Sets `channel`'s output to `code` (the output changes when this returns `Ok`).
+    /// Sets `channel`'s output to `code`. The output changes when this returns `Ok`, or, for a
+    /// DAC whose frames go out by DMA ([`crate::dac_dma`]), when its transfer ends, before
+    /// the next tick (a transfer still running then makes the next write fail with
+    /// [`ErrorKind::Busy`]).
     fn write_code(&mut self, channel: Self::Channel, code: DacCode) -> Result<(), Self::Error>;
 }
 

@@ -70,6 +70,13 @@ pub fn frame(command: u8, address: u8, data: u16) -> [u8; 3] {
     [((command & 0b111) << 3) | (address & 0b111), hi, lo]
 }
 
+/// The frame that writes `code` to `channel` and updates its output (command 011): what
+/// [`Dac8563::set`] sends, and what the board's DMA sends ([`crate::dac_dma`]).
+#[inline]
+pub fn update_frame(channel: Dac8563Channel, code: DacCode) -> [u8; 3] {
+    frame(command::WRITE_AND_UPDATE, channel.address(), code.0)
+}
+
 /// TI DAC8563 on an SPI device (SYNC is the device's chip select).
 #[derive(Debug)]
 pub struct Dac8563<SPI> {
@@ -110,7 +117,9 @@ impl<SPI: SpiDevice> Dac8563<SPI> {
         channel: Dac8563Channel,
         code: DacCode,
     ) -> Result<(), DriverError<SPI::Error>> {
-        self.send(command::WRITE_AND_UPDATE, channel.address(), code.0)
+        self.spi
+            .write(&update_frame(channel, code))
+            .map_err(DriverError::Spi)
     }
 }
 

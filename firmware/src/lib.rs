@@ -6,6 +6,9 @@
 //! - [`converter`]: the project's DAC/ADC traits (`DacWrite`, `AdcRead`) and error kinds;
 //! - [`dac8563`], [`ads8681`]: drivers for TI DAC8563 and ADS8681 over
 //!   `embedded_hal::spi::SpiDevice`;
+//! - [`concurrent_adc`], [`dac_dma`]: the board's converters without the tick waiting on them
+//!   (both ADCs read at once on their two buses; the DAC frames sent by DMA), and
+//!   [`converter_timing`], their timing budget from the datasheets;
 //! - [`safety`]: output window, slew limit, NaN hold, fault counters;
 //! - [`control`]: [`control::TrackingStats`], RMS and peak tracking error of a run;
 //! - [`params`]: the parameter set built in by `build.rs` from `firmware/params/*.toml`;
@@ -29,9 +32,12 @@
 
 pub mod ads8681;
 pub mod codes;
+pub mod concurrent_adc;
 pub mod control;
 pub mod converter;
+pub mod converter_timing;
 pub mod dac8563;
+pub mod dac_dma;
 pub mod demo;
 pub mod frames;
 pub mod inverse_chain;

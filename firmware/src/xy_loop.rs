@@ -8,7 +8,7 @@
 //!
 //! ```text
 //! 0. deadline_missed (the previous tick overran)        → fault Overrun
-//! 1. per axis: x_meas = sensor.read_m(axis)             Err → fault SensorError
+//! 1. per axis: x_meas = sensor.read_both_m()[axis]      Err → fault SensorError
 //!                                                       non-finite → fault NonFiniteReading
 //!                                                       frozen → fault StuckReading
 //! 2. running: [r_x, r_y] = reference.next()
@@ -139,6 +139,15 @@ impl Axis {
 pub trait PositionSensor: ErrorType {
     /// The displacement of `axis` now \[m\].
     fn read_m(&mut self, axis: Axis) -> Result<f32, Self::Error>;
+
+    /// Both displacements, x then y \[m\]: what the tick reads. By default `read_m(X)` then
+    /// `read_m(Y)`; a sensor that reads both axes at once (the board's two ADCs on two buses,
+    /// [`crate::concurrent_adc`]) overrides it.
+    #[inline]
+    fn read_both_m(&mut self) -> [Result<f32, Self::Error>; 2] {
+        let x = self.read_m(Axis::X);
+        [x, self.read_m(Axis::Y)]
+    }
 }
 
 /// A [`PositionSensor`] made of an ADC (one channel per axis) and the sensor gain.
@@ -901,9 +910,10 @@ impl TwoAxisLoop {
 
         // 1. Sensors, every tick.
         let mut measured_m = [f32::NAN; 2];
-        for axis in Axis::ALL {
+        let readings = io.sensor.read_both_m();
+        for (axis, reading) in Axis::ALL.into_iter().zip(readings) {
             let i = axis.index();
-            match io.sensor.read_m(axis) {
+            match reading {
                 Ok(m) if m.is_finite() => {
                     measured_m[i] = m;
                     let commanded = self.guard[i].last_safe_volts();

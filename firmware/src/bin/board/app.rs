@@ -2,8 +2,10 @@
 //! priorities and bodies (see the crate docs of `src/bin/board.rs`). The hardware behind them is
 //! `piezo_firmware::board`: the STM32F407 with its converters and USB (feature `board`), or
 //! QEMU's netduinoplus2 with the simulated stage and USART1 (feature `board-emu`). The two
-//! differ here only in the link task's interrupt (`usb_link` on OTG_FS, `usart_link` on USART1)
-//! and in what `usart_link` does on a `shutdown` request (exits QEMU).
+//! differ here only in the link task's interrupt (`usb_link` on OTG_FS, `usart_link` on USART1),
+//! in what `usart_link` does on a `shutdown` request (exits QEMU), and in the board's DMA task
+//! for the DAC's frames (`dac_frame_done` on DMA1_STREAM3, with its counters in the telemetry;
+//! the emulated board's DAC is the simulated stage's).
 
 #[rtic::app(device = stm32f4xx_hal::pac, peripherals = true, dispatchers = [USART6])]
 mod app {
@@ -164,6 +166,16 @@ mod app {
         *countdown -= 1;
     }
 
+    /// The end of a DAC frame sent by DMA (SPI2's receive stream has clocked its last bit):
+    /// SYNC high, and the second frame of the tick's pair starts. At the tick's priority, so it
+    /// never lengthens a tick: the end of the pair's first frame is served when the tick
+    /// returns.
+    #[cfg(feature = "board")]
+    #[task(binds = DMA1_STREAM3, priority = 3)]
+    fn dac_frame_done(_cx: dac_frame_done::Context) {
+        board::dac_frame_done();
+    }
+
     /// The command link on USB: USB events, and bytes the tick queued.
     #[cfg(feature = "board")]
     #[task(binds = OTG_FS, priority = 2, shared = [session, link_report], local = [usb])]
@@ -250,6 +262,17 @@ mod app {
             holds(RequestKind::Other),
             holds(RequestKind::Transmit)
         );
+        #[cfg(feature = "board")]
+        {
+            let d = board::dac_counters();
+            defmt::info!(
+                "dac dma: pairs {=u32} refused busy {=u32} aborted {=u32} spurious ends {=u32}",
+                d.pairs_sent,
+                d.busy_refusals,
+                d.aborted,
+                d.spurious_ends
+            );
+        }
         if link.configured != *cx.local.reported_configured {
             *cx.local.reported_configured = link.configured;
             defmt::info!("link: configured {=bool}", link.configured);
