@@ -19,30 +19,36 @@
 //! `t_s, ux_V, uy_V, x_m, y_m, rx_m, ry_m` (the same names as `host-sim simulate --plant
 //! xy-stage`, plus the references); with `--axis x` or `--axis y` `t_s, u_V, y_m, r_m` for that
 //! axis (`u` commanded volts after the safety guard, `y` sensor metres, `r` the reference).
+//! The rows follow [`crate::record`], as `host-sim link`'s records do: each row holds a tick's
+//! voltage and reference with the reading that answers it, the next frame's (a frame's own
+//! reading was taken before its voltage was written), at t of the voltage's tick; N contiguous
+//! frames give N − 1 rows. At a decimation above 1 the answering reading is not in the log and
+//! the row takes its own frame's, one tick early (said on stderr and in the file).
 //! Values are written as the firmware printed them (f32, shortest round trip). Comment lines
 //! (`#`, skipped by the CSV reader) name the log, the parameter set and the time base.
 //!
 //! **Gaps.** Sequence numbers must step by one (wrapping at 2³²). A gap (frames lost in the link
 //! or in the firmware's queue) stops the capture with an error naming the line, unless
-//! `--allow-gaps` is given. Then every frame is written, `t_s` keeps the true time of each frame
+//! `--allow-gaps` is given. Then every row whose frames are there is written, `t_s` keeps the true time of each frame
 //! (so a gap is a jump in `t_s`), and an extra column `segment_1` numbers the contiguous runs
 //! (0, 1, …) so a reader can split them. A frame with a non-finite value (NaN sensor: the read
 //! failed) is an error too, and with `--allow-gaps` it is left out and counted as a gap. Gaps are
 //! always reported on stderr and in the summary line (count, frames lost, the first five). A
 //! sequence number that goes backwards means a second run in the same log: always an error.
 
-use crate::csv::{CsvError, Table};
+use crate::csv::CsvError;
+use crate::record::{record, LoopFrame, Record};
 use std::fmt;
 use std::fs;
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 /// `host-sim capture --help` text after the options.
 pub const HELP: &str = "Input: lines `frame <n>: x ref <m> m cmd <V> V sensor <m> m | y ref <m> m cmd <V> V sensor <m> m` \
 (anything before `frame`, e.g. a defmt timestamp and level, is allowed; other lines are ignored) and the boot line \
 `parameters <version> (<file>), fnv1a32 0x<hash>, loop <rate> Hz, one frame every <n> ticks`, which gives t_s = n * sequence / rate.\n\
-Output: --axis both: t_s,ux_V,uy_V,x_m,y_m,rx_m,ry_m; --axis x|y: t_s,u_V,y_m,r_m (u commanded volts, y sensor metres, r reference).\n\
-Gaps: a missing sequence number, or a frame with a NaN value, stops with an error naming the line. With --allow-gaps every good frame \
+Output: --axis both: t_s,ux_V,uy_V,x_m,y_m,rx_m,ry_m; --axis x|y: t_s,u_V,y_m,r_m (u commanded volts, y sensor metres, r reference); \
+each row holds a frame's voltage and reference with the next frame's reading, the one that answers it (at a decimation above 1 its own frame's, one tick early).\n\
+Gaps: a missing sequence number, or a frame with a NaN value, stops with an error naming the line. With --allow-gaps every row whose frames are there \
 is written with its true t_s and a segment_1 column numbering the contiguous runs; the gaps are listed on stderr and in the summary.\n\
 Board: cd firmware && cargo run --release --features board --bin board > board.log, then host-sim capture --log board.log --out board.csv.\n\
 QEMU: cd firmware && cargo build --release --features qemu,frames-all --bin qemu, run it with ./run-qemu.sh > qemu.log.";
@@ -185,6 +191,14 @@ pub enum CaptureError {
         /// Lines read.
         lines: usize,
     },
+    /// Frames, but no row: at decimation 1 no frame is followed by the next one (whose reading
+    /// answers its voltage).
+    NoRows {
+        /// File.
+        path: PathBuf,
+        /// Frames read.
+        frames: usize,
+    },
     /// No loop rate: no boot line and no `--rate`.
     NoRate {
         /// File.
@@ -204,7 +218,7 @@ impl fmt::Display for CaptureError {
             Self::Gap { path, line, expected, found } => write!(
                 f,
                 "{}:{line}: sequence gap: expected frame {expected}, found {found} ({} frames lost); \
-                 --allow-gaps writes all frames with a segment_1 column",
+                 --allow-gaps writes the rows around it with a segment_1 column",
                 path.display(),
                 found - expected
             ),
@@ -222,6 +236,12 @@ impl fmt::Display for CaptureError {
             Self::NoFrames { path, lines } => write!(
                 f,
                 "{}: no frame lines (`frame <n>: x ref …`) in {lines} lines",
+                path.display()
+            ),
+            Self::NoRows { path, frames } => write!(
+                f,
+                "{}: {frames} frames but no two consecutive ones: a row pairs a frame's voltage \
+                 with the next frame's reading, the one that answers it",
                 path.display()
             ),
             Self::NoRate { path } => write!(
@@ -412,134 +432,18 @@ pub fn parse_log(path: &Path, text: &str, allow_gaps: bool) -> Result<CapturedLo
     Ok(log)
 }
 
-/// Which axis goes into the CSV.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum AxisChoice {
-    /// x only: `t_s, u_V, y_m, r_m`.
-    X,
-    /// y only: `t_s, u_V, y_m, r_m`.
-    Y,
-    /// Both: `t_s, ux_V, uy_V, x_m, y_m, rx_m, ry_m`.
-    Both,
-}
+pub use crate::record::{AxisChoice, TimeBase};
 
-/// Time base: frame k at t = k·decimation / loop_rate_hz.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct TimeBase {
-    /// Loop rate \[Hz\].
-    pub loop_rate_hz: f64,
-    /// Ticks per frame.
-    pub decimation: u32,
-}
-
-impl TimeBase {
-    /// Time of frame `k` \[s\].
-    pub fn time_s(&self, k: u64) -> f64 {
-        (k as f64) * f64::from(self.decimation) / self.loop_rate_hz
-    }
-}
-
-/// Columns of the CSV (f32 values kept as printed; `t_s` and `segment_1` as f64).
-#[derive(Debug, Clone, PartialEq)]
-pub struct CaptureTable {
-    /// Column names with units.
-    pub names: Vec<String>,
-    /// Time \[s\].
-    pub t_s: Vec<f64>,
-    /// Data columns, in the order of `names` after `t_s` (and before `segment_1`).
-    pub data: Vec<Vec<f32>>,
-    /// Contiguous-run index per row, when gaps are allowed.
-    pub segment: Option<Vec<u32>>,
-}
-
-impl CaptureTable {
-    /// Builds the columns for `axis`; `with_segments` adds `segment_1`.
-    pub fn new(log: &CapturedLog, axis: AxisChoice, time: TimeBase, with_segments: bool) -> Self {
-        // Per axis: [reference_m, commanded_v, sensor_m].
-        let (mut names, picks): (Vec<&str>, Vec<(usize, usize)>) = match axis {
-            AxisChoice::X | AxisChoice::Y => {
-                let a = usize::from(axis == AxisChoice::Y);
-                (vec!["u_V", "y_m", "r_m"], vec![(a, 1), (a, 2), (a, 0)])
-            }
-            AxisChoice::Both => (
-                vec!["ux_V", "uy_V", "x_m", "y_m", "rx_m", "ry_m"],
-                vec![(0, 1), (1, 1), (0, 2), (1, 2), (0, 0), (1, 0)],
-            ),
-        };
-        names.insert(0, "t_s");
-        if with_segments {
-            names.push("segment_1");
-        }
-        let t_s = log.frames.iter().map(|f| time.time_s(f.1)).collect();
-        let data = picks
+impl CapturedLog {
+    /// The log's frames as a record ([`crate::record`]'s rule: each voltage with the reading
+    /// that answers it).
+    pub fn record(&self, time: TimeBase) -> Record {
+        let frames: Vec<LoopFrame> = self
+            .frames
             .iter()
-            .map(|&(a, c)| log.frames.iter().map(|f| f.2.axes[a][c]).collect())
+            .map(|(_, k, f)| LoopFrame::from_text(f, *k))
             .collect();
-        let segment = with_segments.then(|| {
-            let mut seg = 0u32;
-            let mut prev: Option<u64> = None;
-            log.frames
-                .iter()
-                .map(|f| {
-                    if prev.is_some_and(|p| f.1 != p + 1) {
-                        seg += 1;
-                    }
-                    prev = Some(f.1);
-                    seg
-                })
-                .collect()
-        });
-        Self {
-            names: names.into_iter().map(String::from).collect(),
-            t_s,
-            data,
-            segment,
-        }
-    }
-
-    /// As a [`Table`] of f64 (for tests and in-memory use).
-    pub fn to_table(&self) -> Table {
-        let mut columns = vec![self.t_s.clone()];
-        columns.extend(
-            self.data
-                .iter()
-                .map(|c| c.iter().map(|&v| f64::from(v)).collect()),
-        );
-        if let Some(s) = &self.segment {
-            columns.push(s.iter().map(|&v| f64::from(v)).collect());
-        }
-        Table {
-            path: PathBuf::new(),
-            names: self.names.clone(),
-            columns,
-        }
-    }
-
-    /// Writes the CSV with `#` comment lines first (which [`crate::csv::read_csv`] skips).
-    pub fn write(&self, path: &Path, comments: &[String]) -> Result<(), CsvError> {
-        let io = |e: std::io::Error| CsvError::Io {
-            path: path.into(),
-            message: e.to_string(),
-        };
-        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-            fs::create_dir_all(dir).map_err(io)?;
-        }
-        let mut out = std::io::BufWriter::new(fs::File::create(path).map_err(io)?);
-        for c in comments {
-            writeln!(out, "# {c}").map_err(io)?;
-        }
-        writeln!(out, "{}", self.names.join(",")).map_err(io)?;
-        for (r, t) in self.t_s.iter().enumerate() {
-            write!(out, "{t}").map_err(io)?;
-            for c in &self.data {
-                write!(out, ",{}", c[r]).map_err(io)?;
-            }
-            if let Some(s) = &self.segment {
-                write!(out, ",{}", s[r]).map_err(io)?;
-            }
-            writeln!(out).map_err(io)?;
-        }
-        out.flush().map_err(io)
+        record(&frames, time)
     }
 }
 
@@ -617,7 +521,18 @@ pub fn run(a: &CaptureArgs, progress: &mut dyn FnMut(&str)) -> Result<String, St
             g.expected
         ));
     }
-    let table = CaptureTable::new(&log, a.axis, time, a.allow_gaps);
+    let record = log.record(time);
+    if record.rows.is_empty() {
+        return Err(CaptureError::NoRows {
+            path: log.path.clone(),
+            frames: log.frames.len(),
+        }
+        .to_string());
+    }
+    if let Some(note) = record.lead_note() {
+        progress(&format!("capture: {note}"));
+    }
+    let table = record.table(a.axis, true, a.allow_gaps);
     let (first, last) = (log.frames[0].1, log.frames[log.frames.len() - 1].1);
     let params = log.boot.as_ref().map_or_else(
         || "parameters: no boot line".to_string(),
@@ -630,21 +545,26 @@ pub fn run(a: &CaptureArgs, progress: &mut dyn FnMut(&str)) -> Result<String, St
             f64::from(decimation) / loop_rate_hz
         ),
         format!(
-            "frames {first}..={last}, {} written, {}",
+            "frames {first}..={last}, {} read, {}; {} rows: {}",
             log.frames.len(),
-            log.gap_summary()
+            log.gap_summary(),
+            record.rows.len(),
+            record.lead_note().unwrap_or_else(|| {
+                "each voltage with the next frame's reading, the one that answers it".into()
+            })
         ),
     ];
     table
         .write(&a.out, &comments)
         .map_err(|e| format!("--out: {e}"))?;
     let summary = format!(
-        "capture: {} frames {first}..={last} from {} ({params}; {} lines) at {} Hz per frame, {}; written to {} ({})",
+        "capture: {} frames {first}..={last} from {} ({params}; {} lines) at {} Hz per frame, {}; {} rows written to {} ({})",
         log.frames.len(),
         a.log.display(),
         log.lines,
         loop_rate_hz / f64::from(decimation),
         log.gap_summary(),
+        record.rows.len(),
         a.out.display(),
         table.names.join(",")
     );

@@ -6,7 +6,8 @@
 //! [`identify`] fits a core model to a record and predicts new data with it; [`close_loop`] reads the
 //! residual, names the effect the fit lacks and refits; [`compensate`] computes the voltages the
 //! firmware would command; [`demo`], [`reproduce`] and [`servo_bench`] run the core against the
-//! reference plants; [`capture`] and [`link`] talk to the firmware (its log, its command link);
+//! reference plants; [`capture`] and [`link`] talk to the firmware (its log, its command link) and
+//! turn its frames into records by [`record`]'s one rule;
 //! [`servo_tune`] writes the feedback servo of the stage file; [`learn`] takes one step of iterative
 //! learning control and [`learn_bench`] runs it on the XY stage; [`stage_file`] writes the stage file;
 //! [`plot`] draws the figures; [`cli`] is the command line; [`optimise`] is the one differential
@@ -32,6 +33,7 @@ pub mod link;
 pub mod link_learn;
 pub mod optimise;
 pub mod plot;
+pub mod record;
 pub mod reproduce;
 pub mod servo_bench;
 pub mod servo_tune;

@@ -7,9 +7,10 @@
 //! firmware's wave table (m the smallest that fits the duration into the table; the firmware
 //! interpolates linearly between entries), start it, and record every frame the loop produces
 //! (one every `--decimation` ticks) until the duration is covered. The record is the CSV that
-//! `identify` reads: `t_s, ux_V, uy_V, x_m, y_m` (and `rx_m, ry_m` for `track`), t_s from the
-//! frame numbers, so a gap would show as a jump (gaps are counted and refused unless
-//! `--allow-gaps`).
+//! `identify` reads: `t_s, ux_V, uy_V, x_m, y_m` (and `rx_m, ry_m` for `track`), its rows by
+//! [`crate::record`]'s rule (each voltage with the reading that answers it, the next frame's),
+//! the rule `host-sim capture` follows too; t_s from the frame numbers, so a gap would show as a
+//! jump (gaps are counted and refused unless `--allow-gaps`, which adds a `segment_1` column).
 //!
 //! Every read has a timeout (`--timeout`); a request that is not answered in time is an error.
 //! `--wait S` waits for a firmware that is still starting (QEMU not yet listening, or an image
@@ -26,7 +27,8 @@
 //! [`MAX_TABLE_ENTRIES`], [`MAX_RECORD_FRAMES`]); a value outside is an error naming the field
 //! and the value, never a panic or an allocation the size of the device's number.
 
-use crate::csv::{write_csv, Table};
+use crate::csv::Table;
+use crate::record::{record, AxisChoice, LoopFrame, Record, RecordTable, TimeBase};
 use crate::signal::{SignalSpec, SIGNAL_HELP};
 use piezo_link::{
     AxisModel, Control, Decoder, Frame, Limits, ModelSet, Packet, Program, Request, Response,
@@ -534,43 +536,33 @@ impl Client {
 }
 
 impl Recording {
-    /// The record as the CSV `identify` reads: `t_s, ux_V, uy_V, x_m, y_m` and, when tracking,
-    /// `rx_m, ry_m`. A frame's sensor reading is taken at the start of its tick, before that
-    /// tick's voltage is written: at decimation 1 each reading is paired with the voltage of the
-    /// tick before (the one it answers; the first frame is dropped); at decimation m > 1 with its
-    /// own tick's voltage, one tick ahead.
+    /// The frames as a record ([`crate::record`]'s rule: each voltage with the reading that
+    /// answers it, the next frame's at decimation 1), t from the first frame of the run.
+    pub fn record(&self) -> Record {
+        let frames: Vec<LoopFrame> = self
+            .frames
+            .iter()
+            .map(|f| LoopFrame::from_link(f, u64::from(f.sequence.wrapping_sub(self.first_frame))))
+            .collect();
+        record(
+            &frames,
+            TimeBase {
+                loop_rate_hz: self.loop_rate_hz,
+                decimation: self.decimation,
+            },
+        )
+    }
+
+    /// The record's columns as the CSV `identify` reads: `t_s, ux_V, uy_V, x_m, y_m` and, when
+    /// tracking, `rx_m, ry_m`; `segment_1` when frames were lost.
+    pub fn columns(&self, tracking: bool) -> RecordTable {
+        self.record()
+            .table(AxisChoice::Both, tracking, self.gaps > 0)
+    }
+
+    /// [`Self::columns`] as an f64 [`Table`].
     pub fn table(&self, tracking: bool) -> Table {
-        let t = |f: &Frame| {
-            f64::from(f.sequence.wrapping_sub(self.first_frame)) * f64::from(self.decimation)
-                / self.loop_rate_hz
-        };
-        // (sensor frame, the frame whose voltage and reference it is paired with)
-        let pairs: Vec<(&Frame, &Frame)> = if self.decimation == 1 {
-            self.frames.windows(2).map(|w| (&w[1], &w[0])).collect()
-        } else {
-            self.frames.iter().map(|f| (f, f)).collect()
-        };
-        let column = |get: &dyn Fn(&Frame, &Frame) -> f64| -> Vec<f64> {
-            pairs.iter().map(|&(s, c)| get(s, c)).collect()
-        };
-        let mut names = vec!["t_s", "ux_V", "uy_V", "x_m", "y_m"];
-        let mut columns = vec![
-            column(&|s, _| t(s)),
-            column(&|_, c| f64::from(c.commanded_v[0])),
-            column(&|_, c| f64::from(c.commanded_v[1])),
-            column(&|s, _| f64::from(s.sensor_m[0])),
-            column(&|s, _| f64::from(s.sensor_m[1])),
-        ];
-        if tracking {
-            names.extend(["rx_m", "ry_m"]);
-            columns.push(column(&|_, c| f64::from(c.reference_m[0])));
-            columns.push(column(&|_, c| f64::from(c.reference_m[1])));
-        }
-        Table {
-            path: PathBuf::new(),
-            names: names.into_iter().map(String::from).collect(),
-            columns,
-        }
+        self.columns(tracking).to_table()
     }
 }
 
@@ -672,11 +664,47 @@ pub fn link_cmd(a: &LinkArgs) -> Result<String, String> {
                     recording.gaps, recording.lost
                 ));
             }
-            write_csv(&r.record, &recording.table(tracking)).map_err(|e| e.to_string())?;
+            let record = recording.record();
+            if record.rows.is_empty() {
+                return Err(format!(
+                    "{} frames but no two consecutive ones: no row for the record",
+                    recording.frames.len()
+                ));
+            }
+            let comments = [
+                format!(
+                    "host-sim link {} of {} for {} s: loop {} Hz, one frame every {} ticks: \
+                     t_s = (sequence - {}) * {} s",
+                    if tracking { "track" } else { "excite" },
+                    r.signal,
+                    r.duration,
+                    recording.loop_rate_hz,
+                    recording.decimation,
+                    recording.first_frame,
+                    f64::from(recording.decimation) / recording.loop_rate_hz
+                ),
+                format!(
+                    "{} frames, {} gaps ({} frames lost); {} rows: {}",
+                    recording.frames.len(),
+                    recording.gaps,
+                    recording.lost,
+                    record.rows.len(),
+                    record.lead_note().unwrap_or_else(|| {
+                        "each voltage with the next frame's reading, the one that answers it"
+                            .into()
+                    })
+                ),
+            ];
+            record
+                .table(AxisChoice::Both, tracking, recording.gaps > 0)
+                .write(&r.record, &comments)
+                .map_err(|e| e.to_string())?;
             let status = client.status()?;
             json(&serde_json::json!({
                 "record": r.record.display().to_string(),
                 "frames": recording.frames.len(),
+                "rows": record.rows.len(),
+                "reading_lead_ticks": record.reading_lead_ticks,
                 "recording": recording,
                 "tracking": tracking.then_some(status.tracking),
                 "mode": status.mode,

@@ -40,6 +40,7 @@ use crate::learn::{
     write_learned_table, AxisStep, LearnStep, LearningArgs, StepFiles, TableContext,
 };
 use crate::link::{fnv1a32, run_limits, Client};
+use crate::record::{LoopFrame, TimeBase};
 use crate::plot::{plot_grid, Chart, Legend, Panel, Role, Series};
 use crate::signal::SignalSpec;
 use piezo_link::{Control, Frame, Program, Request, Response};
@@ -261,24 +262,38 @@ fn record(
             }
         ));
     }
+    let frames: Vec<LoopFrame> = kept
+        .iter()
+        .map(|f| LoopFrame::from_link(f, u64::from(f.sequence.wrapping_sub(first))))
+        .collect();
+    // Each voltage with the reading that answers it, the next frame's (the loop rate only
+    // times the rows, which are not written here).
+    let rows = crate::record::record(
+        &frames,
+        TimeBase {
+            loop_rate_hz: 1.0,
+            decimation: 1,
+        },
+    )
+    .rows;
     let mut u = vec![vec![0.0f64; n]; 2];
     let mut y = vec![vec![0.0f64; n]; 2];
     let mut sq = [0.0f64; 2];
-    for (k, pair) in kept.windows(2).enumerate() {
-        let (now, next) = (pair[0], pair[1]);
+    for (k, row) in rows.iter().enumerate() {
         let j = k % n;
         for i in 0..2 {
             let r = reference.axes[i].1[j];
-            if now.reference_m[i] != r {
+            if row.reference_m[i] != r {
                 return Err(format!(
                     "frame {}: the firmware's reference {} m is not entry {j}'s {r} m: the wave \
                      table is not the reference (another client changed it?)",
-                    now.sequence, now.reference_m[i]
+                    first.wrapping_add(row.sequence as u32),
+                    row.reference_m[i]
                 ));
             }
-            u[i][j] += f64::from(now.commanded_v[i]);
-            y[i][j] += f64::from(next.sensor_m[i]);
-            let e = f64::from(r) - f64::from(next.sensor_m[i]);
+            u[i][j] += f64::from(row.commanded_v[i]);
+            y[i][j] += f64::from(row.sensor_m[i]);
+            let e = f64::from(r) - f64::from(row.sensor_m[i]);
             sq[i] += e * e;
         }
     }

@@ -127,15 +127,16 @@ fn qemu_log_excerpt_becomes_a_two_axis_csv() {
         t.names,
         ["t_s", "ux_V", "uy_V", "x_m", "y_m", "rx_m", "ry_m"]
     );
-    assert_eq!(t.rows(), 10);
+    // Each voltage with the next frame's reading (the one that answers it): 9 rows of 10 frames.
+    assert_eq!(t.rows(), 9);
     for (k, &ts) in t.column("t_s").unwrap().iter().enumerate() {
         assert!(close(ts, k as f64 * 1e-4), "t_s[{k}] = {ts}");
     }
     // Values exactly as printed: the CSV text reads back to the same f32.
     let f = |s: &str| s.parse::<f32>().unwrap();
     assert_eq!(t.column("uy_V").unwrap()[1] as f32, f("13.582346"));
-    assert_eq!(t.column("x_m").unwrap()[3] as f32, f("0.000008503124"));
-    assert_eq!(t.column("y_m").unwrap()[9] as f32, f("0.000004471875"));
+    assert_eq!(t.column("x_m").unwrap()[3] as f32, f("0.000011584375"));
+    assert_eq!(t.column("y_m").unwrap()[8] as f32, f("0.000004471875"));
     assert_eq!(t.column("rx_m").unwrap()[6] as f32, f("0.000019565352"));
     assert_eq!(t.column("ry_m").unwrap()[0] as f32, f("0.0000039999995"));
     assert_eq!(t.column("ux_V").unwrap()[5], 60.0);
@@ -149,11 +150,12 @@ fn qemu_log_excerpt_becomes_a_two_axis_csv() {
 #[test]
 fn one_axis_files_have_u_y_r_columns() {
     for (axis, u, y, r) in [
-        (AxisChoice::X, 40.0, "0.000008503124", "0.000019282726"),
+        // Row 3: frame 3's voltage and reference, frame 4's reading.
+        (AxisChoice::X, 40.0, "0.000011584375", "0.000019282726"),
         (
             AxisChoice::Y,
             13.979803,
-            "0.0000040843747",
+            "0.000004165625",
             "0.0000041799995",
         ),
     ] {
@@ -172,7 +174,12 @@ fn one_axis_files_have_u_y_r_columns() {
 fn probe_rs_defmt_output_with_decimation_and_wrap() {
     let (res, stderr, out) = capture(PROBE_RS_EXCERPT, "probe", |_| {});
     let summary = res.unwrap();
-    assert!(stderr.is_empty(), "{stderr:?}");
+    // At decimation 10 the reading that answers a voltage is not in the log: said once.
+    assert_eq!(stderr.len(), 1, "{stderr:?}");
+    assert!(
+        stderr[0].contains("at decimation 10") && stderr[0].contains("1 tick (0.0001 s)"),
+        "{stderr:?}"
+    );
     assert!(summary.contains("1000 Hz per frame"), "{summary}");
     let t = read_csv(&out).unwrap();
     assert_eq!(t.rows(), 3);
@@ -216,11 +223,11 @@ fn a_gap_stops_the_capture_at_its_line() {
 
 #[test]
 fn allow_gaps_keeps_true_time_marks_segments_and_reports() {
-    // Drop frame 4 and frames 6-7; frame 9's y sensor is NaN (a failed read).
+    // Drop frames 4 and 7; frame 9's y sensor is NaN (a failed read).
     let text: String = QEMU_EXCERPT
         .lines()
         .filter(|l| {
-            !["frame 4:", "frame 6:", "frame 7:"]
+            !["frame 4:", "frame 7:"]
                 .iter()
                 .any(|p| l.starts_with(p))
         })
@@ -240,10 +247,11 @@ fn allow_gaps_keeps_true_time_marks_segments_and_reports() {
     let summary = res.unwrap();
     assert!(!out.exists());
     assert!(
-        summary.contains("3 gaps (4 frames lost)")
+        summary.contains("3 gaps (3 frames lost)")
             && summary.contains("decoded.txt:6: 1 missing from frame 4")
-            && summary.contains("decoded.txt:7: 2 missing from frame 6")
-            && summary.contains("decoded.txt:8: 1 missing from frame 9"),
+            && summary.contains("decoded.txt:8: 1 missing from frame 7")
+            && summary.contains("decoded.txt:9: 1 missing from frame 9")
+            && summary.contains("4 rows written"),
         "{summary}"
     );
     // Each gap on stderr, then the summary.
@@ -260,10 +268,14 @@ fn allow_gaps_keeps_true_time_marks_segments_and_reports() {
         .iter()
         .map(|v| (v * 1e4).round())
         .collect();
-    assert_eq!(ts, [0.0, 1.0, 2.0, 3.0, 5.0, 8.0]);
+    // Frames 0, 1, 2, 3, 5, 6, 8 are there: a row for each frame followed by the next one
+    // (0, 1, 2 and 5), its voltage with that next frame's reading.
+    assert_eq!(ts, [0.0, 1.0, 2.0, 5.0]);
+    assert_eq!(t.column("segment_1").unwrap(), &[0.0, 0.0, 0.0, 1.0]);
+    assert_eq!(t.column("ux_V").unwrap()[3], 60.0);
     assert_eq!(
-        t.column("segment_1").unwrap(),
-        &[0.0, 0.0, 0.0, 0.0, 1.0, 2.0]
+        t.column("x_m").unwrap()[3] as f32,
+        "0.00001786875".parse::<f32>().unwrap()
     );
 
     // NaN alone, without --allow-gaps: an error naming the line and the field.
@@ -332,11 +344,20 @@ fn restart_no_rate_and_no_frames_are_errors() {
         a.decimation = Some(2);
     });
     res.unwrap();
-    assert!(stderr.is_empty(), "{stderr:?}");
+    assert!(
+        stderr.len() == 1 && stderr[0].contains("at decimation 2"),
+        "{stderr:?}"
+    );
     assert!(close(
         read_csv(&out).unwrap().column("t_s").unwrap()[9],
         9.0e-4
     ));
     let (res, ..) = capture("PASS\n", "none", |_| {});
     assert!(res.unwrap_err().contains("no frame lines"));
+    // One frame at decimation 1: no reading answers its voltage, so no row.
+    let one: String = QEMU_EXCERPT.lines().take(2).map(|l| format!("{l}\n")).collect();
+    let (res, _, out) = capture(&one, "one", |_| {});
+    let e = res.unwrap_err();
+    assert!(e.contains("decoded.txt: 1 frames but no two consecutive"), "{e}");
+    assert!(!out.exists());
 }

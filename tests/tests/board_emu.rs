@@ -95,11 +95,13 @@ fn session(
     let settle = (SETTLE_S * f64::from(loaded.loop_rate_hz)).round() as usize;
     let mut frames_rms_m = [0.0; 2];
     for (axis, rms) in frames_rms_m.iter_mut().enumerate() {
+        // Each row: a tick's reference with the reading that answers its command.
         let errors: Vec<f64> = recording
-            .frames
-            .windows(2)
+            .record()
+            .rows
+            .iter()
             .skip(settle)
-            .map(|w| f64::from(w[1].sensor_m[axis]) - f64::from(w[0].reference_m[axis]))
+            .map(|row| f64::from(row.sensor_m[axis]) - f64::from(row.reference_m[axis]))
             .collect();
         *rms = (errors.iter().map(|e| e * e).sum::<f64>() / errors.len() as f64).sqrt();
     }

@@ -246,7 +246,9 @@ fn identify_close_loop_firmware_capture_identify() {
     say(&format!("round_trip: capture: {summary}"));
     let table = read_csv(&capture).expect("read the capture");
     let col = |name: &str| table.column(name).expect("capture column").to_vec();
-    assert_eq!(table.rows(), ticks, "one frame per tick");
+    // One frame per tick; each row a tick's voltage with the next tick's reading, so one row
+    // fewer than frames.
+    assert_eq!(table.rows(), ticks - 1, "one frame per tick");
 
     // 6. identify on the capture.
     let again = file("capture.toml");
@@ -263,18 +265,19 @@ fn identify_close_loop_firmware_capture_identify() {
         let (r, y) = (col(&format!("r{name}_m")), col(&format!("{name}_m")));
         let (lo, hi) = strokes[i];
         let stroke = hi - lo;
-        // Tracking: frame k's sensor reads the stage before tick k's command, so r_k is paired
-        // with sensor_{k+1}; the first 10 ms (the rise from rest) are left out.
+        // Tracking: each row holds r_k with the reading that answers tick k's command
+        // (sensor_{k+1}); the first 10 ms (the rise from rest) are left out.
         let skip = (0.01 * rate_hz()) as usize;
-        let e: Vec<f64> = (skip..r.len() - 1).map(|k| y[k + 1] - r[k]).collect();
+        let e: Vec<f64> = (skip..r.len()).map(|k| y[k] - r[k]).collect();
         let rms = (e.iter().map(|v| v * v).sum::<f64>() / e.len() as f64).sqrt();
         let max = e.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        // The capture's own floor: one tick of delay plus the 50 µs lag (≈ 1.5 ticks of the
-        // sensor's motion) and the ADC's 3.125 nm step (10.24 V / 2¹⁵ · 10 µm/V, uniform).
+        // The capture's own floor: the 50 µs lag (≈ 0.5 ticks of the sensor's motion; the
+        // rows pair each command with the reading that answers it) and the ADC's 3.125 nm step
+        // (10.24 V / 2¹⁵ · 10 µm/V, uniform).
         let motion = ((1..y.len()).map(|k| (y[k] - y[k - 1]).powi(2)).sum::<f64>()
             / (y.len() - 1) as f64)
             .sqrt();
-        let floor = ((1.5 * motion).powi(2) + (3.125e-9f64).powi(2) / 12.0).sqrt();
+        let floor = ((0.5 * motion).powi(2) + (3.125e-9f64).powi(2) / 12.0).sqrt();
         let (f, c, a) = (first_fit[i], closed_fit[i], capture_fit[i]);
         // The image's plant runs the image's stage file: the other axis of that file is what a
         // swap of the axes would show.
@@ -336,9 +339,9 @@ fn identify_close_loop_firmware_capture_identify() {
             rms <= rms_limit * stroke && max <= max_limit * stroke,
             "{name}: tracking error rms {rms:e} m, max {max:e} m over a {stroke:e} m stroke"
         );
-        // The capture fit reaches the capture's floor: the sensor one tick and a 50 µs lag
-        // behind the command (which the symmetric model does not declare; the fit absorbs part
-        // of it into the loop) and the ADC step. Measured 0.3–0.35 × that floor.
+        // The capture fit reaches the capture's floor: the sensor a 50 µs lag behind the command
+        // (which the symmetric model does not declare; the fit absorbs part of it into the loop)
+        // and the ADC step. Measured 0.16–0.19 × that floor.
         assert!(
             a.fit_rms_m <= floor,
             "{name}: capture fit rms {:e} m, floor {floor:e} m",
