@@ -37,6 +37,11 @@ create_exception!(
     "An error of the piezo tools: the message host-sim prints (a stage file's errors name the file, line, column and key; a firmware refusal carries the core's reason)."
 );
 
+/// Sample times \[s\]: any 1-D array-like, converted to f64.
+type Times<'py> = PyArrayLike1<'py, f64, AllowTypeChange>;
+/// Samples of one axis (1-D) or two (N × 2): any array-like, converted to f64.
+type Samples<'py> = PyArrayLikeDyn<'py, f64, AllowTypeChange>;
+
 fn error(message: impl Into<String>) -> PyErr {
     PiezoError::new_err(message.into())
 }
@@ -78,12 +83,7 @@ fn shaped<'py>(
 
 /// One record per axis from the arrays `t` (1-D), `u` and `y` (1-D or N × 2), named `name` in
 /// messages and reports: equal lengths, at least 10 samples, finite values, `t` increasing.
-fn records(
-    name: &str,
-    t: &PyArrayLike1<'_, f64, AllowTypeChange>,
-    u: &PyArrayLikeDyn<'_, f64, AllowTypeChange>,
-    y: &PyArrayLikeDyn<'_, f64, AllowTypeChange>,
-) -> PyResult<Vec<Record>> {
+fn records(name: &str, t: &Times<'_>, u: &Samples<'_>, y: &Samples<'_>) -> PyResult<Vec<Record>> {
     let t: Vec<f64> = t.as_array().to_vec();
     let us = columns("u", &u.as_array())?;
     let ys = columns("y", &y.as_array())?;
@@ -123,7 +123,7 @@ fn records(
             )));
         }
     }
-    if let Some(k) = t.windows(2).position(|w| !(w[1] > w[0])) {
+    if let Some(k) = t.windows(2).position(|w| w[1] <= w[0]) {
         return Err(PyValueError::new_err(format!(
             "t: not increasing at sample {} ({} s after {} s)",
             k + 1,
@@ -189,7 +189,7 @@ impl Stage {
     fn parse(name: String, text: String) -> PyResult<Self> {
         ReadStage::parse(name, text)
             .map(|read| Self { read })
-            .map_err(|e| error(e.to_string()))
+            .map_err(error)
     }
 
     /// The stage file written by identify/close-loop for `file` (with `header`), as text, and the
@@ -201,7 +201,7 @@ impl Stage {
     ) -> Result<(Self, Verdict), String> {
         let (file, text) = stage_text(header, file);
         let verdict = Verdict::of(&file, Path::new(name), None);
-        let read = ReadStage::parse(name.to_string(), text).map_err(|e| e.to_string())?;
+        let read = ReadStage::parse(name.to_string(), text)?;
         Ok((Self { read }, verdict))
     }
 
@@ -281,8 +281,8 @@ impl Stage {
     fn predict<'py>(
         &self,
         py: Python<'py>,
-        u: PyArrayLikeDyn<'py, f64, AllowTypeChange>,
-        t: Option<PyArrayLike1<'py, f64, AllowTypeChange>>,
+        u: Samples<'py>,
+        t: Option<Times<'py>>,
     ) -> PyResult<Bound<'py, PyAny>> {
         let u_view = u.as_array();
         let one_d = u_view.ndim() == 1;
@@ -324,7 +324,7 @@ impl Stage {
     fn compensate<'py>(
         &self,
         py: Python<'py>,
-        r: PyArrayLikeDyn<'py, f64, AllowTypeChange>,
+        r: Samples<'py>,
         periodic: bool,
     ) -> PyResult<Bound<'py, PyAny>> {
         let valid = self.firmware_valid()?;
@@ -431,9 +431,9 @@ fn merged(mut report: Value, extra: Value) -> Value {
 #[allow(clippy::too_many_arguments)]
 fn identify<'py>(
     py: Python<'py>,
-    t: PyArrayLike1<'py, f64, AllowTypeChange>,
-    u: PyArrayLikeDyn<'py, f64, AllowTypeChange>,
-    y: PyArrayLikeDyn<'py, f64, AllowTypeChange>,
+    t: Times<'py>,
+    u: Samples<'py>,
+    y: Samples<'py>,
     model: &str,
     method: &str,
     invertible: bool,
@@ -474,19 +474,15 @@ fn identify<'py>(
 #[allow(clippy::too_many_arguments)]
 fn close_loop<'py>(
     py: Python<'py>,
-    t: PyArrayLike1<'py, f64, AllowTypeChange>,
-    u: PyArrayLikeDyn<'py, f64, AllowTypeChange>,
-    y: PyArrayLikeDyn<'py, f64, AllowTypeChange>,
+    t: Times<'py>,
+    u: Samples<'py>,
+    y: Samples<'py>,
     start: f64,
     min_share: f64,
     seed: u64,
     invertible: bool,
     stage: Option<Bound<'py, Stage>>,
-    validate: Option<(
-        PyArrayLike1<'py, f64, AllowTypeChange>,
-        PyArrayLikeDyn<'py, f64, AllowTypeChange>,
-        PyArrayLikeDyn<'py, f64, AllowTypeChange>,
-    )>,
+    validate: Option<(Times<'py>, Samples<'py>, Samples<'py>)>,
     validate_start: f64,
     progress: Option<Bound<'py, PyAny>>,
     name: &str,

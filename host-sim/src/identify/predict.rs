@@ -346,10 +346,10 @@ pub fn read_stage(path: &Path) -> Result<ReadStage, String> {
 impl ReadStage {
     /// Parses and validates the text of a stage file named `name` ([`Check::Models`]); the error
     /// names the file, line, column and key.
-    pub fn parse(name: String, text: String) -> Result<Self, piezo_stage::StageError> {
-        let file = StageFile::parse(&name, &text)?;
+    pub fn parse(name: String, text: String) -> Result<Self, String> {
+        let file = StageFile::parse(&name, &text).map_err(|e| e.to_string())?;
         file.validate_with(Check::Models)
-            .map_err(|e| e.located(&name, &text))?;
+            .map_err(|e| e.located(&name, &text).to_string())?;
         Ok(ReadStage { name, text, file })
     }
 
