@@ -160,11 +160,23 @@ fn check_period(
     Ok(())
 }
 
-/// The feed-forward settings of each axis of a validated stage file.
+/// The feed-forward settings of each axis of a validated stage file (read from `params`).
 pub fn feedforward_axes(
     file: &StageFile,
     valid: &ValidStage,
     params: &Path,
+) -> Result<Vec<FeedforwardAxis>, String> {
+    let text = std::fs::read_to_string(params).unwrap_or_default();
+    feedforward_axes_of(file, valid, &params.display().to_string(), &text)
+}
+
+/// [`feedforward_axes`] of a stage file named `name` whose text is `text` (an error is located in
+/// it: line, column and key).
+pub fn feedforward_axes_of(
+    file: &StageFile,
+    valid: &ValidStage,
+    name: &str,
+    text: &str,
 ) -> Result<Vec<FeedforwardAxis>, String> {
     valid
         .axes
@@ -177,8 +189,6 @@ pub fn feedforward_axes(
                 rest_v: given.limits.output_min_v,
             }),
             _ => {
-                let name = params.display().to_string();
-                let text = std::fs::read_to_string(params).unwrap_or_default();
                 let message = format!(
                     "\"{}\": the firmware compensates the static models only (symmetric, \
                      asymmetric)",
@@ -186,8 +196,8 @@ pub fn feedforward_axes(
                 );
                 let key = format!("{}.model", axis.name);
                 Err(
-                    StageError::new(&name, StageErrorKind::Invalid, &key, message)
-                        .located(&name, &text)
+                    StageError::new(name, StageErrorKind::Invalid, &key, message)
+                        .located(name, text)
                         .to_string(),
                 )
             }
@@ -244,9 +254,28 @@ fn compensate_record(
     read: ReadRecord<'_>,
 ) -> Result<Compensation, String> {
     let (file, valid) = StageFile::load(params).map_err(|e| e.to_string())?;
+    let text = std::fs::read_to_string(params).unwrap_or_default();
     let record = &read()?;
+    compensate_stage(&file, &valid, (params, &text), reference, record, false)
+}
+
+/// The stage file `file` (validated as `valid`; named `params.0`, its text `params.1`, for
+/// located errors) run over `record` (from `reference`, named in errors): from rest as
+/// [`compensate`], or played in a loop as [`compensate_periodic`] when `periodic`. The one
+/// function behind `host-sim compensate` and the Python package's `Stage.compensate`.
+pub fn compensate_stage(
+    file: &StageFile,
+    valid: &ValidStage,
+    (params, text): (&Path, &str),
+    reference: &Path,
+    record: &Reference,
+    periodic: bool,
+) -> Result<Compensation, String> {
+    if periodic {
+        return compensate_periodic_stage(file, valid, (params, text), reference, record);
+    }
     check_period(reference, record, params, file.stage.loop_rate_hz)?;
-    let axes = feedforward_axes(&file, &valid, params)?;
+    let axes = feedforward_axes_of(file, valid, &params.display().to_string(), text)?;
     let result = run_chain(&axes, params, reference, record)?;
     for (name, u) in &result.voltages_v {
         if let Some(k) = u.iter().position(|v| !v.is_finite()) {
@@ -338,9 +367,21 @@ fn compensate_periodic_record(
     read: ReadRecord<'_>,
 ) -> Result<Compensation, String> {
     let (file, valid) = StageFile::load(params).map_err(|e| e.to_string())?;
+    let text = std::fs::read_to_string(params).unwrap_or_default();
     let record = &read()?;
+    compensate_periodic_stage(&file, &valid, (params, &text), reference, record)
+}
+
+/// [`compensate_periodic`] of a loaded stage file (see [`compensate_stage`]).
+fn compensate_periodic_stage(
+    file: &StageFile,
+    valid: &ValidStage,
+    (params, text): (&Path, &str),
+    reference: &Path,
+    record: &Reference,
+) -> Result<Compensation, String> {
     check_period(reference, record, params, file.stage.loop_rate_hz)?;
-    let axes = feedforward_axes(&file, &valid, params)?;
+    let axes = feedforward_axes_of(file, valid, &params.display().to_string(), text)?;
     let n = record.t_s.len();
     let period_s = n as f64 / f64::from(file.stage.loop_rate_hz);
     let settings = periodic_settings(&axes, period_s);

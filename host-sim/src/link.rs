@@ -535,7 +535,28 @@ impl Client {
     }
 }
 
+/// The control mode named `mode` (`open-loop`, `feedforward`, `feedback`,
+/// `feedforward+feedback`, `learned`, `learned+feedback`).
+pub fn control_mode(mode: &str) -> Result<Control, String> {
+    Control::ALL
+        .into_iter()
+        .chain(Control::LEARNED)
+        .find(|c| c.name() == mode)
+        .ok_or_else(|| format!("unknown control mode {mode:?}"))
+}
+
 impl Recording {
+    /// Refuses a record with gaps in its frame numbers unless `allow_gaps`.
+    pub fn check_gaps(&self, allow_gaps: bool) -> Result<(), String> {
+        if self.gaps > 0 && !allow_gaps {
+            return Err(format!(
+                "{} gaps ({} frames lost) in the record; --allow-gaps writes it anyway",
+                self.gaps, self.lost
+            ));
+        }
+        Ok(())
+    }
+
     /// The frames as a record ([`crate::record`]'s rule: each voltage with the reading that
     /// answers it, the next frame's at decimation 1), t from the first frame of the run.
     pub fn record(&self) -> Record {
@@ -578,6 +599,16 @@ pub fn fnv1a32(bytes: &[u8]) -> u32 {
 pub fn model_set(path: &Path) -> Result<ModelSet, String> {
     let (file, _valid) = piezo_stage::StageFile::load(path).map_err(|e| e.to_string())?;
     let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    model_set_of(&file, path, &bytes)
+}
+
+/// The upload message of `file` (validated as the firmware's build validates it), read from
+/// `path` (named in errors) whose bytes are `bytes` (their FNV-1a is the set's checksum).
+pub fn model_set_of(
+    file: &piezo_stage::StageFile,
+    path: &Path,
+    bytes: &[u8],
+) -> Result<ModelSet, String> {
     let axis = |name: &str, a: &piezo_stage::Axis| -> Result<AxisModel, String> {
         if !a.model.runs_on_firmware() {
             return Err(format!(
@@ -613,7 +644,7 @@ pub fn model_set(path: &Path) -> Result<ModelSet, String> {
     let version = format!("{} {}", file.stage.name, file.stage.version);
     Ok(ModelSet {
         version: piezo_link::truncated(&version),
-        fnv1a32: fnv1a32(&bytes),
+        fnv1a32: fnv1a32(bytes),
         loop_rate_hz: file.stage.loop_rate_hz,
         io: file.io.chain(),
         axes: [x, y],
@@ -622,7 +653,12 @@ pub fn model_set(path: &Path) -> Result<ModelSet, String> {
 
 /// Uploads the stage file at `path`; the firmware's refusal (the core's reason) as an error.
 pub fn upload(client: &mut Client, path: &Path) -> Result<u32, String> {
-    let set = model_set(path)?;
+    upload_set(client, model_set(path)?, path)
+}
+
+/// Uploads `set` (from the stage file `path`, named in errors); the firmware's refusal (the
+/// core's reason) as an error.
+pub fn upload_set(client: &mut Client, set: ModelSet, path: &Path) -> Result<u32, String> {
     match client.request(Request::Upload(set))? {
         Response::Loaded { params_fnv1a32 } => Ok(params_fnv1a32),
         Response::Refused(r) => Err(format!(
@@ -658,12 +694,7 @@ pub fn link_cmd(a: &LinkArgs) -> Result<String, String> {
         LinkCommand::Excite(r) | LinkCommand::Track(r) => {
             let tracking = matches!(a.command, LinkCommand::Track(_));
             let recording = client.run(&r.signal, r.duration, r.decimation, !tracking)?;
-            if recording.gaps > 0 && !r.allow_gaps {
-                return Err(format!(
-                    "{} gaps ({} frames lost) in the record; --allow-gaps writes it anyway",
-                    recording.gaps, recording.lost
-                ));
-            }
+            recording.check_gaps(r.allow_gaps)?;
             let record = recording.record();
             if record.rows.is_empty() {
                 return Err(format!(
@@ -719,12 +750,7 @@ pub fn link_cmd(a: &LinkArgs) -> Result<String, String> {
         }
         LinkCommand::Rearm => json(&client.expect(Request::Rearm)?),
         LinkCommand::Control { mode } => {
-            let control = Control::ALL
-                .into_iter()
-                .chain(Control::LEARNED)
-                .find(|c| c.name() == mode)
-                .ok_or_else(|| format!("unknown control mode {mode:?}"))?;
-            json(&client.expect(Request::Control(control))?)
+            json(&client.expect(Request::Control(control_mode(mode)?))?)
         }
         LinkCommand::InjectOverrun => json(&client.expect(Request::InjectOverrun)?),
         LinkCommand::Learn(l) => crate::link_learn::link_learn_cmd(&mut client, l),

@@ -101,17 +101,21 @@ impl Verdict {
             kind: refusal_kind(&e),
             message: e.located(&name, text).to_string(),
         };
-        let (file, valid) = match text {
+        let in_memory;
+        let (file, valid, text) = match text {
             Some(text) => match StageFile::load(path) {
-                Ok(loaded) => loaded,
+                Ok((file, valid)) => (file, valid, text),
                 Err(e) => return refused(e, text),
             },
-            None => match file.validate() {
-                Ok(valid) => (file.clone(), valid),
-                Err(e) => return refused(e, &file.to_toml("")),
-            },
+            None => {
+                in_memory = file.to_toml("");
+                match file.validate() {
+                    Ok(valid) => (file.clone(), valid, in_memory.as_str()),
+                    Err(e) => return refused(e, &in_memory),
+                }
+            }
         };
-        match crate::compensate::feedforward_axes(&file, &valid, path) {
+        match crate::compensate::feedforward_axes_of(&file, &valid, &name, text) {
             Ok(_) => Self::Accepted,
             Err(message) => Self::Refused {
                 kind: RefusalKind::Other,
@@ -236,21 +240,38 @@ impl WrittenStage {
     /// The report's fields: `stage_file`, `stage_file_written`, `stage_file_check` (the verdict in
     /// words), `verdict` and `refusal` (the remedy of a refusal, or null).
     pub fn to_json(&self, invertible: bool, given: Option<&Path>) -> serde_json::Value {
+        let mut json = self.verdict.to_json(invertible, given);
+        json["stage_file"] = self.path.clone().into();
+        json["stage_file_written"] = self.not_written.is_none().into();
+        json["stage_file_not_written"] = self.not_written.clone().into();
+        json
+    }
+}
+
+impl Verdict {
+    /// The report's fields of the verdict: `stage_file_check` (in words), `verdict` and `refusal`
+    /// (the reason and remedy of a refusal, or null), for a run with `invertible` and `given`.
+    pub fn to_json(&self, invertible: bool, given: Option<&Path>) -> serde_json::Value {
         serde_json::json!({
-            "stage_file": self.path,
-            "stage_file_written": self.not_written.is_none(),
-            "stage_file_not_written": self.not_written,
-            "stage_file_check": self.verdict.words(),
-            "verdict": self.verdict.name(),
-            "refusal": match &self.verdict {
+            "stage_file_check": self.words(),
+            "verdict": self.name(),
+            "refusal": match self {
                 Verdict::Refused { message, .. } => serde_json::json!({
                     "reason": message,
-                    "remedy": self.verdict.remedy(invertible, given),
+                    "remedy": self.remedy(invertible, given),
                 }),
                 _ => serde_json::Value::Null,
             },
         })
     }
+}
+
+/// The file as [`write_stage`] writes it (each axis's slew limit lowered where needed) and its
+/// text with `header`, in memory.
+pub fn stage_text(header: &str, file: &StageFile) -> (StageFile, String) {
+    let file = with_feasible_slew(file);
+    let text = file.to_toml(header);
+    (file, text)
 }
 
 /// Writes `file` to `path` (with `header`) and checks it as `compensate` would read it; a file

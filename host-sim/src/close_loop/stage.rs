@@ -251,7 +251,8 @@ pub fn final_axes(outcome: &Outcome, data: &str) -> Vec<Axis> {
         .collect()
 }
 
-fn header(outcome: &Outcome, data: &str) -> String {
+/// The comment header of the stage file of `outcome` fitted on `data`.
+pub fn header(outcome: &Outcome, data: &str) -> String {
     let effects: Vec<String> = outcome
         .axes
         .iter()

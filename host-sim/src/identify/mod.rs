@@ -1107,83 +1107,97 @@ pub struct IdentifyArgs {
     pub plots: Option<PathBuf>,
 }
 
-/// Identifies one axis's record.
+/// Identifies one axis's record (`mech`: the square-wave record of `--method two-step`).
 fn identify_axis(
-    a: &IdentifyArgs,
     record: &Record,
     settings: &IdentifySettings,
+    mech: Option<&Record>,
 ) -> Result<Identification, String> {
-    if a.method == Method::TwoStep {
-        let path = a
-            .mech_data
-            .as_ref()
-            .ok_or("--method two-step: give the square-wave record with --mech-data")?;
-        let mech = a
-            .columns
-            .read(path)
-            .map_err(|e| e.replacen("--data", "--mech-data", 1))?;
-        Ok(two_step::identify(&mech, record, settings)?)
+    if settings.method == Method::TwoStep {
+        let mech = mech.ok_or("--method two-step: give the square-wave record with --mech-data")?;
+        Ok(two_step::identify(mech, record, settings)?)
     } else {
-        if a.mech_data.is_some() {
+        if mech.is_some() {
             return Err("--mech-data is used by --method two-step only".into());
         }
         Ok(identify(record, settings)?)
     }
 }
 
-/// A typed report as JSON (the f32 figures widened to f64 and the keys sorted, as every report).
-fn to_json(value: &impl serde::Serialize) -> Result<serde_json::Value, String> {
-    serde_json::to_value(value).map_err(|e| e.to_string())
+/// Every axis of a record identified, as the stage file `identify` writes it.
+#[derive(Debug, Clone)]
+pub struct IdentifiedStage {
+    /// The stage file: `[stage]` and `[io]` given or made from the record, an axis per record.
+    pub file: piezo_stage::StageFile,
+    /// Its comment header (what made it, from which data).
+    pub header: String,
+    /// Per axis: the identification and its data warnings ([`data_warnings`]).
+    pub axes: Vec<(Identification, Vec<String>)>,
+    /// The summary lines the command prints.
+    pub lines: Vec<String>,
 }
 
-fn write_json(path: &Path, value: &serde_json::Value, flag: &str) -> Result<(), String> {
-    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
-    }
-    let text = serde_json::to_string_pretty(value).map_err(|e| e.to_string())?;
-    std::fs::write(path, text).map_err(|e| format!("{flag} {}: {e}", path.display()))
-}
-
-/// Runs `identify`: one set per axis, one stage file. The stage file, the plots and the report
-/// are each written whatever became of the others; the report (written last) holds the firmware's
-/// verdict on the set and says what could not be written. A set the firmware refuses (unless
-/// `--allow-refused`) or a file not written makes the command fail after that.
-pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
-    let mut records = a.columns.read_axes(&a.data)?;
-    if let Some(end) = a.end {
-        for r in &mut records {
-            r.cut_after(end)?;
+impl IdentifiedStage {
+    /// The report's identification part: one axis's summary, parameters and warnings, or
+    /// `{"axes": [...]}` for two.
+    pub fn report(&self) -> Result<serde_json::Value, String> {
+        let mut summaries: Vec<IdentifyResult> = self
+            .axes
+            .iter()
+            .zip(["x", "y"])
+            .map(|((id, warnings), axis)| IdentifyResult {
+                axis,
+                summary: &id.summary,
+                params: &id.set,
+                warnings: warnings.clone(),
+            })
+            .collect();
+        if summaries.len() == 1 {
+            to_json(&summaries.remove(0))
+        } else {
+            Ok(json!({ "axes": to_json(&summaries)? }))
         }
     }
-    // `[stage]` and `[io]` before the fit, so that a bad --stage is said at once. The output
-    // window of a static set is the record's input range: a placeholder io chain covers it.
-    let drive_range_v = if matches!(a.model, ModelKind::Symmetric | ModelKind::Asymmetric) {
-        records.iter().fold((0.0f32, 0.0f32), |(lo, hi), r| {
-            let (a, b) = min_max(&r.u);
-            (lo.min(a as f32), hi.max(b as f32))
-        })
-    } else {
-        (0.0, 0.0)
-    };
-    let (stage, io) = crate::stage_file::stage_and_io(
-        a.stage.as_deref(),
-        &format!("identified-{}", a.model.name()),
-        1.0 / records[0].sample_period_s(),
-        drive_range_v,
-    )?;
-    let settings = IdentifySettings {
-        model: a.model,
-        method: a.method,
-        seed: a.seed,
-        start_s: a.start,
-        no_shift: a.no_shift,
-        invertible: a.invertible,
-        free_offset: a.free_offset,
-        progress: true,
-    };
-    if records[0].segments.len() > 1 && a.start > 0.0 {
+}
+
+/// Identifies every axis of `records` (one per axis) with `settings` (`mech`: the square-wave
+/// record of the two-step method) into a stage file whose `[stage]` and `[io]` are `given`, or
+/// made from the records (their rate, a placeholder io chain covering a static set's input range;
+/// said on stderr); `data` names the records in the header. The one function behind
+/// `host-sim identify` and the Python package's `identify`.
+pub fn identify_stage(
+    records: &[Record],
+    settings: &IdentifySettings,
+    mech: Option<&Record>,
+    given: Option<(piezo_stage::Stage, piezo_stage::Io)>,
+    data: &str,
+) -> Result<IdentifiedStage, String> {
+    let first = records.first().ok_or("no record to identify")?;
+    if first.segments.len() > 1 && settings.start_s > 0.0 {
         return Err("--start: with several records each is scored from its first sample".into());
     }
+    let (stage, io) = match given {
+        Some(given) => given,
+        None => {
+            // The output window of a static set is the record's input range: a placeholder io
+            // chain covers it.
+            let drive_range_v =
+                if matches!(settings.model, ModelKind::Symmetric | ModelKind::Asymmetric) {
+                    records.iter().fold((0.0f32, 0.0f32), |(lo, hi), r| {
+                        let (a, b) = min_max(&r.u);
+                        (lo.min(a as f32), hi.max(b as f32))
+                    })
+                } else {
+                    (0.0, 0.0)
+                };
+            crate::stage_file::stage_and_io(
+                None,
+                &format!("identified-{}", settings.model.name()),
+                1.0 / first.sample_period_s(),
+                drive_range_v,
+            )?
+        }
+    };
     let names = ["x", "y"];
     let mut axes = Vec::new();
     let mut identified = Vec::new();
@@ -1192,8 +1206,8 @@ pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
         if records.len() > 1 {
             eprintln!("identify: axis {} ({})", names[i], record.path.display());
         }
-        let id = identify_axis(a, record, &settings)?;
-        let from = record.index_at(a.start);
+        let id = identify_axis(record, settings, mech)?;
+        let from = record.index_at(settings.start_s);
         let warnings = data_warnings(record, from, &id);
         for w in &warnings {
             eprintln!("warning: {}: {w}", names[i]);
@@ -1223,11 +1237,10 @@ pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
         identified.push((id, warnings));
     }
     let header = format!(
-        "Identified by `host-sim identify` ({} model, method {}) from {}, scored from t = {} s.\nSI units.",
-        a.model.name(),
-        a.method.name(),
-        a.data.display(),
-        a.start
+        "Identified by `host-sim identify` ({} model, method {}) from {data}, scored from t = {} s.\nSI units.",
+        settings.model.name(),
+        settings.method.name(),
+        settings.start_s
     );
     let mut axes = axes.into_iter();
     let file = piezo_stage::StageFile {
@@ -1236,7 +1249,75 @@ pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
         x: axes.next().ok_or("no axis to write")?,
         y: axes.next(),
     };
-    let stage_file = crate::stage_file::write_stage(&a.out, &header, &file);
+    Ok(IdentifiedStage {
+        file,
+        header,
+        axes: identified,
+        lines,
+    })
+}
+
+/// A typed report as JSON (the f32 figures widened to f64 and the keys sorted, as every report).
+fn to_json(value: &impl serde::Serialize) -> Result<serde_json::Value, String> {
+    serde_json::to_value(value).map_err(|e| e.to_string())
+}
+
+fn write_json(path: &Path, value: &serde_json::Value, flag: &str) -> Result<(), String> {
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+    }
+    let text = serde_json::to_string_pretty(value).map_err(|e| e.to_string())?;
+    std::fs::write(path, text).map_err(|e| format!("{flag} {}: {e}", path.display()))
+}
+
+/// Runs `identify`: one set per axis, one stage file. The stage file, the plots and the report
+/// are each written whatever became of the others; the report (written last) holds the firmware's
+/// verdict on the set and says what could not be written. A set the firmware refuses (unless
+/// `--allow-refused`) or a file not written makes the command fail after that.
+pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
+    let mut records = a.columns.read_axes(&a.data)?;
+    if let Some(end) = a.end {
+        for r in &mut records {
+            r.cut_after(end)?;
+        }
+    }
+    // `[stage]` and `[io]` before the fit, so that a bad --stage is said at once.
+    let given = match &a.stage {
+        Some(path) => {
+            let (file, _) =
+                piezo_stage::StageFile::load(path).map_err(|e| format!("--stage: {e}"))?;
+            Some((file.stage, file.io))
+        }
+        None => None,
+    };
+    let mech = match (&a.mech_data, a.method) {
+        (Some(path), Method::TwoStep) => Some(
+            a.columns
+                .read(path)
+                .map_err(|e| e.replacen("--data", "--mech-data", 1))?,
+        ),
+        (Some(_), _) => return Err("--mech-data is used by --method two-step only".into()),
+        (None, _) => None,
+    };
+    let settings = IdentifySettings {
+        model: a.model,
+        method: a.method,
+        seed: a.seed,
+        start_s: a.start,
+        no_shift: a.no_shift,
+        invertible: a.invertible,
+        free_offset: a.free_offset,
+        progress: true,
+    };
+    let identified = identify_stage(
+        &records,
+        &settings,
+        mech.as_ref(),
+        given,
+        &a.data.display().to_string(),
+    )?;
+    let (header, file, lines) = (&identified.header, &identified.file, &identified.lines);
+    let stage_file = crate::stage_file::write_stage(&a.out, header, file);
     let mut plots = Vec::new();
     let mut plots_failed = None;
     if a.plots.is_some() && records[0].segments.len() > 1 {
@@ -1258,21 +1339,7 @@ pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
             Err(e) => plots_failed = Some(format!("--plots {}: not written: {e}", dir.display())),
         }
     }
-    let mut summaries: Vec<IdentifyResult> = identified
-        .iter()
-        .zip(names)
-        .map(|((id, warnings), axis)| IdentifyResult {
-            axis,
-            summary: &id.summary,
-            params: &id.set,
-            warnings: warnings.clone(),
-        })
-        .collect();
-    let mut report = if summaries.len() == 1 {
-        to_json(&summaries.remove(0))?
-    } else {
-        json!({ "axes": to_json(&summaries)? })
-    };
+    let mut report = identified.report()?;
     if let (Some(r), serde_json::Value::Object(s)) = (
         report.as_object_mut(),
         stage_file.to_json(a.invertible, a.stage.as_deref()),

@@ -340,13 +340,19 @@ pub struct ReadStage {
 pub fn read_stage(path: &Path) -> Result<ReadStage, String> {
     let name = path.display().to_string();
     let text = std::fs::read_to_string(path).map_err(|e| format!("--params {name}: {e}"))?;
-    let file = StageFile::parse(&name, &text).map_err(|e| format!("--params: {e}"))?;
-    file.validate_with(Check::Models)
-        .map_err(|e| format!("--params: {}", e.located(&name, &text)))?;
-    Ok(ReadStage { name, text, file })
+    ReadStage::parse(name, text).map_err(|e| format!("--params: {e}"))
 }
 
 impl ReadStage {
+    /// Parses and validates the text of a stage file named `name` ([`Check::Models`]); the error
+    /// names the file, line, column and key.
+    pub fn parse(name: String, text: String) -> Result<Self, String> {
+        let file = StageFile::parse(&name, &text).map_err(|e| e.to_string())?;
+        file.validate_with(Check::Models)
+            .map_err(|e| e.located(&name, &text).to_string())?;
+        Ok(ReadStage { name, text, file })
+    }
+
     /// Why the firmware's check ([`Check::Firmware`]) would still refuse the file (a static set
     /// that is not invertible, an output window beyond the drive span), located; `None` when it
     /// accepts it.
