@@ -721,8 +721,7 @@ pub fn link_cmd(a: &LinkArgs) -> Result<String, String> {
                     recording.lost,
                     record.rows.len(),
                     record.lead_note().unwrap_or_else(|| {
-                        "each voltage with the next frame's reading, the one that answers it"
-                            .into()
+                        "each voltage with the next frame's reading, the one that answers it".into()
                     })
                 ),
             ];
