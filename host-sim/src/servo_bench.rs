@@ -129,6 +129,18 @@ pub struct BenchSettings {
     pub step_watch_s: f64,
 }
 
+impl BenchSettings {
+    /// The reference's share at `t_s` of the fade-in from rest: a raised cosine over
+    /// `fade_in_s`, then 1.
+    fn fade(&self, t_s: f64) -> f64 {
+        if t_s < self.fade_in_s {
+            0.5 - 0.5 * (std::f64::consts::PI * t_s / self.fade_in_s).cos()
+        } else {
+            1.0
+        }
+    }
+}
+
 /// The settling band of a step: |true position − reference| within this share of the step.
 pub const SETTLING_BAND: f64 = 0.02;
 
@@ -753,12 +765,7 @@ pub fn run_bench(
             let scored = (settings.periods / f).max(settings.min_scored_s);
             let n = skip + (scored * fs).round() as usize;
             let reference = |k: usize| {
-                let t = k as f64 / fs;
-                let fade = if t < settings.fade_in_s {
-                    0.5 - 0.5 * (std::f64::consts::PI * t / settings.fade_in_s).cos()
-                } else {
-                    1.0
-                };
+                let (t, fade) = (k as f64 / fs, settings.fade(k as f64 / fs));
                 [0, 1].map(|a| stroke_m[a] * (LOW + (HIGH - LOW) * shape.unit(f, t)) * fade)
             };
             let y = run_loop(&stage, &effects, fs, &ctl, mode, n, &reference)?;
@@ -812,12 +819,7 @@ pub fn run_bench(
         .par_iter()
         .map(|&(mode, fraction)| {
             let reference = |k: usize| {
-                let t = k as f64 / fs;
-                let fade = if t < settings.fade_in_s {
-                    0.5 - 0.5 * (std::f64::consts::PI * t / settings.fade_in_s).cos()
-                } else {
-                    1.0
-                };
+                let fade = settings.fade(k as f64 / fs);
                 let level = if k >= step_k { LOW + fraction } else { LOW };
                 [0, 1].map(|a| stroke_m[a] * level * fade)
             };
