@@ -94,12 +94,8 @@ pub struct ParamSet {
     pub warnings: Vec<String>,
 }
 
-/// FNV-1a, 32 bit (offset basis 0x811c9dc5, prime 0x01000193).
-pub fn fnv1a32(bytes: &[u8]) -> u32 {
-    bytes.iter().fold(0x811c_9dc5_u32, |hash, &b| {
-        (hash ^ u32::from(b)).wrapping_mul(0x0100_0193)
-    })
-}
+/// The stage file's hash, piezo-stage's (the one host-sim's upload carries).
+pub use piezo_stage::fnv1a32;
 
 fn axis_set(file: &StageFile, valid: &ValidAxis) -> AxisSet {
     let axis = if valid.name == "x" {

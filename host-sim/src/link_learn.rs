@@ -40,8 +40,8 @@ use crate::learn::{
     write_learned_table, AxisStep, LearnStep, LearningArgs, StepFiles, TableContext,
 };
 use crate::link::{fnv1a32, run_limits, Client};
-use crate::record::{LoopFrame, TimeBase};
 use crate::plot::{plot_grid, Chart, Legend, Panel, Role, Series};
+use crate::record::{LoopFrame, TimeBase};
 use crate::signal::SignalSpec;
 use piezo_link::{Control, Frame, Program, Request, Response};
 use piezo_stage::StageFile;

@@ -198,12 +198,7 @@ impl Record {
                 p
             }
             AxisChoice::Both => {
-                let mut p = vec![
-                    ("ux_V", 0, 1),
-                    ("uy_V", 1, 1),
-                    ("x_m", 0, 2),
-                    ("y_m", 1, 2),
-                ];
+                let mut p = vec![("ux_V", 0, 1), ("uy_V", 1, 1), ("x_m", 0, 2), ("y_m", 1, 2)];
                 if reference {
                     p.extend([("rx_m", 0, 0), ("ry_m", 1, 0)]);
                 }
@@ -322,7 +317,10 @@ mod tests {
         let r = record(&frames, time);
         assert_eq!(r.reading_lead_ticks, 0);
         // 3→4, 4→5, 7→8: frame 5 has no next frame (6 lost), frame 8 is the last.
-        assert_eq!(r.rows.iter().map(|r| r.sequence).collect::<Vec<_>>(), [3, 4, 7]);
+        assert_eq!(
+            r.rows.iter().map(|r| r.sequence).collect::<Vec<_>>(),
+            [3, 4, 7]
+        );
         for row in &r.rows {
             let (now, next) = (frame(row.sequence), frame(row.sequence + 1));
             assert_eq!(row.commanded_v, now.commanded_v);
@@ -333,7 +331,16 @@ mod tests {
         let t = r.table(AxisChoice::Both, true, true);
         assert_eq!(
             t.names,
-            ["t_s", "ux_V", "uy_V", "x_m", "y_m", "rx_m", "ry_m", "segment_1"]
+            [
+                "t_s",
+                "ux_V",
+                "uy_V",
+                "x_m",
+                "y_m",
+                "rx_m",
+                "ry_m",
+                "segment_1"
+            ]
         );
         assert_eq!(t.t_s, [3e-4, 4e-4, 7e-4]);
         assert!(r.lead_note().is_none());

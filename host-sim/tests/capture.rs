@@ -226,11 +226,7 @@ fn allow_gaps_keeps_true_time_marks_segments_and_reports() {
     // Drop frames 4 and 7; frame 9's y sensor is NaN (a failed read).
     let text: String = QEMU_EXCERPT
         .lines()
-        .filter(|l| {
-            !["frame 4:", "frame 7:"]
-                .iter()
-                .any(|p| l.starts_with(p))
-        })
+        .filter(|l| !["frame 4:", "frame 7:"].iter().any(|p| l.starts_with(p)))
         .map(|l| {
             if l.starts_with("frame 9:") {
                 format!("{}\n", l.replace("sensor 0.000004471875 m", "sensor NaN m"))
@@ -355,9 +351,16 @@ fn restart_no_rate_and_no_frames_are_errors() {
     let (res, ..) = capture("PASS\n", "none", |_| {});
     assert!(res.unwrap_err().contains("no frame lines"));
     // One frame at decimation 1: no reading answers its voltage, so no row.
-    let one: String = QEMU_EXCERPT.lines().take(2).map(|l| format!("{l}\n")).collect();
+    let one: String = QEMU_EXCERPT
+        .lines()
+        .take(2)
+        .map(|l| format!("{l}\n"))
+        .collect();
     let (res, _, out) = capture(&one, "one", |_| {});
     let e = res.unwrap_err();
-    assert!(e.contains("decoded.txt: 1 frames but no two consecutive"), "{e}");
+    assert!(
+        e.contains("decoded.txt: 1 frames but no two consecutive"),
+        "{e}"
+    );
     assert!(!out.exists());
 }

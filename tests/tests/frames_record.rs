@@ -51,10 +51,8 @@ fn delay_rows(table: &Table, u: &str, y: &str) -> usize {
 
 /// A temporary directory of this test, removed when dropped.
 fn scratch(name: &str) -> TempDir {
-    let dir = TempDir(std::env::temp_dir().join(format!(
-        "frames_record_{name}_{}",
-        std::process::id()
-    )));
+    let dir =
+        TempDir(std::env::temp_dir().join(format!("frames_record_{name}_{}", std::process::id())));
     std::fs::create_dir_all(&dir.0).expect("temporary directory");
     dir
 }
