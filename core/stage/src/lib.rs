@@ -70,9 +70,11 @@
 #![allow(clippy::result_large_err)]
 
 mod error;
+mod firmware;
 mod validate;
 
 pub use error::{StageError, StageErrorKind};
+pub use firmware::{FirmwareAxis, FirmwareSet};
 pub use validate::{simulate_pair, AxisChain, Check, ValidAxis, ValidStage, PLAUSIBLE_STROKE_M};
 
 use piezo_core::effects::EffectParams;
