@@ -7,12 +7,13 @@
 //! `firmware/tests/params_file.rs`. Every refusal names the file, line, column and key path
 //! (`x.bouc_wen.gamma`), so a bad file gives a build error that says what to change.
 //!
-//! On top of `StageFile::validate` (the core's constructors with their plausibility bounds, and
+//! The set is piezo-stage's `FirmwareSet::from_bytes` (the one the command link's upload carries
+//! too): `StageFile::validate` (the core's constructors with their plausibility bounds, and
 //! `piezo_core::IoChain::check_limits`: the output window inside `dac_range_v ×
 //! amplifier_gain_v_per_v`, a finite slew limit that leaves a full-window move a few ticks, the
 //! sensor span inside the ADC's — the same function the firmware's session calls on an upload),
-//! the image needs:
-//! - models the firmware's chain runs: `symmetric` or `asymmetric` static models;
+//! models the firmware's chain runs (`symmetric` or `asymmetric` static models), the version
+//! string and the FNV-1a hash. On top, the image needs:
 //! - `io.dac_part = "DAC8563"` with `dac_range_v = [0, 5]` (internal reference, gain 2);
 //! - `io.adc_part = "ADS8681"` with `adc_range_v` one of its input ranges (±12.288, ±10.24,
 //!   ±6.144, ±5.12, ±2.56, 0–12.288, 0–10.24, 0–6.144, 0–5.12 V);
@@ -21,9 +22,8 @@
 //!
 //! A one-axis file drives both channels with its `x` set (said as a build warning).
 
-use piezo_core::effects::EffectParams;
-use piezo_core::{Asymmetry, BoucWenParams, IoChain, ServoParams, StaticMap};
-use piezo_stage::{AxisChain, StageError, StageErrorKind, StageFile, ValidAxis};
+use piezo_core::IoChain;
+use piezo_stage::{FirmwareAxis, FirmwareSet};
 
 /// Lowest loop rate the image runs \[Hz\].
 pub const MIN_LOOP_RATE_HZ: f32 = 10.0;
@@ -46,31 +46,6 @@ pub const ADC_RANGES_V: [[f32; 2]; 9] = [
     [0.0, 5.12],
 ];
 
-/// One validated axis, as the image needs it.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct AxisSet {
-    /// Bouc-Wen parameters.
-    pub bouc_wen: BoucWenParams,
-    /// Output map.
-    pub static_map: StaticMap,
-    /// δ and φ (zero for the symmetric model).
-    pub asymmetry: Asymmetry,
-    /// Lowest voltage \[V\].
-    pub output_min_v: f32,
-    /// Highest voltage \[V\].
-    pub output_max_v: f32,
-    /// Slew limit \[V/s\].
-    pub slew_limit_v_per_s: f32,
-    /// Secant gain of the first loading over the window \[m/V\] (the uncompensated baseline).
-    pub linear_gain_m_per_v: f32,
-    /// Output at `output_min_v` at rest \[m\].
-    pub rest_output_m: f32,
-    /// The effect chain (all zero: none).
-    pub effects: EffectParams,
-    /// The feedback servo (`None`: none).
-    pub servo: Option<ServoParams>,
-}
-
 /// A validated stage file.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ParamSet {
@@ -89,75 +64,16 @@ pub struct ParamSet {
     /// The whole chain (DAC, amplifier, ADC, sensor), as an upload must carry it.
     pub io: IoChain,
     /// x then y.
-    pub axes: [AxisSet; 2],
+    pub axes: [FirmwareAxis; 2],
     /// Notes for the build log (a one-axis file, a placeholder io chain).
     pub warnings: Vec<String>,
 }
 
-/// FNV-1a, 32 bit (offset basis 0x811c9dc5, prime 0x01000193).
-pub fn fnv1a32(bytes: &[u8]) -> u32 {
-    bytes.iter().fold(0x811c_9dc5_u32, |hash, &b| {
-        (hash ^ u32::from(b)).wrapping_mul(0x0100_0193)
-    })
-}
-
-fn axis_set(file: &StageFile, valid: &ValidAxis) -> AxisSet {
-    let axis = if valid.name == "x" {
-        &file.x
-    } else {
-        file.y.as_ref().unwrap_or(&file.x)
-    };
-    let asymmetry = match valid.chain {
-        AxisChain::Static { model, .. } => model.asymmetry(),
-        _ => Asymmetry::default(),
-    };
-    AxisSet {
-        bouc_wen: axis.bouc_wen.unwrap_or(BoucWenParams {
-            a: 0.0,
-            beta: 0.0,
-            gamma: 0.0,
-            n: 1.0,
-        }),
-        static_map: axis.static_map.unwrap_or(StaticMap {
-            k1_m_per_v: 0.0,
-            k2_m_per_h: 0.0,
-            offset_m: 0.0,
-        }),
-        asymmetry,
-        output_min_v: axis.limits.output_min_v,
-        output_max_v: axis.limits.output_max_v,
-        slew_limit_v_per_s: axis.limits.slew_limit_v_per_s,
-        linear_gain_m_per_v: valid.linear_gain_m_per_v,
-        rest_output_m: valid.rest_output_m,
-        effects: axis.effects,
-        servo: axis.servo,
-    }
-}
-
-/// Parses and validates the stage file `file` (its name, for messages) with contents `bytes`.
+/// Parses and validates the stage file `file` (its name, for messages) with contents `bytes`:
+/// piezo-stage's [`FirmwareSet`], then what this image's hardware needs.
 pub fn load(file: &str, bytes: &[u8]) -> Result<ParamSet, String> {
-    let text = std::str::from_utf8(bytes).map_err(|e| format!("{file}: not UTF-8: {e}"))?;
-    let stage = StageFile::parse(file, text).map_err(|e| e.to_string())?;
-    for (name, axis) in stage.axes() {
-        if !axis.model.runs_on_firmware() {
-            let message = format!(
-                "\"{}\": the firmware runs the static models (symmetric, asymmetric) only",
-                axis.model.name()
-            );
-            return Err(StageError::new(
-                file,
-                StageErrorKind::Invalid,
-                &format!("{name}.model"),
-                message,
-            )
-            .located(file, text)
-            .to_string());
-        }
-    }
-    let valid = stage
-        .validate()
-        .map_err(|e| e.located(file, text).to_string())?;
-    let io = &stage.io;
+    let set = FirmwareSet::from_bytes(file, bytes).map_err(|e| e.to_string())?;
+    let io = &set.file.io;
     if io.dac_part != "DAC8563" || io.dac_range_v != [0.0, 5.0] {
         return Err(format!(
             "{file}: `io.dac_part`/`io.dac_range_v` = {:?} {:?}: this firmware drives a DAC8563 \
@@ -172,7 +88,7 @@ pub fn load(file: &str, bytes: &[u8]) -> Result<ParamSet, String> {
             io.adc_part, io.adc_range_v
         ));
     }
-    let rate = stage.stage.loop_rate_hz;
+    let rate = set.loop_rate_hz;
     if !(MIN_LOOP_RATE_HZ..=MAX_LOOP_RATE_HZ).contains(&rate) || rate.fract() != 0.0 {
         return Err(format!(
             "{file}: `stage.loop_rate_hz` = {rate}: the image runs whole-hertz loop rates from \
@@ -181,7 +97,7 @@ pub fn load(file: &str, bytes: &[u8]) -> Result<ParamSet, String> {
         ));
     }
     let mut warnings = Vec::new();
-    if stage.y.is_none() {
+    if set.one_axis() {
         warnings.push(format!(
             "{file} has one axis: both channels run its `x` set"
         ));
@@ -192,17 +108,15 @@ pub fn load(file: &str, bytes: &[u8]) -> Result<ParamSet, String> {
              DAC, amplifier, ADC and sensor"
         ));
     }
-    let x = axis_set(&stage, &valid.axes[0]);
-    let y = valid.axes.get(1).map_or(x, |a| axis_set(&stage, a));
     Ok(ParamSet {
-        version: format!("{} {}", stage.stage.name, stage.stage.version),
-        fnv1a32: fnv1a32(bytes),
-        loop_rate_hz: rate,
         amplifier_gain_v_per_v: io.amplifier_gain_v_per_v,
         sensor_m_per_v: io.sensor_m_per_v,
         adc_range_v: io.adc_range_v,
-        io: io.chain(),
-        axes: [x, y],
+        version: set.version,
+        fnv1a32: set.fnv1a32,
+        loop_rate_hz: rate,
+        io: set.io,
+        axes: set.axes,
         warnings,
     })
 }

@@ -68,14 +68,6 @@ fn stage_files_build_at_50_khz() {
     }
 }
 
-#[test]
-fn fnv1a32_reference_values() {
-    // Published FNV-1a 32 test vectors.
-    assert_eq!(params::fnv1a32(b""), 0x811c_9dc5);
-    assert_eq!(params::fnv1a32(b"a"), 0xe40c_292c);
-    assert_eq!(params::fnv1a32(b"foobar"), 0xbf9c_f968);
-}
-
 /// d = 38 µm / (120 V − h(120 V)) on the virgin loading curve simulated with the core, for the
 /// default file (host-sim's exact XY stack sets).
 #[test]

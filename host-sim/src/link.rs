@@ -587,67 +587,41 @@ impl Recording {
     }
 }
 
-/// FNV-1a, 32 bit, of a stage file's bytes (what the firmware's build logs for the same file).
-pub fn fnv1a32(bytes: &[u8]) -> u32 {
-    bytes.iter().fold(0x811c_9dc5_u32, |hash, &b| {
-        (hash ^ u32::from(b)).wrapping_mul(0x0100_0193)
-    })
-}
+/// FNV-1a, 32 bit, of a stage file's bytes: piezo-stage's, the one the firmware's build logs for
+/// the same file.
+pub use piezo_stage::fnv1a32;
 
-/// A stage file as the upload message: read and validated with piezo-stage, per axis the core's
-/// parameter structs (a one-axis file drives both axes with x, as the firmware's build does).
+/// A stage file as the upload message: piezo-stage's [`piezo_stage::FirmwareSet`] (the set the
+/// firmware's build makes of the same file: its refusals, a one-axis file driving both axes with
+/// x, the version string and the hash), per axis the core's parameter structs.
 pub fn model_set(path: &Path) -> Result<ModelSet, String> {
-    let (file, _valid) = piezo_stage::StageFile::load(path).map_err(|e| e.to_string())?;
     let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
-    model_set_of(&file, path, &bytes)
+    model_set_of(path, &bytes)
 }
 
-/// The upload message of `file` (validated as the firmware's build validates it), read from
-/// `path` (named in errors) whose bytes are `bytes` (their FNV-1a is the set's checksum).
-pub fn model_set_of(
-    file: &piezo_stage::StageFile,
-    path: &Path,
-    bytes: &[u8],
-) -> Result<ModelSet, String> {
-    let axis = |name: &str, a: &piezo_stage::Axis| -> Result<AxisModel, String> {
-        if !a.model.runs_on_firmware() {
-            return Err(format!(
-                "{}: {name}.model \"{}\": the firmware runs the static models (symmetric, asymmetric) only",
-                path.display(),
-                a.model.name()
-            ));
-        }
-        let (Some(bouc_wen), Some(static_map)) = (a.bouc_wen, a.static_map) else {
-            return Err(format!(
-                "{}: {name}: no bouc_wen or static_map",
-                path.display()
-            ));
-        };
-        Ok(AxisModel {
-            bouc_wen,
-            static_map,
-            asymmetry: a.asymmetry.unwrap_or_default(),
-            effects: a.effects,
-            limits: Limits {
-                output_min_v: a.limits.output_min_v,
-                output_max_v: a.limits.output_max_v,
-                slew_limit_v_per_s: a.limits.slew_limit_v_per_s,
-            },
-            servo: a.servo,
-        })
+/// The upload message of the stage file `bytes` (validated as the firmware's build validates
+/// it), read from `path` (named in errors).
+pub fn model_set_of(path: &Path, bytes: &[u8]) -> Result<ModelSet, String> {
+    let set = piezo_stage::FirmwareSet::from_bytes(&path.display().to_string(), bytes)
+        .map_err(|e| e.to_string())?;
+    let axis = |a: &piezo_stage::FirmwareAxis| AxisModel {
+        bouc_wen: a.bouc_wen,
+        static_map: a.static_map,
+        asymmetry: a.asymmetry,
+        effects: a.effects,
+        limits: Limits {
+            output_min_v: a.output_min_v,
+            output_max_v: a.output_max_v,
+            slew_limit_v_per_s: a.slew_limit_v_per_s,
+        },
+        servo: a.servo,
     };
-    let x = axis("x", &file.x)?;
-    let y = match &file.y {
-        Some(y) => axis("y", y)?,
-        None => x,
-    };
-    let version = format!("{} {}", file.stage.name, file.stage.version);
     Ok(ModelSet {
-        version: piezo_link::truncated(&version),
-        fnv1a32: fnv1a32(bytes),
-        loop_rate_hz: file.stage.loop_rate_hz,
-        io: file.io.chain(),
-        axes: [x, y],
+        version: piezo_link::truncated(&set.version),
+        fnv1a32: set.fnv1a32,
+        loop_rate_hz: set.loop_rate_hz,
+        io: set.io,
+        axes: set.axes.each_ref().map(axis),
     })
 }
 
@@ -960,13 +934,6 @@ mod tests {
     }
 
     #[test]
-    fn fnv_matches_the_firmware_build() {
-        // firmware/build/params.rs: FNV-1a 32 of the empty input is the offset basis.
-        assert_eq!(fnv1a32(b""), 0x811c_9dc5);
-        assert_eq!(fnv1a32(b"a"), 0xe40c_292c);
-    }
-
-    #[test]
     fn the_stage_file_becomes_the_upload_message() {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../firmware/params/xy-stage.toml");
         let set = model_set(&path).unwrap();
@@ -974,5 +941,30 @@ mod tests {
         assert!(set.version.starts_with("xy-stage"));
         assert_ne!(set.axes[0].bouc_wen, set.axes[1].bouc_wen);
         assert_eq!(set.axes[0].limits.output_max_v, 120.0);
+        // The build's own set of the same file: one function makes both.
+        let bytes = std::fs::read(&path).unwrap();
+        assert_eq!(set.fnv1a32, fnv1a32(&bytes));
+    }
+
+    #[test]
+    fn a_model_the_firmware_does_not_run_is_refused_at_its_line() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("dynamic.toml");
+        let text = std::fs::read_to_string(
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../firmware/params/xy-stage.toml"),
+        )
+        .unwrap()
+        .replacen("model = \"symmetric\"", "model = \"dynamic\"", 1);
+        std::fs::write(&path, &text).unwrap();
+        let e = model_set(&path).unwrap_err();
+        let line = 1 + text[..text.find("model = \"dynamic\"").unwrap()]
+            .matches('\n')
+            .count();
+        assert!(
+            e.contains(&format!("dynamic.toml:{line}:"))
+                && e.contains("`x.model`")
+                && e.contains("the firmware runs the static models (symmetric, asymmetric) only"),
+            "{e}"
+        );
     }
 }

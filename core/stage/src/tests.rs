@@ -281,3 +281,11 @@ fn the_models_check_skips_only_invertibility_and_the_drive_span() {
     let e = stage.validate_with(Check::Models).unwrap_err();
     assert_eq!(e.key, "x.servo.transfer_time_constant_s", "{e}");
 }
+
+#[test]
+fn fnv1a32_reference_values() {
+    // Published FNV-1a 32 test vectors: the empty input is the offset basis.
+    assert_eq!(fnv1a32(b""), 0x811c_9dc5);
+    assert_eq!(fnv1a32(b"a"), 0xe40c_292c);
+    assert_eq!(fnv1a32(b"foobar"), 0xbf9c_f968);
+}

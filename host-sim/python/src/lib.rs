@@ -674,7 +674,7 @@ impl Link {
         stage.firmware_valid()?;
         let r = &stage.read;
         let path = Path::new(&r.name);
-        let set = model_set_of(&r.file, path, r.text.as_bytes()).map_err(error)?;
+        let set = model_set_of(path, r.text.as_bytes()).map_err(error)?;
         self.with(py, |c| upload_set(c, set, path))
     }
 
