@@ -58,9 +58,9 @@ fn scratch(name: &str) -> TempDir {
 }
 
 /// The frames as the images print them: the boot line, then one text line per frame.
-fn log_text(frames: &[Frame], decimation: u32) -> String {
+fn log_text(frames: &[Frame], decimation: u32, rate_hz: f64) -> String {
     let mut text = format!(
-        "piezo-firmware qemu: parameters frames-record 1 (test), fnv1a32 0x00000000, loop {RATE_HZ} Hz, \
+        "piezo-firmware qemu: parameters frames-record 1 (test), fnv1a32 0x00000000, loop {rate_hz} Hz, \
          one frame every {decimation} ticks\n"
     );
     for f in frames {
@@ -83,7 +83,15 @@ fn both_paths(dir: &Path, name: &str, recording: &Recording, tracking: bool) -> 
         .write(&link_csv, &[])
         .expect("write the link record");
     let log = dir.join(format!("{name}.log"));
-    std::fs::write(&log, log_text(&recording.frames, recording.decimation)).unwrap();
+    std::fs::write(
+        &log,
+        log_text(
+            &recording.frames,
+            recording.decimation,
+            recording.loop_rate_hz,
+        ),
+    )
+    .unwrap();
     let capture_csv = dir.join(format!("{name}-capture.csv"));
     let args = CaptureArgs {
         log,
@@ -101,11 +109,12 @@ fn both_paths(dir: &Path, name: &str, recording: &Recording, tracking: bool) -> 
 }
 
 /// The same rows: every column equal, t once the time origins (run start, boot) are aligned.
-fn assert_same_rows(link: &Table, capture: &Table, first_frame: u32, decimation: u32) {
+fn assert_same_rows(link: &Table, capture: &Table, recording: &Recording) {
+    let (first_frame, decimation) = (recording.first_frame, recording.decimation);
     assert_eq!(link.names, capture.names);
     assert_eq!(link.rows(), capture.rows());
     assert!(link.rows() > 0);
-    let origin_s = f64::from(first_frame) * f64::from(decimation) / f64::from(RATE_HZ);
+    let origin_s = f64::from(first_frame) * f64::from(decimation) / recording.loop_rate_hz;
     for (name, (a, b)) in link
         .names
         .iter()
@@ -162,7 +171,7 @@ fn the_same_frames_give_the_same_rows_and_delay_through_link_and_capture() {
     let first = u32::MAX - 150;
     let whole = recording(delayed_plant_frames(first, 600, 1), first, 1);
     let (link, capture) = both_paths(&dir.0, "whole", &whole, true);
-    assert_same_rows(&link, &capture, first, 1);
+    assert_same_rows(&link, &capture, &whole);
     // 600 frames, 599 rows: the last frame's voltage has no answer in the record.
     assert_eq!(link.rows(), 599);
     for (u, y) in [("ux_V", "x_m"), ("uy_V", "y_m")] {
@@ -183,7 +192,7 @@ fn the_same_frames_give_the_same_rows_and_delay_through_link_and_capture() {
     gappy.gaps = 1;
     gappy.lost = 2;
     let (link, capture) = both_paths(&dir.0, "gap", &gappy, true);
-    assert_same_rows(&link, &capture, first, 1);
+    assert_same_rows(&link, &capture, &gappy);
     assert_eq!(link.rows(), 596);
     assert_eq!(link.names.last().unwrap(), "segment_1");
     let segment = link.column("segment_1").unwrap();
@@ -192,13 +201,13 @@ fn the_same_frames_give_the_same_rows_and_delay_through_link_and_capture() {
     // One frame every 10 ticks: the answering reading is not sent; both take the frame's own.
     let decimated = recording(delayed_plant_frames(first, 6000, 10), first, 10);
     let (link, capture) = both_paths(&dir.0, "decimated", &decimated, true);
-    assert_same_rows(&link, &capture, first, 10);
+    assert_same_rows(&link, &capture, &decimated);
     assert_eq!(link.rows(), 600);
 }
 
 /// Entries of the staircase the image tracks: 0.4 µm steps (≈ 1.2 V at the stage's ≈ 0.35 µm/V,
-/// inside the guard's 10 V per tick) every 3 ms, 10–30 µm and back, 0.2 s at 10 kHz (one table
-/// entry per tick).
+/// inside the guard's step per tick) every 3 ms, 10–30 µm and back, 0.2 s at the built-in file's
+/// loop rate (one table entry per tick).
 const STAIRCASE: &str = "staircase:low=10e-6,high=30e-6,step=0.4e-6,hold=0.003";
 const STAIRCASE_S: f64 = 0.2;
 
@@ -217,10 +226,13 @@ fn a_qemu_run_shows_the_stages_delay_through_link_and_capture() {
         .expect("track the staircase");
     shut_down(&mut client, &mut qemu);
     assert_eq!((run.gaps, run.lost), (0, 0));
-    assert_eq!(run.frames.len(), 2_000);
+    assert_eq!(
+        run.frames.len(),
+        (STAIRCASE_S * run.loop_rate_hz).round() as usize
+    );
 
     let (link, capture) = both_paths(&dir.0, "qemu", &run, true);
-    assert_same_rows(&link, &capture, run.first_frame, 1);
+    assert_same_rows(&link, &capture, &run);
     for (u, y) in [("ux_V", "x_m"), ("uy_V", "y_m")] {
         let (a, b) = (delay_rows(&link, u, y), delay_rows(&capture, u, y));
         say(&format!(
