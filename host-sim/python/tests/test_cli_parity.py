@@ -150,7 +150,7 @@ def test_close_loop_gives_the_cli_stage_file_and_report(host_sim, scratch):
 
 
 def test_stage_errors_carry_the_cli_message(host_sim, scratch):
-    text = XY_STAGE.read_text().replace("loop_rate_hz = 10000.0", "loop_rate_hz = -1.0")
+    text = XY_STAGE.read_text().replace("loop_rate_hz = 20000.0", "loop_rate_hz = -1.0")
     assert text != XY_STAGE.read_text()
     bad = scratch / "bad.toml"
     bad.write_text(text)
@@ -170,7 +170,7 @@ def test_stage_errors_carry_the_cli_message(host_sim, scratch):
 
 def test_stage_round_trip_and_shape_errors(scratch):
     stage = piezo.Stage.load(XY_STAGE)
-    assert stage.axes == ["x", "y"] and stage.loop_rate_hz == 10000.0
+    assert stage.axes == ["x", "y"] and stage.loop_rate_hz == 20000.0
     saved = scratch / "copy.toml"
     stage.save(saved)
     assert saved.read_text() == XY_STAGE.read_text()
