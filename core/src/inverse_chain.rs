@@ -345,6 +345,15 @@ fn run(
     counts
 }
 
+/// The inverse chain of two coupled axes, each from rest at its `rest_v` (`None` without
+/// effects).
+fn pair_chain(axes: [&FeedforwardAxis; 2]) -> Option<InverseChain> {
+    InverseChain::new(
+        [axes[0].effects, axes[1].effects],
+        [axes[0].rest_v, axes[1].rest_v],
+    )
+}
+
 /// Runs the firmware's per-tick feed-forward of two coupled axes over a reference record:
 /// tick j takes r\[j\] of both axes (`reference_m` \[m\], held at its last sample past the end,
 /// which the chain's lead reads), [`InverseChain`] (lead ring, drift, decoupling, mode inverse,
@@ -360,10 +369,7 @@ pub fn compensate_pair(
     let [rx, ry] = reference_m;
     let [ux, uy] = u_out_v;
     let ticks = rx.len().min(ry.len()).min(ux.len()).min(uy.len());
-    let chain = InverseChain::new(
-        [axes[0].effects, axes[1].effects],
-        [axes[0].rest_v, axes[1].rest_v],
-    );
+    let chain = pair_chain(axes);
     let mut k = 0;
     let next = || {
         let s = [held_sample(rx, k), held_sample(ry, k)];
@@ -443,10 +449,7 @@ pub fn compensate_periodic_pair(
     let [rx, ry] = reference_m;
     let [ux, uy] = u_out_v;
     let period = rx.len().min(ry.len()).min(ux.len()).min(uy.len());
-    let chain = InverseChain::new(
-        [axes[0].effects, axes[1].effects],
-        [axes[0].rest_v, axes[1].rest_v],
-    );
+    let chain = pair_chain(axes);
     let mut k = 0;
     let next = || {
         let s = if period == 0 {
