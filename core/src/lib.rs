@@ -17,6 +17,7 @@
 #![no_std]
 #![forbid(unsafe_code)]
 
+pub mod axis;
 pub mod bouc_wen;
 pub mod compensator;
 pub mod dynamic_model;
@@ -34,6 +35,7 @@ pub mod sensitivity;
 pub mod servo;
 pub mod static_model;
 
+pub use axis::AxisParams;
 pub use bouc_wen::{
     max_input_span, BoucWen, BoucWenParams, BoundClass, HysteresisState, STATE_LIMIT,
 };

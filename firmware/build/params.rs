@@ -23,7 +23,7 @@
 //! A one-axis file drives both channels with its `x` set (said as a build warning).
 
 use piezo_core::IoChain;
-use piezo_stage::{FirmwareAxis, FirmwareSet};
+use piezo_stage::{AxisParams, FirmwareSet};
 
 /// Lowest loop rate the image runs \[Hz\].
 pub const MIN_LOOP_RATE_HZ: f32 = 10.0;
@@ -64,7 +64,7 @@ pub struct ParamSet {
     /// The whole chain (DAC, amplifier, ADC, sensor), as an upload must carry it.
     pub io: IoChain,
     /// x then y.
-    pub axes: [FirmwareAxis; 2],
+    pub axes: [AxisParams; 2],
     /// Notes for the build log (a one-axis file, a placeholder io chain).
     pub warnings: Vec<String>,
 }

@@ -63,16 +63,16 @@
 //! a reply still goes out.
 
 use heapless::String;
-use piezo_core::{ParamError, ServoMode};
+use piezo_core::ServoMode;
 use piezo_link::{
-    truncated, AxisModel, Control, Counters, Decoder, Frame, Limits, ModelSet, Packet,
+    truncated, AxisModel, Control, Counters, Decoder, Frame, ModelSet, Packet,
     Program as WireProgram, Refusal, RefusalKind, Request, Response, SequenceChecker, Setpoints,
     Status, Tracking, Uplink, Wave, MAX_FRAME, REASON_BYTES, VERSION_BYTES,
 };
 
 use crate::control::TrackingStats;
 use crate::converter::DacWrite;
-use crate::params::{self, AxisParams};
+use crate::params;
 use crate::reference::{LearnedError, Program, Waveform, STREAM_CAPACITY, TABLE_CAPACITY};
 use crate::xy_loop::{
     Axis, AxisConfig, ConfigError, ControlError, Fault, Feedforward, LoopSettings, Mode,
@@ -247,49 +247,11 @@ fn frame(f: &crate::frames::SampleFrame, trial: u32) -> Frame {
     }
 }
 
-/// The firmware's view of an uploaded axis: piezo-core's model over the window, and the first
-/// loading from rest at the lower end (rest output and secant gain, as `build.rs` computes them).
-fn axis_params(m: &AxisModel) -> Result<AxisParams, ParamError> {
-    let mut p = AxisParams {
-        bouc_wen: m.bouc_wen,
-        static_map: m.static_map,
-        asymmetry: m.asymmetry,
-        output_min_v: m.limits.output_min_v,
-        output_max_v: m.limits.output_max_v,
-        slew_limit_v_per_s: m.limits.slew_limit_v_per_s,
-        linear_gain_m_per_v: 0.0,
-        rest_output_m: 0.0,
-        effects: m.effects,
-        servo: m.servo,
-    };
-    let (rest, gain) = p
-        .quasi_static_model()?
-        .first_loading(p.output_min_v, p.output_max_v);
-    p.rest_output_m = rest;
-    p.linear_gain_m_per_v = gain;
-    Ok(p)
-}
-
-/// An axis as the link carries it: the inverse of what an upload builds (its rest output and
-/// baseline gain are what the firmware computes on upload, not carried).
-pub fn wire_axis(p: &AxisParams) -> AxisModel {
-    AxisModel {
-        bouc_wen: p.bouc_wen,
-        static_map: p.static_map,
-        asymmetry: p.asymmetry,
-        effects: p.effects,
-        limits: Limits {
-            output_min_v: p.output_min_v,
-            output_max_v: p.output_max_v,
-            slew_limit_v_per_s: p.slew_limit_v_per_s,
-        },
-        servo: p.servo,
-    }
-}
-
 /// An upload's axis checked against the firmware's chain and built by the core, as the build does.
 fn axis_config(m: &AxisModel) -> Result<AxisConfig, ConfigError> {
-    let p = axis_params(m).map_err(ConfigError::Core)?;
+    let p = m
+        .params(params::SAMPLE_PERIOD_S)
+        .map_err(ConfigError::Core)?;
     p.check_chain(&params::IO, params::SAMPLE_PERIOD_S)
         .map_err(ConfigError::Core)?;
     AxisConfig::from_params(&p, params::SAMPLE_PERIOD_S)

@@ -297,7 +297,7 @@ impl AxisConfig {
     /// and the guard acts only on a fault. The core's checks come first: a file it refuses gets
     /// its reason.
     pub fn from_params(p: &AxisParams, sample_period_s: f32) -> Result<Self, ConfigError> {
-        let model = p.model().map_err(ConfigError::Core)?;
+        let model = p.model(sample_period_s).map_err(ConfigError::Core)?;
         let limits = SafetyLimits::from_slew(
             p.output_min_v,
             p.output_max_v,

@@ -249,7 +249,7 @@ fn random_axis(rng: &mut Rng, bases: &[AxisParams]) -> Option<(AxisConfig, InFor
     }
     // The linear baseline's first loading over this window (as an upload computes it).
     let (rest, gain) = p
-        .model()
+        .model(SAMPLE_PERIOD_S)
         .ok()?
         .first_loading(p.output_min_v, p.output_max_v);
     p.rest_output_m = rest;

@@ -38,7 +38,10 @@ struct Stage {
 
 impl Stage {
     fn new(axes: &[AxisParams; 2]) -> Self {
-        let model = [axes[0].model().unwrap(), axes[1].model().unwrap()];
+        let model = [
+            axes[0].model(SAMPLE_PERIOD_S).unwrap(),
+            axes[1].model(SAMPLE_PERIOD_S).unwrap(),
+        ];
         let model_state = [
             ModelState::at_rest(axes[0].output_min_v),
             ModelState::at_rest(axes[1].output_min_v),

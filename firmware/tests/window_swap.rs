@@ -15,7 +15,7 @@ use piezo_firmware::demo;
 use piezo_firmware::params::{self, AxisParams};
 use piezo_firmware::plant::{PlantAdc, PlantDac, XyPlant};
 use piezo_firmware::reference::{Program, ReferenceGenerator, Waveform};
-use piezo_firmware::session::{wire_axis, Session};
+use piezo_firmware::session::Session;
 use piezo_firmware::xy_loop::{AdcSensor, Axis, Feedforward, TickReport, TwoAxisLoop, XyIo};
 use piezo_link::{
     AxisModel, Control, Decoder, Limits, Mode, ModelSet, Packet, Program as WireProgram, Request,
@@ -199,7 +199,7 @@ fn set_with_limits(windows: [(f32, f32); 2], slew_v_per_s: [f32; 2]) -> ModelSet
             output_max_v: max,
             slew_limit_v_per_s,
         },
-        ..wire_axis(p)
+        ..AxisModel::from_params(p)
     };
     ModelSet {
         version: piezo_link::truncated("window swap"),

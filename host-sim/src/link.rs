@@ -31,7 +31,7 @@ use crate::csv::Table;
 use crate::record::{record, AxisChoice, LoopFrame, Record, RecordTable, TimeBase};
 use crate::signal::{SignalSpec, SIGNAL_HELP};
 use piezo_link::{
-    AxisModel, Control, Decoder, Frame, Limits, ModelSet, Packet, Program, Request, Response,
+    AxisModel, Control, Decoder, Frame, ModelSet, Packet, Program, Request, Response,
     SequenceChecker, Status, Uplink, MAX_FRAME, SETPOINT_CHUNK,
 };
 use serde::Serialize;
@@ -604,24 +604,12 @@ pub fn model_set(path: &Path) -> Result<ModelSet, String> {
 pub fn model_set_of(path: &Path, bytes: &[u8]) -> Result<ModelSet, String> {
     let set = piezo_stage::FirmwareSet::from_bytes(&path.display().to_string(), bytes)
         .map_err(|e| e.to_string())?;
-    let axis = |a: &piezo_stage::FirmwareAxis| AxisModel {
-        bouc_wen: a.bouc_wen,
-        static_map: a.static_map,
-        asymmetry: a.asymmetry,
-        effects: a.effects,
-        limits: Limits {
-            output_min_v: a.output_min_v,
-            output_max_v: a.output_max_v,
-            slew_limit_v_per_s: a.slew_limit_v_per_s,
-        },
-        servo: a.servo,
-    };
     Ok(ModelSet {
         version: piezo_link::truncated(&set.version),
         fnv1a32: set.fnv1a32,
         loop_rate_hz: set.loop_rate_hz,
         io: set.io,
-        axes: set.axes.each_ref().map(axis),
+        axes: set.axes.each_ref().map(AxisModel::from_params),
     })
 }
 

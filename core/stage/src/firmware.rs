@@ -16,33 +16,7 @@
 //! hardware needs on top (its DAC and ADC parts, its loop-rate range) is the image's build's.
 
 use crate::{fnv1a32, AxisChain, StageError, StageErrorKind, StageFile, ValidAxis};
-use piezo_core::effects::EffectParams;
-use piezo_core::{Asymmetry, BoucWenParams, IoChain, ServoParams, StaticMap};
-
-/// One axis as the firmware runs it.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct FirmwareAxis {
-    /// Bouc-Wen parameters.
-    pub bouc_wen: BoucWenParams,
-    /// Output map y = k1·u + k2·h + y0.
-    pub static_map: StaticMap,
-    /// δ and φ (zero for the symmetric model).
-    pub asymmetry: Asymmetry,
-    /// Lowest voltage \[V\].
-    pub output_min_v: f32,
-    /// Highest voltage \[V\].
-    pub output_max_v: f32,
-    /// Slew limit \[V/s\].
-    pub slew_limit_v_per_s: f32,
-    /// Secant gain of the first loading over the window \[m/V\] (the uncompensated baseline).
-    pub linear_gain_m_per_v: f32,
-    /// Output at `output_min_v` at rest \[m\].
-    pub rest_output_m: f32,
-    /// The effect chain (all zero: none).
-    pub effects: EffectParams,
-    /// The feedback servo (`None`: none).
-    pub servo: Option<ServoParams>,
-}
+use piezo_core::{Asymmetry, AxisParams, BoucWenParams, IoChain, StaticMap};
 
 /// A stage file as the firmware runs it (see the module doc).
 #[derive(Debug, Clone, PartialEq)]
@@ -58,7 +32,7 @@ pub struct FirmwareSet {
     /// The whole chain (DAC, amplifier, ADC, sensor), as an upload must carry it.
     pub io: IoChain,
     /// x then y (x twice for a one-axis file).
-    pub axes: [FirmwareAxis; 2],
+    pub axes: [AxisParams; 2],
 }
 
 impl FirmwareSet {
@@ -104,7 +78,7 @@ impl FirmwareSet {
 
 /// A validated static-model axis (a static model has both its Bouc-Wen set and its map: the
 /// validation refuses one without).
-fn firmware_axis(file: &StageFile, valid: &ValidAxis) -> FirmwareAxis {
+fn firmware_axis(file: &StageFile, valid: &ValidAxis) -> AxisParams {
     let axis = if valid.name == "x" {
         &file.x
     } else {
@@ -114,7 +88,7 @@ fn firmware_axis(file: &StageFile, valid: &ValidAxis) -> FirmwareAxis {
         AxisChain::Static { model, .. } => model.asymmetry(),
         _ => Asymmetry::default(),
     };
-    FirmwareAxis {
+    AxisParams {
         bouc_wen: axis.bouc_wen.unwrap_or(BoucWenParams {
             a: 0.0,
             beta: 0.0,

@@ -74,7 +74,8 @@ mod firmware;
 mod validate;
 
 pub use error::{StageError, StageErrorKind};
-pub use firmware::{FirmwareAxis, FirmwareSet};
+pub use firmware::FirmwareSet;
+pub use piezo_core::AxisParams;
 pub use validate::{simulate_pair, AxisChain, Check, ValidAxis, ValidStage, PLAUSIBLE_STROKE_M};
 
 use piezo_core::effects::EffectParams;

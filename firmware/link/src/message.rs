@@ -5,7 +5,9 @@
 
 use heapless::{String, Vec};
 use piezo_core::effects::{EffectParams, MAX_CREEP_ELEMENTS, MAX_RELAXATION_ELEMENTS};
-use piezo_core::{Asymmetry, BoucWenParams, IoChain, ServoParams, StaticMap};
+use piezo_core::{
+    Asymmetry, AxisParams, BoucWenParams, IoChain, ParamError, ServoParams, StaticMap,
+};
 use serde::{Deserialize, Serialize};
 
 /// Setpoints per [`Request::TableAppend`], [`Request::Stream`] or [`Request::LearnedAppend`]
@@ -112,6 +114,44 @@ pub struct AxisModel {
     pub limits: Limits,
     /// The feedback servo (the stage file's `[x.servo]`; `None`: feed-forward only).
     pub servo: Option<ServoParams>,
+}
+
+impl AxisModel {
+    /// The axis `p` as the link carries it: its rest output and baseline gain are not carried
+    /// (the firmware computes them on upload, [`AxisModel::params`]).
+    pub fn from_params(p: &AxisParams) -> Self {
+        Self {
+            bouc_wen: p.bouc_wen,
+            static_map: p.static_map,
+            asymmetry: p.asymmetry,
+            effects: p.effects,
+            limits: Limits {
+                output_min_v: p.output_min_v,
+                output_max_v: p.output_max_v,
+                slew_limit_v_per_s: p.slew_limit_v_per_s,
+            },
+            servo: p.servo,
+        }
+    }
+
+    /// The firmware's view of an uploaded axis at the loop period `sample_period_s` \[s\]: the
+    /// core's axis with its first loading from rest at the lower end of the window
+    /// ([`AxisParams::with_first_loading`]). The core's refusal if it does not build.
+    pub fn params(&self, sample_period_s: f32) -> Result<AxisParams, ParamError> {
+        AxisParams {
+            bouc_wen: self.bouc_wen,
+            static_map: self.static_map,
+            asymmetry: self.asymmetry,
+            output_min_v: self.limits.output_min_v,
+            output_max_v: self.limits.output_max_v,
+            slew_limit_v_per_s: self.limits.slew_limit_v_per_s,
+            linear_gain_m_per_v: 0.0,
+            rest_output_m: 0.0,
+            effects: self.effects,
+            servo: self.servo,
+        }
+        .with_first_loading(sample_period_s)
+    }
 }
 
 /// A whole parameter set, validated on the firmware exactly as the stage file's build validates

@@ -120,7 +120,7 @@ fn built_in_set() -> ModelSet {
         fnv1a32: 0x1234_5678,
         loop_rate_hz: params::LOOP_RATE_HZ,
         io: params::IO,
-        axes: [wire_axis(&params::AXES[0]), wire_axis(&params::AXES[1])],
+        axes: params::AXES.each_ref().map(AxisModel::from_params),
     }
 }
 
@@ -154,13 +154,16 @@ fn an_uploaded_axis_with_effects_gets_the_builds_first_loading() {
     let prepared = prepare_upload(set.clone());
     assert!(prepared.axes.is_ok(), "{:?}", prepared.axes.err());
     for (i, a) in set.axes.iter().enumerate() {
-        let p = axis_params(a).unwrap();
+        let p = a.params(params::SAMPLE_PERIOD_S).unwrap();
         let built = &params::AXES[i];
         assert_eq!(
             (p.rest_output_m, p.linear_gain_m_per_v),
             (built.rest_output_m, built.linear_gain_m_per_v)
         );
-        assert_eq!(p.model().unwrap().input_lag_s(), 1e-3);
+        assert_eq!(
+            p.model(params::SAMPLE_PERIOD_S).unwrap().input_lag_s(),
+            1e-3
+        );
     }
 }
 
