@@ -33,7 +33,7 @@ fn temp(name: &str) -> PathBuf {
 /// (β − γ)/(β + γ) = 0.5, n = 1.5; y = k1·u + k2·h + y0.
 const N_TRUE: f64 = 1.5;
 const K1: f64 = 1.0e-7;
-const K2: f64 = -1.5e-7;
+const K2: f64 = -0.4e-7;
 const Y0: f64 = 2.0e-7;
 /// White sensor noise \[m\] (0.2 % of the 10 µm stroke).
 const NOISE_M: f64 = 20e-9;
@@ -192,4 +192,122 @@ fn two_sigma_intervals_cover_the_truth_and_the_band_predicts_a_new_input() {
         lo >= 1.0 / 1.5 && hi <= 1.5,
         "band / measured RMS on the second input spans {lo:.3}–{hi:.3}"
     );
+}
+
+fn write_csv(name: &str, r: &Record) -> PathBuf {
+    let path = temp(name);
+    let mut text = String::from("t_s,u_V,y_m\n");
+    for k in 0..r.u.len() {
+        text.push_str(&format!("{},{},{}\n", r.t_s[k], r.u[k], r.y_m[k]));
+    }
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+fn cli(args: &[&str]) -> Result<String, String> {
+    let mut v = vec!["host-sim"];
+    v.extend_from_slice(args);
+    run(Cli::try_parse_from(v).map_err(|e| e.to_string())?)
+}
+
+fn json(path: &std::path::Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+#[test]
+fn the_report_and_predict_carry_the_uncertainty() {
+    let u1 = input(50.0, 50.0, 1.25);
+    let u2 = input(35.0, 45.0, 1.7);
+    let fitted = write_csv("fit.csv", &record(&u1, &clean_output(&u1), 1));
+    let check = write_csv("check.csv", &record(&u2, &clean_output(&u2), 2));
+    let (stage, report) = (temp("stage.toml"), temp("identify.json"));
+    let text = cli(&[
+        "identify",
+        "--data",
+        fitted.to_str().unwrap(),
+        "--model",
+        "symmetric",
+        "--out",
+        stage.to_str().unwrap(),
+        "--report",
+        report.to_str().unwrap(),
+    ])
+    .unwrap();
+    assert!(text.contains("bouc_wen.n = ") && text.contains(" ± "), "{text}");
+    assert!(text.contains("prediction band: rms"), "{text}");
+    let r = json(&report);
+    // Standard errors nested as the parameters, every fitted one positive.
+    for (group, key) in [
+        ("bouc_wen", "beta"),
+        ("bouc_wen", "gamma"),
+        ("bouc_wen", "n"),
+        ("static_map", "k1_m_per_v"),
+        ("static_map", "k2_m_per_h"),
+        ("static_map", "offset_m"),
+    ] {
+        assert!(r["params"][group][key].is_number(), "params lack {group}.{key}");
+        let se = r["uncertainty"][group][key].as_f64().unwrap_or(f64::NAN);
+        assert!(se > 0.0 && se.is_finite(), "{group}.{key}: {se}");
+    }
+    // A is the scale convention, not fitted.
+    assert!(r["uncertainty"]["bouc_wen"].get("a").is_none());
+    let names = r["correlation"]["names"].as_array().unwrap();
+    let matrix = r["correlation"]["matrix"].as_array().unwrap();
+    assert_eq!(names.len(), 6);
+    for (i, row) in matrix.iter().enumerate() {
+        for (j, v) in row.as_array().unwrap().iter().enumerate() {
+            let (v, t) = (v.as_f64().unwrap(), matrix[j][i].as_f64().unwrap());
+            assert!((v - t).abs() < 1e-12 && v.abs() <= 1.0);
+            if i == j {
+                assert!((v - 1.0).abs() < 1e-12);
+            }
+        }
+    }
+    let band = r["prediction_band_rms_m"].as_f64().unwrap();
+    assert!(band > 0.8 * NOISE_M && band < 1.5 * NOISE_M, "band {band}");
+    // predict prints the band beside the RMS it measures, and reports both.
+    let predicted = temp("predict.json");
+    let line = cli(&[
+        "predict",
+        "--params",
+        stage.to_str().unwrap(),
+        "--data",
+        check.to_str().unwrap(),
+        "--fit-report",
+        report.to_str().unwrap(),
+        "--report",
+        predicted.to_str().unwrap(),
+    ])
+    .unwrap();
+    assert!(line.contains("prediction band of the fit: rms"), "{line}");
+    let p = json(&predicted);
+    assert_eq!(p["prediction_band_rms_m"].as_f64(), Some(band));
+    let ratio = p["axes"][0]["rms_over_band"].as_f64().unwrap();
+    assert!((1.0 / 1.5..=1.5).contains(&ratio), "measured / band {ratio}");
+    // A file that is not such a report is named, with the key it lacks or where it is broken.
+    let other = temp("other.json");
+    std::fs::write(&other, "{\"model\": \"symmetric\"}").unwrap();
+    let broken = temp("broken.json");
+    std::fs::write(&broken, "{\"model\":\n  symmetric}").unwrap();
+    for (file, says) in [
+        (&other, "no prediction_band_rms_m"),
+        (&broken, "line 2 column 3"),
+    ] {
+        let e = cli(&[
+            "predict",
+            "--params",
+            stage.to_str().unwrap(),
+            "--data",
+            check.to_str().unwrap(),
+            "--fit-report",
+            file.to_str().unwrap(),
+            "--report",
+            predicted.to_str().unwrap(),
+        ])
+        .unwrap_err();
+        assert!(
+            e.contains(&file.display().to_string()) && e.contains(says),
+            "{e}"
+        );
+    }
 }
