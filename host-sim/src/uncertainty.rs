@@ -462,11 +462,22 @@ mod tests {
         let n = 4000;
         let mut rng = ChaCha8Rng::seed_from_u64(3);
         let x: Vec<f64> = (0..n).map(|k| k as f64 / n as f64).collect();
-        let y: Vec<f64> = x.iter().map(|x| 1.0 + 2.0 * x + 0.1 * normal(&mut rng)).collect();
+        let y: Vec<f64> = x
+            .iter()
+            .map(|x| 1.0 + 2.0 * x + 0.1 * normal(&mut rng))
+            .collect();
         // Least squares.
-        let (mx, my) = (x.iter().sum::<f64>() / n as f64, y.iter().sum::<f64>() / n as f64);
+        let (mx, my) = (
+            x.iter().sum::<f64>() / n as f64,
+            y.iter().sum::<f64>() / n as f64,
+        );
         let sxx: f64 = x.iter().map(|v| (v - mx).powi(2)).sum();
-        let b = x.iter().zip(&y).map(|(x, y)| (x - mx) * (y - my)).sum::<f64>() / sxx;
+        let b = x
+            .iter()
+            .zip(&y)
+            .map(|(x, y)| (x - mx) * (y - my))
+            .sum::<f64>()
+            / sxx;
         let a = my - b * mx;
         let r: Vec<f64> = x.iter().zip(&y).map(|(x, y)| y - a - b * x).collect();
         let fit = Linearised {
@@ -527,7 +538,11 @@ mod tests {
                 Parameter::new("b", 0.0),
                 Parameter::new("c", 0.0),
             ],
-            columns: vec![vec![1.0; n], x.clone(), x.iter().map(|v| 2.0 * v + 1.0).collect()],
+            columns: vec![
+                vec![1.0; n],
+                x.clone(),
+                x.iter().map(|v| 2.0 * v + 1.0).collect(),
+            ],
             residual: (0..n).map(|k| (k as f64).sin()).collect(),
         };
         let e = estimate(&fit).unwrap_err();
@@ -537,7 +552,9 @@ mod tests {
             columns: vec![vec![1.0; n], vec![0.0; n]],
             residual: (0..n).map(|k| (k as f64).sin()).collect(),
         };
-        assert!(estimate(&zero).unwrap_err().contains("does not depend on b"));
+        assert!(estimate(&zero)
+            .unwrap_err()
+            .contains("does not depend on b"));
     }
 
     #[test]

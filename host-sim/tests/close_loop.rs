@@ -166,8 +166,16 @@ fn creep_is_named_and_removed() {
     let report = o.to_json();
     let r = &report["axes"][0];
     assert!(r["params"]["effects"]["creep_gain_m_per_v"][0].is_number());
-    assert!(r["uncertainty"]["effects"]["creep_gain_m_per_v"][0].as_f64().unwrap() > 0.0);
-    assert_eq!(r["correlation"]["names"].as_array().unwrap().len(), names.len());
+    assert!(
+        r["uncertainty"]["effects"]["creep_gain_m_per_v"][0]
+            .as_f64()
+            .unwrap()
+            > 0.0
+    );
+    assert_eq!(
+        r["correlation"]["names"].as_array().unwrap().len(),
+        names.len()
+    );
 }
 
 #[test]

@@ -83,7 +83,10 @@ fn normal(rng: &mut ChaCha8Rng) -> f64 {
 
 fn record(u: &[f64], clean: &[f64], seed: u64) -> Record {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let y = clean.iter().map(|c| c + NOISE_M * normal(&mut rng)).collect();
+    let y = clean
+        .iter()
+        .map(|c| c + NOISE_M * normal(&mut rng))
+        .collect();
     let t = (0..u.len()).map(|k| k as f64 * TS).collect();
     Record::from_parts(format!("seed{seed}.csv").into(), t, u.to_vec(), y)
 }
@@ -233,7 +236,10 @@ fn the_report_and_predict_carry_the_uncertainty() {
         report.to_str().unwrap(),
     ])
     .unwrap();
-    assert!(text.contains("bouc_wen.n = ") && text.contains(" ± "), "{text}");
+    assert!(
+        text.contains("bouc_wen.n = ") && text.contains(" ± "),
+        "{text}"
+    );
     assert!(text.contains("prediction band: rms"), "{text}");
     let r = json(&report);
     // Standard errors nested as the parameters, every fitted one positive.
@@ -245,7 +251,10 @@ fn the_report_and_predict_carry_the_uncertainty() {
         ("static_map", "k2_m_per_h"),
         ("static_map", "offset_m"),
     ] {
-        assert!(r["params"][group][key].is_number(), "params lack {group}.{key}");
+        assert!(
+            r["params"][group][key].is_number(),
+            "params lack {group}.{key}"
+        );
         let se = r["uncertainty"][group][key].as_f64().unwrap_or(f64::NAN);
         assert!(se > 0.0 && se.is_finite(), "{group}.{key}: {se}");
     }
@@ -283,7 +292,10 @@ fn the_report_and_predict_carry_the_uncertainty() {
     let p = json(&predicted);
     assert_eq!(p["prediction_band_rms_m"].as_f64(), Some(band));
     let ratio = p["axes"][0]["rms_over_band"].as_f64().unwrap();
-    assert!((1.0 / 1.5..=1.5).contains(&ratio), "measured / band {ratio}");
+    assert!(
+        (1.0 / 1.5..=1.5).contains(&ratio),
+        "measured / band {ratio}"
+    );
     // A file that is not such a report is named, with the key it lacks or where it is broken.
     let other = temp("other.json");
     std::fs::write(&other, "{\"model\": \"symmetric\"}").unwrap();
@@ -310,4 +322,49 @@ fn the_report_and_predict_carry_the_uncertainty() {
             "{e}"
         );
     }
+}
+
+#[test]
+fn the_dynamic_model_reports_the_uncertainty_of_its_eight_parameters() {
+    let (data, stage, report) = (temp("nac.csv"), temp("nac.toml"), temp("nac.json"));
+    cli(&[
+        "simulate",
+        "--plant",
+        "nac2024",
+        "--signal",
+        "sine:amp=4.869,offset=4.869,freq=10000,phase_deg=-90,duration=3e-4,rate=2560000",
+        "--effect",
+        "noise:rms_m=1e-11,seed=1",
+        "--out",
+        data.to_str().unwrap(),
+    ])
+    .unwrap();
+    cli(&[
+        "identify",
+        "--data",
+        data.to_str().unwrap(),
+        "--model",
+        "dynamic",
+        "--allow-refused",
+        "--out",
+        stage.to_str().unwrap(),
+        "--report",
+        report.to_str().unwrap(),
+    ])
+    .unwrap();
+    let r = json(&report);
+    let names = r["correlation"]["names"].as_array().unwrap();
+    assert_eq!(names.len(), 8, "{names:?}");
+    for name in names {
+        let (group, key) = name.as_str().unwrap().split_once('.').unwrap();
+        assert!(r["params"][group][key].is_number(), "params lack {name}");
+        let se = r["uncertainty"][group][key].as_f64().unwrap_or(f64::NAN);
+        assert!(se > 0.0 && se.is_finite(), "{name}: {se}");
+    }
+    let band = r["prediction_band_rms_m"].as_f64().unwrap();
+    let rms = r["fit"]["rms"].as_f64().unwrap();
+    assert!(
+        band >= rms && band < 1.5 * rms,
+        "band {band}, fit rms {rms}"
+    );
 }

@@ -1223,11 +1223,9 @@ pub fn linearise(model: &AxisModel, d: &FitData) -> Result<Linearised, String> {
                 problem.predict(&moved, None).map(|p| (delta, p.y))
             };
             let column: Vec<f64> = match (at(h), at(-h)) {
-                (Some((a, ya)), Some((b, yb))) => ya
-                    .iter()
-                    .zip(&yb)
-                    .map(|(p, m)| (p - m) / (a - b))
-                    .collect(),
+                (Some((a, ya)), Some((b, yb))) => {
+                    ya.iter().zip(&yb).map(|(p, m)| (p - m) / (a - b)).collect()
+                }
                 (Some((a, y)), None) | (None, Some((a, y))) => {
                     y.iter().zip(&base.y).map(|(p, q)| (p - q) / a).collect()
                 }

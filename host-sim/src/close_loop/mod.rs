@@ -51,6 +51,7 @@ pub use stage::{
 };
 
 use crate::identify::{identify, min_max, IdentifyError, IdentifySettings, Method, Record};
+use crate::uncertainty::Uncertainty;
 use diagnose::{
     noise_estimate, screen, Candidate, EffectInit, EffectKind, ResidualFigures, Signals,
 };
@@ -59,7 +60,6 @@ use rayon::prelude::*;
 use report::{Step, StepOutcome, Trial};
 use select::{held_out_sse, Decision, Floor, OutOfSample, Plausibility, Refusal, RunGain, Stop};
 use serde_json::{json, Value};
-use crate::uncertainty::Uncertainty;
 use std::time::Instant;
 
 /// Most candidates fitted per step (the best by screening share).

@@ -38,7 +38,8 @@ pub fn linearise(
     fit_shift: bool,
     free_offset: bool,
 ) -> Result<Linearised, String> {
-    let (predicted, _, _) = fit_records(set, record, from, free_offset).map_err(|e| e.to_string())?;
+    let (predicted, _, _) =
+        fit_records(set, record, from, free_offset).map_err(|e| e.to_string())?;
     let n = record.u.len();
     let residual: Vec<f64> = (from..n).map(|k| record.y_m[k] - predicted[k]).collect();
     let (parameters, mut columns, offset) = match *set {
@@ -194,11 +195,9 @@ fn dynamic_columns(set: &Identified, record: &Record, from: usize) -> Result<Col
             simulate(&t).map(|y| (actual, y))
         };
         let column = match (moved(h), moved(-h)) {
-            (Some((a, ya)), Some((b, yb))) => ya
-                .iter()
-                .zip(&yb)
-                .map(|(p, m)| (p - m) / (a - b))
-                .collect(),
+            (Some((a, ya)), Some((b, yb))) => {
+                ya.iter().zip(&yb).map(|(p, m)| (p - m) / (a - b)).collect()
+            }
             (Some((a, y)), None) | (None, Some((a, y))) => {
                 y.iter().zip(&base).map(|(p, q)| (p - q) / a).collect()
             }
@@ -248,7 +247,10 @@ mod tests {
             input_range_v: (0.0, 100.0),
         };
         let model = set.build().unwrap();
-        let y = simulate_records(&model, &Record::from_parts("r".into(), t_s.clone(), u.clone(), vec![0.0; n]));
+        let y = simulate_records(
+            &model,
+            &Record::from_parts("r".into(), t_s.clone(), u.clone(), vec![0.0; n]),
+        );
         let record = Record::from_parts("r".into(), t_s, u, y);
         let (params, cols, _) =
             static_columns(&set, &record, 0, ModelKind::Asymmetric, true).unwrap();

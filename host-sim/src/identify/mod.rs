@@ -1492,10 +1492,7 @@ fn repeated(record: &Record, copies: usize) -> Record {
 /// `--fit-report`): `axes[i].prediction_band_rms_m`, or the top level's for a one-axis `identify`
 /// report; `Err(why)` for an axis whose fit has no band (`uncertainty_not_computed`). An error
 /// names the file and the key when the file is not such a report or its axes differ.
-pub fn prediction_bands(
-    path: &Path,
-    axes: usize,
-) -> Result<Vec<Result<f64, String>>, String> {
+pub fn prediction_bands(path: &Path, axes: usize) -> Result<Vec<Result<f64, String>>, String> {
     let name = path.display();
     let text = std::fs::read_to_string(path).map_err(|e| format!("--fit-report {name}: {e}"))?;
     let report: serde_json::Value = serde_json::from_str(&text)
@@ -1527,7 +1524,9 @@ pub fn prediction_bands(
                 .filter(|b| b.is_finite() && *b >= 0.0)
                 .map(Ok)
                 .ok_or_else(|| {
-                    format!("--fit-report {name}: {at}prediction_band_rms_m: {v} is not a length in m")
+                    format!(
+                        "--fit-report {name}: {at}prediction_band_rms_m: {v} is not a length in m"
+                    )
                 }),
             None => Err(format!(
                 "--fit-report {name}: no {at}prediction_band_rms_m (a report of `identify` or \
