@@ -31,13 +31,13 @@ done
 P885="$DATA/piezo_P885_yan9a/identification_1Hz_sine.csv"
 SH="$DATA/piezo_smarthysteresis/piezo_150V_1Hz.csv"
 $B identify --data "$P885" --model symmetric --start 2 --end 20 --allow-refused --out "$OUT/p885.toml" --report "$OUT/p885.json" | cut -c1-110
-$B predict --params "$OUT/p885.toml" --data "$P885" --start 20 --report "$OUT/p885-predict.json"
+$B predict --params "$OUT/p885.toml" --data "$P885" --start 20 --fit-report "$OUT/p885.json" --report "$OUT/p885-predict.json"
 $B identify --data "$P885" --model symmetric --invertible --start 2 --end 20 --out "$OUT/p885-inv.toml" --report "$OUT/p885-inv.json" | cut -c1-110
-$B predict --params "$OUT/p885-inv.toml" --data "$P885" --start 20 --report "$OUT/p885-inv-predict.json"
+$B predict --params "$OUT/p885-inv.toml" --data "$P885" --start 20 --fit-report "$OUT/p885-inv.json" --report "$OUT/p885-inv-predict.json"
 $B identify --data "$SH" --model symmetric --start 4.5 --end 7.5 --allow-refused --out "$OUT/sh.toml" --report "$OUT/sh.json" | cut -c1-110
-$B predict --params "$OUT/sh.toml" --data "$SH" --start 7.5 --report "$OUT/sh-predict.json"
+$B predict --params "$OUT/sh.toml" --data "$SH" --start 7.5 --fit-report "$OUT/sh.json" --report "$OUT/sh-predict.json"
 $B identify --data "$SH" --model symmetric --invertible --allow-refused --start 4.5 --end 7.5 --out "$OUT/sh-inv.toml" --report "$OUT/sh-inv.json" | cut -c1-110
-$B predict --params "$OUT/sh-inv.toml" --data "$SH" --start 7.5 --report "$OUT/sh-inv-predict.json"
+$B predict --params "$OUT/sh-inv.toml" --data "$SH" --start 7.5 --fit-report "$OUT/sh-inv.json" --report "$OUT/sh-inv-predict.json"
 
 # 3. The Bouc-Wen benchmark: identify on a training file only, then simulate the test multisine
 #    (one steady-state period: three periods of its input first, unscored).
@@ -77,6 +77,14 @@ for d, fw, vw in (("p885", "2-20 s", "20 s-end"), ("sh", "4.5-7.5 s", "7.5 s-end
     for c, suffix in (("none", ""), ("--invertible", "-inv")):
         s = J(f"{d}{suffix}.json"); p = J(f"{d}{suffix}-predict.json")
         print(f"| {d} | {c} | {fw} | {s['fit']['rms']*1e6:.4f} | {s['fit']['r2']:.6f} | {vw} | {p['fit']['rms']*1e6:.4f} | {p['fit']['r2']:.6f} | {p['fit']['mrd_percent']:.3f} |")
+print("\n## Uncertainty of the measured-data fits (value ± standard error, Newey-West; band = RMS expected on new input of the kind)")
+print("| data | constraint | beta | gamma | n | k1 [m/V] | k2 [m] | lag-1 autocorr. | Bartlett lags | SE / white SE | band [um] | validation RMS / band |")
+print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+for d in ("p885", "sh"):
+    for c, suffix in (("none", ""), ("--invertible", "-inv")):
+        s = J(f"{d}{suffix}.json"); p = J(f"{d}{suffix}-predict.json"); v = s["params"]; u = s["uncertainty"]; b = s["uncertainty_basis"]
+        pm = lambda g, k: f"{v[g][k]:.4g} ± {u[g][k]:.2g}"
+        print(f"| {d} | {c} | {pm('bouc_wen','beta')} | {pm('bouc_wen','gamma')} | {pm('bouc_wen','n')} | {pm('static_map','k1_m_per_v')} | {pm('static_map','k2_m_per_h')} | {b['residual_lag1_autocorrelation']:.3f} | {b['bartlett_lags']} | {b['inflation_over_white']:.2f} | {s['prediction_band_rms_m']*1e6:.4f} | {p['axes'][0]['rms_over_band']:.2f} |")
 print("\n## Bouc-Wen benchmark (oscillator; test = simulation RMS on test_multisine.csv)")
 print("| training file | training RMS [m] | test RMS [m] | test R2 | evaluations | seconds |")
 print("|---|---|---|---|---|---|")

@@ -11,7 +11,8 @@
 //! [`servo_tune`] writes the feedback servo of the stage file; [`learn`] takes one step of iterative
 //! learning control and [`learn_bench`] runs it on the XY stage; [`stage_file`] writes the stage file;
 //! [`plot`] draws the figures; [`cli`] is the command line; [`optimise`] is the one differential
-//! evolution, Levenberg–Marquardt and linear solver their fits share.
+//! evolution, Levenberg–Marquardt and linear solver their fits share; [`uncertainty`] gives a fit's
+//! standard errors, correlations and prediction band.
 //!
 //! The plants, effects, signals, solver and CSV files live in `piezo-reference` (`host-sim/reference`),
 //! which does not depend on the core; they are re-exported here ([`plant`], [`sim`], [`signal`],
@@ -39,5 +40,6 @@ pub mod servo_bench;
 pub mod servo_tune;
 pub mod simulate;
 pub mod stage_file;
+pub mod uncertainty;
 
 pub use piezo_reference::{bouc_wen, csv, effects, ode, plant, signal, sim};

@@ -148,6 +148,34 @@ fn creep_is_named_and_removed() {
         None,
     );
     check_single(&o, "creep", 0.25);
+    // The final fit's uncertainty: its creep parameters among them, in the report as in params.
+    let axis = &o.axes[0];
+    let u = axis.uncertainty.as_ref().unwrap();
+    let names: Vec<&str> = u.parameters.iter().map(|p| p.name.as_str()).collect();
+    for name in [
+        "bouc_wen.beta",
+        "static_map.k1_m_per_v",
+        "effects.creep_gain_m_per_v[0]",
+        "effects.creep_time_constant_s[0]",
+    ] {
+        assert!(names.contains(&name), "{name} not in {names:?}");
+    }
+    assert!(u.standard_errors.iter().all(|s| s.is_finite() && *s > 0.0));
+    let ratio = u.prediction_band_rms_m / axis.fit_after.rms;
+    assert!((0.9..1.5).contains(&ratio), "band / in-sample rms {ratio}");
+    let report = o.to_json();
+    let r = &report["axes"][0];
+    assert!(r["params"]["effects"]["creep_gain_m_per_v"][0].is_number());
+    assert!(
+        r["uncertainty"]["effects"]["creep_gain_m_per_v"][0]
+            .as_f64()
+            .unwrap()
+            > 0.0
+    );
+    assert_eq!(
+        r["correlation"]["names"].as_array().unwrap().len(),
+        names.len()
+    );
 }
 
 #[test]

@@ -229,6 +229,17 @@ pub fn close_loop_cmd(a: &CloseLoopArgs) -> Result<String, String> {
             }
         }
     }
+    for ax in &outcome.axes {
+        match &ax.uncertainty {
+            Ok(u) => {
+                for l in u.lines(&format!("{}:   ", ax.name)) {
+                    line.push('\n');
+                    line.push_str(&l);
+                }
+            }
+            Err(why) => line.push_str(&format!("\n{}:   uncertainty not computed: {why}", ax.name)),
+        }
+    }
     if let Some(v) = &outcome.validation {
         line.push_str(&format!(
             "; validation rms {:.4e} -> {:.4e} m, zeroed {:.4e} -> {:.4e} m",

@@ -26,6 +26,8 @@
 //! A column of a map or effect parameter leaves the Bouc-Wen set alone, so it runs on the base
 //! point's hysteresis path ([`HysteresisPath`]: the operator's input and h per sample) instead of
 //! integrating the operator again; the numbers are those of a whole simulation, bit for bit.
+//! [`linearise`] takes the final fit's Jacobian in the parameters as reported (central
+//! differences, the log-scale entries chained to their parameters) for its uncertainty.
 
 // Small dense linear algebra reads best with index loops.
 #![allow(clippy::needless_range_loop)]
@@ -34,6 +36,7 @@ use super::diagnose::{EffectInit, EffectKind};
 use super::param::Param;
 use crate::identify::model::bouc_wen;
 use crate::optimise::{LeastSquares, Marquardt, NormalEquations};
+use crate::uncertainty::{Linearised, Parameter};
 use piezo_core::effects::{EffectParams, Effects, EffectsState};
 use piezo_core::{BoucWen, BoucWenParams, ModelState, StaticMap, StaticModel};
 use rayon::prelude::*;
@@ -1164,6 +1167,112 @@ impl RefitProblem<'_> {
             })
             .collect()
     }
+}
+
+/// Relative central-difference step of [`linearise`] (ten times the fit's forward steps: the
+/// f32 simulation's rounding stays far below the difference, and a central difference's error is
+/// of second order in the step).
+const UNCERTAINTY_STEP_SCALE: f64 = 10.0;
+
+/// The name of a parameter in the report's `params` ([`super::params_json`]).
+pub fn report_name(param: Param) -> String {
+    let group = match param {
+        Param::Beta | Param::Gamma | Param::Exponent => "bouc_wen",
+        Param::LinearGain | Param::HysteresisGain | Param::Offset => "static_map",
+        _ => "effects",
+    };
+    format!("{group}.{}", param.name())
+}
+
+/// The Jacobian of `model`'s prediction over the fitted samples of `d` with respect to each of
+/// its fitted parameters in the parameter's own unit, and the residual y − ŷ there: what
+/// [`crate::uncertainty::estimate`] turns into standard errors. Central differences of θ (a
+/// one-sided one at a bound of its range), each column one core simulation; an entry of θ that
+/// is the logarithm of its parameter p has its column divided by p (∂ŷ/∂p = (∂ŷ/∂ln p)/p, the
+/// delta method). Held entries (with free offsets, y0) are not parameters; with free offsets
+/// each record's own offset, re-estimated in every prediction, is a nuisance parameter (its
+/// indicator column, orthogonal to the others, counts it in N − p).
+pub fn linearise(model: &AxisModel, d: &FitData) -> Result<Linearised, String> {
+    let (th, typ, spec) = model.encode();
+    let th: Vec<f64> = th
+        .iter()
+        .zip(&spec)
+        .map(|(t, s)| t.clamp(s.lo, s.hi))
+        .collect();
+    let problem = RefitProblem {
+        model,
+        d,
+        idx: (0..d.u.len()).filter(|&k| d.fitted(k)).collect(),
+    };
+    let base = problem
+        .predict(&th, None)
+        .ok_or("the core refuses the fitted set")?;
+    let steps = difference_steps(&th, &typ, &spec, UNCERTAINTY_STEP_SCALE);
+    let free: Vec<usize> = (0..th.len()).filter(|&i| spec[i].lo < spec[i].hi).collect();
+    let columns: Vec<Result<Vec<f64>, String>> = free
+        .par_iter()
+        .map(|&i| {
+            let h = steps[i].abs();
+            let at = |delta: f64| -> Option<(f64, Vec<f64>)> {
+                let t = th[i] + delta;
+                if !(spec[i].lo..=spec[i].hi).contains(&t) {
+                    return None;
+                }
+                let mut moved = th.clone();
+                moved[i] = t;
+                problem.predict(&moved, None).map(|p| (delta, p.y))
+            };
+            let column: Vec<f64> = match (at(h), at(-h)) {
+                (Some((a, ya)), Some((b, yb))) => {
+                    ya.iter().zip(&yb).map(|(p, m)| (p - m) / (a - b)).collect()
+                }
+                (Some((a, y)), None) | (None, Some((a, y))) => {
+                    y.iter().zip(&base.y).map(|(p, q)| (p - q) / a).collect()
+                }
+                (None, None) => {
+                    return Err(format!(
+                        "the core refuses the set with {} moved by its difference step",
+                        spec[i].param
+                    ))
+                }
+            };
+            let per_unit = if spec[i].log {
+                1.0 / spec[i].value(th[i])
+            } else {
+                1.0
+            };
+            Ok(column.into_iter().map(|c| c * per_unit).collect())
+        })
+        .collect();
+    let mut columns = columns.into_iter().collect::<Result<Vec<_>, _>>()?;
+    let parameters = free
+        .iter()
+        .map(|&i| Parameter::new(report_name(spec[i].param), spec[i].value(th[i])))
+        .collect();
+    if d.free_offset && model.segments.len() > 1 {
+        let n = d.u.len();
+        for (r, &a) in model.segments.iter().enumerate() {
+            let b = model.segments.get(r + 1).copied().unwrap_or(n);
+            columns.push(
+                problem
+                    .idx
+                    .iter()
+                    .map(|&k| if k >= a && k < b { 1.0 } else { 0.0 })
+                    .collect(),
+            );
+        }
+    }
+    let residual = problem
+        .idx
+        .iter()
+        .zip(&base.y)
+        .map(|(&k, p)| d.y[k] - p)
+        .collect();
+    Ok(Linearised {
+        parameters,
+        columns,
+        residual,
+    })
 }
 
 /// Bisection steps of [`last_accepted_on_the_way`] (the share of the way to 2⁻¹⁰).

@@ -51,6 +51,7 @@ pub use stage::{
 };
 
 use crate::identify::{identify, min_max, IdentifyError, IdentifySettings, Method, Record};
+use crate::uncertainty::Uncertainty;
 use diagnose::{
     noise_estimate, screen, Candidate, EffectInit, EffectKind, ResidualFigures, Signals,
 };
@@ -217,6 +218,9 @@ pub struct AxisOutcome {
     pub held_out_method: String,
     /// Per record, when several records were fitted together (one entry otherwise).
     pub records: Vec<RecordFits>,
+    /// The final fit's uncertainty on the fitted record ([`full::linearise`],
+    /// [`crate::uncertainty::estimate`]), or why it was not computed.
+    pub uncertainty: Result<Uncertainty, String>,
 }
 
 /// One record's scores before and after, when several records were fitted together.
@@ -328,6 +332,13 @@ impl Outcome {
                 "params": params_json(&a.model),
             })).collect::<Vec<_>>(),
         });
+        if let Some(axes) = r["axes"].as_array_mut() {
+            for (entry, a) in axes.iter_mut().zip(&self.axes) {
+                if let Some(map) = entry.as_object_mut() {
+                    map.extend(crate::uncertainty::keys_of(&a.uncertainty));
+                }
+            }
+        }
         if let Some(v) = &self.validation {
             r["validation"] = v.to_json();
         }
@@ -1283,6 +1294,8 @@ pub fn close_loop_validated(
     };
     let names = ["x", "y"];
     let mut finals: Vec<AxisSearch> = Vec::new();
+    // The other axis's z each axis was searched with (coupling), for its uncertainty.
+    let mut coupled: Vec<Option<Vec<f64>>> = vec![None; records.len()];
     if records.len() == 1 {
         finals.push(search_axis(
             names[0],
@@ -1318,7 +1331,27 @@ pub fn close_loop_validated(
             (&mut bases[1], held_bases[1].as_ref()),
             run.as_ref(),
         )?);
+        coupled = vec![Some(z_y), Some(z_x)];
     }
+    // The uncertainty of each final fit, on the data it was fitted on.
+    let uncertainty: Vec<Result<Uncertainty, String>> = finals
+        .iter()
+        .zip(records)
+        .zip(&coupled)
+        .map(|((f, r), z)| {
+            let u = f32s(r);
+            let data = FitData {
+                u: &u,
+                y: &r.y_m,
+                other_z: z.as_deref(),
+                from,
+                held_out: None,
+                free_offset: f.model.free_offset,
+                invertible_at_hz: None,
+            };
+            full::linearise(&f.model, &data).and_then(|l| crate::uncertainty::estimate(&l))
+        })
+        .collect();
     // The predictions of the fitted record through piezo-stage's chain (each record from rest,
     // with its own offset when offsets are free; the stage file keeps the first record's).
     let us: Vec<Vec<f32>> = records.iter().map(f32s).collect();
@@ -1340,7 +1373,8 @@ pub fn close_loop_validated(
     }
     let mut axes = Vec::new();
     let (mut all_y, mut all_b, mut all_a) = (Vec::new(), Vec::new(), Vec::new());
-    for (i, ((found, base), r)) in finals.into_iter().zip(bases).zip(records).enumerate() {
+    let per_axis = finals.into_iter().zip(bases).zip(records).zip(uncertainty);
+    for (i, (((found, base), r), uncertainty)) in per_axis.enumerate() {
         let AxisSearch {
             model,
             steps,
@@ -1378,6 +1412,7 @@ pub fn close_loop_validated(
             after: after[i].clone(),
             held_out_rms,
             held_out_method,
+            uncertainty,
         });
     }
     let mut outcome = Outcome {

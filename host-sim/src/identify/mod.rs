@@ -13,6 +13,7 @@
 //! it falls back to `vp-de-lm` when the data leave its β + γ < 0 assumption).
 
 pub mod fit;
+pub mod linearise;
 pub mod model;
 pub mod oscillator;
 pub mod output_filter;
@@ -20,6 +21,7 @@ pub mod predict;
 pub mod two_step;
 
 use crate::csv::{read_rows, Table};
+use crate::uncertainty::Uncertainty;
 use fit::{Problem, Progress, TracePoint};
 use model::{to_axis, Identified, ModelKind};
 use serde_json::json;
@@ -1133,29 +1135,34 @@ pub struct IdentifiedStage {
     pub header: String,
     /// Per axis: the identification and its data warnings ([`data_warnings`]).
     pub axes: Vec<(Identification, Vec<String>)>,
+    /// Per axis: the fit's uncertainty ([`fit_uncertainty`]), or why it was not computed.
+    pub uncertainty: Vec<Result<Uncertainty, String>>,
     /// The summary lines the command prints.
     pub lines: Vec<String>,
 }
 
 impl IdentifiedStage {
-    /// The report's identification part: one axis's summary, parameters and warnings, or
-    /// `{"axes": [...]}` for two.
+    /// The report's identification part: one axis's summary, parameters, uncertainty
+    /// ([`crate::uncertainty::keys_of`]: `uncertainty`, `correlation`, `prediction_band_rms_m`)
+    /// and warnings, or `{"axes": [...]}` for two.
     pub fn report(&self) -> Result<serde_json::Value, String> {
-        let mut summaries: Vec<IdentifyResult> = self
-            .axes
-            .iter()
-            .zip(["x", "y"])
-            .map(|((id, warnings), axis)| IdentifyResult {
+        let mut summaries = Vec::new();
+        for (((id, warnings), axis), u) in self.axes.iter().zip(["x", "y"]).zip(&self.uncertainty) {
+            let mut value = to_json(&IdentifyResult {
                 axis,
                 summary: &id.summary,
                 params: &id.set,
                 warnings: warnings.clone(),
-            })
-            .collect();
+            })?;
+            if let Some(map) = value.as_object_mut() {
+                map.extend(crate::uncertainty::keys_of(u));
+            }
+            summaries.push(value);
+        }
         if summaries.len() == 1 {
-            to_json(&summaries.remove(0))
+            Ok(summaries.remove(0))
         } else {
-            Ok(json!({ "axes": to_json(&summaries)? }))
+            Ok(json!({ "axes": summaries }))
         }
     }
 }
@@ -1201,6 +1208,7 @@ pub fn identify_stage(
     let names = ["x", "y"];
     let mut axes = Vec::new();
     let mut identified = Vec::new();
+    let mut uncertainty = Vec::new();
     let mut lines = Vec::new();
     for (i, record) in records.iter().enumerate() {
         if records.len() > 1 {
@@ -1230,6 +1238,12 @@ pub fn identify_stage(
                 names[i], r.data, r.rms_m, r.rms_zeroed_m, r.offset_m
             ));
         }
+        let u = fit_uncertainty(&id, record, settings);
+        match &u {
+            Ok(u) => lines.extend(u.lines(&format!("{}:   ", names[i]))),
+            Err(why) => lines.push(format!("{}:   uncertainty not computed: {why}", names[i])),
+        }
+        uncertainty.push(u);
         axes.push(to_axis(
             &id.set,
             provenance(record, from, summary.method, rms),
@@ -1253,8 +1267,30 @@ pub fn identify_stage(
         file,
         header,
         axes: identified,
+        uncertainty,
         lines,
     })
+}
+
+/// The uncertainty of `id`'s set fitted to `record` with `settings` (its standard errors,
+/// correlations and prediction band, [`crate::uncertainty`]), from the Jacobian of the output in
+/// the parameters as written ([`linearise`]); why not, when it cannot be given (the oscillator
+/// model, parameters the record does not identify).
+pub fn fit_uncertainty(
+    id: &Identification,
+    record: &Record,
+    settings: &IdentifySettings,
+) -> Result<Uncertainty, String> {
+    let from = record.index_at(settings.start_s);
+    let fitted = linearise::linearise(
+        &id.set,
+        record,
+        from,
+        settings.model,
+        !settings.no_shift,
+        settings.free_offset,
+    )?;
+    crate::uncertainty::estimate(&fitted)
 }
 
 /// A typed report as JSON (the f32 figures widened to f64 and the keys sorted, as every report).
@@ -1420,6 +1456,11 @@ pub struct PredictArgs {
     /// also report the RMS with the offset re-estimated on the scored samples (`rms_zeroed_m`).
     #[arg(long)]
     pub free_offset: bool,
+    /// The `identify` or `close-loop` report of the stage file's fit: its prediction band (the
+    /// RMS error expected on a new input of the kind fitted, `prediction_band_rms_m` per axis) is
+    /// printed and reported beside the RMS measured here.
+    #[arg(long)]
+    pub fit_report: Option<PathBuf>,
     /// Report JSON to write.
     #[arg(long)]
     pub report: PathBuf,
@@ -1445,6 +1486,54 @@ fn repeated(record: &Record, copies: usize) -> Record {
         cycle(&record.u),
         cycle(&record.y_m),
     )
+}
+
+/// The prediction band of each of `axes` axes from an `identify` or `close-loop` report (`path`,
+/// `--fit-report`): `axes[i].prediction_band_rms_m`, or the top level's for a one-axis `identify`
+/// report; `Err(why)` for an axis whose fit has no band (`uncertainty_not_computed`). An error
+/// names the file and the key when the file is not such a report or its axes differ.
+pub fn prediction_bands(path: &Path, axes: usize) -> Result<Vec<Result<f64, String>>, String> {
+    let name = path.display();
+    let text = std::fs::read_to_string(path).map_err(|e| format!("--fit-report {name}: {e}"))?;
+    let report: serde_json::Value = serde_json::from_str(&text)
+        .map_err(|e| format!("--fit-report {name}: not a JSON report: {e}"))?;
+    let entries: Vec<(String, &serde_json::Value)> = match report.get("axes") {
+        Some(serde_json::Value::Array(list)) => list
+            .iter()
+            .enumerate()
+            .map(|(i, v)| (format!("axes[{i}]."), v))
+            .collect(),
+        _ => vec![(String::new(), &report)],
+    };
+    if entries.len() != axes {
+        return Err(format!(
+            "--fit-report {name}: {} axes, the stage file and record have {axes}",
+            entries.len()
+        ));
+    }
+    entries
+        .into_iter()
+        .map(|(at, entry)| match entry.get("prediction_band_rms_m") {
+            Some(v) if v.is_null() => Ok(Err(entry
+                .get("uncertainty_not_computed")
+                .and_then(|w| w.as_str())
+                .unwrap_or("the fit has no prediction band")
+                .to_string())),
+            Some(v) => v
+                .as_f64()
+                .filter(|b| b.is_finite() && *b >= 0.0)
+                .map(Ok)
+                .ok_or_else(|| {
+                    format!(
+                        "--fit-report {name}: {at}prediction_band_rms_m: {v} is not a length in m"
+                    )
+                }),
+            None => Err(format!(
+                "--fit-report {name}: no {at}prediction_band_rms_m (a report of `identify` or \
+                 `close-loop` with the fit's uncertainty)"
+            )),
+        })
+        .collect()
 }
 
 /// Runs `predict`.
@@ -1475,6 +1564,10 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
     if records[0].u.len() - from < 1 {
         return Err(format!("--start {}: no samples left", a.start));
     }
+    let bands = match &a.fit_report {
+        Some(path) => Some(prediction_bands(path, records.len())?),
+        None => None,
+    };
     let mut axes = predict::predict_axes(&file, &records, from)?;
     if let Some(filter) = &output_filter {
         for (p, r) in axes.iter_mut().zip(&records) {
@@ -1513,6 +1606,17 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
             json!(p.fit.mrd_percent),
         ));
     }
+    if let Some(bands) = &bands {
+        for ((line, band), p) in lines.iter_mut().zip(bands).zip(&axes) {
+            match band {
+                Ok(b) => line.push_str(&format!(
+                    "; prediction band of the fit: rms {b:.4e} m (measured / band {:.2})",
+                    p.fit.rms / b
+                )),
+                Err(why) => line.push_str(&format!("; no prediction band: {why}")),
+            }
+        }
+    }
     let zeroed: Vec<f64> = axes
         .iter()
         .zip(&records)
@@ -1543,6 +1647,19 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
     });
     if a.free_offset {
         report["rms_zeroed_m"] = json!(zeroed);
+    }
+    if let Some(bands) = &bands {
+        report["fit_report"] = json!(a.fit_report.as_ref().map(|p| p.display().to_string()));
+        for (i, (band, p)) in bands.iter().zip(&axes).enumerate() {
+            let band = band.as_ref().ok().copied();
+            if let Some(entry) = report["axes"].get_mut(i).and_then(|e| e.as_object_mut()) {
+                entry.insert("prediction_band_rms_m".into(), json!(band));
+                entry.insert("rms_over_band".into(), json!(band.map(|b| p.fit.rms / b)));
+            }
+            if axes.len() == 1 {
+                report["prediction_band_rms_m"] = json!(band);
+            }
+        }
     }
     if axes.len() == 1 {
         // One axis: its blocks also at the top level.
