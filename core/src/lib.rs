@@ -22,6 +22,7 @@ pub mod bouc_wen;
 pub mod compensator;
 pub mod dynamic_model;
 pub mod effects;
+pub mod envelope;
 pub mod error;
 #[cfg(test)]
 mod fixtures;
@@ -36,6 +37,7 @@ pub mod servo;
 pub mod static_model;
 
 pub use axis::AxisParams;
+pub use envelope::{Envelope, EnvelopeCounts, EnvelopeMonitor, EnvelopePolicy};
 pub use bouc_wen::{
     max_input_span, BoucWen, BoucWenParams, BoundClass, HysteresisState, STATE_LIMIT,
 };

@@ -65,7 +65,7 @@
 use heapless::String;
 use piezo_core::ServoMode;
 use piezo_link::{
-    truncated, AxisModel, Control, Counters, Decoder, Frame, ModelSet, Packet,
+    truncated, AxisModel, Control, Counters, Decoder, EnvelopeStatus, Frame, ModelSet, Packet,
     Program as WireProgram, Refusal, RefusalKind, Request, Response, SequenceChecker, Setpoints,
     Status, Tracking, Uplink, Wave, MAX_FRAME, REASON_BYTES, VERSION_BYTES,
 };
@@ -244,6 +244,7 @@ fn frame(f: &crate::frames::SampleFrame, trial: u32) -> Frame {
         commanded_v: [x.commanded_v, y.commanded_v],
         sensor_m: [x.sensor_m, y.sensor_m],
         trial,
+        flags: f.flags,
     }
 }
 
@@ -969,6 +970,10 @@ impl Session {
             servo_limited: lc.servo_limited,
             guard_interventions: guard,
             stream_underruns: self.lp.reference.underruns(),
+            envelope_excursions: Axis::ALL
+                .map(|a| self.lp.envelope_counts(a).ticks_outside)
+                .into_iter()
+                .fold(0, u32::saturating_add),
             frames_dropped: self
                 .counters
                 .frames_dropped
@@ -1019,6 +1024,17 @@ impl Session {
                 self.lp.reference.learned_len() as u32,
                 TABLE_CAPACITY as u32,
             ],
+            envelope: Axis::ALL.map(|a| {
+                let envelope = self.lp.settings().axes[a.index()].envelope();
+                EnvelopeStatus {
+                    known: envelope.is_some(),
+                    feedback_only: envelope
+                        .is_some_and(|e| e.policy() == piezo_core::EnvelopePolicy::FeedbackOnly),
+                    outside: self.lp.envelope_outside(a),
+                    counts: self.lp.envelope_counts(a),
+                    feedback_only_ticks: self.lp.servo_alone_ticks(a),
+                }
+            }),
         }
     }
 }

@@ -207,6 +207,7 @@ fn base_axes() -> Vec<AxisParams> {
                 rest_output_m: a.rest_output_m,
                 effects: a.effects,
                 servo: a.servo,
+                envelope: a.envelope,
             });
         }
     }
