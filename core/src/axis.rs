@@ -15,9 +15,8 @@
 
 use crate::effects::{EffectParams, Effects, OperatingRange};
 use crate::{
-    Asymmetry, BoucWen, BoucWenParams, Compensator, CompensatorSettings, Envelope,
-    EnvelopeMonitor, EnvelopePolicy, IoChain, ParamError, Servo, ServoParams, StaticMap,
-    StaticModel, STATE_LIMIT,
+    Asymmetry, BoucWen, BoucWenParams, Compensator, CompensatorSettings, Envelope, EnvelopeMonitor,
+    EnvelopePolicy, IoChain, ParamError, Servo, ServoParams, StaticMap, StaticModel, STATE_LIMIT,
 };
 
 /// One axis: the model, its window and its servo (see the module doc).

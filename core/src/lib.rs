@@ -37,7 +37,6 @@ pub mod servo;
 pub mod static_model;
 
 pub use axis::AxisParams;
-pub use envelope::{Envelope, EnvelopeCounts, EnvelopeMonitor, EnvelopePolicy};
 pub use bouc_wen::{
     max_input_span, BoucWen, BoucWenParams, BoundClass, HysteresisState, STATE_LIMIT,
 };
@@ -45,6 +44,7 @@ pub use compensator::{
     Command, CommandStatus, Compensator, CompensatorSettings, CompensatorState, MIN_WINDOW_TICKS,
 };
 pub use dynamic_model::{DynamicModel, DynamicState, MassSpringDamperParams};
+pub use envelope::{Envelope, EnvelopeCounts, EnvelopeMonitor, EnvelopePolicy};
 pub use error::{ParamError, MIN_SLOPE_RATIO};
 pub use inverse_chain::{
     compensate_pair, compensate_periodic_pair, compensate_periodic_single, compensate_single,

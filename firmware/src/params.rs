@@ -18,9 +18,9 @@
 pub use piezo_core::AxisParams;
 // The generated consts below are written with these names.
 use piezo_core::effects::EffectParams;
+use piezo_core::{Asymmetry, BoucWenParams, IoChain, ServoParams, StaticMap};
 #[allow(unused_imports)] // only a file with `[x.identified]` writes them
 use piezo_core::{Envelope, EnvelopePolicy};
-use piezo_core::{Asymmetry, BoucWenParams, IoChain, ServoParams, StaticMap};
 
 /// Largest |h| accepted for a range-limited Bouc-Wen set over the window (as in `build.rs`).
 pub use piezo_core::STATE_LIMIT;

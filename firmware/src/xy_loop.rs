@@ -43,6 +43,20 @@
 //! the servo restarts at rest at the applied voltage. Without feedback and outside a hand-over
 //! the servo is not run: the tick is exactly the feed-forward one.
 //!
+//! # Envelope
+//! With an identified envelope in the parameter set ([`AxisParams::envelope`]: the stage
+//! file's `[x.identified]` input range and largest input rate, `piezo_core::envelope`), each
+//! tracking tick (not an excitation) checks the voltage applied u\[k\] per axis:
+//! `e_v = max(u_min − u, u − u_max) > 0` or `|u[k] − u[k−1]| − r_max·T > 0` is a tick outside,
+//! counted with the largest excursions ([`TwoAxisLoop::envelope_counts`]) and flagged in the
+//! tick's frame. Under the policy `feedback-only` with the compensator's feed-forward, an axis
+//! outside is handed to its servo alone from the next tick (`ServoMode::Feedback`, handed over
+//! from the voltage applied: the PI's output takes it, so no step) and back to the control
+//! mode at the first tick inside again (handed over from the voltage applied; without feedback
+//! the servo's correction fades out with τ over [`HANDOVER_TIME_CONSTANTS`]·τ, as when feedback
+//! is switched off). A change of control mode, feed-forward or parameter set, and a rearm, end
+//! the hand-over (the next tick outside starts it again).
+//!
 //! # Learned table
 //! [`Feedforward::Learned`] ([`TwoAxisLoop::set_learned_mode`]) plays a learned voltage table
 //! (iterative learning control, computed on the host) with the wave table: per tick
@@ -100,8 +114,8 @@
 
 use piezo_core::effects::Effects;
 use piezo_core::{
-    CommandStatus, Compensator, CompensatorState, EnvelopeCounts, EnvelopeMonitor,
-    EnvelopePolicy, ParamError, Servo, ServoMode, ServoState, ServoStatus,
+    CommandStatus, Compensator, CompensatorState, EnvelopeCounts, EnvelopeMonitor, EnvelopePolicy,
+    ParamError, Servo, ServoMode, ServoState, ServoStatus,
 };
 
 use crate::codes::{DacCode, SensorScale};

@@ -95,10 +95,10 @@ pub use piezo_core::AxisParams;
 pub use validate::{simulate_pair, AxisChain, Check, ValidAxis, ValidStage, PLAUSIBLE_STROKE_M};
 
 use piezo_core::effects::EffectParams;
-pub use piezo_core::{Envelope, EnvelopePolicy};
 use piezo_core::{
     Asymmetry, BoucWenParams, MassSpringDamperParams, OscillatorParams, ServoParams, StaticMap,
 };
+pub use piezo_core::{Envelope, EnvelopePolicy};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 

@@ -300,7 +300,10 @@ fn fnv1a32_reference_values() {
 fn envelope_keys_read_round_trip_and_refuse_feedback_only_without_a_servo() {
     let text = example().to_toml("");
     assert!(text.contains("input_rate_max_v_per_s = 2400.0"), "{text}");
-    assert!(!text.contains("envelope_policy"), "warn is the default: {text}");
+    assert!(
+        !text.contains("envelope_policy"),
+        "warn is the default: {text}"
+    );
     let old = text
         .lines()
         .filter(|l| !l.starts_with("input_rate_max_v_per_s") && !l.starts_with("band_hz"))
@@ -315,12 +318,20 @@ fn envelope_keys_read_round_trip_and_refuse_feedback_only_without_a_servo() {
     let mut stage = example();
     stage.x.limits.envelope_policy = EnvelopePolicy::FeedbackOnly;
     let text = stage.to_toml("");
-    assert!(text.contains("envelope_policy = \"feedback-only\""), "{text}");
+    assert!(
+        text.contains("envelope_policy = \"feedback-only\""),
+        "{text}"
+    );
     let back = StageFile::parse("f.toml", &text).unwrap();
     assert_eq!(back, stage);
     let e = back.validate().unwrap_err().located("f.toml", &text);
     assert_eq!(e.key, "x.limits.envelope_policy", "{e}");
-    assert_eq!(e.core, Some(ParamError::NeedsServo { field: "envelope_policy" }));
+    assert_eq!(
+        e.core,
+        Some(ParamError::NeedsServo {
+            field: "envelope_policy"
+        })
+    );
     let at = text
         .lines()
         .position(|l| l.starts_with("envelope_policy"))
@@ -350,7 +361,10 @@ fn input_band_and_rate_of_a_record() {
         .map(|k| 60.0 + 50.0 * (std::f64::consts::TAU * 5.0 * k as f64 * dt).sin())
         .collect();
     let (lo, hi) = input_band_hz(&u, dt).unwrap();
-    assert!((lo - 5.0).abs() < 0.6 && (hi - 5.0).abs() < 0.6, "{lo}–{hi} Hz");
+    assert!(
+        (lo - 5.0).abs() < 0.6 && (hi - 5.0).abs() < 0.6,
+        "{lo}–{hi} Hz"
+    );
     let rate = input_rate_max_v_per_s(&u, dt);
     let exact = 50.0 * std::f64::consts::TAU * 5.0;
     assert!((rate - exact).abs() < 1e-3 * exact, "{rate} vs {exact}");

@@ -10,8 +10,8 @@ use crate::error::{StageError, StageErrorKind};
 use crate::{Axis, Io, ModelKind, StageFile, STATE_LIMIT};
 use piezo_core::effects::{couple, Effects, EffectsState, OperatingRange};
 use piezo_core::{
-    Asymmetry, BoucWen, Compensator, CompensatorSettings, DynamicModel, HystereticOscillator,
-    EnvelopeMonitor, EnvelopePolicy, IoChain, ModelState, OscillatorState, ParamError, Servo,
+    Asymmetry, BoucWen, Compensator, CompensatorSettings, DynamicModel, EnvelopeMonitor,
+    EnvelopePolicy, HystereticOscillator, IoChain, ModelState, OscillatorState, ParamError, Servo,
     StaticModel,
 };
 

@@ -1525,6 +1525,12 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
             );
             eprintln!("warning: {msg}");
         }
+        if let Some(c) = p.envelope.filter(|c| c.ticks_outside > 0) {
+            eprintln!(
+                "warning: {}: {} samples leave the identified envelope (range or rate), by up to {} V and {} V/s over its rate",
+                p.axis, c.ticks_outside, c.max_voltage_excursion_v, c.max_rate_excursion_v_per_s
+            );
+        }
         lines.push(format!(
             "{}: {} on {}: rms {:.4e} m, r2 {}, mrd {} %",
             p.axis,

@@ -19,7 +19,10 @@ fn set_with_envelope(x: EnvelopePolicy, y: Option<Envelope>) -> ModelSet {
 
 /// 19 ± 15 µm at 10 Hz on both axes: x's command reaches ≈ 100 V, well outside 0–40 V.
 fn track_outside(host: &mut Host, s: &mut Session, plant: &Cell<XyPlant>, ticks: u32) {
-    assert!(matches!(host.ask(s, sine_track()), Response::Started { .. }));
+    assert!(matches!(
+        host.ask(s, sine_track()),
+        Response::Started { .. }
+    ));
     run(s, plant, host, ticks);
 }
 
@@ -45,7 +48,11 @@ fn upload(host: &mut Host, s: &mut Session, set: ModelSet) {
 fn excursions_are_counted_in_status_and_flagged_in_frames() {
     let (mut s, plant) = session();
     let mut host = Host::new();
-    upload(&mut host, &mut s, set_with_envelope(EnvelopePolicy::Warn, None));
+    upload(
+        &mut host,
+        &mut s,
+        set_with_envelope(EnvelopePolicy::Warn, None),
+    );
     host.ask(&mut s, Request::Frames { decimation: 1 });
     host.frames.clear();
     let ticks = (0.2 * params::LOOP_RATE_HZ) as u32;
@@ -81,7 +88,10 @@ fn excursions_are_counted_in_status_and_flagged_in_frames() {
         .fold(f32::MIN, f32::max);
     assert!(peak > 90.0, "{peak}");
     assert_eq!(x.counts.max_voltage_excursion_v, peak - 40.0);
-    assert_eq!(x.feedback_only_ticks, 0, "warn: the compensator kept running");
+    assert_eq!(
+        x.feedback_only_ticks, 0,
+        "warn: the compensator kept running"
+    );
     assert_eq!(st.feedforward, piezo_link::Feedforward::Compensator);
 }
 
@@ -134,9 +144,19 @@ fn feedback_only_runs_the_servo_alone_outside_and_the_compensator_inside() {
         let frames_outside = core::mem::take(&mut host.frames);
         // Inside again for 0.5 s: the servo's correction fades out (10 τ = 0.2 s), the
         // compensator alone tracks.
-        track_inside(&mut host, &mut s, &plant, (0.5 * params::LOOP_RATE_HZ) as u32);
+        track_inside(
+            &mut host,
+            &mut s,
+            &plant,
+            (0.5 * params::LOOP_RATE_HZ) as u32,
+        );
         let inside = host.status(&mut s);
-        runs.push((outside, frames_outside, inside, core::mem::take(&mut host.frames)));
+        runs.push((
+            outside,
+            frames_outside,
+            inside,
+            core::mem::take(&mut host.frames),
+        ));
     }
     let (fb_out, fb_frames, fb_in, fb_in_frames) = &runs[0];
     let (warn_out, warn_frames, warn_in, _) = &runs[1];
@@ -145,7 +165,10 @@ fn feedback_only_runs_the_servo_alone_outside_and_the_compensator_inside() {
     let [x, y] = fb_out.envelope;
     assert!(x.feedback_only);
     assert!(x.counts.ticks_outside > 1000, "{x:?}");
-    assert!(x.feedback_only_ticks + 10 >= x.counts.ticks_outside, "{x:?}");
+    assert!(
+        x.feedback_only_ticks + 10 >= x.counts.ticks_outside,
+        "{x:?}"
+    );
     assert!(x.feedback_only_ticks <= x.counts.ticks_outside, "{x:?}");
     // y's policy is `warn`: counted, never handed over.
     assert!(y.counts.ticks_outside > 0);
