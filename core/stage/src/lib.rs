@@ -345,7 +345,7 @@ pub fn input_band_hz(u: &[f64], sample_period_s: f64) -> Option<(f64, f64)> {
         })
         .collect();
     let total: f64 = power.iter().sum();
-    if !(total > 0.0) {
+    if !(total.is_finite() && total > 0.0) {
         return None;
     }
     let f = |j: usize| (j + 1) as f64 / (n as f64 * dt);

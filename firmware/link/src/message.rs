@@ -180,6 +180,9 @@ pub struct ModelSet {
 }
 
 /// What a host asks.
+// An upload is the large variant; no_std without allocation cannot box it, and a request is
+// built and moved once, never stored in bulk.
+#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Request {
     /// Answered with [`Response::Status`].
@@ -545,6 +548,9 @@ impl Frame {
 }
 
 /// What the firmware sends.
+// A status is the large variant; no_std without allocation cannot box it, and an uplink is
+// built and encoded once, never stored in bulk.
+#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Uplink {
     /// The answer to the request with packet number `request`.
