@@ -75,8 +75,8 @@ use crate::converter::DacWrite;
 use crate::params;
 use crate::reference::{LearnedError, Program, Waveform, STREAM_CAPACITY, TABLE_CAPACITY};
 use crate::xy_loop::{
-    Axis, AxisConfig, ConfigError, ControlError, Fault, Feedforward, LoopSettings, Mode,
-    PositionSensor, TickReport, TwoAxisLoop, XyIo,
+    Axis, AxisConfig, ConfigError, ControlError, Fault, Feedforward, Mode, PositionSensor,
+    TickReport, TwoAxisLoop, XyIo,
 };
 
 /// [`SETTLE_S`] in ticks of the loop's period.
@@ -838,10 +838,7 @@ impl Session {
                 return learned_refusal("this set's limits", e);
             }
         }
-        let settings = LoopSettings {
-            axes,
-            ..*self.lp.settings()
-        };
+        let settings = self.lp.settings().with_axes(axes);
         self.lp.set_settings(settings);
         self.version = set.version.clone();
         self.fnv1a32 = set.fnv1a32;

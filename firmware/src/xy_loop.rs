@@ -408,6 +408,10 @@ pub struct LoopSettings {
     pub stuck: StuckPolicy,
     /// Frame decimation (one frame every this many ticks).
     pub frame_decimation: u32,
+    /// An axis has an identified envelope (the tick checks it): recomputed from `axes` by
+    /// [`LoopSettings::from_params`], [`LoopSettings::with_axes`], [`TwoAxisLoop::new`] and
+    /// [`TwoAxisLoop::set_settings`].
+    pub any_envelope: bool,
 }
 
 impl LoopSettings {
@@ -428,7 +432,19 @@ impl LoopSettings {
             amplifier_gain_v_per_v,
             stuck: StuckPolicy::DEFAULT,
             frame_decimation: 1,
-        })
+            any_envelope: false,
+        }
+        .with_axes_checked())
+    }
+
+    /// These settings with `axes` (and [`LoopSettings::any_envelope`] from them).
+    pub fn with_axes(self, axes: [AxisConfig; 2]) -> Self {
+        Self { axes, ..self }.with_axes_checked()
+    }
+
+    fn with_axes_checked(mut self) -> Self {
+        self.any_envelope = self.axes.iter().any(|a| a.envelope.is_some());
+        self
     }
 }
 
@@ -587,6 +603,8 @@ pub struct TwoAxisLoop {
     handover_ticks: u32,
     /// Per axis, the identified envelope's check (see the module docs, Envelope).
     envelope: [EnvelopeAxis; 2],
+    /// An axis is handed to its servo alone or fading back (the per-axis servo path runs).
+    envelope_handed: bool,
     servo: [ServoState; 2],
     compensator: [CompensatorState; 2],
     guard: [GuardState; 2],
@@ -613,6 +631,7 @@ impl TwoAxisLoop {
         reference: ReferenceGenerator,
         initial_v: [f32; 2],
     ) -> Self {
+        let settings = settings.with_axes_checked();
         let guard = [
             settings.axes[0].limits.state(initial_v[0]),
             settings.axes[1].limits.state(initial_v[1]),
@@ -637,6 +656,7 @@ impl TwoAxisLoop {
             feedback: false,
             handover_ticks: 0,
             envelope: [EnvelopeAxis::default(); 2],
+            envelope_handed: false,
             servo: [
                 ServoState::at_rest(guard[0].last_safe_volts(), mode),
                 ServoState::at_rest(guard[1].last_safe_volts(), mode),
@@ -858,6 +878,7 @@ impl TwoAxisLoop {
             e.servo_alone = false;
             e.handback_ticks = 0;
         }
+        self.envelope_handed = false;
     }
 
     /// After the servos were set to the control mode (their next tick hands over from the last
@@ -877,6 +898,7 @@ impl TwoAxisLoop {
                 e.handback_ticks = fade;
             }
         }
+        self.envelope_handed = self.envelope.iter().any(|e| e.handback_ticks > 0);
     }
 
     /// Axis `i` of a tick whose command `u` was (`outside`) or was not outside its envelope,
@@ -888,6 +910,7 @@ impl TwoAxisLoop {
     #[inline(never)]
     fn envelope_switch(&mut self, i: usize, outside: bool, servo_ran: bool, u: f32) {
         let i = i & 1;
+        self.envelope_handed = true;
         if outside {
             self.envelope[i].servo_alone = true;
             self.envelope[i].handback_ticks = 0;
@@ -903,6 +926,53 @@ impl TwoAxisLoop {
                 self.envelope[i].handback_ticks = self.handover_length();
             }
         }
+    }
+
+    /// Step 2's envelope check of a running tick (module docs, Envelope): per axis with an
+    /// envelope, the voltage applied `applied_v` after `previous_v` counted, and the policy's
+    /// hand-over; returns which axes were outside. Out of line: the tick without envelopes
+    /// does not carry it.
+    #[inline(never)]
+    fn envelope_tick(
+        &mut self,
+        applied_v: [f32; 2],
+        previous_v: [f32; 2],
+        servo_ran: [bool; 2],
+    ) -> [bool; 2] {
+        let mut outside = [false; 2];
+        for i in 0..2 {
+            let axis = &self.settings.axes[i];
+            let Some(envelope) = axis.envelope.as_ref() else {
+                continue;
+            };
+            let e = &mut self.envelope[i];
+            outside[i] = envelope.observe(&mut e.counts, applied_v[i], previous_v[i]);
+            if e.servo_alone {
+                e.servo_alone_ticks = e.servo_alone_ticks.saturating_add(1);
+            }
+            if outside[i] != e.servo_alone
+                && envelope.policy() == EnvelopePolicy::FeedbackOnly
+                && self.feedforward == Feedforward::Compensator
+                && axis.servo.is_some()
+            {
+                self.envelope_switch(i, outside[i], servo_ran[i], applied_v[i]);
+            }
+        }
+        outside
+    }
+
+    /// Step 3a for the envelope's hand-overs: a fade-out after the servo alone counts down.
+    #[inline(never)]
+    fn count_down_handback(&mut self, servo_ran: [bool; 2]) {
+        for (e, ran) in self.envelope.iter_mut().zip(servo_ran) {
+            if ran {
+                e.handback_ticks = e.handback_ticks.saturating_sub(1);
+            }
+        }
+        self.envelope_handed = self
+            .envelope
+            .iter()
+            .any(|e| e.servo_alone || e.handback_ticks > 0);
     }
 
     /// An axis's identified-envelope counts (ticks outside, largest excursions).
@@ -940,6 +1010,7 @@ impl TwoAxisLoop {
     /// override (see [`TwoAxisLoop::tick`]). The inverse effect chain restarts at rest at the
     /// applied voltages when the effects changed; the servo restarts at rest at them.
     pub fn set_settings(&mut self, settings: LoopSettings) {
+        let settings = settings.with_axes_checked();
         let effects_changed =
             (0..2).any(|i| settings.axes[i].effects != self.settings.axes[i].effects);
         self.frames.set_decimation(settings.frame_decimation);
@@ -1063,11 +1134,14 @@ impl TwoAxisLoop {
         let servo_runs = servo_may_run && (self.feedback || self.handover_ticks > 0);
         // Per axis: the control mode's servo, or the envelope policy's (servo alone, or the
         // fade-out after it).
-        let axis_servo_runs = [0, 1].map(|i| {
-            let e = &self.envelope[i];
-            servo_may_run && (servo_runs || e.servo_alone || e.handback_ticks > 0)
-        });
-        let mut outside = [false; 2];
+        let axis_servo_runs = if self.envelope_handed {
+            [0, 1].map(|i| {
+                let e = &self.envelope[i];
+                servo_may_run && (servo_runs || e.servo_alone || e.handback_ticks > 0)
+            })
+        } else {
+            [servo_runs; 2]
+        };
         if self.mode == Mode::Running {
             let previous_reference = self.last_reference_m;
             let mut learned_v = [f32::NAN; 2];
@@ -1140,25 +1214,19 @@ impl TwoAxisLoop {
                     self.compensator[i] = state;
                 }
                 applied_v[i] = u;
-                // The identified envelope: counted while tracking (an excitation measures one).
-                if let Some(envelope) = axis.envelope.as_ref() {
-                    if self.feedforward != Feedforward::OpenLoop {
-                        let e = &mut self.envelope[i];
-                        outside[i] =
-                            envelope.observe(&mut e.counts, u, before_guard[i].last_safe_volts());
-                        if e.servo_alone {
-                            e.servo_alone_ticks = e.servo_alone_ticks.saturating_add(1);
-                        }
-                        if outside[i] != e.servo_alone
-                            && envelope.policy() == EnvelopePolicy::FeedbackOnly
-                            && self.feedforward == Feedforward::Compensator
-                            && axis.servo.is_some()
-                        {
-                            self.envelope_switch(i, outside[i], axis_servo_runs[i], u);
-                        }
-                    }
-                }
             }
+        }
+        // The identified envelope: counted while tracking (an excitation measures one).
+        let mut outside = [false; 2];
+        if self.settings.any_envelope
+            && self.mode == Mode::Running
+            && self.feedforward != Feedforward::OpenLoop
+        {
+            let previous_v = [
+                before_guard[0].last_safe_volts(),
+                before_guard[1].last_safe_volts(),
+            ];
+            outside = self.envelope_tick(applied_v, previous_v, axis_servo_runs);
         }
         self.envelope[0].outside = outside[0];
         self.envelope[1].outside = outside[1];
@@ -1196,15 +1264,14 @@ impl TwoAxisLoop {
             self.handover_ticks = self.handover_ticks.saturating_sub(1);
         }
         for i in 0..2 {
-            if axis_servo_runs[i] {
-                let e = &mut self.envelope[i];
-                e.handback_ticks = e.handback_ticks.saturating_sub(1);
-                // A servo whose output was not applied (the guard overrode it: a fault, or
-                // the slew into a new window) restarts at rest at what was.
-                if self.servo[i].output_v() != applied_v[i] {
-                    restart_at(&mut self.servo[i], applied_v[i]);
-                }
+            // A servo whose output was not applied (the guard overrode it: a fault, or the slew
+            // into a new window) restarts at rest at what was.
+            if axis_servo_runs[i] && self.servo[i].output_v() != applied_v[i] {
+                restart_at(&mut self.servo[i], applied_v[i]);
             }
+        }
+        if self.envelope_handed {
+            self.count_down_handback(axis_servo_runs);
         }
 
         // 3b. Effects: the stage saw `applied_v` this tick (the held value if safe or if the
