@@ -15,8 +15,8 @@
 
 use crate::effects::{EffectParams, Effects, OperatingRange};
 use crate::{
-    Asymmetry, BoucWen, BoucWenParams, Compensator, CompensatorSettings, IoChain, ParamError,
-    Servo, ServoParams, StaticMap, StaticModel, STATE_LIMIT,
+    Asymmetry, BoucWen, BoucWenParams, Compensator, CompensatorSettings, Envelope, EnvelopeMonitor,
+    EnvelopePolicy, IoChain, ParamError, Servo, ServoParams, StaticMap, StaticModel, STATE_LIMIT,
 };
 
 /// One axis: the model, its window and its servo (see the module doc).
@@ -44,6 +44,9 @@ pub struct AxisParams {
     pub effects: EffectParams,
     /// The feedback servo on the sensor (`None`: feed-forward only).
     pub servo: Option<ServoParams>,
+    /// The identified envelope and the policy outside it (`None`: not known, nothing checked;
+    /// [`crate::envelope`]).
+    pub envelope: Option<Envelope>,
 }
 
 impl AxisParams {
@@ -114,6 +117,24 @@ impl AxisParams {
         self.servo
             .map(|p| Servo::new(p, self.settings(sample_period_s), self.linear_gain_m_per_v))
             .transpose()
+    }
+
+    /// The per-tick check of this axis's identified envelope at the loop period
+    /// `sample_period_s` \[s\] ([`Envelope::monitor`]), if it has one. Refused
+    /// ([`ParamError::NeedsServo`]) when the policy is `feedback-only` and the axis has no servo.
+    pub fn envelope_monitor(
+        &self,
+        sample_period_s: f32,
+    ) -> Result<Option<EnvelopeMonitor>, ParamError> {
+        let Some(envelope) = self.envelope else {
+            return Ok(None);
+        };
+        if envelope.policy == EnvelopePolicy::FeedbackOnly && self.servo.is_none() {
+            return Err(ParamError::NeedsServo {
+                field: "envelope_policy",
+            });
+        }
+        envelope.monitor(sample_period_s).map(Some)
     }
 
     /// This axis's window and slew limit against the chain `io` at the loop period

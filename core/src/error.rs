@@ -91,6 +91,12 @@ pub enum ParamError {
         /// The ADC's input span \[V\].
         adc_range_v: [f32; 2],
     },
+    /// A setting hands the axis to its feedback servo (`envelope_policy = "feedback-only"`), and
+    /// the axis has none.
+    NeedsServo {
+        /// Field name, e.g. `"envelope_policy"`.
+        field: &'static str,
+    },
     /// The discretised mass–spring–damper could not be built (its matrix exponential did not
     /// converge or produced non-finite coefficients) for this sample period.
     Discretisation {
@@ -170,6 +176,11 @@ impl fmt::Display for ParamError {
             } => write!(
                 f,
                 "the sensor span [{s0}, {s1}] V exceeds the ADC's input span [{a0}, {a1}] V"
+            ),
+            ParamError::NeedsServo { field } => write!(
+                f,
+                "field `{field}` hands the axis to its feedback servo, and the axis has none \
+                 (add a servo, or use \"warn\")"
             ),
             ParamError::Discretisation { sample_period_s } => write!(
                 f,

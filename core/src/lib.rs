@@ -22,6 +22,7 @@ pub mod bouc_wen;
 pub mod compensator;
 pub mod dynamic_model;
 pub mod effects;
+pub mod envelope;
 pub mod error;
 #[cfg(test)]
 mod fixtures;
@@ -43,6 +44,7 @@ pub use compensator::{
     Command, CommandStatus, Compensator, CompensatorSettings, CompensatorState, MIN_WINDOW_TICKS,
 };
 pub use dynamic_model::{DynamicModel, DynamicState, MassSpringDamperParams};
+pub use envelope::{Envelope, EnvelopeCounts, EnvelopeMonitor, EnvelopePolicy};
 pub use error::{ParamError, MIN_SLOPE_RATIO};
 pub use inverse_chain::{
     compensate_pair, compensate_periodic_pair, compensate_periodic_single, compensate_single,

@@ -168,6 +168,7 @@ pub fn generate(set: &ParamSet, file: &str) -> String {
              \x20       rest_output_m: {:?},\n\
              \x20       effects: {:?},\n\
              \x20       servo: {:?},\n\
+             \x20       envelope: {:?},\n\
              \x20   }},\n",
             a.bouc_wen,
             a.static_map,
@@ -179,6 +180,7 @@ pub fn generate(set: &ParamSet, file: &str) -> String {
             a.rest_output_m,
             a.effects,
             a.servo,
+            a.envelope,
         ));
     }
     out.push_str("];\n");

@@ -45,6 +45,10 @@ pub struct SampleFrame {
     pub sequence: u32,
     /// x, y.
     pub axes: [AxisSample; 2],
+    /// The tick's flags (`piezo_link::Frame::OUTSIDE_X`, `OUTSIDE_Y`: the command left the
+    /// axis's identified envelope); carried by the link's frames, not by the text and 28-byte
+    /// forms.
+    pub flags: u8,
 }
 
 /// Size of a frame on the wire.
@@ -84,6 +88,7 @@ impl SampleFrame {
         Self {
             sequence: words[0],
             axes: [axis(0), axis(1)],
+            flags: 0,
         }
     }
 }
@@ -108,6 +113,7 @@ impl From<FrameText> for SampleFrame {
         Self {
             sequence: t.sequence,
             axes: t.axes.map(axis),
+            flags: 0,
         }
     }
 }
@@ -173,6 +179,12 @@ impl FrameQueue {
     /// A frame that finds the queue full is dropped (and counted); its sequence number is used.
     #[inline]
     pub fn offer(&mut self, make: impl FnOnce() -> [AxisSample; 2]) {
+        self.offer_flagged(make, 0);
+    }
+
+    /// [`FrameQueue::offer`] with the tick's flags ([`SampleFrame::flags`]).
+    #[inline]
+    pub fn offer_flagged(&mut self, make: impl FnOnce() -> [AxisSample; 2], flags: u8) {
         if self.countdown > 0 {
             self.countdown -= 1;
             return;
@@ -181,6 +193,7 @@ impl FrameQueue {
         let frame = SampleFrame {
             sequence: self.next_sequence,
             axes: make(),
+            flags,
         };
         self.next_sequence = self.next_sequence.wrapping_add(1);
         if self.frames.push_back(frame).is_err() {
@@ -282,6 +295,7 @@ mod tests {
         let f = SampleFrame {
             sequence: 0xdead_beef,
             axes: axes(1.5e-6),
+            flags: 0,
         };
         let bytes = f.to_bytes();
         assert_eq!(&bytes[..4], &[0xef, 0xbe, 0xad, 0xde]);
@@ -296,6 +310,7 @@ mod tests {
         let f = SampleFrame {
             sequence: 2000,
             axes: axes(1.5e-5),
+            flags: 0,
         };
         let mut s = heapless::String::<256>::new();
         core::fmt::write(&mut s, format_args!("{f}")).unwrap();
@@ -327,6 +342,7 @@ mod tests {
                     sensor_m: core::f32::consts::PI,
                 },
             ],
+            flags: 0,
         };
         s.clear();
         core::fmt::write(&mut s, format_args!("{odd}")).unwrap();

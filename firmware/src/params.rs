@@ -19,6 +19,12 @@ pub use piezo_core::AxisParams;
 // The generated consts below are written with these names.
 use piezo_core::effects::EffectParams;
 use piezo_core::{Asymmetry, BoucWenParams, IoChain, ServoParams, StaticMap};
+// Only a file with `[x.identified]` writes them (the policy as its variant's name).
+#[allow(unused_imports)]
+use piezo_core::{
+    Envelope,
+    EnvelopePolicy::{FeedbackOnly, Warn},
+};
 
 /// Largest |h| accepted for a range-limited Bouc-Wen set over the window (as in `build.rs`).
 pub use piezo_core::STATE_LIMIT;

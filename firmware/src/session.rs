@@ -65,7 +65,7 @@
 use heapless::String;
 use piezo_core::ServoMode;
 use piezo_link::{
-    truncated, AxisModel, Control, Counters, Decoder, Frame, ModelSet, Packet,
+    truncated, AxisModel, Control, Counters, Decoder, EnvelopeStatus, Frame, ModelSet, Packet,
     Program as WireProgram, Refusal, RefusalKind, Request, Response, SequenceChecker, Setpoints,
     Status, Tracking, Uplink, Wave, MAX_FRAME, REASON_BYTES, VERSION_BYTES,
 };
@@ -75,8 +75,8 @@ use crate::converter::DacWrite;
 use crate::params;
 use crate::reference::{LearnedError, Program, Waveform, STREAM_CAPACITY, TABLE_CAPACITY};
 use crate::xy_loop::{
-    Axis, AxisConfig, ConfigError, ControlError, Fault, Feedforward, LoopSettings, Mode,
-    PositionSensor, TickReport, TwoAxisLoop, XyIo,
+    Axis, AxisConfig, ConfigError, ControlError, Fault, Feedforward, Mode, PositionSensor,
+    TickReport, TwoAxisLoop, XyIo,
 };
 
 /// [`SETTLE_S`] in ticks of the loop's period.
@@ -244,6 +244,7 @@ fn frame(f: &crate::frames::SampleFrame, trial: u32) -> Frame {
         commanded_v: [x.commanded_v, y.commanded_v],
         sensor_m: [x.sensor_m, y.sensor_m],
         trial,
+        flags: f.flags,
     }
 }
 
@@ -837,10 +838,7 @@ impl Session {
                 return learned_refusal("this set's limits", e);
             }
         }
-        let settings = LoopSettings {
-            axes,
-            ..*self.lp.settings()
-        };
+        let settings = self.lp.settings().with_axes(axes);
         self.lp.set_settings(settings);
         self.version = set.version.clone();
         self.fnv1a32 = set.fnv1a32;
@@ -969,6 +967,10 @@ impl Session {
             servo_limited: lc.servo_limited,
             guard_interventions: guard,
             stream_underruns: self.lp.reference.underruns(),
+            envelope_excursions: Axis::ALL
+                .map(|a| self.lp.envelope_counts(a).ticks_outside)
+                .into_iter()
+                .fold(0, u32::saturating_add),
             frames_dropped: self
                 .counters
                 .frames_dropped
@@ -1019,6 +1021,17 @@ impl Session {
                 self.lp.reference.learned_len() as u32,
                 TABLE_CAPACITY as u32,
             ],
+            envelope: Axis::ALL.map(|a| {
+                let envelope = self.lp.settings().axes[a.index()].envelope();
+                EnvelopeStatus {
+                    known: envelope.is_some(),
+                    feedback_only: envelope
+                        .is_some_and(|e| e.policy() == piezo_core::EnvelopePolicy::FeedbackOnly),
+                    outside: self.lp.envelope_outside(a),
+                    counts: self.lp.envelope_counts(a),
+                    feedback_only_ticks: self.lp.servo_alone_ticks(a),
+                }
+            }),
         }
     }
 }

@@ -43,6 +43,20 @@
 //! the servo restarts at rest at the applied voltage. Without feedback and outside a hand-over
 //! the servo is not run: the tick is exactly the feed-forward one.
 //!
+//! # Envelope
+//! With an identified envelope in the parameter set ([`AxisParams::envelope`]: the stage
+//! file's `[x.identified]` input range and largest input rate, `piezo_core::envelope`), each
+//! tracking tick (not an excitation) checks the voltage applied u\[k\] per axis:
+//! `e_v = max(u_min − u, u − u_max) > 0` or `|u[k] − u[k−1]| − r_max·T > 0` is a tick outside,
+//! counted with the largest excursions ([`TwoAxisLoop::envelope_counts`]) and flagged in the
+//! tick's frame. Under the policy `feedback-only` with the compensator's feed-forward, an axis
+//! outside is handed to its servo alone from the next tick (`ServoMode::Feedback`, handed over
+//! from the voltage applied: the PI's output takes it, so no step) and back to the control
+//! mode at the first tick inside again (handed over from the voltage applied; without feedback
+//! the servo's correction fades out with τ over [`HANDOVER_TIME_CONSTANTS`]·τ, as when feedback
+//! is switched off). A change of control mode, feed-forward or parameter set, and a rearm, end
+//! the hand-over (the next tick outside starts it again).
+//!
 //! # Learned table
 //! [`Feedforward::Learned`] ([`TwoAxisLoop::set_learned_mode`]) plays a learned voltage table
 //! (iterative learning control, computed on the host) with the wave table: per tick
@@ -100,8 +114,8 @@
 
 use piezo_core::effects::Effects;
 use piezo_core::{
-    CommandStatus, Compensator, CompensatorState, ParamError, Servo, ServoMode, ServoState,
-    ServoStatus,
+    CommandStatus, Compensator, CompensatorState, EnvelopeCounts, EnvelopeMonitor, EnvelopePolicy,
+    ParamError, Servo, ServoMode, ServoState, ServoStatus,
 };
 
 use crate::codes::{DacCode, SensorScale};
@@ -269,6 +283,7 @@ impl StuckPolicy {
 pub struct AxisConfig {
     compensator: Compensator,
     servo: Option<Servo>,
+    envelope: Option<EnvelopeMonitor>,
     effects: Effects,
     limits: SafetyLimits,
     linear_gain_m_per_v: f32,
@@ -315,6 +330,9 @@ impl AxisConfig {
             .map(|params| Servo::new(params, settings, p.linear_gain_m_per_v))
             .transpose()
             .map_err(ConfigError::Core)?;
+        let envelope = p
+            .envelope_monitor(sample_period_s)
+            .map_err(ConfigError::Core)?;
         let limits = limits.map_err(ConfigError::Limits)?;
         if !(p.linear_gain_m_per_v.is_finite() && p.linear_gain_m_per_v != 0.0) {
             return Err(ConfigError::Gain);
@@ -322,6 +340,7 @@ impl AxisConfig {
         Ok(Self {
             compensator,
             servo,
+            envelope,
             effects,
             limits,
             linear_gain_m_per_v: p.linear_gain_m_per_v,
@@ -340,10 +359,16 @@ impl AxisConfig {
         self.servo.as_ref()
     }
 
-    /// This axis without its servo (feed-forward only).
+    /// This axis without its servo (feed-forward only; an envelope policy `feedback-only`
+    /// then only counts).
     pub fn without_servo(mut self) -> Self {
         self.servo = None;
         self
+    }
+
+    /// The identified envelope's check, if the parameter set has one.
+    pub fn envelope(&self) -> Option<&EnvelopeMonitor> {
+        self.envelope.as_ref()
     }
 
     /// The guard's limits.
@@ -383,6 +408,10 @@ pub struct LoopSettings {
     pub stuck: StuckPolicy,
     /// Frame decimation (one frame every this many ticks).
     pub frame_decimation: u32,
+    /// An axis has an identified envelope (the tick checks it): recomputed from `axes` by
+    /// [`LoopSettings::from_params`], [`LoopSettings::with_axes`], [`TwoAxisLoop::new`] and
+    /// [`TwoAxisLoop::set_settings`].
+    pub any_envelope: bool,
 }
 
 impl LoopSettings {
@@ -403,7 +432,19 @@ impl LoopSettings {
             amplifier_gain_v_per_v,
             stuck: StuckPolicy::DEFAULT,
             frame_decimation: 1,
-        })
+            any_envelope: false,
+        }
+        .with_axes_checked())
+    }
+
+    /// These settings with `axes` (and [`LoopSettings::any_envelope`] from them).
+    pub fn with_axes(self, axes: [AxisConfig; 2]) -> Self {
+        Self { axes, ..self }.with_axes_checked()
+    }
+
+    fn with_axes_checked(mut self) -> Self {
+        self.any_envelope = self.axes.iter().any(|a| a.envelope.is_some());
+        self
     }
 }
 
@@ -500,6 +541,21 @@ impl StuckDetector {
     }
 }
 
+/// One axis's identified-envelope state in the loop.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+struct EnvelopeAxis {
+    /// Ticks outside and the largest excursions.
+    counts: EnvelopeCounts,
+    /// The last tick's command was outside.
+    outside: bool,
+    /// The policy `feedback-only` has handed the axis to its servo alone.
+    servo_alone: bool,
+    /// Ticks the servo alone drove the axis.
+    servo_alone_ticks: u32,
+    /// Ticks left of the servo's fade-out after the feed-forward resumed (no feedback).
+    handback_ticks: u32,
+}
+
 /// A servo the guard overrode restarts at rest at the voltage applied, its filters and
 /// integrator consistent with the stage again (out of line: the guard overrides only on a fault
 /// or while slewing into a new window).
@@ -545,6 +601,10 @@ pub struct TwoAxisLoop {
     feedback: bool,
     /// Ticks left of the fade-out after feedback was switched off.
     handover_ticks: u32,
+    /// Per axis, the identified envelope's check (see the module docs, Envelope).
+    envelope: [EnvelopeAxis; 2],
+    /// An axis is handed to its servo alone or fading back (the per-axis servo path runs).
+    envelope_handed: bool,
     servo: [ServoState; 2],
     compensator: [CompensatorState; 2],
     guard: [GuardState; 2],
@@ -571,6 +631,7 @@ impl TwoAxisLoop {
         reference: ReferenceGenerator,
         initial_v: [f32; 2],
     ) -> Self {
+        let settings = settings.with_axes_checked();
         let guard = [
             settings.axes[0].limits.state(initial_v[0]),
             settings.axes[1].limits.state(initial_v[1]),
@@ -594,6 +655,8 @@ impl TwoAxisLoop {
             ],
             feedback: false,
             handover_ticks: 0,
+            envelope: [EnvelopeAxis::default(); 2],
+            envelope_handed: false,
             servo: [
                 ServoState::at_rest(guard[0].last_safe_volts(), mode),
                 ServoState::at_rest(guard[1].last_safe_volts(), mode),
@@ -669,6 +732,7 @@ impl TwoAxisLoop {
             let mode = self.control_mode();
             self.servo.iter_mut().for_each(|s| s.set_mode(mode));
             self.hand_over_if(true);
+            self.release_servo_alone();
         }
     }
 
@@ -736,6 +800,7 @@ impl TwoAxisLoop {
         }
         self.switch_servo(was_feedback, mode);
         self.hand_over_if(source_changed && was_feedback);
+        self.release_servo_alone();
         Ok(())
     }
 
@@ -787,6 +852,7 @@ impl TwoAxisLoop {
         let mode = self.control_mode();
         self.switch_servo(was_feedback, mode);
         self.hand_over_if(source_changed && was_feedback);
+        self.release_servo_alone();
         Ok(())
     }
 
@@ -808,6 +874,125 @@ impl TwoAxisLoop {
             *servo = ServoState::at_rest(guard.last_safe_volts(), mode);
         }
         self.handover_ticks = 0;
+        for e in &mut self.envelope {
+            e.servo_alone = false;
+            e.handback_ticks = 0;
+        }
+        self.envelope_handed = false;
+    }
+
+    /// After the servos were set to the control mode (their next tick hands over from the last
+    /// output), an axis the envelope policy had handed to its servo alone goes back to the
+    /// mode: the servo keeps running until its correction has faded out when the mode has no
+    /// feedback ([`HANDOVER_TIME_CONSTANTS`]·τ), and is handed over again at the next tick
+    /// still outside.
+    fn release_servo_alone(&mut self) {
+        let fade = if self.feedback {
+            0
+        } else {
+            self.handover_length()
+        };
+        for e in &mut self.envelope {
+            if e.servo_alone {
+                e.servo_alone = false;
+                e.handback_ticks = fade;
+            }
+        }
+        self.envelope_handed = self.envelope.iter().any(|e| e.handback_ticks > 0);
+    }
+
+    /// Axis `i` of a tick whose command `u` was (`outside`) or was not outside its envelope,
+    /// under the policy `feedback-only` with the compensator: outside, the servo alone drives
+    /// from the next tick (handed over from `u`: the PI's output takes the whole voltage);
+    /// inside again, the control mode's feed-forward resumes (handed over from `u`; without
+    /// feedback the servo's correction then fades out).
+    #[cold]
+    #[inline(never)]
+    fn envelope_switch(&mut self, i: usize, outside: bool, servo_ran: bool, u: f32) {
+        let i = i & 1;
+        self.envelope_handed = true;
+        if outside {
+            self.envelope[i].servo_alone = true;
+            self.envelope[i].handback_ticks = 0;
+            if servo_ran {
+                self.servo[i].set_mode(ServoMode::Feedback);
+            } else {
+                self.servo[i] = ServoState::at_rest(u, ServoMode::Feedback);
+            }
+        } else {
+            self.envelope[i].servo_alone = false;
+            self.servo[i].set_mode(self.control_mode());
+            if !self.feedback {
+                self.envelope[i].handback_ticks = self.handover_length();
+            }
+        }
+    }
+
+    /// Step 2's envelope check of a running tick (module docs, Envelope): per axis with an
+    /// envelope, the voltage applied `applied_v` after `previous_v` counted, and the policy's
+    /// hand-over; returns which axes were outside. Out of line: the tick without envelopes
+    /// does not carry it.
+    #[inline(never)]
+    fn envelope_tick(
+        &mut self,
+        applied_v: [f32; 2],
+        previous_v: [f32; 2],
+        servo_ran: [bool; 2],
+    ) -> [bool; 2] {
+        let mut outside = [false; 2];
+        for i in 0..2 {
+            let axis = &self.settings.axes[i];
+            let Some(envelope) = axis.envelope.as_ref() else {
+                continue;
+            };
+            let e = &mut self.envelope[i];
+            outside[i] = envelope.observe(&mut e.counts, applied_v[i], previous_v[i]);
+            if e.servo_alone {
+                e.servo_alone_ticks = e.servo_alone_ticks.saturating_add(1);
+            }
+            if outside[i] != e.servo_alone
+                && envelope.policy() == EnvelopePolicy::FeedbackOnly
+                && self.feedforward == Feedforward::Compensator
+                && axis.servo.is_some()
+            {
+                self.envelope_switch(i, outside[i], servo_ran[i], applied_v[i]);
+            }
+        }
+        outside
+    }
+
+    /// Step 3a for the envelope's hand-overs: a fade-out after the servo alone counts down.
+    #[inline(never)]
+    fn count_down_handback(&mut self, servo_ran: [bool; 2]) {
+        for (e, ran) in self.envelope.iter_mut().zip(servo_ran) {
+            if ran {
+                e.handback_ticks = e.handback_ticks.saturating_sub(1);
+            }
+        }
+        self.envelope_handed = self
+            .envelope
+            .iter()
+            .any(|e| e.servo_alone || e.handback_ticks > 0);
+    }
+
+    /// An axis's identified-envelope counts (ticks outside, largest excursions).
+    pub fn envelope_counts(&self, axis: Axis) -> EnvelopeCounts {
+        self.envelope[axis.index()].counts
+    }
+
+    /// Whether an axis's command of the last tick was outside its identified envelope.
+    pub fn envelope_outside(&self, axis: Axis) -> bool {
+        self.envelope[axis.index()].outside
+    }
+
+    /// Whether the envelope policy has handed an axis to its servo alone (from the next tick).
+    pub fn servo_alone(&self, axis: Axis) -> bool {
+        self.envelope[axis.index()].servo_alone
+    }
+
+    /// Ticks the servo alone drove an axis under the policy `feedback-only`.
+    pub fn servo_alone_ticks(&self, axis: Axis) -> u32 {
+        self.envelope[axis.index()].servo_alone_ticks
     }
 
     /// An axis's servo state (mode, last output and correction).
@@ -825,6 +1010,7 @@ impl TwoAxisLoop {
     /// override (see [`TwoAxisLoop::tick`]). The inverse effect chain restarts at rest at the
     /// applied voltages when the effects changed; the servo restarts at rest at them.
     pub fn set_settings(&mut self, settings: LoopSettings) {
+        let settings = settings.with_axes_checked();
         let effects_changed =
             (0..2).any(|i| settings.axes[i].effects != self.settings.axes[i].effects);
         self.frames.set_decimation(settings.frame_decimation);
@@ -944,9 +1130,18 @@ impl TwoAxisLoop {
             self.guard[0].last_safe_volts(),
             self.guard[1].last_safe_volts(),
         ];
-        let servo_runs = self.mode == Mode::Running
-            && self.feedforward != Feedforward::OpenLoop
-            && (self.feedback || self.handover_ticks > 0);
+        let servo_may_run = self.mode == Mode::Running && self.feedforward != Feedforward::OpenLoop;
+        let servo_runs = servo_may_run && (self.feedback || self.handover_ticks > 0);
+        // Per axis: the control mode's servo, or the envelope policy's (servo alone, or the
+        // fade-out after it).
+        let axis_servo_runs = if self.envelope_handed {
+            [0, 1].map(|i| {
+                let e = &self.envelope[i];
+                servo_may_run && (servo_runs || e.servo_alone || e.handback_ticks > 0)
+            })
+        } else {
+            [servo_runs; 2]
+        };
         if self.mode == Mode::Running {
             let previous_reference = self.last_reference_m;
             let mut learned_v = [f32::NAN; 2];
@@ -994,7 +1189,7 @@ impl TwoAxisLoop {
                 };
                 let feedforward = requested;
                 let requested = match axis.servo.as_ref() {
-                    Some(servo) if servo_runs => {
+                    Some(servo) if axis_servo_runs[i] => {
                         let out = servo.step(
                             &mut self.servo[i],
                             previous_reference[i],
@@ -1021,6 +1216,20 @@ impl TwoAxisLoop {
                 applied_v[i] = u;
             }
         }
+        // The identified envelope: counted while tracking (an excitation measures one).
+        let mut outside = [false; 2];
+        if self.settings.any_envelope
+            && self.mode == Mode::Running
+            && self.feedforward != Feedforward::OpenLoop
+        {
+            let previous_v = [
+                before_guard[0].last_safe_volts(),
+                before_guard[1].last_safe_volts(),
+            ];
+            outside = self.envelope_tick(applied_v, previous_v, axis_servo_runs);
+        }
+        self.envelope[0].outside = outside[0];
+        self.envelope[1].outside = outside[1];
 
         // 3. DAC.
         let gain = self.settings.amplifier_gain_v_per_v;
@@ -1051,17 +1260,18 @@ impl TwoAxisLoop {
         // 3a. Servo: a fade-out counts down; a servo that did not run this tick (safe,
         // excitation, feed-forward only) restarts at rest at the applied voltage when it runs
         // again (see `restart_servo`: rearm, set_feedforward, set_control_mode).
-        if servo_runs {
-            if !self.feedback {
-                self.handover_ticks = self.handover_ticks.saturating_sub(1);
+        if servo_runs && !self.feedback {
+            self.handover_ticks = self.handover_ticks.saturating_sub(1);
+        }
+        for i in 0..2 {
+            // A servo whose output was not applied (the guard overrode it: a fault, or the slew
+            // into a new window) restarts at rest at what was.
+            if axis_servo_runs[i] && self.servo[i].output_v() != applied_v[i] {
+                restart_at(&mut self.servo[i], applied_v[i]);
             }
-            // A servo whose output was not applied (the guard overrode it: a fault, or the
-            // slew into a new window) restarts at rest at what was.
-            for (servo, &u) in self.servo.iter_mut().zip(&applied_v) {
-                if servo.output_v() != u {
-                    restart_at(servo, u);
-                }
-            }
+        }
+        if self.envelope_handed {
+            self.count_down_handback(axis_servo_runs);
         }
 
         // 3b. Effects: the stage saw `applied_v` this tick (the held value if safe or if the
@@ -1087,13 +1297,17 @@ impl TwoAxisLoop {
         } else {
             self.last_reference_m
         };
-        self.frames.offer(|| {
-            [0, 1].map(|i| AxisSample {
-                reference_m: reference_m[i],
-                commanded_v: applied_v[i],
-                sensor_m: measured_m[i],
-            })
-        });
+        let flags = u8::from(outside[0]) | (u8::from(outside[1]) << 1);
+        self.frames.offer_flagged(
+            || {
+                [0, 1].map(|i| AxisSample {
+                    reference_m: reference_m[i],
+                    commanded_v: applied_v[i],
+                    sensor_m: measured_m[i],
+                })
+            },
+            flags,
+        );
         TickReport {
             reference_m,
             measured_m,

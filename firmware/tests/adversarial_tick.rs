@@ -207,6 +207,7 @@ fn base_axes() -> Vec<AxisParams> {
                 rest_output_m: a.rest_output_m,
                 effects: a.effects,
                 servo: a.servo,
+                envelope: a.envelope,
             });
         }
     }
@@ -277,7 +278,9 @@ fn random_settings(rng: &mut Rng, bases: &[AxisParams]) -> (LoopSettings, [InFor
         amplifier_gain_v_per_v: AMPLIFIER_GAIN_V_PER_V,
         stuck: StuckPolicy::DEFAULT,
         frame_decimation: 1 + rng.below(10) as u32,
-    };
+        any_envelope: false,
+    }
+    .with_axes([x.0, y.0]);
     (settings, [x.1, y.1], refused)
 }
 

@@ -490,10 +490,12 @@ pub fn compensate_cmd(a: &CompensateArgs) -> Result<String, String> {
     }
     let result = compensate(&a.params, &a.reference)?;
     write_csv(&a.out, &result.to_table()).map_err(|e| format!("--out: {e}"))?;
+    let (_, valid) = StageFile::load(&a.params).map_err(|e| e.to_string())?;
+    let envelope = envelope_summary(&valid, &result.voltages_v);
     let c = result.counts;
     Ok(format!(
         "compensate: {} ticks of {} written to {} (lead {} ticks; limited by the window or slew \
-         limit: {} samples)",
+         limit: {} samples){envelope}",
         c.ticks,
         result
             .voltages_v
@@ -505,6 +507,40 @@ pub fn compensate_cmd(a: &CompensateArgs) -> Result<String, String> {
         result.lead_ticks,
         c.limited
     ))
+}
+
+/// The ticks of each axis's voltages `voltages_v` (one per loop tick) that leave its identified
+/// envelope, as the firmware counts them (`piezo_core::EnvelopeMonitor::count`, from rest at the
+/// first voltage), per axis of `valid` that has one.
+pub fn envelope_counts(
+    valid: &ValidStage,
+    voltages_v: &[(String, Vec<f32>)],
+) -> Vec<(&'static str, piezo_core::EnvelopeCounts)> {
+    valid
+        .axes
+        .iter()
+        .zip(voltages_v)
+        .filter_map(|(axis, (_, u))| Some((axis.name, axis.envelope?.count(u.iter().copied()))))
+        .collect()
+}
+
+/// `; outside the identified envelope: x N ticks (…)` for the summary line, or nothing when no
+/// axis has an envelope.
+fn envelope_summary(valid: &ValidStage, voltages_v: &[(String, Vec<f32>)]) -> String {
+    let counts = envelope_counts(valid, voltages_v);
+    if counts.is_empty() {
+        return String::new();
+    }
+    let each: Vec<String> = counts
+        .iter()
+        .map(|(name, c)| {
+            format!(
+                "{name} {} ticks (by up to {} V, {} V/s over the rate)",
+                c.ticks_outside, c.max_voltage_excursion_v, c.max_rate_excursion_v_per_s
+            )
+        })
+        .collect();
+    format!("; outside the identified envelope: {}", each.join(", "))
 }
 
 /// Writes the reference of `spec` (values in µm) at the loop rate of the stage file at `params`:

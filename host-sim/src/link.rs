@@ -783,6 +783,7 @@ mod tests {
             table: [0, table],
             stream: [0, 63],
             learned: [0, table],
+            envelope: Default::default(),
         }
     }
 

@@ -148,6 +148,7 @@ fn delayed_plant_frames(first: u32, ticks: usize, decimation: usize) -> Vec<Fram
             commanded_v: [u(j, 7), u(j, 11)],
             sensor_m: [x(j, 7), x(j, 11)],
             trial: 0,
+            flags: 0,
         })
         .collect()
 }

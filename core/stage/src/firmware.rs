@@ -108,5 +108,6 @@ fn firmware_axis(file: &StageFile, valid: &ValidAxis) -> AxisParams {
         rest_output_m: valid.rest_output_m,
         effects: axis.effects,
         servo: axis.servo,
+        envelope: axis.envelope(),
     }
 }

@@ -33,11 +33,16 @@
 //! [x.effects]                        # optional: creep, even term, mode (mode_frequency_hz,
 //!                                    # mode_damping, mode_relative_damping), delay, drift, coupling,
 //!                                    # rate-dependent hysteresis (hysteresis_lag_s, relaxation_*)
-//! [x.limits]                         # output_min_v, output_max_v, slew_limit_v_per_s
+//! [x.limits]                         # output_min_v, output_max_v, slew_limit_v_per_s,
+//!                                    # envelope_policy = "warn" | "feedback-only" (default
+//!                                    # warn: what the firmware does while a command leaves
+//!                                    # the identified envelope, see below)
 //! [x.servo]                          # optional: kp_v_per_m, ki_v_per_m_s, lowpass_*, notch_*,
 //!                                    # transfer_time_constant_s (piezo_core::servo::tune)
 //! [x.identified]                     # optional: data, window_s, method, fit_rms_m,
-//!                                    # input_range_v, sample_period_s
+//!                                    # input_range_v, sample_period_s, and (optional, for
+//!                                    # files written before them) input_rate_max_v_per_s,
+//!                                    # band_hz = [lo, hi]
 //! [y]                                # optional second axis, same tables
 //! ```
 //!
@@ -59,6 +64,17 @@
 //! `MIN_WINDOW_TICKS` ticks), `IoChain::check` (the sensor span within the ADC's).
 //! [`Check::Models`] is the same without the compensator and the drive-span check: what a forward
 //! simulation of the file needs (`host-sim predict` runs sets that are not invertible).
+//!
+//! # Identified envelope ([`Axis::envelope`], `piezo_core::envelope`)
+//! `[x.identified]` says what the record the set was fitted to covered: its input range
+//! `input_range_v` (smallest and largest input), its largest rate `input_rate_max_v_per_s` =
+//! max |u\[k\] − u\[k−1\]| / T_record, and its band `band_hz` (informational: the narrowest band
+//! of the input's periodogram above DC that holds 99 % of its variance, 0.5 % left out on each
+//! side, [`input_band_hz`]). The firmware counts the ticks whose commanded voltage or rate leaves
+//! the range or the rate and applies `[x.limits] envelope_policy`: `warn` (the default) counts
+//! and flags only; `feedback-only` hands the axis to its servo alone while outside (refused
+//! without `[x.servo]` or without `[x.identified]`). A file without `input_rate_max_v_per_s`
+//! checks the range only.
 //!
 //! # Initial state
 //! Every consumer starts a record or a run that begins at u0 at rest there:
@@ -82,6 +98,7 @@ use piezo_core::effects::EffectParams;
 use piezo_core::{
     Asymmetry, BoucWenParams, MassSpringDamperParams, OscillatorParams, ServoParams, StaticMap,
 };
+pub use piezo_core::{Envelope, EnvelopePolicy};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -243,10 +260,18 @@ pub struct Limits {
     pub output_max_v: f32,
     /// Largest rate of change of the stack voltage \[V/s\].
     pub slew_limit_v_per_s: f32,
+    /// What the firmware does while a command leaves the identified envelope (`warn` when
+    /// absent).
+    #[serde(default, skip_serializing_if = "is_warn")]
+    pub envelope_policy: EnvelopePolicy,
+}
+
+fn is_warn(p: &EnvelopePolicy) -> bool {
+    *p == EnvelopePolicy::Warn
 }
 
 /// `[x.identified]`: where the set came from.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Provenance {
     /// The record the set was fitted to.
@@ -261,6 +286,82 @@ pub struct Provenance {
     pub input_range_v: [f32; 2],
     /// The record's sample period \[s\] (the rate δ, φ and the dynamics were identified at).
     pub sample_period_s: f32,
+    /// The record's largest input rate max |u\[k\] − u\[k−1\]| / T \[V/s\] (absent in files
+    /// written before it: no rate check).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub input_rate_max_v_per_s: Option<f32>,
+    /// The band of the record's input above DC that holds 99 % of its variance \[Hz\]
+    /// ([`input_band_hz`]; informational).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub band_hz: Option<[f32; 2]>,
+}
+
+impl Provenance {
+    /// The envelope of a record `u` \[V\] sampled every `sample_period_s` \[s\]: its largest
+    /// input rate and its band ([`input_rate_max_v_per_s`], [`input_band_hz`]).
+    pub fn with_envelope_of(mut self, u: &[f64], sample_period_s: f64) -> Self {
+        self.input_rate_max_v_per_s = Some(input_rate_max_v_per_s(u, sample_period_s) as f32);
+        self.band_hz = input_band_hz(u, sample_period_s).map(|(lo, hi)| [lo as f32, hi as f32]);
+        self
+    }
+}
+
+/// The largest |u\[k\] − u\[k−1\]| / T of a record \[V/s\] (0 for fewer than two samples).
+pub fn input_rate_max_v_per_s(u: &[f64], sample_period_s: f64) -> f64 {
+    u.windows(2)
+        .map(|w| (w[1] - w[0]).abs())
+        .fold(0.0, f64::max)
+        / sample_period_s
+}
+
+/// The band `[f_lo, f_hi]` \[Hz\] of a record's input above DC that holds 99 % of its variance:
+/// the periodogram |U(f_j)|² of the mean-removed input at f_j = j/(N·T), j = 1 … N/2, from the
+/// first j whose cumulative share exceeds 0.5 % to the first whose share reaches 99.5 %. The
+/// record is first averaged in blocks of ⌈N/4096⌉ samples (a decimation whose own Nyquist
+/// frequency bounds the band), so the DFT costs at most 4096 × 2048 terms. `None` for a
+/// constant input or fewer than 4 samples.
+pub fn input_band_hz(u: &[f64], sample_period_s: f64) -> Option<(f64, f64)> {
+    let block = u.len().div_ceil(4096).max(1);
+    let x: Vec<f64> = u
+        .chunks_exact(block)
+        .map(|c| c.iter().sum::<f64>() / block as f64)
+        .collect();
+    let n = x.len();
+    if n < 4 {
+        return None;
+    }
+    let mean = x.iter().sum::<f64>() / n as f64;
+    let dt = sample_period_s * block as f64;
+    let power: Vec<f64> = (1..=n / 2)
+        .map(|j| {
+            let w = 2.0 * std::f64::consts::PI * j as f64 / n as f64;
+            let (mut re, mut im) = (0.0, 0.0);
+            for (k, &v) in x.iter().enumerate() {
+                let (s, c) = (w * k as f64).sin_cos();
+                re += (v - mean) * c;
+                im -= (v - mean) * s;
+            }
+            re * re + im * im
+        })
+        .collect();
+    let total: f64 = power.iter().sum();
+    if !(total.is_finite() && total > 0.0) {
+        return None;
+    }
+    let f = |j: usize| (j + 1) as f64 / (n as f64 * dt);
+    let mut cumulative = 0.0;
+    let (mut lo, mut hi) = (None, None);
+    for (j, p) in power.iter().enumerate() {
+        cumulative += p / total;
+        if lo.is_none() && cumulative > 0.005 {
+            lo = Some(f(j));
+        }
+        if cumulative >= 0.995 {
+            hi = Some(f(j));
+            break;
+        }
+    }
+    Some((lo?, hi.unwrap_or(f(power.len() - 1))))
 }
 
 /// One axis: model, effects, limits and provenance.
@@ -298,6 +399,19 @@ pub struct Axis {
     /// Where the set came from.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub identified: Option<Provenance>,
+}
+
+impl Axis {
+    /// The identified envelope of this axis (`[x.identified]`'s input range and largest rate,
+    /// `f32::MAX` when the rate is not given) with `[x.limits] envelope_policy`; `None` without
+    /// `[x.identified]`.
+    pub fn envelope(&self) -> Option<Envelope> {
+        self.identified.as_ref().map(|p| Envelope {
+            input_range_v: p.input_range_v,
+            input_rate_max_v_per_s: p.input_rate_max_v_per_s.unwrap_or(f32::MAX),
+            policy: self.limits.envelope_policy,
+        })
+    }
 }
 
 fn is_identity(e: &EffectParams) -> bool {

@@ -21,6 +21,7 @@ fn example() -> StageFile {
             output_min_v: 0.0,
             output_max_v: 120.0,
             slew_limit_v_per_s: 1.0e5,
+            envelope_policy: EnvelopePolicy::Warn,
         },
     );
     x.effects.creep_gain_m_per_v[0] = 1.0e-8;
@@ -32,6 +33,8 @@ fn example() -> StageFile {
         fit_rms_m: 2.1e-9,
         input_range_v: [0.0, 120.0],
         sample_period_s: 1e-4,
+        input_rate_max_v_per_s: Some(2400.0),
+        band_hz: Some([1.0, 20.0]),
     });
     let mut y = x.clone();
     y.effects = EffectParams::default();
@@ -288,4 +291,82 @@ fn fnv1a32_reference_values() {
     assert_eq!(fnv1a32(b""), 0x811c_9dc5);
     assert_eq!(fnv1a32(b"a"), 0xe40c_292c);
     assert_eq!(fnv1a32(b"foobar"), 0xbf9c_f968);
+}
+
+/// The envelope keys: a file without them (written before them) still reads and has no rate
+/// check; the policy round-trips; `feedback-only` is refused without a servo or without an
+/// envelope, naming `x.limits.envelope_policy` and its line.
+#[test]
+fn envelope_keys_read_round_trip_and_refuse_feedback_only_without_a_servo() {
+    let text = example().to_toml("");
+    assert!(text.contains("input_rate_max_v_per_s = 2400.0"), "{text}");
+    assert!(
+        !text.contains("envelope_policy"),
+        "warn is the default: {text}"
+    );
+    let old = text
+        .lines()
+        .filter(|l| !l.starts_with("input_rate_max_v_per_s") && !l.starts_with("band_hz"))
+        .collect::<Vec<_>>()
+        .join("\n");
+    let file = StageFile::parse("old.toml", &old).unwrap();
+    let envelope = file.x.envelope().unwrap();
+    assert_eq!(envelope.input_rate_max_v_per_s, f32::MAX);
+    assert_eq!(envelope.policy, EnvelopePolicy::Warn);
+    assert!(file.validate().unwrap().axes[0].envelope.is_some());
+
+    let mut stage = example();
+    stage.x.limits.envelope_policy = EnvelopePolicy::FeedbackOnly;
+    let text = stage.to_toml("");
+    assert!(
+        text.contains("envelope_policy = \"feedback-only\""),
+        "{text}"
+    );
+    let back = StageFile::parse("f.toml", &text).unwrap();
+    assert_eq!(back, stage);
+    let e = back.validate().unwrap_err().located("f.toml", &text);
+    assert_eq!(e.key, "x.limits.envelope_policy", "{e}");
+    assert_eq!(
+        e.core,
+        Some(ParamError::NeedsServo {
+            field: "envelope_policy"
+        })
+    );
+    let at = text
+        .lines()
+        .position(|l| l.starts_with("envelope_policy"))
+        .unwrap()
+        + 1;
+    assert_eq!(e.line, Some(at), "{e}");
+    let mut stage = example();
+    stage.x.limits.envelope_policy = EnvelopePolicy::FeedbackOnly;
+    stage.x.identified = None;
+    let e = stage.validate().unwrap_err();
+    assert_eq!(e.key, "x.limits.envelope_policy", "{e}");
+    let bad = example().to_toml("").replacen(
+        "slew_limit_v_per_s = 100000.0",
+        "slew_limit_v_per_s = 100000.0\nenvelope_policy = \"servo\"",
+        1,
+    );
+    let e = StageFile::parse("f.toml", &bad).unwrap_err();
+    assert!(e.to_string().contains("feedback-only"), "{e}");
+}
+
+/// The band of a record's input: a 5 Hz sine over 2 s at 10 kHz holds its variance at 5 Hz; a
+/// constant has none.
+#[test]
+fn input_band_and_rate_of_a_record() {
+    let dt = 1e-4;
+    let u: Vec<f64> = (0..20_000)
+        .map(|k| 60.0 + 50.0 * (std::f64::consts::TAU * 5.0 * k as f64 * dt).sin())
+        .collect();
+    let (lo, hi) = input_band_hz(&u, dt).unwrap();
+    assert!(
+        (lo - 5.0).abs() < 0.6 && (hi - 5.0).abs() < 0.6,
+        "{lo}–{hi} Hz"
+    );
+    let rate = input_rate_max_v_per_s(&u, dt);
+    let exact = 50.0 * std::f64::consts::TAU * 5.0;
+    assert!((rate - exact).abs() < 1e-3 * exact, "{rate} vs {exact}");
+    assert_eq!(input_band_hz(&[3.0; 100], dt), None);
 }

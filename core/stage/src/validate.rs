@@ -10,8 +10,9 @@ use crate::error::{StageError, StageErrorKind};
 use crate::{Axis, Io, ModelKind, StageFile, STATE_LIMIT};
 use piezo_core::effects::{couple, Effects, EffectsState, OperatingRange};
 use piezo_core::{
-    Asymmetry, BoucWen, Compensator, CompensatorSettings, DynamicModel, HystereticOscillator,
-    IoChain, ModelState, OscillatorState, ParamError, Servo, StaticModel,
+    Asymmetry, BoucWen, Compensator, CompensatorSettings, DynamicModel, EnvelopeMonitor,
+    EnvelopePolicy, HystereticOscillator, IoChain, ModelState, OscillatorState, ParamError, Servo,
+    StaticModel,
 };
 
 /// Strokes a piezo stage plausibly has over its output window \[m\]: 10 nm to 10 mm. A stage
@@ -59,6 +60,9 @@ pub struct ValidAxis {
     /// The feedback servo (`[x.servo]`, built by [`StageFile::validate`] with the output limits
     /// and the loop period).
     pub servo: Option<Servo>,
+    /// The identified envelope's per-tick check at the loop period (`[x.identified]` with
+    /// `[x.limits] envelope_policy`, [`Axis::envelope`]; built by [`StageFile::validate`]).
+    pub envelope: Option<EnvelopeMonitor>,
 }
 
 /// A validated stage file at its loop rate: what the firmware runs.
@@ -83,6 +87,7 @@ fn core_key(name: &str, e: &ParamError, section: &str) -> String {
             let section = match *field {
                 "output_min_v" | "output_max_v" | "slew_limit_v_per_s" => "limits",
                 "input_min_v" | "input_max_v" => "limits",
+                "input_range_v" | "input_rate_max_v_per_s" => "identified",
                 "k1_m_per_v" | "k2_m_per_h" | "offset_m" => "static_map",
                 "delta_per_v_s" | "input_shift_s" => "asymmetry",
                 "sample_period_s" => return "stage.loop_rate_hz".into(),
@@ -97,6 +102,7 @@ fn core_key(name: &str, e: &ParamError, section: &str) -> String {
         ParamError::NotInvertible { .. } => format!("{name}.static_map"),
         ParamError::WindowOutsideDrive { .. } => format!("{name}.limits.output_max_v"),
         ParamError::SensorOutsideAdc { .. } => "io.sensor_range_v".into(),
+        ParamError::NeedsServo { field } => format!("{name}.limits.{field}"),
         ParamError::Discretisation { .. } => format!("{name}.{section}"),
     }
 }
@@ -236,7 +242,42 @@ impl Axis {
             rest_output_m,
             input_range_v,
             servo: None,
+            envelope: None,
         })
+    }
+}
+
+impl Axis {
+    /// The axis's envelope check at the loop period `sample_period_s` \[s\]
+    /// ([`Axis::envelope`], [`piezo_core::AxisParams::envelope_monitor`]): refused when the
+    /// policy is `feedback-only` and the axis has no `[x.identified]` envelope or no servo.
+    fn envelope_monitor(
+        &self,
+        name: &str,
+        sample_period_s: f32,
+    ) -> Result<Option<EnvelopeMonitor>, StageError> {
+        let Some(envelope) = self.envelope() else {
+            if self.limits.envelope_policy == EnvelopePolicy::FeedbackOnly {
+                return Err(invalid(
+                    &format!("{name}.limits.envelope_policy"),
+                    format!(
+                        "\"feedback-only\" acts outside the identified envelope, and the axis has \
+                         none: add [{name}.identified] (identify or close-loop write it) or use \"warn\""
+                    ),
+                ));
+            }
+            return Ok(None);
+        };
+        if envelope.policy == EnvelopePolicy::FeedbackOnly && self.servo.is_none() {
+            let e = ParamError::NeedsServo {
+                field: "envelope_policy",
+            };
+            return Err(located(core_key(name, &e, "limits"), e));
+        }
+        envelope
+            .monitor(sample_period_s)
+            .map(Some)
+            .map_err(|e| located(core_key(name, &e, "identified"), e))
     }
 }
 
@@ -359,6 +400,7 @@ impl StageFile {
                         .map_err(|e| located(core_key(name, &e, "servo"), e))?,
                 );
             }
+            valid.envelope = axis.envelope_monitor(name, sample_period_s)?;
             axes.push(valid);
         }
         Ok(ValidStage {

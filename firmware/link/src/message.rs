@@ -6,7 +6,8 @@
 use heapless::{String, Vec};
 use piezo_core::effects::{EffectParams, MAX_CREEP_ELEMENTS, MAX_RELAXATION_ELEMENTS};
 use piezo_core::{
-    Asymmetry, AxisParams, BoucWenParams, IoChain, ParamError, ServoParams, StaticMap,
+    Asymmetry, AxisParams, BoucWenParams, Envelope, EnvelopeCounts, IoChain, ParamError,
+    ServoParams, StaticMap,
 };
 use serde::{Deserialize, Serialize};
 
@@ -114,6 +115,9 @@ pub struct AxisModel {
     pub limits: Limits,
     /// The feedback servo (the stage file's `[x.servo]`; `None`: feed-forward only).
     pub servo: Option<ServoParams>,
+    /// The identified envelope and the policy outside it (the stage file's `[x.identified]`
+    /// and `[x.limits] envelope_policy`; `None`: nothing checked).
+    pub envelope: Option<Envelope>,
 }
 
 impl AxisModel {
@@ -131,6 +135,7 @@ impl AxisModel {
                 slew_limit_v_per_s: p.slew_limit_v_per_s,
             },
             servo: p.servo,
+            envelope: p.envelope,
         }
     }
 
@@ -149,6 +154,7 @@ impl AxisModel {
             rest_output_m: 0.0,
             effects: self.effects,
             servo: self.servo,
+            envelope: self.envelope,
         }
         .with_first_loading(sample_period_s)
     }
@@ -174,6 +180,9 @@ pub struct ModelSet {
 }
 
 /// What a host asks.
+// An upload is the large variant; no_std without allocation cannot box it, and a request is
+// built and moved once, never stored in bulk.
+#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Request {
     /// Answered with [`Response::Status`].
@@ -393,6 +402,24 @@ pub struct Counters {
     pub uploads: u32,
     /// Parameter sets refused (by the core, the chain or the control mode).
     pub refused_uploads: u32,
+    /// Ticks whose command left an axis's identified envelope (both axes; per axis in
+    /// [`Status::envelope`]).
+    pub envelope_excursions: u32,
+}
+
+/// One axis's identified envelope as the loop checks it (piezo-core's `envelope`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct EnvelopeStatus {
+    /// The running set has an envelope for this axis (otherwise nothing is checked).
+    pub known: bool,
+    /// The policy is `feedback-only`.
+    pub feedback_only: bool,
+    /// The last tick's command was outside.
+    pub outside: bool,
+    /// Ticks outside, and the largest voltage \[V\] and rate \[V/s\] excursions, since boot.
+    pub counts: EnvelopeCounts,
+    /// Ticks the servo alone drove the axis under `feedback-only`, since boot.
+    pub feedback_only_ticks: u32,
 }
 
 /// Tracking error of one axis since the last [`Request::Track`]: the sensor reading of tick k
@@ -443,6 +470,8 @@ pub struct Status {
     pub stream: [u32; 2],
     /// Learned voltage table entries held, and its capacity.
     pub learned: [u32; 2],
+    /// Per axis, the identified envelope's check.
+    pub envelope: [EnvelopeStatus; 2],
 }
 
 /// An answer to one request.
@@ -502,9 +531,26 @@ pub struct Frame {
     /// other programs), counted at the entry this tick plays; the host cuts a record of a
     /// repeating table into periods with it.
     pub trial: u32,
+    /// The tick's flags: [`Frame::OUTSIDE_X`], [`Frame::OUTSIDE_Y`].
+    pub flags: u8,
+}
+
+impl Frame {
+    /// Flag: x's command was outside its identified envelope in this tick.
+    pub const OUTSIDE_X: u8 = 1 << 0;
+    /// Flag: y's command was outside its identified envelope in this tick.
+    pub const OUTSIDE_Y: u8 = 1 << 1;
+
+    /// The envelope flag of axis `i` (0: x, 1: y).
+    pub const fn outside_flag(i: usize) -> u8 {
+        1 << (i & 1)
+    }
 }
 
 /// What the firmware sends.
+// A status is the large variant; no_std without allocation cannot box it, and an uplink is
+// built and encoded once, never stored in bulk.
+#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Uplink {
     /// The answer to the request with packet number `request`.

@@ -1,6 +1,8 @@
 use super::*;
 use piezo_core::effects::EffectParams;
-use piezo_core::{Asymmetry, BoucWenParams, ServoParams, StaticMap};
+use piezo_core::{
+    Asymmetry, BoucWenParams, Envelope, EnvelopeCounts, EnvelopePolicy, ServoParams, StaticMap,
+};
 use proptest::prelude::*;
 
 fn axis() -> AxisModel {
@@ -41,6 +43,11 @@ fn axis() -> AxisModel {
             notch_frequency_hz: 3221.0,
             notch_q: 1.0,
             transfer_time_constant_s: 0.02,
+        }),
+        envelope: Some(Envelope {
+            input_range_v: [0.5, 119.5],
+            input_rate_max_v_per_s: f32::MAX,
+            policy: EnvelopePolicy::FeedbackOnly,
         }),
     }
 }
@@ -115,6 +122,17 @@ fn full_status() -> Status {
         table: [2048, 2048],
         stream: [0, 63],
         learned: [2048, 2048],
+        envelope: [EnvelopeStatus {
+            known: true,
+            feedback_only: true,
+            outside: true,
+            counts: EnvelopeCounts {
+                ticks_outside: u32::MAX,
+                max_voltage_excursion_v: f32::MAX,
+                max_rate_excursion_v_per_s: f32::NAN,
+            },
+            feedback_only_ticks: u32::MAX,
+        }; 2],
     }
 }
 
@@ -181,6 +199,7 @@ fn every_message_round_trips_and_fits() {
         commanded_v: [60.0, 0.5],
         sensor_m: [1.1e-6, -0.0],
         trial: u32::MAX,
+        flags: Frame::OUTSIDE_X | Frame::OUTSIDE_Y,
     }));
     round_trip(Request::LearnedClear);
     round_trip(Request::LearnedAppend(

@@ -734,4 +734,5 @@ fn a_stale_reply_is_not_queued() {
     assert_eq!(sent[0].sequence, second.packet());
 }
 
+mod envelope;
 mod learned;

@@ -204,6 +204,9 @@ pub struct AxisOutcome {
     pub noise_m: f64,
     /// The record's input range \[V\].
     pub input_range_v: (f64, f64),
+    /// The record's largest input rate and band (`[x.identified]`'s, of
+    /// [`crate::identify::record_envelope`]).
+    pub envelope: (Option<f32>, Option<[f32; 2]>),
     /// Base model's prediction of the fitted record (piezo-stage's chain) \[m\].
     pub before: Vec<f64>,
     /// Final model's prediction \[m\].
@@ -1408,6 +1411,10 @@ pub fn close_loop_validated(
             steps,
             noise_m,
             input_range_v: min_max(&r.u),
+            envelope: {
+                let p = crate::identify::record_envelope(r, piezo_stage::Provenance::default());
+                (p.input_rate_max_v_per_s, p.band_hz)
+            },
             before: before[i].clone(),
             after: after[i].clone(),
             held_out_rms,

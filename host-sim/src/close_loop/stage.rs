@@ -47,6 +47,7 @@ pub fn stage_axis(m: &AxisModel, identified: Option<Provenance>) -> Axis {
             output_min_v: m.input_range_v.0,
             output_max_v: m.input_range_v.1,
             slew_limit_v_per_s: SLEW_LIMIT_V_PER_S,
+            envelope_policy: Default::default(),
         },
     );
     axis.effects = m.effects;
@@ -245,6 +246,8 @@ pub fn final_axes(outcome: &Outcome, data: &str) -> Vec<Axis> {
                     fit_rms_m: a.fit_after.rms,
                     input_range_v: [lo as f32, hi as f32],
                     sample_period_s: a.model.sample_period_s,
+                    input_rate_max_v_per_s: a.envelope.0,
+                    band_hz: a.envelope.1,
                 }),
             )
         })

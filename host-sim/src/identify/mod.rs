@@ -980,7 +980,7 @@ pub fn provenance(
     fit_rms_m: f64,
 ) -> piezo_stage::Provenance {
     let (lo, hi) = min_max(&record.u);
-    piezo_stage::Provenance {
+    let provenance = piezo_stage::Provenance {
         data: record.path.display().to_string(),
         window_s: [
             record.t_s[from.min(record.t_s.len() - 1)],
@@ -990,7 +990,29 @@ pub fn provenance(
         fit_rms_m,
         input_range_v: [lo as f32, hi as f32],
         sample_period_s: record.sample_period_s() as f32,
-    }
+        input_rate_max_v_per_s: None,
+        band_hz: None,
+    };
+    record_envelope(record, provenance)
+}
+
+/// `provenance` with the envelope of `record`'s input (`piezo_stage::Provenance::with_envelope_of`):
+/// its largest rate within each of its records (a jump from one record to the next is not a
+/// rate), its band over the first.
+pub fn record_envelope(
+    record: &Record,
+    provenance: piezo_stage::Provenance,
+) -> piezo_stage::Provenance {
+    let dt = record.sample_period_s();
+    let ranges = record.segment_ranges();
+    let (a, b) = ranges.first().copied().unwrap_or((0, record.u.len()));
+    let mut provenance = provenance.with_envelope_of(&record.u[a..b], dt);
+    let rate = ranges
+        .iter()
+        .map(|&(a, b)| piezo_stage::input_rate_max_v_per_s(&record.u[a..b], dt))
+        .fold(0.0, f64::max);
+    provenance.input_rate_max_v_per_s = Some(rate as f32);
+    provenance
 }
 
 /// The `--t/--u/--y` column choice shared by `identify` and `predict`: one axis, or two with
@@ -1595,6 +1617,12 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
                 }
             );
             eprintln!("warning: {msg}");
+        }
+        if let Some(c) = p.envelope.filter(|c| c.ticks_outside > 0) {
+            eprintln!(
+                "warning: {}: {} samples leave the identified envelope (range or rate), by up to {} V and {} V/s over its rate",
+                p.axis, c.ticks_outside, c.max_voltage_excursion_v, c.max_rate_excursion_v_per_s
+            );
         }
         lines.push(format!(
             "{}: {} on {}: rms {:.4e} m, r2 {}, mrd {} %",

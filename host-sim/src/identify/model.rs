@@ -243,6 +243,7 @@ pub fn to_axis(set: &Identified, provenance: Provenance) -> Axis {
         output_min_v: range.0,
         output_max_v: range.1,
         slew_limit_v_per_s: 1.0e5,
+        envelope_policy: Default::default(),
     };
     let mut axis = match *set {
         Identified::Static {

@@ -48,6 +48,10 @@ pub struct AxisPrediction {
     pub fit: FitBlock,
     /// Where the input left the identified range.
     pub excursion: RangeExcursion,
+    /// The samples whose input left the identified envelope (range or rate), as the firmware
+    /// counts them at the record's sample period (`piezo_core::EnvelopeMonitor::count`);
+    /// `None` without `[x.identified]`.
+    pub envelope: Option<piezo_core::EnvelopeCounts>,
 }
 
 fn identified_range(axis: &Axis) -> (f64, f64) {
@@ -177,7 +181,12 @@ pub fn predict_axes(
                 format!("{axis}: {} on {}: {e}", a.model.name(), r.path.display())
             };
             check_finite(&r.t_s, &r.y_m, &predicted_m, 0).map_err(named)?;
+            let envelope = a
+                .envelope()
+                .and_then(|e| e.monitor(r.sample_period_s() as f32).ok())
+                .map(|m| m.count(r.u.iter().map(|&v| v as f32)));
             Ok(AxisPrediction {
+                envelope,
                 axis,
                 model: a.model,
                 fit: fit_block(&r.t_s, &r.y_m, &predicted_m, from).map_err(named)?,
@@ -202,6 +211,7 @@ pub fn axis_json(p: &AxisPrediction) -> Value {
             "max_v": e.max_v,
             "clamped": e.clamped,
         },
+        "envelope": p.envelope,
     })
 }
 
