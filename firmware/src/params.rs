@@ -16,14 +16,15 @@
 //! by `piezo_core::IoChain::check_limits`, which the command link's upload calls again.
 
 pub use piezo_core::AxisParams;
-// The generated consts below are written with these names.
+// The generated consts below are written with these names (`ServoParams` only for a file with
+// a servo, the envelope's only for one with `[x.identified]`).
 use piezo_core::effects::EffectParams;
-use piezo_core::{Asymmetry, BoucWenParams, IoChain, ServoParams, StaticMap};
-// Only a file with `[x.identified]` writes them (the policy as its variant's name).
+use piezo_core::{Asymmetry, BoucWenParams, IoChain, StaticMap};
 #[allow(unused_imports)]
 use piezo_core::{
     Envelope,
     EnvelopePolicy::{FeedbackOnly, Warn},
+    ServoParams,
 };
 
 /// Largest |h| accepted for a range-limited Bouc-Wen set over the window (as in `build.rs`).
