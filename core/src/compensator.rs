@@ -247,6 +247,11 @@ struct FastPath {
     /// with the direction s = sgn(e)·sgn(dy/du) and σ = sgn h₀: κ = β·s + γ·σ (n = 1) or
     /// c = β·s·σ + γ (general n).
     branch: [f32; 4],
+    /// n = 1: g(κ·Δu) = (1 − e^(−κΔu))/κΔu ([`relax_factor`]) at a step of the slew limit,
+    /// Δu = s·M (M = `max_step_v`), per (s, σ), indexed by `2·[s < 0] + [σ < 0]`, with
+    /// κ = β·s + γ·σ as [`crate::bouc_wen::BoucWen::n1_branch`] forms it: the same operands, so
+    /// the same bits as computing it per sample ([`Compensator::compensate_limited_n1`]).
+    slew_g: [f32; 4],
     /// The bit pattern of the Bouc-Wen state clamp: a step ending beyond it (or across h = 0)
     /// is left to the general solve.
     clamp_bound_bits: u32,
@@ -293,11 +298,14 @@ impl FastPath {
                 beta * s * sigma + gamma
             }
         });
+        let slew_g = [(1.0f32, 1.0f32), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)]
+            .map(|(s, sigma)| relax_factor((beta * s + gamma * sigma) * (s * max_step_v)));
         Self {
             kind,
             k1,
             k2,
             offset_m,
+            slew_g,
             min_v: settings.output_min_v,
             max_v: settings.output_max_v,
             max_step_v,
@@ -463,9 +471,18 @@ impl Compensator {
     /// to the general solve (out of line).
     #[inline(always)]
     pub fn compensate(&self, state: &mut CompensatorState, desired_m: f32) -> Command {
-        let small = if self.fast.kind == FastKind::N1 {
-            self.compensate_small_n1(state, desired_m)
-        } else if self.fast.kind == FastKind::General {
+        if self.fast.kind == FastKind::N1 {
+            // What the small path refuses goes on with its start (u₀, h₀, e) to the rest of
+            // the n = 1 solves, as `compensate_general` would take it.
+            let Some(start) = self.small_step(state, desired_m) else {
+                return self.compensate_general(state, desired_m);
+            };
+            return match self.small_n1_from(state, start) {
+                Some(command) => command,
+                None => self.compensate_n1_refused(state, start, desired_m),
+            };
+        }
+        let small = if self.fast.kind == FastKind::General {
             self.compensate_small_general(state, desired_m)
         } else {
             None
@@ -611,6 +628,22 @@ impl Compensator {
         self.compensate_with_derivatives(state, desired_m, 0.0, 0.0)
     }
 
+    /// [`Compensator::compensate_general`] for n = 1 after the small path refused the step
+    /// from `(u₀, h₀, e, _)` ([`Compensator::small_step`]): the edge cases, then the general
+    /// solve; the same as `compensate_general` without computing the start again.
+    #[inline(never)]
+    fn compensate_n1_refused(
+        &self,
+        state: &mut CompensatorState,
+        (u0, h0, error, _): (f32, f32, f32, usize),
+        desired_m: f32,
+    ) -> Command {
+        match self.compensate_n1_edge(state, u0, h0, error, desired_m) {
+            Some(command) => command,
+            None => self.compensate_with_derivatives(state, desired_m, 0.0, 0.0),
+        }
+    }
+
     /// [`Compensator::compensate_general`]'s n = 1 cases, settled without the general solve's
     /// hold and output bookkeeping (the state is consistent and inside the window, so the hold
     /// state is the state itself): the limited step, the crossing, then the fast solve
@@ -650,17 +683,17 @@ impl Compensator {
         } else {
             linear
         };
-        if guess.abs() > limit.abs() {
+        let toward_zero = h0 != 0.0 && q * direction * sigma < 0.0;
+        // The limited step refuses a step across h = 0 at the limit: not tried when h surely
+        // crosses within it (`crosses_within`).
+        if guess.abs() > limit.abs() && !(toward_zero && crosses_within(h0, q, kappa, limit)) {
             if let Some(command) =
                 self.compensate_limited_n1(state, u0, h0, error, direction, limit)
             {
                 return Some(command);
             }
         }
-        let crossing = if h0 != 0.0
-            && q * direction * sigma < 0.0
-            && h0.abs() < math::max(p.a.abs(), q.abs()) * limit.abs()
-        {
+        let crossing = if toward_zero && h0.abs() < math::max(p.a.abs(), q.abs()) * limit.abs() {
             self.solve_n1_crossing(u0, h0, error, direction, limit)
         } else {
             None
@@ -698,7 +731,12 @@ impl Compensator {
     ) -> Option<Command> {
         let p = &self.fast;
         let (q, kappa, sigma) = self.model.hysteresis().n1_branch(h0, direction);
-        let g = relax_factor(kappa * limit);
+        // At the slew limit itself (not the window's edge) g is the table's.
+        let g = if limit == direction * p.max_step_v {
+            p.slew_g[usize::from(direction < 0.0) << 1 | usize::from(sigma < 0.0)]
+        } else {
+            relax_factor(kappa * limit)
+        };
         let short = error - limit * (p.k1 + p.k2 * q * g);
         let h1 = h0 + q * limit * g;
         if !(short * self.slope_sign * direction > 0.0 && h1 * sigma >= 0.0 && limit != 0.0) {
@@ -779,15 +817,34 @@ impl Compensator {
     /// series to z⁴, in Horner form, |κΔu| < 0.1: truncation < 1.4e-8). `None` hands every other
     /// case (h crossing zero included, see [`Compensator::compensate_general`]) to the general
     /// solve, which gives the same result there (tested).
+    ///
+    /// A step whose linear estimate |x₀| exceeds three slew steps is refused at once: the
+    /// reversion's Δu lies within 4 % of x₀ and the Newton step's (|kx| < 0.1, |w| < 0.2,
+    /// |κΔu| < 0.1: Δu within 13 % of x₀ before it, |k2·q·(g − 1)/S₀| ≤ 0.12 and
+    /// |k2·q·(e^(−κΔu) − 1)/S₀| ≤ 0.25 along it) is at least 0.46·|x₀|, so either is beyond
+    /// the slew limit, which [`Compensator::small_commit`] refuses.
     #[inline(always)]
     fn compensate_small_n1(&self, state: &mut CompensatorState, desired_m: f32) -> Option<Command> {
+        let start = self.small_step(state, desired_m)?;
+        self.small_n1_from(state, start)
+    }
+
+    /// [`Compensator::compensate_small_n1`] from its start `(u₀, h₀, e, branch)`.
+    #[inline(always)]
+    fn small_n1_from(
+        &self,
+        state: &mut CompensatorState,
+        (u0, h0, error, branch): (f32, f32, f32, usize),
+    ) -> Option<Command> {
         let p = &self.fast;
-        let (u0, h0, error, branch) = self.small_step(state, desired_m)?;
         let kappa = p.branch[branch];
         let q = p.a - kappa * h0;
         let k2q = p.k2 * q;
         let inverse_slope = 1.0 / (p.k1 + k2q);
         let x0 = error * inverse_slope;
+        if x0.abs() > 3.0 * p.max_step_v {
+            return self.slew_limited_n1(state, u0, h0, error, q, k2q);
+        }
         let kx = kappa * x0;
         let w = k2q * inverse_slope * kx;
         // Reversion to third order: 1 + w/2 + (w²/2 − w·kx/6) + (5w³/8 − 5w²·kx/12 + w·kx²/24).
@@ -805,6 +862,53 @@ impl Compensator {
         let g = 1.0 + z * (-0.5 + z * (1.0 / 6.0 + z * (-1.0 / 24.0 + z * (1.0 / 120.0))));
         let h1 = h0 + q * du * g;
         self.small_commit(state, u0, h0, du, h1)
+    }
+
+    /// The small path's step refused at once (|x₀| beyond three slew steps), settled when the
+    /// slew limit stops it: [`Compensator::compensate_limited_n1`] at Δu_lim = s·M with the
+    /// table's g(κ·Δu_lim), for h₀ ≠ 0 (σ = sgn h₀, κ and q = A − κ·h₀ of the small path's
+    /// branch: the same operands as `n1_branch` gives) and a limit the window does not move.
+    /// That is what [`Compensator::compensate_n1_edge`] does first with such a step: its start
+    /// `x₀·(1 − w/2)/(1 − w)` (or x₀) is at least 0.76·|x₀| > M, so it tries the limited step
+    /// (a step that surely crosses h = 0, which it does not try, the limited step refuses).
+    /// `None` (the edge solves) when the limit does not stop the step or does not apply.
+    #[inline(always)]
+    fn slew_limited_n1(
+        &self,
+        state: &mut CompensatorState,
+        u0: f32,
+        h0: f32,
+        error: f32,
+        q: f32,
+        k2q: f32,
+    ) -> Option<Command> {
+        let p = &self.fast;
+        let direction = if error * self.slope_sign > 0.0 {
+            1.0
+        } else {
+            -1.0
+        };
+        let limit = if direction > 0.0 {
+            math::min(p.max_v - u0, p.max_step_v)
+        } else {
+            math::max(p.min_v - u0, -p.max_step_v)
+        };
+        if !(limit == direction * p.max_step_v && h0 != 0.0 && error.is_finite()) {
+            return None;
+        }
+        let sigma = if h0 > 0.0 { 1.0 } else { -1.0 };
+        let g = p.slew_g[usize::from(direction < 0.0) << 1 | usize::from(h0 < 0.0)];
+        let short = error - limit * (p.k1 + k2q * g);
+        let h1 = h0 + q * limit * g;
+        if !(short * self.slope_sign * direction > 0.0 && h1 * sigma >= 0.0 && limit != 0.0) {
+            return None;
+        }
+        let (reached, _) = self.n1_commit(u0, limit, h1);
+        state.model = reached;
+        Some(Command {
+            voltage_v: reached.input_v,
+            status: CommandStatus::Limited,
+        })
     }
 
     /// One Newton step on `Δu·(k1 + k2·q·g(κΔu)) = e` from `du` (|κ·Δu| < 0.1, |kx| < 0.1,
@@ -1283,7 +1387,32 @@ impl Compensator {
             du0 + rest
         };
         let u = clamp(u0 + du, min, max);
-        let h1 = bw.advance(h0, u - u0);
+        let moved = u - u0;
+        // The model's step (`BoucWen::advance`, n = 1: h₀ + q·Δu·g(κΔu) unless that is past
+        // zero, else the split at Δu₀), the same operations on the same operands, with this
+        // solve's Δu₀ and, at the slew limit, the table's g(κΔu): the one-branch end is needed
+        // only when the step may end short of zero.
+        let at_slew = moved == direction * self.fast.max_step_v;
+        let one_branch = if at_slew {
+            let g = self.fast.slew_g[usize::from(direction < 0.0) << 1 | usize::from(sigma < 0.0)];
+            Some(h0 + q * moved * g)
+        } else if crosses_within(h0, q, kappa, moved) {
+            None
+        } else {
+            Some(h0 + q * moved * relax_factor(kappa * moved))
+        };
+        let h1 = match one_branch {
+            Some(h1) if h1 * sigma >= 0.0 => h1,
+            _ => {
+                let rest = if (moved - du0) * s > 0.0 {
+                    moved - du0
+                } else {
+                    0.0
+                };
+                a * rest * relax_factor(kappa_after * rest)
+            }
+        };
+        let h1 = bw.clamp_state(if h1.is_nan() { h0 } else { h1 });
         Some((
             ModelState {
                 input_v: u,
@@ -1328,6 +1457,20 @@ fn toward(du: f32, direction: f32, limit: f32) -> f32 {
     } else {
         clamp(du, limit, 0.0)
     }
+}
+
+/// Whether the n = 1 model's step `Δu` from `h0` on the branch (q = A − κ·h₀, κ), moving h
+/// toward zero, surely ends on the other side of zero, as the model decides it
+/// ([`crate::bouc_wen::BoucWen::advance`]: by the sign of `h₀ + q·Δu·g(κΔu)` in f32). Along the
+/// branch h moves by `q·Δu·g(z)`, z = κΔu, with g(z) = (1 − e^(−z))/z ≥ 1 − max(z, 0)/2 (g's
+/// alternating series for 0 < z ≤ 1/2; g ≥ 1 for z ≤ 0), so for |z| ≤ 1/2 and
+/// `|h₀| ≤ 0.999·|q·Δu|·(1 − max(z, 0)/2)` the exact end lies past zero by at least 7.5e-4 of
+/// |q·Δu|, far beyond the few f32 roundings (≈ 1e-6 of |q·Δu|) of its evaluation. False (not
+/// sure) otherwise, and for NaN.
+#[inline(always)]
+fn crosses_within(h0: f32, q: f32, kappa: f32, du: f32) -> bool {
+    let z = kappa * du;
+    z.abs() <= 0.5 && h0.abs() <= 0.999 * (q * du).abs() * (1.0 - 0.5 * math::max(z, 0.0))
 }
 
 /// The largest f32 ≤ `x`.
@@ -1534,7 +1677,8 @@ mod tests {
     /// (slew steps of 10 and 5 V): [`Compensator::compensate`] settles the steps its small path
     /// refuses without the general solve ([`Compensator::compensate_n1_edge`]), many of them
     /// stopped by the slew limit, over three quarters of which [`Compensator::compensate_limited_n1`]
-    /// settles alone with the same result (the rest cross h = 0); every voltage is the
+    /// settles alone with the same result (the rest cross h = 0; the small path settles the
+    /// clearest of them, [`Compensator::slew_limited_n1`], with the same result); every voltage is the
     /// general Newton solve's within 1e-4 V, with the same status (`Limited` or `Tracking`), and
     /// the state is the model's at the voltage within f32 rounding of h.
     #[test]
@@ -1564,7 +1708,10 @@ mod tests {
                 let u0 = hold.input_v;
                 let error_at_hold = compensator.model.output(&hold) - y_d;
                 let mut small = state;
-                let by_small = compensator.compensate_small_n1(&mut small, y_d).is_some();
+                // The small path's own steps; the slew-limited ones it settles are the edge's.
+                let by_small = compensator.compensate_small_n1(&mut small, y_d);
+                let slew_limited = by_small.is_some_and(|c| c.status == CommandStatus::Limited);
+                let by_small = by_small.is_some() && !slew_limited;
                 let mut fast = state;
                 let by_edge = compensator.compensate_n1_edge(
                     &mut fast,
@@ -1579,6 +1726,9 @@ mod tests {
                 }
                 let by_edge = by_edge.unwrap_or_else(|| panic!("k={k}: refused from {hold:?}"));
                 assert_eq!(by_edge, command, "k={k}");
+                if slew_limited {
+                    assert_eq!((small, fast), (state, state), "k={k}");
+                }
                 edge += 1;
                 let (direction, limit) = direction_and_limit(&compensator, u0, error_at_hold);
                 let newton = compensator.solve_newton(
@@ -1935,7 +2085,6 @@ mod tests {
             last = u;
         }
     }
-
 
     /// FNV-1a (64 bit) of a stream of words.
     fn fnv1a(hash: &mut u64, word: u32) {
