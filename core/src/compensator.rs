@@ -59,6 +59,10 @@ use crate::error::{finite, positive, ParamError, MIN_SLOPE_RATIO};
 use crate::math::{self, clamp};
 use crate::static_model::{ModelState, StaticMap, StaticModel};
 
+/// A step that h crosses zero in at the slew limit: direction, limit, q, κ, σ
+/// ([`Compensator::slew_limited_n1`]).
+type SlewCrossing = (f32, f32, f32, f32, f32);
+
 /// Fewest ticks a full-window move may take at a finite slew limit: with fewer the limit does not
 /// limit (a step across the whole window in one tick is what an unlimited command does). A narrow
 /// window (say 20 V at 10 V per tick) is legitimate; how fast the drive may swing over its whole
@@ -478,8 +482,11 @@ impl Compensator {
                 return self.compensate_general(state, desired_m);
             };
             return match self.small_n1_from(state, start) {
-                Some(command) => command,
-                None => self.compensate_n1_refused(state, start, desired_m),
+                Ok(command) => command,
+                Err(None) => self.compensate_n1_refused(state, start, desired_m),
+                Err(Some(crossing)) => {
+                    self.compensate_n1_slew_crossing(state, start, crossing, desired_m)
+                }
             };
         }
         let small = if self.fast.kind == FastKind::General {
@@ -644,6 +651,30 @@ impl Compensator {
         }
     }
 
+    /// [`Compensator::compensate_n1_refused`] for a step that h surely crosses zero in at the
+    /// slew limit `(direction, limit, q, κ, σ)` ([`Compensator::slew_limited_n1`]): what
+    /// [`Compensator::compensate_n1_edge`] does with it after its limited step refused it
+    /// ([`Compensator::n1_edge_tail`]), then the general solve.
+    #[inline(never)]
+    fn compensate_n1_slew_crossing(
+        &self,
+        state: &mut CompensatorState,
+        (u0, h0, error, _): (f32, f32, f32, usize),
+        (direction, limit, q, kappa, sigma): SlewCrossing,
+        desired_m: f32,
+    ) -> Command {
+        let tail = self.n1_edge_tail(
+            state,
+            (u0, h0, error, desired_m),
+            (direction, limit),
+            (q, kappa, sigma),
+        );
+        match tail {
+            Some(command) => command,
+            None => self.compensate_with_derivatives(state, desired_m, 0.0, 0.0),
+        }
+    }
+
     /// [`Compensator::compensate_general`]'s n = 1 cases, settled without the general solve's
     /// hold and output bookkeeping (the state is consistent and inside the window, so the hold
     /// state is the state itself): the limited step, the crossing, then the fast solve
@@ -693,11 +724,33 @@ impl Compensator {
                 return Some(command);
             }
         }
-        let crossing = if toward_zero && h0.abs() < math::max(p.a.abs(), q.abs()) * limit.abs() {
-            self.solve_n1_crossing(u0, h0, error, direction, limit)
-        } else {
-            None
-        };
+        self.n1_edge_tail(
+            state,
+            (u0, h0, error, desired_m),
+            (direction, limit),
+            (q, kappa, sigma),
+        )
+    }
+
+    /// [`Compensator::compensate_n1_edge`] after the limited step: the crossing when h moves
+    /// toward zero and may reach it within the limit, else the fast solve, and the status as
+    /// [`Compensator::solve`] reports it; `(q, κ, σ)` is `n1_branch(h₀, direction)`.
+    #[inline(always)]
+    fn n1_edge_tail(
+        &self,
+        state: &mut CompensatorState,
+        (u0, h0, error, desired_m): (f32, f32, f32, f32),
+        (direction, limit): (f32, f32),
+        branch: (f32, f32, f32),
+    ) -> Option<Command> {
+        let (q, _, sigma) = branch;
+        let toward_zero = h0 != 0.0 && q * direction * sigma < 0.0;
+        let crossing =
+            if toward_zero && h0.abs() < math::max(self.fast.a.abs(), q.abs()) * limit.abs() {
+                self.solve_n1_crossing(u0, h0, error, direction, limit, branch)
+            } else {
+                None
+            };
         let (reached, du) = match crossing {
             Some(step) => step,
             None => self.solve_n1_fast(&state.model, u0, error, direction, limit)?,
@@ -826,16 +879,18 @@ impl Compensator {
     #[inline(always)]
     fn compensate_small_n1(&self, state: &mut CompensatorState, desired_m: f32) -> Option<Command> {
         let start = self.small_step(state, desired_m)?;
-        self.small_n1_from(state, start)
+        self.small_n1_from(state, start).ok()
     }
 
-    /// [`Compensator::compensate_small_n1`] from its start `(u₀, h₀, e, branch)`.
+    /// [`Compensator::compensate_small_n1`] from its start `(u₀, h₀, e, branch)`; refused:
+    /// `Err(Some(..))` for a step h surely crosses zero in at the slew limit
+    /// ([`Compensator::slew_limited_n1`]), `Err(None)` otherwise.
     #[inline(always)]
     fn small_n1_from(
         &self,
         state: &mut CompensatorState,
         (u0, h0, error, branch): (f32, f32, f32, usize),
-    ) -> Option<Command> {
+    ) -> Result<Command, Option<SlewCrossing>> {
         let p = &self.fast;
         let kappa = p.branch[branch];
         let q = p.a - kappa * h0;
@@ -843,7 +898,7 @@ impl Compensator {
         let inverse_slope = 1.0 / (p.k1 + k2q);
         let x0 = error * inverse_slope;
         if x0.abs() > 3.0 * p.max_step_v {
-            return self.slew_limited_n1(state, u0, h0, error, q, k2q);
+            return self.slew_limited_n1(state, u0, h0, error, (q, kappa, k2q));
         }
         let kx = kappa * x0;
         let w = k2q * inverse_slope * kx;
@@ -855,13 +910,13 @@ impl Compensator {
         // NaN (a non-finite reference) fails this and goes to the Newton step, which refuses it.
         let reversion_ok = kx.abs() + w.abs() < 0.055;
         if !reversion_ok {
-            du = self.n1_newton_step(du, error, kappa, k2q)?;
+            du = self.n1_newton_step(du, error, kappa, k2q).ok_or(None)?;
         }
         let z = kappa * du;
         // g(z) = 1 − z/2 + z²/6 − z³/24 + z⁴/120.
         let g = 1.0 + z * (-0.5 + z * (1.0 / 6.0 + z * (-1.0 / 24.0 + z * (1.0 / 120.0))));
         let h1 = h0 + q * du * g;
-        self.small_commit(state, u0, h0, du, h1)
+        self.small_commit(state, u0, h0, du, h1).ok_or(None)
     }
 
     /// The small path's step refused at once (|x₀| beyond three slew steps), settled when the
@@ -871,7 +926,9 @@ impl Compensator {
     /// That is what [`Compensator::compensate_n1_edge`] does first with such a step: its start
     /// `x₀·(1 − w/2)/(1 − w)` (or x₀) is at least 0.76·|x₀| > M, so it tries the limited step
     /// (a step that surely crosses h = 0, which it does not try, the limited step refuses).
-    /// `None` (the edge solves) when the limit does not stop the step or does not apply.
+    /// `Err(Some((direction, limit, q, κ, σ)))` when h₁ lies past zero (the limited step's
+    /// refusal; h then moves toward zero), `Err(None)` (the edge solves) when the limit does not
+    /// stop the step or does not apply.
     #[inline(always)]
     fn slew_limited_n1(
         &self,
@@ -879,9 +936,8 @@ impl Compensator {
         u0: f32,
         h0: f32,
         error: f32,
-        q: f32,
-        k2q: f32,
-    ) -> Option<Command> {
+        (q, kappa, k2q): (f32, f32, f32),
+    ) -> Result<Command, Option<SlewCrossing>> {
         let p = &self.fast;
         let direction = if error * self.slope_sign > 0.0 {
             1.0
@@ -894,18 +950,21 @@ impl Compensator {
             math::max(p.min_v - u0, -p.max_step_v)
         };
         if !(limit == direction * p.max_step_v && h0 != 0.0 && error.is_finite()) {
-            return None;
+            return Err(None);
         }
         let sigma = if h0 > 0.0 { 1.0 } else { -1.0 };
         let g = p.slew_g[usize::from(direction < 0.0) << 1 | usize::from(h0 < 0.0)];
         let short = error - limit * (p.k1 + k2q * g);
         let h1 = h0 + q * limit * g;
+        if h1 * sigma < 0.0 && limit != 0.0 {
+            return Err(Some((direction, limit, q, kappa, sigma)));
+        }
         if !(short * self.slope_sign * direction > 0.0 && h1 * sigma >= 0.0 && limit != 0.0) {
-            return None;
+            return Err(None);
         }
         let (reached, _) = self.n1_commit(u0, limit, h1);
         state.model = reached;
-        Some(Command {
+        Ok(Command {
             voltage_v: reached.input_v,
             status: CommandStatus::Limited,
         })
@@ -1184,7 +1243,7 @@ impl Compensator {
             if h1 * sigma >= 0.0 {
                 return Some(self.n1_commit(u0, du, h1));
             }
-            return self.solve_n1_crossing(u0, h0, error, direction, limit);
+            return self.solve_n1_crossing(u0, h0, error, direction, limit, (q, kappa, sigma));
         }
         // The start: the root of the map's second-order expansion S₀·Δu − (k2·q·κ/2)·Δu² = e,
         // 2x₀/(1 + √(1 − 2w)), with the square root by its [1/1] Padé form
@@ -1212,7 +1271,7 @@ impl Compensator {
         }
         let h1 = h0 + q * du * relax_series(z);
         if h1 * sigma < 0.0 {
-            return self.solve_n1_crossing(u0, h0, error, direction, limit);
+            return self.solve_n1_crossing(u0, h0, error, direction, limit, (q, kappa, sigma));
         }
         Some(self.n1_commit(u0, du, h1))
     }
@@ -1245,13 +1304,13 @@ impl Compensator {
             && h0.abs() < math::max(self.fast.a.abs(), q.abs()) * start.abs()
             && (h0 + q * start * relax_factor(kappa * start)) * sigma < 0.0
         {
-            return self.solve_n1_crossing(u0, h0, error, direction, limit);
+            return self.solve_n1_crossing(u0, h0, error, direction, limit, (q, kappa, sigma));
         }
         let du = self.n1_newton(k2q, kappa, error, direction, limit, start)?;
         // h₁ as the model's own step computes it (`BoucWen::advance` on one branch).
         let h1 = h0 + q * du * relax_factor(kappa * du);
         if h1 * sigma < 0.0 {
-            return self.solve_n1_crossing(u0, h0, error, direction, limit);
+            return self.solve_n1_crossing(u0, h0, error, direction, limit, (q, kappa, sigma));
         }
         Some(self.n1_commit(u0, du, h1))
     }
@@ -1331,6 +1390,7 @@ impl Compensator {
         error: f32,
         direction: f32,
         limit: f32,
+        (q, kappa, sigma): (f32, f32, f32),
     ) -> Option<(ModelState, f32)> {
         let StaticMap {
             k1_m_per_v: k1,
@@ -1339,7 +1399,6 @@ impl Compensator {
         } = self.model.map();
         let bw = self.model.hysteresis();
         let BoucWenParams { a, beta, gamma, .. } = bw.params();
-        let (q, kappa, sigma) = bw.n1_branch(h0, direction);
         if !(h0 != 0.0 && q * direction * sigma < 0.0) {
             return None;
         }
