@@ -2145,6 +2145,39 @@ mod tests {
         }
     }
 
+    /// `crosses_within` never says "crosses" where the model's step (the one-branch end
+    /// `h₀ + q·Δu·g(κΔu)` in f32, `BoucWen::advance`'s test) stays on h₀'s side, over random
+    /// states and steps toward zero on all four branches, and says it for most steps that end
+    /// past zero by more than 1 % of |q·Δu|.
+    #[test]
+    fn crosses_within_is_the_model_s_crossing() {
+        let bw = x_stack(1.0, 1e3);
+        let mut seed = 99u32;
+        let mut rand = || {
+            seed = seed.wrapping_mul(1664525).wrapping_add(1013904223);
+            (seed >> 8) as f32 / (1u32 << 24) as f32
+        };
+        let (mut sure, mut clear) = (0u32, 0u32);
+        for _ in 0..200_000 {
+            let h0 = 30.0 * (rand() - 0.5);
+            let direction = if rand() < 0.5 { -1.0 } else { 1.0 };
+            let (q, kappa, sigma) = bw.n1_branch(h0, direction);
+            if !(h0 != 0.0 && q * direction * sigma < 0.0) {
+                continue;
+            }
+            let du = direction * 12.0 * rand();
+            let end = h0 + q * du * relax_factor(kappa * du);
+            if crosses_within(h0, q, kappa, du) {
+                sure += 1;
+                assert!(end * sigma < 0.0, "h0 {h0} du {du}: ends at {end}");
+            }
+            if end * sigma < -0.01 * (q * du).abs() && (kappa * du).abs() <= 0.5 {
+                clear += 1;
+            }
+        }
+        assert!(sure * 10 > clear * 9 && clear > 3_000, "{sure} of {clear}");
+    }
+
     /// FNV-1a (64 bit) of a stream of words.
     fn fnv1a(hash: &mut u64, word: u32) {
         for byte in word.to_le_bytes() {
