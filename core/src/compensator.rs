@@ -229,7 +229,7 @@ pub struct Compensator {
 enum FastKind {
     /// Asymmetric terms or the force target: always the general solve.
     None,
-    /// n = 1: [`Compensator::compensate_small_n1`].
+    /// n = 1: [`Compensator::small_n1_from`].
     N1,
     /// n ≠ 1: [`Compensator::compensate_small_general`].
     General,
@@ -856,6 +856,13 @@ impl Compensator {
         })
     }
 
+    /// [`Compensator::small_n1_from`] from the state (the small path alone, for the tests).
+    #[cfg(test)]
+    fn compensate_small_n1(&self, state: &mut CompensatorState, desired_m: f32) -> Option<Command> {
+        let start = self.small_step(state, desired_m)?;
+        self.small_n1_from(state, start).ok()
+    }
+
     /// The common case of a loop at a normal rate, in few instructions: n = 1, no asymmetric terms,
     /// a consistent state inside the window, a finite reference and a small step that the window
     /// and the slew limit leave alone. With the error e = y_d − y(u₀), the branch's κ and
@@ -871,18 +878,14 @@ impl Compensator {
     /// case (h crossing zero included, see [`Compensator::compensate_general`]) to the general
     /// solve, which gives the same result there (tested).
     ///
-    /// A step whose linear estimate |x₀| exceeds three slew steps is refused at once: the
+    /// A step whose linear estimate |x₀| exceeds three slew steps is not solved by the series:
+    /// it goes to the slew-limited step ([`Compensator::slew_limited_n1`]), since the
     /// reversion's Δu lies within 4 % of x₀ and the Newton step's (|kx| < 0.1, |w| < 0.2,
     /// |κΔu| < 0.1: Δu within 13 % of x₀ before it, |k2·q·(g − 1)/S₀| ≤ 0.12 and
     /// |k2·q·(e^(−κΔu) − 1)/S₀| ≤ 0.25 along it) is at least 0.46·|x₀|, so either is beyond
-    /// the slew limit, which [`Compensator::small_commit`] refuses.
-    #[inline(always)]
-    fn compensate_small_n1(&self, state: &mut CompensatorState, desired_m: f32) -> Option<Command> {
-        let start = self.small_step(state, desired_m)?;
-        self.small_n1_from(state, start).ok()
-    }
-
-    /// [`Compensator::compensate_small_n1`] from its start `(u₀, h₀, e, branch)`; refused:
+    /// the slew limit, which [`Compensator::small_commit`] would refuse.
+    ///
+    /// From its start `(u₀, h₀, e, branch)` ([`Compensator::small_step`]); refused:
     /// `Err(Some(..))` for a step h surely crosses zero in at the slew limit
     /// ([`Compensator::slew_limited_n1`]), `Err(None)` otherwise.
     #[inline(always)]
@@ -2202,8 +2205,8 @@ mod tests {
     fn n1_tick_stream(sign: f32, rate_hz: f32, ticks: u32) -> StreamSummary {
         let bw = x_stack(1.0, 1e3);
         let map = StaticMap {
-            k1_m_per_v: sign * 3.5739391e-7,
-            k2_m_per_h: -sign * 3.5739391e-7,
+            k1_m_per_v: sign * 3.573_939e-7,
+            k2_m_per_h: -sign * 3.573_939e-7,
             offset_m: 0.0,
         };
         let settings = window(1.0 / rate_hz).inside_guard();
