@@ -475,21 +475,9 @@ impl Compensator {
     /// to the general solve (out of line).
     #[inline(always)]
     pub fn compensate(&self, state: &mut CompensatorState, desired_m: f32) -> Command {
-        if self.fast.kind == FastKind::N1 {
-            // What the small path refuses goes on with its start (u₀, h₀, e) to the rest of
-            // the n = 1 solves, as `compensate_general` would take it.
-            let Some(start) = self.small_step(state, desired_m) else {
-                return self.compensate_general(state, desired_m);
-            };
-            return match self.small_n1_from(state, start) {
-                Ok(command) => command,
-                Err(None) => self.compensate_n1_refused(state, start, desired_m),
-                Err(Some(crossing)) => {
-                    self.compensate_n1_slew_crossing(state, start, crossing, desired_m)
-                }
-            };
-        }
-        let small = if self.fast.kind == FastKind::General {
+        let small = if self.fast.kind == FastKind::N1 {
+            self.compensate_small_n1(state, desired_m)
+        } else if self.fast.kind == FastKind::General {
             self.compensate_small_general(state, desired_m)
         } else {
             None
@@ -622,14 +610,14 @@ impl Compensator {
     ///   A and |q|): [`Compensator::solve_n1_crossing`];
     /// - otherwise [`Compensator::solve_n1_fast`].
     ///
-    /// What those refuse, and every other model, goes to the general solve.
+    /// A step clearly beyond the slew limit is tried first at the limit with g from a table
+    /// ([`Compensator::compensate_n1_refused`]). What those refuse, and every other model, goes
+    /// to the general solve.
     #[inline(never)]
     fn compensate_general(&self, state: &mut CompensatorState, desired_m: f32) -> Command {
         if self.fast.kind == FastKind::N1 {
-            if let Some((u0, h0, error, _)) = self.small_step(state, desired_m) {
-                if let Some(command) = self.compensate_n1_edge(state, u0, h0, error, desired_m) {
-                    return command;
-                }
+            if let Some(start) = self.small_step(state, desired_m) {
+                return self.compensate_n1_refused(state, start, desired_m);
             }
         }
         self.compensate_with_derivatives(state, desired_m, 0.0, 0.0)
@@ -638,38 +626,41 @@ impl Compensator {
     /// [`Compensator::compensate_general`] for n = 1 after the small path refused the step
     /// from `(u₀, h₀, e, _)` ([`Compensator::small_step`]): the edge cases, then the general
     /// solve; the same as `compensate_general` without computing the start again.
-    #[inline(never)]
+    ///
+    /// A step the small path refused with |x₀| beyond three slew steps (x₀ as it computes it)
+    /// is first tried as a slew-limited step ([`Compensator::slew_limited_n1`]); one that h
+    /// surely crosses zero in at the slew limit goes on to [`Compensator::n1_edge_tail`].
+    #[inline(always)]
     fn compensate_n1_refused(
         &self,
         state: &mut CompensatorState,
-        (u0, h0, error, _): (f32, f32, f32, usize),
+        (u0, h0, error, branch): (f32, f32, f32, usize),
         desired_m: f32,
     ) -> Command {
-        match self.compensate_n1_edge(state, u0, h0, error, desired_m) {
-            Some(command) => command,
-            None => self.compensate_with_derivatives(state, desired_m, 0.0, 0.0),
+        let p = &self.fast;
+        let kappa = p.branch[branch];
+        let q = p.a - kappa * h0;
+        let k2q = p.k2 * q;
+        let x0 = error * (1.0 / (p.k1 + k2q));
+        if x0.abs() > 3.0 * p.max_step_v {
+            match self.slew_limited_n1(state, u0, h0, error, (q, kappa, k2q)) {
+                Ok(command) => return command,
+                Err(Some((direction, limit, q, kappa, sigma))) => {
+                    let tail = self.n1_edge_tail(
+                        state,
+                        (u0, h0, error, desired_m),
+                        (direction, limit),
+                        (q, kappa, sigma),
+                    );
+                    return match tail {
+                        Some(command) => command,
+                        None => self.compensate_with_derivatives(state, desired_m, 0.0, 0.0),
+                    };
+                }
+                Err(None) => {}
+            }
         }
-    }
-
-    /// [`Compensator::compensate_n1_refused`] for a step that h surely crosses zero in at the
-    /// slew limit `(direction, limit, q, κ, σ)` ([`Compensator::slew_limited_n1`]): what
-    /// [`Compensator::compensate_n1_edge`] does with it after its limited step refused it
-    /// ([`Compensator::n1_edge_tail`]), then the general solve.
-    #[inline(never)]
-    fn compensate_n1_slew_crossing(
-        &self,
-        state: &mut CompensatorState,
-        (u0, h0, error, _): (f32, f32, f32, usize),
-        (direction, limit, q, kappa, sigma): SlewCrossing,
-        desired_m: f32,
-    ) -> Command {
-        let tail = self.n1_edge_tail(
-            state,
-            (u0, h0, error, desired_m),
-            (direction, limit),
-            (q, kappa, sigma),
-        );
-        match tail {
+        match self.compensate_n1_edge(state, u0, h0, error, desired_m) {
             Some(command) => command,
             None => self.compensate_with_derivatives(state, desired_m, 0.0, 0.0),
         }
@@ -856,11 +847,11 @@ impl Compensator {
         })
     }
 
-    /// [`Compensator::small_n1_from`] from the state (the small path alone, for the tests).
-    #[cfg(test)]
+    /// [`Compensator::small_n1_from`] from the state.
+    #[inline(always)]
     fn compensate_small_n1(&self, state: &mut CompensatorState, desired_m: f32) -> Option<Command> {
         let start = self.small_step(state, desired_m)?;
-        self.small_n1_from(state, start).ok()
+        self.small_n1_from(state, start)
     }
 
     /// The common case of a loop at a normal rate, in few instructions: n = 1, no asymmetric terms,
@@ -878,31 +869,26 @@ impl Compensator {
     /// case (h crossing zero included, see [`Compensator::compensate_general`]) to the general
     /// solve, which gives the same result there (tested).
     ///
-    /// A step whose linear estimate |x₀| exceeds three slew steps is not solved by the series:
-    /// it goes to the slew-limited step ([`Compensator::slew_limited_n1`]), since the
+    /// A step whose linear estimate |x₀| exceeds three slew steps is refused without the Newton
+    /// step (and tried as a slew-limited step, [`Compensator::compensate_n1_refused`]), since the
     /// reversion's Δu lies within 4 % of x₀ and the Newton step's (|kx| < 0.1, |w| < 0.2,
     /// |κΔu| < 0.1: Δu within 13 % of x₀ before it, |k2·q·(g − 1)/S₀| ≤ 0.12 and
     /// |k2·q·(e^(−κΔu) − 1)/S₀| ≤ 0.25 along it) is at least 0.46·|x₀|, so either is beyond
     /// the slew limit, which [`Compensator::small_commit`] would refuse.
     ///
-    /// From its start `(u₀, h₀, e, branch)` ([`Compensator::small_step`]); refused:
-    /// `Err(Some(..))` for a step h surely crosses zero in at the slew limit
-    /// ([`Compensator::slew_limited_n1`]), `Err(None)` otherwise.
+    /// From its start `(u₀, h₀, e, branch)` ([`Compensator::small_step`]).
     #[inline(always)]
     fn small_n1_from(
         &self,
         state: &mut CompensatorState,
         (u0, h0, error, branch): (f32, f32, f32, usize),
-    ) -> Result<Command, Option<SlewCrossing>> {
+    ) -> Option<Command> {
         let p = &self.fast;
         let kappa = p.branch[branch];
         let q = p.a - kappa * h0;
         let k2q = p.k2 * q;
         let inverse_slope = 1.0 / (p.k1 + k2q);
         let x0 = error * inverse_slope;
-        if x0.abs() > 3.0 * p.max_step_v {
-            return self.slew_limited_n1(state, u0, h0, error, (q, kappa, k2q));
-        }
         let kx = kappa * x0;
         let w = k2q * inverse_slope * kx;
         // Reversion to third order: 1 + w/2 + (w²/2 − w·kx/6) + (5w³/8 − 5w²·kx/12 + w·kx²/24).
@@ -913,16 +899,19 @@ impl Compensator {
         // NaN (a non-finite reference) fails this and goes to the Newton step, which refuses it.
         let reversion_ok = kx.abs() + w.abs() < 0.055;
         if !reversion_ok {
-            du = self.n1_newton_step(du, error, kappa, k2q).ok_or(None)?;
+            if x0.abs() > 3.0 * p.max_step_v {
+                return None;
+            }
+            du = self.n1_newton_step(du, error, kappa, k2q)?;
         }
         let z = kappa * du;
         // g(z) = 1 − z/2 + z²/6 − z³/24 + z⁴/120.
         let g = 1.0 + z * (-0.5 + z * (1.0 / 6.0 + z * (-1.0 / 24.0 + z * (1.0 / 120.0))));
         let h1 = h0 + q * du * g;
-        self.small_commit(state, u0, h0, du, h1).ok_or(None)
+        self.small_commit(state, u0, h0, du, h1)
     }
 
-    /// The small path's step refused at once (|x₀| beyond three slew steps), settled when the
+    /// A step the small path refused with |x₀| beyond three slew steps, settled when the
     /// slew limit stops it: [`Compensator::compensate_limited_n1`] at Δu_lim = s·M with the
     /// table's g(κ·Δu_lim), for h₀ ≠ 0 (σ = sgn h₀, κ and q = A − κ·h₀ of the small path's
     /// branch: the same operands as `n1_branch` gives) and a limit the window does not move.
@@ -932,7 +921,7 @@ impl Compensator {
     /// `Err(Some((direction, limit, q, κ, σ)))` when h₁ lies past zero (the limited step's
     /// refusal; h then moves toward zero), `Err(None)` (the edge solves) when the limit does not
     /// stop the step or does not apply.
-    #[inline(always)]
+    #[inline]
     fn slew_limited_n1(
         &self,
         state: &mut CompensatorState,
@@ -1739,8 +1728,7 @@ mod tests {
     /// (slew steps of 10 and 5 V): [`Compensator::compensate`] settles the steps its small path
     /// refuses without the general solve ([`Compensator::compensate_n1_edge`]), many of them
     /// stopped by the slew limit, over three quarters of which [`Compensator::compensate_limited_n1`]
-    /// settles alone with the same result (the rest cross h = 0; the small path settles the
-    /// clearest of them, [`Compensator::slew_limited_n1`], with the same result); every voltage is the
+    /// settles alone with the same result (the rest cross h = 0); every voltage is the
     /// general Newton solve's within 1e-4 V, with the same status (`Limited` or `Tracking`), and
     /// the state is the model's at the voltage within f32 rounding of h.
     #[test]
@@ -1770,10 +1758,7 @@ mod tests {
                 let u0 = hold.input_v;
                 let error_at_hold = compensator.model.output(&hold) - y_d;
                 let mut small = state;
-                // The small path's own steps; the slew-limited ones it settles are the edge's.
-                let by_small = compensator.compensate_small_n1(&mut small, y_d);
-                let slew_limited = by_small.is_some_and(|c| c.status == CommandStatus::Limited);
-                let by_small = by_small.is_some() && !slew_limited;
+                let by_small = compensator.compensate_small_n1(&mut small, y_d).is_some();
                 let mut fast = state;
                 let by_edge = compensator.compensate_n1_edge(
                     &mut fast,
@@ -1788,9 +1773,6 @@ mod tests {
                 }
                 let by_edge = by_edge.unwrap_or_else(|| panic!("k={k}: refused from {hold:?}"));
                 assert_eq!(by_edge, command, "k={k}");
-                if slew_limited {
-                    assert_eq!((small, fast), (state, state), "k={k}");
-                }
                 edge += 1;
                 let (direction, limit) = direction_and_limit(&compensator, u0, error_at_hold);
                 let newton = compensator.solve_newton(
