@@ -59,6 +59,10 @@ use crate::error::{finite, positive, ParamError, MIN_SLOPE_RATIO};
 use crate::math::{self, clamp};
 use crate::static_model::{ModelState, StaticMap, StaticModel};
 
+/// A step that h crosses zero in at the slew limit: direction, limit, q, κ, σ
+/// ([`Compensator::slew_limited_n1`]).
+type SlewCrossing = (f32, f32, f32, f32, f32);
+
 /// Fewest ticks a full-window move may take at a finite slew limit: with fewer the limit does not
 /// limit (a step across the whole window in one tick is what an unlimited command does). A narrow
 /// window (say 20 V at 10 V per tick) is legitimate; how fast the drive may swing over its whole
@@ -225,7 +229,7 @@ pub struct Compensator {
 enum FastKind {
     /// Asymmetric terms or the force target: always the general solve.
     None,
-    /// n = 1: [`Compensator::compensate_small_n1`].
+    /// n = 1: [`Compensator::small_n1_from`].
     N1,
     /// n ≠ 1: [`Compensator::compensate_small_general`].
     General,
@@ -247,6 +251,11 @@ struct FastPath {
     /// with the direction s = sgn(e)·sgn(dy/du) and σ = sgn h₀: κ = β·s + γ·σ (n = 1) or
     /// c = β·s·σ + γ (general n).
     branch: [f32; 4],
+    /// n = 1: g(κ·Δu) = (1 − e^(−κΔu))/κΔu ([`relax_factor`]) at a step of the slew limit,
+    /// Δu = s·M (M = `max_step_v`), per (s, σ), indexed by `2·[s < 0] + [σ < 0]`, with
+    /// κ = β·s + γ·σ as [`crate::bouc_wen::BoucWen::n1_branch`] forms it: the same operands, so
+    /// the same bits as computing it per sample ([`Compensator::compensate_limited_n1`]).
+    slew_g: [f32; 4],
     /// The bit pattern of the Bouc-Wen state clamp: a step ending beyond it (or across h = 0)
     /// is left to the general solve.
     clamp_bound_bits: u32,
@@ -293,11 +302,14 @@ impl FastPath {
                 beta * s * sigma + gamma
             }
         });
+        let slew_g = [(1.0f32, 1.0f32), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)]
+            .map(|(s, sigma)| relax_factor((beta * s + gamma * sigma) * (s * max_step_v)));
         Self {
             kind,
             k1,
             k2,
             offset_m,
+            slew_g,
             min_v: settings.output_min_v,
             max_v: settings.output_max_v,
             max_step_v,
@@ -598,17 +610,60 @@ impl Compensator {
     ///   A and |q|): [`Compensator::solve_n1_crossing`];
     /// - otherwise [`Compensator::solve_n1_fast`].
     ///
-    /// What those refuse, and every other model, goes to the general solve.
+    /// A step clearly beyond the slew limit is tried first at the limit with g from a table
+    /// ([`Compensator::compensate_n1_refused`]). What those refuse, and every other model, goes
+    /// to the general solve.
     #[inline(never)]
     fn compensate_general(&self, state: &mut CompensatorState, desired_m: f32) -> Command {
         if self.fast.kind == FastKind::N1 {
-            if let Some((u0, h0, error, _)) = self.small_step(state, desired_m) {
-                if let Some(command) = self.compensate_n1_edge(state, u0, h0, error, desired_m) {
-                    return command;
-                }
+            if let Some(start) = self.small_step(state, desired_m) {
+                return self.compensate_n1_refused(state, start, desired_m);
             }
         }
         self.compensate_with_derivatives(state, desired_m, 0.0, 0.0)
+    }
+
+    /// [`Compensator::compensate_general`] for n = 1 after the small path refused the step
+    /// from `(u₀, h₀, e, _)` ([`Compensator::small_step`]): the edge cases, then the general
+    /// solve; the same as `compensate_general` without computing the start again.
+    ///
+    /// A step the small path refused with |x₀| beyond three slew steps (x₀ as it computes it)
+    /// is first tried as a slew-limited step ([`Compensator::slew_limited_n1`]); one that h
+    /// surely crosses zero in at the slew limit goes on to [`Compensator::n1_edge_tail`].
+    #[inline(always)]
+    fn compensate_n1_refused(
+        &self,
+        state: &mut CompensatorState,
+        (u0, h0, error, branch): (f32, f32, f32, usize),
+        desired_m: f32,
+    ) -> Command {
+        let p = &self.fast;
+        let kappa = p.branch[branch];
+        let q = p.a - kappa * h0;
+        let k2q = p.k2 * q;
+        let x0 = error * (1.0 / (p.k1 + k2q));
+        if x0.abs() > 3.0 * p.max_step_v {
+            match self.slew_limited_n1(state, u0, h0, error, (q, kappa, k2q)) {
+                Ok(command) => return command,
+                Err(Some((direction, limit, q, kappa, sigma))) => {
+                    let tail = self.n1_edge_tail(
+                        state,
+                        (u0, h0, error, desired_m),
+                        (direction, limit),
+                        (q, kappa, sigma),
+                    );
+                    return match tail {
+                        Some(command) => command,
+                        None => self.compensate_with_derivatives(state, desired_m, 0.0, 0.0),
+                    };
+                }
+                Err(None) => {}
+            }
+        }
+        match self.compensate_n1_edge(state, u0, h0, error, desired_m) {
+            Some(command) => command,
+            None => self.compensate_with_derivatives(state, desired_m, 0.0, 0.0),
+        }
     }
 
     /// [`Compensator::compensate_general`]'s n = 1 cases, settled without the general solve's
@@ -650,21 +705,43 @@ impl Compensator {
         } else {
             linear
         };
-        if guess.abs() > limit.abs() {
+        let toward_zero = h0 != 0.0 && q * direction * sigma < 0.0;
+        // The limited step refuses a step across h = 0 at the limit: not tried when h surely
+        // crosses within it (`crosses_within`).
+        if guess.abs() > limit.abs() && !(toward_zero && crosses_within(h0, q, kappa, limit)) {
             if let Some(command) =
                 self.compensate_limited_n1(state, u0, h0, error, direction, limit)
             {
                 return Some(command);
             }
         }
-        let crossing = if h0 != 0.0
-            && q * direction * sigma < 0.0
-            && h0.abs() < math::max(p.a.abs(), q.abs()) * limit.abs()
-        {
-            self.solve_n1_crossing(u0, h0, error, direction, limit)
-        } else {
-            None
-        };
+        self.n1_edge_tail(
+            state,
+            (u0, h0, error, desired_m),
+            (direction, limit),
+            (q, kappa, sigma),
+        )
+    }
+
+    /// [`Compensator::compensate_n1_edge`] after the limited step: the crossing when h moves
+    /// toward zero and may reach it within the limit, else the fast solve, and the status as
+    /// [`Compensator::solve`] reports it; `(q, κ, σ)` is `n1_branch(h₀, direction)`.
+    #[inline(always)]
+    fn n1_edge_tail(
+        &self,
+        state: &mut CompensatorState,
+        (u0, h0, error, desired_m): (f32, f32, f32, f32),
+        (direction, limit): (f32, f32),
+        branch: (f32, f32, f32),
+    ) -> Option<Command> {
+        let (q, _, sigma) = branch;
+        let toward_zero = h0 != 0.0 && q * direction * sigma < 0.0;
+        let crossing =
+            if toward_zero && h0.abs() < math::max(self.fast.a.abs(), q.abs()) * limit.abs() {
+                self.solve_n1_crossing(u0, h0, error, direction, limit, branch)
+            } else {
+                None
+            };
         let (reached, du) = match crossing {
             Some(step) => step,
             None => self.solve_n1_fast(&state.model, u0, error, direction, limit)?,
@@ -698,7 +775,12 @@ impl Compensator {
     ) -> Option<Command> {
         let p = &self.fast;
         let (q, kappa, sigma) = self.model.hysteresis().n1_branch(h0, direction);
-        let g = relax_factor(kappa * limit);
+        // At the slew limit itself (not the window's edge) g is the table's.
+        let g = if limit == direction * p.max_step_v {
+            p.slew_g[usize::from(direction < 0.0) << 1 | usize::from(sigma < 0.0)]
+        } else {
+            relax_factor(kappa * limit)
+        };
         let short = error - limit * (p.k1 + p.k2 * q * g);
         let h1 = h0 + q * limit * g;
         if !(short * self.slope_sign * direction > 0.0 && h1 * sigma >= 0.0 && limit != 0.0) {
@@ -765,6 +847,13 @@ impl Compensator {
         })
     }
 
+    /// [`Compensator::small_n1_from`] from the state.
+    #[inline(always)]
+    fn compensate_small_n1(&self, state: &mut CompensatorState, desired_m: f32) -> Option<Command> {
+        let start = self.small_step(state, desired_m)?;
+        self.small_n1_from(state, start)
+    }
+
     /// The common case of a loop at a normal rate, in few instructions: n = 1, no asymmetric terms,
     /// a consistent state inside the window, a finite reference and a small step that the window
     /// and the slew limit leave alone. With the error e = y_d − y(u₀), the branch's κ and
@@ -779,10 +868,22 @@ impl Compensator {
     /// series to z⁴, in Horner form, |κΔu| < 0.1: truncation < 1.4e-8). `None` hands every other
     /// case (h crossing zero included, see [`Compensator::compensate_general`]) to the general
     /// solve, which gives the same result there (tested).
+    ///
+    /// A step whose linear estimate |x₀| exceeds three slew steps is refused without the Newton
+    /// step (and tried as a slew-limited step, [`Compensator::compensate_n1_refused`]), since the
+    /// reversion's Δu lies within 4 % of x₀ and the Newton step's (|kx| < 0.1, |w| < 0.2,
+    /// |κΔu| < 0.1: Δu within 13 % of x₀ before it, |k2·q·(g − 1)/S₀| ≤ 0.12 and
+    /// |k2·q·(e^(−κΔu) − 1)/S₀| ≤ 0.25 along it) is at least 0.46·|x₀|, so either is beyond
+    /// the slew limit, which [`Compensator::small_commit`] would refuse.
+    ///
+    /// From its start `(u₀, h₀, e, branch)` ([`Compensator::small_step`]).
     #[inline(always)]
-    fn compensate_small_n1(&self, state: &mut CompensatorState, desired_m: f32) -> Option<Command> {
+    fn small_n1_from(
+        &self,
+        state: &mut CompensatorState,
+        (u0, h0, error, branch): (f32, f32, f32, usize),
+    ) -> Option<Command> {
         let p = &self.fast;
-        let (u0, h0, error, branch) = self.small_step(state, desired_m)?;
         let kappa = p.branch[branch];
         let q = p.a - kappa * h0;
         let k2q = p.k2 * q;
@@ -798,6 +899,9 @@ impl Compensator {
         // NaN (a non-finite reference) fails this and goes to the Newton step, which refuses it.
         let reversion_ok = kx.abs() + w.abs() < 0.055;
         if !reversion_ok {
+            if x0.abs() > 3.0 * p.max_step_v {
+                return None;
+            }
             du = self.n1_newton_step(du, error, kappa, k2q)?;
         }
         let z = kappa * du;
@@ -805,6 +909,57 @@ impl Compensator {
         let g = 1.0 + z * (-0.5 + z * (1.0 / 6.0 + z * (-1.0 / 24.0 + z * (1.0 / 120.0))));
         let h1 = h0 + q * du * g;
         self.small_commit(state, u0, h0, du, h1)
+    }
+
+    /// A step the small path refused with |x₀| beyond three slew steps, settled when the
+    /// slew limit stops it: [`Compensator::compensate_limited_n1`] at Δu_lim = s·M with the
+    /// table's g(κ·Δu_lim), for h₀ ≠ 0 (σ = sgn h₀, κ and q = A − κ·h₀ of the small path's
+    /// branch: the same operands as `n1_branch` gives) and a limit the window does not move.
+    /// That is what [`Compensator::compensate_n1_edge`] does first with such a step: its start
+    /// `x₀·(1 − w/2)/(1 − w)` (or x₀) is at least 0.76·|x₀| > M, so it tries the limited step
+    /// (a step that surely crosses h = 0, which it does not try, the limited step refuses).
+    /// `Err(Some((direction, limit, q, κ, σ)))` when h₁ lies past zero (the limited step's
+    /// refusal; h then moves toward zero), `Err(None)` (the edge solves) when the limit does not
+    /// stop the step or does not apply.
+    #[inline]
+    fn slew_limited_n1(
+        &self,
+        state: &mut CompensatorState,
+        u0: f32,
+        h0: f32,
+        error: f32,
+        (q, kappa, k2q): (f32, f32, f32),
+    ) -> Result<Command, Option<SlewCrossing>> {
+        let p = &self.fast;
+        let direction = if error * self.slope_sign > 0.0 {
+            1.0
+        } else {
+            -1.0
+        };
+        let limit = if direction > 0.0 {
+            math::min(p.max_v - u0, p.max_step_v)
+        } else {
+            math::max(p.min_v - u0, -p.max_step_v)
+        };
+        if !(limit == direction * p.max_step_v && h0 != 0.0 && error.is_finite()) {
+            return Err(None);
+        }
+        let sigma = if h0 > 0.0 { 1.0 } else { -1.0 };
+        let g = p.slew_g[usize::from(direction < 0.0) << 1 | usize::from(h0 < 0.0)];
+        let short = error - limit * (p.k1 + k2q * g);
+        let h1 = h0 + q * limit * g;
+        if h1 * sigma < 0.0 && limit != 0.0 {
+            return Err(Some((direction, limit, q, kappa, sigma)));
+        }
+        if !(short * self.slope_sign * direction > 0.0 && h1 * sigma >= 0.0 && limit != 0.0) {
+            return Err(None);
+        }
+        let (reached, _) = self.n1_commit(u0, limit, h1);
+        state.model = reached;
+        Ok(Command {
+            voltage_v: reached.input_v,
+            status: CommandStatus::Limited,
+        })
     }
 
     /// One Newton step on `Δu·(k1 + k2·q·g(κΔu)) = e` from `du` (|κ·Δu| < 0.1, |kx| < 0.1,
@@ -1080,7 +1235,7 @@ impl Compensator {
             if h1 * sigma >= 0.0 {
                 return Some(self.n1_commit(u0, du, h1));
             }
-            return self.solve_n1_crossing(u0, h0, error, direction, limit);
+            return self.solve_n1_crossing(u0, h0, error, direction, limit, (q, kappa, sigma));
         }
         // The start: the root of the map's second-order expansion S₀·Δu − (k2·q·κ/2)·Δu² = e,
         // 2x₀/(1 + √(1 − 2w)), with the square root by its [1/1] Padé form
@@ -1108,7 +1263,7 @@ impl Compensator {
         }
         let h1 = h0 + q * du * relax_series(z);
         if h1 * sigma < 0.0 {
-            return self.solve_n1_crossing(u0, h0, error, direction, limit);
+            return self.solve_n1_crossing(u0, h0, error, direction, limit, (q, kappa, sigma));
         }
         Some(self.n1_commit(u0, du, h1))
     }
@@ -1141,13 +1296,13 @@ impl Compensator {
             && h0.abs() < math::max(self.fast.a.abs(), q.abs()) * start.abs()
             && (h0 + q * start * relax_factor(kappa * start)) * sigma < 0.0
         {
-            return self.solve_n1_crossing(u0, h0, error, direction, limit);
+            return self.solve_n1_crossing(u0, h0, error, direction, limit, (q, kappa, sigma));
         }
         let du = self.n1_newton(k2q, kappa, error, direction, limit, start)?;
         // h₁ as the model's own step computes it (`BoucWen::advance` on one branch).
         let h1 = h0 + q * du * relax_factor(kappa * du);
         if h1 * sigma < 0.0 {
-            return self.solve_n1_crossing(u0, h0, error, direction, limit);
+            return self.solve_n1_crossing(u0, h0, error, direction, limit, (q, kappa, sigma));
         }
         Some(self.n1_commit(u0, du, h1))
     }
@@ -1227,6 +1382,7 @@ impl Compensator {
         error: f32,
         direction: f32,
         limit: f32,
+        (q, kappa, sigma): (f32, f32, f32),
     ) -> Option<(ModelState, f32)> {
         let StaticMap {
             k1_m_per_v: k1,
@@ -1235,7 +1391,6 @@ impl Compensator {
         } = self.model.map();
         let bw = self.model.hysteresis();
         let BoucWenParams { a, beta, gamma, .. } = bw.params();
-        let (q, kappa, sigma) = bw.n1_branch(h0, direction);
         if !(h0 != 0.0 && q * direction * sigma < 0.0) {
             return None;
         }
@@ -1283,7 +1438,32 @@ impl Compensator {
             du0 + rest
         };
         let u = clamp(u0 + du, min, max);
-        let h1 = bw.advance(h0, u - u0);
+        let moved = u - u0;
+        // The model's step (`BoucWen::advance`, n = 1: h₀ + q·Δu·g(κΔu) unless that is past
+        // zero, else the split at Δu₀), the same operations on the same operands, with this
+        // solve's Δu₀ and, at the slew limit, the table's g(κΔu): the one-branch end is needed
+        // only when the step may end short of zero.
+        let at_slew = moved == direction * self.fast.max_step_v;
+        let one_branch = if at_slew {
+            let g = self.fast.slew_g[usize::from(direction < 0.0) << 1 | usize::from(sigma < 0.0)];
+            Some(h0 + q * moved * g)
+        } else if crosses_within(h0, q, kappa, moved) {
+            None
+        } else {
+            Some(h0 + q * moved * relax_factor(kappa * moved))
+        };
+        let h1 = match one_branch {
+            Some(h1) if h1 * sigma >= 0.0 => h1,
+            _ => {
+                let rest = if (moved - du0) * s > 0.0 {
+                    moved - du0
+                } else {
+                    0.0
+                };
+                a * rest * relax_factor(kappa_after * rest)
+            }
+        };
+        let h1 = bw.clamp_state(if h1.is_nan() { h0 } else { h1 });
         Some((
             ModelState {
                 input_v: u,
@@ -1328,6 +1508,20 @@ fn toward(du: f32, direction: f32, limit: f32) -> f32 {
     } else {
         clamp(du, limit, 0.0)
     }
+}
+
+/// Whether the n = 1 model's step `Δu` from `h0` on the branch (q = A − κ·h₀, κ), moving h
+/// toward zero, surely ends on the other side of zero, as the model decides it
+/// ([`crate::bouc_wen::BoucWen::advance`]: by the sign of `h₀ + q·Δu·g(κΔu)` in f32). Along the
+/// branch h moves by `q·Δu·g(z)`, z = κΔu, with g(z) = (1 − e^(−z))/z ≥ 1 − max(z, 0)/2 (g's
+/// alternating series for 0 < z ≤ 1/2; g ≥ 1 for z ≤ 0), so for |z| ≤ 1/2 and
+/// `|h₀| ≤ 0.999·|q·Δu|·(1 − max(z, 0)/2)` the exact end lies past zero by at least 7.5e-4 of
+/// |q·Δu|, far beyond the few f32 roundings (≈ 1e-6 of |q·Δu|) of its evaluation. False (not
+/// sure) otherwise, and for NaN.
+#[inline(always)]
+fn crosses_within(h0: f32, q: f32, kappa: f32, du: f32) -> bool {
+    let z = kappa * du;
+    z.abs() <= 0.5 && h0.abs() <= 0.999 * (q * du).abs() * (1.0 - 0.5 * math::max(z, 0.0))
 }
 
 /// The largest f32 ≤ `x`.
@@ -1933,6 +2127,153 @@ mod tests {
             assert!((u - last).abs() <= settings.slew_limit_v_per_s * period * 1.000_001);
             assert!(state.model.hysteresis.h.is_finite());
             last = u;
+        }
+    }
+
+    /// `crosses_within` never says "crosses" where the model's step (the one-branch end
+    /// `h₀ + q·Δu·g(κΔu)` in f32, `BoucWen::advance`'s test) stays on h₀'s side, over random
+    /// states and steps toward zero on all four branches, and says it for most steps that end
+    /// past zero by more than 1 % of |q·Δu|.
+    #[test]
+    fn crosses_within_is_the_model_s_crossing() {
+        let bw = x_stack(1.0, 1e3);
+        let mut seed = 99u32;
+        let mut rand = || {
+            seed = seed.wrapping_mul(1664525).wrapping_add(1013904223);
+            (seed >> 8) as f32 / (1u32 << 24) as f32
+        };
+        let (mut sure, mut clear) = (0u32, 0u32);
+        for _ in 0..200_000 {
+            let h0 = 30.0 * (rand() - 0.5);
+            let direction = if rand() < 0.5 { -1.0 } else { 1.0 };
+            let (q, kappa, sigma) = bw.n1_branch(h0, direction);
+            if !(h0 != 0.0 && q * direction * sigma < 0.0) {
+                continue;
+            }
+            let du = direction * 12.0 * rand();
+            let end = h0 + q * du * relax_factor(kappa * du);
+            if crosses_within(h0, q, kappa, du) {
+                sure += 1;
+                assert!(end * sigma < 0.0, "h0 {h0} du {du}: ends at {end}");
+            }
+            if end * sigma < -0.01 * (q * du).abs() && (kappa * du).abs() <= 0.5 {
+                clear += 1;
+            }
+        }
+        assert!(sure * 10 > clear * 9 && clear > 3_000, "{sure} of {clear}");
+    }
+
+    /// FNV-1a (64 bit) of a stream of words.
+    fn fnv1a(hash: &mut u64, word: u32) {
+        for byte in word.to_le_bytes() {
+            *hash = (*hash ^ u64::from(byte)).wrapping_mul(0x0100_0000_01b3);
+        }
+    }
+
+    /// What [`n1_tick_stream`] hashed and how often it took the paths it is there for.
+    #[derive(Debug, Default)]
+    struct StreamSummary {
+        hash: u64,
+        limited: u32,
+        crossings: u32,
+        advance_crossings: u32,
+    }
+
+    /// A loop's per-tick n = 1 work as the firmware runs it with feedback: the compensator on a
+    /// reference (a 10 Hz sine over most of the stroke with reversals, noise and a jump every
+    /// 211 ticks), then a servo-like correction (a bounded random walk, inside the slew limit
+    /// and the window; none every third tick) and [`Compensator::advance`] by the voltage so
+    /// applied from the state before the tick. Every voltage, status and state, as f32 bits.
+    fn n1_tick_stream(sign: f32, rate_hz: f32, ticks: u32) -> StreamSummary {
+        let bw = x_stack(1.0, 1e3);
+        let map = StaticMap {
+            k1_m_per_v: sign * 3.573_939e-7,
+            k2_m_per_h: -sign * 3.573_939e-7,
+            offset_m: 0.0,
+        };
+        let settings = window(1.0 / rate_hz).inside_guard();
+        let compensator = Compensator::new(StaticModel::new(bw, map).unwrap(), settings).unwrap();
+        let max_step = settings.slew_limit_v_per_s * settings.sample_period_s;
+        let mut seed = 2024u32;
+        let mut rand = || {
+            seed = seed.wrapping_mul(1664525).wrapping_add(1013904223);
+            (seed >> 8) as f32 / (1u32 << 24) as f32
+        };
+        let mut state = CompensatorState::at_rest(0.0);
+        let mut correction = 0.0f32;
+        let mut out = StreamSummary {
+            hash: 0xcbf2_9ce4_8422_2325,
+            ..StreamSummary::default()
+        };
+        let mut jump = 0.0f32;
+        for k in 0..ticks {
+            let t = k as f32 / rate_hz;
+            if k % 211 == 0 {
+                jump = 8e-6 * (rand() - 0.5);
+            }
+            let y_d = sign
+                * (21e-6 - 17e-6 * libm::cosf(2.0 * core::f32::consts::PI * 10.0 * t)
+                    + jump
+                    + 2e-9 * (rand() - 0.5));
+            let before = state;
+            let command = compensator.compensate(&mut state, y_d);
+            if command.status == CommandStatus::Limited {
+                out.limited += 1;
+            }
+            if before.model.hysteresis.h * state.model.hysteresis.h < 0.0 {
+                out.crossings += 1;
+            }
+            for word in [
+                command.voltage_v.to_bits(),
+                command.status as u32,
+                state.model.hysteresis.h.to_bits(),
+            ] {
+                fnv1a(&mut out.hash, word);
+            }
+            if k % 3 != 0 {
+                correction = (correction + 3.0 * (rand() - 0.5)).clamp(-14.0, 14.0);
+                let u0 = before.model.input_v;
+                let applied = (command.voltage_v + correction)
+                    .clamp(u0 - max_step, u0 + max_step)
+                    .clamp(0.0, 120.0);
+                let mut advanced = before;
+                compensator.advance(&mut advanced, applied);
+                if before.model.hysteresis.h * advanced.model.hysteresis.h < 0.0 {
+                    out.advance_crossings += 1;
+                }
+                state = advanced;
+                for word in [
+                    state.model.input_v.to_bits(),
+                    state.model.hysteresis.h.to_bits(),
+                ] {
+                    fnv1a(&mut out.hash, word);
+                }
+            }
+        }
+        out
+    }
+
+    /// The n = 1 per-tick work (compensate, then advance by a corrected voltage) on a long
+    /// stream at 10, 20 and 50 kHz and both slope signs gives the voltages, statuses and states
+    /// recorded before that work was cut down, bit for bit (their FNV-1a hash), through
+    /// thousands of slew-limited steps and of steps across h = 0 in both.
+    #[test]
+    fn n1_tick_stream_matches_its_record() {
+        let expected: [(f32, f32, u64); 6] = [
+            (1.0, 1e4, 0xfee8_6ed8_67b5_1ba4),
+            (-1.0, 1e4, 0xfee8_6ed8_67b5_1ba4),
+            (1.0, 2e4, 0x79de_f046_5fda_dc0c),
+            (-1.0, 2e4, 0x79de_f046_5fda_dc0c),
+            (1.0, 5e4, 0xdc53_c3e6_f8d7_aab0),
+            (-1.0, 5e4, 0xdc53_c3e6_f8d7_aab0),
+        ];
+        let got = expected.map(|(sign, rate, _)| n1_tick_stream(sign, rate, 100_000));
+        for ((sign, rate, hash), s) in expected.iter().zip(&got) {
+            assert!(
+                s.limited > 1_000 && s.crossings > 300 && s.advance_crossings > 300,
+                "{sign} {rate}: {s:?}"
+            );
+            assert_eq!(s.hash, *hash, "{sign} {rate}: {got:#x?}");
         }
     }
 }

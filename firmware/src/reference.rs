@@ -544,8 +544,17 @@ fn interpolate(table: &[[f32; 2]], tick: u32, ticks_per_entry: u32) -> Option<[f
     Some([a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1])])
 }
 
-/// Phase into `[0, 1)`; non-finite phases restart at 0.
+/// Phase into `[0, 1)`; non-finite phases restart at 0. `phase − ⌊phase⌋`: a phase in (0, 1)
+/// is itself and one in \[1, 2) (a phase advanced by less than a cycle) is `phase − 1` (exact),
+/// without libm's `floorf`; the same bits as the general form below.
+#[inline]
 fn wrap(phase: f32) -> f32 {
+    if phase > 0.0 && phase < 1.0 {
+        return phase;
+    }
+    if (1.0..2.0).contains(&phase) {
+        return phase - 1.0;
+    }
     if !phase.is_finite() {
         return 0.0;
     }
@@ -560,6 +569,56 @@ fn wrap(phase: f32) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `wrap` as `phase − ⌊phase⌋` alone, as it was written before its fast cases.
+    fn wrap_by_floor(phase: f32) -> f32 {
+        if !phase.is_finite() {
+            return 0.0;
+        }
+        let w = phase - libm::floorf(phase);
+        if (0.0..1.0).contains(&w) {
+            w
+        } else {
+            0.0
+        }
+    }
+
+    /// `wrap`'s fast cases give `phase − ⌊phase⌋`'s bits: every f32 in \[0, 2\] at a stride, the
+    /// edges (±0, one ulp either side of 1 and 2), negative and large phases, ±∞ and NaN.
+    #[test]
+    fn wrap_is_phase_minus_its_floor_bit_for_bit() {
+        let mut phases = vec![
+            0.0f32,
+            -0.0,
+            1.0,
+            2.0,
+            1.0f32.next_down(),
+            1.0f32.next_up(),
+            2.0f32.next_down(),
+            2.0f32.next_up(),
+            f32::MIN_POSITIVE,
+            -f32::MIN_POSITIVE,
+            -0.25,
+            -1.0,
+            3.75,
+            1e9,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            f32::NAN,
+        ];
+        let mut bits = 0u32;
+        while bits <= 2.0f32.to_bits() {
+            phases.push(f32::from_bits(bits));
+            bits += 997;
+        }
+        for phase in phases {
+            assert_eq!(
+                wrap(phase).to_bits(),
+                wrap_by_floor(phase).to_bits(),
+                "phase {phase:e}"
+            );
+        }
+    }
 
     const T: f32 = 1e-4;
 
