@@ -940,6 +940,12 @@ impl TwoAxisLoop {
         servo_ran: [bool; 2],
     ) -> [bool; 2] {
         let mut outside = [false; 2];
+        // Counted while tracking (an excitation measures one).
+        if self.mode != Mode::Running || self.feedforward == Feedforward::OpenLoop {
+            self.envelope[0].outside = false;
+            self.envelope[1].outside = false;
+            return outside;
+        }
         for i in 0..2 {
             let axis = &self.settings.axes[i];
             let Some(envelope) = axis.envelope.as_ref() else {
@@ -958,7 +964,29 @@ impl TwoAxisLoop {
                 self.envelope_switch(i, outside[i], servo_ran[i], applied_v[i]);
             }
         }
+        self.envelope[0].outside = outside[0];
+        self.envelope[1].outside = outside[1];
         outside
+    }
+
+    /// Per axis, whether its servo runs this tick while the envelope policy has handed an axis
+    /// over: the control mode's servo (`servo_runs`), or the policy's (servo alone, or the
+    /// fade-out after it), when a servo may run at all (`servo_may_run`).
+    #[inline(never)]
+    fn envelope_servo_runs(&self, servo_may_run: bool, servo_runs: bool) -> [bool; 2] {
+        self.envelope
+            .map(|e| servo_may_run && (servo_runs || e.servo_alone || e.handback_ticks > 0))
+    }
+
+    /// Step 3a: a servo that ran (`ran`) but whose output was not applied (the guard overrode
+    /// it: a fault, or the slew into a new window) restarts at rest at what was (`applied_v`).
+    #[inline(always)]
+    fn restart_overridden_servos(&mut self, ran: [bool; 2], applied_v: [f32; 2]) {
+        for i in 0..2 {
+            if ran[i] && self.servo[i].output_v() != applied_v[i] {
+                restart_at(&mut self.servo[i], applied_v[i]);
+            }
+        }
     }
 
     /// Step 3a for the envelope's hand-overs: a fade-out after the servo alone counts down.
@@ -1015,6 +1043,8 @@ impl TwoAxisLoop {
             (0..2).any(|i| settings.axes[i].effects != self.settings.axes[i].effects);
         self.frames.set_decimation(settings.frame_decimation);
         self.settings = settings;
+        // The tick sets `outside` only while a set has an envelope.
+        self.envelope.iter_mut().for_each(|e| e.outside = false);
         if effects_changed {
             self.chain = self.chain_at_applied();
         }
@@ -1135,10 +1165,7 @@ impl TwoAxisLoop {
         // Per axis: the control mode's servo, or the envelope policy's (servo alone, or the
         // fade-out after it).
         let axis_servo_runs = if self.envelope_handed {
-            [0, 1].map(|i| {
-                let e = &self.envelope[i];
-                servo_may_run && (servo_runs || e.servo_alone || e.handback_ticks > 0)
-            })
+            self.envelope_servo_runs(servo_may_run, servo_runs)
         } else {
             [servo_runs; 2]
         };
@@ -1217,19 +1244,15 @@ impl TwoAxisLoop {
             }
         }
         // The identified envelope: counted while tracking (an excitation measures one).
-        let mut outside = [false; 2];
-        if self.settings.any_envelope
-            && self.mode == Mode::Running
-            && self.feedforward != Feedforward::OpenLoop
-        {
+        let outside = if self.settings.any_envelope {
             let previous_v = [
                 before_guard[0].last_safe_volts(),
                 before_guard[1].last_safe_volts(),
             ];
-            outside = self.envelope_tick(applied_v, previous_v, axis_servo_runs);
-        }
-        self.envelope[0].outside = outside[0];
-        self.envelope[1].outside = outside[1];
+            self.envelope_tick(applied_v, previous_v, axis_servo_runs)
+        } else {
+            [false; 2]
+        };
 
         // 3. DAC.
         let gain = self.settings.amplifier_gain_v_per_v;
@@ -1263,15 +1286,11 @@ impl TwoAxisLoop {
         if servo_runs && !self.feedback {
             self.handover_ticks = self.handover_ticks.saturating_sub(1);
         }
-        for i in 0..2 {
-            // A servo whose output was not applied (the guard overrode it: a fault, or the slew
-            // into a new window) restarts at rest at what was.
-            if axis_servo_runs[i] && self.servo[i].output_v() != applied_v[i] {
-                restart_at(&mut self.servo[i], applied_v[i]);
-            }
-        }
         if self.envelope_handed {
+            self.restart_overridden_servos(axis_servo_runs, applied_v);
             self.count_down_handback(axis_servo_runs);
+        } else if servo_runs {
+            self.restart_overridden_servos([true; 2], applied_v);
         }
 
         // 3b. Effects: the stage saw `applied_v` this tick (the held value if safe or if the
