@@ -360,6 +360,24 @@ const LARGE_STEP_NEWTON: usize = 6;
 const SMALL_STEP_TOLERANCE: f32 = 1e-5;
 
 impl Compensator {
+    /// The direction of the step an output error `error` asks for from `u0` (±1: the sign of
+    /// error·slope) and the largest step that way: the slew step, or less at the window's edge.
+    #[inline(always)]
+    fn step_direction(&self, u0: f32, error: f32) -> (f32, f32) {
+        let p = &self.fast;
+        let direction = if error * self.slope_sign > 0.0 {
+            1.0
+        } else {
+            -1.0
+        };
+        let limit = if direction > 0.0 {
+            math::min(p.max_v - u0, p.max_step_v)
+        } else {
+            math::max(p.min_v - u0, -p.max_step_v)
+        };
+        (direction, limit)
+    }
+
     /// A compensator for a static or asymmetric static model (output y in metres).
     pub fn new(model: StaticModel, settings: CompensatorSettings) -> Result<Self, ParamError> {
         Self::build(model, Target::Position, settings)
@@ -684,16 +702,7 @@ impl Compensator {
         if !(error.is_finite() && error != 0.0) {
             return None;
         }
-        let direction = if error * self.slope_sign > 0.0 {
-            1.0
-        } else {
-            -1.0
-        };
-        let limit = if direction > 0.0 {
-            math::min(p.max_v - u0, p.max_step_v)
-        } else {
-            math::max(p.min_v - u0, -p.max_step_v)
-        };
+        let (direction, limit) = self.step_direction(u0, error);
         let (q, kappa, sigma) = self.model.hysteresis().n1_branch(h0, direction);
         let k2q = p.k2 * q;
         let slope = p.k1 + k2q;
@@ -931,16 +940,7 @@ impl Compensator {
         (q, kappa, k2q): (f32, f32, f32),
     ) -> Result<Command, Option<SlewCrossing>> {
         let p = &self.fast;
-        let direction = if error * self.slope_sign > 0.0 {
-            1.0
-        } else {
-            -1.0
-        };
-        let limit = if direction > 0.0 {
-            math::min(p.max_v - u0, p.max_step_v)
-        } else {
-            math::max(p.min_v - u0, -p.max_step_v)
-        };
+        let (direction, limit) = self.step_direction(u0, error);
         if !(limit == direction * p.max_step_v && h0 != 0.0 && error.is_finite()) {
             return Err(None);
         }
