@@ -17,18 +17,8 @@ use host_sim::close_loop::{
 use host_sim::stage_file::Verdict;
 use std::path::{Path, PathBuf};
 
-thread_local! {
-    /// Each test's own directory (libtest runs every test on a thread of its own), removed when
-    /// the test's thread ends.
-    static TEST_DIR: tempfile::TempDir = tempfile::Builder::new()
-        .prefix("host_sim_close_loop_")
-        .tempdir()
-        .unwrap();
-}
-
-fn temp(name: &str) -> PathBuf {
-    TEST_DIR.with(|dir| dir.path().join(name))
-}
+mod common;
+use common::temp;
 
 fn simulate(name: &str, plant: &str, signal: &str, effects: &[&str]) -> PathBuf {
     let out = temp(name);

@@ -8,18 +8,8 @@ use host_sim::identify::model::{from_axis, to_axis, Identified};
 use host_sim::identify::{identify, provenance, IdentifySettings, Record};
 use std::path::PathBuf;
 
-thread_local! {
-    /// Each test's own directory (libtest runs every test on a thread of its own), removed when
-    /// the test's thread ends.
-    static TEST_DIR: tempfile::TempDir = tempfile::Builder::new()
-        .prefix("host_sim_identify_")
-        .tempdir()
-        .unwrap();
-}
-
-fn temp(name: &str) -> PathBuf {
-    TEST_DIR.with(|dir| dir.path().join(name))
-}
+mod common;
+use common::temp;
 
 /// Seed 001's Case I stage with 10 nm white sensor noise, 2 Hz cosine 0–20 V, 0.5 s at 10 kHz.
 fn stage_record(name: &str, plant: &str) -> PathBuf {

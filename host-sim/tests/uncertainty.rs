@@ -17,17 +17,8 @@ use rayon::prelude::*;
 use std::f64::consts::PI;
 use std::path::PathBuf;
 
-thread_local! {
-    /// Each test's own directory, removed when the test's thread ends.
-    static TEST_DIR: tempfile::TempDir = tempfile::Builder::new()
-        .prefix("host_sim_uncertainty_")
-        .tempdir()
-        .unwrap();
-}
-
-fn temp(name: &str) -> PathBuf {
-    TEST_DIR.with(|dir| dir.path().join(name))
-}
+mod common;
+use common::temp;
 
 /// The true set: A = 1 (the fit's scale convention), state bound H = (1/(β + γ))^(1/n) = 20 V,
 /// (β − γ)/(β + γ) = 0.5, n = 1.5; y = k1·u + k2·h + y0.
