@@ -21,8 +21,9 @@
 //! [`ADC_BITS`] = 16 bits: 8 × 312.5 µV × 10 µm/V = 25 nm for the default chain), and N = the
 //! ticks in 1 ms, `⌈1e-3 s / T⌉` (20 at 20 kHz).
 //!
-//! The per-tick step [`OnTarget::observe`] is one subtraction, one compare and two counters: no
-//! division, no panic.
+//! The per-tick step [`OnTarget::observe`] is one subtraction, one compare and two counters (the
+//! run, capped at N, and a tick count; a change and a rise store a few words): no division, no
+//! panic.
 
 use crate::error::ParamError;
 use crate::IoChain;
@@ -56,8 +57,10 @@ pub struct OnTargetState {
     reference_bits: u32,
     /// Consecutive readings inside the band (saturating).
     run: u32,
-    /// Ticks since the reference last changed (saturating).
-    since_change: u32,
+    /// Ticks observed (wrapping).
+    tick: u32,
+    /// [`OnTargetState::tick`] when the reference last changed.
+    change_tick: u32,
     /// The current move's settling time has been recorded.
     settled: bool,
     /// Settling time of the last move that settled \[ticks\] ([`NOT_SETTLED`]: none yet).
@@ -71,7 +74,8 @@ impl Default for OnTargetState {
         Self {
             reference_bits: f32::NAN.to_bits(),
             run: 0,
-            since_change: 0,
+            tick: 0,
+            change_tick: 0,
             settled: false,
             settle_ticks: NOT_SETTLED,
             on_target: false,
@@ -87,7 +91,7 @@ impl OnTargetState {
 
     /// Ticks since the reference last changed.
     pub fn ticks_since_change(&self) -> u32 {
-        self.since_change
+        self.tick.wrapping_sub(self.change_tick)
     }
 
     /// Settling time of the last move that settled \[ticks\] ([`NOT_SETTLED`] before the first).
@@ -171,36 +175,34 @@ impl OnTarget {
     #[inline]
     pub fn observe(&self, state: &mut OnTargetState, sensor_m: f32, reference_m: f32) -> bool {
         let bits = reference_m.to_bits();
+        let tick = state.tick.wrapping_add(1);
+        state.tick = tick;
         if bits != state.reference_bits {
+            // A new reference: its move starts now.
             state.reference_bits = bits;
-            state.since_change = 0;
+            state.change_tick = tick;
             state.settled = false;
-        } else {
-            state.since_change = state.since_change.saturating_add(1);
         }
-        // NaN compares false: outside.
+        // NaN compares false: outside. The run stops counting at N (no overflow).
         let inside = (sensor_m - reference_m).abs() <= self.tolerance_m;
-        state.run = if inside {
-            state.run.saturating_add(1)
+        let run = if inside {
+            state.run + u32::from(state.run < self.ticks)
         } else {
             0
         };
-        state.on_target = state.run >= self.ticks;
-        if state.on_target && !state.settled {
-            self.record_settle(state);
+        state.run = run;
+        let on = run >= self.ticks;
+        state.on_target = on;
+        if on && !state.settled {
+            // The flag has just risen for this move: the ticks from the change to the first
+            // tick of the run, 0 if the run began before it.
+            state.settled = true;
+            state.settle_ticks = tick
+                .wrapping_sub(state.change_tick)
+                .saturating_add(1)
+                .saturating_sub(run);
         }
-        state.on_target
-    }
-
-    /// The settling time of the move the flag has just risen for (out of line: once a move).
-    #[cold]
-    #[inline(never)]
-    fn record_settle(&self, state: &mut OnTargetState) {
-        state.settled = true;
-        state.settle_ticks = state
-            .since_change
-            .saturating_add(1)
-            .saturating_sub(state.run);
+        on
     }
 }
 

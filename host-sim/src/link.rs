@@ -788,6 +788,7 @@ mod tests {
             stream: [0, 63],
             learned: [0, table],
             envelope: Default::default(),
+            on_target: Default::default(),
         }
     }
 

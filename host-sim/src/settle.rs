@@ -290,3 +290,46 @@ pub fn settle_cmd(a: &SettleArgs) -> Result<String, String> {
     }
     serde_json::to_string(&value).map_err(|e| e.to_string())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn built_in() -> FirmwareSet {
+        let text = include_str!("../../firmware/params/xy-stage.toml");
+        FirmwareSet::from_bytes("xy-stage.toml", text.as_bytes()).unwrap()
+    }
+
+    #[test]
+    fn positions_are_one_or_two_finite_values() {
+        assert_eq!(parse_pair("--to", "2e-6").unwrap(), [2e-6, 2e-6]);
+        assert_eq!(parse_pair("--to", "1e-6, 3e-6").unwrap(), [1e-6, 3e-6]);
+        for bad in ["", "x", "1e-6,2e-6,3e-6", "1e40", "nan"] {
+            let e = parse_pair("--to", bad).unwrap_err();
+            assert!(e.starts_with("--to: "), "{e}");
+        }
+    }
+
+    /// A slew-limited step: its settling time is at least the ticks the slew limit needs for the
+    /// voltage it takes, a wider band settles no later, and a larger step takes longer.
+    #[test]
+    fn a_step_settles_after_its_slew_and_a_wider_band_no_later() {
+        let set = built_in();
+        let p = predict(&set, [2e-6; 2], [18e-6; 2], None, 0.5, false).unwrap();
+        let t = p.settle_ticks.map(Option::unwrap);
+        let a = &set.axes[0];
+        // The voltage the step needs at least (the first loading's secant gain is the largest
+        // dy/du of the loading branch's chord), at 5 V per tick.
+        let per_tick = a.slew_limit_v_per_s / set.loop_rate_hz;
+        let span_v = 16e-6 / (a.linear_gain_m_per_v * 2.0);
+        assert!(t[0] as f32 >= span_v / per_tick, "{t:?}");
+        assert_eq!(p.band[0], a.on_target);
+        let wide = predict(&set, [2e-6; 2], [18e-6; 2], Some(1e-6), 0.5, false).unwrap();
+        assert!(wide.settle_ticks[0].unwrap() <= t[0]);
+        let small = predict(&set, [2e-6; 2], [4e-6; 2], None, 0.5, false).unwrap();
+        assert!(small.settle_ticks[0].unwrap() < t[0]);
+        assert!(predict(&set, [2e-6; 2], [18e-6; 2], Some(-1.0), 0.5, false)
+            .unwrap_err()
+            .contains("--tolerance"));
+    }
+}
