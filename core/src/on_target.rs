@@ -13,8 +13,9 @@
 //! since then are counted, and the **settling time** of that move is the ticks from the change
 //! to the first tick of the in-band run that made the axis on target (the time after which the
 //! error stayed inside the band), `settle = (since_change + 1) − run` when the flag rises, 0 if
-//! the run began before the change. A move that never settles keeps the previous value until the
-//! flag rises.
+//! the run began before the change (recorded at the flag's rise; a change while on target sets
+//! it to 0, overwritten if the flag then drops and rises again). A move that never settles keeps
+//! the previous value.
 //!
 //! Defaults ([`OnTarget::default_for`]): tolerance = [`DEFAULT_TOLERANCE_LSB`] ADC steps in
 //! metres, `8 · (adc_span_v / 2^ADC_BITS) · sensor_m_per_v` (the board's ADS8681 has
@@ -61,8 +62,6 @@ pub struct OnTargetState {
     tick: u32,
     /// [`OnTargetState::tick`] when the reference last changed.
     change_tick: u32,
-    /// The current move's settling time has been recorded.
-    settled: bool,
     /// Settling time of the last move that settled \[ticks\] ([`NOT_SETTLED`]: none yet).
     settle_ticks: u32,
     /// The last tick was on target.
@@ -76,7 +75,6 @@ impl Default for OnTargetState {
             run: 0,
             tick: 0,
             change_tick: 0,
-            settled: false,
             settle_ticks: NOT_SETTLED,
             on_target: false,
         }
@@ -177,11 +175,15 @@ impl OnTarget {
         let bits = reference_m.to_bits();
         let tick = state.tick.wrapping_add(1);
         state.tick = tick;
+        let was_on = state.on_target;
         if bits != state.reference_bits {
-            // A new reference: its move starts now.
+            // A new reference: its move starts now; one that keeps the axis on target has
+            // settled at once (overwritten if the flag drops and rises again).
             state.reference_bits = bits;
             state.change_tick = tick;
-            state.settled = false;
+            if was_on {
+                state.settle_ticks = 0;
+            }
         }
         // NaN compares false: outside. The run stops counting at N (no overflow).
         let inside = (sensor_m - reference_m).abs() <= self.tolerance_m;
@@ -193,10 +195,9 @@ impl OnTarget {
         state.run = run;
         let on = run >= self.ticks;
         state.on_target = on;
-        if on && !state.settled {
-            // The flag has just risen for this move: the ticks from the change to the first
-            // tick of the run, 0 if the run began before it.
-            state.settled = true;
+        if on && !was_on {
+            // The flag rises: the ticks from the change to the first tick of the run, 0 if
+            // the run began before it.
             state.settle_ticks = tick
                 .wrapping_sub(state.change_tick)
                 .saturating_add(1)

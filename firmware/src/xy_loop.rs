@@ -63,8 +63,8 @@
 //! axis is on target when |y − r| ≤ `tolerance_m` for `ticks` consecutive ticks
 //! ([`AxisParams::on_target`]: the stage file's `[x.on_target]`, defaults 8 ADC steps and 1 ms).
 //! One compare and two counters per axis; the settling time of a move (ticks from the
-//! reference's change to the start of the in-band run that set the flag) is recorded once, out
-//! of line ([`TwoAxisLoop::on_target`]). The frame's `flags` has bit 2 (x) or bit 3 (y) set in a
+//! reference's change to the start of the in-band run that set the flag) is recorded when the
+//! flag rises ([`TwoAxisLoop::on_target`]). The frame's `flags` has bit 2 (x) or bit 3 (y) set in a
 //! tick on target. Outside tracking the state is cleared (not on target; the next reference is
 //! a move).
 //!
