@@ -16,7 +16,8 @@
 use crate::effects::{EffectParams, Effects, OperatingRange};
 use crate::{
     Asymmetry, BoucWen, BoucWenParams, Compensator, CompensatorSettings, Envelope, EnvelopeMonitor,
-    EnvelopePolicy, IoChain, ParamError, Servo, ServoParams, StaticMap, StaticModel, STATE_LIMIT,
+    EnvelopePolicy, IoChain, OnTarget, ParamError, Servo, ServoParams, StaticMap, StaticModel,
+    STATE_LIMIT,
 };
 
 /// One axis: the model, its window and its servo (see the module doc).
@@ -47,6 +48,9 @@ pub struct AxisParams {
     /// The identified envelope and the policy outside it (`None`: not known, nothing checked;
     /// [`crate::envelope`]).
     pub envelope: Option<Envelope>,
+    /// The on-target band: |sensor − reference| ≤ tolerance for N ticks ([`crate::on_target`];
+    /// the stage file's `[x.on_target]`, or [`OnTarget::default_for`] the chain).
+    pub on_target: OnTarget,
 }
 
 impl AxisParams {

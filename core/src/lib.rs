@@ -31,6 +31,7 @@ pub mod io_chain;
 pub mod learning;
 pub mod math;
 pub mod metrics;
+pub mod on_target;
 pub mod oscillator;
 pub mod sensitivity;
 pub mod servo;
@@ -54,6 +55,7 @@ pub use io_chain::IoChain;
 pub use learning::{
     Learning, LearningParams, StepSummary, Trial, GAIN_FIT_MIN_R2, UNMODELLED_MODE_DAMPING,
 };
+pub use on_target::{OnTarget, OnTargetState};
 pub use oscillator::{HystereticOscillator, OscillatorParams, OscillatorState};
 pub use sensitivity::{static_sensitivities, SENSITIVITY_PARAMETERS};
 pub use servo::{Servo, ServoMode, ServoOutput, ServoParams, ServoState, ServoStatus};

@@ -169,6 +169,7 @@ pub fn generate(set: &ParamSet, file: &str) -> String {
              \x20       effects: {:?},\n\
              \x20       servo: {:?},\n\
              \x20       envelope: {:?},\n\
+             \x20       on_target: {:?},\n\
              \x20   }},\n",
             a.bouc_wen,
             a.static_map,
@@ -181,6 +182,7 @@ pub fn generate(set: &ParamSet, file: &str) -> String {
             a.effects,
             a.servo,
             a.envelope,
+            a.on_target,
         ));
     }
     out.push_str("];\n");

@@ -19,7 +19,7 @@ pub use piezo_core::AxisParams;
 // The generated consts below are written with these names (`ServoParams` only for a file with
 // a servo, the envelope's only for one with `[x.identified]`).
 use piezo_core::effects::EffectParams;
-use piezo_core::{Asymmetry, BoucWenParams, IoChain, StaticMap};
+use piezo_core::{Asymmetry, BoucWenParams, IoChain, OnTarget, StaticMap};
 #[allow(unused_imports)]
 use piezo_core::{
     Envelope,

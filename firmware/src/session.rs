@@ -65,9 +65,10 @@
 use heapless::String;
 use piezo_core::ServoMode;
 use piezo_link::{
-    truncated, AxisModel, Control, Counters, Decoder, EnvelopeStatus, Frame, ModelSet, Packet,
-    Program as WireProgram, Refusal, RefusalKind, Request, Response, SequenceChecker, Setpoints,
-    Status, Tracking, Uplink, Wave, MAX_FRAME, REASON_BYTES, VERSION_BYTES,
+    truncated, AxisModel, Control, Counters, Decoder, EnvelopeStatus, Frame, ModelSet,
+    OnTargetStatus, Packet, Program as WireProgram, Refusal, RefusalKind, Request, Response,
+    SequenceChecker, Setpoints, Status, Tracking, Uplink, Wave, MAX_FRAME, REASON_BYTES,
+    VERSION_BYTES,
 };
 
 use crate::control::TrackingStats;
@@ -1030,6 +1031,18 @@ impl Session {
                     outside: self.lp.envelope_outside(a),
                     counts: self.lp.envelope_counts(a),
                     feedback_only_ticks: self.lp.servo_alone_ticks(a),
+                }
+            }),
+            on_target: Axis::ALL.map(|a| {
+                let state = self.lp.on_target(a);
+                let band = self.lp.settings().axes[a.index()].on_target();
+                let settle = state.settle_ticks();
+                OnTargetStatus {
+                    on_target: state.on_target(),
+                    ticks_since_change: state.ticks_since_change(),
+                    settle_ticks: (settle != piezo_core::on_target::NOT_SETTLED).then_some(settle),
+                    tolerance_m: band.tolerance_m,
+                    ticks: band.ticks,
                 }
             }),
         }

@@ -57,6 +57,17 @@
 //! is switched off). A change of control mode, feed-forward or parameter set, and a rearm, end
 //! the hand-over (the next tick outside starts it again).
 //!
+//! # On target
+//! While tracking (not in the safe state, not during an excitation) each tick compares per axis
+//! the reading y\[k\] with the reference it answers r\[k−1\] (`piezo_core::on_target`): the
+//! axis is on target when |y − r| ≤ `tolerance_m` for `ticks` consecutive ticks
+//! ([`AxisParams::on_target`]: the stage file's `[x.on_target]`, defaults 8 ADC steps and 1 ms).
+//! One compare and two counters per axis; the settling time of a move (ticks from the
+//! reference's change to the start of the in-band run that set the flag) is recorded when the
+//! flag rises ([`TwoAxisLoop::on_target`]). The frame's `flags` has bit 2 (x) or bit 3 (y) set in a
+//! tick on target. Outside tracking the state is cleared (not on target; the next reference is
+//! a move).
+//!
 //! # Learned table
 //! [`Feedforward::Learned`] ([`TwoAxisLoop::set_learned_mode`]) plays a learned voltage table
 //! (iterative learning control, computed on the host) with the wave table: per tick
@@ -115,7 +126,7 @@
 use piezo_core::effects::Effects;
 use piezo_core::{
     CommandStatus, Compensator, CompensatorState, EnvelopeCounts, EnvelopeMonitor, EnvelopePolicy,
-    ParamError, Servo, ServoMode, ServoState, ServoStatus,
+    OnTarget, OnTargetState, ParamError, Servo, ServoMode, ServoState, ServoStatus,
 };
 
 use crate::codes::{DacCode, SensorScale};
@@ -284,6 +295,7 @@ pub struct AxisConfig {
     compensator: Compensator,
     servo: Option<Servo>,
     envelope: Option<EnvelopeMonitor>,
+    on_target: OnTarget,
     effects: Effects,
     limits: SafetyLimits,
     linear_gain_m_per_v: f32,
@@ -333,6 +345,7 @@ impl AxisConfig {
         let envelope = p
             .envelope_monitor(sample_period_s)
             .map_err(ConfigError::Core)?;
+        let on_target = p.on_target.validated().map_err(ConfigError::Core)?;
         let limits = limits.map_err(ConfigError::Limits)?;
         if !(p.linear_gain_m_per_v.is_finite() && p.linear_gain_m_per_v != 0.0) {
             return Err(ConfigError::Gain);
@@ -341,6 +354,7 @@ impl AxisConfig {
             compensator,
             servo,
             envelope,
+            on_target,
             effects,
             limits,
             linear_gain_m_per_v: p.linear_gain_m_per_v,
@@ -369,6 +383,11 @@ impl AxisConfig {
     /// The identified envelope's check, if the parameter set has one.
     pub fn envelope(&self) -> Option<&EnvelopeMonitor> {
         self.envelope.as_ref()
+    }
+
+    /// The on-target band.
+    pub fn on_target(&self) -> &OnTarget {
+        &self.on_target
     }
 
     /// The guard's limits.
@@ -605,6 +624,8 @@ pub struct TwoAxisLoop {
     envelope: [EnvelopeAxis; 2],
     /// An axis is handed to its servo alone or fading back (the per-axis servo path runs).
     envelope_handed: bool,
+    /// Per axis, on target and settling (see the module docs, On target).
+    on_target: [OnTargetState; 2],
     servo: [ServoState; 2],
     compensator: [CompensatorState; 2],
     guard: [GuardState; 2],
@@ -657,6 +678,7 @@ impl TwoAxisLoop {
             handover_ticks: 0,
             envelope: [EnvelopeAxis::default(); 2],
             envelope_handed: false,
+            on_target: [OnTargetState::default(); 2],
             servo: [
                 ServoState::at_rest(guard[0].last_safe_volts(), mode),
                 ServoState::at_rest(guard[1].last_safe_volts(), mode),
@@ -1003,6 +1025,12 @@ impl TwoAxisLoop {
             .any(|e| e.servo_alone || e.handback_ticks > 0);
     }
 
+    /// An axis's on-target state of the last tick (flag, ticks since the reference changed,
+    /// settling time of the last move; module docs, On target).
+    pub fn on_target(&self, axis: Axis) -> &OnTargetState {
+        &self.on_target[axis.index()]
+    }
+
     /// An axis's identified-envelope counts (ticks outside, largest excursions).
     pub fn envelope_counts(&self, axis: Axis) -> EnvelopeCounts {
         self.envelope[axis.index()].counts
@@ -1153,6 +1181,7 @@ impl TwoAxisLoop {
         }
 
         // 2. Commands.
+        let answered_reference = self.last_reference_m;
         let before_compensator = self.compensator;
         let before_guard = self.guard;
         let before_servo = self.servo;
@@ -1253,6 +1282,19 @@ impl TwoAxisLoop {
         } else {
             [false; 2]
         };
+        // On target: each reading against the reference it answers, while tracking.
+        let mut on_target = [false; 2];
+        if self.mode == Mode::Running && self.feedforward != Feedforward::OpenLoop {
+            for (i, flag) in on_target.iter_mut().enumerate() {
+                *flag = self.settings.axes[i].on_target.observe(
+                    &mut self.on_target[i],
+                    measured_m[i],
+                    answered_reference[i],
+                );
+            }
+        } else {
+            self.on_target.iter_mut().for_each(OnTargetState::reset);
+        }
 
         // 3. DAC.
         let gain = self.settings.amplifier_gain_v_per_v;
@@ -1316,7 +1358,10 @@ impl TwoAxisLoop {
         } else {
             self.last_reference_m
         };
-        let flags = u8::from(outside[0]) | (u8::from(outside[1]) << 1);
+        let flags = u8::from(outside[0])
+            | (u8::from(outside[1]) << 1)
+            | (u8::from(on_target[0]) << 2)
+            | (u8::from(on_target[1]) << 3);
         self.frames.offer_flagged(
             || {
                 [0, 1].map(|i| AxisSample {

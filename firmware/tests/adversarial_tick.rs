@@ -208,6 +208,7 @@ fn base_axes() -> Vec<AxisParams> {
                 effects: a.effects,
                 servo: a.servo,
                 envelope: a.envelope,
+                on_target: a.on_target,
             });
         }
     }

@@ -67,6 +67,10 @@ All modes command one sample ahead. Output window 0-120 V."
     /// DIR/servo.json and plots.
     #[command(after_help = crate::servo_bench::HELP)]
     ServoBench(crate::servo_bench::ServoBenchArgs),
+    /// The settling time the stage file's model predicts for a step (the firmware's compensator,
+    /// and its servo with --feedback, on the file's forward model; the firmware's on-target
+    /// rule); JSON on stdout.
+    Settle(crate::settle::SettleArgs),
     /// Tunes the feedback servo of each axis from the stage file's model and the stage's first
     /// mode; writes the stage file with `[x.servo]`/`[y.servo]` and prints the margins.
     ServoTune(crate::servo_tune::ServoTuneArgs),
@@ -115,6 +119,7 @@ pub fn run(cli: Cli) -> Result<String, String> {
         Command::Compensate(a) => crate::compensate::compensate_cmd(&a),
         Command::Link(a) => crate::link::link_cmd(&a),
         Command::ServoBench(a) => crate::servo_bench::servo_bench_cmd(&a),
+        Command::Settle(a) => crate::settle::settle_cmd(&a),
         Command::ServoTune(a) => crate::servo_tune::servo_tune_cmd(&a),
         Command::Learn(a) => crate::learn::learn_cmd(&a),
         Command::LearnBench(a) => crate::learn_bench::learn_bench_cmd(&a),

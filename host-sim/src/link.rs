@@ -68,7 +68,7 @@ pub fn run_limits(status: &Status) -> Result<(f64, u32), String> {
 
 /// Help after `host-sim link --help`.
 pub const HELP: &str = "Connect: tcp:HOST:PORT (the QEMU image: firmware/run-qemu.sh --link PORT ELF) or serial:PATH (the board's USB serial device).\n\
-Commands: status (JSON: params_fnv1a32, params_version, mode, feedforward, control, counters, tracking, ...), excite, track, upload, rearm, control, inject-overrun, learn, shutdown.\n\
+Commands: status (JSON: params_fnv1a32, params_version, mode, feedforward, control, counters, tracking, on_target, ...), excite, track, step, upload, rearm, control, inject-overrun, learn, shutdown.\n\
 excite --signal SPEC (volts, compensator off) and track --signal SPEC (metres) write --record CSV (t_s, ux_V, uy_V, x_m, y_m[, rx_m, ry_m]) that identify reads with --u ux_V,uy_V --y x_m,y_m.";
 
 /// Arguments of `link`.
@@ -123,6 +123,9 @@ pub enum LinkCommand {
     /// Iterative learning control over the link: learns a voltage table for a periodic
     /// reference, trial by trial, and leaves the best one playing.
     Learn(crate::link_learn::LinkLearnArgs),
+    /// Moves to a position (metres) and waits until both axes are on target; prints the
+    /// settling time (JSON).
+    Step(crate::link_step::StepArgs),
     /// Ends the firmware's run (the QEMU image exits).
     Shutdown,
 }
@@ -715,6 +718,7 @@ pub fn link_cmd(a: &LinkArgs) -> Result<String, String> {
         }
         LinkCommand::InjectOverrun => json(&client.expect(Request::InjectOverrun)?),
         LinkCommand::Learn(l) => crate::link_learn::link_learn_cmd(&mut client, l),
+        LinkCommand::Step(s) => crate::link_step::link_step_cmd(&mut client, s),
         LinkCommand::Shutdown => json(&client.expect(Request::Shutdown)?),
     }
 }
@@ -784,6 +788,7 @@ mod tests {
             stream: [0, 63],
             learned: [0, table],
             envelope: Default::default(),
+            on_target: Default::default(),
         }
     }
 

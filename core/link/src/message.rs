@@ -6,7 +6,7 @@
 use heapless::{String, Vec};
 use piezo_core::effects::{EffectParams, MAX_CREEP_ELEMENTS, MAX_RELAXATION_ELEMENTS};
 use piezo_core::{
-    Asymmetry, AxisParams, BoucWenParams, Envelope, EnvelopeCounts, IoChain, ParamError,
+    Asymmetry, AxisParams, BoucWenParams, Envelope, EnvelopeCounts, IoChain, OnTarget, ParamError,
     ServoParams, StaticMap,
 };
 use serde::{Deserialize, Serialize};
@@ -118,6 +118,8 @@ pub struct AxisModel {
     /// The identified envelope and the policy outside it (the stage file's `[x.identified]`
     /// and `[x.limits] envelope_policy`; `None`: nothing checked).
     pub envelope: Option<Envelope>,
+    /// The on-target band (the stage file's `[x.on_target]` with its defaults).
+    pub on_target: OnTarget,
 }
 
 impl AxisModel {
@@ -136,6 +138,7 @@ impl AxisModel {
             },
             servo: p.servo,
             envelope: p.envelope,
+            on_target: p.on_target,
         }
     }
 
@@ -155,6 +158,7 @@ impl AxisModel {
             effects: self.effects,
             servo: self.servo,
             envelope: self.envelope,
+            on_target: self.on_target,
         }
         .with_first_loading(sample_period_s)
     }
@@ -422,6 +426,23 @@ pub struct EnvelopeStatus {
     pub feedback_only_ticks: u32,
 }
 
+/// One axis's on-target state (piezo-core's `on_target`): |sensor − reference| ≤ `tolerance_m`
+/// for `ticks` consecutive ticks.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct OnTargetStatus {
+    /// On target in the last tick.
+    pub on_target: bool,
+    /// Ticks since the reference last changed.
+    pub ticks_since_change: u32,
+    /// Settling time of the last move that settled \[ticks\]: from the reference's change to the
+    /// first tick of the in-band run that set the flag (`None`: none has since boot).
+    pub settle_ticks: Option<u32>,
+    /// The band \[m\].
+    pub tolerance_m: f32,
+    /// Consecutive ticks inside the band.
+    pub ticks: u32,
+}
+
 /// Tracking error of one axis since the last [`Request::Track`]: the sensor reading of tick k
 /// minus the reference of tick k − 1 (the command it answers), after a settling time.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -472,6 +493,8 @@ pub struct Status {
     pub learned: [u32; 2],
     /// Per axis, the identified envelope's check.
     pub envelope: [EnvelopeStatus; 2],
+    /// Per axis, on target and settling.
+    pub on_target: [OnTargetStatus; 2],
 }
 
 /// An answer to one request.
@@ -531,7 +554,8 @@ pub struct Frame {
     /// other programs), counted at the entry this tick plays; the host cuts a record of a
     /// repeating table into periods with it.
     pub trial: u32,
-    /// The tick's flags: [`Frame::OUTSIDE_X`], [`Frame::OUTSIDE_Y`].
+    /// The tick's flags: [`Frame::OUTSIDE_X`], [`Frame::OUTSIDE_Y`], [`Frame::ON_TARGET_X`],
+    /// [`Frame::ON_TARGET_Y`].
     pub flags: u8,
 }
 
@@ -540,6 +564,15 @@ impl Frame {
     pub const OUTSIDE_X: u8 = 1 << 0;
     /// Flag: y's command was outside its identified envelope in this tick.
     pub const OUTSIDE_Y: u8 = 1 << 1;
+    /// Flag: x was on target in this tick (its reading against the reference it answers).
+    pub const ON_TARGET_X: u8 = 1 << 2;
+    /// Flag: y was on target in this tick.
+    pub const ON_TARGET_Y: u8 = 1 << 3;
+
+    /// The on-target flag of axis `i` (0: x, 1: y).
+    pub const fn on_target_flag(i: usize) -> u8 {
+        1 << (2 + (i & 1))
+    }
 
     /// The envelope flag of axis `i` (0: x, 1: y).
     pub const fn outside_flag(i: usize) -> u8 {

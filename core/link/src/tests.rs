@@ -1,7 +1,8 @@
 use super::*;
 use piezo_core::effects::EffectParams;
 use piezo_core::{
-    Asymmetry, BoucWenParams, Envelope, EnvelopeCounts, EnvelopePolicy, ServoParams, StaticMap,
+    Asymmetry, BoucWenParams, Envelope, EnvelopeCounts, EnvelopePolicy, OnTarget, ServoParams,
+    StaticMap,
 };
 use proptest::prelude::*;
 
@@ -49,6 +50,10 @@ fn axis() -> AxisModel {
             input_rate_max_v_per_s: f32::MAX,
             policy: EnvelopePolicy::FeedbackOnly,
         }),
+        on_target: OnTarget {
+            tolerance_m: 2.5e-8,
+            ticks: u32::MAX,
+        },
     }
 }
 
@@ -132,6 +137,13 @@ fn full_status() -> Status {
                 max_rate_excursion_v_per_s: f32::NAN,
             },
             feedback_only_ticks: u32::MAX,
+        }; 2],
+        on_target: [OnTargetStatus {
+            on_target: true,
+            ticks_since_change: u32::MAX,
+            settle_ticks: Some(u32::MAX),
+            tolerance_m: f32::MAX,
+            ticks: u32::MAX,
         }; 2],
     }
 }

@@ -109,5 +109,6 @@ fn firmware_axis(file: &StageFile, valid: &ValidAxis) -> AxisParams {
         effects: axis.effects,
         servo: axis.servo,
         envelope: axis.envelope(),
+        on_target: valid.on_target,
     }
 }

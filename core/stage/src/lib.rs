@@ -39,6 +39,8 @@
 //!                                    # the identified envelope, see below)
 //! [x.servo]                          # optional: kp_v_per_m, ki_v_per_m_s, lowpass_*, notch_*,
 //!                                    # transfer_time_constant_s (piezo_core::servo::tune)
+//! [x.on_target]                     # optional: tolerance_m, ticks (when the firmware says the axis
+//!                                    # is on target; defaults: 8 ADC steps in metres, 1 ms of ticks)
 //! [x.identified]                     # optional: data, window_s, method, fit_rms_m,
 //!                                    # input_range_v, sample_period_s, and (optional, for
 //!                                    # files written before them) input_rate_max_v_per_s,
@@ -96,9 +98,10 @@ pub use validate::{simulate_pair, AxisChain, Check, ValidAxis, ValidStage, PLAUS
 
 use piezo_core::effects::EffectParams;
 use piezo_core::{
-    Asymmetry, BoucWenParams, MassSpringDamperParams, OscillatorParams, ServoParams, StaticMap,
+    Asymmetry, BoucWenParams, IoChain, MassSpringDamperParams, OscillatorParams, ParamError,
+    ServoParams, StaticMap,
 };
-pub use piezo_core::{Envelope, EnvelopePolicy};
+pub use piezo_core::{Envelope, EnvelopePolicy, OnTarget};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -399,6 +402,47 @@ pub struct Axis {
     /// Where the set came from.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub identified: Option<Provenance>,
+    /// The on-target band (`[x.on_target]`; absent keys take their defaults,
+    /// [`Axis::on_target_band`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub on_target: Option<OnTargetBand>,
+}
+
+/// `[x.on_target]`: when the firmware says an axis is on target (`piezo_core::on_target`):
+/// |sensor − reference| ≤ `tolerance_m` for `ticks` consecutive ticks.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OnTargetBand {
+    /// Largest |sensor − reference| on target \[m\] (default: 8 ADC steps in metres,
+    /// `8 · adc_span / 2^16 · sensor_m_per_v`: 25 nm for the default `[io]`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tolerance_m: Option<f32>,
+    /// Consecutive ticks inside the band (default: the ticks in 1 ms, ⌈loop_rate_hz / 1000⌉).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ticks: Option<u32>,
+}
+
+impl Axis {
+    /// The on-target band of this axis for the chain `io` at the loop period `sample_period_s`
+    /// \[s\]: `[x.on_target]`'s keys, each absent one from [`OnTarget::default_for`];
+    /// validated by [`OnTarget::new`].
+    pub fn on_target_band(
+        &self,
+        io: &IoChain,
+        sample_period_s: f32,
+    ) -> Result<OnTarget, ParamError> {
+        let band = self.on_target.unwrap_or_default();
+        let default = OnTarget::default_for(io, sample_period_s);
+        let tolerance_m = match band.tolerance_m {
+            Some(t) => t,
+            None => default?.tolerance_m,
+        };
+        let ticks = match band.ticks {
+            Some(n) => n,
+            None => default?.ticks,
+        };
+        OnTarget::new(tolerance_m, ticks)
+    }
 }
 
 impl Axis {
@@ -443,6 +487,7 @@ impl Axis {
             limits,
             servo: None,
             identified: None,
+            on_target: None,
         }
     }
 }

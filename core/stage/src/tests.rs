@@ -370,3 +370,69 @@ fn input_band_and_rate_of_a_record() {
     assert!((rate - exact).abs() < 1e-3 * exact, "{rate} vs {exact}");
     assert_eq!(input_band_hz(&[3.0; 100], dt), None);
 }
+
+/// `[x.on_target]`: absent, the band is the default for `[io]` and the loop rate (8 ADC steps,
+/// 1 ms); each key overrides its default alone and round-trips; a bad value is refused naming
+/// the key and its line; an unknown key is refused.
+#[test]
+fn on_target_band_defaults_round_trips_and_refuses_bad_values_at_their_line() {
+    let stage = example();
+    let valid = stage.validate().unwrap();
+    let lsb = (stage.io.adc_range_v[1] - stage.io.adc_range_v[0]) / 65536.0;
+    let default = valid.axes[0].on_target;
+    assert!((default.tolerance_m - 8.0 * lsb * stage.io.sensor_m_per_v).abs() < 1e-15);
+    assert_eq!(default.ticks, 10, "1 ms at 10 kHz");
+    assert!(
+        !stage.to_toml("").contains("on_target"),
+        "absent stays absent"
+    );
+
+    let mut stage = example();
+    stage.x.on_target = Some(OnTargetBand {
+        tolerance_m: Some(5e-9),
+        ticks: None,
+    });
+    let text = stage.to_toml("");
+    let back = StageFile::parse("f.toml", &text).unwrap();
+    assert_eq!(back.x.on_target, stage.x.on_target);
+    let valid = back.validate().unwrap();
+    assert_eq!(valid.axes[0].on_target, OnTarget::new(5e-9, 10).unwrap());
+    assert_eq!(valid.axes[1].on_target, default, "y keeps the default");
+    let set = crate::FirmwareSet::from_bytes("f.toml", text.as_bytes()).unwrap();
+    assert_eq!(set.axes[0].on_target, valid.axes[0].on_target);
+
+    for (bad, key) in [
+        ("tolerance_m = -5e-9", "x.on_target.tolerance_m"),
+        ("tolerance_m = 5e-9\nticks = 0", "x.on_target.ticks"),
+    ] {
+        let text = example().to_toml("").replacen(
+            "[x.limits]",
+            &format!("[x.on_target]\n{bad}\n\n[x.limits]"),
+            1,
+        );
+        let e = StageFile::parse("f.toml", &text)
+            .unwrap()
+            .validate()
+            .unwrap_err()
+            .located("f.toml", &text);
+        assert_eq!(e.key, key, "{e}");
+        let field = key.rsplit('.').next().unwrap();
+        let lines: Vec<&str> = text.lines().collect();
+        let section = lines.iter().position(|l| *l == "[x.on_target]").unwrap();
+        let line = section
+            + lines[section..]
+                .iter()
+                .position(|l| l.starts_with(&format!("{field} =")))
+                .unwrap()
+            + 1;
+        assert_eq!(e.line, Some(line), "{e}");
+        assert!(e.to_string().contains("f.toml"), "{e}");
+    }
+    let text = example().to_toml("").replacen(
+        "[x.limits]",
+        "[x.on_target]\ntolerance = 1e-9\n\n[x.limits]",
+        1,
+    );
+    let e = StageFile::parse("f.toml", &text).unwrap_err();
+    assert!(e.to_string().contains("tolerance"), "{e}");
+}

@@ -11,8 +11,8 @@ use crate::{Axis, Io, ModelKind, StageFile, STATE_LIMIT};
 use piezo_core::effects::{couple, Effects, EffectsState, OperatingRange};
 use piezo_core::{
     Asymmetry, BoucWen, Compensator, CompensatorSettings, DynamicModel, EnvelopeMonitor,
-    EnvelopePolicy, HystereticOscillator, IoChain, ModelState, OscillatorState, ParamError, Servo,
-    StaticModel,
+    EnvelopePolicy, HystereticOscillator, IoChain, ModelState, OnTarget, OscillatorState,
+    ParamError, Servo, StaticModel,
 };
 
 /// Strokes a piezo stage plausibly has over its output window \[m\]: 10 nm to 10 mm. A stage
@@ -63,6 +63,9 @@ pub struct ValidAxis {
     /// The identified envelope's per-tick check at the loop period (`[x.identified]` with
     /// `[x.limits] envelope_policy`, [`Axis::envelope`]; built by [`StageFile::validate`]).
     pub envelope: Option<EnvelopeMonitor>,
+    /// The on-target band (`[x.on_target]`, its defaults from `[io]` and the loop rate,
+    /// [`Axis::on_target_band`]; set by [`StageFile::validate`]).
+    pub on_target: OnTarget,
 }
 
 /// A validated stage file at its loop rate: what the firmware runs.
@@ -243,6 +246,10 @@ impl Axis {
             input_range_v,
             servo: None,
             envelope: None,
+            on_target: OnTarget {
+                tolerance_m: f32::MAX,
+                ticks: 1,
+            },
         })
     }
 }
@@ -278,6 +285,14 @@ impl Axis {
             .monitor(sample_period_s)
             .map(Some)
             .map_err(|e| located(core_key(name, &e, "identified"), e))
+    }
+}
+
+/// The `[x.on_target]` key a core refusal of the band names.
+fn on_target_field(e: &ParamError) -> &'static str {
+    match e {
+        ParamError::NonFinite { field } | ParamError::OutOfRange { field, .. } => field,
+        _ => "tolerance_m",
     }
 }
 
@@ -401,6 +416,9 @@ impl StageFile {
                 );
             }
             valid.envelope = axis.envelope_monitor(name, sample_period_s)?;
+            valid.on_target = axis
+                .on_target_band(&chain, sample_period_s)
+                .map_err(|e| located(format!("{name}.on_target.{}", on_target_field(&e)), e))?;
             axes.push(valid);
         }
         Ok(ValidStage {

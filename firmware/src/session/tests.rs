@@ -736,3 +736,4 @@ fn a_stale_reply_is_not_queued() {
 
 mod envelope;
 mod learned;
+mod on_target;

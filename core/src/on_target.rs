@@ -1,0 +1,283 @@
+//! On target and settling of one axis (what a stage controller reports as "on target").
+//!
+//! With the reading y\[k\] of tick k and the reference r\[k−1\] it answers (the reference of the
+//! tick before, whose voltage the reading follows), the error is `e[k] = y[k] − r[k−1]` (positive:
+//! the stage is beyond the reference). The axis is **on target** at tick k when
+//!
+//! ```text
+//! |e[j]| ≤ tolerance_m   for every j in k − N + 1 … k          (N = OnTarget::ticks)
+//! ```
+//!
+//! i.e. N consecutive readings inside the band. A non-finite reading or reference is outside.
+//! The reference **changes** at tick k when r\[k−1\] ≠ r\[k−2\] (bitwise f32 compare): the ticks
+//! since then are counted, and the **settling time** of that move is the ticks from the change
+//! to the first tick of the in-band run that made the axis on target (the time after which the
+//! error stayed inside the band), `settle = (since_change + 1) − run` when the flag rises, 0 if
+//! the run began before the change (recorded at the flag's rise; a change while on target sets
+//! it to 0, overwritten if the flag then drops and rises again). A move that never settles keeps
+//! the previous value.
+//!
+//! Defaults ([`OnTarget::default_for`]): tolerance = [`DEFAULT_TOLERANCE_LSB`] ADC steps in
+//! metres, `8 · (adc_span_v / 2^ADC_BITS) · sensor_m_per_v` (the board's ADS8681 has
+//! [`ADC_BITS`] = 16 bits: 8 × 312.5 µV × 10 µm/V = 25 nm for the default chain), and N = the
+//! ticks in 1 ms, `⌈1e-3 s / T⌉` (20 at 20 kHz).
+//!
+//! The per-tick step [`OnTarget::observe`] is one subtraction, one compare and two counters (the
+//! run, capped at N, and a tick count; a change and a rise store a few words): no division, no
+//! panic.
+
+use crate::error::ParamError;
+use crate::IoChain;
+
+/// Bits of the board's position ADC (ADS8681): its step is `adc_span / 2^ADC_BITS`.
+pub const ADC_BITS: u32 = 16;
+/// The default tolerance in ADC steps.
+pub const DEFAULT_TOLERANCE_LSB: f32 = 8.0;
+/// The default time the error must stay inside the band \[s\].
+pub const DEFAULT_DWELL_S: f32 = 1e-3;
+/// Most ticks accepted for N (10 s at 100 kHz).
+pub const MAX_TICKS: u32 = 1_000_000;
+/// The settling time reported before any move has settled.
+pub const NOT_SETTLED: u32 = u32::MAX;
+
+/// The on-target band of an axis (see the module doc).
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+pub struct OnTarget {
+    /// Largest |y − r| on target \[m\], > 0.
+    pub tolerance_m: f32,
+    /// Consecutive ticks inside the band before the axis is on target, 1 … [`MAX_TICKS`].
+    pub ticks: u32,
+}
+
+/// The per-tick state of [`OnTarget::observe`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OnTargetState {
+    /// The reference the last reading was compared with (its bits; NaN at rest: any first
+    /// reference is a change).
+    reference_bits: u32,
+    /// Consecutive readings inside the band (saturating).
+    run: u32,
+    /// Ticks observed (wrapping).
+    tick: u32,
+    /// [`OnTargetState::tick`] when the reference last changed.
+    change_tick: u32,
+    /// Settling time of the last move that settled \[ticks\] ([`NOT_SETTLED`]: none yet).
+    settle_ticks: u32,
+    /// The last tick was on target.
+    on_target: bool,
+}
+
+impl Default for OnTargetState {
+    fn default() -> Self {
+        Self {
+            reference_bits: f32::NAN.to_bits(),
+            run: 0,
+            tick: 0,
+            change_tick: 0,
+            settle_ticks: NOT_SETTLED,
+            on_target: false,
+        }
+    }
+}
+
+impl OnTargetState {
+    /// The last tick was on target.
+    pub fn on_target(&self) -> bool {
+        self.on_target
+    }
+
+    /// Ticks since the reference last changed.
+    pub fn ticks_since_change(&self) -> u32 {
+        self.tick.wrapping_sub(self.change_tick)
+    }
+
+    /// Settling time of the last move that settled \[ticks\] ([`NOT_SETTLED`] before the first).
+    pub fn settle_ticks(&self) -> u32 {
+        self.settle_ticks
+    }
+
+    /// Not on target, the run cleared (the loop is not tracking: safe state, excitation); the
+    /// reference is forgotten, so the next tracked reference is a move.
+    pub fn reset(&mut self) {
+        let settle_ticks = self.settle_ticks;
+        *self = Self {
+            settle_ticks,
+            ..Self::default()
+        };
+    }
+}
+
+impl OnTarget {
+    /// A band of `tolerance_m` \[m\] (finite, > 0) held for `ticks` (1 … [`MAX_TICKS`]).
+    pub fn new(tolerance_m: f32, ticks: u32) -> Result<Self, ParamError> {
+        if !tolerance_m.is_finite() {
+            return Err(ParamError::NonFinite {
+                field: "tolerance_m",
+            });
+        }
+        if tolerance_m <= 0.0 {
+            return Err(ParamError::OutOfRange {
+                field: "tolerance_m",
+                value: tolerance_m,
+                requirement: "> 0",
+            });
+        }
+        if !(1..=MAX_TICKS).contains(&ticks) {
+            return Err(ParamError::OutOfRange {
+                field: "ticks",
+                value: ticks as f32,
+                requirement: "in 1 … 1 000 000",
+            });
+        }
+        Ok(Self { tolerance_m, ticks })
+    }
+
+    /// The default band for the chain `io` at the loop period `sample_period_s` \[s\] (module
+    /// doc): [`DEFAULT_TOLERANCE_LSB`] ADC steps in metres, held for ⌈[`DEFAULT_DWELL_S`]/T⌉
+    /// ticks.
+    pub fn default_for(io: &IoChain, sample_period_s: f32) -> Result<Self, ParamError> {
+        let lsb_v = (io.adc_range_v[1] - io.adc_range_v[0]) / (1u32 << ADC_BITS) as f32;
+        let tolerance_m = DEFAULT_TOLERANCE_LSB * lsb_v * io.sensor_m_per_v;
+        if !(sample_period_s.is_finite() && sample_period_s > 0.0) {
+            return Err(ParamError::OutOfRange {
+                field: "sample_period_s",
+                value: sample_period_s,
+                requirement: "> 0",
+            });
+        }
+        // ⌈1 ms / T⌉ without libm, a quotient within 1e-4 of a whole number taken as it (T is
+        // 1/rate in f32: 1 ms at 20 kHz is 20.000002 periods). Saturates at u32::MAX (refused).
+        let q = DEFAULT_DWELL_S / sample_period_s;
+        let nearest = (q + 0.5) as u32;
+        let ticks = if (q - nearest as f32).abs() <= 1e-4 * q {
+            nearest
+        } else {
+            let whole = q as u32;
+            if (whole as f32) < q {
+                whole.saturating_add(1)
+            } else {
+                whole
+            }
+        };
+        Self::new(tolerance_m, ticks.max(1))
+    }
+
+    /// This axis's check (this band), validated ([`OnTarget::new`]).
+    pub fn validated(self) -> Result<Self, ParamError> {
+        Self::new(self.tolerance_m, self.ticks)
+    }
+
+    /// One tick: the reading `sensor_m` \[m\] against the reference it answers `reference_m`
+    /// \[m\] (module doc); returns whether the axis is on target.
+    #[inline]
+    pub fn observe(&self, state: &mut OnTargetState, sensor_m: f32, reference_m: f32) -> bool {
+        let bits = reference_m.to_bits();
+        let tick = state.tick.wrapping_add(1);
+        state.tick = tick;
+        let was_on = state.on_target;
+        if bits != state.reference_bits {
+            // A new reference: its move starts now; one that keeps the axis on target has
+            // settled at once (overwritten if the flag drops and rises again).
+            state.reference_bits = bits;
+            state.change_tick = tick;
+            if was_on {
+                state.settle_ticks = 0;
+            }
+        }
+        // NaN compares false: outside. The run stops counting at N (no overflow).
+        let inside = (sensor_m - reference_m).abs() <= self.tolerance_m;
+        let run = if inside {
+            state.run + u32::from(state.run < self.ticks)
+        } else {
+            0
+        };
+        state.run = run;
+        let on = run >= self.ticks;
+        state.on_target = on;
+        if on && !was_on {
+            // The flag rises: the ticks from the change to the first tick of the run, 0 if
+            // the run began before it.
+            state.settle_ticks = tick
+                .wrapping_sub(state.change_tick)
+                .saturating_add(1)
+                .saturating_sub(run);
+        }
+        on
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn band() -> OnTarget {
+        OnTarget::new(1e-8, 3).unwrap()
+    }
+
+    #[test]
+    fn refused_when_built() {
+        assert!(OnTarget::new(f32::NAN, 3).is_err());
+        assert!(OnTarget::new(0.0, 3).is_err());
+        assert!(OnTarget::new(-1e-9, 3).is_err());
+        assert!(OnTarget::new(1e-9, 0).is_err());
+        assert!(OnTarget::new(1e-9, MAX_TICKS + 1).is_err());
+    }
+
+    #[test]
+    fn default_is_eight_adc_steps_and_a_millisecond() {
+        let io = IoChain {
+            dac_range_v: [0.0, 5.0],
+            amplifier_gain_v_per_v: 24.0,
+            adc_range_v: [-10.24, 10.24],
+            sensor_range_v: [0.0, 10.0],
+            sensor_m_per_v: 1e-5,
+        };
+        let d = OnTarget::default_for(&io, 1.0 / 20_000.0).unwrap();
+        assert!((d.tolerance_m - 25e-9).abs() < 1e-12, "{}", d.tolerance_m);
+        assert_eq!(d.ticks, 20);
+        assert_eq!(OnTarget::default_for(&io, 1.0 / 3_000.0).unwrap().ticks, 3);
+    }
+
+    #[test]
+    fn a_step_settles_after_n_ticks_inside() {
+        let b = band();
+        let mut s = OnTargetState::default();
+        // At rest on 0.
+        for _ in 0..5 {
+            b.observe(&mut s, 0.0, 0.0);
+        }
+        assert!(s.on_target());
+        // Step to 1 µm: the reading arrives at tick 4 after the change.
+        let readings = [
+            0.0, 0.3e-6, 0.9e-6, 1.02e-6, 1.005e-6, 1.0e-6, 0.995e-6, 1.0e-6,
+        ];
+        let flags: [bool; 8] = core::array::from_fn(|k| b.observe(&mut s, readings[k], 1e-6));
+        assert_eq!(
+            flags,
+            [false, false, false, false, false, false, true, true]
+        );
+        // Inside from tick 4 (1.005 µm), flagged at tick 6.
+        assert_eq!(s.settle_ticks(), 4);
+        assert_eq!(s.ticks_since_change(), 7);
+        // One reading outside clears it; NaN is outside.
+        assert!(!b.observe(&mut s, 1.1e-6, 1e-6));
+        assert!(!b.observe(&mut s, f32::NAN, 1e-6));
+        assert_eq!(s.settle_ticks(), 4, "the same move keeps its settling time");
+    }
+
+    #[test]
+    fn a_move_inside_the_band_settles_at_once() {
+        let b = band();
+        let mut s = OnTargetState::default();
+        for _ in 0..5 {
+            b.observe(&mut s, 0.0, 0.0);
+        }
+        assert!(b.observe(&mut s, 0.0, 5e-9));
+        assert_eq!(s.settle_ticks(), 0);
+        assert_eq!(s.ticks_since_change(), 0);
+        s.reset();
+        assert!(!s.on_target());
+        assert_eq!(s.settle_ticks(), 0);
+    }
+}
