@@ -533,7 +533,11 @@ pub fn compensate_cmd(a: &CompensateArgs) -> Result<String, String> {
 /// rest at the first voltage) against the reference, drawn to `plot`
 /// ([`crate::track_plot::tracking_charts`], scored from `--settle`); returns the summary's
 /// `; predicted tracking error …` with the RMS of predicted − reference over the scored window.
-fn plot_compensation(a: &CompensateArgs, plot: &Path, result: &Compensation) -> Result<String, String> {
+fn plot_compensation(
+    a: &CompensateArgs,
+    plot: &Path,
+    result: &Compensation,
+) -> Result<String, String> {
     use crate::identify::{predict, Record};
     use crate::track_plot::{tracking_charts, write_figure, TrackAxis};
     let stage = predict::read_stage(&a.params)?;

@@ -61,13 +61,7 @@ fn transient(t_s: &[f64], from: usize) -> Option<Interval> {
 
 /// A panel of `series` against time over the whole record, scaled to `scaled` (already in plot
 /// units) from `from` on, with the transient marked.
-fn timed(
-    panel: Panel,
-    t_s: &[f64],
-    from: usize,
-    scaled: &[&[f64]],
-    scale: f64,
-) -> Result<Chart, String> {
+fn timed(panel: Panel, t_s: &[f64], from: usize, scaled: &[&[f64]], scale: f64) -> Chart {
     let (t0, t1) = (t_s[0], t_s[t_s.len() - 1]);
     let (lo, hi) = scored_range(scaled.iter().map(|v| &v[from..]), scale);
     let mut chart = Chart::from(panel).y_range(lo, hi);
@@ -77,7 +71,7 @@ fn timed(
     if let Some(band) = transient(t_s, from) {
         chart = chart.interval(band);
     }
-    Ok(chart)
+    chart
 }
 
 fn in_time(t_s: &[f64], v: &[f64], scale: f64) -> Vec<(f64, f64)> {
@@ -91,7 +85,12 @@ pub fn tracking_charts(
     axes: &[TrackAxis<'_>],
     from: usize,
 ) -> Result<Vec<Chart>, String> {
-    check_lengths(t_s, from, axes.iter().flat_map(|a| [a.reference_m, a.position_m, a.voltage_v]))?;
+    check_lengths(
+        t_s,
+        from,
+        axes.iter()
+            .flat_map(|a| [a.reference_m, a.position_m, a.voltage_v]),
+    )?;
     let mut rows: [Vec<Chart>; 3] = Default::default();
     for a in axes {
         let title = axis_title(a.name);
@@ -118,7 +117,7 @@ pub fn tracking_charts(
             from,
             &[a.position_m, a.reference_m],
             UM,
-        )?);
+        ));
         let voltage = Panel::new(
             format!("{title}: stack voltage commanded"),
             "t [s]",
@@ -128,7 +127,7 @@ pub fn tracking_charts(
                     .role(Role::Feedforward),
             ],
         );
-        rows[1].push(timed(voltage, t_s, from, &[a.voltage_v], 1.0)?);
+        rows[1].push(timed(voltage, t_s, from, &[a.voltage_v], 1.0));
         let error: Vec<f64> = a
             .position_m
             .iter()
@@ -144,7 +143,7 @@ pub fn tracking_charts(
                     .role(Role::Residual),
             ],
         );
-        rows[2].push(timed(panel, t_s, from, &[&error], UM)?);
+        rows[2].push(timed(panel, t_s, from, &[&error], UM));
     }
     Ok(rows.into_iter().flatten().collect())
 }
@@ -176,15 +175,17 @@ pub fn excitation_charts(t_s: &[f64], axes: &[ExciteAxis<'_>]) -> Result<Vec<Cha
                     .role(Role::Reference),
             ],
         );
-        charts.push(timed(voltage, t_s, 0, &[a.voltage_v], 1.0)?);
+        charts.push(timed(voltage, t_s, 0, &[a.voltage_v], 1.0));
         let sensor = Panel::new(
             format!("{title}: sensor"),
             "t [s]",
             format!("{} [µm]", a.name),
-            vec![Series::line("sensor", in_time(t_s, a.sensor_m, UM), MAX_POINTS)
-                .role(Role::Measured)],
+            vec![
+                Series::line("sensor", in_time(t_s, a.sensor_m, UM), MAX_POINTS)
+                    .role(Role::Measured),
+            ],
         );
-        charts.push(timed(sensor, t_s, 0, &[a.sensor_m], UM)?);
+        charts.push(timed(sensor, t_s, 0, &[a.sensor_m], UM));
         let loop_points = a
             .voltage_v
             .iter()
