@@ -6,7 +6,8 @@
 //!   model of the commanded voltages (`compensate`) or the sensor (`link track`, drawn as the
 //!   measured band) — in µm;
 //! * the stack voltage u commanded \[V\];
-//! * the tracking error e = y − r (positive: the stage is above the reference) \[µm\].
+//! * the tracking error e = y − r (positive: the stage is above the reference), in µm, nm or pm
+//!   as its size over the scored window needs.
 //!
 //! Excitation ([`excitation_charts`]), one row per axis: the commanded voltage u and the sensor y
 //! against time, and the loop y against u.
@@ -134,18 +135,35 @@ pub fn tracking_charts(
             .zip(a.reference_m)
             .map(|(y, r)| y - r)
             .collect();
+        let (scale, label) = error_unit(&error[from..]);
         let panel = Panel::new(
             format!("{title}: tracking error ({} − reference)", a.position),
             "t [s]",
-            format!("{unit} error [µm]"),
+            format!("{unit} error [{label}]"),
             vec![
-                Series::line("tracking error", in_time(t_s, &error, UM), MAX_POINTS)
+                Series::line("tracking error", in_time(t_s, &error, scale), MAX_POINTS)
                     .role(Role::Residual),
             ],
         );
-        rows[2].push(timed(panel, t_s, from, &[&error], UM));
+        rows[2].push(timed(panel, t_s, from, &[&error], scale));
     }
     Ok(rows.into_iter().flatten().collect())
+}
+
+/// The unit an error `e` \[m\] is drawn in: µm from 1 µm of largest magnitude on, nm from 1 nm,
+/// pm below (so that its tick labels stay short); (metres to the unit, its name).
+fn error_unit(e: &[f64]) -> (f64, &'static str) {
+    let largest = e
+        .iter()
+        .filter(|v| v.is_finite())
+        .fold(0.0f64, |m, v| m.max(v.abs()));
+    if largest >= 1e-6 {
+        (UM, "µm")
+    } else if largest >= 1e-9 {
+        (1e9, "nm")
+    } else {
+        (1e12, "pm")
+    }
 }
 
 /// One axis of an excitation run.
