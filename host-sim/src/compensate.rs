@@ -15,6 +15,10 @@
 //!   Every reference value must be finite in the core's f32.
 //! * `U.csv`: `t_s,u_V` or `t_s,ux_V,uy_V`: the stack voltage of each tick \[V\] (the amplifier's
 //!   output; a DAC sample is this / `io.amplifier_gain_v_per_v`).
+//! * `--plot FIG.svg|.png`: per axis the reference r, the position y the stage file's forward
+//!   model (with its effects, as `predict` runs it, from rest at `output_min_v` like the
+//!   compensator) predicts for the voltages, the voltages, and e = y − r; ranges from `--settle`
+//!   seconds on, the start-up transient before it shaded; the summary adds the RMS of e there.
 //!
 //! Per tick j, exactly the firmware's loop (`piezo_core::inverse_chain`, the code the firmware's
 //! `xy_loop` calls), from rest at each axis's `output_min_v` u0 (`CompensatorState::at_rest(u0)`,
