@@ -15,6 +15,10 @@
 //!   Every reference value must be finite in the core's f32.
 //! * `U.csv`: `t_s,u_V` or `t_s,ux_V,uy_V`: the stack voltage of each tick \[V\] (the amplifier's
 //!   output; a DAC sample is this / `io.amplifier_gain_v_per_v`).
+//! * `--plot FIG.svg|.png`: per axis the reference r, the position y the stage file's forward
+//!   model (with its effects, as `predict` runs it, from rest at `output_min_v` like the
+//!   compensator) predicts for the voltages, the voltages, and e = y − r; ranges from `--settle`
+//!   seconds on, the start-up transient before it shaded; the summary adds the RMS of e there.
 //!
 //! Per tick j, exactly the firmware's loop (`piezo_core::inverse_chain`, the code the firmware's
 //! `xy_loop` calls), from rest at each axis's `output_min_v` u0 (`CompensatorState::at_rest(u0)`,
@@ -64,6 +68,15 @@ pub struct CompensateArgs {
     /// missing).
     #[arg(long)]
     pub out: PathBuf,
+    /// Figure (`.svg` or `.png`): per axis the reference and the position the stage file's
+    /// model predicts for the voltages (its forward model with its effects, as `predict` runs
+    /// it), the stack voltages, and the tracking error (predicted − reference).
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
+    /// With `--plot`: the first this many seconds are the start-up transient (from rest at
+    /// output_min_v), shaded and left out of the axis ranges and of the RMS error reported.
+    #[arg(long, default_value_t = 0.0)]
+    pub settle: f64,
 }
 
 /// Help text after the options.
@@ -485,6 +498,12 @@ fn run_chain(
 
 /// `host-sim compensate`: computes and writes the voltages; returns the summary line.
 pub fn compensate_cmd(a: &CompensateArgs) -> Result<String, String> {
+    if let Some(plot) = &a.plot {
+        crate::track_plot::check_plot_path("--plot", plot)?;
+    }
+    if !(a.settle >= 0.0 && a.settle.is_finite()) {
+        return Err(format!("--settle {}: must be a time ≥ 0 s", a.settle));
+    }
     if let Some(spec) = &a.signal {
         write_reference(&a.params, spec, &a.reference)?;
     }
@@ -492,10 +511,14 @@ pub fn compensate_cmd(a: &CompensateArgs) -> Result<String, String> {
     write_csv(&a.out, &result.to_table()).map_err(|e| format!("--out: {e}"))?;
     let (_, valid) = StageFile::load(&a.params).map_err(|e| e.to_string())?;
     let envelope = envelope_summary(&valid, &result.voltages_v);
+    let plotted = match &a.plot {
+        Some(plot) => plot_compensation(a, plot, &result)?,
+        None => String::new(),
+    };
     let c = result.counts;
     Ok(format!(
         "compensate: {} ticks of {} written to {} (lead {} ticks; limited by the window or slew \
-         limit: {} samples){envelope}",
+         limit: {} samples){envelope}{plotted}",
         c.ticks,
         result
             .voltages_v
@@ -506,6 +529,92 @@ pub fn compensate_cmd(a: &CompensateArgs) -> Result<String, String> {
         a.out.display(),
         result.lead_ticks,
         c.limited
+    ))
+}
+
+/// The position the stage file of `a` predicts for the voltages of `result` (its forward model
+/// with its effects, run as `predict` runs it: [`crate::identify::predict::predict_axes`], from
+/// rest at the first voltage) against the reference, drawn to `plot`
+/// ([`crate::track_plot::tracking_charts`], scored from `--settle`); returns the summary's
+/// `; predicted tracking error …` with the RMS of predicted − reference over the scored window.
+fn plot_compensation(
+    a: &CompensateArgs,
+    plot: &Path,
+    result: &Compensation,
+) -> Result<String, String> {
+    use crate::identify::{predict, Record};
+    use crate::track_plot::{tracking_charts, write_figure, TrackAxis};
+    let stage = predict::read_stage(&a.params)?;
+    let reference = read_reference(&a.reference)?;
+    let t_s = &result.t_s;
+    let from = t_s.partition_point(|&t| t < t_s[0] + a.settle);
+    if from + 1 >= t_s.len() {
+        return Err(format!(
+            "--settle {}: leaves fewer than two of the {} samples to score",
+            a.settle,
+            t_s.len()
+        ));
+    }
+    // The compensator starts from rest at each axis's output_min_v; the model starts from rest at
+    // its first input: one sample at output_min_v, one period before the first tick, puts it in
+    // the same state (and is dropped after).
+    let period_s = 1.0 / f64::from(stage.file.stage.loop_rate_hz);
+    let with_rest: Vec<Record> = result
+        .voltages_v
+        .iter()
+        .zip(&reference.axes)
+        .zip(stage.file.axes())
+        .map(|(((_, u), (_, r)), (_, axis))| {
+            let rest = f64::from(axis.limits.output_min_v);
+            Record::from_parts(
+                a.reference.clone(),
+                std::iter::once(t_s[0] - period_s)
+                    .chain(t_s.iter().copied())
+                    .collect(),
+                std::iter::once(rest)
+                    .chain(u.iter().map(|&v| f64::from(v)))
+                    .collect(),
+                std::iter::once(f64::from(r[0]))
+                    .chain(r.iter().map(|&v| f64::from(v)))
+                    .collect(),
+            )
+        })
+        .collect();
+    let mut predicted = predict::predict_axes(&stage, &with_rest, from + 1)?;
+    for p in &mut predicted {
+        p.predicted_m.remove(0);
+    }
+    let records: Vec<Record> = with_rest
+        .into_iter()
+        .map(|r| Record::from_parts(r.path, t_s.clone(), r.u[1..].to_vec(), r.y_m[1..].to_vec()))
+        .collect();
+    let names: Vec<&str> = match predicted.len() {
+        1 => vec![""],
+        _ => predicted.iter().map(|p| p.axis).collect(),
+    };
+    let axes: Vec<TrackAxis<'_>> = records
+        .iter()
+        .zip(&predicted)
+        .zip(&names)
+        .map(|((r, p), name)| TrackAxis {
+            name,
+            reference_m: &r.y_m,
+            position_m: &p.predicted_m,
+            position: "predicted",
+            voltage_v: &r.u,
+        })
+        .collect();
+    let charts = tracking_charts(t_s, &axes, from)?;
+    write_figure("--plot", plot, &charts, axes.len())?;
+    let rms: Vec<String> = predicted
+        .iter()
+        .map(|p| format!("{} rms {:.4e} m", p.axis, p.fit.rms))
+        .collect();
+    Ok(format!(
+        "; predicted tracking error from t = {} s: {}; figure {}",
+        t_s[from],
+        rms.join(", "),
+        plot.display()
     ))
 }
 

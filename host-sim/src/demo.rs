@@ -923,7 +923,7 @@ impl<'a> AxisPlots<'a> {
 }
 
 /// The range of the values of `traces` times `scale`, with 8 % padding.
-fn scored_range<'a>(traces: impl Iterator<Item = &'a [f64]>, scale: f64) -> (f64, f64) {
+pub fn scored_range<'a>(traces: impl Iterator<Item = &'a [f64]>, scale: f64) -> (f64, f64) {
     let (lo, hi) = traces
         .flatten()
         .map(|v| v * scale)

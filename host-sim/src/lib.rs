@@ -10,7 +10,8 @@
 //! turn its frames into records by [`record`]'s one rule;
 //! [`servo_tune`] writes the feedback servo of the stage file; [`learn`] takes one step of iterative
 //! learning control and [`learn_bench`] runs it on the XY stage; [`stage_file`] writes the stage file;
-//! [`plot`] draws the figures; [`cli`] is the command line; [`optimise`] is the one differential
+//! [`plot`] draws the figures ([`track_plot`] those of a tracking or excitation run); [`cli`] is
+//! the command line; [`optimise`] is the one differential
 //! evolution, Levenberg–Marquardt and linear solver their fits share; [`uncertainty`] gives a fit's
 //! standard errors, correlations and prediction band.
 //!
@@ -42,6 +43,7 @@ pub mod servo_tune;
 pub mod settle;
 pub mod simulate;
 pub mod stage_file;
+pub mod track_plot;
 pub mod uncertainty;
 
 pub use piezo_reference::{bouc_wen, csv, effects, ode, plant, signal, sim};

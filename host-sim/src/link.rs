@@ -148,6 +148,11 @@ pub struct RunArgs {
     /// Write the record even if frames were lost (t_s stays true; the gaps are reported).
     #[arg(long)]
     pub allow_gaps: bool,
+    /// Figure of the record (`.svg` or `.png`): track: reference and sensor, commanded voltage
+    /// and tracking error (sensor − reference) per axis; excite: commanded voltage, sensor and
+    /// the loop sensor against voltage per axis.
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
 }
 
 /// Puts a serial device in raw mode without echo (`stty -F PATH raw -echo`): the terminal's
@@ -590,6 +595,66 @@ impl Recording {
     }
 }
 
+/// Draws a link record (`t_s, ux_V, uy_V, x_m, y_m` and, when `tracking`, `rx_m, ry_m`) to
+/// `path`: [`crate::track_plot::tracking_charts`] (sensor against reference) or
+/// [`crate::track_plot::excitation_charts`]; errors name `--plot`.
+pub fn plot_record(path: &Path, columns: &RecordTable, tracking: bool) -> Result<(), String> {
+    use crate::track_plot::{
+        excitation_charts, tracking_charts, write_figure, ExciteAxis, TrackAxis,
+    };
+    let column = |name: &str| -> Result<Vec<f64>, String> {
+        columns
+            .names
+            .iter()
+            .skip(1)
+            .position(|n| n == name)
+            .map(|i| columns.data[i].iter().map(|&v| f64::from(v)).collect())
+            .ok_or_else(|| format!("--plot: the record has no column {name}"))
+    };
+    let names = ["x", "y"];
+    let traces = names
+        .iter()
+        .map(|a| {
+            Ok((
+                column(&format!("u{a}_V"))?,
+                column(&format!("{a}_m"))?,
+                if tracking {
+                    column(&format!("r{a}_m"))?
+                } else {
+                    Vec::new()
+                },
+            ))
+        })
+        .collect::<Result<Vec<_>, String>>()?;
+    let (charts, columns_drawn) = if tracking {
+        let axes: Vec<TrackAxis<'_>> = names
+            .iter()
+            .zip(&traces)
+            .map(|(name, (u, y, r))| TrackAxis {
+                name,
+                reference_m: r,
+                position_m: y,
+                position: "sensor",
+                voltage_v: u,
+            })
+            .collect();
+        (tracking_charts(&columns.t_s, &axes, 0), axes.len())
+    } else {
+        let axes: Vec<ExciteAxis<'_>> = names
+            .iter()
+            .zip(&traces)
+            .map(|(name, (u, y, _))| ExciteAxis {
+                name,
+                voltage_v: u,
+                sensor_m: y,
+            })
+            .collect();
+        (excitation_charts(&columns.t_s, &axes), 3)
+    };
+    let charts = charts.map_err(|e| format!("--plot {}: {e}", path.display()))?;
+    write_figure("--plot", path, &charts, columns_drawn)
+}
+
 /// FNV-1a, 32 bit, of a stage file's bytes: piezo-stage's, the one the firmware's build logs for
 /// the same file.
 pub use piezo_stage::fnv1a32;
@@ -648,6 +713,11 @@ pub fn link_cmd(a: &LinkArgs) -> Result<String, String> {
     if !(a.wait >= 0.0 && a.wait.is_finite()) {
         return Err("--wait must be ≥ 0".into());
     }
+    if let LinkCommand::Excite(RunArgs { plot: Some(p), .. })
+    | LinkCommand::Track(RunArgs { plot: Some(p), .. }) = &a.command
+    {
+        crate::track_plot::check_plot_path("--plot", p)?;
+    }
     let timeout = Duration::from_secs_f64(a.timeout);
     let mut client = if a.wait > 0.0 {
         Client::connect_waiting(&a.connect, timeout, Duration::from_secs_f64(a.wait))?
@@ -690,13 +760,17 @@ pub fn link_cmd(a: &LinkArgs) -> Result<String, String> {
                     })
                 ),
             ];
-            record
-                .table(AxisChoice::Both, tracking, recording.gaps > 0)
+            let columns = record.table(AxisChoice::Both, tracking, recording.gaps > 0);
+            columns
                 .write(&r.record, &comments)
                 .map_err(|e| e.to_string())?;
+            if let Some(plot) = &r.plot {
+                plot_record(plot, &columns, tracking)?;
+            }
             let status = client.status()?;
             json(&serde_json::json!({
                 "record": r.record.display().to_string(),
+                "plot": r.plot.as_ref().map(|p| p.display().to_string()),
                 "frames": recording.frames.len(),
                 "rows": record.rows.len(),
                 "reading_lead_ticks": record.reading_lead_ticks,

@@ -1624,10 +1624,12 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
                 p.axis, c.ticks_outside, c.max_voltage_excursion_v, c.max_rate_excursion_v_per_s
             );
         }
+        let effects: Vec<String> = p.effects_ran.iter().map(predict::effect_label).collect();
         lines.push(format!(
-            "{}: {} on {}: rms {:.4e} m, r2 {}, mrd {} %",
+            "{}: {} with effects [{}] on {}: rms {:.4e} m, r2 {}, mrd {} %",
             p.axis,
             p.model.name(),
+            effects.join(", "),
             a.data.display(),
             p.fit.rms,
             json!(p.fit.r2),
@@ -1692,6 +1694,7 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
     if axes.len() == 1 {
         // One axis: its blocks also at the top level.
         report["model"] = json!(axes[0].model.name());
+        report["effects_ran"] = predict::effects_json(&axes[0].effects_ran);
         report["fit"] = to_json(&axes[0].fit)?;
     }
     write_json(&a.report, &report, "--report")?;

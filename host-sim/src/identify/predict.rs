@@ -11,6 +11,12 @@
 //! (β + γ ≤ 0) and cannot be extended to the record's range is built over its own range and the
 //! input is clamped there; either way the report says how many samples leave the identified range
 //! and how far (`outside_identified_range`).
+//!
+//! Each axis's report names the effects its chain ran (`effects_ran`, [`effects_ran`]): every
+//! effect of the stage file's `[x.effects]` with a non-zero part, named and in the form
+//! `close-loop` reports (creep "Kelvin-Voigt, 2 elements" or "logarithmic", drift "linear" or
+//! "exponential settling", dynamics "stack-driven", rate-dependent hysteresis "input lag" or
+//! "relaxation"); none for the dynamic and oscillator models, which run without effects.
 
 use super::model::from_axis;
 use super::{check_finite, fit_block, min_max, oscillator, FitBlock, Record};
@@ -52,6 +58,65 @@ pub struct AxisPrediction {
     /// counts them at the record's sample period (`piezo_core::EnvelopeMonitor::count`);
     /// `None` without `[x.identified]`.
     pub envelope: Option<piezo_core::EnvelopeCounts>,
+    /// The effects the axis's chain ran: (name, form), as [`effects_ran`] lists them.
+    pub effects_ran: Vec<(&'static str, String)>,
+}
+
+/// The effects a static axis with the effect parameters `e` runs, in the chain's order, each
+/// as (name, form) with the names and forms of `close-loop`'s report (form empty when the effect
+/// has one form): creep (Kelvin-Voigt with N elements of gain gᵢ ≠ 0, and/or logarithmic,
+/// g_log ≠ 0), drift (linear, rate ≠ 0; exponential settling, A_d ≠ 0), delay (≠ 0), asymmetry
+/// (the even term, e ≠ 0), dynamics (f_mode ≠ 0; "stack-driven" when ρ > 0), coupling (κ ≠ 0),
+/// rate-dependent hysteresis (input lag τ_v ≠ 0; relaxation, some g_wᵢ ≠ 0).
+pub fn effects_ran(e: &piezo_core::effects::EffectParams) -> Vec<(&'static str, String)> {
+    let mut out: Vec<(&'static str, String)> = Vec::new();
+    let elements = e.creep_gain_m_per_v.iter().filter(|&&g| g != 0.0).count();
+    if elements > 0 {
+        let plural = if elements > 1 { "s" } else { "" };
+        out.push(("creep", format!("Kelvin-Voigt, {elements} element{plural}")));
+    }
+    if e.log_creep_gain_m_per_v != 0.0 {
+        out.push(("creep", "logarithmic".into()));
+    }
+    if e.drift_rate_m_per_s != 0.0 {
+        out.push(("drift", "linear".into()));
+    }
+    if e.drift_settling_m != 0.0 {
+        out.push(("drift", "exponential settling".into()));
+    }
+    if e.delay_s != 0.0 {
+        out.push(("delay", String::new()));
+    }
+    if e.even_coefficient_m_per_v2 != 0.0 {
+        out.push(("asymmetry", String::new()));
+    }
+    if e.mode_frequency_hz != 0.0 {
+        let form = if e.mode_relative_damping > 0.0 {
+            "stack-driven"
+        } else {
+            ""
+        };
+        out.push(("dynamics", form.into()));
+    }
+    if e.coupling != 0.0 {
+        out.push(("coupling", String::new()));
+    }
+    if e.hysteresis_lag_s != 0.0 {
+        out.push(("rate-dependent hysteresis", "input lag".into()));
+    }
+    if e.relaxation_gain.iter().any(|&g| g != 0.0) {
+        out.push(("rate-dependent hysteresis", "relaxation".into()));
+    }
+    out
+}
+
+/// `name (form)`, or `name` without a form: as `close-loop` labels an effect.
+pub fn effect_label((name, form): &(&'static str, String)) -> String {
+    if form.is_empty() {
+        (*name).to_string()
+    } else {
+        format!("{name} ({form})")
+    }
 }
 
 fn identified_range(axis: &Axis) -> (f64, f64) {
@@ -185,7 +250,12 @@ pub fn predict_axes(
                 .envelope()
                 .and_then(|e| e.monitor(r.sample_period_s() as f32).ok())
                 .map(|m| m.count(r.u.iter().map(|&v| v as f32)));
+            let effects_ran = match a.model {
+                ModelKind::Dynamic | ModelKind::Oscillator => Vec::new(),
+                _ => effects_ran(&a.effects),
+            };
             Ok(AxisPrediction {
+                effects_ran,
                 envelope,
                 axis,
                 model: a.model,
@@ -212,7 +282,16 @@ pub fn axis_json(p: &AxisPrediction) -> Value {
             "clamped": e.clamped,
         },
         "envelope": p.envelope,
+        "effects_ran": effects_json(&p.effects_ran),
     })
+}
+
+/// `[{"effect": name, "form": form}, …]` of [`effects_ran`].
+pub fn effects_json(effects: &[(&'static str, String)]) -> Value {
+    json!(effects
+        .iter()
+        .map(|(name, form)| json!({"effect": name, "form": form}))
+        .collect::<Vec<_>>())
 }
 
 /// Writes `t_s`, then per axis input, measured, predicted and residual (`u_V,measured_m,…` for one
