@@ -595,6 +595,10 @@ impl Recording {
     }
 }
 
+/// A track's figure scores its samples from this long after the start on \[s\]: the firmware's
+/// own tracking statistics start there too (`piezo_firmware::session::SETTLE_S`).
+pub const TRACK_SCORED_AFTER_S: f64 = 0.1;
+
 /// Draws a link record (`t_s, ux_V, uy_V, x_m, y_m` and, when `tracking`, `rx_m, ry_m`) to
 /// `path`: [`crate::track_plot::tracking_charts`] (sensor against reference) or
 /// [`crate::track_plot::excitation_charts`]; errors name `--plot`.
@@ -638,7 +642,15 @@ pub fn plot_record(path: &Path, columns: &RecordTable, tracking: bool) -> Result
                 voltage_v: u,
             })
             .collect();
-        (tracking_charts(&columns.t_s, &axes, 0), axes.len())
+        // Scored as the firmware scores a track: from its settling time on (the start-up
+        // transient shaded); a record too short for it is scored whole.
+        let t = &columns.t_s;
+        let from = t
+            .iter()
+            .position(|&ts| ts - t[0] >= TRACK_SCORED_AFTER_S)
+            .filter(|&k| k < t.len() / 2)
+            .unwrap_or(0);
+        (tracking_charts(t, &axes, from), axes.len())
     } else {
         let axes: Vec<ExciteAxis<'_>> = names
             .iter()

@@ -171,6 +171,12 @@ fn link_track_and_excite_draw_their_record() {
     ] {
         assert!(svg.contains(name), "the track figure lacks {name}");
     }
+    // 0.2 s: too short to leave out the firmware's 0.1 s of settling, scored whole.
+    assert!(!svg.contains("transient (not scored)"));
+    // 0.5 s: scored as the firmware scores a track, from 0.1 s on, the start-up shaded.
+    let long = dir.join("track-long.svg");
+    host_sim::link::plot_record(&long, &link_record(5000, true), true).unwrap();
+    assert!(svg_text(&long).contains("transient (not scored)"));
     let excite = dir.join("excite.png");
     host_sim::link::plot_record(&excite, &link_record(2000, false), false).unwrap();
     let png = std::fs::read(&excite).unwrap();
