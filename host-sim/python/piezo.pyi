@@ -111,13 +111,25 @@ class Link:
     def status(self) -> Dict[str, Any]:
         """The firmware's state."""
     def excite(
-        self, signal: str, duration: float, decimation: int = 1, allow_gaps: bool = False
+        self,
+        signal: str,
+        duration: float,
+        decimation: int = 1,
+        allow_gaps: bool = False,
+        plot: Optional[str] = None,
     ) -> Dict[str, np.ndarray]:
-        """Open-loop excitation in volts; the record's columns ``t_s, ux_V, uy_V, x_m, y_m``."""
+        """Open-loop excitation in volts; the record's columns ``t_s, ux_V, uy_V, x_m, y_m``.
+        ``plot`` (``.png``/``.svg``) draws it as ``host-sim link excite --plot`` does."""
     def track(
-        self, signal: str, duration: float, decimation: int = 1, allow_gaps: bool = False
+        self,
+        signal: str,
+        duration: float,
+        decimation: int = 1,
+        allow_gaps: bool = False,
+        plot: Optional[str] = None,
     ) -> Dict[str, np.ndarray]:
-        """Tracks a reference in metres; the record's columns plus ``rx_m, ry_m``."""
+        """Tracks a reference in metres; the record's columns plus ``rx_m, ry_m``.
+        ``plot`` (``.png``/``.svg``) draws it as ``host-sim link track --plot`` does."""
     def upload(self, stage: Stage) -> int:
         """Sends the stage's model; returns the checksum the firmware loaded."""
     def control(self, mode: str) -> Any:

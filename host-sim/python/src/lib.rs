@@ -549,6 +549,18 @@ pub struct Link {
     client: Mutex<Option<Client>>,
 }
 
+/// One `excite` or `track` run's arguments.
+struct Run<'a> {
+    signal: &'a str,
+    duration: f64,
+    decimation: u32,
+    allow_gaps: bool,
+    /// `track` (reference columns, scored) rather than `excite`.
+    tracking: bool,
+    /// Where to draw the record, if anywhere.
+    plot: Option<PathBuf>,
+}
+
 impl Link {
     fn with<T: Send>(
         &self,
@@ -566,19 +578,26 @@ impl Link {
         .map_err(error)
     }
 
-    fn run<'py>(
-        &self,
-        py: Python<'py>,
-        signal: &str,
-        duration: f64,
-        decimation: u32,
-        allow_gaps: bool,
-        tracking: bool,
-    ) -> PyResult<Bound<'py, PyDict>> {
+    fn run<'py>(&self, py: Python<'py>, run: Run<'_>) -> PyResult<Bound<'py, PyDict>> {
+        let Run {
+            signal,
+            duration,
+            decimation,
+            allow_gaps,
+            tracking,
+            plot,
+        } = run;
+        if let Some(path) = &plot {
+            host_sim::track_plot::check_plot_path("plot", path).map_err(error)?;
+        }
         let table = self.with(py, |c| {
             let recording = c.run(signal, duration, decimation, !tracking)?;
             recording.check_gaps(allow_gaps)?;
-            Ok(recording.table(tracking))
+            let columns = recording.columns(tracking);
+            if let Some(path) = &plot {
+                host_sim::link::plot_record(path, &columns, tracking)?;
+            }
+            Ok(columns.to_table())
         })?;
         let out = PyDict::new(py);
         for (name, column) in table.names.into_iter().zip(table.columns) {
@@ -640,8 +659,9 @@ impl Link {
 
     /// Open-loop excitation in stack volts: plays `signal` (host-sim's signal grammar, volts) for
     /// `duration` seconds and returns the record as a dict of arrays named as the CSV's columns
-    /// (`t_s`, `ux_V`, `uy_V`, `x_m`, `y_m`).
-    #[pyo3(signature = (signal, duration, decimation = 1, allow_gaps = false))]
+    /// (`t_s`, `ux_V`, `uy_V`, `x_m`, `y_m`). `plot` (`.png` or `.svg`) also draws it, as
+    /// `host-sim link excite --plot` does.
+    #[pyo3(signature = (signal, duration, decimation = 1, allow_gaps = false, plot = None))]
     fn excite<'py>(
         &self,
         py: Python<'py>,
@@ -649,13 +669,23 @@ impl Link {
         duration: f64,
         decimation: u32,
         allow_gaps: bool,
+        plot: Option<PathBuf>,
     ) -> PyResult<Bound<'py, PyDict>> {
-        self.run(py, signal, duration, decimation, allow_gaps, false)
+        let run = Run {
+            signal,
+            duration,
+            decimation,
+            allow_gaps,
+            tracking: false,
+            plot,
+        };
+        self.run(py, run)
     }
 
     /// Tracks `signal` (metres) in the current control mode for `duration` seconds; the record
-    /// as `excite`'s plus `rx_m`, `ry_m`.
-    #[pyo3(signature = (signal, duration, decimation = 1, allow_gaps = false))]
+    /// as `excite`'s plus `rx_m`, `ry_m`. `plot` (`.png` or `.svg`) also draws it as `host-sim link
+    /// track --plot` does: sensor against reference, scored from 0.1 s on.
+    #[pyo3(signature = (signal, duration, decimation = 1, allow_gaps = false, plot = None))]
     fn track<'py>(
         &self,
         py: Python<'py>,
@@ -663,8 +693,17 @@ impl Link {
         duration: f64,
         decimation: u32,
         allow_gaps: bool,
+        plot: Option<PathBuf>,
     ) -> PyResult<Bound<'py, PyDict>> {
-        self.run(py, signal, duration, decimation, allow_gaps, true)
+        let run = Run {
+            signal,
+            duration,
+            decimation,
+            allow_gaps,
+            tracking: true,
+            plot,
+        };
+        self.run(py, run)
     }
 
     /// Sends the stage's model to the firmware; returns the checksum it loaded. A refusal raises

@@ -93,8 +93,10 @@ def test_a_link_session_from_python(qemu_link, scratch):
 
         # Track a 10 Hz sine with the compensator, then with the linear baseline.
         reference = "sine:amp=12e-6,offset=19e-6,freq=10,phase_deg=-90"
-        tracked = link.track(reference, 1.0, decimation=10)
+        figure = scratch / "track.png"
+        tracked = link.track(reference, 1.0, decimation=10, plot=str(figure))
         assert set(tracked) == {"t_s", "ux_V", "uy_V", "x_m", "y_m", "rx_m", "ry_m"}
+        assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         compensated = link.status()["tracking"]
         link.control("open-loop")
         link.track(reference, 1.0, decimation=10)
