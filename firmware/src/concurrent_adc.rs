@@ -445,22 +445,9 @@ mod tests {
 
     #[test]
     fn a_loop_tick_clocks_one_frame_on_each_bus() {
-        use crate::params;
-        use crate::reference::{Program, ReferenceGenerator, Waveform};
-        use crate::xy_loop::{Feedforward, TwoAxisLoop, XyIo};
+        use crate::xy_loop::XyIo;
         let (sensor, _) = pair(&[0x80, 0x00, 0, 0], &[0x80, 0x00, 0, 0]);
-        let reference = ReferenceGenerator::new(
-            Program::PerAxis([Waveform::Constant { offset_m: 0.0 }; 2]),
-            params::SAMPLE_PERIOD_S,
-            [0.0; 2],
-        );
-        let initial = [params::AXES[0].output_min_v, params::AXES[1].output_min_v];
-        let mut lp = TwoAxisLoop::new(
-            crate::demo::settings().unwrap(),
-            Feedforward::Compensator,
-            reference,
-            initial,
-        );
+        let mut lp = crate::test_support::loop_holding([0.0; 2]);
         let mut io = XyIo {
             dac: NullDac,
             dac_channels: [0, 1],

@@ -234,8 +234,7 @@ impl<A: PortAccess> DacWrite for DmaDac<A> {
 mod tests {
     use super::*;
     use crate::params;
-    use crate::reference::{Program, ReferenceGenerator, Waveform};
-    use crate::xy_loop::{Axis, Fault, Feedforward, Mode, PositionSensor, TwoAxisLoop, XyIo};
+    use crate::xy_loop::{Axis, Fault, Mode, PositionSensor, XyIo};
 
     #[derive(Clone, Debug, PartialEq, Eq)]
     enum Event {
@@ -393,20 +392,8 @@ mod tests {
     #[test]
     fn the_loop_trips_on_a_transfer_still_running_at_the_next_tick() {
         let mut owned = Owned::default();
-        let reference = ReferenceGenerator::new(
-            Program::PerAxis([0, 1].map(|i| Waveform::Constant {
-                offset_m: params::AXES[i].rest_output_m,
-            })),
-            params::SAMPLE_PERIOD_S,
-            [0.0; 2],
-        );
-        let initial = [params::AXES[0].output_min_v, params::AXES[1].output_min_v];
-        let mut lp = TwoAxisLoop::new(
-            crate::demo::settings().unwrap(),
-            Feedforward::Compensator,
-            reference,
-            initial,
-        );
+        let mut lp =
+            crate::test_support::loop_holding([0, 1].map(|i| params::AXES[i].rest_output_m));
         let mut io = XyIo {
             dac: DmaDac::new(&mut owned),
             dac_channels: [Dac8563Channel::A, Dac8563Channel::B],

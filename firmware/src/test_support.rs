@@ -1,5 +1,8 @@
 //! Test helpers shared by the driver tests (host only).
 //!
+//! [`loop_holding`] builds the built-in stage's loop holding a constant reference, as the
+//! converter drivers' loop tests run it.
+//!
 //! embedded-hal-mock 0.11's SPI mock cannot return errors, so [`FailingSpi`] wraps it and fails
 //! one chosen transaction with a chosen `embedded_hal::spi::ErrorKind` before it reaches the
 //! mock. The mock's expectation list then holds only the transactions that did go out, and its
@@ -58,4 +61,24 @@ pub fn transfer_frame(out: &[u8], reply: &[u8]) -> [Transaction<u8>; 3] {
         Transaction::transfer_in_place(out.to_vec(), reply.to_vec()),
         Transaction::transaction_end(),
     ]
+}
+
+/// The built-in stage's loop ([`crate::demo::settings`], the compensator) holding a constant
+/// reference `offsets_m` \[m\] per axis, its outputs starting at the window's lower edge.
+pub fn loop_holding(offsets_m: [f32; 2]) -> crate::xy_loop::TwoAxisLoop {
+    use crate::params;
+    use crate::reference::{Program, ReferenceGenerator, Waveform};
+    use crate::xy_loop::{Feedforward, TwoAxisLoop};
+    let reference = ReferenceGenerator::new(
+        Program::PerAxis(offsets_m.map(|offset_m| Waveform::Constant { offset_m })),
+        params::SAMPLE_PERIOD_S,
+        [0.0; 2],
+    );
+    let initial = [params::AXES[0].output_min_v, params::AXES[1].output_min_v];
+    TwoAxisLoop::new(
+        crate::demo::settings().expect("the built-in stage's settings are valid"),
+        Feedforward::Compensator,
+        reference,
+        initial,
+    )
 }
