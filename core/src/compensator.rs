@@ -493,9 +493,17 @@ impl Compensator {
     /// to the general solve (out of line).
     #[inline(always)]
     pub fn compensate(&self, state: &mut CompensatorState, desired_m: f32) -> Command {
-        let small = if self.fast.kind == FastKind::N1 {
-            self.compensate_small_n1(state, desired_m)
-        } else if self.fast.kind == FastKind::General {
+        if self.fast.kind == FastKind::N1 {
+            // The start is computed once: a step the small path refuses goes on from it.
+            return match self.small_step(state, desired_m) {
+                Some(start) => match self.small_n1_from(state, start) {
+                    Some(command) => command,
+                    None => self.compensate_n1_refused(state, start, desired_m),
+                },
+                None => self.compensate_general(state, desired_m),
+            };
+        }
+        let small = if self.fast.kind == FastKind::General {
             self.compensate_small_general(state, desired_m)
         } else {
             None
@@ -648,7 +656,7 @@ impl Compensator {
     /// A step the small path refused with |x₀| beyond three slew steps (x₀ as it computes it)
     /// is first tried as a slew-limited step ([`Compensator::slew_limited_n1`]); one that h
     /// surely crosses zero in at the slew limit goes on to [`Compensator::n1_edge_tail`].
-    #[inline(always)]
+    #[inline(never)]
     fn compensate_n1_refused(
         &self,
         state: &mut CompensatorState,
@@ -660,25 +668,30 @@ impl Compensator {
         let q = p.a - kappa * h0;
         let k2q = p.k2 * q;
         let x0 = error * (1.0 / (p.k1 + k2q));
-        if x0.abs() > 3.0 * p.max_step_v {
-            match self.slew_limited_n1(state, u0, h0, error, (q, kappa, k2q)) {
-                Ok(command) => return command,
-                Err(Some((direction, limit, q, kappa, sigma))) => {
-                    let tail = self.n1_edge_tail(
-                        state,
-                        (u0, h0, error, desired_m),
-                        (direction, limit),
-                        (q, kappa, sigma),
-                    );
-                    return match tail {
-                        Some(command) => command,
-                        None => self.compensate_with_derivatives(state, desired_m, 0.0, 0.0),
-                    };
-                }
-                Err(None) => {}
+        let slew = if x0.abs() > 3.0 * p.max_step_v {
+            self.slew_limited_n1(state, u0, h0, error, (q, kappa, k2q))
+        } else {
+            Err(None)
+        };
+        // One tail for both: the slew-limited step's crossing, or the edge's.
+        let head = match slew {
+            Ok(command) => return command,
+            Err(Some((direction, limit, q, kappa, sigma))) => {
+                Err(Some((direction, limit, (q, kappa, sigma))))
             }
-        }
-        match self.compensate_n1_edge(state, u0, h0, error, desired_m) {
+            Err(None) => self.n1_edge_head(state, u0, h0, error),
+        };
+        let tail = match head {
+            Ok(command) => Some(command),
+            Err(None) => None,
+            Err(Some((direction, limit, branch))) => self.n1_edge_tail(
+                state,
+                (u0, h0, error, desired_m),
+                (direction, limit),
+                branch,
+            ),
+        };
+        match tail {
             Some(command) => command,
             None => self.compensate_with_derivatives(state, desired_m, 0.0, 0.0),
         }
@@ -689,7 +702,7 @@ impl Compensator {
     /// state is the state itself): the limited step, the crossing, then the fast solve
     /// ([`Compensator::solve_n1_fast`]) as [`Compensator::solve`] calls it, with the status
     /// `solve` gives. `None` when none of them takes the step.
-    #[inline(always)]
+    #[cfg(test)]
     fn compensate_n1_edge(
         &self,
         state: &mut CompensatorState,
@@ -698,9 +711,35 @@ impl Compensator {
         error: f32,
         desired_m: f32,
     ) -> Option<Command> {
+        match self.n1_edge_head(state, u0, h0, error) {
+            Ok(command) => Some(command),
+            Err(None) => None,
+            Err(Some((direction, limit, branch))) => self.n1_edge_tail(
+                state,
+                (u0, h0, error, desired_m),
+                (direction, limit),
+                branch,
+            ),
+        }
+    }
+
+    /// [`Compensator::compensate_n1_edge`] up to its tail: `Ok` the limited step
+    /// ([`Compensator::compensate_limited_n1`]) when the fast solve's start lies beyond the
+    /// limit and the limit stops the step; `Err(None)` for an error that is not finite or zero
+    /// (the general solve); else `Err(Some((direction, limit, (q, κ, σ))))` for
+    /// [`Compensator::n1_edge_tail`].
+    #[inline(always)]
+    #[allow(clippy::type_complexity)]
+    fn n1_edge_head(
+        &self,
+        state: &mut CompensatorState,
+        u0: f32,
+        h0: f32,
+        error: f32,
+    ) -> Result<Command, Option<(f32, f32, (f32, f32, f32))>> {
         let p = &self.fast;
         if !(error.is_finite() && error != 0.0) {
-            return None;
+            return Err(None);
         }
         let (direction, limit) = self.step_direction(u0, error);
         let (q, kappa, sigma) = self.model.hysteresis().n1_branch(h0, direction);
@@ -721,15 +760,10 @@ impl Compensator {
             if let Some(command) =
                 self.compensate_limited_n1(state, u0, h0, error, direction, limit)
             {
-                return Some(command);
+                return Ok(command);
             }
         }
-        self.n1_edge_tail(
-            state,
-            (u0, h0, error, desired_m),
-            (direction, limit),
-            (q, kappa, sigma),
-        )
+        Err(Some((direction, limit, (q, kappa, sigma))))
     }
 
     /// [`Compensator::compensate_n1_edge`] after the limited step: the crossing when h moves
@@ -745,9 +779,10 @@ impl Compensator {
     ) -> Option<Command> {
         let (q, _, sigma) = branch;
         let toward_zero = h0 != 0.0 && q * direction * sigma < 0.0;
+        // The crossing's own entry checks (`solve_n1_crossing`) are these two: inlined here.
         let crossing =
             if toward_zero && h0.abs() < math::max(self.fast.a.abs(), q.abs()) * limit.abs() {
-                self.solve_n1_crossing(u0, h0, error, direction, limit, branch)
+                self.n1_crossing_toward_zero(u0, h0, error, direction, limit, branch)
             } else {
                 None
             };
@@ -1384,6 +1419,29 @@ impl Compensator {
         limit: f32,
         (q, kappa, sigma): (f32, f32, f32),
     ) -> Option<(ModelState, f32)> {
+        if !(h0 != 0.0 && q * direction * sigma < 0.0) {
+            return None;
+        }
+        // On the way to zero |dh/du| = |A − κ·h| lies between A and |q|, so h cannot reach zero
+        // before |Δu| = |h₀|/max(A, |q|): beyond the limit, no crossing (and no logarithm).
+        if h0.abs() >= math::max(self.fast.a.abs(), q.abs()) * limit.abs() {
+            return None;
+        }
+        self.n1_crossing_toward_zero(u0, h0, error, direction, limit, (q, kappa, sigma))
+    }
+
+    /// [`Compensator::solve_n1_crossing`] after its entry checks: h₀ ≠ 0 moves toward zero
+    /// (q·s·σ < 0) and |h₀| < max(A, |q|)·|Δu_lim| (inlined where the caller has made them).
+    #[inline(always)]
+    fn n1_crossing_toward_zero(
+        &self,
+        u0: f32,
+        h0: f32,
+        error: f32,
+        direction: f32,
+        limit: f32,
+        (q, kappa, sigma): (f32, f32, f32),
+    ) -> Option<(ModelState, f32)> {
         let StaticMap {
             k1_m_per_v: k1,
             k2_m_per_h: k2,
@@ -1391,14 +1449,6 @@ impl Compensator {
         } = self.model.map();
         let bw = self.model.hysteresis();
         let BoucWenParams { a, beta, gamma, .. } = bw.params();
-        if !(h0 != 0.0 && q * direction * sigma < 0.0) {
-            return None;
-        }
-        // On the way to zero |dh/du| = |A − κ·h| lies between A and |q|, so h cannot reach zero
-        // before |Δu| = |h₀|/max(A, |q|): beyond the limit, no crossing (and no logarithm).
-        if h0.abs() >= math::max(a.abs(), q.abs()) * limit.abs() {
-            return None;
-        }
         let du0 = bw.n1_zero_reach(h0, kappa)?;
         if !(du0 * direction > 0.0 && du0.abs() < limit.abs()) {
             return None;
