@@ -1112,6 +1112,68 @@ impl TwoAxisLoop {
         }
     }
 
+    /// Step 2 for axis `i` of a running tick: the feed-forward (`[target, reference, learned]`:
+    /// the compensator's target, the reference, the learned table's voltage), the servo's
+    /// correction when it runs on the reference `previous_reference` of the reading
+    /// `measured`, the guard, and the compensator's model advanced from `before` by the
+    /// voltage applied when that differs from its own command; returns the voltage applied.
+    #[inline(always)]
+    fn command_axis<const LEARNED: bool>(
+        &mut self,
+        i: usize,
+        [target, reference, learned_v]: [f32; 3],
+        previous_reference: f32,
+        measured: f32,
+        servo_runs: bool,
+        before: &CompensatorState,
+    ) -> f32 {
+        let i = i & 1;
+        let axis = &self.settings.axes[i];
+        let requested = match self.feedforward {
+            _ if LEARNED => learned_v,
+            Feedforward::Compensator => {
+                let out = axis.compensator.compensate(&mut self.compensator[i], target);
+                let c = &mut self.counters;
+                match out.status {
+                    CommandStatus::Tracking => {}
+                    CommandStatus::Limited => {
+                        c.compensator_limited = c.compensator_limited.saturating_add(1)
+                    }
+                    CommandStatus::HeldInvalidReference => {
+                        c.held_references = c.held_references.saturating_add(1)
+                    }
+                }
+                out.voltage_v
+            }
+            Feedforward::Linear => {
+                axis.min_v + (reference - axis.rest_output_m) / axis.linear_gain_m_per_v
+            }
+            // Learned only reaches the learned copy of the body.
+            Feedforward::OpenLoop | Feedforward::Learned => reference,
+        };
+        let feedforward = requested;
+        let requested = match axis.servo.as_ref() {
+            Some(servo) if servo_runs => {
+                let out = servo.step(&mut self.servo[i], previous_reference, measured, feedforward);
+                if out.status != ServoStatus::Tracking {
+                    let c = &mut self.counters;
+                    c.servo_limited = c.servo_limited.saturating_add(1);
+                }
+                out.voltage_v
+            }
+            _ => feedforward,
+        };
+        let u = axis.limits.apply(&mut self.guard[i], requested);
+        if u != feedforward || self.feedforward != Feedforward::Compensator {
+            // The guard overrode the compensator, or another feed-forward ran: advance the
+            // model by what is applied, so that switching to the compensator is bumpless.
+            let mut state = *before;
+            axis.compensator.advance(&mut state, u);
+            self.compensator[i] = state;
+        }
+        u
+    }
+
     /// One tick (see the module docs). Never panics.
     #[inline]
     pub fn tick<D, S>(&mut self, io: &mut XyIo<D, S>, deadline_missed: bool) -> TickReport
@@ -1217,60 +1279,24 @@ impl TwoAxisLoop {
                 }
             };
             self.last_reference_m = reference;
-            for i in 0..2 {
-                let axis = &self.settings.axes[i];
-                let requested = match self.feedforward {
-                    _ if LEARNED => learned_v[i],
-                    Feedforward::Compensator => {
-                        let command = axis
-                            .compensator
-                            .compensate(&mut self.compensator[i], target[i]);
-                        let c = &mut self.counters;
-                        match command.status {
-                            CommandStatus::Tracking => {}
-                            CommandStatus::Limited => {
-                                c.compensator_limited = c.compensator_limited.saturating_add(1)
-                            }
-                            CommandStatus::HeldInvalidReference => {
-                                c.held_references = c.held_references.saturating_add(1)
-                            }
-                        }
-                        command.voltage_v
-                    }
-                    Feedforward::Linear => {
-                        axis.min_v + (reference[i] - axis.rest_output_m) / axis.linear_gain_m_per_v
-                    }
-                    // Learned only reaches the learned copy of the body (above).
-                    Feedforward::OpenLoop | Feedforward::Learned => reference[i],
-                };
-                let feedforward = requested;
-                let requested = match axis.servo.as_ref() {
-                    Some(servo) if axis_servo_runs[i] => {
-                        let out = servo.step(
-                            &mut self.servo[i],
-                            previous_reference[i],
-                            measured_m[i],
-                            feedforward,
-                        );
-                        if out.status != ServoStatus::Tracking {
-                            let c = &mut self.counters;
-                            c.servo_limited = c.servo_limited.saturating_add(1);
-                        }
-                        out.voltage_v
-                    }
-                    _ => feedforward,
-                };
-                let u = axis.limits.apply(&mut self.guard[i], requested);
-                if u != feedforward || self.feedforward != Feedforward::Compensator {
-                    // The guard overrode the compensator, or another feed-forward ran: advance
-                    // the model by what is applied, so that switching to the compensator is
-                    // bumpless.
-                    let mut state = before_compensator[i];
-                    axis.compensator.advance(&mut state, u);
-                    self.compensator[i] = state;
-                }
-                applied_v[i] = u;
-            }
+            // The two axes written out (no axis loop: its counter and indexing cost more than
+            // the second copy).
+            applied_v[0] = self.command_axis::<LEARNED>(
+                0,
+                [target[0], reference[0], learned_v[0]],
+                previous_reference[0],
+                measured_m[0],
+                axis_servo_runs[0],
+                &before_compensator[0],
+            );
+            applied_v[1] = self.command_axis::<LEARNED>(
+                1,
+                [target[1], reference[1], learned_v[1]],
+                previous_reference[1],
+                measured_m[1],
+                axis_servo_runs[1],
+                &before_compensator[1],
+            );
         }
         // The identified envelope: counted while tracking (an excitation measures one).
         let outside = if self.settings.any_envelope {
