@@ -326,6 +326,46 @@ impl FastPath {
     }
 }
 
+/// A memo of a command's step across h = 0 (n = 1): the input increment
+/// `Δu₀ = −(h₀/A)·ln(1 + x)/x`, x = −κ·h₀/A, at which h reached zero from h₀ on the branch κ
+/// ([`crate::bouc_wen::BoucWen::n1_zero_reach`]), keyed by the bits of h₀, κ and A (Δu₀ is a
+/// function of those three alone, so a memo from another tick or model is never taken for
+/// this one). [`Compensator::compensate_noting`] writes it, [`Compensator::advance_noted`]
+/// reads it: a voltage applied that crosses zero from the same state on the same branch as
+/// the command takes Δu₀ from it instead of computing the logarithm again.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ZeroReach {
+    h0_bits: u32,
+    kappa_bits: u32,
+    a_bits: u32,
+    du0: f32,
+}
+
+impl ZeroReach {
+    /// No memo: a key no finite h₀ has (a NaN's bits).
+    pub const NONE: Self = Self {
+        h0_bits: u32::MAX,
+        kappa_bits: u32::MAX,
+        a_bits: u32::MAX,
+        du0: f32::NAN,
+    };
+
+    /// The memo's Δu₀ for (h₀, κ, A), if it is theirs.
+    #[inline(always)]
+    fn get(&self, h0: f32, kappa: f32, a: f32) -> Option<f32> {
+        (self.h0_bits == h0.to_bits()
+            && self.kappa_bits == kappa.to_bits()
+            && self.a_bits == a.to_bits())
+        .then_some(self.du0)
+    }
+}
+
+impl Default for ZeroReach {
+    fn default() -> Self {
+        Self::NONE
+    }
+}
+
 /// The compensator's state: the model state at the last commanded voltage.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct CompensatorState {
@@ -493,12 +533,24 @@ impl Compensator {
     /// to the general solve (out of line).
     #[inline(always)]
     pub fn compensate(&self, state: &mut CompensatorState, desired_m: f32) -> Command {
+        self.compensate_noting(state, desired_m, &mut ZeroReach::default())
+    }
+
+    /// [`Compensator::compensate`], noting in `memo` the Δu₀ of a step across h = 0 (n = 1; an
+    /// other step leaves it as it was) for [`Compensator::advance_noted`] from the same state.
+    #[inline(always)]
+    pub fn compensate_noting(
+        &self,
+        state: &mut CompensatorState,
+        desired_m: f32,
+        memo: &mut ZeroReach,
+    ) -> Command {
         if self.fast.kind == FastKind::N1 {
             // The start is computed once: a step the small path refuses goes on from it.
             return match self.small_step(state, desired_m) {
                 Some(start) => match self.small_n1_from(state, start) {
                     Some(command) => command,
-                    None => self.compensate_n1_refused(state, start, desired_m),
+                    None => self.compensate_n1_refused(state, start, desired_m, memo),
                 },
                 None => self.compensate_general(state, desired_m),
             };
@@ -527,7 +579,15 @@ impl Compensator {
     /// a non-finite voltage) is the model's own step.
     #[inline(always)]
     pub fn advance(&self, state: &mut CompensatorState, applied_v: f32) {
-        if self.fast.kind == FastKind::N1 && self.advance_small_n1(state, applied_v) {
+        self.advance_noted(state, applied_v, &ZeroReach::NONE);
+    }
+
+    /// [`Compensator::advance`], the same state bit for bit, taking Δu₀ of a step across h = 0
+    /// from `memo` when it is the one of this h₀, branch and model
+    /// ([`Compensator::compensate_noting`] from the same state).
+    #[inline(always)]
+    pub fn advance_noted(&self, state: &mut CompensatorState, applied_v: f32, memo: &ZeroReach) {
+        if self.fast.kind == FastKind::N1 && self.advance_small_n1(state, applied_v, memo) {
             return;
         }
         self.advance_general(state, applied_v);
@@ -535,7 +595,12 @@ impl Compensator {
 
     /// [`Compensator::advance`]'s small n = 1 step; false (nothing changed) when it does not apply.
     #[inline(always)]
-    fn advance_small_n1(&self, state: &mut CompensatorState, applied_v: f32) -> bool {
+    fn advance_small_n1(
+        &self,
+        state: &mut CompensatorState,
+        applied_v: f32,
+        memo: &ZeroReach,
+    ) -> bool {
         let p = &self.fast;
         let u0 = state.model.input_v;
         let h0 = state.model.hysteresis.h;
@@ -544,26 +609,36 @@ impl Compensator {
             && u0 >= p.min_v
             && u0 <= p.max_v
             && u >= p.min_v
-            && u <= p.max_v
-            && h0 != 0.0)
+            && u <= p.max_v)
         {
             return false;
         }
         let du = u - u0;
-        // s = sgn Δu (the sign bit: −0 counts as negative, as `f32::signum`) and σ = sgn h₀
-        // select κ = β·s + γ·σ in the table indexed by s·sgn(dy/du) (see `FastPath::branch`).
-        let index = ((du.to_bits() ^ self.slope_sign.to_bits()) >> 31) << 1 | h0.to_bits() >> 31;
+        // σ = sgn h₀; at h₀ = ±0 the sign of A·Δu, as the model's step takes it
+        // (`BoucWen::branch_sign`; a zero step there is the model's: h stays, sign included).
+        let sigma_bit = if h0 != 0.0 {
+            h0.to_bits() >> 31
+        } else if du != 0.0 {
+            u32::from(!(p.a * du > 0.0))
+        } else {
+            return false;
+        };
+        // s = sgn Δu (the sign bit: −0 counts as negative, as `f32::signum`) and σ select
+        // κ = β·s + γ·σ in the table indexed by s·sgn(dy/du) (see `FastPath::branch`).
+        let index = ((du.to_bits() ^ self.slope_sign.to_bits()) >> 31) << 1 | sigma_bit;
         let kappa = p.branch[index as usize & 3];
         let z = kappa * du;
         let mut h1 = h0 + (p.a - kappa * h0) * du * relax_series(z);
-        let h1_on_branch = (h1.to_bits() ^ (h0.to_bits() & 0x8000_0000)) <= p.clamp_bound_bits;
+        let h1_on_branch = (h1.to_bits() ^ (sigma_bit << 31)) <= p.clamp_bound_bits;
         let small = z.abs() < 0.1;
         if !(small && h1_on_branch) {
             // h crossed zero (the model splits the step there), or the step is not small.
             if !(small && h1 * h0 < 0.0) {
                 return false;
             }
-            h1 = match self.advance_crossing_n1(h0, du, kappa, p.branch[(index as usize & 3) ^ 1]) {
+            let kappa_after = p.branch[(index as usize & 3) ^ 1];
+            let noted = memo.get(h0, kappa, p.a);
+            h1 = match self.advance_crossing_n1(h0, du, kappa, kappa_after, noted) {
                 Some(h1) => h1,
                 None => return false,
             };
@@ -581,10 +656,20 @@ impl Compensator {
     /// side, r = Δu − Δu₀ (0 if Δu stops short of Δu₀ in f32), κ' = β·s − γ·σ (`kappa_after`,
     /// the branch table's entry of the same direction and the other σ), the same operations in
     /// the same order, so the same bits. `None` (the model's step) when x ≤ −1 or h₁ lies
-    /// beyond the state clamp.
+    /// beyond the state clamp. `noted`: Δu₀ of this h₀ and κ from a [`ZeroReach`] memo.
     #[inline(never)]
-    fn advance_crossing_n1(&self, h0: f32, du: f32, kappa: f32, kappa_after: f32) -> Option<f32> {
-        let du0 = self.model.hysteresis().n1_zero_reach(h0, kappa)?;
+    fn advance_crossing_n1(
+        &self,
+        h0: f32,
+        du: f32,
+        kappa: f32,
+        kappa_after: f32,
+        noted: Option<f32>,
+    ) -> Option<f32> {
+        let du0 = match noted {
+            Some(du0) => du0,
+            None => self.model.hysteresis().n1_zero_reach(h0, kappa)?,
+        };
         let s = if du < 0.0 { -1.0 } else { 1.0 };
         let rest = if (du - du0) * s > 0.0 { du - du0 } else { 0.0 };
         let h1 = self.fast.a * rest * relax_factor(kappa_after * rest);
@@ -643,7 +728,8 @@ impl Compensator {
     fn compensate_general(&self, state: &mut CompensatorState, desired_m: f32) -> Command {
         if self.fast.kind == FastKind::N1 {
             if let Some(start) = self.small_step(state, desired_m) {
-                return self.compensate_n1_refused(state, start, desired_m);
+                let mut memo = ZeroReach::NONE;
+                return self.compensate_n1_refused(state, start, desired_m, &mut memo);
             }
         }
         self.compensate_with_derivatives(state, desired_m, 0.0, 0.0)
@@ -662,6 +748,7 @@ impl Compensator {
         state: &mut CompensatorState,
         (u0, h0, error, branch): (f32, f32, f32, usize),
         desired_m: f32,
+        memo: &mut ZeroReach,
     ) -> Command {
         let p = &self.fast;
         let kappa = p.branch[branch];
@@ -689,6 +776,7 @@ impl Compensator {
                 (u0, h0, error, desired_m),
                 (direction, limit),
                 branch,
+                memo,
             ),
         };
         match tail {
@@ -719,6 +807,7 @@ impl Compensator {
                 (u0, h0, error, desired_m),
                 (direction, limit),
                 branch,
+                &mut ZeroReach::default(),
             ),
         }
     }
@@ -757,9 +846,12 @@ impl Compensator {
         // The limited step refuses a step across h = 0 at the limit: not tried when h surely
         // crosses within it (`crosses_within`).
         if guess.abs() > limit.abs() && !(toward_zero && crosses_within(h0, q, kappa, limit)) {
-            if let Some(command) =
-                self.compensate_limited_n1(state, u0, h0, error, direction, limit)
-            {
+            if let Some(command) = self.limited_n1_on_branch(
+                state,
+                (u0, h0, error),
+                (direction, limit),
+                (q, kappa, sigma),
+            ) {
                 return Ok(command);
             }
         }
@@ -776,6 +868,7 @@ impl Compensator {
         (u0, h0, error, desired_m): (f32, f32, f32, f32),
         (direction, limit): (f32, f32),
         branch: (f32, f32, f32),
+        memo: &mut ZeroReach,
     ) -> Option<Command> {
         let (q, _, sigma) = branch;
         let toward_zero = h0 != 0.0 && q * direction * sigma < 0.0;
@@ -787,7 +880,16 @@ impl Compensator {
                 None
             };
         let (reached, du) = match crossing {
-            Some(step) => step,
+            Some((reached, du, du0)) => {
+                // The memo (κ as the branch table gives it: the same bits).
+                *memo = ZeroReach {
+                    h0_bits: h0.to_bits(),
+                    kappa_bits: branch.1.to_bits(),
+                    a_bits: self.fast.a.to_bits(),
+                    du0,
+                };
+                (reached, du)
+            }
             None => self.solve_n1_fast(&state.model, u0, error, direction, limit)?,
         };
         // The status as `solve` reports it.
@@ -807,7 +909,7 @@ impl Compensator {
     /// A step the limit stops ([`Compensator::compensate_general`]): `Some` (`Limited`, the
     /// state at u₀ + Δu_lim) when the output at the limit still falls short of the error `error`
     /// and h₁ stays on its side of zero; `None` otherwise.
-    #[inline(never)]
+    #[cfg(test)]
     fn compensate_limited_n1(
         &self,
         state: &mut CompensatorState,
@@ -817,8 +919,21 @@ impl Compensator {
         direction: f32,
         limit: f32,
     ) -> Option<Command> {
+        let branch = self.model.hysteresis().n1_branch(h0, direction);
+        self.limited_n1_on_branch(state, (u0, h0, error), (direction, limit), branch)
+    }
+
+    /// [`Compensator::compensate_limited_n1`] with `(q, κ, σ)` = `n1_branch(h₀, direction)`
+    /// as the caller has it.
+    #[inline(never)]
+    fn limited_n1_on_branch(
+        &self,
+        state: &mut CompensatorState,
+        (u0, h0, error): (f32, f32, f32),
+        (direction, limit): (f32, f32),
+        (q, kappa, sigma): (f32, f32, f32),
+    ) -> Option<Command> {
         let p = &self.fast;
-        let (q, kappa, sigma) = self.model.hysteresis().n1_branch(h0, direction);
         // At the slew limit itself (not the window's edge) g is the table's.
         let g = if limit == direction * p.max_step_v {
             p.slew_g[usize::from(direction < 0.0) << 1 | usize::from(sigma < 0.0)]
@@ -892,7 +1007,7 @@ impl Compensator {
     }
 
     /// [`Compensator::small_n1_from`] from the state.
-    #[inline(always)]
+    #[cfg(test)]
     fn compensate_small_n1(&self, state: &mut CompensatorState, desired_m: f32) -> Option<Command> {
         let start = self.small_step(state, desired_m)?;
         self.small_n1_from(state, start)
@@ -1428,10 +1543,12 @@ impl Compensator {
             return None;
         }
         self.n1_crossing_toward_zero(u0, h0, error, direction, limit, (q, kappa, sigma))
+            .map(|(reached, du, _)| (reached, du))
     }
 
     /// [`Compensator::solve_n1_crossing`] after its entry checks: h₀ ≠ 0 moves toward zero
     /// (q·s·σ < 0) and |h₀| < max(A, |q|)·|Δu_lim| (inlined where the caller has made them).
+    /// With the state and the step, the crossing's Δu₀.
     #[inline(always)]
     fn n1_crossing_toward_zero(
         &self,
@@ -1441,7 +1558,7 @@ impl Compensator {
         direction: f32,
         limit: f32,
         (q, kappa, sigma): (f32, f32, f32),
-    ) -> Option<(ModelState, f32)> {
+    ) -> Option<(ModelState, f32, f32)> {
         let StaticMap {
             k1_m_per_v: k1,
             k2_m_per_h: k2,
@@ -1520,6 +1637,7 @@ impl Compensator {
                 hysteresis: HysteresisState { input_v: u, h: h1 },
             },
             du,
+            du0,
         ))
     }
 
@@ -1636,7 +1754,7 @@ mod tests {
                 let mut expected = state.model;
                 compensator.model().step(&mut expected, u);
                 let mut got = state;
-                if compensator.advance_small_n1(&mut got, u) {
+                if compensator.advance_small_n1(&mut got, u, &ZeroReach::NONE) {
                     small += 1;
                     if got.model.hysteresis.h * state.model.hysteresis.h < 0.0 {
                         crossings += 1;

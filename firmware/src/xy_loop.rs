@@ -126,7 +126,7 @@
 use piezo_core::effects::Effects;
 use piezo_core::{
     CommandStatus, Compensator, CompensatorState, EnvelopeCounts, EnvelopeMonitor, EnvelopePolicy,
-    OnTarget, OnTargetState, ParamError, Servo, ServoMode, ServoState, ServoStatus,
+    OnTarget, OnTargetState, ParamError, Servo, ServoMode, ServoState, ServoStatus, ZeroReach,
 };
 
 use crate::codes::{DacCode, SensorScale};
@@ -628,6 +628,8 @@ pub struct TwoAxisLoop {
     on_target: [OnTargetState; 2],
     servo: [ServoState; 2],
     compensator: [CompensatorState; 2],
+    /// Per axis, the compensator's last step across h = 0 (its Δu₀, for the model's advance).
+    zero_reach: [ZeroReach; 2],
     guard: [GuardState; 2],
     stuck: [StuckDetector; 2],
     mode: Mode,
@@ -674,6 +676,7 @@ impl TwoAxisLoop {
                 CompensatorState::at_rest(guard[0].last_safe_volts()),
                 CompensatorState::at_rest(guard[1].last_safe_volts()),
             ],
+            zero_reach: [ZeroReach::NONE; 2],
             feedback: false,
             handover_ticks: 0,
             envelope: [EnvelopeAxis::default(); 2],
@@ -1132,7 +1135,11 @@ impl TwoAxisLoop {
         let requested = match self.feedforward {
             _ if LEARNED => learned_v,
             Feedforward::Compensator => {
-                let out = axis.compensator.compensate(&mut self.compensator[i], target);
+                let out = axis.compensator.compensate_noting(
+                    &mut self.compensator[i],
+                    target,
+                    &mut self.zero_reach[i],
+                );
                 let c = &mut self.counters;
                 match out.status {
                     CommandStatus::Tracking => {}
@@ -1167,8 +1174,10 @@ impl TwoAxisLoop {
         if u != feedforward || self.feedforward != Feedforward::Compensator {
             // The guard overrode the compensator, or another feed-forward ran: advance the
             // model by what is applied, so that switching to the compensator is bumpless.
+            // From the state before the tick, with the command's Δu₀ when it crossed h = 0.
             let mut state = *before;
-            axis.compensator.advance(&mut state, u);
+            axis.compensator
+                .advance_noted(&mut state, u, &self.zero_reach[i]);
             self.compensator[i] = state;
         }
         u
