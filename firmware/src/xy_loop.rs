@@ -427,13 +427,40 @@ pub struct LoopSettings {
     pub stuck: StuckPolicy,
     /// Frame decimation (one frame every this many ticks).
     pub frame_decimation: u32,
-    /// An axis has an identified envelope (the tick checks it): recomputed from `axes` by
-    /// [`LoopSettings::from_params`], [`LoopSettings::with_axes`], [`TwoAxisLoop::new`] and
-    /// [`TwoAxisLoop::set_settings`].
-    pub any_envelope: bool,
+    /// An axis has an identified envelope (the tick checks it): derived from `axes` by
+    /// [`LoopSettings::new`], [`LoopSettings::from_params`], [`LoopSettings::with_axes`],
+    /// [`TwoAxisLoop::new`] and [`TwoAxisLoop::set_settings`]; read with
+    /// [`LoopSettings::any_envelope`].
+    any_envelope: bool,
 }
 
 impl LoopSettings {
+    /// Settings of these axes: the amplifier's gain (finite, > 0, else [`ConfigError::Gain`]),
+    /// the stuck-sensor policy and the frame decimation.
+    pub fn new(
+        axes: [AxisConfig; 2],
+        amplifier_gain_v_per_v: f32,
+        stuck: StuckPolicy,
+        frame_decimation: u32,
+    ) -> Result<Self, ConfigError> {
+        if !(amplifier_gain_v_per_v.is_finite() && amplifier_gain_v_per_v > 0.0) {
+            return Err(ConfigError::Gain);
+        }
+        Ok(Self {
+            axes,
+            amplifier_gain_v_per_v,
+            stuck,
+            frame_decimation,
+            any_envelope: false,
+        }
+        .with_axes_checked())
+    }
+
+    /// Whether an axis has an identified envelope (the tick checks it).
+    pub fn any_envelope(&self) -> bool {
+        self.any_envelope
+    }
+
     /// Both axes of the parameter file at its loop rate, default stuck policy, one frame per tick.
     pub fn from_params(
         axes: &[AxisParams; 2],
@@ -1308,7 +1335,7 @@ impl TwoAxisLoop {
             );
         }
         // The identified envelope: counted while tracking (an excitation measures one).
-        let outside = if self.settings.any_envelope {
+        let outside = if self.settings.any_envelope() {
             let previous_v = [
                 before_guard[0].last_safe_volts(),
                 before_guard[1].last_safe_volts(),
@@ -1320,13 +1347,12 @@ impl TwoAxisLoop {
         // On target: each reading against the reference it answers, while tracking.
         let mut on_target = [false; 2];
         if self.mode == Mode::Running && self.feedforward != Feedforward::OpenLoop {
-            for (i, flag) in on_target.iter_mut().enumerate() {
-                *flag = self.settings.axes[i].on_target.observe(
-                    &mut self.on_target[i],
-                    measured_m[i],
-                    answered_reference[i],
-                );
-            }
+            let [x, y] = &self.settings.axes;
+            let [sx, sy] = &mut self.on_target;
+            on_target = [
+                x.on_target.observe(sx, measured_m[0], answered_reference[0]),
+                y.on_target.observe(sy, measured_m[1], answered_reference[1]),
+            ];
         } else {
             self.on_target.iter_mut().for_each(OnTargetState::reset);
         }
