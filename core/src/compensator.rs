@@ -1784,6 +1784,151 @@ mod tests {
         }
     }
 
+    /// From h = +0 and h = −0 (a stage at rest, or a step that ended on zero), `advance` takes
+    /// its small path for every nonzero small step of either sign (σ from the sign of A·Δu, as
+    /// the model's `branch_sign`) and gives the model's own step bit for bit, the sign of a
+    /// zero h included; a zero step leaves h as it was.
+    #[test]
+    fn advance_from_h_zero_is_the_model_step_bit_for_bit() {
+        for sign in [1.0f32, -1.0] {
+            let map = StaticMap {
+                k1_m_per_v: sign * 0.357e-6,
+                k2_m_per_h: -sign * 0.357e-6,
+                offset_m: 0.0,
+            };
+            let compensator = Compensator::new(
+                StaticModel::new(x_stack(1.0, 1e3), map).unwrap(),
+                window(2e-5),
+            )
+            .unwrap();
+            let mut small = 0;
+            for h0 in [0.0f32, -0.0] {
+                for u0 in [0.0f32, 1e-3, 37.5, 60.0, 119.0, 120.0] {
+                    for du in [
+                        0.0f32, -0.0, 1e-30, -1e-30, 1e-6, -1e-6, 0.013, -0.013, 1.7, -1.7, 2.0,
+                        -2.0, 9.0, -9.0,
+                    ] {
+                        let from = CompensatorState {
+                            model: ModelState {
+                                input_v: u0,
+                                hysteresis: HysteresisState { input_v: u0, h: h0 },
+                            },
+                        };
+                        let u = u0 + du;
+                        let mut expected = from.model;
+                        compensator.model().step(&mut expected, u);
+                        let mut by_small = from;
+                        let took = compensator.advance_small_n1(&mut by_small, u, &ZeroReach::NONE);
+                        let mut got = from;
+                        compensator.advance(&mut got, u);
+                        let bits = |m: &ModelState| {
+                            [m.input_v, m.hysteresis.input_v, m.hysteresis.h].map(f32::to_bits)
+                        };
+                        assert_eq!(
+                            bits(&got.model),
+                            bits(&expected),
+                            "h0 {h0:?}, u0 {u0}, du {du:e}"
+                        );
+                        if took {
+                            small += 1;
+                            assert_eq!(bits(&by_small.model), bits(&expected));
+                        }
+                        let step = u - u0;
+                        if step == 0.0 {
+                            assert!(!took, "a zero step is the model's");
+                        } else if (0.0..=120.0).contains(&u) && step.abs() <= 1.7 {
+                            assert!(took, "h0 {h0:?}, u0 {u0}, du {du:e}");
+                        }
+                    }
+                }
+            }
+            assert!(small >= 70, "{small}");
+        }
+    }
+
+    /// [`Compensator::compensate_noting`] and [`Compensator::advance_noted`] give what
+    /// `compensate` and `advance` give, bit for bit, on the loop's per-tick stream
+    /// ([`n1_tick_stream`]'s), while the noted Δu₀ is taken for most advances across h = 0;
+    /// a memo of another model (another A) or of another h₀ is never taken.
+    #[test]
+    fn noted_zero_reach_gives_the_same_bits() {
+        let settings = window(2e-5).inside_guard();
+        let map = StaticMap {
+            k1_m_per_v: 3.573_939e-7,
+            k2_m_per_h: -3.573_939e-7,
+            offset_m: 0.0,
+        };
+        let compensator =
+            Compensator::new(StaticModel::new(x_stack(1.0, 1e3), map).unwrap(), settings).unwrap();
+        let mut other_a = x_stack(1.0, 1e3).params();
+        other_a.a *= 0.97;
+        let other = Compensator::new(
+            StaticModel::new(
+                crate::bouc_wen::BoucWen::with_input_range(other_a, 0.0, 120.0, 1e3).unwrap(),
+                map,
+            )
+            .unwrap(),
+            settings,
+        )
+        .unwrap();
+        let max_step = settings.slew_limit_v_per_s * settings.sample_period_s;
+        let mut seed = 7u32;
+        let mut rand = || {
+            seed = seed.wrapping_mul(1664525).wrapping_add(1013904223);
+            (seed >> 8) as f32 / (1u32 << 24) as f32
+        };
+        let (mut plain, mut noting) = (
+            CompensatorState::at_rest(0.0),
+            CompensatorState::at_rest(0.0),
+        );
+        let mut memo = ZeroReach::NONE;
+        let (mut correction, mut taken, mut foreign) = (0.0f32, 0u32, 0u32);
+        for k in 0..100_000u32 {
+            let t = k as f32 * 2e-5;
+            let y_d = 21e-6 - 17e-6 * libm::cosf(2.0 * core::f32::consts::PI * 10.0 * t)
+                + 2e-9 * (rand() - 0.5);
+            let before = plain;
+            let a = compensator.compensate(&mut plain, y_d);
+            let b = compensator.compensate_noting(&mut noting, y_d, &mut memo);
+            assert_eq!(
+                (a.voltage_v.to_bits(), a.status),
+                (b.voltage_v.to_bits(), b.status),
+                "k={k}"
+            );
+            assert_eq!(plain, noting, "k={k}");
+            correction = (correction + 3.0 * (rand() - 0.5)).clamp(-14.0, 14.0);
+            let u0 = before.model.input_v;
+            let applied = (a.voltage_v + correction)
+                .clamp(u0 - max_step, u0 + max_step)
+                .clamp(0.0, 120.0);
+            let mut advanced = before;
+            compensator.advance(&mut advanced, applied);
+            let mut by_memo = before;
+            compensator.advance_noted(&mut by_memo, applied, &memo);
+            assert_eq!(
+                advanced.model.hysteresis.h.to_bits(),
+                by_memo.model.hysteresis.h.to_bits(),
+                "k={k}"
+            );
+            assert_eq!(advanced, by_memo, "k={k}");
+            let h0 = before.model.hysteresis.h;
+            let crossed = h0 * advanced.model.hysteresis.h < 0.0;
+            if crossed && memo.h0_bits == h0.to_bits() {
+                taken += 1;
+                // The same memo for a model with another A (same h₀, same κ) is not taken.
+                let mut other_state = before;
+                other.advance(&mut other_state, applied);
+                let mut other_memo = before;
+                other.advance_noted(&mut other_memo, applied, &memo);
+                assert_eq!(other_state, other_memo, "k={k}");
+                foreign += 1;
+            }
+            plain = advanced;
+            noting = advanced;
+        }
+        assert!(taken > 300 && foreign == taken, "{taken} {foreign}");
+    }
+
     /// The solve's direction and step limit from `u0` for the output error `error_at_hold`, as
     /// `Compensator::solve` takes them, in the 0–120 V window.
     fn direction_and_limit(compensator: &Compensator, u0: f32, error_at_hold: f32) -> (f32, f32) {

@@ -213,10 +213,7 @@ impl OnTarget {
         let on = run >= self.ticks;
         state.on_target = on;
         if on && !was_on {
-            state.settle_ticks = state
-                .since_change
-                .saturating_add(1)
-                .saturating_sub(run);
+            state.settle_ticks = state.since_change.saturating_add(1).saturating_sub(run);
         }
         on
     }
@@ -294,5 +291,88 @@ mod tests {
         s.reset();
         assert!(!s.on_target());
         assert_eq!(s.settle_ticks(), 0);
+    }
+
+    /// The state machine against the definition evaluated from the whole history (module doc):
+    /// on target when the last N errors are all inside, the ticks since the last change of the
+    /// reference's bits, and the settling time set when the flag rises (the ticks from the
+    /// change to the run's first tick, 0 if before) or to 0 by a change while on target; over a
+    /// random stream with readings around the band's edge, held and moving references, NaN
+    /// readings and references, and resets.
+    #[test]
+    fn state_machine_is_the_definition() {
+        let b = OnTarget::new(1e-8, 4).unwrap();
+        let mut seed = 99u32;
+        let mut rand = || {
+            seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            (seed >> 8) as f32 / (1u32 << 24) as f32
+        };
+        let mut s = OnTargetState::default();
+        // The definition's memory: since the last reset, (reference bits, inside) per tick.
+        extern crate std;
+        let mut history: std::vec::Vec<(u32, bool)> = std::vec::Vec::new();
+        let (mut settle, mut was_on) = (NOT_SETTLED, false);
+        let mut reference = 0.0f32;
+        let (mut rises, mut changes_on) = (0, 0);
+        for k in 0..200_000 {
+            if rand() < 0.002 {
+                s.reset();
+                history.clear();
+                was_on = false;
+            }
+            if rand() < 0.05 {
+                reference = if rand() < 0.02 {
+                    f32::NAN
+                } else {
+                    (rand() - 0.5) * 1e-6
+                };
+            }
+            // Mostly moves by less than the band (a change that keeps the axis on target).
+            if rand() < 0.02 {
+                reference += 2e-9;
+            }
+            let error = (rand() - 0.5) * if rand() < 0.5 { 2.2e-8 } else { 1e-6 };
+            let reading = if rand() < 0.003 {
+                f32::NAN
+            } else {
+                reference + error
+            };
+            let flag = b.observe(&mut s, reading, reference);
+
+            let bits = reference.to_bits();
+            let inside = (reading - reference).abs() <= b.tolerance_m;
+            let previous_bits = history.last().map_or(f32::NAN.to_bits(), |h| h.0);
+            history.push((bits, inside));
+            let n = b.ticks as usize;
+            let on = history.len() >= n && history[history.len() - n..].iter().all(|h| h.1);
+            let since = history
+                .iter()
+                .rev()
+                .zip(
+                    history
+                        .iter()
+                        .rev()
+                        .skip(1)
+                        .map(|h| h.0)
+                        .chain([f32::NAN.to_bits()]),
+                )
+                .position(|(h, before)| h.0 != before)
+                // No change since the reset: counted from the reset (a NaN reference).
+                .unwrap_or(history.len()) as u32;
+            if bits != previous_bits && was_on {
+                settle = 0;
+                changes_on += 1;
+            }
+            if on && !was_on {
+                settle = (since + 1).saturating_sub(b.ticks);
+                rises += 1;
+            }
+            was_on = on;
+            assert_eq!(flag, on, "k={k}");
+            assert_eq!(s.on_target(), on, "k={k}");
+            assert_eq!(s.ticks_since_change(), since, "k={k}");
+            assert_eq!(s.settle_ticks(), settle, "k={k}");
+        }
+        assert!(rises > 1_000 && changes_on > 100, "{rises} {changes_on}");
     }
 }

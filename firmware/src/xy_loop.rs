@@ -1188,7 +1188,12 @@ impl TwoAxisLoop {
         let feedforward = requested;
         let requested = match axis.servo.as_ref() {
             Some(servo) if servo_runs => {
-                let out = servo.step(&mut self.servo[i], previous_reference, measured, feedforward);
+                let out = servo.step(
+                    &mut self.servo[i],
+                    previous_reference,
+                    measured,
+                    feedforward,
+                );
                 if out.status != ServoStatus::Tracking {
                     let c = &mut self.counters;
                     c.servo_limited = c.servo_limited.saturating_add(1);
@@ -1350,8 +1355,10 @@ impl TwoAxisLoop {
             let [x, y] = &self.settings.axes;
             let [sx, sy] = &mut self.on_target;
             on_target = [
-                x.on_target.observe(sx, measured_m[0], answered_reference[0]),
-                y.on_target.observe(sy, measured_m[1], answered_reference[1]),
+                x.on_target
+                    .observe(sx, measured_m[0], answered_reference[0]),
+                y.on_target
+                    .observe(sy, measured_m[1], answered_reference[1]),
             ];
         } else {
             self.on_target.iter_mut().for_each(OnTargetState::reset);
