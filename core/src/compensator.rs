@@ -619,7 +619,11 @@ impl Compensator {
         let sigma_bit = if h0 != 0.0 {
             h0.to_bits() >> 31
         } else if du != 0.0 {
-            u32::from(!(p.a * du > 0.0))
+            if p.a * du > 0.0 {
+                0
+            } else {
+                1
+            }
         } else {
             return false;
         };
@@ -751,7 +755,8 @@ impl Compensator {
         memo: &mut ZeroReach,
     ) -> Command {
         let p = &self.fast;
-        let kappa = p.branch[branch];
+        // `branch` is 0..=3 (`small_step`); the mask keeps the index check out of line code.
+        let kappa = p.branch[branch & 3];
         let q = p.a - kappa * h0;
         let k2q = p.k2 * q;
         let x0 = error * (1.0 / (p.k1 + k2q));
