@@ -533,7 +533,18 @@ impl Compensator {
     /// to the general solve (out of line).
     #[inline(always)]
     pub fn compensate(&self, state: &mut CompensatorState, desired_m: f32) -> Command {
-        self.compensate_noting(state, desired_m, &mut ZeroReach::default())
+        // The step the small path refuses is settled from scratch out of line: the caller's
+        // loop keeps only the small path's registers (see `compensate_noting` for the other
+        // trade).
+        let small = match self.fast.kind {
+            FastKind::N1 => self.compensate_small_n1(state, desired_m),
+            FastKind::General => self.compensate_small_general(state, desired_m),
+            FastKind::None => None,
+        };
+        match small {
+            Some(command) => command,
+            None => self.compensate_general(state, desired_m),
+        }
     }
 
     /// [`Compensator::compensate`], noting in `memo` the Δu₀ of a step across h = 0 (n = 1; an
@@ -1012,7 +1023,7 @@ impl Compensator {
     }
 
     /// [`Compensator::small_n1_from`] from the state.
-    #[cfg(test)]
+    #[inline(always)]
     fn compensate_small_n1(&self, state: &mut CompensatorState, desired_m: f32) -> Option<Command> {
         let start = self.small_step(state, desired_m)?;
         self.small_n1_from(state, start)
