@@ -254,7 +254,7 @@ struct FastPath {
     /// n = 1: g(κ·Δu) = (1 − e^(−κΔu))/κΔu ([`relax_factor`]) at a step of the slew limit,
     /// Δu = s·M (M = `max_step_v`), per (s, σ), indexed by `2·[s < 0] + [σ < 0]`, with
     /// κ = β·s + γ·σ as [`crate::bouc_wen::BoucWen::n1_branch`] forms it: the same operands, so
-    /// the same bits as computing it per sample ([`Compensator::compensate_limited_n1`]).
+    /// the same bits as computing it per sample ([`Compensator::limited_n1_on_branch`]).
     slew_g: [f32; 4],
     /// The bit pattern of the Bouc-Wen state clamp: a step ending beyond it (or across h = 0)
     /// is left to the general solve.
@@ -582,11 +582,13 @@ impl Compensator {
     /// output differs from the compensator's command (a servo's correction, a guard's override).
     ///
     /// For n = 1 and a small step it takes the same closed form as [`StaticModel::step`]'s
-    /// increment, `h₁ = h₀ + (A − κ·h₀)·Δu·g(κ·Δu)` with κ = β·s + γ·σ (s = sgn Δu, σ = sgn h₀)
-    /// and g's series (|κ·Δu| < 0.1), with κ from the table built once instead of the general
-    /// step's sanitising and branch selection: only when the state is consistent and inside the
-    /// window, `applied_v` is inside the window, h₀ ≠ 0 and h₁ stays on h₀'s side of zero within
-    /// the state clamp. Every other case (zero crossings, large steps, n ≠ 1, asymmetric terms,
+    /// increment, `h₁ = h₀ + (A − κ·h₀)·Δu·g(κ·Δu)` with κ = β·s + γ·σ (s = sgn Δu, σ = sgn h₀,
+    /// or at h₀ = ±0 the sign of A·Δu, as the model's step takes it) and g's series
+    /// (|κ·Δu| < 0.1), with κ from the table built once instead of the general step's sanitising
+    /// and branch selection: only when the state is consistent and inside the window,
+    /// `applied_v` is inside the window, Δu ≠ 0 at h₀ = 0, and h₁ stays on σ's side of zero
+    /// within the state clamp (or crosses it from h₀ ≠ 0 by a small step, split where the model
+    /// splits it). Every other case (zero crossings, large steps, n ≠ 1, asymmetric terms,
     /// a non-finite voltage) is the model's own step.
     #[inline(always)]
     pub fn advance(&self, state: &mut CompensatorState, applied_v: f32) {
@@ -723,14 +725,14 @@ impl Compensator {
 
     /// [`Compensator::compensate`] without the small-step paths (kept out of line). For n = 1,
     /// from a consistent state inside the window, the step is settled by the fast solves
-    /// directly ([`Compensator::compensate_n1_edge`]), with the direction s = sgn(e)·sgn(dy/du)
+    /// directly ([`Compensator::n1_edge_head`] and [`Compensator::n1_edge_tail`]), with the direction s = sgn(e)·sgn(dy/du)
     /// and the limit Δu_lim (slew or window, whichever is nearer) as [`Compensator::solve`]
     /// takes them:
     /// - a step the limit stops: when the fast solve's start (below) lies beyond Δu_lim and the
     ///   output at the limit, `Δu_lim·(k1 + k2·q·g(κ·Δu_lim))` (one `relax_factor`), still falls
     ///   short of e, the voltage is u₀ + Δu_lim with `h₁ = h₀ + q·Δu_lim·g(κ·Δu_lim)`, what the
     ///   fast solve's Newton ends on (its iterates stay clamped at the limit), `Limited`
-    ///   ([`Compensator::compensate_limited_n1`]);
+    ///   ([`Compensator::limited_n1_on_branch`]);
     /// - a step that may cross h = 0 within the limit: h₀ ≠ 0, moving toward zero (q·s·σ < 0,
     ///   σ = sgn h₀) and |h₀| < max(A, |q|)·|Δu_lim| (on the way to zero |dh/du| lies between
     ///   A and |q|): [`Compensator::solve_n1_crossing`];
@@ -828,8 +830,8 @@ impl Compensator {
         }
     }
 
-    /// [`Compensator::compensate_n1_edge`] up to its tail: `Ok` the limited step
-    /// ([`Compensator::compensate_limited_n1`]) when the fast solve's start lies beyond the
+    /// The edge's head (the tail is [`Compensator::n1_edge_tail`]): `Ok` the limited step
+    /// ([`Compensator::limited_n1_on_branch`]) when the fast solve's start lies beyond the
     /// limit and the limit stops the step; `Err(None)` for an error that is not finite or zero
     /// (the general solve); else `Err(Some((direction, limit, (q, κ, σ))))` for
     /// [`Compensator::n1_edge_tail`].
@@ -874,7 +876,7 @@ impl Compensator {
         Err(Some((direction, limit, (q, kappa, sigma))))
     }
 
-    /// [`Compensator::compensate_n1_edge`] after the limited step: the crossing when h moves
+    /// The edge after the limited step ([`Compensator::n1_edge_head`]): the crossing when h moves
     /// toward zero and may reach it within the limit, else the fast solve, and the status as
     /// [`Compensator::solve`] reports it; `(q, κ, σ)` is `n1_branch(h₀, direction)`.
     #[inline(always)]
@@ -939,7 +941,7 @@ impl Compensator {
         self.limited_n1_on_branch(state, (u0, h0, error), (direction, limit), branch)
     }
 
-    /// [`Compensator::compensate_limited_n1`] with `(q, κ, σ)` = `n1_branch(h₀, direction)`
+    /// [`Compensator::limited_n1_on_branch`] with `(q, κ, σ)` = `n1_branch(h₀, direction)`
     /// as the caller has it.
     #[inline(never)]
     fn limited_n1_on_branch(
@@ -1087,10 +1089,10 @@ impl Compensator {
     }
 
     /// A step the small path refused with |x₀| beyond three slew steps, settled when the
-    /// slew limit stops it: [`Compensator::compensate_limited_n1`] at Δu_lim = s·M with the
+    /// slew limit stops it: [`Compensator::limited_n1_on_branch`] at Δu_lim = s·M with the
     /// table's g(κ·Δu_lim), for h₀ ≠ 0 (σ = sgn h₀, κ and q = A − κ·h₀ of the small path's
     /// branch: the same operands as `n1_branch` gives) and a limit the window does not move.
-    /// That is what [`Compensator::compensate_n1_edge`] does first with such a step: its start
+    /// That is what [`Compensator::n1_edge_head`] and [`Compensator::n1_edge_tail`] does first with such a step: its start
     /// `x₀·(1 − w/2)/(1 − w)` (or x₀) is at least 0.76·|x₀| > M, so it tries the limited step
     /// (a step that surely crosses h = 0, which it does not try, the limited step refuses).
     /// `Err(Some((direction, limit, q, κ, σ)))` when h₁ lies past zero (the limited step's
