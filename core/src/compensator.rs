@@ -674,7 +674,7 @@ impl Compensator {
     /// the branch table's entry of the same direction and the other σ), the same operations in
     /// the same order, so the same bits. `None` (the model's step) when x ≤ −1 or h₁ lies
     /// beyond the state clamp. `noted`: Δu₀ of this h₀ and κ from a [`ZeroReach`] memo.
-    #[inline(never)]
+    #[inline(always)]
     fn advance_crossing_n1(
         &self,
         h0: f32,
@@ -1483,6 +1483,7 @@ impl Compensator {
     /// convergence, the next one would (`|F''/(2F')|·m² ≤ tolerance/4` after a step m). `None`
     /// when it does not settle or ends non-finite.
     #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
     fn n1_newton(
         &self,
         k2q: f32,
