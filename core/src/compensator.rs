@@ -1132,7 +1132,7 @@ impl Compensator {
 
     /// One Newton step on `Δu·(k1 + k2·q·g(κΔu)) = e` from `du` (|κ·Δu| < 0.1, |kx| < 0.1,
     /// |w| < 0.2, else `None`).
-    #[inline(never)]
+    #[inline(always)]
     fn n1_newton_step(&self, du: f32, error: f32, kappa: f32, k2q: f32) -> Option<f32> {
         let p = &self.fast;
         let inverse_slope = 1.0 / (p.k1 + k2q);
