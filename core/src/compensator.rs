@@ -254,7 +254,7 @@ struct FastPath {
     /// n = 1: g(κ·Δu) = (1 − e^(−κΔu))/κΔu ([`relax_factor`]) at a step of the slew limit,
     /// Δu = s·M (M = `max_step_v`), per (s, σ), indexed by `2·[s < 0] + [σ < 0]`, with
     /// κ = β·s + γ·σ as [`crate::bouc_wen::BoucWen::n1_branch`] forms it: the same operands, so
-    /// the same bits as computing it per sample ([`Compensator::compensate_limited_n1`]).
+    /// the same bits as computing it per sample ([`Compensator::limited_n1_on_branch`]).
     slew_g: [f32; 4],
     /// The bit pattern of the Bouc-Wen state clamp: a step ending beyond it (or across h = 0)
     /// is left to the general solve.
@@ -323,6 +323,46 @@ impl FastPath {
             err_nu: 1.0 / 24.0,
             rho_max: math::min(0.5, 1.5 / math::max(n - 1.0, 1e-3)),
         }
+    }
+}
+
+/// A memo of a command's step across h = 0 (n = 1): the input increment
+/// `Δu₀ = −(h₀/A)·ln(1 + x)/x`, x = −κ·h₀/A, at which h reached zero from h₀ on the branch κ
+/// ([`crate::bouc_wen::BoucWen::n1_zero_reach`]), keyed by the bits of h₀, κ and A (Δu₀ is a
+/// function of those three alone, so a memo from another tick or model is never taken for
+/// this one). [`Compensator::compensate_noting`] writes it, [`Compensator::advance_noted`]
+/// reads it: a voltage applied that crosses zero from the same state on the same branch as
+/// the command takes Δu₀ from it instead of computing the logarithm again.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ZeroReach {
+    h0_bits: u32,
+    kappa_bits: u32,
+    a_bits: u32,
+    du0: f32,
+}
+
+impl ZeroReach {
+    /// No memo: a key no finite h₀ has (a NaN's bits).
+    pub const NONE: Self = Self {
+        h0_bits: u32::MAX,
+        kappa_bits: u32::MAX,
+        a_bits: u32::MAX,
+        du0: f32::NAN,
+    };
+
+    /// The memo's Δu₀ for (h₀, κ, A), if it is theirs.
+    #[inline(always)]
+    fn get(&self, h0: f32, kappa: f32, a: f32) -> Option<f32> {
+        (self.h0_bits == h0.to_bits()
+            && self.kappa_bits == kappa.to_bits()
+            && self.a_bits == a.to_bits())
+        .then_some(self.du0)
+    }
+}
+
+impl Default for ZeroReach {
+    fn default() -> Self {
+        Self::NONE
     }
 }
 
@@ -493,9 +533,40 @@ impl Compensator {
     /// to the general solve (out of line).
     #[inline(always)]
     pub fn compensate(&self, state: &mut CompensatorState, desired_m: f32) -> Command {
-        let small = if self.fast.kind == FastKind::N1 {
-            self.compensate_small_n1(state, desired_m)
-        } else if self.fast.kind == FastKind::General {
+        // The step the small path refuses is settled from scratch out of line: the caller's
+        // loop keeps only the small path's registers (see `compensate_noting` for the other
+        // trade).
+        let small = match self.fast.kind {
+            FastKind::N1 => self.compensate_small_n1(state, desired_m),
+            FastKind::General => self.compensate_small_general(state, desired_m),
+            FastKind::None => None,
+        };
+        match small {
+            Some(command) => command,
+            None => self.compensate_general(state, desired_m),
+        }
+    }
+
+    /// [`Compensator::compensate`], noting in `memo` the Δu₀ of a step across h = 0 (n = 1; an
+    /// other step leaves it as it was) for [`Compensator::advance_noted`] from the same state.
+    #[inline(always)]
+    pub fn compensate_noting(
+        &self,
+        state: &mut CompensatorState,
+        desired_m: f32,
+        memo: &mut ZeroReach,
+    ) -> Command {
+        if self.fast.kind == FastKind::N1 {
+            // The start is computed once: a step the small path refuses goes on from it.
+            return match self.small_step(state, desired_m) {
+                Some(start) => match self.small_n1_from(state, start) {
+                    Some(command) => command,
+                    None => self.compensate_n1_refused(state, start, desired_m, memo),
+                },
+                None => self.compensate_general(state, desired_m),
+            };
+        }
+        let small = if self.fast.kind == FastKind::General {
             self.compensate_small_general(state, desired_m)
         } else {
             None
@@ -511,15 +582,25 @@ impl Compensator {
     /// output differs from the compensator's command (a servo's correction, a guard's override).
     ///
     /// For n = 1 and a small step it takes the same closed form as [`StaticModel::step`]'s
-    /// increment, `h₁ = h₀ + (A − κ·h₀)·Δu·g(κ·Δu)` with κ = β·s + γ·σ (s = sgn Δu, σ = sgn h₀)
-    /// and g's series (|κ·Δu| < 0.1), with κ from the table built once instead of the general
-    /// step's sanitising and branch selection: only when the state is consistent and inside the
-    /// window, `applied_v` is inside the window, h₀ ≠ 0 and h₁ stays on h₀'s side of zero within
-    /// the state clamp. Every other case (zero crossings, large steps, n ≠ 1, asymmetric terms,
+    /// increment, `h₁ = h₀ + (A − κ·h₀)·Δu·g(κ·Δu)` with κ = β·s + γ·σ (s = sgn Δu, σ = sgn h₀,
+    /// or at h₀ = ±0 the sign of A·Δu, as the model's step takes it) and g's series
+    /// (|κ·Δu| < 0.1), with κ from the table built once instead of the general step's sanitising
+    /// and branch selection: only when the state is consistent and inside the window,
+    /// `applied_v` is inside the window, Δu ≠ 0 at h₀ = 0, and h₁ stays on σ's side of zero
+    /// within the state clamp (or crosses it from h₀ ≠ 0 by a small step, split where the model
+    /// splits it). Every other case (zero crossings, large steps, n ≠ 1, asymmetric terms,
     /// a non-finite voltage) is the model's own step.
     #[inline(always)]
     pub fn advance(&self, state: &mut CompensatorState, applied_v: f32) {
-        if self.fast.kind == FastKind::N1 && self.advance_small_n1(state, applied_v) {
+        self.advance_noted(state, applied_v, &ZeroReach::NONE);
+    }
+
+    /// [`Compensator::advance`], the same state bit for bit, taking Δu₀ of a step across h = 0
+    /// from `memo` when it is the one of this h₀, branch and model
+    /// ([`Compensator::compensate_noting`] from the same state).
+    #[inline(always)]
+    pub fn advance_noted(&self, state: &mut CompensatorState, applied_v: f32, memo: &ZeroReach) {
+        if self.fast.kind == FastKind::N1 && self.advance_small_n1(state, applied_v, memo) {
             return;
         }
         self.advance_general(state, applied_v);
@@ -527,7 +608,12 @@ impl Compensator {
 
     /// [`Compensator::advance`]'s small n = 1 step; false (nothing changed) when it does not apply.
     #[inline(always)]
-    fn advance_small_n1(&self, state: &mut CompensatorState, applied_v: f32) -> bool {
+    fn advance_small_n1(
+        &self,
+        state: &mut CompensatorState,
+        applied_v: f32,
+        memo: &ZeroReach,
+    ) -> bool {
         let p = &self.fast;
         let u0 = state.model.input_v;
         let h0 = state.model.hysteresis.h;
@@ -536,26 +622,40 @@ impl Compensator {
             && u0 >= p.min_v
             && u0 <= p.max_v
             && u >= p.min_v
-            && u <= p.max_v
-            && h0 != 0.0)
+            && u <= p.max_v)
         {
             return false;
         }
         let du = u - u0;
-        // s = sgn Δu (the sign bit: −0 counts as negative, as `f32::signum`) and σ = sgn h₀
-        // select κ = β·s + γ·σ in the table indexed by s·sgn(dy/du) (see `FastPath::branch`).
-        let index = ((du.to_bits() ^ self.slope_sign.to_bits()) >> 31) << 1 | h0.to_bits() >> 31;
+        // σ = sgn h₀; at h₀ = ±0 the sign of A·Δu, as the model's step takes it
+        // (`BoucWen::branch_sign`; a zero step there is the model's: h stays, sign included).
+        let sigma_bit = if h0 != 0.0 {
+            h0.to_bits() >> 31
+        } else if du != 0.0 {
+            if p.a * du > 0.0 {
+                0
+            } else {
+                1
+            }
+        } else {
+            return false;
+        };
+        // s = sgn Δu (the sign bit: −0 counts as negative, as `f32::signum`) and σ select
+        // κ = β·s + γ·σ in the table indexed by s·sgn(dy/du) (see `FastPath::branch`).
+        let index = ((du.to_bits() ^ self.slope_sign.to_bits()) >> 31) << 1 | sigma_bit;
         let kappa = p.branch[index as usize & 3];
         let z = kappa * du;
         let mut h1 = h0 + (p.a - kappa * h0) * du * relax_series(z);
-        let h1_on_branch = (h1.to_bits() ^ (h0.to_bits() & 0x8000_0000)) <= p.clamp_bound_bits;
+        let h1_on_branch = (h1.to_bits() ^ (sigma_bit << 31)) <= p.clamp_bound_bits;
         let small = z.abs() < 0.1;
         if !(small && h1_on_branch) {
             // h crossed zero (the model splits the step there), or the step is not small.
             if !(small && h1 * h0 < 0.0) {
                 return false;
             }
-            h1 = match self.advance_crossing_n1(h0, du, kappa, p.branch[(index as usize & 3) ^ 1]) {
+            let kappa_after = p.branch[(index as usize & 3) ^ 1];
+            let noted = memo.get(h0, kappa, p.a);
+            h1 = match self.advance_crossing_n1(h0, du, kappa, kappa_after, noted) {
                 Some(h1) => h1,
                 None => return false,
             };
@@ -573,10 +673,20 @@ impl Compensator {
     /// side, r = Δu − Δu₀ (0 if Δu stops short of Δu₀ in f32), κ' = β·s − γ·σ (`kappa_after`,
     /// the branch table's entry of the same direction and the other σ), the same operations in
     /// the same order, so the same bits. `None` (the model's step) when x ≤ −1 or h₁ lies
-    /// beyond the state clamp.
-    #[inline(never)]
-    fn advance_crossing_n1(&self, h0: f32, du: f32, kappa: f32, kappa_after: f32) -> Option<f32> {
-        let du0 = self.model.hysteresis().n1_zero_reach(h0, kappa)?;
+    /// beyond the state clamp. `noted`: Δu₀ of this h₀ and κ from a [`ZeroReach`] memo.
+    #[inline(always)]
+    fn advance_crossing_n1(
+        &self,
+        h0: f32,
+        du: f32,
+        kappa: f32,
+        kappa_after: f32,
+        noted: Option<f32>,
+    ) -> Option<f32> {
+        let du0 = match noted {
+            Some(du0) => du0,
+            None => self.model.hysteresis().n1_zero_reach(h0, kappa)?,
+        };
         let s = if du < 0.0 { -1.0 } else { 1.0 };
         let rest = if (du - du0) * s > 0.0 { du - du0 } else { 0.0 };
         let h1 = self.fast.a * rest * relax_factor(kappa_after * rest);
@@ -615,14 +725,14 @@ impl Compensator {
 
     /// [`Compensator::compensate`] without the small-step paths (kept out of line). For n = 1,
     /// from a consistent state inside the window, the step is settled by the fast solves
-    /// directly ([`Compensator::compensate_n1_edge`]), with the direction s = sgn(e)·sgn(dy/du)
+    /// directly ([`Compensator::n1_edge_head`] and [`Compensator::n1_edge_tail`]), with the direction s = sgn(e)·sgn(dy/du)
     /// and the limit Δu_lim (slew or window, whichever is nearer) as [`Compensator::solve`]
     /// takes them:
     /// - a step the limit stops: when the fast solve's start (below) lies beyond Δu_lim and the
     ///   output at the limit, `Δu_lim·(k1 + k2·q·g(κ·Δu_lim))` (one `relax_factor`), still falls
     ///   short of e, the voltage is u₀ + Δu_lim with `h₁ = h₀ + q·Δu_lim·g(κ·Δu_lim)`, what the
     ///   fast solve's Newton ends on (its iterates stay clamped at the limit), `Limited`
-    ///   ([`Compensator::compensate_limited_n1`]);
+    ///   ([`Compensator::limited_n1_on_branch`]);
     /// - a step that may cross h = 0 within the limit: h₀ ≠ 0, moving toward zero (q·s·σ < 0,
     ///   σ = sgn h₀) and |h₀| < max(A, |q|)·|Δu_lim| (on the way to zero |dh/du| lies between
     ///   A and |q|): [`Compensator::solve_n1_crossing`];
@@ -635,7 +745,8 @@ impl Compensator {
     fn compensate_general(&self, state: &mut CompensatorState, desired_m: f32) -> Command {
         if self.fast.kind == FastKind::N1 {
             if let Some(start) = self.small_step(state, desired_m) {
-                return self.compensate_n1_refused(state, start, desired_m);
+                let mut memo = ZeroReach::NONE;
+                return self.compensate_n1_refused(state, start, desired_m, &mut memo);
             }
         }
         self.compensate_with_derivatives(state, desired_m, 0.0, 0.0)
@@ -648,37 +759,45 @@ impl Compensator {
     /// A step the small path refused with |x₀| beyond three slew steps (x₀ as it computes it)
     /// is first tried as a slew-limited step ([`Compensator::slew_limited_n1`]); one that h
     /// surely crosses zero in at the slew limit goes on to [`Compensator::n1_edge_tail`].
-    #[inline(always)]
+    #[inline(never)]
     fn compensate_n1_refused(
         &self,
         state: &mut CompensatorState,
         (u0, h0, error, branch): (f32, f32, f32, usize),
         desired_m: f32,
+        memo: &mut ZeroReach,
     ) -> Command {
         let p = &self.fast;
-        let kappa = p.branch[branch];
+        // `branch` is 0..=3 (`small_step`); the mask keeps the index check out of line code.
+        let kappa = p.branch[branch & 3];
         let q = p.a - kappa * h0;
         let k2q = p.k2 * q;
         let x0 = error * (1.0 / (p.k1 + k2q));
-        if x0.abs() > 3.0 * p.max_step_v {
-            match self.slew_limited_n1(state, u0, h0, error, (q, kappa, k2q)) {
-                Ok(command) => return command,
-                Err(Some((direction, limit, q, kappa, sigma))) => {
-                    let tail = self.n1_edge_tail(
-                        state,
-                        (u0, h0, error, desired_m),
-                        (direction, limit),
-                        (q, kappa, sigma),
-                    );
-                    return match tail {
-                        Some(command) => command,
-                        None => self.compensate_with_derivatives(state, desired_m, 0.0, 0.0),
-                    };
-                }
-                Err(None) => {}
+        let slew = if x0.abs() > 3.0 * p.max_step_v {
+            self.slew_limited_n1(state, u0, h0, error, (q, kappa, k2q))
+        } else {
+            Err(None)
+        };
+        // One tail for both: the slew-limited step's crossing, or the edge's.
+        let head = match slew {
+            Ok(command) => return command,
+            Err(Some((direction, limit, q, kappa, sigma))) => {
+                Err(Some((direction, limit, (q, kappa, sigma))))
             }
-        }
-        match self.compensate_n1_edge(state, u0, h0, error, desired_m) {
+            Err(None) => self.n1_edge_head(state, u0, h0, error),
+        };
+        let tail = match head {
+            Ok(command) => Some(command),
+            Err(None) => None,
+            Err(Some((direction, limit, branch))) => self.n1_edge_tail(
+                state,
+                (u0, h0, error, desired_m),
+                (direction, limit),
+                branch,
+                memo,
+            ),
+        };
+        match tail {
             Some(command) => command,
             None => self.compensate_with_derivatives(state, desired_m, 0.0, 0.0),
         }
@@ -689,7 +808,7 @@ impl Compensator {
     /// state is the state itself): the limited step, the crossing, then the fast solve
     /// ([`Compensator::solve_n1_fast`]) as [`Compensator::solve`] calls it, with the status
     /// `solve` gives. `None` when none of them takes the step.
-    #[inline(always)]
+    #[cfg(test)]
     fn compensate_n1_edge(
         &self,
         state: &mut CompensatorState,
@@ -698,9 +817,36 @@ impl Compensator {
         error: f32,
         desired_m: f32,
     ) -> Option<Command> {
+        match self.n1_edge_head(state, u0, h0, error) {
+            Ok(command) => Some(command),
+            Err(None) => None,
+            Err(Some((direction, limit, branch))) => self.n1_edge_tail(
+                state,
+                (u0, h0, error, desired_m),
+                (direction, limit),
+                branch,
+                &mut ZeroReach::default(),
+            ),
+        }
+    }
+
+    /// The edge's head (the tail is [`Compensator::n1_edge_tail`]): `Ok` the limited step
+    /// ([`Compensator::limited_n1_on_branch`]) when the fast solve's start lies beyond the
+    /// limit and the limit stops the step; `Err(None)` for an error that is not finite or zero
+    /// (the general solve); else `Err(Some((direction, limit, (q, κ, σ))))` for
+    /// [`Compensator::n1_edge_tail`].
+    #[inline(always)]
+    #[allow(clippy::type_complexity)]
+    fn n1_edge_head(
+        &self,
+        state: &mut CompensatorState,
+        u0: f32,
+        h0: f32,
+        error: f32,
+    ) -> Result<Command, Option<(f32, f32, (f32, f32, f32))>> {
         let p = &self.fast;
         if !(error.is_finite() && error != 0.0) {
-            return None;
+            return Err(None);
         }
         let (direction, limit) = self.step_direction(u0, error);
         let (q, kappa, sigma) = self.model.hysteresis().n1_branch(h0, direction);
@@ -718,21 +864,19 @@ impl Compensator {
         // The limited step refuses a step across h = 0 at the limit: not tried when h surely
         // crosses within it (`crosses_within`).
         if guess.abs() > limit.abs() && !(toward_zero && crosses_within(h0, q, kappa, limit)) {
-            if let Some(command) =
-                self.compensate_limited_n1(state, u0, h0, error, direction, limit)
-            {
-                return Some(command);
+            if let Some(command) = self.limited_n1_on_branch(
+                state,
+                (u0, h0, error),
+                (direction, limit),
+                (q, kappa, sigma),
+            ) {
+                return Ok(command);
             }
         }
-        self.n1_edge_tail(
-            state,
-            (u0, h0, error, desired_m),
-            (direction, limit),
-            (q, kappa, sigma),
-        )
+        Err(Some((direction, limit, (q, kappa, sigma))))
     }
 
-    /// [`Compensator::compensate_n1_edge`] after the limited step: the crossing when h moves
+    /// The edge after the limited step ([`Compensator::n1_edge_head`]): the crossing when h moves
     /// toward zero and may reach it within the limit, else the fast solve, and the status as
     /// [`Compensator::solve`] reports it; `(q, κ, σ)` is `n1_branch(h₀, direction)`.
     #[inline(always)]
@@ -742,17 +886,28 @@ impl Compensator {
         (u0, h0, error, desired_m): (f32, f32, f32, f32),
         (direction, limit): (f32, f32),
         branch: (f32, f32, f32),
+        memo: &mut ZeroReach,
     ) -> Option<Command> {
         let (q, _, sigma) = branch;
         let toward_zero = h0 != 0.0 && q * direction * sigma < 0.0;
+        // The crossing's own entry checks (`solve_n1_crossing`) are these two: inlined here.
         let crossing =
             if toward_zero && h0.abs() < math::max(self.fast.a.abs(), q.abs()) * limit.abs() {
-                self.solve_n1_crossing(u0, h0, error, direction, limit, branch)
+                self.n1_crossing_toward_zero(u0, h0, error, direction, limit, branch)
             } else {
                 None
             };
         let (reached, du) = match crossing {
-            Some(step) => step,
+            Some((reached, du, du0)) => {
+                // The memo (κ as the branch table gives it: the same bits).
+                *memo = ZeroReach {
+                    h0_bits: h0.to_bits(),
+                    kappa_bits: branch.1.to_bits(),
+                    a_bits: self.fast.a.to_bits(),
+                    du0,
+                };
+                (reached, du)
+            }
             None => self.solve_n1_fast(&state.model, u0, error, direction, limit)?,
         };
         // The status as `solve` reports it.
@@ -772,7 +927,7 @@ impl Compensator {
     /// A step the limit stops ([`Compensator::compensate_general`]): `Some` (`Limited`, the
     /// state at u₀ + Δu_lim) when the output at the limit still falls short of the error `error`
     /// and h₁ stays on its side of zero; `None` otherwise.
-    #[inline(never)]
+    #[cfg(test)]
     fn compensate_limited_n1(
         &self,
         state: &mut CompensatorState,
@@ -782,8 +937,21 @@ impl Compensator {
         direction: f32,
         limit: f32,
     ) -> Option<Command> {
+        let branch = self.model.hysteresis().n1_branch(h0, direction);
+        self.limited_n1_on_branch(state, (u0, h0, error), (direction, limit), branch)
+    }
+
+    /// [`Compensator::limited_n1_on_branch`] with `(q, κ, σ)` = `n1_branch(h₀, direction)`
+    /// as the caller has it.
+    #[inline(never)]
+    fn limited_n1_on_branch(
+        &self,
+        state: &mut CompensatorState,
+        (u0, h0, error): (f32, f32, f32),
+        (direction, limit): (f32, f32),
+        (q, kappa, sigma): (f32, f32, f32),
+    ) -> Option<Command> {
         let p = &self.fast;
-        let (q, kappa, sigma) = self.model.hysteresis().n1_branch(h0, direction);
         // At the slew limit itself (not the window's edge) g is the table's.
         let g = if limit == direction * p.max_step_v {
             p.slew_g[usize::from(direction < 0.0) << 1 | usize::from(sigma < 0.0)]
@@ -921,10 +1089,10 @@ impl Compensator {
     }
 
     /// A step the small path refused with |x₀| beyond three slew steps, settled when the
-    /// slew limit stops it: [`Compensator::compensate_limited_n1`] at Δu_lim = s·M with the
+    /// slew limit stops it: [`Compensator::limited_n1_on_branch`] at Δu_lim = s·M with the
     /// table's g(κ·Δu_lim), for h₀ ≠ 0 (σ = sgn h₀, κ and q = A − κ·h₀ of the small path's
     /// branch: the same operands as `n1_branch` gives) and a limit the window does not move.
-    /// That is what [`Compensator::compensate_n1_edge`] does first with such a step: its start
+    /// That is what [`Compensator::n1_edge_head`] and [`Compensator::n1_edge_tail`] does first with such a step: its start
     /// `x₀·(1 − w/2)/(1 − w)` (or x₀) is at least 0.76·|x₀| > M, so it tries the limited step
     /// (a step that surely crosses h = 0, which it does not try, the limited step refuses).
     /// `Err(Some((direction, limit, q, κ, σ)))` when h₁ lies past zero (the limited step's
@@ -964,7 +1132,7 @@ impl Compensator {
 
     /// One Newton step on `Δu·(k1 + k2·q·g(κΔu)) = e` from `du` (|κ·Δu| < 0.1, |kx| < 0.1,
     /// |w| < 0.2, else `None`).
-    #[inline(never)]
+    #[inline(always)]
     fn n1_newton_step(&self, du: f32, error: f32, kappa: f32, k2q: f32) -> Option<f32> {
         let p = &self.fast;
         let inverse_slope = 1.0 / (p.k1 + k2q);
@@ -1315,6 +1483,7 @@ impl Compensator {
     /// convergence, the next one would (`|F''/(2F')|·m² ≤ tolerance/4` after a step m). `None`
     /// when it does not settle or ends non-finite.
     #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
     fn n1_newton(
         &self,
         k2q: f32,
@@ -1384,6 +1553,31 @@ impl Compensator {
         limit: f32,
         (q, kappa, sigma): (f32, f32, f32),
     ) -> Option<(ModelState, f32)> {
+        if !(h0 != 0.0 && q * direction * sigma < 0.0) {
+            return None;
+        }
+        // On the way to zero |dh/du| = |A − κ·h| lies between A and |q|, so h cannot reach zero
+        // before |Δu| = |h₀|/max(A, |q|): beyond the limit, no crossing (and no logarithm).
+        if h0.abs() >= math::max(self.fast.a.abs(), q.abs()) * limit.abs() {
+            return None;
+        }
+        self.n1_crossing_toward_zero(u0, h0, error, direction, limit, (q, kappa, sigma))
+            .map(|(reached, du, _)| (reached, du))
+    }
+
+    /// [`Compensator::solve_n1_crossing`] after its entry checks: h₀ ≠ 0 moves toward zero
+    /// (q·s·σ < 0) and |h₀| < max(A, |q|)·|Δu_lim| (inlined where the caller has made them).
+    /// With the state and the step, the crossing's Δu₀.
+    #[inline(always)]
+    fn n1_crossing_toward_zero(
+        &self,
+        u0: f32,
+        h0: f32,
+        error: f32,
+        direction: f32,
+        limit: f32,
+        (q, kappa, sigma): (f32, f32, f32),
+    ) -> Option<(ModelState, f32, f32)> {
         let StaticMap {
             k1_m_per_v: k1,
             k2_m_per_h: k2,
@@ -1391,14 +1585,6 @@ impl Compensator {
         } = self.model.map();
         let bw = self.model.hysteresis();
         let BoucWenParams { a, beta, gamma, .. } = bw.params();
-        if !(h0 != 0.0 && q * direction * sigma < 0.0) {
-            return None;
-        }
-        // On the way to zero |dh/du| = |A − κ·h| lies between A and |q|, so h cannot reach zero
-        // before |Δu| = |h₀|/max(A, |q|): beyond the limit, no crossing (and no logarithm).
-        if h0.abs() >= math::max(a.abs(), q.abs()) * limit.abs() {
-            return None;
-        }
         let du0 = bw.n1_zero_reach(h0, kappa)?;
         if !(du0 * direction > 0.0 && du0.abs() < limit.abs()) {
             return None;
@@ -1470,6 +1656,7 @@ impl Compensator {
                 hysteresis: HysteresisState { input_v: u, h: h1 },
             },
             du,
+            du0,
         ))
     }
 
@@ -1586,7 +1773,7 @@ mod tests {
                 let mut expected = state.model;
                 compensator.model().step(&mut expected, u);
                 let mut got = state;
-                if compensator.advance_small_n1(&mut got, u) {
+                if compensator.advance_small_n1(&mut got, u, &ZeroReach::NONE) {
                     small += 1;
                     if got.model.hysteresis.h * state.model.hysteresis.h < 0.0 {
                         crossings += 1;
@@ -1614,6 +1801,151 @@ mod tests {
                 "small steps across h = 0 taken: {crossings}"
             );
         }
+    }
+
+    /// From h = +0 and h = −0 (a stage at rest, or a step that ended on zero), `advance` takes
+    /// its small path for every nonzero small step of either sign (σ from the sign of A·Δu, as
+    /// the model's `branch_sign`) and gives the model's own step bit for bit, the sign of a
+    /// zero h included; a zero step leaves h as it was.
+    #[test]
+    fn advance_from_h_zero_is_the_model_step_bit_for_bit() {
+        for sign in [1.0f32, -1.0] {
+            let map = StaticMap {
+                k1_m_per_v: sign * 0.357e-6,
+                k2_m_per_h: -sign * 0.357e-6,
+                offset_m: 0.0,
+            };
+            let compensator = Compensator::new(
+                StaticModel::new(x_stack(1.0, 1e3), map).unwrap(),
+                window(2e-5),
+            )
+            .unwrap();
+            let mut small = 0;
+            for h0 in [0.0f32, -0.0] {
+                for u0 in [0.0f32, 1e-3, 37.5, 60.0, 119.0, 120.0] {
+                    for du in [
+                        0.0f32, -0.0, 1e-30, -1e-30, 1e-6, -1e-6, 0.013, -0.013, 1.7, -1.7, 2.0,
+                        -2.0, 9.0, -9.0,
+                    ] {
+                        let from = CompensatorState {
+                            model: ModelState {
+                                input_v: u0,
+                                hysteresis: HysteresisState { input_v: u0, h: h0 },
+                            },
+                        };
+                        let u = u0 + du;
+                        let mut expected = from.model;
+                        compensator.model().step(&mut expected, u);
+                        let mut by_small = from;
+                        let took = compensator.advance_small_n1(&mut by_small, u, &ZeroReach::NONE);
+                        let mut got = from;
+                        compensator.advance(&mut got, u);
+                        let bits = |m: &ModelState| {
+                            [m.input_v, m.hysteresis.input_v, m.hysteresis.h].map(f32::to_bits)
+                        };
+                        assert_eq!(
+                            bits(&got.model),
+                            bits(&expected),
+                            "h0 {h0:?}, u0 {u0}, du {du:e}"
+                        );
+                        if took {
+                            small += 1;
+                            assert_eq!(bits(&by_small.model), bits(&expected));
+                        }
+                        let step = u - u0;
+                        if step == 0.0 {
+                            assert!(!took, "a zero step is the model's");
+                        } else if (0.0..=120.0).contains(&u) && step.abs() <= 1.7 {
+                            assert!(took, "h0 {h0:?}, u0 {u0}, du {du:e}");
+                        }
+                    }
+                }
+            }
+            assert!(small >= 70, "{small}");
+        }
+    }
+
+    /// [`Compensator::compensate_noting`] and [`Compensator::advance_noted`] give what
+    /// `compensate` and `advance` give, bit for bit, on the loop's per-tick stream
+    /// ([`n1_tick_stream`]'s), while the noted Δu₀ is taken for most advances across h = 0;
+    /// a memo of another model (another A) or of another h₀ is never taken.
+    #[test]
+    fn noted_zero_reach_gives_the_same_bits() {
+        let settings = window(2e-5).inside_guard();
+        let map = StaticMap {
+            k1_m_per_v: 3.573_939e-7,
+            k2_m_per_h: -3.573_939e-7,
+            offset_m: 0.0,
+        };
+        let compensator =
+            Compensator::new(StaticModel::new(x_stack(1.0, 1e3), map).unwrap(), settings).unwrap();
+        let mut other_a = x_stack(1.0, 1e3).params();
+        other_a.a *= 0.97;
+        let other = Compensator::new(
+            StaticModel::new(
+                crate::bouc_wen::BoucWen::with_input_range(other_a, 0.0, 120.0, 1e3).unwrap(),
+                map,
+            )
+            .unwrap(),
+            settings,
+        )
+        .unwrap();
+        let max_step = settings.slew_limit_v_per_s * settings.sample_period_s;
+        let mut seed = 7u32;
+        let mut rand = || {
+            seed = seed.wrapping_mul(1664525).wrapping_add(1013904223);
+            (seed >> 8) as f32 / (1u32 << 24) as f32
+        };
+        let (mut plain, mut noting) = (
+            CompensatorState::at_rest(0.0),
+            CompensatorState::at_rest(0.0),
+        );
+        let mut memo = ZeroReach::NONE;
+        let (mut correction, mut taken, mut foreign) = (0.0f32, 0u32, 0u32);
+        for k in 0..100_000u32 {
+            let t = k as f32 * 2e-5;
+            let y_d = 21e-6 - 17e-6 * libm::cosf(2.0 * core::f32::consts::PI * 10.0 * t)
+                + 2e-9 * (rand() - 0.5);
+            let before = plain;
+            let a = compensator.compensate(&mut plain, y_d);
+            let b = compensator.compensate_noting(&mut noting, y_d, &mut memo);
+            assert_eq!(
+                (a.voltage_v.to_bits(), a.status),
+                (b.voltage_v.to_bits(), b.status),
+                "k={k}"
+            );
+            assert_eq!(plain, noting, "k={k}");
+            correction = (correction + 3.0 * (rand() - 0.5)).clamp(-14.0, 14.0);
+            let u0 = before.model.input_v;
+            let applied = (a.voltage_v + correction)
+                .clamp(u0 - max_step, u0 + max_step)
+                .clamp(0.0, 120.0);
+            let mut advanced = before;
+            compensator.advance(&mut advanced, applied);
+            let mut by_memo = before;
+            compensator.advance_noted(&mut by_memo, applied, &memo);
+            assert_eq!(
+                advanced.model.hysteresis.h.to_bits(),
+                by_memo.model.hysteresis.h.to_bits(),
+                "k={k}"
+            );
+            assert_eq!(advanced, by_memo, "k={k}");
+            let h0 = before.model.hysteresis.h;
+            let crossed = h0 * advanced.model.hysteresis.h < 0.0;
+            if crossed && memo.h0_bits == h0.to_bits() {
+                taken += 1;
+                // The same memo for a model with another A (same h₀, same κ) is not taken.
+                let mut other_state = before;
+                other.advance(&mut other_state, applied);
+                let mut other_memo = before;
+                other.advance_noted(&mut other_memo, applied, &memo);
+                assert_eq!(other_state, other_memo, "k={k}");
+                foreign += 1;
+            }
+            plain = advanced;
+            noting = advanced;
+        }
+        assert!(taken > 300 && foreign == taken, "{taken} {foreign}");
     }
 
     /// The solve's direction and step limit from `u0` for the output error `error_at_hold`, as

@@ -42,7 +42,8 @@ pub use bouc_wen::{
     max_input_span, BoucWen, BoucWenParams, BoundClass, HysteresisState, STATE_LIMIT,
 };
 pub use compensator::{
-    Command, CommandStatus, Compensator, CompensatorSettings, CompensatorState, MIN_WINDOW_TICKS,
+    Command, CommandStatus, Compensator, CompensatorSettings, CompensatorState, ZeroReach,
+    MIN_WINDOW_TICKS,
 };
 pub use dynamic_model::{DynamicModel, DynamicState, MassSpringDamperParams};
 pub use envelope::{Envelope, EnvelopeCounts, EnvelopeMonitor, EnvelopePolicy};

@@ -22,9 +22,10 @@
 //! [`ADC_BITS`] = 16 bits: 8 × 312.5 µV × 10 µm/V = 25 nm for the default chain), and N = the
 //! ticks in 1 ms, `⌈1e-3 s / T⌉` (20 at 20 kHz).
 //!
-//! The per-tick step [`OnTarget::observe`] is one subtraction, one compare and two counters (the
-//! run, capped at N, and a tick count; a change and a rise store a few words): no division, no
-//! panic.
+//! The per-tick step [`OnTarget::observe`] is one subtraction, one compare and a count since
+//! the reference changed; the run (capped at N), the flag and the settling time are touched only
+//! while a run is going or the reading is inside (a tick clearly off target, outside the band
+//! with no run, stores nothing else): no division, no panic.
 
 use crate::error::ParamError;
 use crate::IoChain;
@@ -56,12 +57,12 @@ pub struct OnTargetState {
     /// The reference the last reading was compared with (its bits; NaN at rest: any first
     /// reference is a change).
     reference_bits: u32,
-    /// Consecutive readings inside the band (saturating).
+    /// Consecutive readings inside the band (saturating at N; 0 whenever the axis is not on
+    /// target and the last reading was outside).
     run: u32,
-    /// Ticks observed (wrapping).
-    tick: u32,
-    /// [`OnTargetState::tick`] when the reference last changed.
-    change_tick: u32,
+    /// Ticks observed since the reference last changed (wrapping, as a difference of two
+    /// wrapping tick counts).
+    since_change: u32,
     /// Settling time of the last move that settled \[ticks\] ([`NOT_SETTLED`]: none yet).
     settle_ticks: u32,
     /// The last tick was on target.
@@ -73,8 +74,7 @@ impl Default for OnTargetState {
         Self {
             reference_bits: f32::NAN.to_bits(),
             run: 0,
-            tick: 0,
-            change_tick: 0,
+            since_change: 0,
             settle_ticks: NOT_SETTLED,
             on_target: false,
         }
@@ -89,7 +89,7 @@ impl OnTargetState {
 
     /// Ticks since the reference last changed.
     pub fn ticks_since_change(&self) -> u32 {
-        self.tick.wrapping_sub(self.change_tick)
+        self.since_change
     }
 
     /// Settling time of the last move that settled \[ticks\] ([`NOT_SETTLED`] before the first).
@@ -170,23 +170,40 @@ impl OnTarget {
 
     /// One tick: the reading `sensor_m` \[m\] against the reference it answers `reference_m`
     /// \[m\] (module doc); returns whether the axis is on target.
-    #[inline]
+    ///
+    /// A state machine: a tick outside the band with no run going (not on target) only keeps
+    /// the count since the reference changed; the run, the flag and the settling time are
+    /// touched only by a reading inside the band or one that ends a run.
+    #[inline(always)]
     pub fn observe(&self, state: &mut OnTargetState, sensor_m: f32, reference_m: f32) -> bool {
         let bits = reference_m.to_bits();
-        let tick = state.tick.wrapping_add(1);
-        state.tick = tick;
-        let was_on = state.on_target;
-        if bits != state.reference_bits {
-            // A new reference: its move starts now; one that keeps the axis on target has
-            // settled at once (overwritten if the flag drops and rises again).
+        let changed = bits != state.reference_bits;
+        if changed {
             state.reference_bits = bits;
-            state.change_tick = tick;
-            if was_on {
-                state.settle_ticks = 0;
-            }
+            state.since_change = 0;
+        } else {
+            state.since_change = state.since_change.wrapping_add(1);
         }
-        // NaN compares false: outside. The run stops counting at N (no overflow).
+        // NaN compares false: outside.
         let inside = (sensor_m - reference_m).abs() <= self.tolerance_m;
+        if !inside && state.run == 0 {
+            // Clearly off target (run 0 means the flag is down): nothing else changes.
+            return false;
+        }
+        self.observe_run(state, inside, changed)
+    }
+
+    /// [`OnTarget::observe`] with a run going or a reading inside: the run (capped at N), the
+    /// flag, and the settling time when the flag rises (the ticks from the change to the first
+    /// tick of the run, 0 if the run began before it) or when a new reference keeps the axis
+    /// on target (0, overwritten if the flag drops and rises again).
+    #[inline(always)]
+    fn observe_run(&self, state: &mut OnTargetState, inside: bool, changed: bool) -> bool {
+        let was_on = state.on_target;
+        if changed && was_on {
+            state.settle_ticks = 0;
+        }
+        // The run stops counting at N (no overflow).
         let run = if inside {
             state.run + u32::from(state.run < self.ticks)
         } else {
@@ -196,12 +213,7 @@ impl OnTarget {
         let on = run >= self.ticks;
         state.on_target = on;
         if on && !was_on {
-            // The flag rises: the ticks from the change to the first tick of the run, 0 if
-            // the run began before it.
-            state.settle_ticks = tick
-                .wrapping_sub(state.change_tick)
-                .saturating_add(1)
-                .saturating_sub(run);
+            state.settle_ticks = state.since_change.saturating_add(1).saturating_sub(run);
         }
         on
     }
@@ -279,5 +291,88 @@ mod tests {
         s.reset();
         assert!(!s.on_target());
         assert_eq!(s.settle_ticks(), 0);
+    }
+
+    /// The state machine against the definition evaluated from the whole history (module doc):
+    /// on target when the last N errors are all inside, the ticks since the last change of the
+    /// reference's bits, and the settling time set when the flag rises (the ticks from the
+    /// change to the run's first tick, 0 if before) or to 0 by a change while on target; over a
+    /// random stream with readings around the band's edge, held and moving references, NaN
+    /// readings and references, and resets.
+    #[test]
+    fn state_machine_is_the_definition() {
+        let b = OnTarget::new(1e-8, 4).unwrap();
+        let mut seed = 99u32;
+        let mut rand = || {
+            seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            (seed >> 8) as f32 / (1u32 << 24) as f32
+        };
+        let mut s = OnTargetState::default();
+        // The definition's memory: since the last reset, (reference bits, inside) per tick.
+        extern crate std;
+        let mut history: std::vec::Vec<(u32, bool)> = std::vec::Vec::new();
+        let (mut settle, mut was_on) = (NOT_SETTLED, false);
+        let mut reference = 0.0f32;
+        let (mut rises, mut changes_on) = (0, 0);
+        for k in 0..200_000 {
+            if rand() < 0.002 {
+                s.reset();
+                history.clear();
+                was_on = false;
+            }
+            if rand() < 0.05 {
+                reference = if rand() < 0.02 {
+                    f32::NAN
+                } else {
+                    (rand() - 0.5) * 1e-6
+                };
+            }
+            // Mostly moves by less than the band (a change that keeps the axis on target).
+            if rand() < 0.02 {
+                reference += 2e-9;
+            }
+            let error = (rand() - 0.5) * if rand() < 0.5 { 2.2e-8 } else { 1e-6 };
+            let reading = if rand() < 0.003 {
+                f32::NAN
+            } else {
+                reference + error
+            };
+            let flag = b.observe(&mut s, reading, reference);
+
+            let bits = reference.to_bits();
+            let inside = (reading - reference).abs() <= b.tolerance_m;
+            let previous_bits = history.last().map_or(f32::NAN.to_bits(), |h| h.0);
+            history.push((bits, inside));
+            let n = b.ticks as usize;
+            let on = history.len() >= n && history[history.len() - n..].iter().all(|h| h.1);
+            let since = history
+                .iter()
+                .rev()
+                .zip(
+                    history
+                        .iter()
+                        .rev()
+                        .skip(1)
+                        .map(|h| h.0)
+                        .chain([f32::NAN.to_bits()]),
+                )
+                .position(|(h, before)| h.0 != before)
+                // No change since the reset: counted from the reset (a NaN reference).
+                .unwrap_or(history.len()) as u32;
+            if bits != previous_bits && was_on {
+                settle = 0;
+                changes_on += 1;
+            }
+            if on && !was_on {
+                settle = (since + 1).saturating_sub(b.ticks);
+                rises += 1;
+            }
+            was_on = on;
+            assert_eq!(flag, on, "k={k}");
+            assert_eq!(s.on_target(), on, "k={k}");
+            assert_eq!(s.ticks_since_change(), since, "k={k}");
+            assert_eq!(s.settle_ticks(), settle, "k={k}");
+        }
+        assert!(rises > 1_000 && changes_on > 100, "{rises} {changes_on}");
     }
 }

@@ -436,7 +436,8 @@ impl Servo {
 
     /// One tick: reference `reference_m` and measurement `measured_m` \[m\] of the same instant,
     /// the feedforward voltage `feedforward_v` \[V\] of this tick (ignored in feedback mode).
-    /// Returns the voltage to apply.
+    /// Returns the voltage to apply. Inlined: the loop's tick calls it once per axis.
+    #[inline(always)]
     pub fn step(
         &self,
         state: &mut ServoState,

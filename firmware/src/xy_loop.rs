@@ -62,7 +62,9 @@
 //! the reading y\[k\] with the reference it answers r\[k−1\] (`piezo_core::on_target`): the
 //! axis is on target when |y − r| ≤ `tolerance_m` for `ticks` consecutive ticks
 //! ([`AxisParams::on_target`]: the stage file's `[x.on_target]`, defaults 8 ADC steps and 1 ms).
-//! One compare and two counters per axis; the settling time of a move (ticks from the
+//! Per axis one compare and a count since the reference changed; the run and the flag are
+//! touched only while a run is going or the reading is inside (a state machine: a tick clearly
+//! off target stores nothing else). The settling time of a move (ticks from the
 //! reference's change to the start of the in-band run that set the flag) is recorded when the
 //! flag rises ([`TwoAxisLoop::on_target`]). The frame's `flags` has bit 2 (x) or bit 3 (y) set in a
 //! tick on target. Outside tracking the state is cleared (not on target; the next reference is
@@ -126,7 +128,7 @@
 use piezo_core::effects::Effects;
 use piezo_core::{
     CommandStatus, Compensator, CompensatorState, EnvelopeCounts, EnvelopeMonitor, EnvelopePolicy,
-    OnTarget, OnTargetState, ParamError, Servo, ServoMode, ServoState, ServoStatus,
+    OnTarget, OnTargetState, ParamError, Servo, ServoMode, ServoState, ServoStatus, ZeroReach,
 };
 
 use crate::codes::{DacCode, SensorScale};
@@ -427,13 +429,40 @@ pub struct LoopSettings {
     pub stuck: StuckPolicy,
     /// Frame decimation (one frame every this many ticks).
     pub frame_decimation: u32,
-    /// An axis has an identified envelope (the tick checks it): recomputed from `axes` by
-    /// [`LoopSettings::from_params`], [`LoopSettings::with_axes`], [`TwoAxisLoop::new`] and
-    /// [`TwoAxisLoop::set_settings`].
-    pub any_envelope: bool,
+    /// An axis has an identified envelope (the tick checks it): derived from `axes` by
+    /// [`LoopSettings::new`], [`LoopSettings::from_params`], [`LoopSettings::with_axes`],
+    /// [`TwoAxisLoop::new`] and [`TwoAxisLoop::set_settings`]; read with
+    /// [`LoopSettings::any_envelope`].
+    any_envelope: bool,
 }
 
 impl LoopSettings {
+    /// Settings of these axes: the amplifier's gain (finite, > 0, else [`ConfigError::Gain`]),
+    /// the stuck-sensor policy and the frame decimation.
+    pub fn new(
+        axes: [AxisConfig; 2],
+        amplifier_gain_v_per_v: f32,
+        stuck: StuckPolicy,
+        frame_decimation: u32,
+    ) -> Result<Self, ConfigError> {
+        if !(amplifier_gain_v_per_v.is_finite() && amplifier_gain_v_per_v > 0.0) {
+            return Err(ConfigError::Gain);
+        }
+        Ok(Self {
+            axes,
+            amplifier_gain_v_per_v,
+            stuck,
+            frame_decimation,
+            any_envelope: false,
+        }
+        .with_axes_checked())
+    }
+
+    /// Whether an axis has an identified envelope (the tick checks it).
+    pub fn any_envelope(&self) -> bool {
+        self.any_envelope
+    }
+
     /// Both axes of the parameter file at its loop rate, default stuck policy, one frame per tick.
     pub fn from_params(
         axes: &[AxisParams; 2],
@@ -628,6 +657,8 @@ pub struct TwoAxisLoop {
     on_target: [OnTargetState; 2],
     servo: [ServoState; 2],
     compensator: [CompensatorState; 2],
+    /// Per axis, the compensator's last step across h = 0 (its Δu₀, for the model's advance).
+    zero_reach: [ZeroReach; 2],
     guard: [GuardState; 2],
     stuck: [StuckDetector; 2],
     mode: Mode,
@@ -674,6 +705,7 @@ impl TwoAxisLoop {
                 CompensatorState::at_rest(guard[0].last_safe_volts()),
                 CompensatorState::at_rest(guard[1].last_safe_volts()),
             ],
+            zero_reach: [ZeroReach::NONE; 2],
             feedback: false,
             handover_ticks: 0,
             envelope: [EnvelopeAxis::default(); 2],
@@ -1112,6 +1144,79 @@ impl TwoAxisLoop {
         }
     }
 
+    /// Step 2 for axis `i` of a running tick: the feed-forward (`[target, reference, learned]`:
+    /// the compensator's target, the reference, the learned table's voltage), the servo's
+    /// correction when it runs on the reference `previous_reference` of the reading
+    /// `measured`, the guard, and the compensator's model advanced from `before` by the
+    /// voltage applied when that differs from its own command; returns the voltage applied.
+    #[inline(always)]
+    fn command_axis<const LEARNED: bool>(
+        &mut self,
+        i: usize,
+        [target, reference, learned_v]: [f32; 3],
+        previous_reference: f32,
+        measured: f32,
+        servo_runs: bool,
+        before: &CompensatorState,
+    ) -> f32 {
+        let i = i & 1;
+        let axis = &self.settings.axes[i];
+        let requested = match self.feedforward {
+            _ if LEARNED => learned_v,
+            Feedforward::Compensator => {
+                let out = axis.compensator.compensate_noting(
+                    &mut self.compensator[i],
+                    target,
+                    &mut self.zero_reach[i],
+                );
+                let c = &mut self.counters;
+                match out.status {
+                    CommandStatus::Tracking => {}
+                    CommandStatus::Limited => {
+                        c.compensator_limited = c.compensator_limited.saturating_add(1)
+                    }
+                    CommandStatus::HeldInvalidReference => {
+                        c.held_references = c.held_references.saturating_add(1)
+                    }
+                }
+                out.voltage_v
+            }
+            Feedforward::Linear => {
+                axis.min_v + (reference - axis.rest_output_m) / axis.linear_gain_m_per_v
+            }
+            // Learned only reaches the learned copy of the body.
+            Feedforward::OpenLoop | Feedforward::Learned => reference,
+        };
+        let feedforward = requested;
+        let requested = match axis.servo.as_ref() {
+            Some(servo) if servo_runs => {
+                let out = servo.step(
+                    &mut self.servo[i],
+                    previous_reference,
+                    measured,
+                    feedforward,
+                );
+                if out.status != ServoStatus::Tracking {
+                    let c = &mut self.counters;
+                    c.servo_limited = c.servo_limited.saturating_add(1);
+                }
+                out.voltage_v
+            }
+            _ => feedforward,
+        };
+        let u = axis.limits.apply(&mut self.guard[i], requested);
+        if u != feedforward || self.feedforward != Feedforward::Compensator {
+            // The guard overrode the compensator, or another feed-forward ran: advance the
+            // model by what is applied, so that switching to the compensator is bumpless.
+            // From the state before the tick, with the command's Δu₀ when it crossed h = 0.
+            let mut state = *before;
+            axis.compensator
+                .advance_noted(&mut state, u, &self.zero_reach[i]);
+            self.compensator[i] = state;
+        }
+        u
+    }
+
     /// One tick (see the module docs). Never panics.
     #[inline]
     pub fn tick<D, S>(&mut self, io: &mut XyIo<D, S>, deadline_missed: bool) -> TickReport
@@ -1134,7 +1239,10 @@ impl TwoAxisLoop {
     /// helpers (sensors, commands, DAC, effects, frame; all `#[inline(always)]`) the tick cost
     /// 6–7 % more instructions under `firmware/bench.sh` (2519 → 2670 per tick with the
     /// simulated stage), the state copies the DAC-failure path needs no longer staying in
-    /// registers.
+    /// registers. The exception is step 2's per-axis work ([`TwoAxisLoop::command_axis`]),
+    /// called once per axis instead of in an axis loop: the worst tick of `bench.sh` with a
+    /// 50 kHz copy of the stage file went from 2106 to 1967 instructions (a sensor step
+    /// written the same way cost 35 more, so it stays a loop).
     #[inline(always)]
     fn tick_body<const EFFECTS: bool, const LEARNED: bool, D, S>(
         &mut self,
@@ -1217,63 +1325,27 @@ impl TwoAxisLoop {
                 }
             };
             self.last_reference_m = reference;
-            for i in 0..2 {
-                let axis = &self.settings.axes[i];
-                let requested = match self.feedforward {
-                    _ if LEARNED => learned_v[i],
-                    Feedforward::Compensator => {
-                        let command = axis
-                            .compensator
-                            .compensate(&mut self.compensator[i], target[i]);
-                        let c = &mut self.counters;
-                        match command.status {
-                            CommandStatus::Tracking => {}
-                            CommandStatus::Limited => {
-                                c.compensator_limited = c.compensator_limited.saturating_add(1)
-                            }
-                            CommandStatus::HeldInvalidReference => {
-                                c.held_references = c.held_references.saturating_add(1)
-                            }
-                        }
-                        command.voltage_v
-                    }
-                    Feedforward::Linear => {
-                        axis.min_v + (reference[i] - axis.rest_output_m) / axis.linear_gain_m_per_v
-                    }
-                    // Learned only reaches the learned copy of the body (above).
-                    Feedforward::OpenLoop | Feedforward::Learned => reference[i],
-                };
-                let feedforward = requested;
-                let requested = match axis.servo.as_ref() {
-                    Some(servo) if axis_servo_runs[i] => {
-                        let out = servo.step(
-                            &mut self.servo[i],
-                            previous_reference[i],
-                            measured_m[i],
-                            feedforward,
-                        );
-                        if out.status != ServoStatus::Tracking {
-                            let c = &mut self.counters;
-                            c.servo_limited = c.servo_limited.saturating_add(1);
-                        }
-                        out.voltage_v
-                    }
-                    _ => feedforward,
-                };
-                let u = axis.limits.apply(&mut self.guard[i], requested);
-                if u != feedforward || self.feedforward != Feedforward::Compensator {
-                    // The guard overrode the compensator, or another feed-forward ran: advance
-                    // the model by what is applied, so that switching to the compensator is
-                    // bumpless.
-                    let mut state = before_compensator[i];
-                    axis.compensator.advance(&mut state, u);
-                    self.compensator[i] = state;
-                }
-                applied_v[i] = u;
-            }
+            // The two axes written out (no axis loop: its counter and indexing cost more than
+            // the second copy).
+            applied_v[0] = self.command_axis::<LEARNED>(
+                0,
+                [target[0], reference[0], learned_v[0]],
+                previous_reference[0],
+                measured_m[0],
+                axis_servo_runs[0],
+                &before_compensator[0],
+            );
+            applied_v[1] = self.command_axis::<LEARNED>(
+                1,
+                [target[1], reference[1], learned_v[1]],
+                previous_reference[1],
+                measured_m[1],
+                axis_servo_runs[1],
+                &before_compensator[1],
+            );
         }
         // The identified envelope: counted while tracking (an excitation measures one).
-        let outside = if self.settings.any_envelope {
+        let outside = if self.settings.any_envelope() {
             let previous_v = [
                 before_guard[0].last_safe_volts(),
                 before_guard[1].last_safe_volts(),
@@ -1285,13 +1357,14 @@ impl TwoAxisLoop {
         // On target: each reading against the reference it answers, while tracking.
         let mut on_target = [false; 2];
         if self.mode == Mode::Running && self.feedforward != Feedforward::OpenLoop {
-            for (i, flag) in on_target.iter_mut().enumerate() {
-                *flag = self.settings.axes[i].on_target.observe(
-                    &mut self.on_target[i],
-                    measured_m[i],
-                    answered_reference[i],
-                );
-            }
+            let [x, y] = &self.settings.axes;
+            let [sx, sy] = &mut self.on_target;
+            on_target = [
+                x.on_target
+                    .observe(sx, measured_m[0], answered_reference[0]),
+                y.on_target
+                    .observe(sy, measured_m[1], answered_reference[1]),
+            ];
         } else {
             self.on_target.iter_mut().for_each(OnTargetState::reset);
         }

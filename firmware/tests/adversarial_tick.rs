@@ -274,14 +274,13 @@ fn random_settings(rng: &mut Rng, bases: &[AxisParams]) -> (LoopSettings, [InFor
         }
     };
     let (x, y) = (axis(rng), axis(rng));
-    let settings = LoopSettings {
-        axes: [x.0, y.0],
-        amplifier_gain_v_per_v: AMPLIFIER_GAIN_V_PER_V,
-        stuck: StuckPolicy::DEFAULT,
-        frame_decimation: 1 + rng.below(10) as u32,
-        any_envelope: false,
-    }
-    .with_axes([x.0, y.0]);
+    let settings = LoopSettings::new(
+        [x.0, y.0],
+        AMPLIFIER_GAIN_V_PER_V,
+        StuckPolicy::DEFAULT,
+        1 + rng.below(10) as u32,
+    )
+    .expect("the file's amplifier gain");
     (settings, [x.1, y.1], refused)
 }
 
