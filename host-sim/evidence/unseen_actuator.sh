@@ -6,7 +6,7 @@
 # +-90 V (bipolar) at 20, 40 and 100 Hz, 0.5 s at 10 kHz unless DURATION_S says otherwise, white
 # sensor noise NOISE_RMS_M (1 nm), a sensor offset per record (sessions: 20 Hz 0, 40 Hz +2.5 um,
 # 100 Hz session A -1.5 um; 100 Hz session B +3.2 um, rising to 80 V, another noise draw). `close-loop --data
-# r20.csv,r40.csv --free-offset --validate r100a.csv --invertible` writes the stage file; `predict
+# r20.csv,r40.csv --free-offset --validate r100a.csv` writes the stage file; `predict
 # --free-offset` scores both 100 Hz records (offset re-estimated). Prints the fit RMS, each 100 Hz
 # record's zeroed prediction RMS and its ratio to the fit RMS, the effects added, and the 100 Hz
 # validation record's zeroed RMS before and after the first effect added.
@@ -41,7 +41,7 @@ rec r40 40 2.5e-6 40 90
 rec r100a 100 -1.5e-6 100 90
 rec r100b 100 3.2e-6 101 80
 $B close-loop --data "$OUT/r20.csv,$OUT/r40.csv" --free-offset --validate "$OUT/r100a.csv" \
-  --invertible --report "$OUT/close-loop.json" --out "$OUT/close-loop.toml" >"$OUT/close-loop.txt" 2>&1 \
+  --report "$OUT/close-loop.json" --out "$OUT/close-loop.toml" >"$OUT/close-loop.txt" 2>&1 \
   || echo "close-loop exited non-zero (see $OUT/close-loop.txt)"
 for r in r100a r100b; do
   $B predict --params "$OUT/close-loop.toml" --data "$OUT/$r.csv" --free-offset \

@@ -160,7 +160,7 @@ pub struct EffectBounds {
     pub mode_damping: (f64, f64),
     /// Largest |κ|.
     pub coupling_max: f64,
-    /// Rate-dependent hysteresis, both forms (the relaxation's τ_w and the input lag's τ_v):
+    /// Rate-dependent hysteresis, every form (the relaxations' τ_w and the input lag's τ_v):
     /// time constants from one sample period to a tenth of the record or 50 ms \[s\] (0.1 ms to
     /// 50 ms for a 0.5 s record at 10 kHz).
     pub relaxation_tau_s: (f64, f64),

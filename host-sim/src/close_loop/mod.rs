@@ -701,11 +701,15 @@ fn fit_dynamics(model: &AxisModel, cand: &Candidate, data: &FitData) -> (AxisMod
     (best.0, best.1)
 }
 
-/// The rate-dependent hysteresis fitted in both its forms ([`full::RateForm`]): the operator
-/// driven by a lag of the command, and the relaxation of its output (that one also from other
-/// splits of its first-order lag into g and τ, [`AxisModel::relaxation_restart`]). The form kept
-/// is the plausible one with the lower SSE (the lower SSE when neither is plausible): which form
-/// a stage's rate dependence takes is the data's to say.
+/// The rate-dependent hysteresis fitted in its forms ([`full::RateForm`]): the operator driven
+/// by a lag of the command, the relaxation of its output (that one also from other splits of its
+/// first-order lag into g and τ, [`AxisModel::relaxation_restart`]), and both together with one
+/// or two relaxation elements (started from the input lag's fit: [`fit_lag_and_relaxation`],
+/// [`fit_second_relaxation`]). The form kept is the plausible one with the lowest SSE (the lowest
+/// SSE when none is plausible): which form a stage's rate dependence takes is the data's to say.
+/// The richer forms nest the input lag (a relaxation gain → 0 runs to its plausible bound), so on
+/// a stage with one lag they are not plausible and the input lag is kept; a spread of dielectric
+/// relaxation times, which one lag cannot follow across rates, keeps two time constants.
 fn fit_rate_dependent(model: &AxisModel, cand: &Candidate, data: &FitData) -> (AxisModel, f64) {
     let fit_form = |form: full::RateForm| {
         let mut base = model.clone();
