@@ -812,7 +812,7 @@ fn best_fit(fits: Vec<(AxisModel, f64, bool)>) -> Option<(AxisModel, f64, bool)>
     };
     let mut best: Option<(AxisModel, f64, bool)> = None;
     for fit in fits {
-        if best.as_ref().map_or(true, |b| key(&fit) > key(b)) {
+        if best.as_ref().is_none_or(|b| key(&fit) > key(b)) {
             best = Some(fit);
         }
     }
