@@ -23,7 +23,9 @@
 //! - [`plant`]: the plants behind the [`plant::Plant`] trait — [`plant::Nac2024`] (Bouc-Wen force on
 //!   a mass–spring–damper, optional second mode), [`plant::AsymmetricStage`] (Cases I–III, input
 //!   time shift and the δ·u·sgn(u̇) term) and [`plant::XyStage`] (two stacks driving a flexure
-//!   mechanism, a Lagrange model per axis) — with [`plant::PlantKind`] choosing one by name. Each file states its
+//!   mechanism, a Lagrange model per axis), and [`plant::BipolarStack`] (a ±90 V stack whose
+//!   hysteresis follows the voltage through three dielectric relaxations, with a 740 Hz mode) —
+//!   with [`plant::PlantKind`] choosing one by name. Each file states its
 //!   equation, parameters and source.
 //! - [`bouc_wen`]: the Bouc-Wen law in f64, shared by the plants: its rate ḣ for the ODE and the
 //!   jump of h along a held input step ([`bouc_wen::BoucWen::jump`]).

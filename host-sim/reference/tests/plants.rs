@@ -432,3 +432,65 @@ fn default_parameters_are_valid() {
         "{g:?}"
     );
 }
+
+/// The bipolar stack's stated figures: a 35 µm span at ±90 V, a loop opening at u = 0 that
+/// changes with the drive frequency (falls: the hysteretic part −d·h follows the voltage through
+/// the relaxation times, the linear strain at once), and a ring near 740 Hz after a voltage step.
+#[test]
+fn bipolar_stack_spans_35_um_depends_on_rate_and_rings_at_740_hz() {
+    use piezo_reference::plant::BipolarStack;
+    use piezo_reference::signal::SignalSpec;
+    let p = BipolarStack::default();
+    let sine = |freq: f64| -> Vec<Box<dyn Signal>> {
+        vec![Box::new(Sine {
+            amplitude_v: 90.0,
+            offset_v: 0.0,
+            frequency_hz: freq,
+            phase_rad: 0.0,
+        })]
+    };
+    // Span of the second period at 1 Hz.
+    let out = run(&p, sine(1.0), &Effects::default(), 10_000.0, 2.0);
+    let y = &out.outputs_m[0][10_000..];
+    let span =
+        y.iter().cloned().fold(f64::MIN, f64::max) - y.iter().cloned().fold(f64::MAX, f64::min);
+    assert!((34e-6..36e-6).contains(&span), "span {span:e} m");
+    // Loop opening at u = 0 in the fourth period: y on the way down minus y on the way up.
+    let opening = |freq: f64| {
+        let fs = 100_000.0;
+        let out = run(&p, sine(freq), &Effects::default(), fs, 4.0 / freq);
+        let per = (fs / freq) as usize;
+        let (u, y) = (&out.inputs_v[0], &out.outputs_m[0]);
+        let at = |from: usize, to: usize| {
+            (from..to)
+                .min_by(|&a, &b| u[a].abs().total_cmp(&u[b].abs()))
+                .map(|i| y[i])
+                .unwrap()
+        };
+        // u falls through 0 at half a period, rises through 0 at a whole one.
+        let base = 3 * per;
+        at(base + per / 4, base + 3 * per / 4) - at(base + 3 * per / 4, base + per - 1)
+    };
+    let (o1, o20, o40, o100) = (opening(1.0), opening(20.0), opening(40.0), opening(100.0));
+    assert!(
+        o1 > 1.2 * o20 && o20 > 1.2 * o40 && o40 > 1.2 * o100 && o100 > 0.0,
+        "openings {o1:e} {o20:e} {o40:e} {o100:e} m"
+    );
+    // A 10 V step at rest: the output overshoots and rings with a period near 1/740 s.
+    let spec = SignalSpec::parse("steps:levels=0/10,hold=0.02").unwrap();
+    let out = run(
+        &p,
+        spec.build(1).unwrap(),
+        &Effects::default(),
+        200_000.0,
+        0.04,
+    );
+    let y = &out.outputs_m[0][4000..];
+    let last = *y.last().unwrap();
+    let peaks: Vec<usize> = (1..y.len() - 1)
+        .filter(|&i| y[i] > y[i - 1] && y[i] >= y[i + 1] && y[i] > last)
+        .collect();
+    assert!(peaks.len() >= 3, "{} peaks", peaks.len());
+    let f = 200_000.0 / (peaks[1] - peaks[0]) as f64;
+    assert!((700.0..780.0).contains(&f), "ring at {f} Hz");
+}

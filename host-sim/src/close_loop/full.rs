@@ -68,6 +68,13 @@ pub enum RateForm {
     /// A relaxation of the hysteretic part k2·h (gain g and τ_w fitted; the core's
     /// `relaxation_gain`, `relaxation_time_constant_s`).
     Relaxation,
+    /// Both at once, two time constants: the operator driven by a lag of the command (τ_v) and
+    /// its output k2·h relaxing, G(s) = 1 + g/(1 + s·τ_w) — a spread of dielectric relaxation
+    /// times that one first-order lag cannot follow across rates (τ_v, g and τ_w fitted).
+    LagAndRelaxation,
+    /// The input lag and two relaxation elements, G(s) = 1 + Σᵢ gᵢ/(1 + s·τ_wᵢ) (i = 0, 1): three
+    /// time constants (τ_v, both g and both τ_w fitted).
+    LagAndTwoRelaxations,
 }
 
 impl RateForm {
@@ -76,6 +83,33 @@ impl RateForm {
         match self {
             Self::InputLag => "input lag",
             Self::Relaxation => "relaxation",
+            Self::LagAndRelaxation => "input lag and relaxation",
+            Self::LagAndTwoRelaxations => "input lag and two relaxations",
+        }
+    }
+}
+
+impl RateForm {
+    /// Whether the operator is driven by a lag of the command (τ_v fitted).
+    pub fn has_input_lag(self) -> bool {
+        matches!(
+            self,
+            Self::InputLag | Self::LagAndRelaxation | Self::LagAndTwoRelaxations
+        )
+    }
+    /// Whether the hysteretic output relaxes (g and τ_w fitted).
+    pub fn has_relaxation(self) -> bool {
+        matches!(
+            self,
+            Self::Relaxation | Self::LagAndRelaxation | Self::LagAndTwoRelaxations
+        )
+    }
+    /// Number of relaxation elements fitted.
+    pub fn relaxation_elements(self) -> usize {
+        match self {
+            Self::InputLag => 0,
+            Self::Relaxation | Self::LagAndRelaxation => 1,
+            Self::LagAndTwoRelaxations => 2,
         }
     }
 }
@@ -126,7 +160,7 @@ pub struct EffectBounds {
     pub mode_damping: (f64, f64),
     /// Largest |κ|.
     pub coupling_max: f64,
-    /// Rate-dependent hysteresis, both forms (the relaxation's τ_w and the input lag's τ_v):
+    /// Rate-dependent hysteresis, every form (the relaxations' τ_w and the input lag's τ_v):
     /// time constants from one sample period to a tenth of the record or 50 ms \[s\] (0.1 ms to
     /// 50 ms for a 0.5 s record at 10 kHz).
     pub relaxation_tau_s: (f64, f64),
@@ -177,6 +211,9 @@ impl EffectBounds {
         }
     }
 }
+
+/// The relaxation gain g the two-time-constant form ([`RateForm::LagAndRelaxation`]) starts from.
+pub const LAG_AND_RELAXATION_START_GAIN: f64 = 0.2;
 
 /// One axis's complete model, in SI.
 #[derive(Debug, Clone, PartialEq)]
@@ -530,6 +567,20 @@ impl AxisModel {
             }
             EffectInit::RateDependent {
                 time_constant_s, ..
+            } if m.rate_form.has_input_lag() && m.rate_form.has_relaxation() => {
+                // The lag's start as below, and a small relaxation slower than it
+                // (k2·(1 + g) kept: the static hysteretic gain is the data's).
+                let lag = time_constant_s.clamp(b.relaxation_tau_s.0, b.relaxation_tau_s.1);
+                e.hysteresis_lag_s = lag as f32;
+                let gain = LAG_AND_RELAXATION_START_GAIN;
+                m.map.k2_m_per_h = (f64::from(m.map.k2_m_per_h) / (1.0 + gain)) as f32;
+                e.relaxation_gain[0] = gain as f32;
+                e.relaxation_time_constant_s[0] =
+                    (4.0 * lag).clamp(b.relaxation_tau_s.0, b.relaxation_tau_s.1) as f32;
+                e.relaxation_linear_m_per_v = m.map.k1_m_per_v;
+            }
+            EffectInit::RateDependent {
+                time_constant_s, ..
             } if m.rate_form == RateForm::InputLag => {
                 // A lag of h with τ and h driven by a lag of u with τ share their first-order
                 // signature, −τ·ḣ.
@@ -760,37 +811,49 @@ impl AxisModel {
                 0.1,
                 ParamSpec::within(Param::Coupling, kind, -bd.coupling_max, bd.coupling_max),
             ),
-            EffectKind::RateDependent if self.rate_form == RateForm::InputLag => theta.push(
-                f64::from(e.hysteresis_lag_s).max(1e-9).ln(),
-                10.0,
-                ParamSpec::log_within(
-                    Param::HysteresisLag,
-                    kind,
-                    bd.relaxation_tau_s.0,
-                    bd.relaxation_tau_s.1,
-                ),
-            ),
             EffectKind::RateDependent => {
-                theta.push(
-                    f64::from(e.relaxation_gain[0]).max(1e-9).ln(),
-                    10.0,
-                    ParamSpec::log_within(
-                        Param::RelaxationGain,
-                        kind,
-                        bd.relaxation_gain.0,
-                        bd.relaxation_gain.1,
-                    ),
-                );
-                theta.push(
-                    f64::from(e.relaxation_time_constant_s[0]).max(1e-9).ln(),
-                    10.0,
-                    ParamSpec::log_within(
-                        Param::RelaxationTimeConstant,
-                        kind,
-                        bd.relaxation_tau_s.0,
-                        bd.relaxation_tau_s.1,
-                    ),
-                );
+                if self.rate_form.has_input_lag() {
+                    theta.push(
+                        f64::from(e.hysteresis_lag_s).max(1e-9).ln(),
+                        10.0,
+                        ParamSpec::log_within(
+                            Param::HysteresisLag,
+                            kind,
+                            bd.relaxation_tau_s.0,
+                            bd.relaxation_tau_s.1,
+                        ),
+                    );
+                }
+                if !self.rate_form.has_relaxation() {
+                    return;
+                }
+                const G: [Param; 2] = [Param::RelaxationGain, Param::RelaxationGain1];
+                const T: [Param; 2] = [
+                    Param::RelaxationTimeConstant,
+                    Param::RelaxationTimeConstant1,
+                ];
+                for i in 0..self.rate_form.relaxation_elements() {
+                    theta.push(
+                        f64::from(e.relaxation_gain[i]).max(1e-9).ln(),
+                        10.0,
+                        ParamSpec::log_within(
+                            G[i],
+                            kind,
+                            bd.relaxation_gain.0,
+                            bd.relaxation_gain.1,
+                        ),
+                    );
+                    theta.push(
+                        f64::from(e.relaxation_time_constant_s[i]).max(1e-9).ln(),
+                        10.0,
+                        ParamSpec::log_within(
+                            T[i],
+                            kind,
+                            bd.relaxation_tau_s.0,
+                            bd.relaxation_tau_s.1,
+                        ),
+                    );
+                }
             }
         }
     }
@@ -877,7 +940,7 @@ impl AxisModel {
         for (s, &t) in spec.iter().zip(&th) {
             s.param.set(&mut m, s.value(t));
         }
-        if m.added.contains(&EffectKind::RateDependent) && m.rate_form == RateForm::Relaxation {
+        if m.added.contains(&EffectKind::RateDependent) && m.rate_form.has_relaxation() {
             m.effects.relaxation_linear_m_per_v = m.map.k1_m_per_v;
         }
         m

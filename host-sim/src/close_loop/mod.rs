@@ -701,11 +701,15 @@ fn fit_dynamics(model: &AxisModel, cand: &Candidate, data: &FitData) -> (AxisMod
     (best.0, best.1)
 }
 
-/// The rate-dependent hysteresis fitted in both its forms ([`full::RateForm`]): the operator
-/// driven by a lag of the command, and the relaxation of its output (that one also from other
-/// splits of its first-order lag into g and τ, [`AxisModel::relaxation_restart`]). The form kept
-/// is the plausible one with the lower SSE (the lower SSE when neither is plausible): which form
-/// a stage's rate dependence takes is the data's to say.
+/// The rate-dependent hysteresis fitted in its forms ([`full::RateForm`]): the operator driven
+/// by a lag of the command, the relaxation of its output (that one also from other splits of its
+/// first-order lag into g and τ, [`AxisModel::relaxation_restart`]), and both together with one
+/// or two relaxation elements (started from the input lag's fit: [`fit_lag_and_relaxation`],
+/// [`fit_second_relaxation`]). The form kept is the plausible one with the lowest SSE (the lowest
+/// SSE when none is plausible): which form a stage's rate dependence takes is the data's to say.
+/// The richer forms nest the input lag (a relaxation gain → 0 runs to its plausible bound), so on
+/// a stage with one lag they are not plausible and the input lag is kept; a spread of dielectric
+/// relaxation times, which one lag cannot follow across rates, keeps two time constants.
 fn fit_rate_dependent(model: &AxisModel, cand: &Candidate, data: &FitData) -> (AxisModel, f64) {
     let fit_form = |form: full::RateForm| {
         let mut base = model.clone();
@@ -726,6 +730,10 @@ fn fit_rate_dependent(model: &AxisModel, cand: &Candidate, data: &FitData) -> (A
     };
     let lag = fit_form(full::RateForm::InputLag);
     let relaxation = fit_form(full::RateForm::Relaxation);
+    let both = fit_lag_and_relaxation(&lag.0, cand, data);
+    let three = both
+        .as_ref()
+        .and_then(|b| fit_second_relaxation(&b.0, cand, data));
     // Plausible first, then the lower SSE (a non-finite SSE never wins).
     let key = |(_, sse, plausible): &(AxisModel, f64, bool)| {
         (
@@ -737,12 +745,119 @@ fn fit_rate_dependent(model: &AxisModel, cand: &Candidate, data: &FitData) -> (A
             },
         )
     };
-    let (fitted, sse1, _) = if key(&relaxation) > key(&lag) {
+    let mut best = if key(&relaxation) > key(&lag) {
         relaxation
     } else {
         lag
     };
-    (fitted, sse1)
+    for fit in [both, three].into_iter().flatten() {
+        if key(&fit) > key(&best) {
+            best = fit;
+        }
+    }
+    (best.0, best.1)
+}
+
+/// The two-time-constant form's fit `one` ([`full::RateForm::LagAndRelaxation`]) with a second
+/// relaxation element ([`full::RateForm::LagAndTwoRelaxations`]) started at
+/// [`LAG_AND_RELAXATION_STARTS`] times τ_v and the start gain, the static hysteretic gain kept:
+/// the plausible fit with the lowest SSE; `None` when `one` is not that form or not plausible.
+fn fit_second_relaxation(
+    one: &AxisModel,
+    cand: &Candidate,
+    data: &FitData,
+) -> Option<(AxisModel, f64, bool)> {
+    if one.rate_form != full::RateForm::LagAndRelaxation
+        || !Plausibility::of(one, cand.effect).plausible()
+    {
+        return None;
+    }
+    let b = one.bounds;
+    let tau_v = f64::from(one.effects.hysteresis_lag_s);
+    let g = full::LAG_AND_RELAXATION_START_GAIN;
+    let g0 = f64::from(one.effects.relaxation_gain[0]);
+    let fits: Vec<(AxisModel, f64, bool)> = LAG_AND_RELAXATION_STARTS
+        .par_iter()
+        .filter_map(|&share| {
+            let tau_w = share * tau_v;
+            if !(tau_w > b.relaxation_tau_s.0 && tau_w < b.relaxation_tau_s.1) {
+                return None;
+            }
+            let mut start = one.clone();
+            start.rate_form = full::RateForm::LagAndTwoRelaxations;
+            start.map.k2_m_per_h =
+                (f64::from(start.map.k2_m_per_h) * (1.0 + g0) / (1.0 + g0 + g)) as f32;
+            start.effects.relaxation_gain[1] = g as f32;
+            start.effects.relaxation_time_constant_s[1] = tau_w as f32;
+            let (fitted, sse, _) = refit(&start, data, TRIAL_ITERATIONS);
+            let plausible = Plausibility::of(&fitted, cand.effect).plausible();
+            Some((fitted, sse, plausible))
+        })
+        .collect();
+    best_fit(fits)
+}
+
+/// The plausible fit with the lowest SSE (the lowest SSE when none is plausible; a non-finite SSE
+/// never wins).
+fn best_fit(fits: Vec<(AxisModel, f64, bool)>) -> Option<(AxisModel, f64, bool)> {
+    let key = |f: &(AxisModel, f64, bool)| {
+        (
+            f.2,
+            if f.1.is_finite() {
+                -f.1
+            } else {
+                f64::NEG_INFINITY
+            },
+        )
+    };
+    let mut best: Option<(AxisModel, f64, bool)> = None;
+    for fit in fits {
+        if best.as_ref().is_none_or(|b| key(&fit) > key(b)) {
+            best = Some(fit);
+        }
+    }
+    best
+}
+
+/// Relaxation time constants of the two-time-constant form's starts, as multiples of the fitted
+/// input lag τ_v: a spread of relaxation times lies on both sides of the one lag that fits best.
+const LAG_AND_RELAXATION_STARTS: [f64; 3] = [0.2, 4.0, 20.0];
+
+/// The rate-dependent hysteresis with two time constants ([`full::RateForm::LagAndRelaxation`]),
+/// fitted from the input-lag form's fit `lag` with relaxations at [`LAG_AND_RELAXATION_STARTS`]
+/// times its τ_v: kept, the plausible fit with the lowest SSE; `None` when `lag` has no input lag.
+/// Nested in the input lag (g → 0), so on a stage with one lag its gain runs to its lower bound
+/// and the fit is not plausible.
+fn fit_lag_and_relaxation(
+    lag: &AxisModel,
+    cand: &Candidate,
+    data: &FitData,
+) -> Option<(AxisModel, f64, bool)> {
+    if lag.rate_form != full::RateForm::InputLag || !(lag.effects.hysteresis_lag_s > 0.0) {
+        return None;
+    }
+    let b = lag.bounds;
+    let tau_v = f64::from(lag.effects.hysteresis_lag_s);
+    let g = full::LAG_AND_RELAXATION_START_GAIN;
+    let fits: Vec<(AxisModel, f64, bool)> = LAG_AND_RELAXATION_STARTS
+        .par_iter()
+        .filter_map(|&share| {
+            let tau_w = share * tau_v;
+            if !(tau_w > b.relaxation_tau_s.0 && tau_w < b.relaxation_tau_s.1) {
+                return None;
+            }
+            let mut start = lag.clone();
+            start.rate_form = full::RateForm::LagAndRelaxation;
+            start.map.k2_m_per_h = (f64::from(start.map.k2_m_per_h) / (1.0 + g)) as f32;
+            start.effects.relaxation_gain[0] = g as f32;
+            start.effects.relaxation_time_constant_s[0] = tau_w as f32;
+            start.effects.relaxation_linear_m_per_v = start.map.k1_m_per_v;
+            let (fitted, sse, _) = refit(&start, data, TRIAL_ITERATIONS);
+            let plausible = Plausibility::of(&fitted, cand.effect).plausible();
+            Some((fitted, sse, plausible))
+        })
+        .collect();
+    best_fit(fits)
 }
 
 /// The candidate fitted on `held` (data held to the sets the compensator accepts) when its

@@ -54,11 +54,15 @@ pub enum Param {
     RelaxationTimeConstant,
     /// Time constant τ_v of the lag that drives the Bouc-Wen operator \[s\].
     HysteresisLag,
+    /// Second relaxation element's gain g₁.
+    RelaxationGain1,
+    /// Second relaxation element's time constant τ_w₁ \[s\].
+    RelaxationTimeConstant1,
 }
 
 impl Param {
     /// Every parameter, in θ's order of effects.
-    pub const ALL: [Self; 22] = [
+    pub const ALL: [Self; 24] = [
         Self::Beta,
         Self::Gamma,
         Self::Exponent,
@@ -81,6 +85,8 @@ impl Param {
         Self::RelaxationGain,
         Self::RelaxationTimeConstant,
         Self::HysteresisLag,
+        Self::RelaxationGain1,
+        Self::RelaxationTimeConstant1,
     ];
 
     /// The Kelvin–Voigt elements' gains, element by element.
@@ -115,6 +121,8 @@ impl Param {
             Self::RelaxationGain => "relaxation_gain[0]",
             Self::RelaxationTimeConstant => "relaxation_time_constant_s[0]",
             Self::HysteresisLag => "hysteresis_lag_s",
+            Self::RelaxationGain1 => "relaxation_gain[1]",
+            Self::RelaxationTimeConstant1 => "relaxation_time_constant_s[1]",
         }
     }
 
@@ -155,6 +163,8 @@ impl Param {
             Self::RelaxationGain => e.relaxation_gain[0] = v,
             Self::RelaxationTimeConstant => e.relaxation_time_constant_s[0] = v,
             Self::HysteresisLag => e.hysteresis_lag_s = v,
+            Self::RelaxationGain1 => e.relaxation_gain[1] = v,
+            Self::RelaxationTimeConstant1 => e.relaxation_time_constant_s[1] = v,
         }
     }
 }

@@ -5,10 +5,12 @@
 
 use std::fmt;
 
+mod bipolar_stack;
 mod nac2024;
 mod stage;
 mod xy_stage;
 
+pub use bipolar_stack::BipolarStack;
 pub use nac2024::{Nac2024, SecondMode};
 pub use stage::{AsymmetricStage, StageCase};
 pub use xy_stage::{XyAxis, XyStage};
@@ -116,7 +118,7 @@ impl fmt::Display for PlantError {
 impl std::error::Error for PlantError {}
 
 /// Plant names accepted by [`PlantKind::from_name`].
-pub const PLANT_NAMES: &str = "nac2024, stage, xy-stage";
+pub const PLANT_NAMES: &str = "nac2024, stage, xy-stage, bipolar-stack";
 
 /// A reference plant.
 pub trait Plant: Send + Sync {
@@ -162,7 +164,7 @@ pub(crate) fn drive(u: f64, du: f64, e_per_v: f64) -> (f64, f64) {
     (u + e_per_v * u * u, du * (1.0 + 2.0 * e_per_v * u))
 }
 
-/// One of the three plants, by name.
+/// One of the plants, by name.
 #[allow(clippy::large_enum_variant)] // a handful of plants per run; boxing buys nothing
 #[derive(Debug, Clone, PartialEq)]
 pub enum PlantKind {
@@ -172,10 +174,13 @@ pub enum PlantKind {
     Stage(AsymmetricStage),
     /// Seed 002 XY stage.
     XyStage(XyStage),
+    /// Bipolar stack with a spread of dielectric relaxation times and a 740 Hz mode.
+    BipolarStack(BipolarStack),
 }
 
 impl PlantKind {
-    /// `nac2024`, `stage` (Case III; `stage-case1`, `stage-case2` also accepted), `xy-stage`.
+    /// `nac2024`, `stage` (Case III; `stage-case1`, `stage-case2` also accepted), `xy-stage`,
+    /// `bipolar-stack`.
     pub fn from_name(name: &str) -> Result<Self, PlantError> {
         Ok(match name {
             "nac2024" => Self::Nac2024(Nac2024::published()),
@@ -183,6 +188,7 @@ impl PlantKind {
             "stage-case1" => Self::Stage(AsymmetricStage::new(StageCase::I)),
             "stage-case2" => Self::Stage(AsymmetricStage::new(StageCase::II)),
             "xy-stage" => Self::XyStage(XyStage::default()),
+            "bipolar-stack" => Self::BipolarStack(BipolarStack::default()),
             other => {
                 return Err(PlantError::UnknownPlant {
                     given: other.into(),
@@ -196,6 +202,7 @@ impl PlantKind {
             Self::Nac2024(p) => p,
             Self::Stage(p) => p,
             Self::XyStage(p) => p,
+            Self::BipolarStack(p) => p,
         }
     }
     /// Mutable trait object.
@@ -204,6 +211,7 @@ impl PlantKind {
             Self::Nac2024(p) => p,
             Self::Stage(p) => p,
             Self::XyStage(p) => p,
+            Self::BipolarStack(p) => p,
         }
     }
 }
