@@ -67,7 +67,12 @@ impl Bench {
             initial,
         );
         Self {
-            session: Session::new(lp, params::VERSION, params::FNV1A32),
+            session: Session::new(
+                lp,
+                params::VERSION,
+                params::FNV1A32,
+                piezo_firmware::session::built_in_fingerprint(),
+            ),
             plant: Cell::new(XyPlant::from_params(params::SAMPLE_PERIOD_S).unwrap()),
             sequence: 0,
             decoder: Decoder::new(),

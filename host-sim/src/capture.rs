@@ -45,7 +45,7 @@ use std::path::{Path, PathBuf};
 /// `host-sim capture --help` text after the options.
 pub const HELP: &str = "Input: lines `frame <n>: x ref <m> m cmd <V> V sensor <m> m | y ref <m> m cmd <V> V sensor <m> m` \
 (anything before `frame`, e.g. a defmt timestamp and level, is allowed; other lines are ignored) and the boot line \
-`parameters <version> (<file>), fnv1a32 0x<hash>, loop <rate> Hz, one frame every <n> ticks`, which gives t_s = n * sequence / rate.\n\
+`parameters <version> (<file>), fnv1a32 0x<hash>, fingerprint 0x<hash>, loop <rate> Hz, one frame every <n> ticks` (the fingerprint may be absent), which gives t_s = n * sequence / rate.\n\
 Output: --axis both: t_s,ux_V,uy_V,x_m,y_m,rx_m,ry_m; --axis x|y: t_s,u_V,y_m,r_m (u commanded volts, y sensor metres, r reference); \
 each row holds a frame's voltage and reference with the next frame's reading, the one that answers it (at a decimation above 1 its own frame's, one tick early).\n\
 Gaps: a missing sequence number, or a frame with a NaN value, stops with an error naming the line. With --allow-gaps every row whose frames are there \
@@ -68,6 +68,9 @@ pub struct BootLine {
     pub version: String,
     /// FNV-1a of the parameter file, as printed (`0x…`).
     pub fnv1a32: String,
+    /// The running set's content fingerprint (`piezo_link::ModelSet::fingerprint`), as printed
+    /// (`0x…`), if the line states it.
+    pub fingerprint: Option<String>,
     /// Loop rate \[Hz\].
     pub loop_rate_hz: f64,
     /// Ticks per frame, if the line states it.
@@ -271,8 +274,8 @@ pub fn parse_frame_line(line: &str) -> Option<Result<FrameText, String>> {
     )
 }
 
-/// Parses a boot line (`parameters <version> (<file>), fnv1a32 0x…, loop <rate> Hz[, one frame
-/// every <n> ticks]`): `None` if the line is not one.
+/// Parses a boot line (`parameters <version> (<file>), fnv1a32 0x…[, fingerprint 0x…], loop
+/// <rate> Hz[, one frame every <n> ticks]`): `None` if the line is not one.
 pub fn parse_boot_line(line: &str, number_1: usize) -> Option<Result<BootLine, String>> {
     let p = line.find("parameters ")?;
     let rest = &line[p + "parameters ".len()..];
@@ -287,7 +290,15 @@ pub fn parse_boot_line(line: &str, number_1: usize) -> Option<Result<BootLine, S
             .ok_or("no `fnv1a32 0x…`")?
             .trim()
             .to_string();
-        let loop_field = fields.next().ok_or("no `loop <rate> Hz` field")?.trim();
+        let mut loop_field = fields.next().ok_or("no `loop <rate> Hz` field")?.trim();
+        let fingerprint = match loop_field.strip_prefix("fingerprint ") {
+            Some(f) => {
+                let f = f.trim().to_string();
+                loop_field = fields.next().ok_or("no `loop <rate> Hz` field")?.trim();
+                Some(f)
+            }
+            None => None,
+        };
         let rate = loop_field
             .strip_prefix("loop ")
             .and_then(|s| s.strip_suffix(" Hz"))
@@ -312,6 +323,7 @@ pub fn parse_boot_line(line: &str, number_1: usize) -> Option<Result<BootLine, S
             line: number_1,
             version,
             fnv1a32,
+            fingerprint,
             loop_rate_hz,
             decimation,
         })
