@@ -236,18 +236,6 @@ fn waveform(wave: Wave) -> Waveform {
     }
 }
 
-fn frame(f: &crate::frames::SampleFrame, trial: u32) -> Frame {
-    let [x, y] = f.axes;
-    Frame {
-        sequence: f.sequence,
-        reference_m: [x.reference_m, y.reference_m],
-        commanded_v: [x.commanded_v, y.commanded_v],
-        sensor_m: [x.sensor_m, y.sensor_m],
-        trial,
-        flags: f.flags,
-    }
-}
-
 /// An upload's axis checked against the firmware's chain and built by the core, as the build does.
 fn axis_config(m: &AxisModel) -> Result<AxisConfig, ConfigError> {
     let p = m
@@ -545,10 +533,11 @@ impl Session {
             self.lp.frames.discard_from(first_new);
         }
         if !self.reply_out {
-            let mut batch = heapless::Vec::<crate::frames::SampleFrame, FRAMES_PER_TICK>::new();
+            let mut batch = heapless::Vec::<Frame, FRAMES_PER_TICK>::new();
             self.lp.frames.drain_into(&mut batch);
-            for f in &batch {
-                if self.has_room_for_frame() && self.send(Uplink::Frame(frame(f, trial))) {
+            for f in &mut batch {
+                f.trial = trial;
+                if self.has_room_for_frame() && self.send(Uplink::Frame(*f)) {
                     self.link.frames_sent = self.link.frames_sent.saturating_add(1);
                 } else {
                     self.link.frames_dropped = self.link.frames_dropped.saturating_add(1);

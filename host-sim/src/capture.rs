@@ -10,7 +10,7 @@
 //! frame 12: x ref 0.000019 m cmd 10 V sensor 0 m | y ref 0.000004 m cmd 10 V sensor 0 m
 //! ```
 //!
-//! Anything after the y sensor field must start with `|` (the QEMU image appends `| wire [..]`).
+//! Anything after the y sensor field must start with `|` (ignored).
 //! The boot line `parameters <version> (<file>), fnv1a32 0x<hash>, loop <rate> Hz, one frame
 //! every <n> ticks` gives the time base: frame k was produced at t = k·n / rate after boot.
 //! `--rate` and `--decimation` replace (or supply) those two numbers.
@@ -57,7 +57,7 @@ QEMU: cd firmware && cargo build --release --features qemu,frames-all --bin qemu
 pub const GAPS_LISTED: usize = 5;
 
 /// One frame as printed: the firmware's text form.
-pub use piezo_link::text::FrameText;
+pub use piezo_link::Frame;
 
 /// The boot line's fields.
 #[derive(Debug, Clone, PartialEq)]
@@ -96,7 +96,7 @@ pub struct CapturedLog {
     /// Boot line, if present.
     pub boot: Option<BootLine>,
     /// (line, unwrapped sequence, frame).
-    pub frames: Vec<(usize, u64, FrameText)>,
+    pub frames: Vec<(usize, u64, Frame)>,
     /// Gaps found (only non-empty with `allow_gaps`).
     pub gaps: Vec<Gap>,
     /// Lines read.
@@ -266,10 +266,10 @@ fn number<T: std::str::FromStr>(word: Option<&str>, what: &str) -> Result<T, Str
 }
 
 /// Parses one log line: `None` if it is not a frame line, else the frame or what is wrong.
-pub fn parse_frame_line(line: &str) -> Option<Result<FrameText, String>> {
+pub fn parse_frame_line(line: &str) -> Option<Result<Frame, String>> {
     let text = &line[piezo_link::text::find_frame(line)?..];
     Some(
-        text.parse::<FrameText>()
+        text.parse::<Frame>()
             .map_err(|e| e.in_text(text).to_string()),
     )
 }
@@ -410,7 +410,10 @@ pub fn parse_log(path: &Path, text: &str, allow_gaps: bool) -> Result<CapturedLo
         let names = piezo_link::text::FIELDS;
         let bad = (0..2)
             .flat_map(|a| (0..3).map(move |c| (a, c)))
-            .find(|&(a, c)| !frame.axes[a][c].is_finite());
+            .find(|&(a, c)| {
+                let fields = [frame.reference_m, frame.commanded_v, frame.sensor_m];
+                !fields[c][a].is_finite()
+            });
         if let Some((a, c)) = bad {
             if !allow_gaps {
                 return Err(CaptureError::NonFinite {
@@ -453,7 +456,7 @@ impl CapturedLog {
         let frames: Vec<LoopFrame> = self
             .frames
             .iter()
-            .map(|(_, k, f)| LoopFrame::from_text(f, *k))
+            .map(|(_, k, f)| LoopFrame::from_link(f, *k))
             .collect();
         record(&frames, time)
     }
@@ -584,4 +587,30 @@ pub fn run(a: &CaptureArgs, progress: &mut dyn FnMut(&str)) -> Result<String, St
         progress(&summary);
     }
     Ok(summary)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_boot_line_gives_its_fingerprint_when_it_has_one() {
+        let with = "piezo-firmware qemu: parameters xy-stage 3 (params/xy-stage.toml), fnv1a32 0x0badf00d, fingerprint 0x813b1b0d, loop 20000 Hz, one frame every 10 ticks";
+        let b = parse_boot_line(with, 4).unwrap().unwrap();
+        assert_eq!(b.fingerprint.as_deref(), Some("0x813b1b0d"));
+        assert_eq!(b.fnv1a32, "0x0badf00d");
+        assert_eq!(
+            (b.loop_rate_hz, b.decimation, b.line),
+            (20_000.0, Some(10), 4)
+        );
+        assert_eq!(b.version, "xy-stage 3");
+        let without = "parameters xy-stage 3 (f.toml), fnv1a32 0x0badf00d, loop 10000 Hz";
+        let b = parse_boot_line(without, 1).unwrap().unwrap();
+        assert_eq!(
+            (b.fingerprint, b.loop_rate_hz, b.decimation),
+            (None, 10_000.0, None)
+        );
+        let cut = "parameters v (f), fnv1a32 0x1, fingerprint 0x2";
+        assert!(parse_boot_line(cut, 1).unwrap().is_err());
+    }
 }

@@ -952,6 +952,62 @@ mod tests {
         }
     }
 
+    /// A firmware of another protocol version is named as such: one whose status parses (a
+    /// version field of another value), and one whose status does not (other fields after its
+    /// version), which before the version's check timed out as an answer never received.
+    #[test]
+    fn a_firmware_of_another_protocol_is_named() {
+        let (address, device) = device(|_, _| {
+            Response::Status(Status {
+                protocol: PROTOCOL_VERSION + 1,
+                ..status(10_000.0, 2048)
+            })
+        });
+        let mut client = Client::connect(&address, Duration::from_secs(5)).unwrap();
+        let e = client.status().unwrap_err();
+        let theirs = format!(
+            "protocol {}, this host-sim {PROTOCOL_VERSION}",
+            PROTOCOL_VERSION + 1
+        );
+        assert!(e.contains(&theirs), "{e}");
+        drop(client);
+        device.join().unwrap();
+
+        // A status of protocol 1 laid out otherwise: Uplink::Response (0), the request's number,
+        // Response::Status (0), the version, then a field this host does not expect.
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let address = format!("tcp:{}", listener.local_addr().unwrap());
+        let old = std::thread::spawn(move || {
+            let (mut stream, _) = listener.accept().unwrap();
+            let mut decoder = Decoder::new();
+            let mut buffer = [0u8; 1024];
+            while let Ok(n) = stream.read(&mut buffer) {
+                for &b in &buffer[..n] {
+                    if let Some(Ok(packet)) = decoder.push::<Request>(b) {
+                        let body = (0u32, packet.sequence, 0u32, 1u16, 7u8);
+                        let mut out = [0u8; MAX_FRAME];
+                        let n =
+                            piezo_link::encode(&Packet { sequence: 0, body }, &mut out).unwrap();
+                        stream.write_all(&out[..n]).unwrap();
+                        return;
+                    }
+                }
+                if n == 0 {
+                    return;
+                }
+            }
+        });
+        let mut client = Client::connect(&address, Duration::from_secs(5)).unwrap();
+        let started = Instant::now();
+        let e = client.status().unwrap_err();
+        assert!(
+            e.contains(&format!("protocol 1, this host-sim {PROTOCOL_VERSION}")),
+            "{e}"
+        );
+        assert!(started.elapsed() < Duration::from_secs(4), "not a timeout");
+        old.join().unwrap();
+    }
+
     /// A device whose status is out of bounds makes `excite` fail with the field and the value,
     /// never a panic or a huge allocation.
     #[test]

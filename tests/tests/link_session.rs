@@ -170,7 +170,25 @@ fn a_whole_session_over_the_link() {
         guard(&excited.counters, &uploaded.counters)
     ));
 
+    // 4b. The wave table reloaded under the finished excitation: the excitation holds the
+    // table's last entry, now a track's reference in metres, as stack volts (≈ 2e-5 V), which
+    // the guard clamps to the identified window's floor, where the output already stands.
+    let before_load = client.status().unwrap();
+    client.load_table(&[[19e-6; 2]; 256], false).unwrap();
+    let loaded = client.status().unwrap();
+    say(&format!(
+        "link_session: guard while the table is reloaded under the finished excitation: {}; applied {:?} V -> {:?} V",
+        guard(&before_load.counters, &loaded.counters),
+        before_load.applied_v,
+        loaded.applied_v
+    ));
+    assert_eq!(
+        loaded.applied_v, before_load.applied_v,
+        "clamped, not moved"
+    );
+
     // 5. Track with the compensator, then with the linear baseline.
+    let uploaded = client.status().unwrap();
     let compensated = track(&mut client);
     say(&format!(
         "link_session: guard over the first track (compensator): {}",

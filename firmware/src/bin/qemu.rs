@@ -47,7 +47,7 @@ mod image {
     use cortex_m_semihosting::{debug, hprintln};
 
     use piezo_firmware::demo::{self, DemoComparison, DemoReport};
-    use piezo_firmware::frames::{SampleFrame, SequenceChecker};
+    use piezo_firmware::frames::{Frame, SequenceChecker};
     use piezo_firmware::params;
     use piezo_firmware::xy_loop::{Feedforward, Mode};
 
@@ -159,10 +159,10 @@ mod image {
         );
         let mut receiver = SequenceChecker::default();
         let mut received: u32 = 0;
-        let mut printed = heapless::Vec::<SampleFrame, PRINT_FRAMES>::new();
+        let mut printed = heapless::Vec::<Frame, PRINT_FRAMES>::new();
         let compensated = demo::run_demo(Feedforward::Compensator, |k, lp| {
             // The sender: drain every tick (the receiver checks the sequence); print one batch.
-            let mut batch = heapless::Vec::<SampleFrame, 8>::new();
+            let mut batch = heapless::Vec::<Frame, 8>::new();
             lp.frames.drain_into(&mut batch);
             for f in &batch {
                 receiver.accept(f.sequence);
@@ -180,7 +180,7 @@ mod image {
             (Err(e), _) | (_, Err(e)) => fail(format_args!("parameter set refused at boot: {e:?}")),
         };
         for f in &printed {
-            hprintln!("{} | wire {:02x?}", f, &f.to_bytes()[..8]);
+            hprintln!("{}", f);
         }
         hprintln!(
             "frames: {} received, {} gaps ({} lost)",
