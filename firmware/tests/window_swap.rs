@@ -180,7 +180,7 @@ impl Bench {
     }
 
     fn guard_interventions(&self) -> u32 {
-        self.session.status().counters.guard_interventions
+        self.session.status().counters.guard_interventions()
     }
 
     fn assert_running_without_faults(&self) {

@@ -125,12 +125,9 @@ impl Control {
     /// `learned`, `learned+feedback`.
     pub fn name(self) -> &'static str {
         match self {
-            Self::OpenLoop => "open-loop",
-            Self::Feedforward => "feedforward",
-            Self::Feedback => "feedback",
-            Self::FeedforwardFeedback => "feedforward+feedback",
             Self::Learned => "learned",
             Self::LearnedFeedback => "learned+feedback",
+            servo => servo.servo_mode().name(),
         }
     }
 

@@ -562,3 +562,27 @@ proptest! {
         prop_assert!(r.iter().all(|r| r.is_err()), "{:?}", r);
     }
 }
+
+#[test]
+fn control_modes_map_to_the_cores_and_back() {
+    let all: Vec<Control> = Control::ALL.into_iter().chain(Control::LEARNED).collect();
+    for &c in &all {
+        assert_eq!(Control::new(c.servo_mode(), c.learned()), c);
+    }
+    let names: Vec<&str> = all.iter().map(|c| c.name()).collect();
+    assert_eq!(
+        names,
+        [
+            "open-loop",
+            "feedforward",
+            "feedback",
+            "feedforward+feedback",
+            "learned",
+            "learned+feedback"
+        ]
+    );
+    assert_eq!(
+        Control::LearnedFeedback.servo_mode(),
+        piezo_core::ServoMode::FeedforwardFeedback
+    );
+}
