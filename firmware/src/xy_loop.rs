@@ -87,8 +87,8 @@
 //! rounding included, pass the guard unchanged: in normal tracking the guard never acts. A new
 //! parameter set ([`TwoAxisLoop::set_settings`]) whose window excludes the voltage applied is
 //! reached by slewing: the guard moves the output towards the window by at most the new
-//! bound per tick (counted in the guard's `window_entry`, part of the link's
-//! `guard_interventions`), the compensator's model follows the voltage applied; a safe loop
+//! bound per tick (counted in the guard's `window_entry`, per axis in [`Counters::guard`]), the
+//! compensator's model follows the voltage applied; a safe loop
 //! holds its voltage (no jump) and slews in after the rearm. The bound in force in a tick is the
 //! one of the settings of that tick (the new one from the first tick after a swap).
 //!
