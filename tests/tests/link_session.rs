@@ -3,12 +3,14 @@
 //! Builds the `qemu` image (its own target directory, `<target dir>/link-session`: the outer
 //! `cargo test` holds the workspace's lock), runs it with `firmware/run-qemu.sh --link PORT` on a
 //! free loopback port, and drives it with host-sim's link client:
-//! status (the built-in set) → excite 0.5–119.5 V (every tick) and record → `identify` on the record → upload the
-//! identified set → track a 10 Hz sine with the compensator, then with the linear
+//! status (the built-in set, its fingerprint the host's of the stage file) → excite 0.5–119.5 V
+//! (every tick) and record → `identify` on the record → upload the identified set (its
+//! fingerprint) → reload the wave table under the finished excitation (the guard clamps, the
+//! output does not move) → track a 10 Hz sine with the compensator, then with the linear
 //! baseline → inject an overrun (safe state, outputs held) → rearm and track → a set the core
 //! refuses (β < 0) leaves the running one → shutdown. The tracking error (the firmware's own
 //! statistics: sensor of tick k minus reference of tick k − 1, after settling) is checked at
-//! each stage.
+//! each stage; the output guard's interventions per axis and cause are printed per stage.
 //!
 //! Every read has a timeout; QEMU is stopped at the end (shutdown request, then SIGTERM).
 //! Skipped, with a message, when `qemu-system-arm` or the thumbv7em-none-eabihf target is
