@@ -261,11 +261,14 @@ pub struct PreparedUpload {
     pub set: ModelSet,
     /// Both axes' loop settings, or the first axis the core refused and why.
     pub axes: Result<[AxisConfig; 2], (usize, ConfigError)>,
+    /// The set's [`ModelSet::fingerprint`] (postcard and FNV-1a over the whole set: computed
+    /// here, outside the board's lock).
+    pub fingerprint: u32,
 }
 
 /// The part of handling a request that does not need the loop: an upload's validation by the
 /// core's constructors (and the first-loading sweep of its baseline gain), which takes several
-/// loop periods on the Cortex-M4F. Pure: it reads only the built-in loop period.
+/// loop periods on the Cortex-M4F, and its fingerprint. Pure: it reads only the built-in loop period.
 pub fn prepare(request: Request) -> Prepared {
     match request {
         Request::Upload(set) => Prepared::Upload(prepare_upload(set)),
@@ -276,7 +279,12 @@ pub fn prepare(request: Request) -> Prepared {
 fn prepare_upload(set: ModelSet) -> PreparedUpload {
     let config = |i: usize| axis_config(&set.axes[i]).map_err(|e| (i, e));
     let axes = config(0).and_then(|x| config(1).map(|y| [x, y]));
-    PreparedUpload { set, axes }
+    let fingerprint = set.fingerprint();
+    PreparedUpload {
+        set,
+        axes,
+        fingerprint,
+    }
 }
 
 /// The refusal of a learned voltage table that fails its check, `what` saying when.
@@ -807,7 +815,7 @@ impl Session {
         self.lp.set_settings(settings);
         self.version = set.version.clone();
         self.fnv1a32 = set.fnv1a32;
-        self.fingerprint = set.fingerprint();
+        self.fingerprint = upload.fingerprint;
         self.link.uploads = self.link.uploads.saturating_add(1);
         Response::Loaded {
             params_fnv1a32: set.fnv1a32,

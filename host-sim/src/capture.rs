@@ -11,8 +11,10 @@
 //! ```
 //!
 //! Anything after the y sensor field must start with `|` (ignored).
-//! The boot line `parameters <version> (<file>), fnv1a32 0x<hash>, loop <rate> Hz, one frame
-//! every <n> ticks` gives the time base: frame k was produced at t = k·n / rate after boot.
+//! The boot line `parameters <version> (<file>), fnv1a32 0x<hash>, fingerprint 0x<hash>, loop
+//! <rate> Hz, one frame every <n> ticks` gives the set (the CSV's first comment repeats its
+//! version and hashes; the fingerprint may be absent) and the time base: frame k was produced at
+//! t = k·n / rate after boot.
 //! `--rate` and `--decimation` replace (or supply) those two numbers.
 //!
 //! **Output.** Column names carry units ([`crate::csv`]): with `--axis both` (default)
@@ -551,7 +553,13 @@ pub fn run(a: &CaptureArgs, progress: &mut dyn FnMut(&str)) -> Result<String, St
     let (first, last) = (log.frames[0].1, log.frames[log.frames.len() - 1].1);
     let params = log.boot.as_ref().map_or_else(
         || "parameters: no boot line".to_string(),
-        |b| format!("parameters {}, fnv1a32 {}", b.version, b.fnv1a32),
+        |b| match &b.fingerprint {
+            Some(f) => format!(
+                "parameters {}, fnv1a32 {}, fingerprint {f}",
+                b.version, b.fnv1a32
+            ),
+            None => format!("parameters {}, fnv1a32 {}", b.version, b.fnv1a32),
+        },
     );
     let comments = vec![
         format!("host-sim capture of {} ({params})", a.log.display()),
