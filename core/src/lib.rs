@@ -26,6 +26,7 @@ pub mod envelope;
 pub mod error;
 #[cfg(test)]
 mod fixtures;
+pub mod fnv;
 pub mod inverse_chain;
 pub mod io_chain;
 pub mod learning;
@@ -48,6 +49,7 @@ pub use compensator::{
 pub use dynamic_model::{DynamicModel, DynamicState, MassSpringDamperParams};
 pub use envelope::{Envelope, EnvelopeCounts, EnvelopeMonitor, EnvelopePolicy};
 pub use error::{ParamError, MIN_SLOPE_RATIO};
+pub use fnv::{fnv1a32, Fnv1a32};
 pub use inverse_chain::{
     compensate_pair, compensate_periodic_pair, compensate_periodic_single, compensate_single,
     FeedforwardAxis, FeedforwardCounts, InverseChain, PeriodicSettings, PeriodicSettling,

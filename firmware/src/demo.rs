@@ -20,9 +20,7 @@ use crate::control::TrackingStats;
 use crate::params::{self, AMPLIFIER_GAIN_V_PER_V, AXES, SAMPLE_PERIOD_S, SENSOR_M_PER_V};
 use crate::plant::{plant_io, XyPlant};
 use crate::reference::{Program, ReferenceGenerator, Waveform};
-use crate::xy_loop::{
-    Axis, ConfigError, Feedforward, LoopCounters, LoopSettings, Mode, TwoAxisLoop,
-};
+use crate::xy_loop::{Axis, ConfigError, Counters, Feedforward, LoopSettings, Mode, TwoAxisLoop};
 
 /// Ticks in one run.
 pub const DEMO_TICKS: u32 = 4_000;
@@ -75,7 +73,7 @@ pub struct DemoReport {
     /// Tracking error per axis after [`SETTLE_TICKS`].
     pub stats: [TrackingStats; 2],
     /// Loop counters at the end.
-    pub counters: LoopCounters,
+    pub counters: Counters,
     /// Guard interventions (all kinds, both axes) after settling.
     pub guard_faults_after_settle: u32,
     /// Mode at the end.
@@ -247,7 +245,7 @@ impl core::fmt::Display for Failure {
 /// Overrun drill: [`DRILL_TICKS`] compensated ticks with a missed deadline injected at tick
 /// [`DRILL_OVERRUN_TICK`]; returns the counters, the mode at the end and the outputs written
 /// in the tick before and the tick of the fault (equal: the fault holds the output at once).
-pub fn overrun_drill() -> Result<(LoopCounters, Mode, [f32; 2], [f32; 2]), DemoError> {
+pub fn overrun_drill() -> Result<(Counters, Mode, [f32; 2], [f32; 2]), DemoError> {
     let settings = settings().map_err(DemoError::Config)?;
     let scale = sensor_scale().ok_or(DemoError::Sensor)?;
     let plant = Cell::new(XyPlant::from_params(SAMPLE_PERIOD_S).ok_or(DemoError::Sensor)?);

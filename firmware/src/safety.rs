@@ -28,7 +28,7 @@
 //! limits its own steps is never overridden: see [`piezo_core::CompensatorSettings::inside_guard`]).
 //!
 //! Settings ([`SafetyLimits`], validated once by [`SafetyLimits::new`]) are kept apart from the
-//! run-time state ([`GuardState`]: last output and [`FaultCounters`]), so limits can be swapped
+//! run-time state ([`GuardState`]: last output and [`GuardCounters`]), so limits can be swapped
 //! between two ticks. [`SafetyLimits::apply`] never panics (tests below: proptest on arbitrary
 //! f32 sequences with an f64 check of every step, and a strided sweep over all bit patterns).
 
@@ -59,37 +59,15 @@ pub struct SafetyLimits {
     fast_step_volts: f32,
 }
 
-/// How many ticks hit each fault; saturating counters.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct FaultCounters {
-    /// Requests that were NaN or ±∞ (output held, or the slew into a new window continued).
-    pub non_finite: u32,
-    /// Requests outside `[min_volts, max_volts]` (clamped).
-    pub window_clamped: u32,
-    /// Requests further than the step bound from the last output (slew-limited).
-    pub slew_limited: u32,
-    /// Ticks that began with the last output outside the window (a window swapped in while the
-    /// output lay outside it) and on which the guard, not the request, set the output: the slew
-    /// into the new window.
-    pub window_entry: u32,
-}
-
-impl FaultCounters {
-    /// Total of all fault counts (saturating).
-    pub fn total(&self) -> u32 {
-        self.non_finite
-            .saturating_add(self.window_clamped)
-            .saturating_add(self.slew_limited)
-            .saturating_add(self.window_entry)
-    }
-}
+/// The guard's interventions per cause: the link's type, carried as it is.
+pub use piezo_link::GuardCounters;
 
 /// Run-time state of the guard: the last applied output and the fault counters.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct GuardState {
     /// Finite: made by [`SafetyLimits::state`], then only ever an output of [`SafetyLimits::apply`].
     last_safe_volts: f32,
-    counters: FaultCounters,
+    counters: GuardCounters,
 }
 
 impl GuardState {
@@ -100,7 +78,7 @@ impl GuardState {
     }
 
     /// Fault counters since this state was made.
-    pub fn counters(&self) -> FaultCounters {
+    pub fn counters(&self) -> GuardCounters {
         self.counters
     }
 }
@@ -184,7 +162,7 @@ impl SafetyLimits {
         };
         GuardState {
             last_safe_volts,
-            counters: FaultCounters::default(),
+            counters: GuardCounters::default(),
         }
     }
 
@@ -437,7 +415,7 @@ mod tests {
                 let mut s = g.state(from);
                 let u = to.clamp(0.0, 120.0);
                 assert_eq!(g.apply(&mut s, u), u, "{from} -> {to}");
-                assert_eq!(s.counters(), FaultCounters::default());
+                assert_eq!(s.counters(), GuardCounters::default());
             }
         }
     }
@@ -450,7 +428,7 @@ mod tests {
         assert_eq!(g.apply(&mut s, 10.0), 10.0);
         // A step of exactly M takes the slow path and passes too.
         assert_eq!(g.apply(&mut s, 12.0), 12.0);
-        assert_eq!(s.counters(), FaultCounters::default());
+        assert_eq!(s.counters(), GuardCounters::default());
     }
 
     #[test]
@@ -466,7 +444,7 @@ mod tests {
         assert_eq!(narrow.apply(&mut s, 70.0), 54.0);
         assert_eq!(
             s.counters(),
-            FaultCounters {
+            GuardCounters {
                 non_finite: 2,
                 window_clamped: 1,
                 slew_limited: 4,
@@ -521,7 +499,7 @@ mod tests {
         for (from, request) in [(110.0f32, 119.999_99f32), (110.000_01, 120.0)] {
             let mut s = g.state(from);
             assert_eq!(g.apply(&mut s, request), request);
-            assert_eq!(s.counters(), FaultCounters::default());
+            assert_eq!(s.counters(), GuardCounters::default());
         }
     }
 

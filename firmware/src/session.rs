@@ -67,8 +67,8 @@ use piezo_core::ServoMode;
 use piezo_link::{
     truncated, AxisModel, Control, Counters, Decoder, EnvelopeStatus, Frame, ModelSet,
     OnTargetStatus, Packet, Program as WireProgram, Refusal, RefusalKind, Request, Response,
-    SequenceChecker, Setpoints, Status, Tracking, Uplink, Wave, MAX_FRAME, REASON_BYTES,
-    VERSION_BYTES,
+    SequenceChecker, Setpoints, Status, Tracking, Uplink, Wave, MAX_FRAME, PROTOCOL_VERSION,
+    REASON_BYTES, VERSION_BYTES,
 };
 
 use crate::control::TrackingStats;
@@ -76,8 +76,8 @@ use crate::converter::DacWrite;
 use crate::params;
 use crate::reference::{LearnedError, Program, Waveform, STREAM_CAPACITY, TABLE_CAPACITY};
 use crate::xy_loop::{
-    Axis, AxisConfig, ConfigError, ControlError, Fault, Feedforward, Mode, PositionSensor,
-    TickReport, TwoAxisLoop, XyIo,
+    Axis, AxisConfig, ConfigError, ControlError, Feedforward, Mode, PositionSensor, TickReport,
+    TwoAxisLoop, XyIo,
 };
 
 /// [`SETTLE_S`] in ticks of the loop's period.
@@ -90,6 +90,16 @@ fn settle_ticks(lp: &TwoAxisLoop) -> u32 {
     }
 }
 
+/// The [`ModelSet::fingerprint`] of the set built into the image ([`params`]): the boot log's
+/// and the first `Status`'s.
+pub fn built_in_fingerprint() -> u32 {
+    piezo_link::fingerprint(
+        params::LOOP_RATE_HZ,
+        &params::IO,
+        &params::AXES.each_ref().map(AxisModel::from_params),
+    )
+}
+
 /// Bytes of the transmit buffer.
 pub const TX_CAPACITY: usize = 8 * MAX_FRAME;
 /// Time after a `Track` before the tracking error counts (the start-up transient) \[s\]: 1 000
@@ -100,10 +110,8 @@ pub const SETTLE_S: f32 = 0.1;
 pub struct Session {
     /// The loop (public: the image ticks it through [`Session::tick`] and reads its state).
     pub lp: TwoAxisLoop,
-    /// The control mode of `Track` (the servo's part of it).
-    control: ServoMode,
-    /// The control mode of `Track` plays the learned voltage table.
-    learned: bool,
+    /// The control mode of `Track`.
+    control: Control,
     tick_cycles_max: u32,
     inject_overrun: bool,
     decoder: Decoder,
@@ -111,13 +119,16 @@ pub struct Session {
     tx: TxRing<TX_CAPACITY>,
     tx_sequence: u32,
     frame_decimation: u32,
-    counters: Counters,
+    /// The link's counters (frames, requests, uploads); the loop keeps its own.
+    link: Counters,
     tracking: [TrackingStats; 2],
     previous_reference_m: [f32; 2],
     settle_left: u32,
     last: Option<TickReport>,
     version: String<VERSION_BYTES>,
     fnv1a32: u32,
+    /// The running set's [`ModelSet::fingerprint`].
+    fingerprint: u32,
     shutdown: bool,
     /// A [`Reply`] has been taken and its bytes not yet queued: the tick leaves its frames in
     /// the loop's frame queue meanwhile, so that the reply keeps its packet number's place.
@@ -225,30 +236,6 @@ fn waveform(wave: Wave) -> Waveform {
     }
 }
 
-fn wire_fault(fault: Fault) -> piezo_link::Fault {
-    use piezo_link::Fault as W;
-    let a = |axis: Axis| axis.index() as u8;
-    match fault {
-        Fault::Overrun => W::Overrun,
-        Fault::SensorError(axis) => W::SensorError { axis: a(axis) },
-        Fault::NonFiniteReading(axis) => W::NonFiniteReading { axis: a(axis) },
-        Fault::StuckReading(axis) => W::StuckReading { axis: a(axis) },
-        Fault::DacError(axis) => W::DacError { axis: a(axis) },
-    }
-}
-
-fn frame(f: &crate::frames::SampleFrame, trial: u32) -> Frame {
-    let [x, y] = f.axes;
-    Frame {
-        sequence: f.sequence,
-        reference_m: [x.reference_m, y.reference_m],
-        commanded_v: [x.commanded_v, y.commanded_v],
-        sensor_m: [x.sensor_m, y.sensor_m],
-        trial,
-        flags: f.flags,
-    }
-}
-
 /// An upload's axis checked against the firmware's chain and built by the core, as the build does.
 fn axis_config(m: &AxisModel) -> Result<AxisConfig, ConfigError> {
     let p = m
@@ -274,11 +261,14 @@ pub struct PreparedUpload {
     pub set: ModelSet,
     /// Both axes' loop settings, or the first axis the core refused and why.
     pub axes: Result<[AxisConfig; 2], (usize, ConfigError)>,
+    /// The set's [`ModelSet::fingerprint`] (postcard and FNV-1a over the whole set: computed
+    /// here, outside the board's lock).
+    pub fingerprint: u32,
 }
 
 /// The part of handling a request that does not need the loop: an upload's validation by the
 /// core's constructors (and the first-loading sweep of its baseline gain), which takes several
-/// loop periods on the Cortex-M4F. Pure: it reads only the built-in loop period.
+/// loop periods on the Cortex-M4F, and its fingerprint. Pure: it reads only the built-in loop period.
 pub fn prepare(request: Request) -> Prepared {
     match request {
         Request::Upload(set) => Prepared::Upload(prepare_upload(set)),
@@ -289,31 +279,11 @@ pub fn prepare(request: Request) -> Prepared {
 fn prepare_upload(set: ModelSet) -> PreparedUpload {
     let config = |i: usize| axis_config(&set.axes[i]).map_err(|e| (i, e));
     let axes = config(0).and_then(|x| config(1).map(|y| [x, y]));
-    PreparedUpload { set, axes }
-}
-
-/// piezo-core's mode for the wire's, and whether it plays the learned voltage table (the
-/// servo runs as with the compensator's feed-forward).
-fn servo_mode(c: Control) -> (ServoMode, bool) {
-    match c {
-        Control::OpenLoop => (ServoMode::OpenLoop, false),
-        Control::Feedforward => (ServoMode::Feedforward, false),
-        Control::Feedback => (ServoMode::Feedback, false),
-        Control::FeedforwardFeedback => (ServoMode::FeedforwardFeedback, false),
-        Control::Learned => (ServoMode::Feedforward, true),
-        Control::LearnedFeedback => (ServoMode::FeedforwardFeedback, true),
-    }
-}
-
-/// The wire's mode for piezo-core's, with or without the learned voltage table.
-fn wire_control(m: ServoMode, learned: bool) -> Control {
-    match (m, learned) {
-        (ServoMode::OpenLoop, false) => Control::OpenLoop,
-        (ServoMode::Feedforward, false) => Control::Feedforward,
-        (ServoMode::Feedback, false) => Control::Feedback,
-        (ServoMode::FeedforwardFeedback, false) => Control::FeedforwardFeedback,
-        (ServoMode::FeedforwardFeedback | ServoMode::Feedback, true) => Control::LearnedFeedback,
-        (ServoMode::OpenLoop | ServoMode::Feedforward, true) => Control::Learned,
+    let fingerprint = set.fingerprint();
+    PreparedUpload {
+        set,
+        axes,
+        fingerprint,
     }
 }
 
@@ -492,13 +462,13 @@ fn chain_refusal(set: &ModelSet) -> Option<Response> {
 }
 
 impl Session {
-    /// A session around `lp`, which runs the parameter set `version` (FNV-1a `fnv1a32`). Frames
-    /// start off.
-    pub fn new(lp: TwoAxisLoop, version: &str, fnv1a32: u32) -> Self {
+    /// A session around `lp`, which runs the parameter set `version` (FNV-1a of its stage file
+    /// `fnv1a32`, content [`ModelSet::fingerprint`] `fingerprint`: [`built_in_fingerprint`] for
+    /// the image's own set). Frames start off.
+    pub fn new(lp: TwoAxisLoop, version: &str, fnv1a32: u32, fingerprint: u32) -> Self {
         let settle_left = settle_ticks(&lp);
         Self {
-            control: lp.control_mode(),
-            learned: lp.feedforward() == Feedforward::Learned,
+            control: Control::new(lp.control_mode(), lp.feedforward() == Feedforward::Learned),
             tick_cycles_max: 0,
             lp,
             inject_overrun: false,
@@ -507,13 +477,14 @@ impl Session {
             tx: TxRing::new(),
             tx_sequence: 0,
             frame_decimation: 0,
-            counters: Counters::default(),
+            link: Counters::default(),
             tracking: [TrackingStats::default(); 2],
             previous_reference_m: [f32::NAN; 2],
             settle_left,
             last: None,
             version: truncated(version),
             fnv1a32,
+            fingerprint,
             shutdown: false,
             reply_out: false,
         }
@@ -570,13 +541,14 @@ impl Session {
             self.lp.frames.discard_from(first_new);
         }
         if !self.reply_out {
-            let mut batch = heapless::Vec::<crate::frames::SampleFrame, FRAMES_PER_TICK>::new();
+            let mut batch = heapless::Vec::<Frame, FRAMES_PER_TICK>::new();
             self.lp.frames.drain_into(&mut batch);
-            for f in &batch {
-                if self.has_room_for_frame() && self.send(Uplink::Frame(frame(f, trial))) {
-                    self.counters.frames_sent = self.counters.frames_sent.saturating_add(1);
+            for f in &mut batch {
+                f.trial = trial;
+                if self.has_room_for_frame() && self.send(Uplink::Frame(*f)) {
+                    self.link.frames_sent = self.link.frames_sent.saturating_add(1);
                 } else {
-                    self.counters.frames_dropped = self.counters.frames_dropped.saturating_add(1);
+                    self.link.frames_dropped = self.link.frames_dropped.saturating_add(1);
                 }
             }
         }
@@ -636,7 +608,7 @@ impl Session {
     }
 
     fn respond(&mut self, sequence: u32, prepared: &Prepared) -> Response {
-        let c = &mut self.counters;
+        let c = &mut self.link;
         c.requests = c.requests.saturating_add(1);
         match self.requests.admit(sequence) {
             Err(next) => {
@@ -657,7 +629,7 @@ impl Session {
 
     /// Counts a packet the link's decoder refused (COBS, CRC, length, body).
     pub fn note_rejected_packet(&mut self) {
-        let c = &mut self.counters;
+        let c = &mut self.link;
         c.rejected_packets = c.rejected_packets.saturating_add(1);
     }
 
@@ -724,7 +696,7 @@ impl Session {
     /// `Track` in a learned control mode: a table program whose learned table passes its check,
     /// played from its start; otherwise refused, nothing changed.
     fn start_learned(&mut self, program: WireProgram) -> Response {
-        let control = wire_control(self.control, true);
+        let control = Control::new(self.control.servo_mode(), true);
         let WireProgram::Table {
             ticks_per_entry,
             repeat,
@@ -794,7 +766,7 @@ impl Session {
     fn upload(&mut self, upload: &PreparedUpload) -> Response {
         let response = self.try_upload(upload);
         if matches!(response, Response::Refused(_)) {
-            let c = &mut self.counters;
+            let c = &mut self.link;
             c.refused_uploads = c.refused_uploads.saturating_add(1);
         }
         response
@@ -805,7 +777,7 @@ impl Session {
         if let Some(refusal) = chain_refusal(set) {
             return refusal;
         }
-        if self.control.feedback() {
+        if self.control.servo_mode().feedback() {
             if let Some(i) = set.axes.iter().position(|a| a.servo.is_none()) {
                 let name = ["x", "y"][i & 1];
                 return refused(
@@ -843,18 +815,20 @@ impl Session {
         self.lp.set_settings(settings);
         self.version = set.version.clone();
         self.fnv1a32 = set.fnv1a32;
-        self.counters.uploads = self.counters.uploads.saturating_add(1);
+        self.fingerprint = upload.fingerprint;
+        self.link.uploads = self.link.uploads.saturating_add(1);
         Response::Loaded {
             params_fnv1a32: set.fnv1a32,
+            params_fingerprint: self.fingerprint,
         }
     }
 
     fn handle(&mut self, request: &Request) -> Response {
         match *request {
             Request::Status => Response::Status(self.status()),
-            Request::Track(program) if self.learned => self.start_learned(program),
+            Request::Track(program) if self.control.learned() => self.start_learned(program),
             Request::Track(program) => {
-                let ff = match self.control {
+                let ff = match self.control.servo_mode() {
                     ServoMode::Feedforward | ServoMode::FeedforwardFeedback => {
                         Feedforward::Compensator
                     }
@@ -906,16 +880,15 @@ impl Session {
                 }
             }
             Request::Control(control) => {
-                let (mode, learned) = servo_mode(control);
-                let switched = if learned {
+                let mode = control.servo_mode();
+                let switched = if control.learned() {
                     self.lp.set_learned_mode(mode.feedback())
                 } else {
                     self.lp.set_control_mode(mode)
                 };
                 match switched {
                     Ok(()) => {
-                        self.control = mode;
-                        self.learned = learned;
+                        self.control = control;
                         Response::Done
                     }
                     Err(e) => control_refusal(control, e),
@@ -951,51 +924,31 @@ impl Session {
 
     /// The state as the link reports it.
     pub fn status(&self) -> Status {
-        let lc = self.lp.counters();
-        let guard = Axis::ALL
-            .iter()
-            .map(|&a| self.lp.guard(a).counters().total())
-            .fold(0, u32::saturating_add);
+        let link = &self.link;
+        let loop_counters = self.lp.counters();
         let counters = Counters {
-            ticks: lc.ticks,
-            overruns: lc.overruns,
-            sensor_errors: lc.sensor_errors,
-            non_finite_readings: lc.non_finite_readings,
-            stuck_readings: lc.stuck_readings,
-            dac_errors: lc.dac_errors,
-            safe_entries: lc.safe_entries,
-            compensator_limited: lc.compensator_limited,
-            servo_limited: lc.servo_limited,
-            guard_interventions: guard,
-            stream_underruns: self.lp.reference.underruns(),
-            envelope_excursions: Axis::ALL
-                .map(|a| self.lp.envelope_counts(a).ticks_outside)
-                .into_iter()
-                .fold(0, u32::saturating_add),
-            frames_dropped: self
-                .counters
+            frames_dropped: loop_counters
                 .frames_dropped
-                .saturating_add(self.lp.frames.dropped()),
-            ..self.counters
-        };
-        let mode = match self.lp.mode() {
-            Mode::Running => piezo_link::Mode::Running,
-            Mode::Safe(f) => piezo_link::Mode::Safe(wire_fault(f)),
-        };
-        let feedforward = match self.lp.feedforward() {
-            Feedforward::Compensator => piezo_link::Feedforward::Compensator,
-            Feedforward::Linear => piezo_link::Feedforward::Linear,
-            Feedforward::OpenLoop => piezo_link::Feedforward::OpenLoop,
-            Feedforward::Learned => piezo_link::Feedforward::Learned,
+                .saturating_add(link.frames_dropped),
+            frames_sent: link.frames_sent,
+            requests: link.requests,
+            rejected_packets: link.rejected_packets,
+            request_gaps: link.request_gaps,
+            replayed_requests: link.replayed_requests,
+            uploads: link.uploads,
+            refused_uploads: link.refused_uploads,
+            ..loop_counters
         };
         let last = self.last;
         Status {
+            protocol: PROTOCOL_VERSION,
+            params_fingerprint: self.fingerprint,
             params_fnv1a32: self.fnv1a32,
             params_version: self.version.clone(),
             loop_rate_hz: params::LOOP_RATE_HZ,
-            mode,
-            feedforward,
-            control: wire_control(self.control, self.learned),
+            mode: self.lp.mode(),
+            feedforward: self.lp.feedforward(),
+            control: self.control,
             tick_cycles_max: self.tick_cycles_max,
             counters,
             tracking: self.tracking.map(|s| Tracking {

@@ -89,8 +89,8 @@
 //! rounding included, pass the guard unchanged: in normal tracking the guard never acts. A new
 //! parameter set ([`TwoAxisLoop::set_settings`]) whose window excludes the voltage applied is
 //! reached by slewing: the guard moves the output towards the window by at most the new
-//! bound per tick (counted in the guard's `window_entry`, part of the link's
-//! `guard_interventions`), the compensator's model follows the voltage applied; a safe loop
+//! bound per tick (counted in the guard's `window_entry`, per axis in [`Counters::guard`]), the
+//! compensator's model follows the voltage applied; a safe loop
 //! holds its voltage (no jump) and slews in after the rearm. The bound in force in a tick is the
 //! one of the settings of that tick (the new one from the first tick after a swap).
 //!
@@ -110,7 +110,7 @@
 //!
 //! A fault latches the safe state *in the tick that detects it* (the DAC codes written in that
 //! tick are already the hold values, except for axes whose new code was written before a later
-//! axis's DAC write failed) and counts it ([`LoopCounters`]); the loop stays safe until
+//! axis's DAC write failed) and counts it ([`Counters`]); the loop stays safe until
 //! [`TwoAxisLoop::rearm`]. The safe state holds each actuator at its last guarded voltage: no step
 //! on the stage, the compensator's state stays consistent with the voltage actually applied.
 //! Stuck detection: the reading bit-identical for [`StuckPolicy::ticks`] ticks while the
@@ -139,28 +139,8 @@ use crate::params::AxisParams;
 use crate::reference::{LearnedError, LearnedLimits, Program, ReferenceGenerator};
 use crate::safety::{GuardState, LimitsError, SafetyLimits};
 
-/// An axis of the stage.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Axis {
-    /// x (index 0).
-    X,
-    /// y (index 1).
-    Y,
-}
-
-impl Axis {
-    /// Both axes, in order.
-    pub const ALL: [Axis; 2] = [Axis::X, Axis::Y];
-
-    /// 0 for x, 1 for y.
-    #[inline]
-    pub fn index(self) -> usize {
-        match self {
-            Axis::X => 0,
-            Axis::Y => 1,
-        }
-    }
-}
+/// The loop's state types are the link's: one definition, carried as they are.
+pub use piezo_link::{Axis, Counters, Fault, Feedforward, GuardCounters, Mode};
 
 /// Something that measures each axis's displacement in metres.
 pub trait PositionSensor: ErrorType {
@@ -254,23 +234,6 @@ pub struct XyIo<D: DacWrite, S: PositionSensor> {
     pub dac_channels: [D::Channel; 2],
     /// Reads both displacements.
     pub sensor: S,
-}
-
-/// Which feed-forward computes the requested voltage.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Feedforward {
-    /// `piezo_core::Compensator` (the inverse hysteresis model).
-    Compensator,
-    /// The uncompensated baseline: `u = u_min + (r − y_rest)/g_lin`, with `g_lin` the secant gain
-    /// of the first loading over the window.
-    Linear,
-    /// Open-loop excitation: the reference is the stack voltage itself (for identification).
-    OpenLoop,
-    /// The learned voltage table played with the wave table
-    /// ([`ReferenceGenerator::next_learned`]): `u_ff` is the table's voltage at the wave table's
-    /// position, the compensator is not used (its model follows the applied voltage). Switched
-    /// on with [`TwoAxisLoop::set_learned_mode`], which checks the table first.
-    Learned,
 }
 
 /// When a frozen sensor reading counts as stuck.
@@ -496,67 +459,6 @@ impl LoopSettings {
     }
 }
 
-/// What tripped the safe state.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Fault {
-    /// The previous tick missed its deadline.
-    Overrun,
-    /// Reading an axis's sensor failed (bus error).
-    SensorError(Axis),
-    /// An axis's sensor gave NaN or ±∞.
-    NonFiniteReading(Axis),
-    /// An axis's sensor reading froze while the actuator moved.
-    StuckReading(Axis),
-    /// Writing an axis's DAC code failed.
-    DacError(Axis),
-}
-
-/// Running or safe (with the fault that tripped it).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Mode {
-    /// Tracking the reference.
-    Running,
-    /// Holding the outputs after a fault, until [`TwoAxisLoop::rearm`].
-    Safe(Fault),
-}
-
-/// Event counts since the loop was made (saturating).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct LoopCounters {
-    /// Ticks run.
-    pub ticks: u32,
-    /// Missed deadlines.
-    pub overruns: u32,
-    /// Failed sensor reads.
-    pub sensor_errors: u32,
-    /// Non-finite sensor readings.
-    pub non_finite_readings: u32,
-    /// Stuck-sensor detections.
-    pub stuck_readings: u32,
-    /// Failed DAC writes.
-    pub dac_errors: u32,
-    /// Transitions Running → Safe.
-    pub safe_entries: u32,
-    /// Samples where the compensator's window or slew limit stopped it short (both axes).
-    pub compensator_limited: u32,
-    /// Samples with a non-finite reference, held by the compensator (both axes).
-    pub held_references: u32,
-    /// Samples where the servo's window or slew limit stopped the feedback short, or it held its
-    /// correction over a non-finite input (both axes).
-    pub servo_limited: u32,
-}
-
-impl LoopCounters {
-    /// Faults of all kinds (overruns, sensor errors, non-finite and stuck readings, DAC errors).
-    pub fn faults(&self) -> u32 {
-        self.overruns
-            .saturating_add(self.sensor_errors)
-            .saturating_add(self.non_finite_readings)
-            .saturating_add(self.stuck_readings)
-            .saturating_add(self.dac_errors)
-    }
-}
-
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 struct StuckDetector {
     last_bits: u32,
@@ -662,7 +564,7 @@ pub struct TwoAxisLoop {
     guard: [GuardState; 2],
     stuck: [StuckDetector; 2],
     mode: Mode,
-    counters: LoopCounters,
+    counters: Counters,
     last_reference_m: [f32; 2],
     /// The inverse effect chain (`None`: no effects, or the linear baseline).
     chain: Option<InverseChain>,
@@ -719,7 +621,7 @@ impl TwoAxisLoop {
             guard,
             stuck: [StuckDetector::default(); 2],
             mode: Mode::Running,
-            counters: LoopCounters::default(),
+            counters: Counters::default(),
             last_reference_m: [f32::NAN; 2],
             frames: FrameQueue::new(settings.frame_decimation),
             reference,
@@ -733,9 +635,20 @@ impl TwoAxisLoop {
         self.mode
     }
 
-    /// Event counters.
-    pub fn counters(&self) -> LoopCounters {
-        self.counters
+    /// Event counters: the loop's own, the output guards' per axis and cause, the reference's
+    /// underruns, the envelope's excursions (both axes) and the frame queue's drops; the link's
+    /// are zero.
+    pub fn counters(&self) -> Counters {
+        Counters {
+            guard: self.guard.map(|g| g.counters()),
+            stream_underruns: self.reference.underruns(),
+            envelope_excursions: Axis::ALL
+                .map(|a| self.envelope_counts(a).ticks_outside)
+                .into_iter()
+                .fold(0, u32::saturating_add),
+            frames_dropped: self.frames.dropped(),
+            ..self.counters
+        }
     }
 
     /// An axis's guard state (last output and the guard's fault counters).

@@ -15,8 +15,8 @@ use piezo_firmware::params::SAMPLE_PERIOD_S;
 use piezo_firmware::plant::{plant_io, PlantAdc, PlantDac, XyPlant};
 use piezo_firmware::reference::{Program, ReferenceGenerator, Waveform};
 use piezo_firmware::xy_loop::{
-    AdcSensor, Axis, Fault, Feedforward, LoopCounters, Mode, PositionSensor, TickReport,
-    TwoAxisLoop, XyIo,
+    AdcSensor, Axis, Counters, Fault, Feedforward, Mode, PositionSensor, TickReport, TwoAxisLoop,
+    XyIo,
 };
 
 /// The driver error type the real ADS8681/DAC8563 drivers return.
@@ -115,7 +115,7 @@ impl<S: PositionSensor> PositionSensor for MaybeNan<'_, S> {
 struct Run {
     reports: Vec<TickReport>,
     codes: Vec<[DacCode; 2]>,
-    counters: LoopCounters,
+    counters: Counters,
     mode: Mode,
     max_error_after_rearm_m: f32,
 }
@@ -155,7 +155,7 @@ fn run(program: Program, ticks: u32, faults: Faults, rearm_at: Option<u32>) -> R
     let mut out = Run {
         reports: Vec::new(),
         codes: Vec::new(),
-        counters: LoopCounters::default(),
+        counters: Counters::default(),
         mode: Mode::Running,
         max_error_after_rearm_m: 0.0,
     };

@@ -35,9 +35,7 @@ use piezo_firmware::converter::{AdcRead, DacWrite, ErrorType};
 use piezo_firmware::demo;
 use piezo_firmware::params::{AMPLIFIER_GAIN_V_PER_V, AXES, LOOP_RATE_HZ, SAMPLE_PERIOD_S};
 use piezo_firmware::reference::ReferenceGenerator;
-use piezo_firmware::xy_loop::{
-    AdcSensor, Axis, Feedforward, LoopCounters, Mode, TwoAxisLoop, XyIo,
-};
+use piezo_firmware::xy_loop::{AdcSensor, Axis, Counters, Feedforward, Mode, TwoAxisLoop, XyIo};
 
 /// Ticks in one run: 0.5 s at 10 kHz (five periods of the 10 Hz reference).
 const TICKS: u32 = 5_000;
@@ -210,7 +208,7 @@ struct Outcome {
     truth: [Stats; 2],
     /// The loop's own ADC reading vs reference.
     sensed: [Stats; 2],
-    counters: LoopCounters,
+    counters: Counters,
     /// Guard interventions (both axes) after [`SETTLE_TICKS`].
     guard_interventions: u32,
     mode: Mode,

@@ -67,7 +67,12 @@ impl Bench {
             initial,
         );
         Self {
-            session: Session::new(lp, params::VERSION, params::FNV1A32),
+            session: Session::new(
+                lp,
+                params::VERSION,
+                params::FNV1A32,
+                piezo_firmware::session::built_in_fingerprint(),
+            ),
             plant: Cell::new(XyPlant::from_params(params::SAMPLE_PERIOD_S).unwrap()),
             sequence: 0,
             decoder: Decoder::new(),
@@ -175,7 +180,7 @@ impl Bench {
     }
 
     fn guard_interventions(&self) -> u32 {
-        self.session.status().counters.guard_interventions
+        self.session.status().counters.guard_interventions()
     }
 
     fn assert_running_without_faults(&self) {

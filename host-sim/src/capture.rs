@@ -10,9 +10,11 @@
 //! frame 12: x ref 0.000019 m cmd 10 V sensor 0 m | y ref 0.000004 m cmd 10 V sensor 0 m
 //! ```
 //!
-//! Anything after the y sensor field must start with `|` (the QEMU image appends `| wire [..]`).
-//! The boot line `parameters <version> (<file>), fnv1a32 0x<hash>, loop <rate> Hz, one frame
-//! every <n> ticks` gives the time base: frame k was produced at t = k·n / rate after boot.
+//! Anything after the y sensor field must start with `|` (ignored).
+//! The boot line `parameters <version> (<file>), fnv1a32 0x<hash>, fingerprint 0x<hash>, loop
+//! <rate> Hz, one frame every <n> ticks` gives the set (the CSV's first comment repeats its
+//! version and hashes; the fingerprint may be absent) and the time base: frame k was produced at
+//! t = k·n / rate after boot.
 //! `--rate` and `--decimation` replace (or supply) those two numbers.
 //!
 //! **Output.** Column names carry units ([`crate::csv`]): with `--axis both` (default)
@@ -45,7 +47,7 @@ use std::path::{Path, PathBuf};
 /// `host-sim capture --help` text after the options.
 pub const HELP: &str = "Input: lines `frame <n>: x ref <m> m cmd <V> V sensor <m> m | y ref <m> m cmd <V> V sensor <m> m` \
 (anything before `frame`, e.g. a defmt timestamp and level, is allowed; other lines are ignored) and the boot line \
-`parameters <version> (<file>), fnv1a32 0x<hash>, loop <rate> Hz, one frame every <n> ticks`, which gives t_s = n * sequence / rate.\n\
+`parameters <version> (<file>), fnv1a32 0x<hash>, fingerprint 0x<hash>, loop <rate> Hz, one frame every <n> ticks` (the fingerprint may be absent), which gives t_s = n * sequence / rate.\n\
 Output: --axis both: t_s,ux_V,uy_V,x_m,y_m,rx_m,ry_m; --axis x|y: t_s,u_V,y_m,r_m (u commanded volts, y sensor metres, r reference); \
 each row holds a frame's voltage and reference with the next frame's reading, the one that answers it (at a decimation above 1 its own frame's, one tick early).\n\
 Gaps: a missing sequence number, or a frame with a NaN value, stops with an error naming the line. With --allow-gaps every row whose frames are there \
@@ -57,7 +59,7 @@ QEMU: cd firmware && cargo build --release --features qemu,frames-all --bin qemu
 pub const GAPS_LISTED: usize = 5;
 
 /// One frame as printed: the firmware's text form.
-pub use piezo_link::text::FrameText;
+pub use piezo_link::Frame;
 
 /// The boot line's fields.
 #[derive(Debug, Clone, PartialEq)]
@@ -68,6 +70,9 @@ pub struct BootLine {
     pub version: String,
     /// FNV-1a of the parameter file, as printed (`0x…`).
     pub fnv1a32: String,
+    /// The running set's content fingerprint (`piezo_link::ModelSet::fingerprint`), as printed
+    /// (`0x…`), if the line states it.
+    pub fingerprint: Option<String>,
     /// Loop rate \[Hz\].
     pub loop_rate_hz: f64,
     /// Ticks per frame, if the line states it.
@@ -93,7 +98,7 @@ pub struct CapturedLog {
     /// Boot line, if present.
     pub boot: Option<BootLine>,
     /// (line, unwrapped sequence, frame).
-    pub frames: Vec<(usize, u64, FrameText)>,
+    pub frames: Vec<(usize, u64, Frame)>,
     /// Gaps found (only non-empty with `allow_gaps`).
     pub gaps: Vec<Gap>,
     /// Lines read.
@@ -263,16 +268,16 @@ fn number<T: std::str::FromStr>(word: Option<&str>, what: &str) -> Result<T, Str
 }
 
 /// Parses one log line: `None` if it is not a frame line, else the frame or what is wrong.
-pub fn parse_frame_line(line: &str) -> Option<Result<FrameText, String>> {
+pub fn parse_frame_line(line: &str) -> Option<Result<Frame, String>> {
     let text = &line[piezo_link::text::find_frame(line)?..];
     Some(
-        text.parse::<FrameText>()
+        text.parse::<Frame>()
             .map_err(|e| e.in_text(text).to_string()),
     )
 }
 
-/// Parses a boot line (`parameters <version> (<file>), fnv1a32 0x…, loop <rate> Hz[, one frame
-/// every <n> ticks]`): `None` if the line is not one.
+/// Parses a boot line (`parameters <version> (<file>), fnv1a32 0x…[, fingerprint 0x…], loop
+/// <rate> Hz[, one frame every <n> ticks]`): `None` if the line is not one.
 pub fn parse_boot_line(line: &str, number_1: usize) -> Option<Result<BootLine, String>> {
     let p = line.find("parameters ")?;
     let rest = &line[p + "parameters ".len()..];
@@ -287,7 +292,15 @@ pub fn parse_boot_line(line: &str, number_1: usize) -> Option<Result<BootLine, S
             .ok_or("no `fnv1a32 0x…`")?
             .trim()
             .to_string();
-        let loop_field = fields.next().ok_or("no `loop <rate> Hz` field")?.trim();
+        let mut loop_field = fields.next().ok_or("no `loop <rate> Hz` field")?.trim();
+        let fingerprint = match loop_field.strip_prefix("fingerprint ") {
+            Some(f) => {
+                let f = f.trim().to_string();
+                loop_field = fields.next().ok_or("no `loop <rate> Hz` field")?.trim();
+                Some(f)
+            }
+            None => None,
+        };
         let rate = loop_field
             .strip_prefix("loop ")
             .and_then(|s| s.strip_suffix(" Hz"))
@@ -312,6 +325,7 @@ pub fn parse_boot_line(line: &str, number_1: usize) -> Option<Result<BootLine, S
             line: number_1,
             version,
             fnv1a32,
+            fingerprint,
             loop_rate_hz,
             decimation,
         })
@@ -398,7 +412,10 @@ pub fn parse_log(path: &Path, text: &str, allow_gaps: bool) -> Result<CapturedLo
         let names = piezo_link::text::FIELDS;
         let bad = (0..2)
             .flat_map(|a| (0..3).map(move |c| (a, c)))
-            .find(|&(a, c)| !frame.axes[a][c].is_finite());
+            .find(|&(a, c)| {
+                let fields = [frame.reference_m, frame.commanded_v, frame.sensor_m];
+                !fields[c][a].is_finite()
+            });
         if let Some((a, c)) = bad {
             if !allow_gaps {
                 return Err(CaptureError::NonFinite {
@@ -441,7 +458,7 @@ impl CapturedLog {
         let frames: Vec<LoopFrame> = self
             .frames
             .iter()
-            .map(|(_, k, f)| LoopFrame::from_text(f, *k))
+            .map(|(_, k, f)| LoopFrame::from_link(f, *k))
             .collect();
         record(&frames, time)
     }
@@ -536,7 +553,13 @@ pub fn run(a: &CaptureArgs, progress: &mut dyn FnMut(&str)) -> Result<String, St
     let (first, last) = (log.frames[0].1, log.frames[log.frames.len() - 1].1);
     let params = log.boot.as_ref().map_or_else(
         || "parameters: no boot line".to_string(),
-        |b| format!("parameters {}, fnv1a32 {}", b.version, b.fnv1a32),
+        |b| match &b.fingerprint {
+            Some(f) => format!(
+                "parameters {}, fnv1a32 {}, fingerprint {f}",
+                b.version, b.fnv1a32
+            ),
+            None => format!("parameters {}, fnv1a32 {}", b.version, b.fnv1a32),
+        },
     );
     let comments = vec![
         format!("host-sim capture of {} ({params})", a.log.display()),
@@ -572,4 +595,30 @@ pub fn run(a: &CaptureArgs, progress: &mut dyn FnMut(&str)) -> Result<String, St
         progress(&summary);
     }
     Ok(summary)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_boot_line_gives_its_fingerprint_when_it_has_one() {
+        let with = "piezo-firmware qemu: parameters xy-stage 3 (params/xy-stage.toml), fnv1a32 0x0badf00d, fingerprint 0x813b1b0d, loop 20000 Hz, one frame every 10 ticks";
+        let b = parse_boot_line(with, 4).unwrap().unwrap();
+        assert_eq!(b.fingerprint.as_deref(), Some("0x813b1b0d"));
+        assert_eq!(b.fnv1a32, "0x0badf00d");
+        assert_eq!(
+            (b.loop_rate_hz, b.decimation, b.line),
+            (20_000.0, Some(10), 4)
+        );
+        assert_eq!(b.version, "xy-stage 3");
+        let without = "parameters xy-stage 3 (f.toml), fnv1a32 0x0badf00d, loop 10000 Hz";
+        let b = parse_boot_line(without, 1).unwrap().unwrap();
+        assert_eq!(
+            (b.fingerprint, b.loop_rate_hz, b.decimation),
+            (None, 10_000.0, None)
+        );
+        let cut = "parameters v (f), fnv1a32 0x1, fingerprint 0x2";
+        assert!(parse_boot_line(cut, 1).unwrap().is_err());
+    }
 }

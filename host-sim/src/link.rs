@@ -31,8 +31,8 @@ use crate::csv::Table;
 use crate::record::{record, AxisChoice, LoopFrame, Record, RecordTable, TimeBase};
 use crate::signal::{SignalSpec, SIGNAL_HELP};
 use piezo_link::{
-    AxisModel, Control, Decoder, Frame, ModelSet, Packet, Program, Request, Response,
-    SequenceChecker, Status, Uplink, MAX_FRAME, SETPOINT_CHUNK,
+    AxisModel, Control, DecodeError, Decoder, Frame, ModelSet, Packet, Program, Request, Response,
+    SequenceChecker, Status, Uplink, MAX_FRAME, PROTOCOL_VERSION, SETPOINT_CHUNK,
 };
 use serde::Serialize;
 use std::io::{Read, Write};
@@ -68,7 +68,7 @@ pub fn run_limits(status: &Status) -> Result<(f64, u32), String> {
 
 /// Help after `host-sim link --help`.
 pub const HELP: &str = "Connect: tcp:HOST:PORT (the QEMU image: firmware/run-qemu.sh --link PORT ELF) or serial:PATH (the board's USB serial device).\n\
-Commands: status (JSON: params_fnv1a32, params_version, mode, feedforward, control, counters, tracking, on_target, ...), excite, track, step, upload, rearm, control, inject-overrun, learn, shutdown.\n\
+Commands: status (JSON: protocol, params_fingerprint and params_fnv1a32 in hex, params_version, mode, feedforward, control, counters with the output guard's interventions per axis and cause, guard_interventions, tracking, on_target, ...), excite, track, step, upload, rearm, control, inject-overrun, learn, shutdown.\n\
 excite --signal SPEC (volts, compensator off) and track --signal SPEC (metres) write --record CSV (t_s, ux_V, uy_V, x_m, y_m[, rx_m, ry_m]) that identify reads with --u ux_V,uy_V --y x_m,y_m.";
 
 /// Arguments of `link`.
@@ -171,12 +171,21 @@ fn raw_mode(path: &str) -> Result<(), String> {
     }
 }
 
+/// The error for a firmware that speaks link protocol `theirs`.
+fn protocol_error(theirs: u16) -> String {
+    format!(
+        "the firmware speaks link protocol {theirs}, this host-sim {PROTOCOL_VERSION}: build both from one commit"
+    )
+}
+
 /// A connection to the firmware: numbered requests, answers matched by number, frames kept.
 pub struct Client {
     writer: Box<dyn Write + Send>,
     bytes: Receiver<Vec<u8>>,
     pending: std::collections::VecDeque<u8>,
     decoder: Decoder,
+    /// The bytes of the frame the decoder collects (to read a refused status's version).
+    raw: Vec<u8>,
     sequence: u32,
     timeout: Duration,
     /// Gaps in the firmware's packet numbers.
@@ -260,6 +269,7 @@ impl Client {
             bytes: rx,
             pending: Default::default(),
             decoder: Decoder::new(),
+            raw: Vec::new(),
             sequence: 0,
             timeout,
             packets: SequenceChecker::default(),
@@ -298,16 +308,35 @@ impl Client {
     }
 
     /// The next packet from the firmware, by `deadline`.
+    /// A frame that does not parse but holds a status of another protocol version is that
+    /// error.
     fn next(&mut self, deadline: Instant) -> Result<Uplink, String> {
         loop {
             while let Some(byte) = self.pending.pop_front() {
+                if byte != 0 && self.raw.len() < MAX_FRAME {
+                    self.raw.push(byte);
+                }
                 match self.decoder.push::<Uplink>(byte) {
                     None => {}
                     Some(Ok(packet)) => {
+                        self.raw.clear();
                         self.packets.accept(packet.sequence);
                         return Ok(packet.body);
                     }
-                    Some(Err(_)) => self.rejected += 1,
+                    Some(Err(e)) => {
+                        self.rejected += 1;
+                        let theirs = piezo_link::protocol_of_status(&self.raw);
+                        self.raw.clear();
+                        match theirs {
+                            Some(p) if e == DecodeError::Body && p != PROTOCOL_VERSION => {
+                                return Err(protocol_error(p))
+                            }
+                            _ => {}
+                        }
+                    }
+                }
+                if byte == 0 {
+                    self.raw.clear();
                 }
             }
             let left = deadline.saturating_duration_since(Instant::now());
@@ -382,6 +411,9 @@ impl Client {
     /// The firmware's state.
     pub fn status(&mut self) -> Result<Status, String> {
         match self.request(Request::Status)? {
+            Response::Status(s) if s.protocol != PROTOCOL_VERSION => {
+                Err(protocol_error(s.protocol))
+            }
             Response::Status(s) => Ok(s),
             other => Err(format!("unexpected answer to status: {other:?}")),
         }
@@ -700,9 +732,20 @@ pub fn upload(client: &mut Client, path: &Path) -> Result<u32, String> {
 
 /// Uploads `set` (from the stage file `path`, named in errors); the firmware's refusal (the
 /// core's reason) as an error.
+/// The firmware's fingerprint of the set it loaded must be the host's
+/// ([`ModelSet::fingerprint`]): it runs what was sent.
 pub fn upload_set(client: &mut Client, set: ModelSet, path: &Path) -> Result<u32, String> {
+    let fingerprint = set.fingerprint();
     match client.request(Request::Upload(set))? {
-        Response::Loaded { params_fnv1a32 } => Ok(params_fnv1a32),
+        Response::Loaded {
+            params_fnv1a32,
+            params_fingerprint,
+        } if params_fingerprint != fingerprint => Err(format!(
+            "{}: the firmware loaded a set with fingerprint {params_fingerprint:#010x}, the file's is \
+             {fingerprint:#010x}: it does not run what was sent (fnv1a32 {params_fnv1a32:#010x})",
+            path.display()
+        )),
+        Response::Loaded { params_fnv1a32, .. } => Ok(params_fnv1a32),
         Response::Refused(r) => Err(format!(
             "{}: refused by the firmware ({:?}): {}",
             path.display(),
@@ -715,6 +758,31 @@ pub fn upload_set(client: &mut Client, set: ModelSet, path: &Path) -> Result<u32
 
 fn json<T: Serialize>(value: &T) -> Result<String, String> {
     serde_json::to_string(value).map_err(|e| e.to_string())
+}
+
+/// `0x` and 8 hex digits, as host-sim prints an FNV-1a 32.
+pub fn hex32(value: u32) -> String {
+    format!("{value:#010x}")
+}
+
+/// `status` as `link status` prints it: the firmware's [`Status`] with its two hashes
+/// (`params_fnv1a32`, `params_fingerprint`) in hex, and `guard_interventions`, the output
+/// guard's interventions of all causes on both axes, next to `counters.guard` (per axis: x, y;
+/// per cause: `non_finite`, `window_clamped`, `slew_limited`, `window_entry`).
+pub fn status_json(status: &Status) -> Result<serde_json::Value, String> {
+    let mut value = serde_json::to_value(status).map_err(|e| e.to_string())?;
+    if let Some(fields) = value.as_object_mut() {
+        fields.insert("params_fnv1a32".into(), hex32(status.params_fnv1a32).into());
+        fields.insert(
+            "params_fingerprint".into(),
+            hex32(status.params_fingerprint).into(),
+        );
+        fields.insert(
+            "guard_interventions".into(),
+            status.counters.guard_interventions().into(),
+        );
+    }
+    Ok(value)
 }
 
 /// Runs `link`.
@@ -737,7 +805,7 @@ pub fn link_cmd(a: &LinkArgs) -> Result<String, String> {
         Client::connect(&a.connect, timeout)?
     };
     match &a.command {
-        LinkCommand::Status => json(&client.status()?),
+        LinkCommand::Status => json(&status_json(&client.status()?)?),
         LinkCommand::Excite(r) | LinkCommand::Track(r) => {
             let tracking = matches!(a.command, LinkCommand::Track(_));
             let recording = client.run(&r.signal, r.duration, r.decimation, !tracking)?;
@@ -793,10 +861,14 @@ pub fn link_cmd(a: &LinkArgs) -> Result<String, String> {
             }))
         }
         LinkCommand::Upload { params } => {
-            let fnv = upload(&mut client, params)?;
-            json(
-                &serde_json::json!({ "loaded": params.display().to_string(), "params_fnv1a32": fnv }),
-            )
+            let set = model_set(params)?;
+            let fingerprint = set.fingerprint();
+            let fnv = upload_set(&mut client, set, params)?;
+            json(&serde_json::json!({
+                "loaded": params.display().to_string(),
+                "params_fnv1a32": hex32(fnv),
+                "params_fingerprint": hex32(fingerprint),
+            }))
         }
         LinkCommand::Rearm => json(&client.expect(Request::Rearm)?),
         LinkCommand::Control { mode } => {
@@ -857,6 +929,8 @@ mod tests {
 
     fn status(loop_rate_hz: f32, table: u32) -> Status {
         Status {
+            protocol: PROTOCOL_VERSION,
+            params_fingerprint: 0,
             params_fnv1a32: 0,
             params_version: Default::default(),
             loop_rate_hz,
@@ -876,6 +950,62 @@ mod tests {
             envelope: Default::default(),
             on_target: Default::default(),
         }
+    }
+
+    /// A firmware of another protocol version is named as such: one whose status parses (a
+    /// version field of another value), and one whose status does not (other fields after its
+    /// version), which before the version's check timed out as an answer never received.
+    #[test]
+    fn a_firmware_of_another_protocol_is_named() {
+        let (address, device) = device(|_, _| {
+            Response::Status(Status {
+                protocol: PROTOCOL_VERSION + 1,
+                ..status(10_000.0, 2048)
+            })
+        });
+        let mut client = Client::connect(&address, Duration::from_secs(5)).unwrap();
+        let e = client.status().unwrap_err();
+        let theirs = format!(
+            "protocol {}, this host-sim {PROTOCOL_VERSION}",
+            PROTOCOL_VERSION + 1
+        );
+        assert!(e.contains(&theirs), "{e}");
+        drop(client);
+        device.join().unwrap();
+
+        // A status of protocol 1 laid out otherwise: Uplink::Response (0), the request's number,
+        // Response::Status (0), the version, then a field this host does not expect.
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let address = format!("tcp:{}", listener.local_addr().unwrap());
+        let old = std::thread::spawn(move || {
+            let (mut stream, _) = listener.accept().unwrap();
+            let mut decoder = Decoder::new();
+            let mut buffer = [0u8; 1024];
+            while let Ok(n) = stream.read(&mut buffer) {
+                for &b in &buffer[..n] {
+                    if let Some(Ok(packet)) = decoder.push::<Request>(b) {
+                        let body = (0u32, packet.sequence, 0u32, 1u16, 7u8);
+                        let mut out = [0u8; MAX_FRAME];
+                        let n =
+                            piezo_link::encode(&Packet { sequence: 0, body }, &mut out).unwrap();
+                        stream.write_all(&out[..n]).unwrap();
+                        return;
+                    }
+                }
+                if n == 0 {
+                    return;
+                }
+            }
+        });
+        let mut client = Client::connect(&address, Duration::from_secs(5)).unwrap();
+        let started = Instant::now();
+        let e = client.status().unwrap_err();
+        assert!(
+            e.contains(&format!("protocol 1, this host-sim {PROTOCOL_VERSION}")),
+            "{e}"
+        );
+        assert!(started.elapsed() < Duration::from_secs(4), "not a timeout");
+        old.join().unwrap();
     }
 
     /// A device whose status is out of bounds makes `excite` fail with the field and the value,

@@ -52,24 +52,13 @@ pub struct LoopFrame {
 }
 
 impl LoopFrame {
-    /// A link frame, numbered `sequence`.
+    /// A link frame (received, or read from the images' text form), numbered `sequence`.
     pub fn from_link(f: &piezo_link::Frame, sequence: u64) -> Self {
         Self {
             sequence,
             reference_m: f.reference_m,
             commanded_v: f.commanded_v,
             sensor_m: f.sensor_m,
-        }
-    }
-
-    /// A frame in the images' text form ([`piezo_link::text::FrameText`]), numbered `sequence`.
-    pub fn from_text(f: &piezo_link::text::FrameText, sequence: u64) -> Self {
-        let [x, y] = f.axes;
-        Self {
-            sequence,
-            reference_m: [x[0], y[0]],
-            commanded_v: [x[1], y[1]],
-            sensor_m: [x[2], y[2]],
         }
     }
 }

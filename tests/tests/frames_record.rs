@@ -25,7 +25,6 @@ use host_sim::capture::{AxisChoice, CaptureArgs};
 use host_sim::csv::{read_csv, Table};
 use host_sim::link::Recording;
 use integration_tests::qemu::{missing_tools, say};
-use piezo_link::text::FrameText;
 use piezo_link::Frame;
 
 /// The host-level plant's pure delay beyond the loop's tick \[ticks\].
@@ -64,12 +63,7 @@ fn log_text(frames: &[Frame], decimation: u32, rate_hz: f64) -> String {
          one frame every {decimation} ticks\n"
     );
     for f in frames {
-        let axis = |i: usize| [f.reference_m[i], f.commanded_v[i], f.sensor_m[i]];
-        let line = FrameText {
-            sequence: f.sequence,
-            axes: [axis(0), axis(1)],
-        };
-        writeln!(text, "{line}").unwrap();
+        writeln!(text, "{f}").unwrap();
     }
     text
 }

@@ -239,10 +239,10 @@ fn learning_over_the_link_lowers_the_error() {
     let status = client.status().unwrap();
     assert_eq!(status.feedforward, Feedforward::Learned);
     // The start from entry 0 is a step the guard slews; while the table plays it never acts.
-    let guard = status.counters.guard_interventions;
+    let guard = status.counters.guard_interventions();
     tracking_after(&mut client, 6000);
     let status = client.status().unwrap();
-    assert_eq!(status.counters.guard_interventions, guard);
+    assert_eq!(status.counters.guard_interventions(), guard);
     let trial = &trials[best];
     for (i, axis) in ["x", "y"].iter().enumerate() {
         let raw = trial[*axis]["rms_raw_m"].as_f64().unwrap();

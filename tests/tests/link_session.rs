@@ -3,12 +3,14 @@
 //! Builds the `qemu` image (its own target directory, `<target dir>/link-session`: the outer
 //! `cargo test` holds the workspace's lock), runs it with `firmware/run-qemu.sh --link PORT` on a
 //! free loopback port, and drives it with host-sim's link client:
-//! status (the built-in set) → excite 0.5–119.5 V (every tick) and record → `identify` on the record → upload the
-//! identified set → track a 10 Hz sine with the compensator, then with the linear
+//! status (the built-in set, its fingerprint the host's of the stage file) → excite 0.5–119.5 V
+//! (every tick) and record → `identify` on the record → upload the identified set (its
+//! fingerprint) → reload the wave table under the finished excitation (the guard clamps, the
+//! output does not move) → track a 10 Hz sine with the compensator, then with the linear
 //! baseline → inject an overrun (safe state, outputs held) → rearm and track → a set the core
 //! refuses (β < 0) leaves the running one → shutdown. The tracking error (the firmware's own
 //! statistics: sensor of tick k minus reference of tick k − 1, after settling) is checked at
-//! each stage.
+//! each stage; the output guard's interventions per axis and cause are printed per stage.
 //!
 //! Every read has a timeout; QEMU is stopped at the end (shutdown request, then SIGTERM).
 //! Skipped, with a message, when `qemu-system-arm` or the thumbv7em-none-eabihf target is
@@ -23,7 +25,32 @@ use clap::Parser as _;
 use common::{build_link_image, connect, firmware_dir, run_link_image, shut_down, TempDir};
 use host_sim::link::{fnv1a32, model_set, upload, Client};
 use integration_tests::qemu::{missing_tools, say};
-use piezo_link::{Control, Fault, Feedforward, Mode, Request, Response, Status};
+use piezo_link::{
+    Control, Counters, Fault, Feedforward, GuardCounters, Mode, Request, Response, Status,
+};
+
+/// The output guard's interventions between two statuses, per axis and cause.
+fn guard(before: &Counters, after: &Counters) -> String {
+    let d = |a: &GuardCounters, b: &GuardCounters| GuardCounters {
+        non_finite: b.non_finite - a.non_finite,
+        window_clamped: b.window_clamped - a.window_clamped,
+        slew_limited: b.slew_limited - a.slew_limited,
+        window_entry: b.window_entry - a.window_entry,
+    };
+    let axis = |i: usize| {
+        let g = d(&before.guard[i], &after.guard[i]);
+        format!(
+            "non_finite {} window_clamped {} slew_limited {} window_entry {}",
+            g.non_finite, g.window_clamped, g.slew_limited, g.window_entry
+        )
+    };
+    format!(
+        "x {}; y {} (over {} ticks)",
+        axis(0),
+        axis(1),
+        after.ticks - before.ticks
+    )
+}
 
 /// Tracks the demo's reference for 1 s and returns the firmware's status after it.
 fn track(client: &mut Client) -> Status {
@@ -69,6 +96,8 @@ fn a_whole_session_over_the_link() {
     let built_in = std::fs::read(firmware_dir().join("params/xy-stage.toml")).unwrap();
     let status = client.status().unwrap();
     assert_eq!(status.params_fnv1a32, fnv1a32(&built_in));
+    let built_in_set = model_set(&firmware_dir().join("params/xy-stage.toml")).unwrap();
+    assert_eq!(status.params_fingerprint, built_in_set.fingerprint());
     assert_eq!(status.mode, Mode::Running);
     // Ticks per second: the built-in file's loop rate (20 kHz).
     let rate = status.loop_rate_hz;
@@ -80,6 +109,11 @@ fn a_whole_session_over_the_link() {
         .expect("excite");
     assert_eq!(excitation.frames.len(), (1.2 * rate).round() as usize);
     assert_eq!((excitation.gaps, excitation.lost), (0, 0));
+    let excited = client.status().unwrap();
+    say(&format!(
+        "link_session: guard during the excitation: {}",
+        guard(&status.counters, &excited.counters)
+    ));
     let record = dir.0.join("excite.csv");
     host_sim::csv::write_csv(&record, &excitation.table(false)).unwrap();
 
@@ -114,15 +148,63 @@ fn a_whole_session_over_the_link() {
     // 4. Upload it: the firmware runs the identified set.
     let fnv = upload(&mut client, &identified).expect("upload");
     assert_eq!(fnv, fnv1a32(&std::fs::read(&identified).unwrap()));
-    assert_eq!(client.status().unwrap().params_fnv1a32, fnv);
+    let uploaded = client.status().unwrap();
+    assert_eq!(uploaded.params_fnv1a32, fnv);
+    let identified_set = model_set(&identified).unwrap();
+    assert_eq!(uploaded.params_fingerprint, identified_set.fingerprint());
+    assert_ne!(uploaded.params_fingerprint, status.params_fingerprint);
+    say(&format!(
+        "link_session: fingerprint {:#010x} (built-in) -> {:#010x} (identified); windows x [{}, {}] V, y [{}, {}] V -> x [{}, {}] V, y [{}, {}] V; applied after the excitation {:?} V",
+        status.params_fingerprint,
+        uploaded.params_fingerprint,
+        built_in_set.axes[0].limits.output_min_v,
+        built_in_set.axes[0].limits.output_max_v,
+        built_in_set.axes[1].limits.output_min_v,
+        built_in_set.axes[1].limits.output_max_v,
+        identified_set.axes[0].limits.output_min_v,
+        identified_set.axes[0].limits.output_max_v,
+        identified_set.axes[1].limits.output_min_v,
+        identified_set.axes[1].limits.output_max_v,
+        uploaded.applied_v,
+    ));
+    say(&format!(
+        "link_session: guard from the excitation's end to the upload: {}",
+        guard(&excited.counters, &uploaded.counters)
+    ));
+
+    // 4b. The wave table reloaded under the finished excitation: the excitation holds the
+    // table's last entry, now a track's reference in metres, as stack volts (≈ 2e-5 V), which
+    // the guard clamps to the identified window's floor, where the output already stands.
+    let before_load = client.status().unwrap();
+    client.load_table(&[[19e-6; 2]; 256], false).unwrap();
+    let loaded = client.status().unwrap();
+    say(&format!(
+        "link_session: guard while the table is reloaded under the finished excitation: {}; applied {:?} V -> {:?} V",
+        guard(&before_load.counters, &loaded.counters),
+        before_load.applied_v,
+        loaded.applied_v
+    ));
+    assert_eq!(
+        loaded.applied_v, before_load.applied_v,
+        "clamped, not moved"
+    );
 
     // 5. Track with the compensator, then with the linear baseline.
+    let uploaded = client.status().unwrap();
     let compensated = track(&mut client);
+    say(&format!(
+        "link_session: guard over the first track (compensator): {}",
+        guard(&uploaded.counters, &compensated.counters)
+    ));
     assert_eq!(compensated.feedforward, Feedforward::Compensator);
     assert_eq!(compensated.mode, Mode::Running);
     client.expect(Request::Control(Control::OpenLoop)).unwrap();
     let linear = track(&mut client);
     assert_eq!(linear.feedforward, Feedforward::Linear);
+    say(&format!(
+        "link_session: guard over the linear baseline's track: {}",
+        guard(&compensated.counters, &linear.counters)
+    ));
     client
         .expect(Request::Control(Control::Feedforward))
         .unwrap();

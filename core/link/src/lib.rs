@@ -23,6 +23,10 @@
 //! ([`DecodeError`]) and counted; a request lost that way is not answered (the host times out
 //! and sees the gap in the firmware's request count).
 //!
+//! **Versions**: [`PROTOCOL_VERSION`] is the first field of every [`Status`]; a host reads it
+//! before the rest ([`protocol_of_status`]) and refuses to talk to a firmware that speaks
+//! another version, naming both.
+//!
 //! **Replays**: the firmware runs a request only if its sequence number is ahead of the last one
 //! it handled ([`SequenceChecker::admit`]); any other is answered with [`Response::Replayed`]
 //! naming the next number it runs, counted (`replayed_requests`), and not run. A host that starts
@@ -39,10 +43,12 @@
 mod cobs;
 mod message;
 mod sequence;
+mod state;
 pub mod text;
 
 pub use message::*;
 pub use sequence::SequenceChecker;
+pub use state::*;
 
 use serde::{de::DeserializeOwned, Deserialize, Serialize};
 
@@ -135,6 +141,48 @@ pub fn decode<T: DeserializeOwned>(frame: &mut [u8]) -> Result<Packet<T>, Decode
         Ok((packet, [])) => Ok(packet),
         Ok(_) => Err(DecodeError::Trailing),
         Err(_) => Err(DecodeError::Body),
+    }
+}
+
+/// The [`Status::protocol`] of a frame (without its delimiter) that holds a status answer, read
+/// from its first fields only, so that it is found in a status of any version: `None` for a
+/// frame that fails its COBS or CRC check or holds anything else.
+pub fn protocol_of_status(frame: &[u8]) -> Option<u16> {
+    #[derive(Deserialize)]
+    enum UplinkHead {
+        Response {
+            #[allow(dead_code)]
+            request: u32,
+            response: ResponseHead,
+        },
+    }
+    #[derive(Deserialize)]
+    enum ResponseHead {
+        Status(u16),
+    }
+    let mut raw = [0u8; MAX_FRAME];
+    let copy = raw.get_mut(..frame.len())?;
+    copy.copy_from_slice(frame);
+    let n = cobs::decode_in_place(copy)?;
+    let (body, crc) = copy.get(..n)?.split_at(n.checked_sub(4)?);
+    let mut expected = [0u8; 4];
+    expected.copy_from_slice(crc);
+    if CRC.checksum(body) != u32::from_le_bytes(expected) {
+        return None;
+    }
+    match postcard::take_from_bytes::<Packet<UplinkHead>>(body) {
+        Ok((
+            Packet {
+                body:
+                    UplinkHead::Response {
+                        response: ResponseHead::Status(protocol),
+                        ..
+                    },
+                ..
+            },
+            _,
+        )) => Some(protocol),
+        Err(_) => None,
     }
 }
 

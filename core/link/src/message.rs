@@ -3,13 +3,21 @@
 //! unit in its name takes the unit of its request (metres for [`Request::Track`], stack volts for
 //! [`Request::Excite`]).
 
+use crate::{Control, Counters, Feedforward, Mode};
 use heapless::{String, Vec};
 use piezo_core::effects::{EffectParams, MAX_CREEP_ELEMENTS, MAX_RELAXATION_ELEMENTS};
 use piezo_core::{
-    Asymmetry, AxisParams, BoucWenParams, Envelope, EnvelopeCounts, IoChain, OnTarget, ParamError,
-    ServoParams, StaticMap,
+    Asymmetry, AxisParams, BoucWenParams, Envelope, EnvelopeCounts, Fnv1a32, IoChain, OnTarget,
+    ParamError, ServoParams, StaticMap,
 };
 use serde::{Deserialize, Serialize};
+
+/// The version of the messages: +1 whenever their bytes change. The first field of
+/// [`Status`], so that a host finds it before anything that may have changed.
+///
+/// 2: the loop's counters with the output guard's per axis and cause, the running set's
+/// fingerprint in [`Status`] and [`Response::Loaded`], this version.
+pub const PROTOCOL_VERSION: u16 = 2;
 
 /// Setpoints per [`Request::TableAppend`], [`Request::Stream`] or [`Request::LearnedAppend`]
 /// message.
@@ -183,6 +191,33 @@ pub struct ModelSet {
     pub axes: [AxisModel; 2],
 }
 
+impl ModelSet {
+    /// The content-derived version of the set: FNV-1a 32 ([`piezo_core::fnv`]) of the postcard
+    /// bytes of `(loop_rate_hz, io, axes)`, the set as the firmware runs it (its name, version
+    /// and file hash left out). Two sets with this fingerprint drive the stage alike; a set that
+    /// differs in any carried number has another one (up to FNV's collisions).
+    pub fn fingerprint(&self) -> u32 {
+        fingerprint(self.loop_rate_hz, &self.io, &self.axes)
+    }
+}
+
+/// [`ModelSet::fingerprint`] of the set with these parts (the firmware's built-in set).
+pub fn fingerprint(loop_rate_hz: f32, io: &IoChain, axes: &[AxisModel; 2]) -> u32 {
+    struct Hash(Fnv1a32);
+    impl postcard::ser_flavors::Flavor for Hash {
+        type Output = u32;
+        fn try_push(&mut self, byte: u8) -> postcard::Result<()> {
+            self.0.push(byte);
+            Ok(())
+        }
+        fn finalize(self) -> postcard::Result<u32> {
+            Ok(self.0.value())
+        }
+    }
+    // The hashing flavour cannot fail, nor can serde's derives on plain numbers.
+    postcard::serialize_with_flavor(&(loop_rate_hz, io, axes), Hash(Fnv1a32::new())).unwrap_or(0)
+}
+
 /// What a host asks.
 // An upload is the large variant; no_std without allocation cannot box it, and a request is
 // built and moved once, never stored in bulk.
@@ -263,154 +298,6 @@ pub struct Refusal {
     pub reason: String<REASON_BYTES>,
 }
 
-/// What tripped the safe state.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub enum Fault {
-    /// A tick missed its deadline.
-    Overrun,
-    /// Reading an axis's sensor failed.
-    SensorError {
-        /// 0 for x, 1 for y.
-        axis: u8,
-    },
-    /// An axis's sensor gave NaN or ±∞.
-    NonFiniteReading {
-        /// 0 for x, 1 for y.
-        axis: u8,
-    },
-    /// An axis's reading froze while its actuator moved.
-    StuckReading {
-        /// 0 for x, 1 for y.
-        axis: u8,
-    },
-    /// Writing an axis's DAC failed.
-    DacError {
-        /// 0 for x, 1 for y.
-        axis: u8,
-    },
-}
-
-/// Running or holding its outputs after a fault.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub enum Mode {
-    /// Tracking the reference.
-    Running,
-    /// Outputs held since the fault, until [`Request::Rearm`].
-    Safe(Fault),
-}
-
-/// How the voltage of a tracking tick is made (piezo-core's `ServoMode`).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub enum Control {
-    /// The linear baseline, no feedback.
-    OpenLoop,
-    /// The inverse compensator alone.
-    Feedforward,
-    /// The servo on the sensor alone.
-    Feedback,
-    /// The compensator plus the servo's correction.
-    FeedforwardFeedback,
-    /// The learned voltage table ([`Request::LearnedAppend`]) played with the wave table: the
-    /// stack voltage of a tick is the table's, the compensator is not used.
-    Learned,
-    /// The learned voltage table plus the servo's correction on r − y (as
-    /// [`Control::FeedforwardFeedback`] adds it to the compensator's command).
-    LearnedFeedback,
-}
-
-impl Control {
-    /// The four of piezo-core's servo, in the order of the servo benchmark's table.
-    pub const ALL: [Self; 4] = [
-        Self::OpenLoop,
-        Self::Feedforward,
-        Self::Feedback,
-        Self::FeedforwardFeedback,
-    ];
-
-    /// The two that play the learned voltage table.
-    pub const LEARNED: [Self; 2] = [Self::Learned, Self::LearnedFeedback];
-
-    /// `open-loop`, `feedforward`, `feedback`, `feedforward+feedback` (as piezo-core names them),
-    /// `learned`, `learned+feedback`.
-    pub fn name(self) -> &'static str {
-        match self {
-            Self::OpenLoop => "open-loop",
-            Self::Feedforward => "feedforward",
-            Self::Feedback => "feedback",
-            Self::FeedforwardFeedback => "feedforward+feedback",
-            Self::Learned => "learned",
-            Self::LearnedFeedback => "learned+feedback",
-        }
-    }
-
-    /// True for the modes that play the learned voltage table.
-    pub fn learned(self) -> bool {
-        matches!(self, Self::Learned | Self::LearnedFeedback)
-    }
-}
-
-/// Which feed-forward computes the voltage.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub enum Feedforward {
-    /// piezo-core's inverse compensator (reference in metres).
-    Compensator,
-    /// The uncompensated linear baseline (reference in metres).
-    Linear,
-    /// Open-loop excitation (reference in stack volts).
-    OpenLoop,
-    /// The learned voltage table (reference in metres, for the record and the servo).
-    Learned,
-}
-
-/// Event counts since boot (saturating).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-pub struct Counters {
-    /// Ticks run.
-    pub ticks: u32,
-    /// Missed deadlines.
-    pub overruns: u32,
-    /// Failed sensor reads.
-    pub sensor_errors: u32,
-    /// Non-finite readings.
-    pub non_finite_readings: u32,
-    /// Stuck-sensor detections.
-    pub stuck_readings: u32,
-    /// Failed DAC writes.
-    pub dac_errors: u32,
-    /// Transitions into the safe state.
-    pub safe_entries: u32,
-    /// Samples where the compensator's window or slew limit stopped it short.
-    pub compensator_limited: u32,
-    /// Samples where the servo's window or slew limit stopped its correction short, or it held
-    /// it over a non-finite input.
-    pub servo_limited: u32,
-    /// Guard interventions (window, slew, non-finite, and ticks slewing into a new parameter
-    /// set's window; both axes).
-    pub guard_interventions: u32,
-    /// Ticks of a streamed program that found the queue empty.
-    pub stream_underruns: u32,
-    /// Frames produced but not sent (queue or link full).
-    pub frames_dropped: u32,
-    /// Frames sent.
-    pub frames_sent: u32,
-    /// Requests received (CRC good).
-    pub requests: u32,
-    /// Frames refused by the receiver (COBS, CRC, length, body).
-    pub rejected_packets: u32,
-    /// Gaps in the request sequence numbers.
-    pub request_gaps: u32,
-    /// Requests not run because their sequence number was already handled
-    /// ([`Response::Replayed`]).
-    pub replayed_requests: u32,
-    /// Parameter sets loaded at run time.
-    pub uploads: u32,
-    /// Parameter sets refused (by the core, the chain or the control mode).
-    pub refused_uploads: u32,
-    /// Ticks whose command left an axis's identified envelope (both axes; per axis in
-    /// [`Status::envelope`]).
-    pub envelope_excursions: u32,
-}
-
 /// One axis's identified envelope as the loop checks it (piezo-core's `envelope`).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct EnvelopeStatus {
@@ -458,7 +345,12 @@ pub struct Tracking {
 /// The firmware's state, answered to [`Request::Status`].
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Status {
-    /// FNV-1a of the running parameter set's stage file.
+    /// The firmware's [`PROTOCOL_VERSION`] (first: a host reads it before the rest).
+    pub protocol: u16,
+    /// The running set's [`ModelSet::fingerprint`]: what the loop runs, changed by every upload
+    /// of a set that differs.
+    pub params_fingerprint: u32,
+    /// FNV-1a of the running parameter set's stage file (as its upload or the build said).
     pub params_fnv1a32: u32,
     /// `name version` of the running set.
     pub params_version: String<VERSION_BYTES>,
@@ -523,8 +415,10 @@ pub enum Response {
     },
     /// The set runs from the next tick.
     Loaded {
-        /// Its FNV-1a.
+        /// Its FNV-1a (the stage file's, as the upload carried it).
         params_fnv1a32: u32,
+        /// Its [`ModelSet::fingerprint`], computed by the firmware.
+        params_fingerprint: u32,
     },
     /// Done.
     Done,

@@ -103,16 +103,24 @@ where
 
 fn full_status() -> Status {
     Status {
+        protocol: u16::MAX,
+        params_fingerprint: u32::MAX,
         params_fnv1a32: u32::MAX,
         params_version: heapless::String::try_from("x".repeat(VERSION_BYTES).as_str()).unwrap(),
         loop_rate_hz: 10_000.0,
-        mode: Mode::Safe(Fault::StuckReading { axis: 1 }),
+        mode: Mode::Safe(Fault::StuckReading(Axis::Y)),
         feedforward: Feedforward::OpenLoop,
         control: Control::FeedforwardFeedback,
         tick_cycles_max: u32::MAX,
         counters: Counters {
             ticks: u32::MAX,
             frames_sent: u32::MAX,
+            guard: [GuardCounters {
+                non_finite: u32::MAX,
+                window_clamped: u32::MAX,
+                slew_limited: u32::MAX,
+                window_entry: u32::MAX,
+            }; 2],
             ..Counters::default()
         },
         tracking: [Tracking {
@@ -220,6 +228,70 @@ fn every_message_round_trips_and_fits() {
     for control in Control::LEARNED {
         round_trip(Request::Control(control));
     }
+}
+
+#[test]
+fn the_loop_state_keeps_its_bytes() {
+    // A fault names its axis as the index 0 / 1, one byte, as before the loop's own types were
+    // carried.
+    let bytes = |m: &Mode| postcard::to_allocvec(m).unwrap();
+    assert_eq!(bytes(&Mode::Running), [0]);
+    assert_eq!(bytes(&Mode::Safe(Fault::Overrun)), [1, 0]);
+    assert_eq!(bytes(&Mode::Safe(Fault::SensorError(Axis::Y))), [1, 1, 1]);
+    assert_eq!(bytes(&Mode::Safe(Fault::DacError(Axis::X))), [1, 4, 0]);
+}
+
+#[test]
+fn a_status_names_its_protocol_first() {
+    let mut status = full_status();
+    status.protocol = PROTOCOL_VERSION;
+    let frame = |body: Uplink| {
+        let mut out = [0u8; MAX_FRAME];
+        let n = encode(&Packet { sequence: 9, body }, &mut out).unwrap();
+        out[..n - 1].to_vec()
+    };
+    let ok = frame(Uplink::Response {
+        request: 3,
+        response: Response::Status(status.clone()),
+    });
+    assert_eq!(protocol_of_status(&ok), Some(PROTOCOL_VERSION));
+    // Another version's status, whatever follows its version, is still read that far.
+    status.protocol = 1;
+    let mut other = frame(Uplink::Response {
+        request: 3,
+        response: Response::Status(status),
+    });
+    assert_eq!(protocol_of_status(&other), Some(1));
+    other[5] ^= 0x40;
+    assert_eq!(protocol_of_status(&other), None, "CRC");
+    assert_eq!(
+        protocol_of_status(&frame(Uplink::Frame(Frame::default()))),
+        None
+    );
+    let done = frame(Uplink::Response {
+        request: 3,
+        response: Response::Done,
+    });
+    assert_eq!(protocol_of_status(&done), None);
+}
+
+#[test]
+fn the_fingerprint_follows_the_content() {
+    let set = model_set();
+    let mut renamed = set.clone();
+    renamed.version = heapless::String::try_from("other 9").unwrap();
+    renamed.fnv1a32 ^= 0xffff;
+    assert_eq!(renamed.fingerprint(), set.fingerprint());
+    let mut moved = set.clone();
+    moved.axes[1].static_map.k1_m_per_v *= 1.0 + f32::EPSILON;
+    assert_ne!(moved.fingerprint(), set.fingerprint());
+    let mut slower = set.clone();
+    slower.axes[0].limits.slew_limit_v_per_s *= 0.5;
+    assert_ne!(slower.fingerprint(), set.fingerprint());
+    // FNV-1a 32 of the set's postcard bytes, (loop rate, io, axes).
+    let bytes = postcard::to_allocvec(&(set.loop_rate_hz, &set.io, &set.axes)).unwrap();
+    assert_eq!(set.fingerprint(), piezo_core::fnv1a32(&bytes));
+    assert_eq!(piezo_core::fnv1a32(b"a"), 0xe40c_292c);
 }
 
 #[test]
@@ -489,4 +561,28 @@ proptest! {
         let r = feed(&mut Decoder::new(), &overrun);
         prop_assert!(r.iter().all(|r| r.is_err()), "{:?}", r);
     }
+}
+
+#[test]
+fn control_modes_map_to_the_cores_and_back() {
+    let all: Vec<Control> = Control::ALL.into_iter().chain(Control::LEARNED).collect();
+    for &c in &all {
+        assert_eq!(Control::new(c.servo_mode(), c.learned()), c);
+    }
+    let names: Vec<&str> = all.iter().map(|c| c.name()).collect();
+    assert_eq!(
+        names,
+        [
+            "open-loop",
+            "feedforward",
+            "feedback",
+            "feedforward+feedback",
+            "learned",
+            "learned+feedback"
+        ]
+    );
+    assert_eq!(
+        Control::LearnedFeedback.servo_mode(),
+        piezo_core::ServoMode::FeedforwardFeedback
+    );
 }

@@ -5,48 +5,41 @@
 //! frame 2000: x ref 0.000018998257 m cmd 58.12863 V sensor 0.000018887498 m | y ref 0.000004001112 m cmd 1.7004242 V sensor 0.0000040718746 m
 //! ```
 //!
-//! [`FrameText`]'s `Display` writes it and its `FromStr` reads it. Values are f32 printed by
+//! [`Frame`]'s `Display` writes it and its `FromStr` reads it (the text carries the sequence
+//! number and per axis reference, command and sensor; a frame read from text has `trial` and
+//! `flags` 0). Values are f32 printed by
 //! `Display` (shortest string that reads back to the same value, no exponent), so
 //! `Display` → `FromStr` gives the same bits for every value except a NaN's payload (NaN prints
 //! `NaN`, which reads back as NaN). The reader is more lenient than the writer: any run of
 //! whitespace separates the words, a number may use an exponent (`1.9e-5`, as defmt prints), and
-//! after the y axis a further `| …` field is ignored (the QEMU image appends `| wire [..]`).
+//! after the y axis a further `| …` field is ignored (room for a log's own annotations).
 //! [`find_frame`] locates a frame after a prefix such as a defmt timestamp and level.
-//!
-//! The board's `defmt::Format` keeps its own copy of the format string (defmt needs a literal);
-//! `host-sim`'s capture tests hold both printed forms.
+//! `host-sim`'s capture tests hold it as QEMU prints it and as probe-rs prints a defmt log.
 
+use crate::Frame;
 use core::fmt;
 use core::str::FromStr;
 
 /// The word that starts a frame.
 pub const FRAME_PREFIX: &str = "frame ";
 
-/// One frame as text: sequence number and, per axis, reference \[m\], command \[V\], sensor \[m\].
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct FrameText {
-    /// Frame number (u32, wraps).
-    pub sequence: u32,
-    /// x then y: `[reference_m, commanded_v, sensor_m]`.
-    pub axes: [[f32; 3]; 2],
-}
-
-/// Axis names, in the order of [`FrameText::axes`].
+/// Axis names, in the order of [`Frame`]'s arrays.
 pub const AXES: [&str; 2] = ["x", "y"];
 
-/// Field names per axis, in the order of [`FrameText::axes`]'s inner array.
+/// Field names per axis: reference, command, sensor.
 pub const FIELDS: [[&str; 3]; 2] = [
     ["x ref", "x cmd", "x sensor"],
     ["y ref", "y cmd", "y sensor"],
 ];
 
-impl fmt::Display for FrameText {
+/// The text form of the module doc.
+impl fmt::Display for Frame {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        let [x, y] = &self.axes;
+        let (r, u, y) = (self.reference_m, self.commanded_v, self.sensor_m);
         write!(
             f,
             "frame {}: x ref {} m cmd {} V sensor {} m | y ref {} m cmd {} V sensor {} m",
-            self.sequence, x[0], x[1], x[2], y[0], y[1], y[2]
+            self.sequence, r[0], u[0], y[0], r[1], u[1], y[1]
         )
     }
 }
@@ -137,7 +130,8 @@ fn offset(whole: &str, part: &str) -> usize {
     (part.as_ptr() as usize).saturating_sub(whole.as_ptr() as usize)
 }
 
-impl FromStr for FrameText {
+/// Reads the text form of the module doc (`trial` and `flags` 0).
+impl FromStr for Frame {
     type Err = FrameTextError;
 
     fn from_str(text: &str) -> Result<Self, FrameTextError> {
@@ -187,12 +181,20 @@ impl FromStr for FrameText {
                     .map_err(|_| err(FrameTextErrorKind::Number(FIELDS[i][c]), w))?;
             }
         }
-        Ok(Self { sequence, axes })
+        let [x, y] = axes;
+        Ok(Self {
+            sequence,
+            reference_m: [x[0], y[0]],
+            commanded_v: [x[1], y[1]],
+            sensor_m: [x[2], y[2]],
+            trial: 0,
+            flags: 0,
+        })
     }
 }
 
 /// Where a frame (`frame <digits>:`) starts in a log line, if it holds one: the text from there
-/// on is what [`FrameText`]'s `FromStr` reads.
+/// on is what [`Frame`]'s `FromStr` reads.
 pub fn find_frame(line: &str) -> Option<usize> {
     let mut from = 0;
     while let Some(i) = line[from..].find(FRAME_PREFIX) {
@@ -211,11 +213,20 @@ pub fn find_frame(line: &str) -> Option<usize> {
 mod tests {
     use super::*;
 
-    fn frame() -> FrameText {
-        FrameText {
+    fn frame() -> Frame {
+        Frame {
             sequence: 2000,
-            axes: [[1.5e-5, 3e-5, f32::NAN], [-1.5e-5, 3.0, 1e-6]],
+            reference_m: [1.5e-5, -1.5e-5],
+            commanded_v: [3e-5, 3.0],
+            sensor_m: [f32::NAN, 1e-6],
+            trial: 7,
+            flags: Frame::OUTSIDE_Y,
         }
+    }
+
+    /// x then y, `[reference_m, commanded_v, sensor_m]`.
+    fn axes(f: &Frame) -> [[f32; 3]; 2] {
+        [0, 1].map(|i| [f.reference_m[i], f.commanded_v[i], f.sensor_m[i]])
     }
 
     #[test]
@@ -242,13 +253,16 @@ mod tests {
             f32::NAN,
         ];
         for (k, &v) in values.iter().enumerate() {
-            let f = FrameText {
+            let f = Frame {
                 sequence: u32::MAX - k as u32,
-                axes: [[v, -v, v * 0.5], [1.0 / v, v, 3.0]],
+                reference_m: [v, 1.0 / v],
+                commanded_v: [-v, v],
+                sensor_m: [v * 0.5, 3.0],
+                ..Frame::default()
             };
-            let back: FrameText = f.to_string().parse().unwrap();
+            let back: Frame = f.to_string().parse().unwrap();
             assert_eq!(back.sequence, f.sequence);
-            for (a, b) in f.axes.iter().flatten().zip(back.axes.iter().flatten()) {
+            for (a, b) in axes(&f).iter().flatten().zip(axes(&back).iter().flatten()) {
                 assert!(
                     a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan()),
                     "{a} -> {b}"
@@ -259,30 +273,30 @@ mod tests {
 
     #[test]
     fn reads_defmt_exponents_extra_space_and_a_trailing_field() {
-        let f: FrameText = "frame 7:  x ref 1.9094246e-5 m cmd 20 V sensor 2.5e-6 m | y ref 0 m cmd 1 V sensor 0 m | wire [00]"
+        let f: Frame = "frame 7:  x ref 1.9094246e-5 m cmd 20 V sensor 2.5e-6 m | y ref 0 m cmd 1 V sensor 0 m | wire [00]"
             .parse()
             .unwrap();
         assert_eq!(f.sequence, 7);
-        assert_eq!(f.axes[0], [1.9094246e-5, 20.0, 2.5e-6]);
-        assert_eq!(f.axes[1], [0.0, 1.0, 0.0]);
+        assert_eq!(axes(&f), [[1.9094246e-5, 20.0, 2.5e-6], [0.0, 1.0, 0.0]]);
+        assert_eq!((f.trial, f.flags), (0, 0));
     }
 
     #[test]
     fn errors_point_at_the_offending_text() {
         let bad = "frame 3: x ref 0.0x1 m cmd 40 V sensor 0 m | y ref 0 m cmd 1 V sensor 0 m";
-        let e = bad.parse::<FrameText>().unwrap_err();
+        let e = bad.parse::<Frame>().unwrap_err();
         assert_eq!(e.kind, FrameTextErrorKind::Number("x ref"));
         assert_eq!(e.found(bad), "0.0x1");
         assert_eq!(e.in_text(bad).to_string(), "x ref: `0.0x1` is not a number");
         let short = "frame 3: x ref 0 m cmd 40 V sensor 0 m";
-        let e = short.parse::<FrameText>().unwrap_err();
+        let e = short.parse::<Frame>().unwrap_err();
         assert_eq!(e.kind, FrameTextErrorKind::AxisMissing("y"));
         let layout = "frame 3: x ref 0 m cmd 40 mV sensor 0 m | y ref 0 m cmd 1 V sensor 0 m";
-        let e = layout.parse::<FrameText>().unwrap_err();
+        let e = layout.parse::<Frame>().unwrap_err();
         assert_eq!(e.kind, FrameTextErrorKind::AxisLayout("x"));
         assert_eq!(e.found(layout), "x ref 0 m cmd 40 mV sensor 0 m");
         let seq = "frame 99999999999: x ref 0 m cmd 1 V sensor 0 m | y ref 0 m cmd 1 V sensor 0 m";
-        let e = seq.parse::<FrameText>().unwrap_err();
+        let e = seq.parse::<Frame>().unwrap_err();
         assert_eq!(e.kind, FrameTextErrorKind::Sequence);
         assert_eq!(e.found(seq), "99999999999");
     }

@@ -105,16 +105,12 @@ pub use piezo_core::{Envelope, EnvelopePolicy, OnTarget};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
-/// FNV-1a, 32 bit (offset basis 0x811c9dc5, prime 0x01000193), of a stage file's bytes: the
-/// hash the firmware's build prints at boot and reports in its status, and the one an upload of
-/// the same file carries (`host-sim link upload`).
+/// FNV-1a, 32 bit (offset basis 0x811c9dc5, prime 0x01000193; piezo-core's), of a stage file's
+/// bytes: the hash the firmware's build prints at boot and reports in its status, and the one an
+/// upload of the same file carries (`host-sim link upload`).
 ///
 /// `h₀ = 0x811c9dc5`, `h_{i+1} = (h_i ⊕ b_i) · 0x01000193 mod 2³²`.
-pub fn fnv1a32(bytes: &[u8]) -> u32 {
-    bytes.iter().fold(0x811c_9dc5_u32, |hash, &b| {
-        (hash ^ u32::from(b)).wrapping_mul(0x0100_0193)
-    })
-}
+pub use piezo_core::fnv1a32;
 
 /// Largest |h| accepted for a range-limited Bouc-Wen set (β + γ ≤ 0) over the output window
 /// (piezo-core's own).

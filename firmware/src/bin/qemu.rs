@@ -47,7 +47,7 @@ mod image {
     use cortex_m_semihosting::{debug, hprintln};
 
     use piezo_firmware::demo::{self, DemoComparison, DemoReport};
-    use piezo_firmware::frames::{SampleFrame, SequenceChecker};
+    use piezo_firmware::frames::{Frame, SequenceChecker};
     use piezo_firmware::params;
     use piezo_firmware::xy_loop::{Feedforward, Mode};
 
@@ -149,19 +149,20 @@ mod image {
     fn self_check() -> ! {
         let frame_decimation = demo::settings().map_or(1, |s| s.frame_decimation);
         hprintln!(
-            "piezo-firmware qemu: parameters {} ({}), fnv1a32 {:#010x}, loop {} Hz, one frame every {} ticks",
+            "piezo-firmware qemu: parameters {} ({}), fnv1a32 {:#010x}, fingerprint {:#010x}, loop {} Hz, one frame every {} ticks",
             params::VERSION,
             params::SOURCE,
             params::FNV1A32,
+            piezo_firmware::session::built_in_fingerprint(),
             params::LOOP_RATE_HZ,
             frame_decimation
         );
         let mut receiver = SequenceChecker::default();
         let mut received: u32 = 0;
-        let mut printed = heapless::Vec::<SampleFrame, PRINT_FRAMES>::new();
+        let mut printed = heapless::Vec::<Frame, PRINT_FRAMES>::new();
         let compensated = demo::run_demo(Feedforward::Compensator, |k, lp| {
             // The sender: drain every tick (the receiver checks the sequence); print one batch.
-            let mut batch = heapless::Vec::<SampleFrame, 8>::new();
+            let mut batch = heapless::Vec::<Frame, 8>::new();
             lp.frames.drain_into(&mut batch);
             for f in &batch {
                 receiver.accept(f.sequence);
@@ -179,7 +180,7 @@ mod image {
             (Err(e), _) | (_, Err(e)) => fail(format_args!("parameter set refused at boot: {e:?}")),
         };
         for f in &printed {
-            hprintln!("{} | wire {:02x?}", f, &f.to_bytes()[..8]);
+            hprintln!("{}", f);
         }
         hprintln!(
             "frames: {} received, {} gaps ({} lost)",
@@ -260,7 +261,7 @@ mod image {
         use piezo_firmware::params;
         use piezo_firmware::plant::{plant_io, XyPlant};
         use piezo_firmware::reference::{Program, ReferenceGenerator, Waveform};
-        use piezo_firmware::session::Session;
+        use piezo_firmware::session::{self, Session};
         use piezo_firmware::xy_loop::{Feedforward, TwoAxisLoop};
 
         /// mps2-an386's CPU clock, SysTick's source \[Hz\].
@@ -300,7 +301,12 @@ mod image {
                 ReferenceGenerator::new(Program::PerAxis(rest), params::SAMPLE_PERIOD_S, [0.0; 2]);
             let initial = [params::AXES[0].output_min_v, params::AXES[1].output_min_v];
             let lp = TwoAxisLoop::new(settings, Feedforward::Compensator, reference, initial);
-            let mut session = Session::new(lp, params::VERSION, params::FNV1A32);
+            let mut session = Session::new(
+                lp,
+                params::VERSION,
+                params::FNV1A32,
+                session::built_in_fingerprint(),
+            );
 
             let mut uart = Uart0::init();
             for irq in [cmsdk_uart::RX_IRQ, cmsdk_uart::TX_IRQ] {
@@ -318,10 +324,11 @@ mod image {
             syst.enable_interrupt();
             syst.enable_counter();
             hprintln!(
-                "piezo-firmware qemu: link on UART0, parameters {} ({}), fnv1a32 {:#010x}, loop {} Hz",
+                "piezo-firmware qemu: link on UART0, parameters {} ({}), fnv1a32 {:#010x}, fingerprint {:#010x}, loop {} Hz",
                 params::VERSION,
                 params::SOURCE,
                 params::FNV1A32,
+                session::built_in_fingerprint(),
                 params::LOOP_RATE_HZ
             );
 

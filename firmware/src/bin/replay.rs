@@ -33,7 +33,7 @@ mod image {
     use cortex_m_semihosting::{debug, hprintln};
 
     use piezo_firmware::demo;
-    use piezo_firmware::frames::SampleFrame;
+    use piezo_firmware::frames::Frame;
     use piezo_firmware::params::{self, SAMPLE_PERIOD_S};
     use piezo_firmware::plant::{plant_io, XyPlant};
     use piezo_firmware::reference::{Program, ReferenceGenerator, STREAM_CAPACITY};
@@ -83,7 +83,7 @@ mod image {
             ))
         }
         let mut queued = 0;
-        let mut batch = heapless::Vec::<SampleFrame, 8>::new();
+        let mut batch = heapless::Vec::<Frame, 8>::new();
         for _ in 0..REFERENCE_M.len() {
             while let Some(&sample) = REFERENCE_M.get(queued) {
                 if lp.reference.push_setpoint(sample).is_err() {

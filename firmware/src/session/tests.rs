@@ -6,7 +6,6 @@ use crate::demo;
 use crate::plant::{PlantAdc, PlantDac, XyPlant};
 use crate::reference::ReferenceGenerator;
 use crate::xy_loop::AdcSensor;
-use piezo_link::Mode as WireMode;
 
 /// The host's side: numbered requests in, decoded uplinks out.
 struct Host {
@@ -111,7 +110,15 @@ fn session() -> (Session, Cell<XyPlant>) {
     let initial = [params::AXES[0].output_min_v, params::AXES[1].output_min_v];
     let lp = TwoAxisLoop::new(settings, Feedforward::Compensator, reference, initial);
     let plant = Cell::new(XyPlant::from_params(params::SAMPLE_PERIOD_S).unwrap());
-    (Session::new(lp, params::VERSION, params::FNV1A32), plant)
+    (
+        Session::new(
+            lp,
+            params::VERSION,
+            params::FNV1A32,
+            super::built_in_fingerprint(),
+        ),
+        plant,
+    )
 }
 
 fn built_in_set() -> ModelSet {
@@ -174,7 +181,7 @@ fn status_names_the_built_in_set() {
     let st = host.status(&mut s);
     assert_eq!(st.params_fnv1a32, params::FNV1A32);
     assert_eq!(st.params_version.as_str(), params::VERSION);
-    assert_eq!(st.mode, WireMode::Running);
+    assert_eq!(st.mode, Mode::Running);
     assert_eq!(st.counters.requests, 1);
 }
 
@@ -252,7 +259,8 @@ fn a_refused_set_leaves_the_running_one_and_a_good_one_is_swapped_in() {
     assert_eq!(
         host.ask(&mut s, Request::Upload(good)),
         Response::Loaded {
-            params_fnv1a32: 0x1234_5678
+            params_fnv1a32: 0x1234_5678,
+            params_fingerprint: built_in_fingerprint(),
         }
     );
     // The same numbers: the same settings, the baseline gain as build.rs computed it.
@@ -276,12 +284,12 @@ fn an_injected_overrun_holds_until_rearm() {
     let held = s.status().applied_v;
     run(&mut s, &plant, &mut host, 50);
     let st = host.status(&mut s);
-    assert_eq!(st.mode, WireMode::Safe(piezo_link::Fault::Overrun));
+    assert_eq!(st.mode, Mode::Safe(crate::xy_loop::Fault::Overrun));
     assert_eq!(st.applied_v, held);
     assert_eq!(st.counters.overruns, 1);
     host.ask(&mut s, Request::Rearm);
     run(&mut s, &plant, &mut host, 10);
-    assert_eq!(host.status(&mut s).mode, WireMode::Running);
+    assert_eq!(host.status(&mut s).mode, Mode::Running);
 }
 
 #[test]
@@ -365,7 +373,8 @@ fn an_upload_prepared_outside_the_session_is_applied_between_two_ticks() {
         [Uplink::Response {
             request: host.sequence - 1,
             response: Response::Loaded {
-                params_fnv1a32: 0x1234_5678
+                params_fnv1a32: 0x1234_5678,
+                params_fingerprint: built_in_fingerprint(),
             }
         }]
     );
@@ -584,7 +593,7 @@ fn a_request_with_trailing_bytes_is_refused() {
     host.sequence = 2;
     let st = host.status(&mut s);
     assert_eq!(st.counters.rejected_packets, 1);
-    assert_eq!(st.mode, WireMode::Running, "the overrun drill did not run");
+    assert_eq!(st.mode, Mode::Running, "the overrun drill did not run");
 }
 
 /// Ticks the session `ticks` times on the simulated stage and returns every packet it queued,
@@ -734,6 +743,7 @@ fn a_stale_reply_is_not_queued() {
     assert_eq!(sent[0].sequence, second.packet());
 }
 
+mod counters;
 mod envelope;
 mod learned;
 mod on_target;

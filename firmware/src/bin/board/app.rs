@@ -55,10 +55,11 @@ mod app {
     ])]
     fn init(cx: init::Context) -> (Shared, Local) {
         defmt::info!(
-            "parameters {=str} ({=str}), fnv1a32 {=u32:#010x}, loop {} Hz; command link on {=str}",
+            "parameters {=str} ({=str}), fnv1a32 {=u32:#010x}, fingerprint {=u32:#010x}, loop {} Hz; command link on {=str}",
             params::VERSION,
             params::SOURCE,
             params::FNV1A32,
+            piezo_firmware::session::built_in_fingerprint(),
             params::LOOP_RATE_HZ,
             board::LINK_DESCRIPTION
         );
@@ -88,10 +89,12 @@ mod app {
         let initial = [params::AXES[0].output_min_v, params::AXES[1].output_min_v];
         let lp = TwoAxisLoop::new(settings, Feedforward::Compensator, reference, initial);
         // Moved into its static slot (in .bss: the wave table makes it large); init runs once.
-        let session: &'static mut Session =
-            cx.local
-                .session
-                .write(Session::new(lp, params::VERSION, params::FNV1A32));
+        let session: &'static mut Session = cx.local.session.write(Session::new(
+            lp,
+            params::VERSION,
+            params::FNV1A32,
+            piezo_firmware::session::built_in_fingerprint(),
+        ));
 
         if let Err(e) = board::start_loop_timer(&mut loop_timer) {
             defmt::panic!("loop timer: {}", defmt::Debug2Format(&e));

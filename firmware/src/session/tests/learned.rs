@@ -124,7 +124,7 @@ fn a_checked_table_plays_in_phase_with_the_wave_table() {
             "axis {axis}: {t:?} vs {c:?}"
         );
     }
-    assert_eq!(st.counters.guard_interventions, 0);
+    assert_eq!(st.counters.guard_interventions(), 0);
 }
 
 /// Every failure is refused with what failed, and the loop keeps playing what it played.
@@ -437,5 +437,5 @@ fn an_unchecked_table_cannot_drive_an_unsafe_voltage() {
             *last = u;
         }
     }
-    assert!(host.status(&mut s).counters.guard_interventions > 0);
+    assert!(host.status(&mut s).counters.guard_interventions() > 0);
 }
