@@ -660,6 +660,21 @@ impl Session {
         true
     }
 
+    /// A table program still running (held at its last entry or repeating) would play the
+    /// entries of the next table as they arrive, in the last program's units (a track's metres
+    /// as an excitation's volts): the reference holds where it is instead, until the next
+    /// program starts. Before the first tick there is nothing to hold and nothing changes.
+    fn hold_before_table_clear(&mut self) {
+        if let Program::Table { .. } = self.lp.reference.program() {
+            let last = self.lp.last_reference();
+            if last.iter().all(|r| r.is_finite()) {
+                self.lp.reference.set_program(Program::PerAxis(
+                    last.map(|offset_m| Waveform::Constant { offset_m }),
+                ));
+            }
+        }
+    }
+
     fn start(&mut self, program: WireProgram, feedforward: Feedforward) -> Response {
         let program = match program {
             WireProgram::PerAxis([x, y]) => Program::PerAxis([waveform(x), waveform(y)]),
@@ -846,6 +861,7 @@ impl Session {
                 playing_refusal()
             }
             Request::TableClear => {
+                self.hold_before_table_clear();
                 self.lp.reference.table_clear();
                 Response::Queued {
                     held: 0,

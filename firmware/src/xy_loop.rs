@@ -635,6 +635,12 @@ impl TwoAxisLoop {
         self.mode
     }
 
+    /// The reference of the last tick (volts in open loop, metres otherwise; NaN before the
+    /// first tick).
+    pub fn last_reference(&self) -> [f32; 2] {
+        self.last_reference_m
+    }
+
     /// Event counters: the loop's own, the output guards' per axis and cause, the reference's
     /// underruns, the envelope's excursions (both axes) and the frame queue's drops; the link's
     /// are zero.

@@ -5,8 +5,8 @@
 //! free loopback port, and drives it with host-sim's link client:
 //! status (the built-in set, its fingerprint the host's of the stage file) → excite 0.5–119.5 V
 //! (every tick) and record → `identify` on the record → upload the identified set (its
-//! fingerprint) → reload the wave table under the finished excitation (the guard clamps, the
-//! output does not move) → track a 10 Hz sine with the compensator, then with the linear
+//! fingerprint) → reload the wave table under the finished excitation (held: not played, the
+//! guard untouched) → track a 10 Hz sine with the compensator, then with the linear
 //! baseline → inject an overrun (safe state, outputs held) → rearm and track → a set the core
 //! refuses (β < 0) leaves the running one → shutdown. The tracking error (the firmware's own
 //! statistics: sensor of tick k minus reference of tick k − 1, after settling) is checked at
@@ -172,9 +172,10 @@ fn a_whole_session_over_the_link() {
         guard(&excited.counters, &uploaded.counters)
     ));
 
-    // 4b. The wave table reloaded under the finished excitation: the excitation holds the
-    // table's last entry, now a track's reference in metres, as stack volts (≈ 2e-5 V), which
-    // the guard clamps to the identified window's floor, where the output already stands.
+    // 4b. The wave table reloaded under the finished excitation: clearing a table that a
+    // finished program still holds makes the reference hold where it stands, so the new
+    // entries (a track's metres) are never played as stack volts: no guard intervention, the
+    // output unmoved.
     let before_load = client.status().unwrap();
     client.load_table(&[[19e-6; 2]; 256], false).unwrap();
     let loaded = client.status().unwrap();
@@ -184,9 +185,10 @@ fn a_whole_session_over_the_link() {
         before_load.applied_v,
         loaded.applied_v
     ));
+    assert_eq!(loaded.applied_v, before_load.applied_v, "held, not moved");
     assert_eq!(
-        loaded.applied_v, before_load.applied_v,
-        "clamped, not moved"
+        loaded.counters.guard, before_load.counters.guard,
+        "the reload is not played"
     );
 
     // 5. Track with the compensator, then with the linear baseline.

@@ -100,3 +100,52 @@ fn the_fingerprint_is_the_running_sets_content() {
         boot.params_fingerprint
     );
 }
+
+/// A table excitation that has finished holds its last entry; the next table, a track's
+/// metres, is loaded while it holds. The output stays where the excitation left it, with no
+/// guard intervention, until the track starts: the new entries are never played as volts.
+#[test]
+fn a_table_loaded_after_a_finished_excitation_is_not_played() {
+    let (mut s, plant) = session();
+    let mut host = Host::new();
+    let mid_v = [0, 1].map(|i| 0.5 * (params::AXES[i].output_min_v + params::AXES[i].output_max_v));
+    let ramp: Setpoints = (0..=16)
+        .map(|j| {
+            let f = j as f32 / 16.0;
+            [0, 1].map(|i| {
+                params::AXES[i].output_min_v + f * (mid_v[i] - params::AXES[i].output_min_v)
+            })
+        })
+        .collect();
+    host.ask(&mut s, Request::TableClear);
+    host.ask(&mut s, Request::TableAppend(ramp));
+    let program = WireProgram::Table {
+        ticks_per_entry: 100,
+        repeat: false,
+    };
+    assert!(matches!(
+        host.ask(&mut s, Request::Excite(program)),
+        Response::Started { .. }
+    ));
+    run(&mut s, &plant, &mut host, 2_000);
+    let guard_before = host.status(&mut s).counters.guard;
+    host.ask(&mut s, Request::Frames { decimation: 1 });
+    host.frames.clear();
+    host.ask(&mut s, Request::TableClear);
+    run(&mut s, &plant, &mut host, 50);
+    let track: Setpoints = (0..32).map(|j| [19e-6 + j as f32 * 1e-8; 2]).collect();
+    host.ask(&mut s, Request::TableAppend(track));
+    run(&mut s, &plant, &mut host, 50);
+    assert_eq!(host.frames.len(), 100);
+    for f in &host.frames {
+        for i in 0..2 {
+            assert!(
+                (f.commanded_v[i] - mid_v[i]).abs() < 1e-3,
+                "axis {i}: {} V, held at {} V",
+                f.commanded_v[i],
+                mid_v[i]
+            );
+        }
+    }
+    assert_eq!(host.status(&mut s).counters.guard, guard_before);
+}
