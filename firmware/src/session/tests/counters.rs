@@ -138,13 +138,8 @@ fn a_table_loaded_after_a_finished_excitation_is_not_played() {
     run(&mut s, &plant, &mut host, 50);
     assert_eq!(host.frames.len(), 100);
     for f in &host.frames {
-        for i in 0..2 {
-            assert!(
-                (f.commanded_v[i] - mid_v[i]).abs() < 1e-3,
-                "axis {i}: {} V, held at {} V",
-                f.commanded_v[i],
-                mid_v[i]
-            );
+        for (i, (&v, &held)) in f.commanded_v.iter().zip(&mid_v).enumerate() {
+            assert!((v - held).abs() < 1e-3, "axis {i}: {v} V, held at {held} V");
         }
     }
     assert_eq!(host.status(&mut s).counters.guard, guard_before);
