@@ -29,14 +29,15 @@ impl DacCode {
 
     /// Nearest code to `volts` at the DAC output, saturated to `[0, 65535]`; NaN gives
     /// [`DacCode::SAFE`]. Never panics.
+    ///
+    /// `code = sat₀⁶⁵⁵³⁵(⌊volts / LSB + 0.5⌋)` in one conversion: Rust's float → `u16` cast
+    /// truncates towards zero and saturates (below 0 → 0, above 65 535 or +∞ → 65 535, NaN → 0
+    /// = [`DacCode::SAFE`]), so no clamp or NaN branch is needed. The same codes as clamping
+    /// `volts / LSB` to \[0, 65 535\] first: inside that range the sum is the same; below it the
+    /// sum is < 0.5 and truncates to 0; above it the sum is > 65 535.5 and saturates.
     #[inline]
     pub fn from_volts(volts: f32) -> Self {
-        if volts.is_nan() {
-            return Self::SAFE;
-        }
-        // Clamp first so the `as` cast is exact and the rounding cannot overflow.
-        let lsb = (volts / Self::VOLTS_PER_LSB).clamp(0.0, u16::MAX as f32);
-        DacCode((lsb + 0.5) as u16)
+        DacCode((volts / Self::VOLTS_PER_LSB + 0.5) as u16)
     }
 
     /// DAC output volts for this code.
@@ -124,6 +125,34 @@ mod tests {
         assert_eq!(DacCode::from_volts(f32::NEG_INFINITY), DacCode(0));
         assert_eq!(DacCode::from_volts(f32::NAN), DacCode::SAFE);
         assert_eq!(DacCode::from_volts(-f32::NAN), DacCode::SAFE);
+    }
+
+    /// The clamped form the conversion is equal to, bit for bit.
+    fn dac_code_clamped(volts: f32) -> DacCode {
+        if volts.is_nan() {
+            return DacCode::SAFE;
+        }
+        let lsb = (volts / DacCode::VOLTS_PER_LSB).clamp(0.0, u16::MAX as f32);
+        DacCode((lsb + 0.5) as u16)
+    }
+
+    /// Every f32 bit pattern (all 2³² values, NaNs, ±∞, subnormals, ±0) gives the clamped
+    /// form's code.
+    #[test]
+    fn dac_code_equals_the_clamped_conversion_for_every_f32() {
+        let mut bits = 0u32;
+        loop {
+            let v = f32::from_bits(bits);
+            assert_eq!(
+                DacCode::from_volts(v),
+                dac_code_clamped(v),
+                "{v} ({bits:#x})"
+            );
+            match bits.checked_add(1) {
+                Some(b) => bits = b,
+                None => break,
+            }
+        }
     }
 
     #[test]

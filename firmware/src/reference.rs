@@ -82,7 +82,23 @@ impl Waveform {
         }
     }
 
+    /// [`Waveform::at`] for a phase already in \[0, 1) (the generator's wrapped phases): the
+    /// sine without [`sin_turns`]' check for a non-finite phase, which such a phase never takes;
+    /// the same bits as [`Waveform::at`] there.
+    #[inline(always)]
+    fn at_wrapped(&self, phase: f32) -> f32 {
+        match *self {
+            Waveform::Sine {
+                offset_m,
+                amplitude_m,
+                ..
+            } => offset_m + amplitude_m * sin_turns_finite(phase),
+            _ => self.at(phase),
+        }
+    }
+
     /// Value at phase `phase` cycles (in `[0, 1)`).
+    #[inline(always)]
     pub fn at(&self, phase: f32) -> f32 {
         match *self {
             Waveform::Constant { offset_m } => offset_m,
@@ -127,6 +143,12 @@ pub fn sin_turns(phase: f32) -> f32 {
     if !phase.is_finite() {
         return f32::NAN;
     }
+    sin_turns_finite(phase)
+}
+
+/// [`sin_turns`] for a finite phase (the same bits; a non-finite one gives a finite value).
+#[inline(always)]
+fn sin_turns_finite(phase: f32) -> f32 {
     // round(4φ) for φ ≥ 0 (the generator's phases); saturating for anything else.
     let quadrant = (4.0 * phase + 0.5) as u32;
     let r = phase - quadrant as f32 * 0.25;
@@ -213,6 +235,10 @@ pub struct ReferenceGenerator {
     program: Program,
     sample_period_s: f32,
     phase: [f32; 2],
+    /// Per tick, each phase's advance \[cycles\]: `f·T` per axis ([`Program::PerAxis`]), the
+    /// raster's `(½·line_rate)·T` on x; the same products the tick would form, computed once when
+    /// the program is set ([`phase_increments`]).
+    increment: [f32; 2],
     /// Raster: completed lines since the start (wraps).
     line: u32,
     stream: Queue<[f32; 2], STREAM_CAPACITY>,
@@ -289,6 +315,7 @@ impl ReferenceGenerator {
             program,
             sample_period_s,
             phase: [0.0; 2],
+            increment: phase_increments(&program, sample_period_s),
             line: 0,
             stream: Queue::new(),
             last_streamed: initial_m,
@@ -409,6 +436,7 @@ impl ReferenceGenerator {
     /// Switches program, restarting its phase (the stream queue is kept).
     pub fn set_program(&mut self, program: Program) {
         self.program = program;
+        self.increment = phase_increments(&program, self.sample_period_s);
         self.phase = [0.0; 2];
         self.line = 0;
         self.table_tick = 0;
@@ -431,14 +459,31 @@ impl ReferenceGenerator {
         self.underruns
     }
 
-    /// The setpoint of this tick, then advances one tick.
+    /// The setpoint of this tick, then advances one tick. The per-axis waveforms are evaluated
+    /// here, in the caller's tick; the other programs out of line.
+    #[inline(always)]
     pub fn next_setpoint(&mut self) -> [f32; 2] {
+        if let Program::PerAxis([wx, wy]) = self.program {
+            let [px, py] = self.phase;
+            // The phases are wrapped into [0, 1) (finite) from the start: `at_wrapped`.
+            let out = [wx.at_wrapped(px), wy.at_wrapped(py)];
+            let [ix, iy] = self.increment;
+            self.phase = [wrap(px + ix), wrap(py + iy)];
+            out
+        } else {
+            self.next_setpoint_other()
+        }
+    }
+
+    /// [`Self::next_setpoint`] for the programs other than [`Program::PerAxis`].
+    #[inline(never)]
+    fn next_setpoint_other(&mut self) -> [f32; 2] {
         match self.program {
-            Program::PerAxis(waves) => {
-                let out = [waves[0].at(self.phase[0]), waves[1].at(self.phase[1])];
-                for (phase, wave) in self.phase.iter_mut().zip(waves) {
-                    *phase = wrap(*phase + wave.frequency_hz() * self.sample_period_s);
-                }
+            Program::PerAxis([wx, wy]) => {
+                let [px, py] = self.phase;
+                let out = [wx.at(px), wy.at(py)];
+                let [ix, iy] = self.increment;
+                self.phase = [wrap(px + ix), wrap(py + iy)];
                 out
             }
             Program::Raster {
@@ -447,7 +492,7 @@ impl ReferenceGenerator {
                 y_min_m,
                 y_max_m,
                 lines,
-                line_rate_hz,
+                ..
             } => {
                 let half = 0.5 * (x_max_m - x_min_m);
                 let x = x_min_m + half + half * triangle(self.phase[0]);
@@ -455,7 +500,7 @@ impl ReferenceGenerator {
                 let k = self.line % (2 * rows - 2);
                 let row = if k < rows { k } else { 2 * rows - 2 - k };
                 let y = y_min_m + (y_max_m - y_min_m) * row as f32 / (rows - 1) as f32;
-                let advanced = self.phase[0] + 0.5 * line_rate_hz * self.sample_period_s;
+                let advanced = self.phase[0] + self.increment[0];
                 // A line ends at each half period of the triangle.
                 let before = self.phase[0] < 0.5;
                 let wrapped = wrap(advanced);
@@ -523,6 +568,21 @@ impl ReferenceGenerator {
             }
             _ => (self.next_setpoint(), [f32::NAN; 2]),
         }
+    }
+}
+
+/// Each phase's advance per tick \[cycles\] under `program` at the period `sample_period_s`:
+/// `[f_x·T, f_y·T]` for [`Program::PerAxis`] (0 for a constant), `[(½·line_rate)·T, 0]` for a
+/// raster, zeros otherwise. The tick adds these to its phases, so they are the products it
+/// formed itself, bit for bit.
+fn phase_increments(program: &Program, sample_period_s: f32) -> [f32; 2] {
+    match *program {
+        Program::PerAxis([wx, wy]) => [
+            wx.frequency_hz() * sample_period_s,
+            wy.frequency_hz() * sample_period_s,
+        ],
+        Program::Raster { line_rate_hz, .. } => [0.5 * line_rate_hz * sample_period_s, 0.0],
+        Program::Streamed | Program::Table { .. } => [0.0; 2],
     }
 }
 
@@ -659,6 +719,69 @@ mod tests {
         assert_eq!(sin_turns(0.0), 0.0);
         assert_eq!(sin_turns(0.25), 1.0);
         assert_eq!(sin_turns(0.75), -1.0);
+    }
+
+    /// The per-tick phase advance set with the program gives the stream the tick forms from
+    /// `wrap(φ + f·T)` and `Waveform::at`, bit for bit: per-axis programs (sine, triangle,
+    /// steps, constant) switched with `set_program` to other frequencies, and a raster.
+    #[test]
+    fn phase_increments_give_the_recomputed_stream_bit_for_bit() {
+        let wave = |kind: u8, f: f32| match kind {
+            0 => Waveform::Sine {
+                offset_m: 19e-6,
+                amplitude_m: 12e-6,
+                frequency_hz: f,
+            },
+            1 => Waveform::Triangle {
+                offset_m: 3e-6,
+                amplitude_m: 7e-6,
+                frequency_hz: f,
+            },
+            2 => Waveform::Steps {
+                offset_m: 1e-6,
+                amplitude_m: 2e-6,
+                frequency_hz: f,
+            },
+            _ => Waveform::Constant { offset_m: 5e-6 },
+        };
+        let period = 1.0 / 50_000.0f32;
+        let mut g = ReferenceGenerator::new(Program::Streamed, period, [0.0; 2]);
+        for (k, (fx, fy)) in [
+            (10.0f32, 3.7f32),
+            (1234.5, 0.3),
+            (97.0, 24_999.0),
+            (0.0, 7.0),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let waves = [wave(k as u8 % 4, fx), wave((k as u8 + 1) % 4, fy)];
+            g.set_program(Program::PerAxis(waves));
+            let mut phase = [0.0f32; 2];
+            for tick in 0..20_000 {
+                let want = [waves[0].at(phase[0]), waves[1].at(phase[1])];
+                let got = g.next_setpoint();
+                assert_eq!(got.map(f32::to_bits), want.map(f32::to_bits), "{k} {tick}");
+                for (p, w) in phase.iter_mut().zip(waves) {
+                    *p = wrap(*p + w.frequency_hz() * period);
+                }
+            }
+        }
+        let raster = Program::Raster {
+            x_min_m: 0.0,
+            x_max_m: 10e-6,
+            y_min_m: 0.0,
+            y_max_m: 4e-6,
+            lines: 5,
+            line_rate_hz: 333.0,
+        };
+        g.set_program(raster);
+        let mut phase = 0.0f32;
+        for tick in 0..20_000 {
+            let x = 5e-6 + 5e-6 * triangle(phase);
+            assert_eq!(g.next_setpoint()[0].to_bits(), x.to_bits(), "raster {tick}");
+            phase = wrap(phase + 0.5 * 333.0 * period);
+        }
     }
 
     #[test]
