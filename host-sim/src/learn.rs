@@ -32,7 +32,7 @@ use crate::compensate::{
 use crate::csv::{read_csv, write_csv, Table};
 use crate::identify::unit_factor;
 use crate::link::fnv1a32;
-use piezo_core::{FeedforwardAxis, Learning, LearningParams, Trial};
+use piezo_core::{FeedforwardAxis, Learning, LearningParams, Trial, TrialNoise};
 use piezo_stage::StageFile;
 use std::path::{Path, PathBuf};
 
@@ -89,6 +89,10 @@ pub struct LearningArgs {
     /// loop rate (0.5 trusts the file's claim of no dynamics up to the Nyquist frequency).
     #[arg(long, default_value_t = LearningParams::default().unmodelled_mode_fraction)]
     pub unmodelled_mode_fraction: f32,
+    /// Gain rho of the learning at a periodic trial's harmonics above Q's cut-off from the
+    /// stage's response measured on the trial (0 leaves them to Q).
+    #[arg(long, default_value_t = LearningParams::default().harmonic_gain)]
+    pub harmonic_gain: f32,
 }
 
 impl LearningArgs {
@@ -100,6 +104,7 @@ impl LearningArgs {
             mode_frequency_tolerance: self.mode_tolerance,
             margin: self.margin,
             unmodelled_mode_fraction: self.unmodelled_mode_fraction,
+            harmonic_gain: self.harmonic_gain,
         }
     }
 }
@@ -132,6 +137,11 @@ pub struct AxisStep {
     pub noise_rms_m: f64,
     /// The share of L·e learned (1 far above the noise, 0 at it).
     pub learned_share: f64,
+    /// Harmonics above Q's cut-off learned from the stage's response measured on the trial.
+    pub harmonics_learned: usize,
+    /// Whether the noise came from the spread between the record's passes (else from the
+    /// error's fourth differences).
+    pub noise_from_passes: bool,
     /// (γ̂, ĉ \[m\]): the stage's output against the model's for the trial's command, when the
     /// model explains the trial (`Learning::gain_ratio`).
     pub model_gain: Option<(f64, f64)>,
@@ -227,6 +237,8 @@ impl LearnStep {
                     "limited": a.limited,
                     "noise_rms_m": a.noise_rms_m,
                     "learned_share": a.learned_share,
+                    "harmonics_learned": a.harmonics_learned,
+                    "noise_from_passes": a.noise_from_passes,
                     "model_gain_ratio": a.model_gain.map(|g| g.0),
                     "base_resolved": rebase(&[a.model_gain], &self.params).is_some(),
                 }),
@@ -490,6 +502,7 @@ pub fn model_gains(
                 measured_m: &measured_m[i],
                 base_v: &command_v[i],
                 periodic,
+                noise: None,
             })
         })
         .collect()
@@ -556,6 +569,24 @@ pub fn step_axes(
     base_v: &[Vec<f32>],
     periodic: bool,
 ) -> Result<(Vec<AxisStep>, Vec<Vec<f32>>), String> {
+    step_axes_averaged(
+        learnings, names, reference, command_v, measured_m, base_v, periodic, None,
+    )
+}
+
+/// As [`step_axes`], for a trial that averages several passes: per axis the averaged record's
+/// noise from the spread between them (`piezo_core::pass_noise_rms`), where known.
+#[allow(clippy::too_many_arguments)]
+pub fn step_axes_averaged(
+    learnings: &[Learning],
+    names: &[&'static str],
+    reference: &Reference,
+    command_v: &[Vec<f32>],
+    measured_m: &[Vec<f32>],
+    base_v: &[Vec<f32>],
+    periodic: bool,
+    noise: Option<&[Option<TrialNoise>]>,
+) -> Result<(Vec<AxisStep>, Vec<Vec<f32>>), String> {
     let mut steps = Vec::new();
     let mut next_v = Vec::new();
     for (i, learning) in learnings.iter().enumerate() {
@@ -569,6 +600,7 @@ pub fn step_axes(
                     measured_m: &measured_m[i],
                     base_v: &base_v[i],
                     periodic,
+                    noise: noise.and_then(|n| n.get(i).copied().flatten()),
                 },
                 &mut next,
             )
@@ -582,6 +614,8 @@ pub fn step_axes(
             limited: summary.limited,
             noise_rms_m: summary.noise_rms_m,
             learned_share: summary.learned_share,
+            harmonics_learned: summary.harmonics_learned,
+            noise_from_passes: noise.is_some_and(|n| n[i].is_some()),
             model_gain: None,
         });
         next_v.push(next);
@@ -613,6 +647,24 @@ pub fn step_checked(
     measured_m: &[Vec<f32>],
     base_v: &[Vec<f32>],
 ) -> Result<(Vec<AxisStep>, Vec<Vec<f32>>), String> {
+    step_checked_averaged(
+        learnings, names, reference, files, command_v, measured_m, base_v, None,
+    )
+}
+
+/// As [`step_checked`], for a trial that averages several passes: per axis the averaged
+/// record's noise from the spread between them, where known ([`step_axes_averaged`]).
+#[allow(clippy::too_many_arguments)]
+pub fn step_checked_averaged(
+    learnings: &[Learning],
+    names: &[&'static str],
+    reference: &Reference,
+    files: &StepFiles<'_>,
+    command_v: &[Vec<f32>],
+    measured_m: &[Vec<f32>],
+    base_v: &[Vec<f32>],
+    noise: Option<&[Option<TrialNoise>]>,
+) -> Result<(Vec<AxisStep>, Vec<Vec<f32>>), String> {
     let gains = model_gains(learnings, reference, command_v, measured_m, files.periodic);
     let params = learnings.first().map(|l| *l.params()).unwrap_or_default();
     let (mut steps, next) = match rebase(&gains, &params) {
@@ -621,7 +673,7 @@ pub fn step_checked(
                 compensate_for_gain(files.params, files.reference, files.periodic, &gain_offset)?;
             let base_v: Vec<Vec<f32>> = base.voltages_v.into_iter().map(|(_, u)| u).collect();
             let learnings = rescaled(learnings, &gain_offset)?;
-            step_axes(
+            step_axes_averaged(
                 &learnings,
                 names,
                 reference,
@@ -629,9 +681,10 @@ pub fn step_checked(
                 measured_m,
                 &base_v,
                 files.periodic,
+                noise,
             )?
         }
-        None => step_axes(
+        None => step_axes_averaged(
             learnings,
             names,
             reference,
@@ -639,6 +692,7 @@ pub fn step_checked(
             measured_m,
             base_v,
             files.periodic,
+            noise,
         )?,
     };
     for (step, gain) in steps.iter_mut().zip(gains) {
@@ -669,12 +723,19 @@ pub fn learn(a: &LearnArgs) -> Result<LearnStep, String> {
     } = read_learned_table(&a.command, &context, axes.len())?;
     let measured = read_csv(&a.measured).map_err(|e| e.to_string())?;
     let t_y = measured.column("t_s").map_err(|e| e.to_string())?;
-    if t_y.len() != n {
+    let passes = t_y.len() / n.max(1);
+    let whole_passes = a.periodic && passes >= 2 && t_y.len() == passes * n;
+    if t_y.len() != n && !whole_passes {
         return Err(format!(
-            "{}: {} samples, but the command {} has {n}: record one trial of the table",
+            "{}: {} samples, but the command {} has {n}: record one trial of the table{}",
             a.measured.display(),
             t_y.len(),
-            a.command.display()
+            a.command.display(),
+            if a.periodic {
+                " (or, --periodic, whole passes of it)"
+            } else {
+                ""
+            }
         ));
     }
     let (period_u, period_y) = (mean_period(&t_u), mean_period(t_y));
@@ -704,8 +765,23 @@ pub fn learn(a: &LearnArgs) -> Result<LearnStep, String> {
                 .map_err(|e| format!("--y: {e}"))?
                 .iter()
                 .map(|&v| (v * factor) as f32)
-                .collect(),
+                .collect::<Vec<f32>>(),
         );
+    }
+    // Several whole passes: their average, and its noise from the spread between them (the
+    // table, the command, is the same every pass).
+    let noise: Option<Vec<Option<TrialNoise>>> = whole_passes.then(|| {
+        y.iter()
+            .map(|record| {
+                piezo_core::pass_noise_rms(record, n).map(|measured_m| TrialNoise {
+                    measured_m,
+                    command_v: 0.0,
+                })
+            })
+            .collect()
+    });
+    if whole_passes {
+        y = y.iter().map(|record| average_passes(record, n)).collect();
     }
     let base_v: Vec<Vec<f32>> = base.voltages_v.iter().map(|(_, u)| u.clone()).collect();
     let files = StepFiles {
@@ -713,7 +789,16 @@ pub fn learn(a: &LearnArgs) -> Result<LearnStep, String> {
         reference: &a.reference,
         periodic: a.periodic,
     };
-    let (steps, next) = step_checked(&learnings, &names, &reference, &files, &u, &y, &base_v)?;
+    let (steps, next) = step_checked_averaged(
+        &learnings,
+        &names,
+        &reference,
+        &files,
+        &u,
+        &y,
+        &base_v,
+        noise.as_deref(),
+    )?;
     let next_v = base
         .voltages_v
         .iter()
@@ -730,6 +815,22 @@ pub fn learn(a: &LearnArgs) -> Result<LearnStep, String> {
         params,
         periodic: a.periodic,
     })
+}
+
+/// The mean of `record`'s whole passes of `period` samples, per sample (non-finite samples left
+/// out; NaN where no pass has one).
+pub fn average_passes(record: &[f32], period: usize) -> Vec<f32> {
+    (0..period)
+        .map(|j| {
+            let (sum, count) = record
+                .iter()
+                .skip(j)
+                .step_by(period)
+                .filter(|v| v.is_finite())
+                .fold((0.0f64, 0usize), |(s, c), &v| (s + f64::from(v), c + 1));
+            (sum / count as f64) as f32
+        })
+        .collect()
 }
 
 /// Writes `step`'s table to `out` with its `#` lines (the iteration, the stage file `params`'s
