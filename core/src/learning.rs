@@ -143,13 +143,15 @@ pub struct LearningParams {
     /// claim of no dynamics up to the Nyquist frequency.
     pub unmodelled_mode_fraction: f32,
     /// ρ of the learning at a periodic trial's harmonics above Q's cut-off from the stage's
-    /// response measured on the trial (module doc), 0 ≤ ρ ≤ 1; 0 leaves them to Q.
+    /// response measured on the trial (module doc), 0 ≤ ρ ≤ 1; 0 (the default) leaves them to
+    /// Q. On the XY stage 0.5 takes the 100 Hz triangle below 0.1 % of the stroke; on a stage
+    /// with an unmodelled 2 ms dielectric lag it let one trial rise 1.12× above the one before.
     pub harmonic_gain: f32,
 }
 
 impl Default for LearningParams {
     /// γ in [0.6, 1.7] (a stage file whose gain is ×1.5 or ×0.6 off stays inside), mode ±20 %,
-    /// margin 0.1; without a mode, one may lie at or above 1/20 of the sample rate (500 Hz at
+    /// margin 0.1, no learning above the cut-off (ρ = 0); without a mode, one may lie at or above 1/20 of the sample rate (500 Hz at
     /// 10 kHz: a piezo stage's first flexure or load mode lies between a few hundred hertz and
     /// tens of kilohertz).
     fn default() -> Self {
@@ -159,7 +161,7 @@ impl Default for LearningParams {
             mode_frequency_tolerance: 0.2,
             margin: 0.1,
             unmodelled_mode_fraction: 0.05,
-            harmonic_gain: 0.5,
+            harmonic_gain: 0.0,
         }
     }
 }
@@ -334,7 +336,7 @@ pub struct TrialNoise {
 /// share (the trajectory, its rings) does not count. `None` for fewer than two passes, a length
 /// that is not a whole number of them, or no finite sample; non-finite samples are left out.
 pub fn pass_noise_rms(record: &[f32], period: usize) -> Option<f64> {
-    if period == 0 || record.len() % period != 0 || record.len() / period < 2 {
+    if period == 0 || !record.len().is_multiple_of(period) || record.len() / period < 2 {
         return None;
     }
     let passes = record.len() / period;

@@ -21,9 +21,18 @@
 //! * `U_NEXT.csv`: `t_s`, the voltages, and the reference it belongs to (`r_m` or `rx_m,ry_m`),
 //!   after `#` lines with the iteration and the FNV-1a 32 of the stage file's bytes (as the
 //!   firmware's build logs it): a table learned for another reference or stage file is refused.
+//! * With `--periodic`, `Y.csv` may hold several whole passes of the table: they are averaged,
+//!   and the averaged record's noise is read from the spread between them
+//!   (`piezo_core::pass_noise_rms`; `noise_from_passes` in `STEP.json`) instead of the error's
+//!   fourth differences. Only such a trial learns above Q's cut-off (`--harmonic-gain` ρ > 0):
+//!   at each harmonic of the period the stage's response measured on the trial, gated
+//!   (`piezo_core::learning`, module `harmonics`). With a servo the command file does not
+//!   show (learned+feedback over the link, the table as U), Ĝ is the table → output response,
+//!   which is what an update of the table needs.
 //! * `STEP.json`: per axis the error of the trial just measured (`rms_m`, `max_abs_m`), the
 //!   cut-off `q_cutoff_hz`, the learning gain, the samples limited, the sensor noise estimated from
-//!   the error (`noise_rms_m`) and the share of L·e learned (`learned_share`); the rule.
+//!   the error (`noise_rms_m`), the share of L·e learned (`learned_share`) and the harmonics
+//!   above the cut-off learned from the measured response (`harmonics_learned`); the rule.
 
 use crate::compensate::{
     compensate, compensate_for_gain, compensate_periodic, feedforward_axes, read_reference,
@@ -114,7 +123,9 @@ pub const HELP: &str = "One step of iterative learning control per axis: u_next 
 u_0 the compensator's command for the reference, L the inverse of the stage file's model along u (slope dy/du, \
 mode, the error taken D samples later, gain 2/(gain_min + gain_max)), Q a zero-phase 4th-order Butterworth \
 low-pass (forward and backward, circular with --periodic) whose cut-off is the highest with |Q(1 - LG)| <= 1 - margin \
-for plant gains in [gain_min, gain_max] times the model's and its mode within +-mode-tolerance (a file without a mode: none, or one at or above unmodelled-mode-fraction times the loop rate, damping 0.02). Each step learns the share s = max(0, 1 - noise/in-band error) of L(r - y): the sensor noise estimated from the error's fourth differences, so that a trial at the noise does not fill the table with it. The table is clamped \
+for plant gains in [gain_min, gain_max] times the model's and its mode within +-mode-tolerance (a file without a mode: none, or one at or above unmodelled-mode-fraction times the loop rate, damping 0.02). Each step learns the share s = max(0, 1 - noise/in-band error) of L(r - y): the sensor noise estimated from the error's fourth differences, so that a trial at the noise does not fill the table with it. With --periodic, the measured record may hold several whole passes: they are averaged and their noise \
+read from the spread between them; such a trial also learns at the period's harmonics above the cut-off from the stage's response \
+measured on it (--harmonic-gain rho > 0; off by default). The table is clamped \
 to the output window and slew limit, and carries its reference and the stage file's FNV-1a 32: a table learned \
 for another reference or stage file is refused.";
 

@@ -94,7 +94,7 @@ fn twiddle(h: usize, j: usize, n: usize) -> (f64, f64) {
 /// Replaces `next`'s component at each gated harmonic (module doc); returns how many.
 pub(super) fn learn_harmonics(inp: &mut HarmonicInputs<'_>, next: &mut [f32]) -> usize {
     let n = next.len();
-    if n < 4 || !(inp.gain > 0.0) {
+    if n < 4 || inp.gain.is_nan() || inp.gain <= 0.0 {
         return 0;
     }
     let t = inp.sample_period_s;
@@ -108,7 +108,7 @@ pub(super) fn learn_harmonics(inp: &mut HarmonicInputs<'_>, next: &mut [f32]) ->
     for h in (first..=last).take(MAX_HARMONICS) {
         let (mut u, mut y, mut r, mut x) = (C(0.0, 0.0), C(0.0, 0.0), C(0.0, 0.0), C(0.0, 0.0));
         let mut w = C(0.0, 0.0);
-        for j in 0..n {
+        for (j, &next_j) in next.iter().enumerate() {
             let (c, s) = twiddle(h, j, n);
             let add = |acc: &mut C, v: f64| {
                 acc.0 += v * c;
@@ -117,7 +117,7 @@ pub(super) fn learn_harmonics(inp: &mut HarmonicInputs<'_>, next: &mut [f32]) ->
             add(&mut u, (inp.command)(j));
             add(&mut y, (inp.measured)(j));
             add(&mut r, (inp.reference)(j));
-            add(&mut x, f64::from(next[j]));
+            add(&mut x, f64::from(next_j));
             add(&mut w, (inp.predicted)(j));
         }
         let [u, y, r, x, w] = [u, y, r, x, w].map(|v| C(v.0 * scale, v.1 * scale));
@@ -199,6 +199,7 @@ fn gated_step(
 }
 
 #[cfg(test)]
+#[allow(clippy::needless_range_loop)] // sample and harmonic indices over parallel arrays
 mod tests {
     use super::*;
 
