@@ -21,9 +21,18 @@
 //! * `U_NEXT.csv`: `t_s`, the voltages, and the reference it belongs to (`r_m` or `rx_m,ry_m`),
 //!   after `#` lines with the iteration and the FNV-1a 32 of the stage file's bytes (as the
 //!   firmware's build logs it): a table learned for another reference or stage file is refused.
+//! * With `--periodic`, `Y.csv` may hold several whole passes of the table: they are averaged,
+//!   and the averaged record's noise is read from the spread between them
+//!   (`piezo_core::pass_noise_rms`; `noise_from_passes` in `STEP.json`) instead of the error's
+//!   fourth differences. Only such a trial learns above Q's cut-off (`--harmonic-gain` ρ > 0):
+//!   at each harmonic of the period the stage's response measured on the trial, gated
+//!   (`piezo_core::learning`, module `harmonics`). With a servo the command file does not
+//!   show (learned+feedback over the link, the table as U), Ĝ is the table → output response,
+//!   which is what an update of the table needs.
 //! * `STEP.json`: per axis the error of the trial just measured (`rms_m`, `max_abs_m`), the
 //!   cut-off `q_cutoff_hz`, the learning gain, the samples limited, the sensor noise estimated from
-//!   the error (`noise_rms_m`) and the share of L·e learned (`learned_share`); the rule.
+//!   the error (`noise_rms_m`), the share of L·e learned (`learned_share`) and the harmonics
+//!   above the cut-off learned from the measured response (`harmonics_learned`); the rule.
 
 use crate::compensate::{
     compensate, compensate_for_gain, compensate_periodic, feedforward_axes, read_reference,
@@ -32,7 +41,7 @@ use crate::compensate::{
 use crate::csv::{read_csv, write_csv, Table};
 use crate::identify::unit_factor;
 use crate::link::fnv1a32;
-use piezo_core::{FeedforwardAxis, Learning, LearningParams, Trial};
+use piezo_core::{FeedforwardAxis, Learning, LearningParams, Trial, TrialNoise};
 use piezo_stage::StageFile;
 use std::path::{Path, PathBuf};
 
@@ -89,6 +98,10 @@ pub struct LearningArgs {
     /// loop rate (0.5 trusts the file's claim of no dynamics up to the Nyquist frequency).
     #[arg(long, default_value_t = LearningParams::default().unmodelled_mode_fraction)]
     pub unmodelled_mode_fraction: f32,
+    /// Gain rho of the learning at a periodic trial's harmonics above Q's cut-off from the
+    /// stage's response measured on the trial (0 leaves them to Q).
+    #[arg(long, default_value_t = LearningParams::default().harmonic_gain)]
+    pub harmonic_gain: f32,
 }
 
 impl LearningArgs {
@@ -100,6 +113,7 @@ impl LearningArgs {
             mode_frequency_tolerance: self.mode_tolerance,
             margin: self.margin,
             unmodelled_mode_fraction: self.unmodelled_mode_fraction,
+            harmonic_gain: self.harmonic_gain,
         }
     }
 }
@@ -109,7 +123,9 @@ pub const HELP: &str = "One step of iterative learning control per axis: u_next 
 u_0 the compensator's command for the reference, L the inverse of the stage file's model along u (slope dy/du, \
 mode, the error taken D samples later, gain 2/(gain_min + gain_max)), Q a zero-phase 4th-order Butterworth \
 low-pass (forward and backward, circular with --periodic) whose cut-off is the highest with |Q(1 - LG)| <= 1 - margin \
-for plant gains in [gain_min, gain_max] times the model's and its mode within +-mode-tolerance (a file without a mode: none, or one at or above unmodelled-mode-fraction times the loop rate, damping 0.02). Each step learns the share s = max(0, 1 - noise/in-band error) of L(r - y): the sensor noise estimated from the error's fourth differences, so that a trial at the noise does not fill the table with it. The table is clamped \
+for plant gains in [gain_min, gain_max] times the model's and its mode within +-mode-tolerance (a file without a mode: none, or one at or above unmodelled-mode-fraction times the loop rate, damping 0.02). Each step learns the share s = max(0, 1 - noise/in-band error) of L(r - y): the sensor noise estimated from the error's fourth differences, so that a trial at the noise does not fill the table with it. With --periodic, the measured record may hold several whole passes: they are averaged and their noise \
+read from the spread between them; such a trial also learns at the period's harmonics above the cut-off from the stage's response \
+measured on it (--harmonic-gain rho > 0; off by default). The table is clamped \
 to the output window and slew limit, and carries its reference and the stage file's FNV-1a 32: a table learned \
 for another reference or stage file is refused.";
 
@@ -132,6 +148,11 @@ pub struct AxisStep {
     pub noise_rms_m: f64,
     /// The share of L·e learned (1 far above the noise, 0 at it).
     pub learned_share: f64,
+    /// Harmonics above Q's cut-off learned from the stage's response measured on the trial.
+    pub harmonics_learned: usize,
+    /// Whether the noise came from the spread between the record's passes (else from the
+    /// error's fourth differences).
+    pub noise_from_passes: bool,
     /// (γ̂, ĉ \[m\]): the stage's output against the model's for the trial's command, when the
     /// model explains the trial (`Learning::gain_ratio`).
     pub model_gain: Option<(f64, f64)>,
@@ -227,6 +248,8 @@ impl LearnStep {
                     "limited": a.limited,
                     "noise_rms_m": a.noise_rms_m,
                     "learned_share": a.learned_share,
+                    "harmonics_learned": a.harmonics_learned,
+                    "noise_from_passes": a.noise_from_passes,
                     "model_gain_ratio": a.model_gain.map(|g| g.0),
                     "base_resolved": rebase(&[a.model_gain], &self.params).is_some(),
                 }),
@@ -490,6 +513,7 @@ pub fn model_gains(
                 measured_m: &measured_m[i],
                 base_v: &command_v[i],
                 periodic,
+                noise: None,
             })
         })
         .collect()
@@ -556,6 +580,24 @@ pub fn step_axes(
     base_v: &[Vec<f32>],
     periodic: bool,
 ) -> Result<(Vec<AxisStep>, Vec<Vec<f32>>), String> {
+    step_axes_averaged(
+        learnings, names, reference, command_v, measured_m, base_v, periodic, None,
+    )
+}
+
+/// As [`step_axes`], for a trial that averages several passes: per axis the averaged record's
+/// noise from the spread between them (`piezo_core::pass_noise_rms`), where known.
+#[allow(clippy::too_many_arguments)]
+pub fn step_axes_averaged(
+    learnings: &[Learning],
+    names: &[&'static str],
+    reference: &Reference,
+    command_v: &[Vec<f32>],
+    measured_m: &[Vec<f32>],
+    base_v: &[Vec<f32>],
+    periodic: bool,
+    noise: Option<&[Option<TrialNoise>]>,
+) -> Result<(Vec<AxisStep>, Vec<Vec<f32>>), String> {
     let mut steps = Vec::new();
     let mut next_v = Vec::new();
     for (i, learning) in learnings.iter().enumerate() {
@@ -569,6 +611,7 @@ pub fn step_axes(
                     measured_m: &measured_m[i],
                     base_v: &base_v[i],
                     periodic,
+                    noise: noise.and_then(|n| n.get(i).copied().flatten()),
                 },
                 &mut next,
             )
@@ -582,6 +625,8 @@ pub fn step_axes(
             limited: summary.limited,
             noise_rms_m: summary.noise_rms_m,
             learned_share: summary.learned_share,
+            harmonics_learned: summary.harmonics_learned,
+            noise_from_passes: noise.is_some_and(|n| n[i].is_some()),
             model_gain: None,
         });
         next_v.push(next);
@@ -613,6 +658,24 @@ pub fn step_checked(
     measured_m: &[Vec<f32>],
     base_v: &[Vec<f32>],
 ) -> Result<(Vec<AxisStep>, Vec<Vec<f32>>), String> {
+    step_checked_averaged(
+        learnings, names, reference, files, command_v, measured_m, base_v, None,
+    )
+}
+
+/// As [`step_checked`], for a trial that averages several passes: per axis the averaged
+/// record's noise from the spread between them, where known ([`step_axes_averaged`]).
+#[allow(clippy::too_many_arguments)]
+pub fn step_checked_averaged(
+    learnings: &[Learning],
+    names: &[&'static str],
+    reference: &Reference,
+    files: &StepFiles<'_>,
+    command_v: &[Vec<f32>],
+    measured_m: &[Vec<f32>],
+    base_v: &[Vec<f32>],
+    noise: Option<&[Option<TrialNoise>]>,
+) -> Result<(Vec<AxisStep>, Vec<Vec<f32>>), String> {
     let gains = model_gains(learnings, reference, command_v, measured_m, files.periodic);
     let params = learnings.first().map(|l| *l.params()).unwrap_or_default();
     let (mut steps, next) = match rebase(&gains, &params) {
@@ -621,7 +684,7 @@ pub fn step_checked(
                 compensate_for_gain(files.params, files.reference, files.periodic, &gain_offset)?;
             let base_v: Vec<Vec<f32>> = base.voltages_v.into_iter().map(|(_, u)| u).collect();
             let learnings = rescaled(learnings, &gain_offset)?;
-            step_axes(
+            step_axes_averaged(
                 &learnings,
                 names,
                 reference,
@@ -629,9 +692,10 @@ pub fn step_checked(
                 measured_m,
                 &base_v,
                 files.periodic,
+                noise,
             )?
         }
-        None => step_axes(
+        None => step_axes_averaged(
             learnings,
             names,
             reference,
@@ -639,6 +703,7 @@ pub fn step_checked(
             measured_m,
             base_v,
             files.periodic,
+            noise,
         )?,
     };
     for (step, gain) in steps.iter_mut().zip(gains) {
@@ -669,12 +734,19 @@ pub fn learn(a: &LearnArgs) -> Result<LearnStep, String> {
     } = read_learned_table(&a.command, &context, axes.len())?;
     let measured = read_csv(&a.measured).map_err(|e| e.to_string())?;
     let t_y = measured.column("t_s").map_err(|e| e.to_string())?;
-    if t_y.len() != n {
+    let passes = t_y.len() / n.max(1);
+    let whole_passes = a.periodic && passes >= 2 && t_y.len() == passes * n;
+    if t_y.len() != n && !whole_passes {
         return Err(format!(
-            "{}: {} samples, but the command {} has {n}: record one trial of the table",
+            "{}: {} samples, but the command {} has {n}: record one trial of the table{}",
             a.measured.display(),
             t_y.len(),
-            a.command.display()
+            a.command.display(),
+            if a.periodic {
+                " (or, --periodic, whole passes of it)"
+            } else {
+                ""
+            }
         ));
     }
     let (period_u, period_y) = (mean_period(&t_u), mean_period(t_y));
@@ -704,8 +776,23 @@ pub fn learn(a: &LearnArgs) -> Result<LearnStep, String> {
                 .map_err(|e| format!("--y: {e}"))?
                 .iter()
                 .map(|&v| (v * factor) as f32)
-                .collect(),
+                .collect::<Vec<f32>>(),
         );
+    }
+    // Several whole passes: their average, and its noise from the spread between them (the
+    // table, the command, is the same every pass).
+    let noise: Option<Vec<Option<TrialNoise>>> = whole_passes.then(|| {
+        y.iter()
+            .map(|record| {
+                piezo_core::pass_noise_rms(record, n).map(|measured_m| TrialNoise {
+                    measured_m,
+                    command_v: 0.0,
+                })
+            })
+            .collect()
+    });
+    if whole_passes {
+        y = y.iter().map(|record| average_passes(record, n)).collect();
     }
     let base_v: Vec<Vec<f32>> = base.voltages_v.iter().map(|(_, u)| u.clone()).collect();
     let files = StepFiles {
@@ -713,7 +800,16 @@ pub fn learn(a: &LearnArgs) -> Result<LearnStep, String> {
         reference: &a.reference,
         periodic: a.periodic,
     };
-    let (steps, next) = step_checked(&learnings, &names, &reference, &files, &u, &y, &base_v)?;
+    let (steps, next) = step_checked_averaged(
+        &learnings,
+        &names,
+        &reference,
+        &files,
+        &u,
+        &y,
+        &base_v,
+        noise.as_deref(),
+    )?;
     let next_v = base
         .voltages_v
         .iter()
@@ -730,6 +826,22 @@ pub fn learn(a: &LearnArgs) -> Result<LearnStep, String> {
         params,
         periodic: a.periodic,
     })
+}
+
+/// The mean of `record`'s whole passes of `period` samples, per sample (non-finite samples left
+/// out; NaN where no pass has one).
+pub fn average_passes(record: &[f32], period: usize) -> Vec<f32> {
+    (0..period)
+        .map(|j| {
+            let (sum, count) = record
+                .iter()
+                .skip(j)
+                .step_by(period)
+                .filter(|v| v.is_finite())
+                .fold((0.0f64, 0usize), |(s, c), &v| (s + f64::from(v), c + 1));
+            (sum / count as f64) as f32
+        })
+        .collect()
 }
 
 /// Writes `step`'s table to `out` with its `#` lines (the iteration, the stage file `params`'s

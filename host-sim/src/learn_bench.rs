@@ -35,8 +35,8 @@ use crate::servo_bench::{
     DEFAULT_LOOP_RATE_HZ, HIGH, LOW,
 };
 use piezo_core::{
-    compensate_pair, compensate_periodic_pair, Learning, LearningParams, ServoMode, ServoState,
-    Trial,
+    compensate_pair, compensate_periodic_pair, pass_noise_rms, Learning, LearningParams, ServoMode,
+    ServoState, Trial, TrialNoise,
 };
 use piezo_stage::StageFile;
 use std::path::{Path, PathBuf};
@@ -177,6 +177,9 @@ pub struct Curve {
     /// RMS of the last trial's measured error (averaged over its periods) above Q's cut-off,
     /// % of stroke, worse axis: what the learning leaves to the compensator.
     pub above_cutoff_percent: f64,
+    /// Per learning step: the harmonics above Q's cut-off learned from the stage's response
+    /// measured on the trial, the worse axis's count.
+    pub harmonics_learned: Vec<usize>,
 }
 
 impl Curve {
@@ -341,6 +344,7 @@ fn run_case(
     }
     let (mut rms_percent, mut max_percent) = (Vec::new(), Vec::new());
     let mut above_cutoff_percent = 0.0f64;
+    let mut harmonics_learned = Vec::new();
     for trial in 0..=s.iterations {
         if trial > 0 {
             for _ in 0..s.settle_periods {
@@ -351,6 +355,9 @@ fn run_case(
         }
         let mut y_sum = [vec![0.0f64; period], vec![0.0f64; period]];
         let mut u_sum = [vec![0.0f64; period], vec![0.0f64; period]];
+        // Every pass, for the noise of their average (the spread between them).
+        let mut y_passes = [Vec::new(), Vec::new()];
+        let mut u_passes = [Vec::new(), Vec::new()];
         let (mut sq, mut max) = ([0.0f64; 2], [0.0f64; 2]);
         for _ in 0..trial_periods {
             for j in 0..period {
@@ -362,6 +369,8 @@ fn run_case(
                     max[a] = max[a].max(e.abs());
                     y_sum[a][j] += read[a];
                     u_sum[a][j] += f64::from(u[a]);
+                    y_passes[a].push(read[a] as f32);
+                    u_passes[a].push(u[a]);
                 }
             }
         }
@@ -396,9 +405,17 @@ fn run_case(
                 measured_m: &y[a],
                 base_v: &base[a],
                 periodic: true,
+                noise: None,
+            })
+        });
+        let noise = [0, 1].map(|a| {
+            Some(TrialNoise {
+                measured_m: pass_noise_rms(&y_passes[a], period)?,
+                command_v: pass_noise_rms(&u_passes[a], period)?,
             })
         });
         let previous = table.clone();
+        let mut harmonics = [0usize; 2];
         let mut stepping = learning.clone();
         if let Some(gain_offset) = rebase(&gains, &s.params) {
             base = periodic_base(&gain_offset);
@@ -414,14 +431,17 @@ fn run_case(
                         measured_m: y,
                         base_v: &base[a],
                         periodic: true,
+                        noise: noise[a],
                     },
                     &mut table[a],
                 )
+                .map(|summary| harmonics[a] = summary.harmonics_learned)
                 .map_err(|e| e.to_string())?;
             // The new table carries the correction the servo held over the last trial: the
             // servo hands it over at the switch (entry 0).
             states[a].take_over(table[a][0] - previous[a][0]);
         }
+        harmonics_learned.push(harmonics[0].max(harmonics[1]));
     }
     Ok(Curve {
         mode,
@@ -433,6 +453,7 @@ fn run_case(
         cutoff_hz: [learning[0].cutoff_hz(), learning[1].cutoff_hz()],
         periods_per_trial: trial_periods,
         above_cutoff_percent,
+        harmonics_learned,
     })
 }
 
@@ -560,8 +581,8 @@ impl LearnBenchReport {
         for k in 0..=n {
             s += &format!(" {k} |");
         }
-        s += " max after last [%] | above cut-off [%] | worst ratio after 3 |\n|---|---|---|---|";
-        s += &"---|".repeat(n + 4);
+        s += " max after last [%] | above cut-off [%] | worst ratio after 3 | harmonics learned (last step) |\n|---|---|---|---|";
+        s += &"---|".repeat(n + 5);
         s += "\n";
         for c in &self.curves {
             s += &self.row(c, &format!("| {} ", c.mode.name()));
@@ -619,10 +640,11 @@ impl LearnBenchReport {
             s += &format!(" {v:.4} |");
         }
         s += &format!(
-            " {:.4} | {:.4} | {:.3} |\n",
+            " {:.4} | {:.4} | {:.3} | {} |\n",
             c.max_percent.last().copied().unwrap_or(f64::NAN),
             c.above_cutoff_percent,
-            c.worst_ratio_after(3)
+            c.worst_ratio_after(3),
+            c.harmonics_learned.last().copied().unwrap_or(0)
         );
         s
     }
@@ -640,6 +662,7 @@ impl LearnBenchReport {
                 "rms_percent": c.rms_percent,
                 "max_percent": c.max_percent,
                 "above_cutoff_percent": c.above_cutoff_percent,
+                "harmonics_learned": c.harmonics_learned,
             })
         };
         serde_json::json!({
