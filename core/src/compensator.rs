@@ -328,7 +328,7 @@ impl FastPath {
 
 /// A memo of a command's step across h = 0 (n = 1): the input increment
 /// `Δu₀ = −(h₀/A)·ln(1 + x)/x`, x = −κ·h₀/A, at which h reached zero from h₀ on the branch κ
-/// ([`crate::bouc_wen::BoucWen::n1_zero_reach`]), keyed by the bits of h₀, κ and A (Δu₀ is a
+/// (the model's `n1_zero_reach`), keyed by the bits of h₀, κ and A (Δu₀ is a
 /// function of those three alone, so a memo from another tick or model is never taken for
 /// this one). [`Compensator::compensate_noting`] writes it, [`Compensator::advance_noted`]
 /// reads it: a voltage applied that crosses zero from the same state on the same branch as

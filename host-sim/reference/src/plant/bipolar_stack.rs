@@ -63,7 +63,7 @@ impl Default for BipolarStack {
 }
 
 impl BipolarStack {
-    /// Checks and builds: 1..=[`MAX_RELAXATIONS`] positive relaxation times with positive weights
+    /// Checks and builds: 1 to 4 (`MAX_RELAXATIONS`) positive relaxation times with positive weights
     /// summing to 1 (within 1e-9), a positive mode frequency and damping ratio in (0, 1), and a
     /// positive span (m) of the first −90 → +90 V sweep.
     pub fn new(
