@@ -1569,6 +1569,9 @@ mod tests {
         logarithmic.effects.log_creep_gain_m_per_v = 1e-9;
         logarithmic.drift_form = DriftForm::Linear;
         logarithmic.effects.hysteresis_lag_s = 0.01;
+        logarithmic.rate_form = RateForm::LagAndTwoRelaxations;
+        logarithmic.effects.relaxation_gain = [0.2, 0.1];
+        logarithmic.effects.relaxation_time_constant_s = [0.002, 0.02];
         let mut seen = std::collections::HashSet::new();
         for model in [kelvin_voigt, logarithmic] {
             let (th, typ, spec) = model.encode();
