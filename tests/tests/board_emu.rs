@@ -246,23 +246,31 @@ fn the_board_image_under_emulation_tracks_as_the_qemu_image() {
         let (e, m) = (emu.after.tracking[axis], mps2.after.tracking[axis]);
         assert!(e.count >= 3_900, "axis {axis}: {e:?}");
         // The statistics and the frames agree (the same samples, give or take the ticks
-        // between the last frame and the status request).
+        // between the last frame and the status request). Under load the status comes later
+        // and the statistics also count the ticks after the program, held at its end, whose
+        // error is near zero: their RMS is diluted by at most √(n_frames / n) with n_frames
+        // about the count of the run whose status came sooner.
         let from_frames = emu.frames_rms_m[axis];
+        let dilution = |n: u32| (f64::from(e.count.min(m.count)) / f64::from(n)).sqrt();
+        let stats = f64::from(e.rms_m);
         assert!(
-            (from_frames - f64::from(e.rms_m)).abs() <= 0.02 * from_frames,
-            "axis {axis}: frames {from_frames} m vs statistics {e:?}"
+            stats <= 1.02 * from_frames && stats >= 0.98 * from_frames * dilution(e.count),
+            "axis {axis}: frames {from_frames} m vs statistics {e:?} (mps2 {m:?})"
         );
         // The same loop on the same simulated stage tracks as on the mps2 image: the frames
-        // (the same ticks of the same program) to 1 % (measured: equal to 0.01 nm), the
-        // statistics (their window starts and ends a few ticks apart) to 5 % (measured: 0.5 %).
+        // (the same ticks of the same program) to 1 % (measured: equal to 0.01 nm).
         let mps2_frames = mps2.frames_rms_m[axis];
         assert!(
             (from_frames - mps2_frames).abs() <= 0.01 * mps2_frames,
             "axis {axis}: frames board-emu {from_frames} m vs mps2 {mps2_frames} m"
         );
+        // The mps2 image's statistics against its frames, by the same rule (the frames of the
+        // two images agree to 1 %, above).
+        let mps2_stats = f64::from(m.rms_m);
         assert!(
-            (f64::from(e.rms_m) - f64::from(m.rms_m)).abs() <= 0.05 * f64::from(m.rms_m),
-            "axis {axis}: board-emu {e:?} vs mps2 {m:?}"
+            mps2_stats <= 1.02 * mps2_frames
+                && mps2_stats >= 0.98 * mps2_frames * dilution(m.count),
+            "axis {axis}: mps2 frames {mps2_frames} m vs statistics {m:?} (board-emu {e:?})"
         );
         assert!(e.rms_m < 20e-9 && e.max_abs_m < 40e-9, "axis {axis}: {e:?}");
     }
