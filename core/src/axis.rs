@@ -85,11 +85,7 @@ impl AxisParams {
             self.output_max_v,
             STATE_LIMIT,
         )?;
-        if self.asymmetry == Asymmetry::default() {
-            StaticModel::new(hysteresis, self.static_map)
-        } else {
-            StaticModel::asymmetric(hysteresis, self.static_map, self.asymmetry, sample_period_s)
-        }
+        StaticModel::with_asymmetry(hysteresis, self.static_map, self.asymmetry, sample_period_s)
     }
 
     /// The core's forward model the compensator inverts: the quasi-static one with the effects'

@@ -222,6 +222,22 @@ impl StaticModel {
         })
     }
 
+    /// Seed 001's model with the asymmetry `asymmetry`: [`StaticModel::new`] when δ = φ = 0 (a
+    /// zero asymmetry is the symmetric model, with no sample period to check), otherwise
+    /// [`StaticModel::asymmetric`] at `sample_period_s`. The one place that chooses between them.
+    pub fn with_asymmetry(
+        hysteresis: BoucWen,
+        map: StaticMap,
+        asymmetry: Asymmetry,
+        sample_period_s: f32,
+    ) -> Result<Self, ParamError> {
+        if asymmetry == Asymmetry::default() {
+            Self::new(hysteresis, map)
+        } else {
+            Self::asymmetric(hysteresis, map, asymmetry, sample_period_s)
+        }
+    }
+
     /// This model with its Bouc-Wen operator driven by a first-order lag of the command, time
     /// constant `lag_s` = τ_v \[s\] at the sample period `sample_period_s` (module doc). `lag_s`
     /// = 0 leaves the model as it is. Refuses a negative or non-finite τ_v, a τ_v below

@@ -218,8 +218,9 @@ impl Io {
     }
 }
 
-/// The model family of an axis.
+/// The model family of an axis, as named in stage files and on the command line.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
 pub enum ModelKind {
     /// y = k1·u + k2·h + y0 (seed 001 eq. 1): `[x.static_map]`.

@@ -310,12 +310,9 @@ impl Problem {
                     offset_m: 0.0,
                 };
                 let asym = self.asymmetry_of(theta, stride);
-                let m = if asym == Asymmetry::default() {
-                    StaticModel::new(bw, map).ok()?
-                } else {
-                    StaticModel::asymmetric(bw, map, asym, t).ok()?
-                };
-                Some(CoreModel::Static(m))
+                Some(CoreModel::Static(
+                    StaticModel::with_asymmetry(bw, map, asym, t).ok()?,
+                ))
             }
             ModelKind::Dynamic => {
                 let bw = bouc_wen(self.bouc_wen_of(theta, theta[3]), self.input_range_v).ok()?;

@@ -13,35 +13,14 @@ use piezo_core::{
     Asymmetry, BoucWen, BoucWenParams, DynamicModel, MassSpringDamperParams, ModelState,
     ParamError, StaticMap, StaticModel,
 };
-use piezo_stage::{Axis, Limits, ModelKind as StageModel, Provenance};
+use piezo_stage::{Axis, Limits, Provenance};
 
 /// Largest |h| accepted for a range-limited Bouc-Wen set (β + γ ≤ 0): the stage file's.
 pub const STATE_LIMIT: f32 = piezo_stage::STATE_LIMIT;
 
-/// The model families `identify` fits.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum ModelKind {
-    /// y = k1·u + k2·h + y0 (seed 001 eq. 1).
-    Symmetric,
-    /// Seed 001's asymmetric reading: δ-term and input shift φ (core `StaticModel::asymmetric`).
-    Asymmetric,
-    /// Seed 000: m0·ẍ + c0·ẋ + k0·(x − x0) = k1·u + h (core `DynamicModel`).
-    Dynamic,
-    /// Benchmark oscillator m·ÿ + c·ẏ + k·y + z = u (core `HystereticOscillator`).
-    Oscillator,
-}
-
-impl ModelKind {
-    /// Name as written in files and reports.
-    pub fn name(self) -> &'static str {
-        match self {
-            Self::Symmetric => "symmetric",
-            Self::Asymmetric => "asymmetric",
-            Self::Dynamic => "dynamic",
-            Self::Oscillator => "oscillator",
-        }
-    }
-}
+/// The model families `identify` fits: the stage file's own [`piezo_stage::ModelKind`], with
+/// its command-line names (`symmetric`, `asymmetric`, `dynamic`, `oscillator`).
+pub use piezo_stage::ModelKind;
 
 /// One identified parameter set, in SI units.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -124,12 +103,12 @@ impl Identified {
                 input_range_v,
             } => {
                 let h = bouc_wen(bw, input_range_v)?;
-                let m = if asymmetry == Asymmetry::default() {
-                    StaticModel::new(h, map)?
-                } else {
-                    StaticModel::asymmetric(h, map, asymmetry, sample_period_s)?
-                };
-                Ok(CoreModel::Static(m))
+                Ok(CoreModel::Static(StaticModel::with_asymmetry(
+                    h,
+                    map,
+                    asymmetry,
+                    sample_period_s,
+                )?))
             }
             Self::Dynamic {
                 bouc_wen: bw,
@@ -269,7 +248,7 @@ pub fn to_axis(set: &Identified, provenance: Provenance) -> Axis {
                 Asymmetry::default(),
                 limits(input_range_v),
             );
-            axis.model = StageModel::Dynamic;
+            axis.model = ModelKind::Dynamic;
             axis.static_map = None;
             axis.mass_spring_damper = Some(mechanics);
             axis
@@ -293,7 +272,7 @@ pub fn to_axis(set: &Identified, provenance: Provenance) -> Axis {
                 Asymmetry::default(),
                 limits(range),
             );
-            axis.model = StageModel::Oscillator;
+            axis.model = ModelKind::Oscillator;
             axis.bouc_wen = None;
             axis.static_map = None;
             axis.oscillator = Some(params);
@@ -314,14 +293,14 @@ pub fn from_axis(
 ) -> Result<Identified, String> {
     let need = |what: &str| format!("model \"{}\" without `{what}`", axis.model.name());
     Ok(match axis.model {
-        StageModel::Symmetric | StageModel::Asymmetric => Identified::Static {
+        ModelKind::Symmetric | ModelKind::Asymmetric => Identified::Static {
             bouc_wen: axis.bouc_wen.ok_or_else(|| need("bouc_wen"))?,
             map: axis.static_map.ok_or_else(|| need("static_map"))?,
             asymmetry: axis.asymmetry.unwrap_or_default(),
             sample_period_s,
             input_range_v,
         },
-        StageModel::Dynamic => Identified::Dynamic {
+        ModelKind::Dynamic => Identified::Dynamic {
             bouc_wen: axis.bouc_wen.ok_or_else(|| need("bouc_wen"))?,
             mechanics: axis
                 .mass_spring_damper
@@ -329,7 +308,7 @@ pub fn from_axis(
             sample_period_s,
             input_range_v,
         },
-        StageModel::Oscillator => Identified::Oscillator {
+        ModelKind::Oscillator => Identified::Oscillator {
             params: axis.oscillator.ok_or_else(|| need("oscillator"))?,
             sample_period_s,
             substeps: axis.substeps.unwrap_or(1),
