@@ -1078,9 +1078,9 @@ pub struct ServoBenchArgs {
     /// Output directory (created if missing): servo.json and the plots.
     #[arg(long, default_value = "out/servo")]
     pub out: PathBuf,
-    /// Plot format: svg, png or both.
-    #[arg(long, default_value = "svg")]
-    pub format: String,
+    /// Plot format, as in `demo` and `reproduce`.
+    #[arg(long, value_enum, default_value_t = crate::cli::PlotFormat::Both)]
+    pub format: crate::cli::PlotFormat,
     /// Effect the plant carries (host-sim effect spec, repeatable; default: creep, drift, 2 nm
     /// noise, a 3.125 nm ADC and a 16-bit 0-120 V DAC at the loop rate; `none` for a clean plant).
     #[arg(long = "plant-effect")]
@@ -1103,12 +1103,7 @@ closed-loop bandwidth from a chirp (lower axis).";
 
 /// Runs `servo-bench`.
 pub fn servo_bench_cmd(a: &ServoBenchArgs) -> Result<String, String> {
-    let extensions: &[&str] = match a.format.as_str() {
-        "svg" => &["svg"],
-        "png" => &["png"],
-        "both" => &["svg", "png"],
-        other => return Err(format!("--format {other}: expected svg, png or both")),
-    };
+    let extensions = a.format.extensions();
     if a.rates.is_empty() {
         return Err("--rates: give at least one loop rate".into());
     }
