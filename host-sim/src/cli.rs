@@ -84,35 +84,13 @@ All modes command one sample ahead. Output window 0-120 V."
     LearnBench(crate::learn_bench::LearnBenchArgs),
 }
 
-/// Plot formats.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum PlotFormat {
-    /// SVG only.
-    Svg,
-    /// PNG only (text from the embedded DejaVu font).
-    Png,
-    /// Both.
-    Both,
-}
-
-impl PlotFormat {
-    /// File extensions of the format.
-    pub fn extensions(self) -> &'static [&'static str] {
-        match self {
-            Self::Svg => &["svg"],
-            Self::Png => &["png"],
-            Self::Both => &["svg", "png"],
-        }
-    }
-}
-
 /// Runs a parsed command line; errors are returned as messages that name the argument at fault.
 pub fn run(cli: Cli) -> Result<String, String> {
     match cli.command {
         Command::Simulate(a) => crate::simulate::simulate_cmd(&a),
         Command::Demo(a) => crate::demo::demo_cmd(&a),
         Command::Reproduce(a) => crate::reproduce::reproduce_cmd(&a),
-        Command::Capture(a) => crate::capture::run(&a, &mut progress),
+        Command::Capture(a) => crate::capture::run(&a, &mut crate::progress),
         Command::Identify(a) => crate::identify::identify_cmd(&a),
         Command::Predict(a) => crate::identify::predict_cmd(&a),
         Command::CloseLoop(a) => crate::close_loop::close_loop_cmd(&a),
@@ -124,11 +102,6 @@ pub fn run(cli: Cli) -> Result<String, String> {
         Command::Learn(a) => crate::learn::learn_cmd(&a),
         Command::LearnBench(a) => crate::learn_bench::learn_bench_cmd(&a),
     }
-}
-
-/// Progress lines go to stderr.
-pub fn progress(line: &str) {
-    eprintln!("{line}");
 }
 
 #[cfg(test)]

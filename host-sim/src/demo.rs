@@ -973,8 +973,8 @@ pub struct DemoArgs {
     #[arg(long = "plant-effect")]
     pub plant_effects: Vec<String>,
     /// Plot format.
-    #[arg(long, value_enum, default_value_t = crate::cli::PlotFormat::Both)]
-    pub format: crate::cli::PlotFormat,
+    #[arg(long, value_enum, default_value_t = crate::plot::PlotFormat::Both)]
+    pub format: crate::plot::PlotFormat,
 }
 
 /// `host-sim demo`: runs the story with the arguments and writes its files.
@@ -1000,7 +1000,7 @@ pub fn demo_cmd(a: &DemoArgs) -> Result<String, String> {
         identify_s: a.identify,
         plant_effects,
     };
-    let result = run_demo(&settings, &mut crate::cli::progress)?;
+    let result = run_demo(&settings, &mut crate::progress)?;
     let files = result.write(&a.out, a.format.extensions())?;
     Ok(format!("{}written: {}", result.table(), files.join(", ")))
 }

@@ -770,8 +770,8 @@ pub struct LearnBenchArgs {
     #[arg(long, default_value = "out/learn")]
     pub out: PathBuf,
     /// Plot format: svg, png or both.
-    #[arg(long, value_enum, default_value_t = crate::cli::PlotFormat::Svg)]
-    pub format: crate::cli::PlotFormat,
+    #[arg(long, value_enum, default_value_t = crate::plot::PlotFormat::Svg)]
+    pub format: crate::plot::PlotFormat,
     /// Learning steps per run.
     #[arg(long, default_value_t = 15)]
     pub iterations: usize,

@@ -47,3 +47,8 @@ pub mod track_plot;
 pub mod uncertainty;
 
 pub use piezo_reference::{bouc_wen, csv, effects, ode, plant, signal, sim};
+
+/// Progress lines of the long commands: to stderr, so that stdout keeps the result.
+pub fn progress(line: &str) {
+    eprintln!("{line}");
+}

@@ -630,13 +630,13 @@ pub struct ReproduceArgs {
     #[arg(long, default_value = "out/reproduce")]
     pub out: std::path::PathBuf,
     /// Plot format.
-    #[arg(long, value_enum, default_value_t = crate::cli::PlotFormat::Both)]
-    pub format: crate::cli::PlotFormat,
+    #[arg(long, value_enum, default_value_t = crate::plot::PlotFormat::Both)]
+    pub format: crate::plot::PlotFormat,
 }
 
 /// `host-sim reproduce`: runs the figures and writes the report and plots.
 pub fn reproduce_cmd(a: &ReproduceArgs) -> Result<String, String> {
-    let report = crate::reproduce::run_reproduce(&mut crate::cli::progress)?;
+    let report = crate::reproduce::run_reproduce(&mut crate::progress)?;
     let files = report.write(&a.out, a.format.extensions())?;
     Ok(format!("{}written: {}", report.table(), files.join(", ")))
 }

@@ -1079,8 +1079,8 @@ pub struct ServoBenchArgs {
     #[arg(long, default_value = "out/servo")]
     pub out: PathBuf,
     /// Plot format, as in `demo` and `reproduce`.
-    #[arg(long, value_enum, default_value_t = crate::cli::PlotFormat::Both)]
-    pub format: crate::cli::PlotFormat,
+    #[arg(long, value_enum, default_value_t = crate::plot::PlotFormat::Both)]
+    pub format: crate::plot::PlotFormat,
     /// Effect the plant carries (host-sim effect spec, repeatable; default: creep, drift, 2 nm
     /// noise, a 3.125 nm ADC and a 16-bit 0-120 V DAC at the loop rate; `none` for a clean plant).
     #[arg(long = "plant-effect")]

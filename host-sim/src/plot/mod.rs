@@ -530,6 +530,28 @@ pub fn plot_svg(path: &Path, out: &SimOutput, title: &str) -> Result<(), PlotErr
     write(path, Format::Svg, &svg).map_err(|e| failed(path, e))
 }
 
+/// Plot formats.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum PlotFormat {
+    /// SVG only.
+    Svg,
+    /// PNG only (text from the embedded DejaVu font).
+    Png,
+    /// Both.
+    Both,
+}
+
+impl PlotFormat {
+    /// File extensions of the format.
+    pub fn extensions(self) -> &'static [&'static str] {
+        match self {
+            Self::Svg => &["svg"],
+            Self::Png => &["png"],
+            Self::Both => &["svg", "png"],
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
