@@ -16,8 +16,8 @@ use piezo_stage::{simulate_pair, Axis, AxisChain, Limits, Provenance, StageFile,
 use serde_json::{json, Value};
 use std::path::Path;
 
-/// Slew limit written for every axis \[V/s\].
-pub const SLEW_LIMIT_V_PER_S: f32 = 1e5;
+/// Slew limit written for every axis \[V/s\]: the stage file's default.
+pub const SLEW_LIMIT_V_PER_S: f32 = piezo_stage::DEFAULT_SLEW_LIMIT_V_PER_S;
 
 /// The output window for a record's input: its range rounded outwards to a tenth of the power of
 /// ten below its span (0–3.6 V stays 0–3.6 V, 0.2–119.7 V gives 0–120 V).

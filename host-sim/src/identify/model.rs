@@ -215,13 +215,13 @@ impl CoreModel {
 }
 
 /// The stage-file axis of a set: its model tables, limits = the validated input range (the
-/// window the firmware may drive; the oscillator: the force range), slew 1e5 V/s, and where it came
-/// from.
+/// window the firmware may drive; the oscillator: the force range), the stage file's default slew
+/// ([`piezo_stage::DEFAULT_SLEW_LIMIT_V_PER_S`]), and where it came from.
 pub fn to_axis(set: &Identified, provenance: Provenance) -> Axis {
     let limits = |range: (f32, f32)| Limits {
         output_min_v: range.0,
         output_max_v: range.1,
-        slew_limit_v_per_s: 1.0e5,
+        slew_limit_v_per_s: piezo_stage::DEFAULT_SLEW_LIMIT_V_PER_S,
         envelope_policy: Default::default(),
     };
     let mut axis = match *set {
