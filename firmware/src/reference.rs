@@ -609,7 +609,9 @@ fn interpolate(table: &[[f32; 2]], tick: u32, ticks_per_entry: u32) -> Option<[f
 /// without libm's `floorf`; the same bits as the general form below.
 #[inline]
 fn wrap(phase: f32) -> f32 {
-    if phase > 0.0 && phase < 1.0 {
+    // 0 < phase < 1 on the bits: the positive f32 below 1.0 are the bit patterns
+    // 1 ..= 0x3F7F_FFFF (one integer compare instead of two float ones).
+    if phase.to_bits().wrapping_sub(1) < 0x3F7F_FFFF {
         return phase;
     }
     if (1.0..2.0).contains(&phase) {

@@ -1128,10 +1128,10 @@ impl TwoAxisLoop {
             // The guard overrode the compensator, or another feed-forward ran: advance the
             // model by what is applied, so that switching to the compensator is bumpless.
             // From the state before the tick, with the command's Δu₀ when it crossed h = 0.
-            let mut state = *before;
+            let state = &mut self.compensator[i];
+            *state = *before;
             axis.compensator
-                .advance_noted(&mut state, u, &self.zero_reach[i]);
-            self.compensator[i] = state;
+                .advance_noted(state, u, &self.zero_reach[i]);
         }
         u
     }
