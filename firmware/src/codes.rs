@@ -30,14 +30,17 @@ impl DacCode {
     /// Nearest code to `volts` at the DAC output, saturated to `[0, 65535]`; NaN gives
     /// [`DacCode::SAFE`]. Never panics.
     ///
-    /// `code = sat₀⁶⁵⁵³⁵(⌊volts / LSB + 0.5⌋)` in one conversion: Rust's float → `u16` cast
-    /// truncates towards zero and saturates (below 0 → 0, above 65 535 or +∞ → 65 535, NaN → 0
-    /// = [`DacCode::SAFE`]), so no clamp or NaN branch is needed. The same codes as clamping
-    /// `volts / LSB` to \[0, 65 535\] first: inside that range the sum is the same; below it the
-    /// sum is < 0.5 and truncates to 0; above it the sum is > 65 535.5 and saturates.
+    /// `code = sat₀⁶⁵⁵³⁵(⌊volts / LSB + 0.5⌋)`: Rust's float → `u32` cast truncates towards zero
+    /// and saturates (below 0 → 0, NaN → 0 = [`DacCode::SAFE`]; the Cortex-M4F's `vcvt` does
+    /// exactly that, one instruction), then the integer minimum with 65 535 (above it, or +∞ →
+    /// 65 535): the same codes as the float → `u16` cast, without its two float compares. The
+    /// same codes as clamping `volts / LSB` to \[0, 65 535\] first: inside that range the sum is
+    /// the same; below it the sum is < 0.5 and truncates to 0; above it the sum is > 65 535.5.
     #[inline]
     pub fn from_volts(volts: f32) -> Self {
-        DacCode((volts / Self::VOLTS_PER_LSB + 0.5) as u16)
+        let code = (volts / Self::VOLTS_PER_LSB + 0.5) as u32;
+        // At most u16::MAX after the minimum: the cast keeps the value.
+        DacCode(code.min(u32::from(u16::MAX)) as u16)
     }
 
     /// DAC output volts for this code.

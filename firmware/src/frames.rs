@@ -21,12 +21,12 @@
 //! `parameters <version> (<file>), fnv1a32 0x<hash>, fingerprint 0x<hash>, loop <rate> Hz, one
 //! frame every <n> ticks`, so frame `k` was produced at t = k·n / rate after boot.
 
-use heapless::Deque;
 pub use piezo_link::text::FrameTextError;
 pub use piezo_link::Frame;
 
-/// Frames the queue holds.
+/// Frames the queue holds (a power of two: a slot is the write count modulo it).
 pub const FRAME_QUEUE_CAPACITY: usize = 32;
+const _: () = assert!(FRAME_QUEUE_CAPACITY.is_power_of_two());
 
 /// One axis of a tick as the loop offers it to [`FrameQueue::offer_flagged`].
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -40,9 +40,18 @@ pub struct AxisSample {
 }
 
 /// The loop's outgoing frames: decimation, sequence numbers, a bounded queue.
+///
+/// A ring of [`FRAME_QUEUE_CAPACITY`] frames written in place: the tick stores its fields into
+/// the next free slot (no frame built on the stack and copied in), `written − read` frames wait
+/// (both counts free-running, wrapping), slot `written mod capacity` is the next one written.
+/// A slot's `trial` stays 0 (the link sets its own copy's), so the tick never writes it.
 #[derive(Debug)]
 pub struct FrameQueue {
-    frames: Deque<Frame, FRAME_QUEUE_CAPACITY>,
+    slots: [Frame; FRAME_QUEUE_CAPACITY],
+    /// Frames put into the ring (wraps).
+    written: u32,
+    /// Frames taken out or discarded (wraps); `written − read` ≤ capacity.
+    read: u32,
     decimation: u32,
     countdown: u32,
     next_sequence: u32,
@@ -53,7 +62,9 @@ impl FrameQueue {
     /// One frame every `decimation` ticks (0 is taken as 1).
     pub fn new(decimation: u32) -> Self {
         Self {
-            frames: Deque::new(),
+            slots: [Frame::default(); FRAME_QUEUE_CAPACITY],
+            written: 0,
+            read: 0,
             decimation: decimation.max(1),
             countdown: 0,
             next_sequence: 0,
@@ -69,7 +80,7 @@ impl FrameQueue {
     }
 
     /// [`FrameQueue::offer`] with the tick's flags ([`Frame::flags`]); `trial` is 0 (the link
-    /// sets it).
+    /// sets it). The frame is written into its slot field by field.
     #[inline]
     pub fn offer_flagged(&mut self, make: impl FnOnce() -> [AxisSample; 2], flags: u8) {
         if self.countdown > 0 {
@@ -77,45 +88,47 @@ impl FrameQueue {
             return;
         }
         self.countdown = self.decimation - 1;
-        let [x, y] = make();
-        let frame = Frame {
-            sequence: self.next_sequence,
-            reference_m: [x.reference_m, y.reference_m],
-            commanded_v: [x.commanded_v, y.commanded_v],
-            sensor_m: [x.sensor_m, y.sensor_m],
-            trial: 0,
-            flags,
-        };
-        self.next_sequence = self.next_sequence.wrapping_add(1);
-        if self.frames.push_back(frame).is_err() {
+        let sequence = self.next_sequence;
+        self.next_sequence = sequence.wrapping_add(1);
+        let written = self.written;
+        if written.wrapping_sub(self.read) as usize >= FRAME_QUEUE_CAPACITY {
             self.dropped = self.dropped.saturating_add(1);
+            return;
         }
+        let [x, y] = make();
+        let slot = &mut self.slots[written as usize % FRAME_QUEUE_CAPACITY];
+        slot.sequence = sequence;
+        slot.reference_m = [x.reference_m, y.reference_m];
+        slot.commanded_v = [x.commanded_v, y.commanded_v];
+        slot.sensor_m = [x.sensor_m, y.sensor_m];
+        slot.flags = flags;
+        self.written = written.wrapping_add(1);
     }
 
     /// Moves up to `N` frames, oldest first, into `batch` (cleared first); returns how many.
     pub fn drain_into<const N: usize>(&mut self, batch: &mut heapless::Vec<Frame, N>) -> usize {
         batch.clear();
-        while batch.len() < N {
-            match self.frames.pop_front() {
-                Some(f) => {
-                    // Cannot fail: the length was checked above.
-                    let _ = batch.push(f);
-                }
-                None => break,
-            }
+        let n = self.len().min(N);
+        for k in 0..n {
+            let slot = self.read.wrapping_add(k as u32) as usize % FRAME_QUEUE_CAPACITY;
+            // Cannot fail: n ≤ N.
+            let _ = batch.push(self.slots[slot]);
         }
-        batch.len()
+        self.read = self.read.wrapping_add(n as u32);
+        n
     }
 
     /// Drops the queued frames numbered `first` and after (those produced since
     /// [`Self::next_sequence`] was `first`), keeping older ones; not counted as dropped.
     pub fn discard_from(&mut self, first: u32) {
         let produced = self.next_sequence.wrapping_sub(first);
-        while let Some(f) = self.frames.back() {
+        while self.written != self.read {
+            let last = self.written.wrapping_sub(1);
+            let f = &self.slots[last as usize % FRAME_QUEUE_CAPACITY];
             if self.next_sequence.wrapping_sub(f.sequence) > produced {
                 break;
             }
-            self.frames.pop_back();
+            self.written = last;
         }
     }
 
@@ -132,17 +145,17 @@ impl FrameQueue {
 
     /// Drops the waiting frames without counting them as dropped (nobody is listening).
     pub fn discard(&mut self) {
-        self.frames.clear();
+        self.read = self.written;
     }
 
     /// Frames waiting.
     pub fn len(&self) -> usize {
-        self.frames.len()
+        self.written.wrapping_sub(self.read) as usize
     }
 
     /// True if no frame is waiting.
     pub fn is_empty(&self) -> bool {
-        self.frames.is_empty()
+        self.written == self.read
     }
 
     /// Frames dropped because the queue was full (saturating).
@@ -261,6 +274,37 @@ mod tests {
         q.discard_from(q.next_sequence());
         assert_eq!(q.len(), 1);
         assert_eq!(q.dropped(), 0);
+    }
+
+    #[test]
+    fn the_ring_keeps_order_and_fields_over_many_passes() {
+        // Frames go through the ring's slots many times over, drained in uneven batches and
+        // discarded from the back across the slots' wrap: every frame comes out once, in
+        // order, with its own fields, and `trial` stays 0.
+        let mut q = FrameQueue::new(1);
+        let mut batch = heapless::Vec::<Frame, 5>::new();
+        let mut next = 0u32;
+        for round in 0..(4 * FRAME_QUEUE_CAPACITY) {
+            for k in 0..(1 + round % 7) {
+                q.offer_flagged(|| axes(k as f32 + round as f32 * 0.5), (round % 16) as u8);
+            }
+            if round % 5 == 4 {
+                // The newest frame goes again (as a refused reply would drop it).
+                q.discard_from(q.next_sequence() - 1);
+            }
+            while q.drain_into(&mut batch) > 0 {
+                for f in &batch {
+                    assert!(f.sequence >= next, "{} after {next}", f.sequence);
+                    next = f.sequence + 1;
+                    assert_eq!(f.commanded_v[0], 2.0 * f.reference_m[0]);
+                    assert_eq!(f.reference_m[1], -f.reference_m[0]);
+                    assert_eq!(f.trial, 0);
+                }
+            }
+            assert!(q.is_empty());
+        }
+        assert_eq!(q.dropped(), 0);
+        assert_eq!(next, q.next_sequence());
     }
 
     #[test]

@@ -543,6 +543,32 @@ pub struct TickReport {
     pub mode: Mode,
 }
 
+/// Which copy of [`TwoAxisLoop::tick`]'s body runs: one load per tick instead of testing the
+/// chain and the feed-forward.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Body {
+    /// Neither an effect chain nor the learned table.
+    Plain,
+    /// With the inverse effect chain.
+    Effects,
+    /// The learned voltage table.
+    Learned,
+}
+
+impl Body {
+    /// The body for this chain and feed-forward: the chain's copy when there is a chain, the
+    /// learned table's for [`Feedforward::Learned`], the plain one otherwise.
+    fn of(chain: &Option<InverseChain>, feedforward: Feedforward) -> Self {
+        if chain.is_some() {
+            Body::Effects
+        } else if feedforward == Feedforward::Learned {
+            Body::Learned
+        } else {
+            Body::Plain
+        }
+    }
+}
+
 /// The loop: settings, per-axis compensator and guard state, reference, faults, frames.
 pub struct TwoAxisLoop {
     settings: LoopSettings,
@@ -568,6 +594,9 @@ pub struct TwoAxisLoop {
     last_reference_m: [f32; 2],
     /// The inverse effect chain (`None`: no effects, or the linear baseline).
     chain: Option<InverseChain>,
+    /// The copy of the tick's body that runs, from `chain` and `feedforward` (`set_body` after
+    /// every change of either).
+    body: Body,
     /// The reference generator (public: push streamed setpoints, switch programs; with effects
     /// they take effect [`TwoAxisLoop::lead_ticks`] ticks later).
     pub reference: ReferenceGenerator,
@@ -617,6 +646,7 @@ impl TwoAxisLoop {
                 ServoState::at_rest(guard[0].last_safe_volts(), mode),
                 ServoState::at_rest(guard[1].last_safe_volts(), mode),
             ],
+            body: Body::of(&chain, feedforward),
             chain,
             guard,
             stuck: [StuckDetector::default(); 2],
@@ -699,6 +729,7 @@ impl TwoAxisLoop {
         let from_excitation = self.feedforward == Feedforward::OpenLoop;
         self.feedforward = feedforward;
         self.chain = self.chain_at_applied();
+        self.set_body();
         if from_excitation {
             self.restart_servo();
         } else {
@@ -768,6 +799,7 @@ impl TwoAxisLoop {
             if feedforward != self.feedforward {
                 self.feedforward = feedforward;
                 self.chain = self.chain_at_applied();
+                self.set_body();
                 source_changed = true;
             }
         }
@@ -821,6 +853,7 @@ impl TwoAxisLoop {
         if source_changed {
             self.feedforward = Feedforward::Learned;
             self.chain = None;
+            self.set_body();
         }
         let mode = self.control_mode();
         self.switch_servo(was_feedback, mode);
@@ -1026,12 +1059,18 @@ impl TwoAxisLoop {
         self.envelope.iter_mut().for_each(|e| e.outside = false);
         if effects_changed {
             self.chain = self.chain_at_applied();
+            self.set_body();
         }
         if self.feedback && settings.axes.iter().any(|a| a.servo.is_none()) {
             // A set without a servo: feed-forward only from here on.
             self.feedback = false;
         }
         self.restart_servo();
+    }
+
+    /// The body's copy again after `chain` or `feedforward` changed.
+    fn set_body(&mut self) {
+        self.body = Body::of(&self.chain, self.feedforward);
     }
 
     fn chain_at_applied(&self) -> Option<InverseChain> {
@@ -1055,7 +1094,27 @@ impl TwoAxisLoop {
         self.restart_servo();
     }
 
-    #[inline]
+    /// A fault: counted under its cause ([`Counters`]) and latched (`trip`). Out of line, as
+    /// `trip`: only a fault calls it, and the tick keeps fewer values live around it.
+    #[cold]
+    #[inline(never)]
+    fn count_fault(&mut self, fault: Fault) {
+        let c = &mut self.counters;
+        let count = match fault {
+            Fault::SensorError(_) => &mut c.sensor_errors,
+            Fault::NonFiniteReading(_) => &mut c.non_finite_readings,
+            Fault::StuckReading(_) => &mut c.stuck_readings,
+            Fault::Overrun => &mut c.overruns,
+            Fault::DacError(_) => &mut c.dac_errors,
+        };
+        *count = count.saturating_add(1);
+        self.trip(fault);
+    }
+
+    /// Latches the safe state with `fault`, counted once per entry (out of line: only a fault
+    /// calls it).
+    #[cold]
+    #[inline(never)]
     fn trip(&mut self, fault: Fault) {
         if self.mode == Mode::Running {
             self.mode = Mode::Safe(fault);
@@ -1128,10 +1187,10 @@ impl TwoAxisLoop {
             // The guard overrode the compensator, or another feed-forward ran: advance the
             // model by what is applied, so that switching to the compensator is bumpless.
             // From the state before the tick, with the command's Δu₀ when it crossed h = 0.
-            let mut state = *before;
+            let state = &mut self.compensator[i];
+            *state = *before;
             axis.compensator
-                .advance_noted(&mut state, u, &self.zero_reach[i]);
-            self.compensator[i] = state;
+                .advance_noted(state, u, &self.zero_reach[i]);
         }
         u
     }
@@ -1145,12 +1204,10 @@ impl TwoAxisLoop {
     {
         // Three copies of the body: without effects it is exactly the tick without the chain,
         // and only the learned table's copy reads it.
-        if self.chain.is_some() {
-            self.tick_body::<true, false, D, S>(io, deadline_missed)
-        } else if self.feedforward == Feedforward::Learned {
-            self.tick_body::<false, true, D, S>(io, deadline_missed)
-        } else {
-            self.tick_body::<false, false, D, S>(io, deadline_missed)
+        match self.body {
+            Body::Plain => self.tick_body::<false, false, D, S>(io, deadline_missed),
+            Body::Effects => self.tick_body::<true, false, D, S>(io, deadline_missed),
+            Body::Learned => self.tick_body::<false, true, D, S>(io, deadline_missed),
         }
     }
 
@@ -1175,8 +1232,7 @@ impl TwoAxisLoop {
         let c = &mut self.counters;
         c.ticks = c.ticks.saturating_add(1);
         if deadline_missed {
-            c.overruns = c.overruns.saturating_add(1);
-            self.trip(Fault::Overrun);
+            self.count_fault(Fault::Overrun);
         }
 
         // 1. Sensors, every tick.
@@ -1189,21 +1245,11 @@ impl TwoAxisLoop {
                     measured_m[i] = m;
                     let commanded = self.guard[i].last_safe_volts();
                     if self.stuck[i].observe(m, commanded, &self.settings.stuck) {
-                        let c = &mut self.counters;
-                        c.stuck_readings = c.stuck_readings.saturating_add(1);
-                        self.trip(Fault::StuckReading(axis));
+                        self.count_fault(Fault::StuckReading(axis));
                     }
                 }
-                Ok(_) => {
-                    let c = &mut self.counters;
-                    c.non_finite_readings = c.non_finite_readings.saturating_add(1);
-                    self.trip(Fault::NonFiniteReading(axis));
-                }
-                Err(_) => {
-                    let c = &mut self.counters;
-                    c.sensor_errors = c.sensor_errors.saturating_add(1);
-                    self.trip(Fault::SensorError(axis));
-                }
+                Ok(_) => self.count_fault(Fault::NonFiniteReading(axis)),
+                Err(_) => self.count_fault(Fault::SensorError(axis)),
             }
         }
 
@@ -1370,5 +1416,69 @@ impl TwoAxisLoop {
             applied_v,
             mode: self.mode,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::params::{AxisParams, AMPLIFIER_GAIN_V_PER_V, AXES, SAMPLE_PERIOD_S};
+    use crate::test_support::loop_holding;
+    use piezo_core::effects::EffectParams;
+
+    /// The tick's body (plain, effects, learned) stays the one of the loop's chain and
+    /// feed-forward through every call that changes either: feed-forward switches, control
+    /// modes, a set with effects and one without, the learned table and back.
+    #[test]
+    fn the_tick_body_follows_the_chain_and_the_feedforward() {
+        let check = |lp: &TwoAxisLoop, want: Body| {
+            assert_eq!(lp.body, Body::of(&lp.chain, lp.feedforward));
+            assert_eq!(lp.body, want);
+        };
+        let mut lp = loop_holding([5e-6, 5e-6]);
+        check(&lp, Body::Plain);
+        lp.set_feedforward(Feedforward::OpenLoop);
+        check(&lp, Body::Plain);
+        lp.set_feedforward(Feedforward::Compensator);
+        check(&lp, Body::Plain);
+
+        // A set with effects: the chain's copy, in every mode that runs the compensator.
+        let mut axes: [AxisParams; 2] = AXES;
+        for a in &mut axes {
+            a.effects = EffectParams {
+                creep_gain_m_per_v: [0.03 * a.static_map.k1_m_per_v, 0.0, 0.0],
+                creep_time_constant_s: [0.2, 0.0, 0.0],
+                ..EffectParams::default()
+            };
+        }
+        let with_effects =
+            LoopSettings::from_params(&axes, AMPLIFIER_GAIN_V_PER_V, SAMPLE_PERIOD_S).unwrap();
+        let without = *lp.settings();
+        lp.set_settings(with_effects);
+        check(&lp, Body::Effects);
+        lp.set_control_mode(ServoMode::OpenLoop).unwrap();
+        check(&lp, Body::Plain);
+        lp.set_control_mode(ServoMode::Feedforward).unwrap();
+        check(&lp, Body::Effects);
+        lp.set_feedforward(Feedforward::OpenLoop);
+        check(&lp, Body::Plain);
+        lp.set_feedforward(Feedforward::Compensator);
+        check(&lp, Body::Effects);
+        lp.set_settings(without);
+        check(&lp, Body::Plain);
+
+        // The learned table over a table program, then the compensator again.
+        let entries = [[5e-6, 5e-6], [6e-6, 6e-6], [7e-6, 7e-6], [6e-6, 6e-6]];
+        let volts = [[10.0, 10.0], [10.1, 10.1], [10.2, 10.2], [10.1, 10.1]];
+        lp.reference.table_append(&entries).unwrap();
+        lp.reference.learned_append(&volts).unwrap();
+        lp.reference.set_program(Program::Table {
+            ticks_per_entry: 8,
+            repeat: true,
+        });
+        lp.set_learned_mode(false).unwrap();
+        check(&lp, Body::Learned);
+        lp.set_control_mode(ServoMode::Feedforward).unwrap();
+        check(&lp, Body::Plain);
     }
 }
