@@ -27,10 +27,10 @@
 //!   next table; with `--periods` ≥ 2 the step reads the averaged record's noise from the
 //!   spread between the passes (`piezo_core::pass_noise_rms`, as `learn --periodic` does for a
 //!   record of whole passes), which also lets it learn above Q's cut-off (`--harmonic-gain`).
-//! * **Back-off** (`piezo_core::learning::back_off`): per axis, a trial whose averaged error grew
-//!   more than 5 % above that of the table held (the last that did not grow) is not learned
-//!   from: the next table lies halfway between the held one and the one just played, and ρ of
-//!   the learning above the cut-off is halved from then on.
+//! * **Back-off** (`--back-off`, `piezo_core::learning::back_off`): per axis, a trial whose
+//!   averaged error grew more than 5 % above the trial before's is not learned from: the next
+//!   table lies halfway between the two, and ρ of the learning above the cut-off is halved from
+//!   then on.
 //! * **Stop**: after `--iterations` steps, or early when `--patience` trials in a row do not
 //!   bring the error (the RMS of both axes, √((rms_x² + rms_y²)/2)) below 98 % of the best so
 //!   far. The best table (lowest error) is loaded and left playing.
@@ -98,6 +98,11 @@ pub struct LinkLearnArgs {
     /// Whole periods played before each trial's record.
     #[arg(long, default_value_t = 1)]
     pub settle_periods: u32,
+    /// The error-growth back-off: per axis, a trial whose averaged error grew more than 5 % above
+    /// the trial before's is not learned from; the next table lies halfway between the two, and
+    /// the harmonic gain halves (`piezo_core::learning::back_off`).
+    #[arg(long)]
+    pub back_off: bool,
     /// Trials in a row without a new best (by 2 %) before stopping.
     #[arg(long, default_value_t = 2)]
     pub patience: usize,
@@ -471,10 +476,12 @@ pub fn link_learn(
         let mut verdicts = [Verdict::Learn; 2];
         let mut stepping = Vec::new();
         for (i, learning) in learnings.iter().enumerate() {
-            verdicts[i] = back_off[i].judge(period_rms(
-                &reference.axes[i].1,
-                &trial_record.measured_m[i],
-            ));
+            if a.back_off {
+                verdicts[i] = back_off[i].judge(period_rms(
+                    &reference.axes[i].1,
+                    &trial_record.measured_m[i],
+                ));
+            }
             let rho = learning.params().harmonic_gain * back_off[i].harmonic_scale() as f32;
             stepping.push(
                 learning

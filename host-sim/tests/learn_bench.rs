@@ -36,8 +36,7 @@ fn learning_keeps_a_clean_plant_at_its_first_trial() {
 /// that switch's transient (the servo unwinding the correction the table took over, the creep of
 /// the step), which is not periodic, and the next table learned it: the second trial rose 1.33×
 /// above the first on the nominal stage file and 1.56× with its mode 15 % low. By default each
-/// new table now plays one period before its trial is recorded, and a trial whose measured
-/// error grew steps back.
+/// new table now plays one period before its trial is recorded.
 #[test]
 fn a_single_period_trial_does_not_learn_the_switch_transient() {
     let settings = LearnBenchSettings {
