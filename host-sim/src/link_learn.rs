@@ -307,8 +307,8 @@ fn record(
     let mut u = vec![vec![0.0f64; n]; 2];
     let mut y = vec![vec![0.0f64; n]; 2];
     // Every pass, for the spread between them.
-    let mut u_passes = vec![Vec::with_capacity(rows.len()); 2];
-    let mut y_passes = vec![Vec::with_capacity(rows.len()); 2];
+    let mut u_passes: [Vec<f32>; 2] = [0, 1].map(|_| Vec::with_capacity(rows.len()));
+    let mut y_passes: [Vec<f32>; 2] = [0, 1].map(|_| Vec::with_capacity(rows.len()));
     let mut sq = [0.0f64; 2];
     for (k, row) in rows.iter().enumerate() {
         let j = k % n;
