@@ -93,8 +93,10 @@
 //! Never panics, for any slices: a non-finite reference or measured sample counts as no error,
 //! a non-finite command sample as the compensator's.
 
+pub mod back_off;
 mod harmonics;
 
+pub use back_off::{step_back, BackOff, Verdict, ERROR_GROWTH_LIMIT};
 pub use harmonics::{
     HARMONIC_MODEL_FACTOR, HARMONIC_MODEL_PHASE_RAD, HARMONIC_SNR, HARMONIC_STEP_CAP, MAX_HARMONICS,
 };
@@ -578,6 +580,22 @@ impl Learning {
             .map(|i| 1.0 - tol + 2.0 * tol * i as f64 / (RULE_MODE_SAMPLES - 1) as f64)
             .map(mode_at)
             .fold(mode_at(on_peak), f64::max)
+    }
+
+    /// This learning with ρ of the learning above Q's cut-off `harmonic_gain` (0 ≤ ρ ≤ 1,
+    /// [`LearningParams::harmonic_gain`]; the rest, Q and its cut-off included, unchanged):
+    /// what [`back_off::BackOff::harmonic_scale`] scales. Refuses another ρ.
+    pub fn with_harmonic_gain(&self, harmonic_gain: f32) -> Result<Self, ParamError> {
+        if !(0.0..=1.0).contains(&harmonic_gain) {
+            return Err(ParamError::OutOfRange {
+                field: "harmonic_gain",
+                value: harmonic_gain,
+                requirement: "in [0, 1]",
+            });
+        }
+        let mut scaled = *self;
+        scaled.params.harmonic_gain = harmonic_gain;
+        Ok(scaled)
     }
 
     /// This learning for a stage whose gain is `gain_ratio` (γ̂ > 0, finite) times the model's:

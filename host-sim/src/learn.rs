@@ -29,6 +29,10 @@
 //!   (`piezo_core::learning`, module `harmonics`). With a servo the command file does not
 //!   show (learned+feedback over the link, the table as U), Ĝ is the table → output response,
 //!   which is what an update of the table needs.
+//! * One step has no memory of the trials before: the error-growth back-off
+//!   (`piezo_core::learning::back_off`: a trial whose error grew more than 5 % over the one
+//!   before steps back halfway to the table before) is the loop's, as `learn-bench` and
+//!   `link learn` run it.
 //! * `STEP.json`: per axis the error of the trial just measured (`rms_m`, `max_abs_m`), the
 //!   cut-off `q_cutoff_hz`, the learning gain, the samples limited, the sensor noise estimated from
 //!   the error (`noise_rms_m`), the share of L·e learned (`learned_share`) and the harmonics
@@ -568,50 +572,49 @@ pub fn axis_learnings(
         .collect()
 }
 
-/// One learning step per axis: the next command from the trial's `command_v` and `measured_m`
-/// (per axis, the reference's length), `base_v` the compensator's command u_0. The error of
-/// the trial and the next command per axis.
-pub fn step_axes(
-    learnings: &[Learning],
-    names: &[&'static str],
-    reference: &Reference,
-    command_v: &[Vec<f32>],
-    measured_m: &[Vec<f32>],
-    base_v: &[Vec<f32>],
-    periodic: bool,
-) -> Result<(Vec<AxisStep>, Vec<Vec<f32>>), String> {
-    step_axes_averaged(
-        learnings, names, reference, command_v, measured_m, base_v, periodic, None,
-    )
+/// One trial of every axis, as a learning step reads it: per axis (in `learnings`' order) the
+/// trial's command, what was measured and the compensator's command u_0, each the reference's
+/// length.
+#[derive(Debug, Clone, Copy)]
+pub struct AxesTrial<'a> {
+    /// Each axis's learning.
+    pub learnings: &'a [Learning],
+    /// The axes' names (`x`, `y`).
+    pub names: &'a [&'static str],
+    /// The reference.
+    pub reference: &'a Reference,
+    /// u_k per axis \[V\].
+    pub command_v: &'a [Vec<f32>],
+    /// y_k per axis \[m\].
+    pub measured_m: &'a [Vec<f32>],
+    /// u_0 per axis \[V\].
+    pub base_v: &'a [Vec<f32>],
+    /// One period of a trajectory played in a loop (else one run from rest).
+    pub periodic: bool,
+    /// For a trial that averages several passes: per axis the averaged record's noise from the
+    /// spread between them (`piezo_core::pass_noise_rms`), where known; `None` else (the noise
+    /// then comes from the error's fourth differences).
+    pub noise: Option<&'a [Option<TrialNoise>]>,
 }
 
-/// As [`step_axes`], for a trial that averages several passes: per axis the averaged record's
-/// noise from the spread between them (`piezo_core::pass_noise_rms`), where known.
-#[allow(clippy::too_many_arguments)]
-pub fn step_axes_averaged(
-    learnings: &[Learning],
-    names: &[&'static str],
-    reference: &Reference,
-    command_v: &[Vec<f32>],
-    measured_m: &[Vec<f32>],
-    base_v: &[Vec<f32>],
-    periodic: bool,
-    noise: Option<&[Option<TrialNoise>]>,
-) -> Result<(Vec<AxisStep>, Vec<Vec<f32>>), String> {
+/// One learning step per axis: the next command from the trial. The error of the trial and the
+/// next command per axis.
+pub fn step_axes(trial: &AxesTrial<'_>) -> Result<(Vec<AxisStep>, Vec<Vec<f32>>), String> {
     let mut steps = Vec::new();
     let mut next_v = Vec::new();
-    for (i, learning) in learnings.iter().enumerate() {
-        let name = names[i];
-        let mut next = vec![0.0f32; reference.t_s.len()];
+    for (i, learning) in trial.learnings.iter().enumerate() {
+        let name = trial.names[i];
+        let mut next = vec![0.0f32; trial.reference.t_s.len()];
+        let noise = trial.noise.and_then(|n| n.get(i).copied().flatten());
         let summary = learning
             .step(
                 &Trial {
-                    reference_m: &reference.axes[i].1,
-                    command_v: &command_v[i],
-                    measured_m: &measured_m[i],
-                    base_v: &base_v[i],
-                    periodic,
-                    noise: noise.and_then(|n| n.get(i).copied().flatten()),
+                    reference_m: &trial.reference.axes[i].1,
+                    command_v: &trial.command_v[i],
+                    measured_m: &trial.measured_m[i],
+                    base_v: &trial.base_v[i],
+                    periodic: trial.periodic,
+                    noise,
                 },
                 &mut next,
             )
@@ -626,7 +629,7 @@ pub fn step_axes_averaged(
             noise_rms_m: summary.noise_rms_m,
             learned_share: summary.learned_share,
             harmonics_learned: summary.harmonics_learned,
-            noise_from_passes: noise.is_some_and(|n| n[i].is_some()),
+            noise_from_passes: noise.is_some(),
             model_gain: None,
         });
         next_v.push(next);
@@ -634,77 +637,50 @@ pub fn step_axes_averaged(
     Ok((steps, next_v))
 }
 
-/// Where u_0 comes from: the stage file and the reference file, and whether it is periodic.
+/// Where u_0 comes from: the stage file and the reference file (one period for a periodic
+/// trial).
 #[derive(Debug, Clone, Copy)]
 pub struct StepFiles<'a> {
     /// The stage file.
     pub params: &'a Path,
-    /// The reference record (one period when `periodic`).
+    /// The reference record (one period when the trial is periodic).
     pub reference: &'a Path,
-    /// Periodic trials.
-    pub periodic: bool,
 }
 
 /// One learning step per axis, the model's gain checked against the trial first: when the trial
 /// shows a stage gain more than [`REBASE_MIN_RATIO`] off the model's ([`model_gains`],
-/// [`rebase`]), u_0 is re-solved for it (`compensate_for_gain`) and L's gain divided by it
-/// ([`rescaled`]); else the step of [`step_axes`] with `base_v`. Each axis's step carries its γ̂.
+/// [`rebase`]), u_0 is re-solved for it from `files` (`compensate_for_gain`) and L's gain
+/// divided by it ([`rescaled`]); else the step of [`step_axes`] with the trial's u_0. Each
+/// axis's step carries its γ̂.
 pub fn step_checked(
-    learnings: &[Learning],
-    names: &[&'static str],
-    reference: &Reference,
+    trial: &AxesTrial<'_>,
     files: &StepFiles<'_>,
-    command_v: &[Vec<f32>],
-    measured_m: &[Vec<f32>],
-    base_v: &[Vec<f32>],
 ) -> Result<(Vec<AxisStep>, Vec<Vec<f32>>), String> {
-    step_checked_averaged(
-        learnings, names, reference, files, command_v, measured_m, base_v, None,
-    )
-}
-
-/// As [`step_checked`], for a trial that averages several passes: per axis the averaged
-/// record's noise from the spread between them, where known ([`step_axes_averaged`]).
-#[allow(clippy::too_many_arguments)]
-pub fn step_checked_averaged(
-    learnings: &[Learning],
-    names: &[&'static str],
-    reference: &Reference,
-    files: &StepFiles<'_>,
-    command_v: &[Vec<f32>],
-    measured_m: &[Vec<f32>],
-    base_v: &[Vec<f32>],
-    noise: Option<&[Option<TrialNoise>]>,
-) -> Result<(Vec<AxisStep>, Vec<Vec<f32>>), String> {
-    let gains = model_gains(learnings, reference, command_v, measured_m, files.periodic);
-    let params = learnings.first().map(|l| *l.params()).unwrap_or_default();
+    let gains = model_gains(
+        trial.learnings,
+        trial.reference,
+        trial.command_v,
+        trial.measured_m,
+        trial.periodic,
+    );
+    let params = trial
+        .learnings
+        .first()
+        .map(|l| *l.params())
+        .unwrap_or_default();
     let (mut steps, next) = match rebase(&gains, &params) {
         Some(gain_offset) => {
             let base =
-                compensate_for_gain(files.params, files.reference, files.periodic, &gain_offset)?;
+                compensate_for_gain(files.params, files.reference, trial.periodic, &gain_offset)?;
             let base_v: Vec<Vec<f32>> = base.voltages_v.into_iter().map(|(_, u)| u).collect();
-            let learnings = rescaled(learnings, &gain_offset)?;
-            step_axes_averaged(
-                &learnings,
-                names,
-                reference,
-                command_v,
-                measured_m,
-                &base_v,
-                files.periodic,
-                noise,
-            )?
+            let learnings = rescaled(trial.learnings, &gain_offset)?;
+            step_axes(&AxesTrial {
+                learnings: &learnings,
+                base_v: &base_v,
+                ..*trial
+            })?
         }
-        None => step_axes_averaged(
-            learnings,
-            names,
-            reference,
-            command_v,
-            measured_m,
-            base_v,
-            files.periodic,
-            noise,
-        )?,
+        None => step_axes(trial)?,
     };
     for (step, gain) in steps.iter_mut().zip(gains) {
         step.model_gain = gain;
@@ -798,17 +774,19 @@ pub fn learn(a: &LearnArgs) -> Result<LearnStep, String> {
     let files = StepFiles {
         params: &a.params,
         reference: &a.reference,
-        periodic: a.periodic,
     };
-    let (steps, next) = step_checked_averaged(
-        &learnings,
-        &names,
-        &reference,
+    let (steps, next) = step_checked(
+        &AxesTrial {
+            learnings: &learnings,
+            names: &names,
+            reference: &reference,
+            command_v: &u,
+            measured_m: &y,
+            base_v: &base_v,
+            periodic: a.periodic,
+            noise: noise.as_deref(),
+        },
         &files,
-        &u,
-        &y,
-        &base_v,
-        noise.as_deref(),
     )?;
     let next_v = base
         .voltages_v

@@ -12,11 +12,15 @@
 //! the reference's first sample (50 ms), the compensator's own command over whole periods of at
 //! least 0.1 s (`compensate`'s chain on that reference), then trials: trial k plays the periodic
 //! table u_k over the fewest whole periods lasting ≥ 0.1 s, after `settle_periods` whole periods
-//! (0 by default) in which the new table settles (the switch's transient — with feedback the
-//! servo unwinding the correction the table took over — is then not counted; `link learn` settles
-//! one); the table of trial 0 is the compensator's command of the next period. After each trial the readings and the applied
-//! voltages (table + servo correction with feedback) are averaged over its periods, and the
-//! learning step (periodic) gives u_{k+1}. Modes: **learned** (the table alone) and
+//! (1 by default, as `link learn`) in which the new table settles: the switch's transient — with
+//! feedback the servo unwinding the correction the table took over, and the creep of the step —
+//! is not periodic, and a trial of one period that recorded it taught the next table to undo it
+//! (at 10 Hz the second trial rose 1.33× above the first, 1.56× with the stage file's mode 15 %
+//! low). The table of trial 0 is the compensator's command of the next period. After each
+//! trial the readings and the applied voltages (table + servo correction with feedback) are
+//! averaged over its periods, and the learning step (periodic) gives u_{k+1}; with `--back-off`,
+//! unless the trial's measured error grew: then the axis steps back halfway to the table before
+//! (`piezo_core::learning::back_off`). Modes: **learned** (the table alone) and
 //! **learned+feedback** (the servo of the stage file adds its correction to the table; the
 //! learning then sees the applied voltage, so its factor is S·Q·(1 − L·G)).
 //!
@@ -34,6 +38,7 @@ use crate::servo_bench::{
     controllers, default_plant_effects, identify_rig, stack_file_at, Rig, Shape,
     DEFAULT_LOOP_RATE_HZ, HIGH, LOW,
 };
+use piezo_core::learning::{step_back, BackOff, Verdict};
 use piezo_core::{
     compensate_pair, compensate_periodic_pair, pass_noise_rms, Learning, LearningParams, ServoMode,
     ServoState, Trial, TrialNoise,
@@ -123,6 +128,10 @@ pub struct LearnBenchSettings {
     pub robustness_cases: Vec<(Shape, f64)>,
     /// Mode of the robustness rows.
     pub robustness_mode: LearnMode,
+    /// The error-growth back-off between trials (`piezo_core::learning::back_off`; off by
+    /// default: on this bench, with one settling period per table, it moved the targets' final
+    /// errors by at most 5 % and made the learned-only 10 Hz sine erratic, rises up to 2.0×).
+    pub back_off: bool,
 }
 
 impl Default for LearnBenchSettings {
@@ -134,7 +143,7 @@ impl Default for LearnBenchSettings {
             modes: vec![LearnMode::Learned, LearnMode::LearnedFeedback],
             iterations: 15,
             trial_min_s: 0.1,
-            settle_periods: 0,
+            settle_periods: 1,
             warmup_min_s: 0.1,
             fade_in_s: 0.05,
             plant_effects: default_plant_effects(DEFAULT_LOOP_RATE_HZ),
@@ -151,6 +160,7 @@ impl Default for LearnBenchSettings {
                 (Shape::Triangle, 10.0),
             ],
             robustness_mode: LearnMode::LearnedFeedback,
+            back_off: false,
         }
     }
 }
@@ -180,6 +190,9 @@ pub struct Curve {
     /// Per learning step: the harmonics above Q's cut-off learned from the stage's response
     /// measured on the trial, the worse axis's count.
     pub harmonics_learned: Vec<usize>,
+    /// Per learning step: whether an axis stepped back (its trial's measured error grew more
+    /// than 5 % above the trial before's; `piezo_core::learning::back_off`).
+    pub stepped_back: Vec<bool>,
 }
 
 impl Curve {
@@ -345,6 +358,10 @@ fn run_case(
     let (mut rms_percent, mut max_percent) = (Vec::new(), Vec::new());
     let mut above_cutoff_percent = 0.0f64;
     let mut harmonics_learned = Vec::new();
+    let mut stepped_back = Vec::new();
+    // The error-growth back-off per axis and the table it holds (`piezo_core::learning::back_off`).
+    let mut back_off = [BackOff::new(); 2];
+    let mut held = table.clone();
     for trial in 0..=s.iterations {
         if trial > 0 {
             for _ in 0..s.settle_periods {
@@ -416,6 +433,7 @@ fn run_case(
         });
         let previous = table.clone();
         let mut harmonics = [0usize; 2];
+        let mut backed = false;
         let mut stepping = learning.clone();
         if let Some(gain_offset) = rebase(&gains, &s.params) {
             base = periodic_base(&gain_offset);
@@ -423,25 +441,51 @@ fn run_case(
         }
         for a in 0..2 {
             let (y, u) = (&y[a], &u[a]);
-            stepping[a]
-                .step(
-                    &Trial {
-                        reference_m: &r[a],
-                        command_v: u,
-                        measured_m: y,
-                        base_v: &base[a],
-                        periodic: true,
-                        noise: noise[a],
-                    },
-                    &mut table[a],
-                )
-                .map(|summary| harmonics[a] = summary.harmonics_learned)
-                .map_err(|e| e.to_string())?;
+            // The trial's measured error (its averaged period) against the held table's.
+            let measured_rms = (y
+                .iter()
+                .zip(&r[a])
+                .map(|(&y, &r)| f64::from(r - y).powi(2))
+                .sum::<f64>()
+                / period as f64)
+                .sqrt();
+            let verdict = if s.back_off {
+                back_off[a].judge(measured_rms)
+            } else {
+                Verdict::Learn
+            };
+            match verdict {
+                Verdict::Learn => {
+                    held[a].clone_from(&previous[a]);
+                    let rho = s.params.harmonic_gain * back_off[a].harmonic_scale() as f32;
+                    stepping[a]
+                        .with_harmonic_gain(rho)
+                        .map_err(|e| e.to_string())?
+                        .step(
+                            &Trial {
+                                reference_m: &r[a],
+                                command_v: u,
+                                measured_m: y,
+                                base_v: &base[a],
+                                periodic: true,
+                                noise: noise[a],
+                            },
+                            &mut table[a],
+                        )
+                        .map(|summary| harmonics[a] = summary.harmonics_learned)
+                        .map_err(|e| e.to_string())?;
+                }
+                Verdict::StepBack => {
+                    backed = true;
+                    step_back(&held[a], &previous[a], &mut table[a]);
+                }
+            }
             // The new table carries the correction the servo held over the last trial: the
             // servo hands it over at the switch (entry 0).
             states[a].take_over(table[a][0] - previous[a][0]);
         }
         harmonics_learned.push(harmonics[0].max(harmonics[1]));
+        stepped_back.push(backed);
     }
     Ok(Curve {
         mode,
@@ -454,6 +498,7 @@ fn run_case(
         periods_per_trial: trial_periods,
         above_cutoff_percent,
         harmonics_learned,
+        stepped_back,
     })
 }
 
@@ -663,6 +708,7 @@ impl LearnBenchReport {
                 "max_percent": c.max_percent,
                 "above_cutoff_percent": c.above_cutoff_percent,
                 "harmonics_learned": c.harmonics_learned,
+                "stepped_back": c.stepped_back,
             })
         };
         serde_json::json!({
@@ -770,7 +816,7 @@ pub struct LearnBenchArgs {
     #[arg(long, default_value = "out/learn")]
     pub out: PathBuf,
     /// Plot format: svg, png or both.
-    #[arg(long, value_enum, default_value_t = crate::plot::PlotFormat::Svg)]
+    #[arg(long, value_enum, default_value_t = crate::plot::PlotFormat::Both)]
     pub format: crate::plot::PlotFormat,
     /// Learning steps per run.
     #[arg(long, default_value_t = 15)]
@@ -790,12 +836,17 @@ pub struct LearnBenchArgs {
     pub trial_s: f64,
     /// Whole periods each new table plays before its trial is recorded (the switch's transient is
     /// not the table's error), as `link learn --settle-periods`.
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = 1)]
     pub settle_periods: usize,
     /// Effect the plant carries (host-sim effect spec, repeatable; default as servo-bench;
     /// `none` for a clean plant).
     #[arg(long = "plant-effect")]
     pub plant_effects: Vec<String>,
+    /// The error-growth back-off: a trial whose measured error grew more than 5 % above the
+    /// trial before's is not learned from; the next table lies halfway between the two, and the
+    /// harmonic gain halves (`piezo_core::learning::back_off`).
+    #[arg(long)]
+    pub back_off: bool,
     /// The uncertainty the learning must converge for.
     #[command(flatten)]
     pub learning: crate::learn::LearningArgs,
@@ -830,6 +881,7 @@ pub fn learn_bench_cmd(a: &LearnBenchArgs) -> Result<String, String> {
     settings.plant_effects = default_plant_effects(a.rate);
     settings.trial_min_s = a.trial_s;
     settings.settle_periods = a.settle_periods;
+    settings.back_off = a.back_off;
     settings.frequencies_hz = a.freq.clone();
     settings
         .robustness_cases
@@ -848,4 +900,42 @@ pub fn learn_bench_cmd(a: &LearnBenchArgs) -> Result<String, String> {
     let report = run_learn_bench(&settings, &mut |line: &str| eprintln!("{line}"))?;
     let files = report.write(&a.out, a.format.extensions())?;
     Ok(format!("{}written: {}", report.table(), files.join(", ")))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Bench {
+        #[command(flatten)]
+        args: LearnBenchArgs,
+    }
+
+    #[derive(Parser)]
+    struct Demo {
+        #[command(flatten)]
+        args: crate::demo::DemoArgs,
+    }
+
+    #[derive(Parser)]
+    struct Reproduce {
+        #[command(flatten)]
+        args: crate::reproduce::ReproduceArgs,
+    }
+
+    /// Without `--format`, learn-bench writes the plots demo and reproduce write (SVG and PNG).
+    #[test]
+    fn the_plot_format_defaults_as_demo_and_reproduce() {
+        let bench = Bench::try_parse_from(["learn-bench"]).unwrap().args.format;
+        let demo = Demo::try_parse_from(["demo"]).unwrap().args.format;
+        let reproduce = Reproduce::try_parse_from(["reproduce"])
+            .unwrap()
+            .args
+            .format;
+        assert_eq!(bench, demo);
+        assert_eq!(bench, reproduce);
+        assert_eq!(bench.extensions(), ["svg", "png"]);
+    }
 }

@@ -23,8 +23,14 @@
 //!   whole passes are recorded (frames cut by their pass number) and averaged per entry: the
 //!   reading of tick k+1 is the output of the voltage of tick k. The error e = r − y of the
 //!   averaged period gives `rms_m`/`max_abs_m` (`rms_raw_m`: over the passes unaveraged), and
-//!   `learn::step_axes` (the step of `host-sim learn --periodic`, on the voltages applied) the
-//!   next table.
+//!   `learn::step_checked` (the step of `host-sim learn --periodic`, on the voltages applied) the
+//!   next table; with `--periods` ≥ 2 the step reads the averaged record's noise from the
+//!   spread between the passes (`piezo_core::pass_noise_rms`, as `learn --periodic` does for a
+//!   record of whole passes), which also lets it learn above Q's cut-off (`--harmonic-gain`).
+//! * **Back-off** (`--back-off`, `piezo_core::learning::back_off`): per axis, a trial whose
+//!   averaged error grew more than 5 % above the trial before's is not learned from: the next
+//!   table lies halfway between the two, and ρ of the learning above the cut-off is halved from
+//!   then on.
 //! * **Stop**: after `--iterations` steps, or early when `--patience` trials in a row do not
 //!   bring the error (the RMS of both axes, √((rms_x² + rms_y²)/2)) below 98 % of the best so
 //!   far. The best table (lowest error) is loaded and left playing.
@@ -37,12 +43,14 @@ use crate::compensate::{feedforward_axes, read_reference, Reference};
 use crate::csv::{write_csv, Table};
 use crate::learn::{
     axis_learnings, base_command, read_learned_table, rule_text, step_axes, step_checked,
-    write_learned_table, AxisStep, LearnStep, LearningArgs, StepFiles, TableContext,
+    write_learned_table, AxesTrial, AxisStep, LearnStep, LearningArgs, StepFiles, TableContext,
 };
 use crate::link::{fnv1a32, run_limits, Client};
 use crate::plot::{plot_grid, Chart, Legend, Panel, Role, Series};
 use crate::record::{LoopFrame, TimeBase};
 use crate::signal::SignalSpec;
+use piezo_core::learning::{step_back, BackOff, Verdict};
+use piezo_core::{pass_noise_rms, TrialNoise};
 use piezo_link::{Control, Frame, Program, Request, Response};
 use piezo_stage::StageFile;
 use std::path::{Path, PathBuf};
@@ -90,6 +98,11 @@ pub struct LinkLearnArgs {
     /// Whole periods played before each trial's record.
     #[arg(long, default_value_t = 1)]
     pub settle_periods: u32,
+    /// The error-growth back-off: per axis, a trial whose averaged error grew more than 5 % above
+    /// the trial before's is not learned from; the next table lies halfway between the two, and
+    /// the harmonic gain halves (`piezo_core::learning::back_off`).
+    #[arg(long)]
+    pub back_off: bool,
     /// Trials in a row without a new best (by 2 %) before stopping.
     #[arg(long, default_value_t = 2)]
     pub patience: usize,
@@ -205,6 +218,17 @@ fn play(client: &mut Client, table: &[Vec<f32>], control: Control) -> Result<(),
     }
 }
 
+/// RMS of r − y over one averaged period \[m\] (non-finite samples left out).
+fn period_rms(reference_m: &[f32], measured_m: &[f32]) -> f64 {
+    let (sum, count) = reference_m
+        .iter()
+        .zip(measured_m)
+        .map(|(&r, &y)| f64::from(r) - f64::from(y))
+        .filter(|e| e.is_finite())
+        .fold((0.0, 0usize), |(s, c), e| (s + e * e, c + 1));
+    (sum / count as f64).sqrt()
+}
+
 /// A trial's record, averaged over its passes.
 struct TrialRecord {
     /// Per axis the voltages applied \[V\].
@@ -213,6 +237,10 @@ struct TrialRecord {
     measured_m: Vec<Vec<f32>>,
     /// Per axis the RMS of r − y over the passes unaveraged \[m\].
     rms_raw_m: Vec<f64>,
+    /// Per axis the averaged record's noise from the spread between the passes
+    /// (`piezo_core::pass_noise_rms` of the readings and of the voltages), when there are
+    /// several.
+    noise: Vec<Option<TrialNoise>>,
 }
 
 /// A trial: after `settle` whole passes, `periods` whole passes recorded and averaged per
@@ -278,6 +306,9 @@ fn record(
     .rows;
     let mut u = vec![vec![0.0f64; n]; 2];
     let mut y = vec![vec![0.0f64; n]; 2];
+    // Every pass, for the spread between them.
+    let mut u_passes: [Vec<f32>; 2] = [0, 1].map(|_| Vec::with_capacity(rows.len()));
+    let mut y_passes: [Vec<f32>; 2] = [0, 1].map(|_| Vec::with_capacity(rows.len()));
     let mut sq = [0.0f64; 2];
     for (k, row) in rows.iter().enumerate() {
         let j = k % n;
@@ -293,6 +324,8 @@ fn record(
             }
             u[i][j] += f64::from(row.commanded_v[i]);
             y[i][j] += f64::from(row.sensor_m[i]);
+            u_passes[i].push(row.commanded_v[i]);
+            y_passes[i].push(row.sensor_m[i]);
             let e = f64::from(r) - f64::from(row.sensor_m[i]);
             sq[i] += e * e;
         }
@@ -304,10 +337,19 @@ fn record(
             .collect()
     };
     let raw = sq.map(|s| (s / (m * n as f64)).sqrt()).to_vec();
+    let noise = (0..2)
+        .map(|i| {
+            Some(TrialNoise {
+                measured_m: pass_noise_rms(&y_passes[i], n)?,
+                command_v: pass_noise_rms(&u_passes[i], n)?,
+            })
+        })
+        .collect();
     Ok(TrialRecord {
         command_v: average(u),
         measured_m: average(y),
         rms_raw_m: raw,
+        noise,
     })
 }
 
@@ -384,7 +426,17 @@ pub fn link_learn(
         // u_0 limited as every table is: a step with no error.
         None => (
             0,
-            step_axes(&learnings, &names, &reference, &base_v, &r_m, &base_v, true)?.1,
+            step_axes(&AxesTrial {
+                learnings: &learnings,
+                names: &names,
+                reference: &reference,
+                command_v: &base_v,
+                measured_m: &r_m,
+                base_v: &base_v,
+                periodic: true,
+                noise: None,
+            })?
+            .1,
         ),
     };
 
@@ -401,6 +453,9 @@ pub fn link_learn(
 
     let mut trials: Vec<TrialError> = Vec::new();
     let mut best: Option<(usize, Vec<Vec<f32>>)> = None;
+    // The error-growth back-off per axis and the table it holds (`piezo_core::learning::back_off`).
+    let mut back_off = [BackOff::new(); 2];
+    let mut held = table.clone();
     let (mut stall, mut stopped_early) = (0, false);
     for k in 0..=a.iterations {
         play(client, &table, mode(a))?;
@@ -415,17 +470,44 @@ pub fn link_learn(
         let files = StepFiles {
             params: &a.params,
             reference: &reference_path,
-            periodic: true,
         };
-        let (axes_error, next) = step_checked(
-            &learnings,
-            &names,
-            &reference,
+        // Per axis: the trial's measured error against the held table's; ρ above the cut-off
+        // halved per trial that backed off.
+        let mut verdicts = [Verdict::Learn; 2];
+        let mut stepping = Vec::new();
+        for (i, learning) in learnings.iter().enumerate() {
+            if a.back_off {
+                verdicts[i] = back_off[i].judge(period_rms(
+                    &reference.axes[i].1,
+                    &trial_record.measured_m[i],
+                ));
+            }
+            let rho = learning.params().harmonic_gain * back_off[i].harmonic_scale() as f32;
+            stepping.push(
+                learning
+                    .with_harmonic_gain(rho)
+                    .map_err(|e| format!("axis {}: {e}", names[i]))?,
+            );
+        }
+        let (axes_error, mut next) = step_checked(
+            &AxesTrial {
+                learnings: &stepping,
+                names: &names,
+                reference: &reference,
+                command_v: &trial_record.command_v,
+                measured_m: &trial_record.measured_m,
+                base_v: &base_v,
+                periodic: true,
+                noise: Some(&trial_record.noise),
+            },
             &files,
-            &trial_record.command_v,
-            &trial_record.measured_m,
-            &base_v,
         )?;
+        for i in 0..2 {
+            match verdicts[i] {
+                Verdict::Learn => held[i].clone_from(&table[i]),
+                Verdict::StepBack => step_back(&held[i], &table[i], &mut next[i]),
+            }
+        }
         let trial = TrialError {
             iteration: first_iteration + k as u32,
             axes: axes_error,
@@ -494,6 +576,9 @@ impl LinkLearnReport {
                 "max_abs_m": s.max_abs_m,
                 "rms_raw_m": raw,
                 "limited": s.limited,
+                "noise_rms_m": s.noise_rms_m,
+                "noise_from_passes": s.noise_from_passes,
+                "harmonics_learned": s.harmonics_learned,
             })
         };
         let iterations: Vec<serde_json::Value> = self
