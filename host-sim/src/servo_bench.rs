@@ -8,7 +8,14 @@
 //! raised cosine); the servo ([`piezo_core::servo`]) is tuned by [`piezo_core::servo::tune`]
 //! from that model's largest dy/du and the first mode identified from a 10 V step response
 //! (an AR(2) fit of the samples after the step), with a latency of 1.5 loop periods. Both go
-//! through the stage file (`[x.servo]`) and its validation.
+//! through the stage file (`[x.servo]`) and its validation. The identified mode (f_n, ζ, a
+//! force-driven mode) also goes into the axis's effects, so that the feedforward inverts it
+//! (`s* = z* + (2ζ/ω)·ż* + z̈*/ω²`, [`piezo_core::inverse_chain::InverseChain`], as the
+//! firmware's loop runs a stage file with effects): the drive is pre-shaped and a triangle's
+//! corners do not ring the stage; off with `BenchSettings::mode_feedforward` = false
+//! (`--no-mode-feedforward`). The window's slew limit still bounds every command, so where the
+//! inverse's corner impulse Δṙ/(T·ω²) asks for more than S·T in one tick (y at 50 kHz) it is
+//! cut short.
 //!
 //! **Loop** at the bench's rate (10 kHz unless `--rates` says otherwise: the stack file is run at
 //! that rate, the DAC updates at it and the servo is tuned for it), per tick k: the sensor is sampled at t_k; the compensator is given the
@@ -1168,7 +1175,8 @@ pub struct ServoBenchArgs {
 pub const HELP: &str = "The plant is host-sim's f64 XY stage (seed 002, modes at 3.2 and 2.2 kHz) with creep, thermal drift, \
 sensor noise, ADC and DAC quantisation, stepped tick by tick at the loop rate (--rates, default 10 kHz; several rates run the whole bench at each and \
 add a table across them). The feedforward is piezo-core's compensator \
-(firmware/params/xy-stage.toml scaled to the platform by the identified gain), the servo piezo-core's, tuned by \
+(firmware/params/xy-stage.toml scaled to the platform by the identified gain) behind the inverse of the identified first mode \
+(the effects chain's mode; --no-mode-feedforward: the compensator alone), the servo piezo-core's, tuned by \
 piezo_core::servo::tune from the identified first mode. Rows: 1, 10, 100 Hz triangles and sines between 20 % and 90 % \
 of the stroke (faded in over 50 ms, scored after 0.1 s) in open-loop, feedforward, feedback and feedforward+feedback; errors in % of stroke (worse axis), \
 closed-loop bandwidth from a chirp (lower axis).";
