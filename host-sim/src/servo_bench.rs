@@ -8,7 +8,14 @@
 //! raised cosine); the servo ([`piezo_core::servo`]) is tuned by [`piezo_core::servo::tune`]
 //! from that model's largest dy/du and the first mode identified from a 10 V step response
 //! (an AR(2) fit of the samples after the step), with a latency of 1.5 loop periods. Both go
-//! through the stage file (`[x.servo]`) and its validation.
+//! through the stage file (`[x.servo]`) and its validation. The identified mode (f_n, ζ, a
+//! force-driven mode) also goes into the axis's effects, so that the feedforward inverts it
+//! (`s* = z* + (2ζ/ω)·ż* + z̈*/ω²`, [`piezo_core::inverse_chain::InverseChain`], as the
+//! firmware's loop runs a stage file with effects): the drive is pre-shaped and a triangle's
+//! corners do not ring the stage; off with `BenchSettings::mode_feedforward` = false
+//! (`--no-mode-feedforward`). The window's slew limit still bounds every command, so where the
+//! inverse's corner impulse Δṙ/(T·ω²) asks for more than S·T in one tick (y at 50 kHz) it is
+//! cut short.
 //!
 //! **Loop** at the bench's rate (10 kHz unless `--rates` says otherwise: the stack file is run at
 //! that rate, the DAC updates at it and the servo is tuned for it), per tick k: the sensor is sampled at t_k; the compensator is given the
@@ -35,6 +42,7 @@ use crate::effects::Effects;
 use crate::ode::{Dp45, Dp45Settings, OdeSystem};
 use crate::plant::{InputAt, Plant, XyStage};
 use crate::plot::{plot_grid, Chart, Legend, Panel, Role, Series};
+use piezo_core::inverse_chain::InverseChain;
 use piezo_core::servo::{tune, StageDynamics, Tuning, TuningGoal};
 use piezo_core::{
     Compensator, CompensatorSettings, CompensatorState, Servo, ServoMode, ServoState,
@@ -127,6 +135,10 @@ pub struct BenchSettings {
     pub step_hold_s: f64,
     /// How long after the step the settling is watched \[s\].
     pub step_watch_s: f64,
+    /// Whether the feedforward inverts the identified first mode as well (the effects chain's
+    /// mode, [`piezo_core::inverse_chain::InverseChain`]), so that the drive is pre-shaped and a
+    /// reference's corners do not ring the stage.
+    pub mode_feedforward: bool,
 }
 
 impl BenchSettings {
@@ -160,6 +172,7 @@ impl Default for BenchSettings {
             step_fractions: vec![0.01, 0.1, 0.5],
             step_hold_s: 0.1,
             step_watch_s: 0.1,
+            mode_feedforward: true,
         }
     }
 }
@@ -490,11 +503,15 @@ pub(crate) fn identify_rig(
     Ok(out)
 }
 
-/// One axis's controller: the compensator, the linear baseline and the servo.
-#[derive(Debug, Clone, Copy)]
+/// One axis's controller: the compensator (with the inverse of the identified mode when the
+/// bench pre-shapes the drive), the linear baseline and the servo.
+#[derive(Debug, Clone)]
 pub(crate) struct AxisController {
     compensator: Compensator,
     compensator_state: CompensatorState,
+    /// The inverse effects chain around the compensator (the mode), fed the reference of the
+    /// next tick onwards; `None`: the compensator aims at the reference itself.
+    chain: Option<InverseChain>,
     servo: Servo,
     servo_state: ServoState,
     rest_v: f32,
@@ -504,20 +521,49 @@ pub(crate) struct AxisController {
 
 impl AxisController {
     /// One tick: the servo's output for reference `r_now`, the compensator's (or the linear
-    /// map's) voltage for `r_next`, the reading `measured_m`.
-    fn tick(&mut self, r_now: f32, r_next: f32, measured_m: f32) -> f32 {
+    /// map's) voltage for `r_next`, the reading `measured_m`. With a chain, `ahead` yields the
+    /// reference from `r_next` onwards, one sample per call (the chain's lead reads ahead), and
+    /// the compensator aims at the chain's target w\*; the chain then commits the voltage
+    /// applied, as the firmware's loop does.
+    fn tick(
+        &mut self,
+        r_now: f32,
+        r_next: f32,
+        measured_m: f32,
+        mut ahead: impl FnMut() -> f32,
+    ) -> f32 {
+        let target = match self.chain.as_mut() {
+            Some(chain) => {
+                chain
+                    .next_targets(|| {
+                        let r = ahead();
+                        [r, r]
+                    })
+                    .1[0]
+            }
+            None => r_next,
+        };
         let model = self
             .compensator
-            .compensate(&mut self.compensator_state, r_next)
+            .compensate(&mut self.compensator_state, target)
             .voltage_v;
         let ff = if self.servo_state.mode().model_feedforward() {
             model
         } else {
             self.rest_v + (r_next - self.rest_output_m) / self.linear_gain_m_per_v
         };
-        self.servo
+        let u = self
+            .servo
             .step(&mut self.servo_state, r_now, measured_m, ff)
-            .voltage_v
+            .voltage_v;
+        if let Some(chain) = self.chain.as_mut() {
+            let w = self
+                .compensator
+                .model()
+                .output(&self.compensator_state.model);
+            chain.commit(0, u, w);
+        }
+        u
     }
 }
 
@@ -536,14 +582,27 @@ pub(crate) fn controllers(
     stack_file: &StageFile,
     identified: &[(f64, f64, f64); 2],
 ) -> Result<([AxisController; 2], [Tuning; 2], StageFile), String> {
+    controllers_with(stack_file, identified, false)
+}
+
+/// [`controllers`], with `mode_feedforward`: the identified first mode (f_n, ζ; a force-driven
+/// mode, ρ = 0) in each axis's effects, so the feedforward inverts it as well
+/// (`s* = z* + (2ζ/ω)·ż* + z̈*/ω²`, [`piezo_core::effects`]).
+pub(crate) fn controllers_with(
+    stack_file: &StageFile,
+    identified: &[(f64, f64, f64); 2],
+    mode_feedforward: bool,
+) -> Result<([AxisController; 2], [Tuning; 2], StageFile), String> {
     let mut file = stack_file.clone();
     let axes = [Some(&mut file.x), file.y.as_mut()];
-    for (axis, &(gain, _, _)) in axes.into_iter().zip(identified) {
-        let map = axis
-            .ok_or("the stack file has one axis")?
-            .static_map
-            .as_mut()
-            .ok_or("no static map")?;
+    for (axis, &(gain, f_n, zeta)) in axes.into_iter().zip(identified) {
+        let axis = axis.ok_or("the stack file has one axis")?;
+        if mode_feedforward {
+            axis.effects.mode_frequency_hz = f_n as f32;
+            axis.effects.mode_damping = zeta as f32;
+            axis.effects.mode_relative_damping = 0.0;
+        }
+        let map = axis.static_map.as_mut().ok_or("no static map")?;
         map.k1_m_per_v = (f64::from(map.k1_m_per_v) * gain) as f32;
         map.k2_m_per_h = (f64::from(map.k2_m_per_h) * gain) as f32;
     }
@@ -570,9 +629,17 @@ pub(crate) fn controllers(
         let v = valid.axes.get(a).ok_or("missing axis")?;
         let compensator = v.compensator.ok_or("no compensator")?;
         let CompensatorSettings { output_min_v, .. } = compensator.settings();
+        let chain = match v.chain {
+            piezo_stage::AxisChain::Static { effects, .. } if mode_feedforward => Some(
+                InverseChain::single(effects, output_min_v)
+                    .ok_or("the mode's inverse chain could not be built")?,
+            ),
+            _ => None,
+        };
         Ok(AxisController {
             compensator,
             compensator_state: CompensatorState::at_rest(output_min_v),
+            chain,
             servo: v.servo.ok_or("no servo")?,
             servo_state: ServoState::at_rest(output_min_v, ServoMode::Feedforward),
             rest_v: output_min_v,
@@ -594,19 +661,27 @@ fn run_loop(
     n: usize,
     reference: &dyn Fn(usize) -> [f64; 2],
 ) -> Result<[Vec<f64>; 2], String> {
-    let mut c = *controllers;
+    let mut c = controllers.clone();
     for axis in &mut c {
         axis.servo_state = ServoState::at_rest(axis.rest_v, mode);
     }
     let mut rig = Rig::new(stage, effects, fs);
     let mut out = [Vec::with_capacity(n), Vec::with_capacity(n)];
+    // The next reference sample each axis's chain reads: it starts at r[1], the target of the
+    // first command.
+    let mut fed = [1usize; 2];
     for k in 0..n {
         let (truth, read) = rig.sense();
         let (now, next) = (reference(k), reference(k + 1));
         let mut u = [0.0; 2];
         for a in 0..2 {
             out[a].push(truth[a]);
-            u[a] = f64::from(c[a].tick(now[a] as f32, next[a] as f32, read[a] as f32));
+            let ahead = || {
+                let r = reference(fed[a])[a] as f32;
+                fed[a] += 1;
+                r
+            };
+            u[a] = f64::from(c[a].tick(now[a] as f32, next[a] as f32, read[a] as f32, ahead));
         }
         rig.apply(u)?;
     }
@@ -735,7 +810,7 @@ pub fn run_bench(
     let stack = stack_file.validate().map_err(|e| e.to_string())?;
     progress("identifying the platform gain and the first mode");
     let identified = identify_rig(&stage, &effects, &stack, fs)?;
-    let (ctl, tunings, _) = controllers(&stack_file, &identified)?;
+    let (ctl, tunings, _) = controllers_with(&stack_file, &identified, settings.mode_feedforward)?;
     let (ax, ay) = stage.axes();
     let g = stage.static_gain();
     let stroke_m = [g[0] * ax.free_stroke_m, g[1] * ay.free_stroke_m];
@@ -1090,13 +1165,18 @@ pub struct ServoBenchArgs {
     /// follows (`rates.json`).
     #[arg(long, value_delimiter = ',', default_value = "10000")]
     pub rates: Vec<f64>,
+    /// The feedforward without the identified mode's inverse (the compensator aims at the
+    /// reference itself), to measure what pre-shaping the drive gains.
+    #[arg(long)]
+    pub no_mode_feedforward: bool,
 }
 
 /// Help after the options.
 pub const HELP: &str = "The plant is host-sim's f64 XY stage (seed 002, modes at 3.2 and 2.2 kHz) with creep, thermal drift, \
 sensor noise, ADC and DAC quantisation, stepped tick by tick at the loop rate (--rates, default 10 kHz; several rates run the whole bench at each and \
 add a table across them). The feedforward is piezo-core's compensator \
-(firmware/params/xy-stage.toml scaled to the platform by the identified gain), the servo piezo-core's, tuned by \
+(firmware/params/xy-stage.toml scaled to the platform by the identified gain) behind the inverse of the identified first mode \
+(the effects chain's mode; --no-mode-feedforward: the compensator alone), the servo piezo-core's, tuned by \
 piezo_core::servo::tune from the identified first mode. Rows: 1, 10, 100 Hz triangles and sines between 20 % and 90 % \
 of the stroke (faded in over 50 ms, scored after 0.1 s) in open-loop, feedforward, feedback and feedforward+feedback; errors in % of stroke (worse axis), \
 closed-loop bandwidth from a chirp (lower axis).";
@@ -1119,6 +1199,7 @@ pub fn servo_bench_cmd(a: &ServoBenchArgs) -> Result<String, String> {
         let mut settings = BenchSettings {
             loop_rate_hz: rate,
             plant_effects: default_plant_effects(rate),
+            mode_feedforward: !a.no_mode_feedforward,
             ..BenchSettings::default()
         };
         if !a.plant_effects.is_empty() {

@@ -14,10 +14,10 @@
 //!   measured on a board). A faster loop has less delay, so the same stage gets a higher
 //!   crossover at the same phase margin.
 //!
-//! The rule (core docs, `piezo_core::servo::tune`): a notch at f_n (Q 1, 0.7 or 0.5, whichever
-//! reaches higher), a Butterworth low-pass at f_n or at 1/(4τ) when the latency puts that higher,
-//! pure integral action, the highest crossover with the phase margin asked for and
-//! |1/(1 + L)| ≤ 1.6, also with f_n ± 10 %. The
+//! The rule (core docs, `piezo_core::servo::tune`): a notch near f_n (centre 0.8–1.25·f_n, Q 1,
+//! 0.7, 0.5 or 0.35) and a Butterworth low-pass from 0.7 to 5 times max(f_n, 1/(4τ)), searched
+//! for the highest crossover with pure integral action, the phase margin asked for (phase
+//! unwrapped) and |1/(1 + L)| ≤ 1.6, also with f_n ± 10 %. The
 //! parameters are written into the stage file and validated by the core with the rest of it.
 
 use piezo_core::servo::{tune, StageDynamics, Tuning, TuningGoal};
