@@ -787,7 +787,8 @@ fn an_actuator_with_a_spread_of_relaxation_times_is_predicted_at_a_rate_it_did_n
 /// rate-dependent hysteresis first as a relaxation of the whole output (the hysteretic part alone
 /// relaxing, or lagging, cannot open the loops), which lowers that 100 Hz record's zeroed RMS by
 /// at least 20 %; the stage file predicts the 100 Hz records of both sessions (the second at
-/// another amplitude and offset) at under 70 % of the base model's error on the first.
+/// another amplitude and offset) at under 60 % of the base model's error on the first (56 % and
+/// 38 % measured; with a delay in its place, the best the hysteretic forms allow, 66 % and 54 %).
 #[test]
 fn an_actuator_whose_loops_widen_with_rate_is_predicted_at_a_rate_it_did_not_see() {
     let rec = |name: &str, f: u32, amp_v: f64, seed: u32, offset_m: f64| {
@@ -850,7 +851,7 @@ fn an_actuator_whose_loops_widen_with_rate_is_predicted_at_a_rate_it_did_not_see
         .unwrap();
         let p = json(&out)["rms_zeroed_m"][0].as_f64().unwrap();
         assert!(
-            p <= 0.7 * without,
+            p <= 0.6 * without,
             "{}: predicted at {p:.4e} m, base {without:.4e} m\n{words}",
             record.display()
         );

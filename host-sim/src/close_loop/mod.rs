@@ -703,8 +703,8 @@ fn fit_dynamics(model: &AxisModel, cand: &Candidate, data: &FitData) -> (AxisMod
 
 /// The rate-dependent hysteresis fitted in its forms ([`full::RateForm`]): the operator driven
 /// by a lag of the command, the relaxation of its output (that one also from other splits of its
-/// first-order lag into g and τ, [`AxisModel::relaxation_restart`]), the relaxation of the whole
-/// output (the linear strain too: loops that widen with rate), and the input lag together with
+/// first-order lag into g and τ, [`AxisModel::relaxation_restart`]), on several records the
+/// relaxation of the whole output (the linear strain too: loops that widen with rate), and the input lag together with
 /// one or two relaxation elements (started from the input lag's fit, one element at a time:
 /// [`fit_one_more_relaxation`]). The form kept is the plausible one with the lowest SSE (the lowest
 /// SSE when none is plausible): which form a stage's rate dependence takes is the data's to say.
@@ -731,7 +731,10 @@ fn fit_rate_dependent(model: &AxisModel, cand: &Candidate, data: &FitData) -> (A
     };
     let lag = fit_form(full::RateForm::InputLag);
     let relaxation = fit_form(full::RateForm::Relaxation);
-    let whole = fit_form(full::RateForm::WholeRelaxation);
+    // Whether the whole output relaxes shows in how the loops open from one rate to another;
+    // within one record at one rate its lag is the delay's signature, so it is fitted only on
+    // several records.
+    let whole = (model.segments.len() > 1).then(|| fit_form(full::RateForm::WholeRelaxation));
     let both = fit_one_more_relaxation(&lag.0, cand, data);
     let three = both
         .as_ref()
@@ -752,7 +755,7 @@ fn fit_rate_dependent(model: &AxisModel, cand: &Candidate, data: &FitData) -> (A
     } else {
         lag
     };
-    for fit in [Some(whole), both, three].into_iter().flatten() {
+    for fit in [whole, both, three].into_iter().flatten() {
         if key(&fit) > key(&best) {
             best = fit;
         }
