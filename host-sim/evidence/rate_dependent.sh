@@ -22,16 +22,7 @@ for f in 20 40 100; do
     --signal "rising-sine:amp=60,offset=0,freq=$f,phase_deg=-90,raised=1,duration=0.5,rate=10000" \
     --effect "dielectric-lag:tau=$TAU" --effect "noise:rms_m=$NOISE,seed=$f" --out "$OUT/raw$f.csv" >/dev/null
   # The sensor's zero moved between sessions: a constant offset per record.
-  python3 - "$OUT/raw$f.csv" "$OUT/r$f.csv" "$(offset $f)" <<'PY'
-import csv, sys
-rows = list(csv.reader(open(sys.argv[1])))
-off = float(sys.argv[3])
-with open(sys.argv[2], "w", newline="") as out:
-    w = csv.writer(out)
-    w.writerow(rows[0])
-    for r in rows[1:]:
-        w.writerow(r[:3] + [repr(float(r[3]) + off), repr(float(r[4]) + off)])
-PY
+  python3 "$(dirname "$0")/sensor_offset.py" "$OUT/raw$f.csv" "$OUT/r$f.csv" "$(offset $f)"
 done
 for held in 20 40 100; do
   fit=""

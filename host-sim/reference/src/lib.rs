@@ -24,7 +24,9 @@
 //!   a mass–spring–damper, optional second mode), [`plant::AsymmetricStage`] (Cases I–III, input
 //!   time shift and the δ·u·sgn(u̇) term) and [`plant::XyStage`] (two stacks driving a flexure
 //!   mechanism, a Lagrange model per axis), and [`plant::BipolarStack`] (a ±90 V stack whose
-//!   hysteresis follows the voltage through three dielectric relaxations, with a 740 Hz mode) —
+//!   hysteresis follows the voltage through three dielectric relaxations, with a 740 Hz mode) and
+//!   [`plant::RelaxingStack`] (a ±90 V stack whose whole strain relaxes, so its loops widen with
+//!   rate, with a stiffening strain and a 740 Hz mode) —
 //!   with [`plant::PlantKind`] choosing one by name. Each file states its
 //!   equation, parameters and source.
 //! - [`bouc_wen`]: the Bouc-Wen law in f64, shared by the plants: its rate ḣ for the ODE and the

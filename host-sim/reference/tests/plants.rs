@@ -494,3 +494,69 @@ fn bipolar_stack_spans_35_um_depends_on_rate_and_rings_at_740_hz() {
     let f = 200_000.0 / (peaks[1] - peaks[0]) as f64;
     assert!((700.0..780.0).contains(&f), "ring at {f} Hz");
 }
+
+/// The relaxing stack's stated figures: a 35 µm span at ±90 V, a loop opening at u = 0 that
+/// *grows* from 20 to 40 to 100 Hz (the whole strain follows the voltage through the drive's RC
+/// lag and the dielectric relaxations), and a ring near 740 Hz after a voltage step. Run with
+/// `--nocapture` to print the openings.
+#[test]
+fn relaxing_stack_spans_35_um_widens_with_rate_and_rings_at_740_hz() {
+    use piezo_reference::plant::RelaxingStack;
+    use piezo_reference::signal::SignalSpec;
+    let p = RelaxingStack::default();
+    let sine = |freq: f64| -> Vec<Box<dyn Signal>> {
+        vec![Box::new(Sine {
+            amplitude_v: 90.0,
+            offset_v: 0.0,
+            frequency_hz: freq,
+            phase_rad: 0.0,
+        })]
+    };
+    let out = run(&p, sine(1.0), &Effects::default(), 10_000.0, 2.0);
+    let y = &out.outputs_m[0][10_000..];
+    let span =
+        y.iter().cloned().fold(f64::MIN, f64::max) - y.iter().cloned().fold(f64::MAX, f64::min);
+    assert!((34e-6..36e-6).contains(&span), "span {span:e} m");
+    let opening = |freq: f64| {
+        let fs = 100_000.0;
+        let out = run(&p, sine(freq), &Effects::default(), fs, 4.0 / freq);
+        let per = (fs / freq) as usize;
+        let (u, y) = (&out.inputs_v[0], &out.outputs_m[0]);
+        let at = |from: usize, to: usize| {
+            (from..to)
+                .min_by(|&a, &b| u[a].abs().total_cmp(&u[b].abs()))
+                .map(|i| y[i])
+                .unwrap()
+        };
+        let base = 3 * per;
+        at(base + per / 4, base + 3 * per / 4) - at(base + 3 * per / 4, base + per - 1)
+    };
+    let (o1, o20, o40, o100) = (opening(1.0), opening(20.0), opening(40.0), opening(100.0));
+    println!(
+        "relaxing-stack loop opening at u = 0: 1 Hz {:.3} um, 20 Hz {:.3} um, 40 Hz {:.3} um, 100 Hz {:.3} um",
+        o1 * 1e6,
+        o20 * 1e6,
+        o40 * 1e6,
+        o100 * 1e6
+    );
+    assert!(
+        o1 > 0.0 && o20 > o1 && o40 > 1.05 * o20 && o100 > 1.1 * o40,
+        "openings {o1:e} {o20:e} {o40:e} {o100:e} m"
+    );
+    let spec = SignalSpec::parse("steps:levels=0/10,hold=0.02").unwrap();
+    let out = run(
+        &p,
+        spec.build(1).unwrap(),
+        &Effects::default(),
+        200_000.0,
+        0.04,
+    );
+    let y = &out.outputs_m[0][4000..];
+    let last = *y.last().unwrap();
+    let peaks: Vec<usize> = (1..y.len() - 1)
+        .filter(|&i| y[i] > y[i - 1] && y[i] >= y[i + 1] && y[i] > last)
+        .collect();
+    assert!(peaks.len() >= 3, "{} peaks", peaks.len());
+    let f = 200_000.0 / (peaks[1] - peaks[0]) as f64;
+    assert!((700.0..780.0).contains(&f), "ring at {f} Hz");
+}

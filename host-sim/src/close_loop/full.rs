@@ -75,6 +75,11 @@ pub enum RateForm {
     /// The input lag and two relaxation elements, G(s) = 1 + Σᵢ gᵢ/(1 + s·τ_wᵢ) (i = 0, 1): three
     /// time constants (τ_v, both g and both τ_w fitted).
     LagAndTwoRelaxations,
+    /// A relaxation of the whole output w = k1·u + k2·h (k_r = 0), G(s) = 1 + g/(1 + s·τ_w) on w
+    /// (g and τ_w fitted): a stack whose whole polarisation, the linear strain with the switched
+    /// domains, follows the voltage through a dielectric loss, so that its loops widen with rate
+    /// where those of [`Self::Relaxation`] (the hysteretic part alone relaxing) narrow.
+    WholeRelaxation,
 }
 
 impl RateForm {
@@ -85,6 +90,7 @@ impl RateForm {
             Self::Relaxation => "relaxation",
             Self::LagAndRelaxation => "input lag and relaxation",
             Self::LagAndTwoRelaxations => "input lag and two relaxations",
+            Self::WholeRelaxation => "relaxation of the whole output",
         }
     }
 }
@@ -97,18 +103,21 @@ impl RateForm {
             Self::InputLag | Self::LagAndRelaxation | Self::LagAndTwoRelaxations
         )
     }
-    /// Whether the hysteretic output relaxes (g and τ_w fitted).
+    /// Whether the hysteretic output (or the whole output) relaxes (g and τ_w fitted).
     pub fn has_relaxation(self) -> bool {
         matches!(
             self,
-            Self::Relaxation | Self::LagAndRelaxation | Self::LagAndTwoRelaxations
+            Self::Relaxation
+                | Self::LagAndRelaxation
+                | Self::LagAndTwoRelaxations
+                | Self::WholeRelaxation
         )
     }
     /// Number of relaxation elements fitted.
     pub fn relaxation_elements(self) -> usize {
         match self {
             Self::InputLag => 0,
-            Self::Relaxation | Self::LagAndRelaxation => 1,
+            Self::Relaxation | Self::LagAndRelaxation | Self::WholeRelaxation => 1,
             Self::LagAndTwoRelaxations => 2,
         }
     }
@@ -588,6 +597,23 @@ impl AxisModel {
                     time_constant_s.clamp(b.relaxation_tau_s.0, b.relaxation_tau_s.1) as f32;
             }
             EffectInit::RateDependent {
+                time_constant_s, ..
+            } if m.rate_form == RateForm::WholeRelaxation => {
+                // A relaxation of the whole output at the screening's τ, its gain twice the
+                // bound's lowest (the start is the current model, nearly: the gain and its split
+                // from τ are the fit's and [`Self::relaxation_restart`]'s), the static gains
+                // k1·(1 + g) and k2·(1 + g) kept (the static output is the data's); k_r = 0.
+                let gain = 2.0 * b.relaxation_gain.0;
+                m.map.k1_m_per_v = (f64::from(m.map.k1_m_per_v) / (1.0 + gain)) as f32;
+                m.map.k2_m_per_h = (f64::from(m.map.k2_m_per_h) / (1.0 + gain)) as f32;
+                let tau = time_constant_s.clamp(b.relaxation_tau_s.0, b.relaxation_tau_s.1);
+                let stable = 0.4 / (0.5 * b.sample_period_s / tau).tanh();
+                e.relaxation_gain[0] =
+                    gain.clamp(b.relaxation_gain.0, b.relaxation_gain.1.min(stable)) as f32;
+                e.relaxation_time_constant_s[0] = tau as f32;
+                e.relaxation_linear_m_per_v = 0.0;
+            }
+            EffectInit::RateDependent {
                 lag_coefficient_m,
                 time_constant_s,
             } => {
@@ -623,7 +649,10 @@ impl AxisModel {
     /// the start lies outside the bounds or the core's stable-inverse bound (at 0.4).
     pub fn relaxation_restart(&self, gain: f64) -> Option<Self> {
         if !self.added.contains(&EffectKind::RateDependent)
-            || self.rate_form != RateForm::Relaxation
+            || !matches!(
+                self.rate_form,
+                RateForm::Relaxation | RateForm::WholeRelaxation
+            )
         {
             return None;
         }
@@ -638,6 +667,10 @@ impl AxisModel {
         }
         let mut m = self.clone();
         m.map.k2_m_per_h = (f64::from(self.map.k2_m_per_h) * (1.0 + g0) / (1.0 + gain)) as f32;
+        if self.rate_form == RateForm::WholeRelaxation {
+            // The whole output relaxes: its linear gain k1·(1 + g) is kept too.
+            m.map.k1_m_per_v = (f64::from(self.map.k1_m_per_v) * (1.0 + g0) / (1.0 + gain)) as f32;
+        }
         m.effects.relaxation_gain[0] = gain as f32;
         m.effects.relaxation_time_constant_s[0] = tau as f32;
         Some(m)
@@ -941,7 +974,12 @@ impl AxisModel {
             s.param.set(&mut m, s.value(t));
         }
         if m.added.contains(&EffectKind::RateDependent) && m.rate_form.has_relaxation() {
-            m.effects.relaxation_linear_m_per_v = m.map.k1_m_per_v;
+            // Only the hysteretic part relaxes (k_r = k1), or the whole output (k_r = 0).
+            m.effects.relaxation_linear_m_per_v = if m.rate_form == RateForm::WholeRelaxation {
+                0.0
+            } else {
+                m.map.k1_m_per_v
+            };
         }
         m
     }

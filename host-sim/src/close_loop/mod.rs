@@ -703,9 +703,10 @@ fn fit_dynamics(model: &AxisModel, cand: &Candidate, data: &FitData) -> (AxisMod
 
 /// The rate-dependent hysteresis fitted in its forms ([`full::RateForm`]): the operator driven
 /// by a lag of the command, the relaxation of its output (that one also from other splits of its
-/// first-order lag into g and τ, [`AxisModel::relaxation_restart`]), and both together with one
-/// or two relaxation elements (started from the input lag's fit: [`fit_lag_and_relaxation`],
-/// [`fit_second_relaxation`]). The form kept is the plausible one with the lowest SSE (the lowest
+/// first-order lag into g and τ, [`AxisModel::relaxation_restart`]), on several records the
+/// relaxation of the whole output (the linear strain too: loops that widen with rate), and the input lag together with
+/// one or two relaxation elements (started from the input lag's fit, one element at a time:
+/// [`fit_one_more_relaxation`]). The form kept is the plausible one with the lowest SSE (the lowest
 /// SSE when none is plausible): which form a stage's rate dependence takes is the data's to say.
 /// The richer forms nest the input lag (a relaxation gain → 0 runs to its plausible bound), so on
 /// a stage with one lag they are not plausible and the input lag is kept; a spread of dielectric
@@ -730,10 +731,14 @@ fn fit_rate_dependent(model: &AxisModel, cand: &Candidate, data: &FitData) -> (A
     };
     let lag = fit_form(full::RateForm::InputLag);
     let relaxation = fit_form(full::RateForm::Relaxation);
-    let both = fit_lag_and_relaxation(&lag.0, cand, data);
+    // Whether the whole output relaxes shows in how the loops open from one rate to another;
+    // within one record at one rate its lag is the delay's signature, so it is fitted only on
+    // several records.
+    let whole = (model.segments.len() > 1).then(|| fit_form(full::RateForm::WholeRelaxation));
+    let both = fit_one_more_relaxation(&lag.0, cand, data);
     let three = both
         .as_ref()
-        .and_then(|b| fit_second_relaxation(&b.0, cand, data));
+        .and_then(|b| fit_one_more_relaxation(&b.0, cand, data));
     // Plausible first, then the lower SSE (a non-finite SSE never wins).
     let key = |(_, sse, plausible): &(AxisModel, f64, bool)| {
         (
@@ -750,51 +755,12 @@ fn fit_rate_dependent(model: &AxisModel, cand: &Candidate, data: &FitData) -> (A
     } else {
         lag
     };
-    for fit in [both, three].into_iter().flatten() {
+    for fit in [whole, both, three].into_iter().flatten() {
         if key(&fit) > key(&best) {
             best = fit;
         }
     }
     (best.0, best.1)
-}
-
-/// The two-time-constant form's fit `one` ([`full::RateForm::LagAndRelaxation`]) with a second
-/// relaxation element ([`full::RateForm::LagAndTwoRelaxations`]) started at
-/// [`LAG_AND_RELAXATION_STARTS`] times τ_v and the start gain, the static hysteretic gain kept:
-/// the plausible fit with the lowest SSE; `None` when `one` is not that form or not plausible.
-fn fit_second_relaxation(
-    one: &AxisModel,
-    cand: &Candidate,
-    data: &FitData,
-) -> Option<(AxisModel, f64, bool)> {
-    if one.rate_form != full::RateForm::LagAndRelaxation
-        || !Plausibility::of(one, cand.effect).plausible()
-    {
-        return None;
-    }
-    let b = one.bounds;
-    let tau_v = f64::from(one.effects.hysteresis_lag_s);
-    let g = full::LAG_AND_RELAXATION_START_GAIN;
-    let g0 = f64::from(one.effects.relaxation_gain[0]);
-    let fits: Vec<(AxisModel, f64, bool)> = LAG_AND_RELAXATION_STARTS
-        .par_iter()
-        .filter_map(|&share| {
-            let tau_w = share * tau_v;
-            if !(tau_w > b.relaxation_tau_s.0 && tau_w < b.relaxation_tau_s.1) {
-                return None;
-            }
-            let mut start = one.clone();
-            start.rate_form = full::RateForm::LagAndTwoRelaxations;
-            start.map.k2_m_per_h =
-                (f64::from(start.map.k2_m_per_h) * (1.0 + g0) / (1.0 + g0 + g)) as f32;
-            start.effects.relaxation_gain[1] = g as f32;
-            start.effects.relaxation_time_constant_s[1] = tau_w as f32;
-            let (fitted, sse, _) = refit(&start, data, TRIAL_ITERATIONS);
-            let plausible = Plausibility::of(&fitted, cand.effect).plausible();
-            Some((fitted, sse, plausible))
-        })
-        .collect();
-    best_fit(fits)
 }
 
 /// The plausible fit with the lowest SSE (the lowest SSE when none is plausible; a non-finite SSE
@@ -823,22 +789,37 @@ fn best_fit(fits: Vec<(AxisModel, f64, bool)>) -> Option<(AxisModel, f64, bool)>
 /// input lag τ_v: a spread of relaxation times lies on both sides of the one lag that fits best.
 const LAG_AND_RELAXATION_STARTS: [f64; 3] = [0.2, 4.0, 20.0];
 
-/// The rate-dependent hysteresis with two time constants ([`full::RateForm::LagAndRelaxation`]),
-/// fitted from the input-lag form's fit `lag` with relaxations at [`LAG_AND_RELAXATION_STARTS`]
-/// times its τ_v: kept, the plausible fit with the lowest SSE; `None` when `lag` has no input lag.
-/// Nested in the input lag (g → 0), so on a stage with one lag its gain runs to its lower bound
-/// and the fit is not plausible.
-fn fit_lag_and_relaxation(
-    lag: &AxisModel,
+/// One more relaxation element on the input-lag fit `from`: from [`full::RateForm::InputLag`] to
+/// [`full::RateForm::LagAndRelaxation`] (the first element, two time constants), or from that form
+/// to [`full::RateForm::LagAndTwoRelaxations`] (the second element, three). The new element i is
+/// started at [`LAG_AND_RELAXATION_STARTS`] times the fitted input lag τ_v with gain
+/// gᵢ = [`full::LAG_AND_RELAXATION_START_GAIN`], the static hysteretic gain k2·(1 + Σ g) kept
+/// (k2 ← k2·(1 + G)/(1 + G + gᵢ), G the gains already there); kept, the plausible fit with the
+/// lowest SSE. `None` when `from` has no input lag, or is neither of those forms, or (for the
+/// second element) is not plausible. The richer form nests the poorer (gᵢ → 0), so on a stage the
+/// poorer one describes the new gain runs to its lower bound and the fit is not plausible.
+fn fit_one_more_relaxation(
+    from: &AxisModel,
     cand: &Candidate,
     data: &FitData,
 ) -> Option<(AxisModel, f64, bool)> {
-    if lag.rate_form != full::RateForm::InputLag || !(lag.effects.hysteresis_lag_s > 0.0) {
+    let (slot, to) = match from.rate_form {
+        full::RateForm::InputLag => (0, full::RateForm::LagAndRelaxation),
+        full::RateForm::LagAndRelaxation if Plausibility::of(from, cand.effect).plausible() => {
+            (1, full::RateForm::LagAndTwoRelaxations)
+        }
+        _ => return None,
+    };
+    if !(from.effects.hysteresis_lag_s > 0.0) {
         return None;
     }
-    let b = lag.bounds;
-    let tau_v = f64::from(lag.effects.hysteresis_lag_s);
+    let b = from.bounds;
+    let tau_v = f64::from(from.effects.hysteresis_lag_s);
     let g = full::LAG_AND_RELAXATION_START_GAIN;
+    let g_there: f64 = from.effects.relaxation_gain[..slot]
+        .iter()
+        .map(|&x| f64::from(x))
+        .sum();
     let fits: Vec<(AxisModel, f64, bool)> = LAG_AND_RELAXATION_STARTS
         .par_iter()
         .filter_map(|&share| {
@@ -846,12 +827,15 @@ fn fit_lag_and_relaxation(
             if !(tau_w > b.relaxation_tau_s.0 && tau_w < b.relaxation_tau_s.1) {
                 return None;
             }
-            let mut start = lag.clone();
-            start.rate_form = full::RateForm::LagAndRelaxation;
-            start.map.k2_m_per_h = (f64::from(start.map.k2_m_per_h) / (1.0 + g)) as f32;
-            start.effects.relaxation_gain[0] = g as f32;
-            start.effects.relaxation_time_constant_s[0] = tau_w as f32;
-            start.effects.relaxation_linear_m_per_v = start.map.k1_m_per_v;
+            let mut start = from.clone();
+            start.rate_form = to;
+            start.map.k2_m_per_h =
+                (f64::from(start.map.k2_m_per_h) * (1.0 + g_there) / (1.0 + g_there + g)) as f32;
+            start.effects.relaxation_gain[slot] = g as f32;
+            start.effects.relaxation_time_constant_s[slot] = tau_w as f32;
+            if slot == 0 {
+                start.effects.relaxation_linear_m_per_v = start.map.k1_m_per_v;
+            }
             let (fitted, sse, _) = refit(&start, data, TRIAL_ITERATIONS);
             let plausible = Plausibility::of(&fitted, cand.effect).plausible();
             Some((fitted, sse, plausible))

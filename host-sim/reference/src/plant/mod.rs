@@ -7,11 +7,13 @@ use std::fmt;
 
 mod bipolar_stack;
 mod nac2024;
+mod relaxing_stack;
 mod stage;
 mod xy_stage;
 
 pub use bipolar_stack::BipolarStack;
 pub use nac2024::{Nac2024, SecondMode};
+pub use relaxing_stack::RelaxingStack;
 pub use stage::{AsymmetricStage, StageCase};
 pub use xy_stage::{XyAxis, XyStage};
 
@@ -118,7 +120,7 @@ impl fmt::Display for PlantError {
 impl std::error::Error for PlantError {}
 
 /// Plant names accepted by [`PlantKind::from_name`].
-pub const PLANT_NAMES: &str = "nac2024, stage, xy-stage, bipolar-stack";
+pub const PLANT_NAMES: &str = "nac2024, stage, xy-stage, bipolar-stack, relaxing-stack";
 
 /// A reference plant.
 pub trait Plant: Send + Sync {
@@ -176,11 +178,13 @@ pub enum PlantKind {
     XyStage(XyStage),
     /// Bipolar stack with a spread of dielectric relaxation times and a 740 Hz mode.
     BipolarStack(BipolarStack),
+    /// Bipolar stack whose whole strain relaxes (loops widen with rate), saturating, 740 Hz mode.
+    RelaxingStack(RelaxingStack),
 }
 
 impl PlantKind {
     /// `nac2024`, `stage` (Case III; `stage-case1`, `stage-case2` also accepted), `xy-stage`,
-    /// `bipolar-stack`.
+    /// `bipolar-stack`, `relaxing-stack`.
     pub fn from_name(name: &str) -> Result<Self, PlantError> {
         Ok(match name {
             "nac2024" => Self::Nac2024(Nac2024::published()),
@@ -189,6 +193,7 @@ impl PlantKind {
             "stage-case2" => Self::Stage(AsymmetricStage::new(StageCase::II)),
             "xy-stage" => Self::XyStage(XyStage::default()),
             "bipolar-stack" => Self::BipolarStack(BipolarStack::default()),
+            "relaxing-stack" => Self::RelaxingStack(RelaxingStack::default()),
             other => {
                 return Err(PlantError::UnknownPlant {
                     given: other.into(),
@@ -203,6 +208,7 @@ impl PlantKind {
             Self::Stage(p) => p,
             Self::XyStage(p) => p,
             Self::BipolarStack(p) => p,
+            Self::RelaxingStack(p) => p,
         }
     }
     /// Mutable trait object.
@@ -212,6 +218,7 @@ impl PlantKind {
             Self::Stage(p) => p,
             Self::XyStage(p) => p,
             Self::BipolarStack(p) => p,
+            Self::RelaxingStack(p) => p,
         }
     }
 }
