@@ -969,14 +969,21 @@ fn gauss_legendre(f: &impl Fn(f64) -> f64, a: f64, b: f64) -> f64 {
 }
 
 /// g(z) = (1 − e^(−z))/z, g(0) = 1. Series below |z| = 0.1 (truncation < 1.4e-8 relative),
-/// libm `expm1f` above.
-#[inline]
+/// libm `expm1f` above. The series is inlined where g is needed (no call on the common small
+/// step); the libm branch is [`relax_libm`], out of line.
+#[inline(always)]
 pub(crate) fn relax_factor(z: f32) -> f32 {
     if z.abs() < 0.1 {
         relax_series(z)
     } else {
-        -libm::expm1f(-z) / z
+        relax_libm(z)
     }
+}
+
+/// [`relax_factor`] above |z| = 0.1: `−expm1(−z)/z` with libm's `expm1f`.
+#[inline(never)]
+fn relax_libm(z: f32) -> f32 {
+    -libm::expm1f(-z) / z
 }
 
 /// The 5-term series of g(z) = (1 − e^(−z))/z: 1 − z/2 + z²/6 − z³/24 + z⁴/120 (for |z| < 0.1).
