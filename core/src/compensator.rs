@@ -1835,10 +1835,15 @@ mod tests {
     /// the branch itself); k2·A, k1 + k2·A and k2·A/(k1 + k2·A) are as the crossing formed them.
     #[test]
     fn n1_table_operands_are_the_per_sample_ones() {
-        for sign in [1.0f32, -1.0] {
+        for (sign, k2_factor) in [
+            (1.0f32, 0.241f32),
+            (-1.0, 0.241),
+            (1.0, 0.123),
+            (-1.0, 0.19),
+        ] {
             let map = StaticMap {
                 k1_m_per_v: sign * 0.357e-6,
-                k2_m_per_h: -sign * 0.241e-6,
+                k2_m_per_h: -sign * k2_factor * 1e-6,
                 offset_m: 1e-7,
             };
             let compensator = Compensator::new(
