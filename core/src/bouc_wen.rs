@@ -969,10 +969,21 @@ fn gauss_legendre(f: &impl Fn(f64) -> f64, a: f64, b: f64) -> f64 {
 }
 
 /// g(z) = (1 − e^(−z))/z, g(0) = 1. Series below |z| = 0.1 (truncation < 1.4e-8 relative),
-/// libm `expm1f` above. The series is inlined where g is needed (no call on the common small
-/// step); the libm branch is [`relax_libm`], out of line.
-#[inline(always)]
+/// libm `expm1f` above.
+#[inline]
 pub(crate) fn relax_factor(z: f32) -> f32 {
+    if z.abs() < 0.1 {
+        relax_series(z)
+    } else {
+        -libm::expm1f(-z) / z
+    }
+}
+
+/// [`relax_factor`], the same operations so the same bits, with the series inlined at the call
+/// site (no call on a small step) and the libm branch, [`relax_libm`], out of line: for the
+/// compensator's zero crossings, where a call would hold the solve's registers across it.
+#[inline(always)]
+pub(crate) fn relax_factor_inline(z: f32) -> f32 {
     if z.abs() < 0.1 {
         relax_series(z)
     } else {

@@ -53,7 +53,9 @@
 //! refuses it, and bounds a finite one by what the drive can swing,
 //! [`crate::io_chain::IoChain::check_limits`]).
 
-use crate::bouc_wen::{relax_factor, relax_series, BoucWenParams, HysteresisState};
+use crate::bouc_wen::{
+    relax_factor, relax_factor_inline, relax_series, BoucWenParams, HysteresisState,
+};
 use crate::dynamic_model::DynamicModel;
 use crate::error::{finite, positive, ParamError, MIN_SLOPE_RATIO};
 use crate::math::{self, clamp};
@@ -698,7 +700,7 @@ impl Compensator {
         };
         let s = if du < 0.0 { -1.0 } else { 1.0 };
         let rest = if (du - du0) * s > 0.0 { du - du0 } else { 0.0 };
-        let h1 = self.fast.a * rest * relax_factor(kappa_after * rest);
+        let h1 = self.fast.a * rest * relax_factor_inline(kappa_after * rest);
         (h1.abs().to_bits() <= self.fast.clamp_bound_bits).then_some(h1)
     }
 
@@ -1738,7 +1740,7 @@ impl Compensator {
                 } else {
                     0.0
                 };
-                a * rest * relax_factor(kappa_after * rest)
+                a * rest * relax_factor_inline(kappa_after * rest)
             }
         };
         let h1 = bw.clamp_state(if h1.is_nan() { h0 } else { h1 });
