@@ -979,6 +979,24 @@ pub(crate) fn relax_factor(z: f32) -> f32 {
     }
 }
 
+/// [`relax_factor`], the same operations so the same bits, with the series inlined at the call
+/// site (no call on a small step) and the libm branch, [`relax_libm`], out of line: for the
+/// compensator's zero crossings, where a call would hold the solve's registers across it.
+#[inline(always)]
+pub(crate) fn relax_factor_inline(z: f32) -> f32 {
+    if z.abs() < 0.1 {
+        relax_series(z)
+    } else {
+        relax_libm(z)
+    }
+}
+
+/// [`relax_factor`] above |z| = 0.1: `−expm1(−z)/z` with libm's `expm1f`.
+#[inline(never)]
+fn relax_libm(z: f32) -> f32 {
+    -libm::expm1f(-z) / z
+}
+
 /// The 5-term series of g(z) = (1 − e^(−z))/z: 1 − z/2 + z²/6 − z³/24 + z⁴/120 (for |z| < 0.1).
 #[inline]
 pub(crate) fn relax_series(z: f32) -> f32 {

@@ -53,7 +53,9 @@
 //! refuses it, and bounds a finite one by what the drive can swing,
 //! [`crate::io_chain::IoChain::check_limits`]).
 
-use crate::bouc_wen::{relax_factor, relax_series, BoucWenParams, HysteresisState};
+use crate::bouc_wen::{
+    relax_factor, relax_factor_inline, relax_series, BoucWenParams, HysteresisState,
+};
 use crate::dynamic_model::DynamicModel;
 use crate::error::{finite, positive, ParamError, MIN_SLOPE_RATIO};
 use crate::math::{self, clamp};
@@ -259,6 +261,12 @@ struct FastPath {
     /// The bit pattern of the Bouc-Wen state clamp: a step ending beyond it (or across h = 0)
     /// is left to the general solve.
     clamp_bound_bits: u32,
+    /// n = 1, the rest of a step past h = 0 ([`Compensator::n1_crossing_toward_zero`]): k2·A,
+    /// the slope k1 + k2·A at h = 0, and k2·A/(k1 + k2·A), in the operations and order that
+    /// solve forms them per sample, so the same bits.
+    k2a: f32,
+    slope_at_zero: f32,
+    k2a_over_slope: f32,
     /// General n: n, n − 1.
     n: f32,
     n_minus_1: f32,
@@ -316,6 +324,9 @@ impl FastPath {
             a,
             branch,
             clamp_bound_bits: bw.clamp_bound().to_bits(),
+            k2a: k2 * a,
+            slope_at_zero: k1 + k2 * a,
+            k2a_over_slope: k2 * a / (k1 + k2 * a),
             n,
             n_minus_1: n - 1.0,
             err_rho2: (n - 1.0) * (n - 2.0).abs() / 24.0,
@@ -689,7 +700,7 @@ impl Compensator {
         };
         let s = if du < 0.0 { -1.0 } else { 1.0 };
         let rest = if (du - du0) * s > 0.0 { du - du0 } else { 0.0 };
-        let h1 = self.fast.a * rest * relax_factor(kappa_after * rest);
+        let h1 = self.fast.a * rest * relax_factor_inline(kappa_after * rest);
         (h1.abs().to_bits() <= self.fast.clamp_bound_bits).then_some(h1)
     }
 
@@ -784,7 +795,7 @@ impl Compensator {
             Err(Some((direction, limit, q, kappa, sigma))) => {
                 Err(Some((direction, limit, (q, kappa, sigma))))
             }
-            Err(None) => self.n1_edge_head(state, u0, h0, error),
+            Err(None) => self.n1_edge_head(state, u0, h0, error, (q, kappa, k2q)),
         };
         let tail = match head {
             Ok(command) => Some(command),
@@ -817,7 +828,11 @@ impl Compensator {
         error: f32,
         desired_m: f32,
     ) -> Option<Command> {
-        match self.n1_edge_head(state, u0, h0, error) {
+        let p = &self.fast;
+        let index = (error.to_bits() >> 31) << 1 | h0.to_bits() >> 31;
+        let kappa = p.branch[index as usize & 3];
+        let q = p.a - kappa * h0;
+        match self.n1_edge_head(state, u0, h0, error, (q, kappa, p.k2 * q)) {
             Ok(command) => Some(command),
             Err(None) => None,
             Err(Some((direction, limit, branch))) => self.n1_edge_tail(
@@ -835,6 +850,12 @@ impl Compensator {
     /// limit and the limit stops the step; `Err(None)` for an error that is not finite or zero
     /// (the general solve); else `Err(Some((direction, limit, (q, κ, σ))))` for
     /// [`Compensator::n1_edge_tail`].
+    ///
+    /// `(q, κ, k2·q)`: the branch table's κ at the start's index `2·[e < 0] + [h₀ < 0]`
+    /// ([`Compensator::small_step`]) with q = A − κ·h₀. For a finite e ≠ 0 the table's
+    /// direction sgn(e)·sgn(dy/du) is `step_direction`'s, and for h₀ ≠ 0 (not NaN) its σ is
+    /// sgn h₀, as `n1_branch(h₀, direction)` takes it: the same operands, so the same bits,
+    /// taken instead of forming the branch again. At h₀ = ±0 or NaN the branch is `n1_branch`'s.
     #[inline(always)]
     #[allow(clippy::type_complexity)]
     fn n1_edge_head(
@@ -843,14 +864,21 @@ impl Compensator {
         u0: f32,
         h0: f32,
         error: f32,
+        table: (f32, f32, f32),
     ) -> Result<Command, Option<(f32, f32, (f32, f32, f32))>> {
         let p = &self.fast;
-        if !(error.is_finite() && error != 0.0) {
+        // Finite and nonzero (NaN fails both comparisons): two float compares.
+        if !(error.abs() > 0.0 && error.abs() < f32::INFINITY) {
             return Err(None);
         }
         let (direction, limit) = self.step_direction(u0, error);
-        let (q, kappa, sigma) = self.model.hysteresis().n1_branch(h0, direction);
-        let k2q = p.k2 * q;
+        let (q, kappa, sigma, k2q) = if h0.abs() > 0.0 {
+            let (q, kappa, k2q) = table;
+            (q, kappa, if h0 > 0.0 { 1.0 } else { -1.0 }, k2q)
+        } else {
+            let (q, kappa, sigma) = self.model.hysteresis().n1_branch(h0, direction);
+            (q, kappa, sigma, p.k2 * q)
+        };
         let slope = p.k1 + k2q;
         let linear = error / slope;
         let w = k2q / slope * kappa * linear;
@@ -1482,6 +1510,10 @@ impl Compensator {
     /// steps, until one moves Δu by no more than the voltage tolerance or, by Newton's quadratic
     /// convergence, the next one would (`|F''/(2F')|·m² ≤ tolerance/4` after a step m). `None`
     /// when it does not settle or ends non-finite.
+    ///
+    /// The first step with |κ·start| < 0.1 is taken here, by the series (no call, so nothing
+    /// held across one); the steps after it, and a first step that needs `expm1f`, are
+    /// [`Compensator::n1_newton_steps`]' (out of line): the same steps in the same order.
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
     fn n1_newton(
@@ -1493,10 +1525,47 @@ impl Compensator {
         limit: f32,
         start: f32,
     ) -> Option<f32> {
-        let k1 = self.model.map().k1_m_per_v;
-        let mut du = start;
+        let z = kappa * start;
+        if z.abs() < 0.1 {
+            let g = relax_series(z);
+            let (du, settled) =
+                self.n1_newton_update(k2q, kappa, error, (direction, limit), start, (-z * g, g));
+            if settled {
+                // Finite: |Δu| < ∞ (false for NaN), one float compare.
+                return (du.abs() < f32::INFINITY).then_some(du);
+            }
+            return self.n1_newton_steps(
+                k2q,
+                kappa,
+                error,
+                (direction, limit),
+                du,
+                LARGE_STEP_NEWTON - 1,
+            );
+        }
+        self.n1_newton_steps(
+            k2q,
+            kappa,
+            error,
+            (direction, limit),
+            start,
+            LARGE_STEP_NEWTON,
+        )
+    }
+
+    /// [`Compensator::n1_newton`]'s steps from `du`, at most `steps` of them.
+    #[inline(never)]
+    fn n1_newton_steps(
+        &self,
+        k2q: f32,
+        kappa: f32,
+        error: f32,
+        (direction, limit): (f32, f32),
+        mut du: f32,
+        steps: usize,
+    ) -> Option<f32> {
         let mut settled = false;
-        for _ in 0..LARGE_STEP_NEWTON {
+        for _ in 0..steps {
             let z = kappa * du;
             // e^(−z) − 1 and g(z) = (1 − e^(−z))/z: the series below |z| = 0.1, as `relax_factor`.
             let (em1, g) = if z.abs() < 0.1 {
@@ -1506,25 +1575,43 @@ impl Compensator {
                 let em1 = libm::expm1f(-z);
                 (em1, -em1 / z)
             };
-            let residual = du * (k1 + k2q * g) - error;
-            let slope = k1 + k2q * (1.0 + em1);
-            let newton = du - residual / slope;
-            let next = toward(newton, direction, limit);
-            let moved = (next - du).abs();
+            let (next, done) =
+                self.n1_newton_update(k2q, kappa, error, (direction, limit), du, (em1, g));
             du = next;
-            // Newton's error after a step of size m is about |F''/(2F')|·m², with
-            // F' = k1 + k2q·e^(−κΔu) and F'' = −κ·k2q·e^(−κΔu): when that is below a quarter
-            // of the tolerance, the next step would move Δu by less than the tolerance, so it
-            // is not taken (not after a step the limit clamped, whose size says nothing).
-            let curvature = (kappa * k2q * (1.0 + em1) / (2.0 * slope)).abs();
-            if moved <= self.voltage_tolerance_v
-                || (next == newton && moved * moved * curvature <= 0.25 * self.voltage_tolerance_v)
-            {
+            if done {
                 settled = true;
                 break;
             }
         }
         (settled && du.is_finite()).then_some(du)
+    }
+
+    /// One step of [`Compensator::n1_newton`] from `du` with `(e^(−z) − 1, g(z))` at z = κ·Δu:
+    /// the next iterate, and whether it settles the solve.
+    #[inline(always)]
+    fn n1_newton_update(
+        &self,
+        k2q: f32,
+        kappa: f32,
+        error: f32,
+        (direction, limit): (f32, f32),
+        du: f32,
+        (em1, g): (f32, f32),
+    ) -> (f32, bool) {
+        let k1 = self.model.map().k1_m_per_v;
+        let residual = du * (k1 + k2q * g) - error;
+        let slope = k1 + k2q * (1.0 + em1);
+        let newton = du - residual / slope;
+        let next = toward(newton, direction, limit);
+        let moved = (next - du).abs();
+        // Newton's error after a step of size m is about |F''/(2F')|·m², with
+        // F' = k1 + k2q·e^(−κΔu) and F'' = −κ·k2q·e^(−κΔu): when that is below a quarter
+        // of the tolerance, the next step would move Δu by less than the tolerance, so it
+        // is not taken (not after a step the limit clamped, whose size says nothing).
+        let curvature = (kappa * k2q * (1.0 + em1) / (2.0 * slope)).abs();
+        let settled = moved <= self.voltage_tolerance_v
+            || (next == newton && moved * moved * curvature <= 0.25 * self.voltage_tolerance_v);
+        (next, settled)
     }
 
     /// The fast n = 1 solve for a step along which h crosses zero (from h₀ ≠ 0 on the side σ,
@@ -1578,30 +1665,37 @@ impl Compensator {
         limit: f32,
         (q, kappa, sigma): (f32, f32, f32),
     ) -> Option<(ModelState, f32, f32)> {
+        let bw = self.model.hysteresis();
+        let du0 = bw.n1_zero_reach(h0, kappa)?;
+        if !(du0 * direction > 0.0 && du0.abs() < limit.abs()) {
+            return None;
+        }
+        // The parameters are read after the logarithm's call, not held across it.
         let StaticMap {
             k1_m_per_v: k1,
             k2_m_per_h: k2,
             ..
         } = self.model.map();
-        let bw = self.model.hysteresis();
         let BoucWenParams { a, beta, gamma, .. } = bw.params();
-        let du0 = bw.n1_zero_reach(h0, kappa)?;
-        if !(du0 * direction > 0.0 && du0.abs() < limit.abs()) {
-            return None;
-        }
         let error_after = error - (k1 * du0 - k2 * h0);
         // The root lies past the crossing only if the error left there still asks to go on.
         if error_after * self.slope_sign * direction <= 0.0 || error_after.is_nan() {
             return None;
         }
-        let s = if direction < 0.0 { -1.0 } else { 1.0 };
+        // The direction is ±1 (`step_direction`): s = sgn Δu is the direction itself.
+        let s = direction;
         let kappa_after = beta * s - gamma * sigma;
-        let k2a = k2 * a;
+        // k2·A, k1 + k2·A and k2·A/(k1 + k2·A) from the table built once (the same bits).
+        let FastPath {
+            k2a,
+            slope_at_zero,
+            k2a_over_slope,
+            ..
+        } = self.fast;
         let rest_limit = limit - du0;
-        let slope_at_zero = k1 + k2a;
         let linear = error_after / slope_at_zero;
         let kx = kappa_after * linear;
-        let w = k2a / slope_at_zero * kx;
+        let w = k2a_over_slope * kx;
         let rest = if kx.abs() < 0.01 && w.abs() < 0.01 {
             toward(
                 linear * (1.0 + w * (0.5 + 0.5 * w - kx / 6.0)),
@@ -1646,7 +1740,7 @@ impl Compensator {
                 } else {
                     0.0
                 };
-                a * rest * relax_factor(kappa_after * rest)
+                a * rest * relax_factor_inline(kappa_after * rest)
             }
         };
         let h1 = bw.clamp_state(if h1.is_nan() { h0 } else { h1 });
@@ -1733,6 +1827,63 @@ mod tests {
             output_max_v: 120.0,
             slew_limit_v_per_s: 1e5,
             sample_period_s: period_s,
+        }
+    }
+
+    /// The per-sample operands the n = 1 edge and crossing take from the table built once are
+    /// those they formed per sample, bit for bit: for h₀ ≠ 0 and a finite e ≠ 0, the branch
+    /// table's κ at the start's index `2·[e < 0] + [h₀ < 0]` and q = A − κ·h₀ are
+    /// `n1_branch(h₀, step_direction(e))`'s; at h₀ = ±0 they may differ (the head then forms
+    /// the branch itself); k2·A, k1 + k2·A and k2·A/(k1 + k2·A) are as the crossing formed them.
+    #[test]
+    fn n1_table_operands_are_the_per_sample_ones() {
+        for (sign, k2_factor) in [
+            (1.0f32, 0.241f32),
+            (-1.0, 0.241),
+            (1.0, 0.123),
+            (-1.0, 0.19),
+        ] {
+            let map = StaticMap {
+                k1_m_per_v: sign * 0.357e-6,
+                k2_m_per_h: -sign * k2_factor * 1e-6,
+                offset_m: 1e-7,
+            };
+            let compensator = Compensator::new(
+                StaticModel::new(x_stack(1.0, 1e3), map).unwrap(),
+                window(2e-5),
+            )
+            .unwrap();
+            let p = &compensator.fast;
+            let bw = compensator.model.hysteresis();
+            let a = bw.params().a;
+            let (k1, k2) = (map.k1_m_per_v, map.k2_m_per_h);
+            assert_eq!(p.k2a.to_bits(), (k2 * a).to_bits());
+            assert_eq!(p.slope_at_zero.to_bits(), (k1 + k2 * a).to_bits());
+            let k2a = k2 * a;
+            assert_eq!(p.k2a_over_slope.to_bits(), (k2a / (k1 + k2a)).to_bits());
+            let mut differ_at_zero = 0;
+            for h0 in [3.7f32, -3.7, 1e-30, -1e-30, 0.0, -0.0] {
+                for error in [2e-6f32, -2e-6, 1e-40, -1e-40] {
+                    let (direction, _) = compensator.step_direction(60.0, error);
+                    let index = (error.to_bits() >> 31) << 1 | h0.to_bits() >> 31;
+                    let kappa = p.branch[index as usize & 3];
+                    let q = p.a - kappa * h0;
+                    let (q_model, kappa_model, _) = bw.n1_branch(h0, direction);
+                    let same = kappa.to_bits() == kappa_model.to_bits()
+                        && q.to_bits() == q_model.to_bits();
+                    if h0 != 0.0 {
+                        assert!(
+                            same,
+                            "h0={h0} e={error}: table {kappa} {q}, model {kappa_model} {q_model}"
+                        );
+                    } else if !same {
+                        differ_at_zero += 1;
+                    }
+                }
+            }
+            // At h₀ = ±0 the sign bit is not σ for every direction: the head must not take the
+            // table's branch there.
+            assert!(differ_at_zero > 0);
         }
     }
 
