@@ -132,6 +132,20 @@ fn learning_over_the_link_lowers_the_error() {
             nm(&t["rms_m"])
         ));
     }
+    // Two passes per trial: each step's noise comes from the spread between them.
+    let mut noise_nm = Vec::new();
+    for t in trials {
+        for axis in ["x", "y"] {
+            assert_eq!(t[axis]["noise_from_passes"], true, "{axis}: {t}");
+            let noise = t[axis]["noise_rms_m"].as_f64().unwrap();
+            assert!(noise.is_finite() && noise >= 0.0, "{axis}: noise {noise}");
+            noise_nm.push(1e9 * noise);
+        }
+    }
+    say(&format!(
+        "link_learn: noise from the passes, x and y per iteration [nm]: {noise_nm:.3?}"
+    ));
+    assert!(noise_nm.iter().any(|&n| n > 0.0), "{noise_nm:?}");
     let rms = |k: usize| trials[k]["rms_m"].as_f64().unwrap();
     let best = report["best_iteration"].as_u64().unwrap() as usize;
     assert!(
