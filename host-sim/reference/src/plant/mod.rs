@@ -222,3 +222,22 @@ impl PlantKind {
         }
     }
 }
+
+/// The ±100 V drive the bipolar stacks accept: refuses an input outside −100 V .. 100 V, naming
+/// `plant`.
+pub(crate) fn check_bipolar_span(
+    plant: &'static str,
+    reason: &'static str,
+    u_min_v: f64,
+    u_max_v: f64,
+) -> Result<(), PlantError> {
+    if u_min_v < -100.0 || u_max_v > 100.0 {
+        return Err(PlantError::InputOutOfRange {
+            plant,
+            span_v: u_max_v - u_min_v,
+            max_span_v: 200.0,
+            reason,
+        });
+    }
+    Ok(())
+}

@@ -243,15 +243,12 @@ impl Plant for RelaxingStack {
         10_000.0
     }
     fn check_input_span(&self, u_min_v: f64, u_max_v: f64) -> Result<(), PlantError> {
-        if u_min_v < -100.0 || u_max_v > 100.0 {
-            return Err(PlantError::InputOutOfRange {
-                plant: "relaxing-stack",
-                span_v: u_max_v - u_min_v,
-                max_span_v: 200.0,
-                reason: "the relaxing stack accepts -100 V .. 100 V",
-            });
-        }
-        Ok(())
+        super::check_bipolar_span(
+            "relaxing-stack",
+            "the relaxing stack accepts -100 V .. 100 V",
+            u_min_v,
+            u_max_v,
+        )
     }
     fn set_electrostriction(&mut self, per_v: f64) {
         self.electrostriction_per_v = per_v;
