@@ -742,16 +742,7 @@ fn an_actuator_with_a_spread_of_relaxation_times_is_predicted_at_a_rate_it_did_n
     );
     let form = r["steps"][0]["form"].as_str().unwrap();
     assert!(form.starts_with("input lag and"), "form {form}\n{words}");
-    let first = r["steps"][0]["candidates"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .find(|c| c["decision"] == "added")
-        .unwrap();
-    let (without, with) = (
-        first["another_run"]["rms_zeroed_without"].as_f64().unwrap(),
-        first["another_run"]["rms_zeroed_with"].as_f64().unwrap(),
-    );
+    let (without, with) = added_zeroed_rms(&r);
     assert!(
         with <= 0.65 * without,
         "100 Hz zeroed RMS {without:.4e} -> {with:.4e} m\n{words}"
@@ -822,16 +813,7 @@ fn an_actuator_whose_loops_widen_with_rate_is_predicted_at_a_rate_it_did_not_see
     );
     let form = r["steps"][0]["form"].as_str().unwrap();
     assert_eq!(form, "relaxation of the whole output", "{words}");
-    let first = r["steps"][0]["candidates"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .find(|c| c["decision"] == "added")
-        .unwrap();
-    let (without, with) = (
-        first["another_run"]["rms_zeroed_without"].as_f64().unwrap(),
-        first["another_run"]["rms_zeroed_with"].as_f64().unwrap(),
-    );
+    let (without, with) = added_zeroed_rms(&r);
     assert!(
         with <= 0.8 * without,
         "100 Hz zeroed RMS {without:.4e} -> {with:.4e} m\n{words}"
@@ -856,4 +838,19 @@ fn an_actuator_whose_loops_widen_with_rate_is_predicted_at_a_rate_it_did_not_see
             record.display()
         );
     }
+}
+
+/// The zeroed RMS of the validation record without and with the first effect close-loop added
+/// (its report's first step) \[m\].
+fn added_zeroed_rms(r: &serde_json::Value) -> (f64, f64) {
+    let first = r["steps"][0]["candidates"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["decision"] == "added")
+        .unwrap();
+    (
+        first["another_run"]["rms_zeroed_without"].as_f64().unwrap(),
+        first["another_run"]["rms_zeroed_with"].as_f64().unwrap(),
+    )
 }

@@ -132,7 +132,8 @@ fn learning_over_the_link_lowers_the_error() {
             nm(&t["rms_m"])
         ));
     }
-    // Two passes per trial: each step's noise comes from the spread between them.
+    // Two passes per trial: each step's noise comes from the spread between them (on the link
+    // image's stage, which has no sensor noise, only what the loop has not settled).
     let mut noise_nm = Vec::new();
     for t in trials {
         for axis in ["x", "y"] {
@@ -145,7 +146,6 @@ fn learning_over_the_link_lowers_the_error() {
     say(&format!(
         "link_learn: noise from the passes, x and y per iteration [nm]: {noise_nm:.3?}"
     ));
-    assert!(noise_nm.iter().any(|&n| n > 0.0), "{noise_nm:?}");
     let rms = |k: usize| trials[k]["rms_m"].as_f64().unwrap();
     let best = report["best_iteration"].as_u64().unwrap() as usize;
     assert!(
