@@ -17,6 +17,59 @@ fn run(
     simulate(plant, signals, effects, &SimSettings::new(fs, dur)).unwrap()
 }
 
+/// A ±90 V sine of `freq` Hz on the first axis.
+fn sine_90_v(freq: f64) -> Vec<Box<dyn Signal>> {
+    vec![Box::new(Sine {
+        amplitude_v: 90.0,
+        offset_v: 0.0,
+        frequency_hz: freq,
+        phase_rad: 0.0,
+    })]
+}
+
+/// Span of the second period of a 1 Hz ±90 V sine \[m\].
+fn span_at_1_hz(p: &dyn Plant) -> f64 {
+    let out = run(p, sine_90_v(1.0), &Effects::default(), 10_000.0, 2.0);
+    let y = &out.outputs_m[0][10_000..];
+    y.iter().cloned().fold(f64::MIN, f64::max) - y.iter().cloned().fold(f64::MAX, f64::min)
+}
+
+/// Loop opening at u = 0 in the fourth period of a ±90 V sine of `freq` Hz: y on the way down
+/// minus y on the way up \[m\].
+fn opening_at_zero(p: &dyn Plant, freq: f64) -> f64 {
+    let fs = 100_000.0;
+    let out = run(p, sine_90_v(freq), &Effects::default(), fs, 4.0 / freq);
+    let per = (fs / freq) as usize;
+    let (u, y) = (&out.inputs_v[0], &out.outputs_m[0]);
+    let at = |from: usize, to: usize| {
+        (from..to)
+            .min_by(|&a, &b| u[a].abs().total_cmp(&u[b].abs()))
+            .map(|i| y[i])
+            .unwrap()
+    };
+    // u falls through 0 at half a period, rises through 0 at a whole one.
+    let base = 3 * per;
+    at(base + per / 4, base + 3 * per / 4) - at(base + 3 * per / 4, base + per - 1)
+}
+
+/// After a 10 V step at rest: the peaks above the final value (indices at 200 kHz, from 20 ms).
+fn step_ring_peaks(p: &dyn Plant) -> Vec<usize> {
+    use piezo_reference::signal::SignalSpec;
+    let spec = SignalSpec::parse("steps:levels=0/10,hold=0.02").unwrap();
+    let out = run(
+        p,
+        spec.build(1).unwrap(),
+        &Effects::default(),
+        200_000.0,
+        0.04,
+    );
+    let y = &out.outputs_m[0][4000..];
+    let last = *y.last().unwrap();
+    (1..y.len() - 1)
+        .filter(|&i| y[i] > y[i - 1] && y[i] >= y[i + 1] && y[i] > last)
+        .collect()
+}
+
 /// Settled output at the end of each staircase level; returns (max output, max opening, voltage of max).
 fn loop_figures(out: &SimOutput, axis: usize, levels: usize) -> (f64, f64, f64, Vec<(f64, f64)>) {
     let per = (HOLD_S * 10_000.0) as usize;
@@ -439,57 +492,17 @@ fn default_parameters_are_valid() {
 #[test]
 fn bipolar_stack_spans_35_um_depends_on_rate_and_rings_at_740_hz() {
     use piezo_reference::plant::BipolarStack;
-    use piezo_reference::signal::SignalSpec;
     let p = BipolarStack::default();
-    let sine = |freq: f64| -> Vec<Box<dyn Signal>> {
-        vec![Box::new(Sine {
-            amplitude_v: 90.0,
-            offset_v: 0.0,
-            frequency_hz: freq,
-            phase_rad: 0.0,
-        })]
-    };
-    // Span of the second period at 1 Hz.
-    let out = run(&p, sine(1.0), &Effects::default(), 10_000.0, 2.0);
-    let y = &out.outputs_m[0][10_000..];
-    let span =
-        y.iter().cloned().fold(f64::MIN, f64::max) - y.iter().cloned().fold(f64::MAX, f64::min);
+    let span = span_at_1_hz(&p);
     assert!((34e-6..36e-6).contains(&span), "span {span:e} m");
-    // Loop opening at u = 0 in the fourth period: y on the way down minus y on the way up.
-    let opening = |freq: f64| {
-        let fs = 100_000.0;
-        let out = run(&p, sine(freq), &Effects::default(), fs, 4.0 / freq);
-        let per = (fs / freq) as usize;
-        let (u, y) = (&out.inputs_v[0], &out.outputs_m[0]);
-        let at = |from: usize, to: usize| {
-            (from..to)
-                .min_by(|&a, &b| u[a].abs().total_cmp(&u[b].abs()))
-                .map(|i| y[i])
-                .unwrap()
-        };
-        // u falls through 0 at half a period, rises through 0 at a whole one.
-        let base = 3 * per;
-        at(base + per / 4, base + 3 * per / 4) - at(base + 3 * per / 4, base + per - 1)
-    };
+    let opening = |freq: f64| opening_at_zero(&p, freq);
     let (o1, o20, o40, o100) = (opening(1.0), opening(20.0), opening(40.0), opening(100.0));
     assert!(
         o1 > 1.2 * o20 && o20 > 1.2 * o40 && o40 > 1.2 * o100 && o100 > 0.0,
         "openings {o1:e} {o20:e} {o40:e} {o100:e} m"
     );
     // A 10 V step at rest: the output overshoots and rings with a period near 1/740 s.
-    let spec = SignalSpec::parse("steps:levels=0/10,hold=0.02").unwrap();
-    let out = run(
-        &p,
-        spec.build(1).unwrap(),
-        &Effects::default(),
-        200_000.0,
-        0.04,
-    );
-    let y = &out.outputs_m[0][4000..];
-    let last = *y.last().unwrap();
-    let peaks: Vec<usize> = (1..y.len() - 1)
-        .filter(|&i| y[i] > y[i - 1] && y[i] >= y[i + 1] && y[i] > last)
-        .collect();
+    let peaks = step_ring_peaks(&p);
     assert!(peaks.len() >= 3, "{} peaks", peaks.len());
     let f = 200_000.0 / (peaks[1] - peaks[0]) as f64;
     assert!((700.0..780.0).contains(&f), "ring at {f} Hz");
@@ -502,35 +515,10 @@ fn bipolar_stack_spans_35_um_depends_on_rate_and_rings_at_740_hz() {
 #[test]
 fn relaxing_stack_spans_35_um_widens_with_rate_and_rings_at_740_hz() {
     use piezo_reference::plant::RelaxingStack;
-    use piezo_reference::signal::SignalSpec;
     let p = RelaxingStack::default();
-    let sine = |freq: f64| -> Vec<Box<dyn Signal>> {
-        vec![Box::new(Sine {
-            amplitude_v: 90.0,
-            offset_v: 0.0,
-            frequency_hz: freq,
-            phase_rad: 0.0,
-        })]
-    };
-    let out = run(&p, sine(1.0), &Effects::default(), 10_000.0, 2.0);
-    let y = &out.outputs_m[0][10_000..];
-    let span =
-        y.iter().cloned().fold(f64::MIN, f64::max) - y.iter().cloned().fold(f64::MAX, f64::min);
+    let span = span_at_1_hz(&p);
     assert!((34e-6..36e-6).contains(&span), "span {span:e} m");
-    let opening = |freq: f64| {
-        let fs = 100_000.0;
-        let out = run(&p, sine(freq), &Effects::default(), fs, 4.0 / freq);
-        let per = (fs / freq) as usize;
-        let (u, y) = (&out.inputs_v[0], &out.outputs_m[0]);
-        let at = |from: usize, to: usize| {
-            (from..to)
-                .min_by(|&a, &b| u[a].abs().total_cmp(&u[b].abs()))
-                .map(|i| y[i])
-                .unwrap()
-        };
-        let base = 3 * per;
-        at(base + per / 4, base + 3 * per / 4) - at(base + 3 * per / 4, base + per - 1)
-    };
+    let opening = |freq: f64| opening_at_zero(&p, freq);
     let (o1, o20, o40, o100) = (opening(1.0), opening(20.0), opening(40.0), opening(100.0));
     println!(
         "relaxing-stack loop opening at u = 0: 1 Hz {:.3} um, 20 Hz {:.3} um, 40 Hz {:.3} um, 100 Hz {:.3} um",
@@ -543,19 +531,7 @@ fn relaxing_stack_spans_35_um_widens_with_rate_and_rings_at_740_hz() {
         o1 > 0.0 && o20 > o1 && o40 > 1.05 * o20 && o100 > 1.1 * o40,
         "openings {o1:e} {o20:e} {o40:e} {o100:e} m"
     );
-    let spec = SignalSpec::parse("steps:levels=0/10,hold=0.02").unwrap();
-    let out = run(
-        &p,
-        spec.build(1).unwrap(),
-        &Effects::default(),
-        200_000.0,
-        0.04,
-    );
-    let y = &out.outputs_m[0][4000..];
-    let last = *y.last().unwrap();
-    let peaks: Vec<usize> = (1..y.len() - 1)
-        .filter(|&i| y[i] > y[i - 1] && y[i] >= y[i + 1] && y[i] > last)
-        .collect();
+    let peaks = step_ring_peaks(&p);
     assert!(peaks.len() >= 3, "{} peaks", peaks.len());
     let f = 200_000.0 / (peaks[1] - peaks[0]) as f64;
     assert!((700.0..780.0).contains(&f), "ring at {f} Hz");
