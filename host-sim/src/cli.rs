@@ -20,14 +20,15 @@ pub struct Cli {
 /// Subcommands.
 #[derive(Debug, Subcommand)]
 pub enum Command {
-    /// Simulate a plant under a signal with optional effects; write CSV and optionally a plot (SVG or PNG).
+    /// Simulate a plant under a signal in stack volts (V) with optional effects; write the CSV of
+    /// its displacement in metres (t_s, u_V, y_m) and optionally a plot (SVG or PNG).
     #[command(after_help = format!(
-        "Plants: {PLANT_NAMES}\n  nac2024   Noliac NAC2024 actuator (seed 000), output y_m, 2.56 MHz default rate\n  stage     asymmetric stage (seed 001, Case III; stage-case1/stage-case2 too), output y_m, 10 kHz\n  xy-stage  two-axis flexure stage (seed 002), inputs ux_V/uy_V, outputs x_m/y_m, 10 kHz\n\n{SIGNAL_HELP}\n\n{EFFECT_HELP}"
+        "Plants: {PLANT_NAMES}\n  nac2024   Noliac NAC2024 actuator (seed 000), output y_m, 2.56 MHz default rate\n  stage     asymmetric stage (seed 001, Case III; stage-case1/stage-case2 too), output y_m, 10 kHz\n  xy-stage  two-axis flexure stage (seed 002), inputs ux_V/uy_V, outputs x_m/y_m, 10 kHz\n  bipolar-stack   ±100 V stack, hysteresis behind a spread of dielectric relaxations, 740 Hz mode, output y_m, 10 kHz\n  relaxing-stack  ±100 V stack whose whole strain relaxes (loops widen with rate), 740 Hz mode, output y_m, 10 kHz\n\n{SIGNAL_HELP}\n\n{EFFECT_HELP}"
     ))]
     Simulate(crate::simulate::SimulateArgs),
     /// The whole story on the XY stage with creep no model declares: identify, compensate, find the
     /// residual (close-loop), add the effect, compensate again; prints tracking error per axis and
-    /// mode (RMS and % of stroke), writes plots, demo.csv, demo-params.toml and summary.json.
+    /// mode (RMS in m and % of stroke), writes plots, demo.csv, demo-params.toml and summary.json.
     #[command(
         after_help = "The plant is host-sim's f64 XY stage (seed 002) with --plant-effect (default: Kelvin-Voigt creep \
 tau 0.1/1 s, weights 0.02/0.02, and 2 nm sensor noise), driven through a zero-order-hold DAC at --rate. \
@@ -39,47 +40,55 @@ All modes command one sample ahead. Output window 0-120 V."
     )]
     Demo(crate::demo::DemoArgs),
     /// Reproduces the papers' figures with the simulated plants and the piezo-core models: writes
-    /// DIR/reproduce.json (each figure with the paper's value beside it) and plots.
+    /// DIR/reproduce.json (each figure in the paper's own unit: µm, % or none, with the paper's value
+    /// beside it) and plots.
     #[command(
         after_help = "Sections:\n  xy_stage  loop openings at 120 V and 12 V staircases and maximum displacement (seed 002)\n  nac2024   R^2 and MRD of the core DynamicModel (Table 1, f32, 2.56 MHz, range +-10 V, state limit 10) against the plant with a second mode and a 10 % heavier mass, 10-200 kHz sines of 9.738 V, next to Table 2 (seed 000)\n  stage     RAE and AFV of the standard and asymmetric core models on the stage plant, Cases I-III (seed 001)"
     )]
     Reproduce(crate::reproduce::ReproduceArgs),
     /// Decoded firmware log (QEMU output, or defmt from probe-rs run / defmt-print) to the CSV
-    /// that `identify` reads; sequence gaps stop it (--allow-gaps: kept and marked).
+    /// that `identify` reads (t_s in s, u_V in V, y_m in m); sequence gaps stop it (--allow-gaps:
+    /// kept and marked).
     #[command(after_help = crate::capture::HELP)]
     Capture(crate::capture::CaptureArgs),
-    /// Fits a piezo-core model to a record; writes the parameter file and a summary JSON.
+    /// Fits a piezo-core model to a record (t in s, u in V, y in m, or the unit its column suffix
+    /// names); writes the parameter file (SI units) and a summary JSON.
     Identify(crate::identify::IdentifyArgs),
-    /// Simulates an identified model on a record (it sees only u) and reports the fit.
+    /// Simulates an identified model on a record (it sees only u, in V) and reports the fit (RMS
+    /// in m).
     Predict(crate::identify::PredictArgs),
     /// Fits the base model, finds the effect its residual lacks (creep, drift, delay, asymmetry,
-    /// dynamics, coupling), adds it, refits and repeats; reports the error before and after.
+    /// dynamics, coupling), adds it, refits and repeats; reports the error (RMS in m) before and
+    /// after.
     CloseLoop(crate::close_loop::CloseLoopArgs),
-    /// The voltages the firmware commands for a reference record (stage file + CSV → CSV of
-    /// stack voltages per tick, for a wave table or any DAC).
+    /// The voltages the firmware commands for a reference record (stage file + CSV of metres → CSV
+    /// of stack volts per tick, for a wave table or any DAC).
     #[command(after_help = crate::compensate::HELP)]
     Compensate(crate::compensate::CompensateArgs),
     /// Drives the firmware over its command link (QEMU image on a TCP port, or the board's
-    /// serial device): status, excite and record, upload a stage file, track, rearm.
+    /// serial device): status, excite in stack volts and record, upload a stage file, track a
+    /// reference in metres, rearm.
     Link(crate::link::LinkArgs),
     /// Open loop, feedforward, feedback and both on the XY stage with creep, drift, noise and
-    /// quantisation: tracking error per mode and frequency, closed-loop bandwidth; writes
-    /// DIR/servo.json and plots.
+    /// quantisation: tracking error per mode and frequency (% of stroke), closed-loop bandwidth
+    /// (Hz); writes DIR/servo.json and plots.
     #[command(after_help = crate::servo_bench::HELP)]
     ServoBench(crate::servo_bench::ServoBenchArgs),
-    /// The settling time the stage file's model predicts for a step (the firmware's compensator,
-    /// and its servo with --feedback, on the file's forward model; the firmware's on-target
-    /// rule); JSON on stdout.
+    /// The settling time (s) the stage file's model predicts for a step in metres (the firmware's
+    /// compensator, and its servo with --feedback, on the file's forward model; the firmware's
+    /// on-target rule); JSON on stdout.
     Settle(crate::settle::SettleArgs),
     /// Tunes the feedback servo of each axis from the stage file's model and the stage's first
-    /// mode; writes the stage file with `[x.servo]`/`[y.servo]` and prints the margins.
+    /// mode; writes the stage file with `[x.servo]`/`[y.servo]` and prints the margins (crossover in
+    /// Hz, phase margin in degrees).
     ServoTune(crate::servo_tune::ServoTuneArgs),
-    /// One step of iterative learning control: reference, command and measured record of a trial
-    /// → the next trial's command (a table tied to its reference and stage file) and a report.
+    /// One step of iterative learning control: reference (m), command (V) and measured record (m)
+    /// of a trial → the next trial's command in stack volts (a table tied to its reference and
+    /// stage file) and a report.
     #[command(after_help = crate::learn::HELP)]
     Learn(crate::learn::LearnArgs),
     /// Iterative learning control on the XY stage (learned, learned+feedback; 1, 10, 100 Hz;
-    /// perturbed stage files): error per trial; writes DIR/learn.json and the plot.
+    /// perturbed stage files): error per trial (% of stroke); writes DIR/learn.json and the plot.
     #[command(after_help = crate::learn_bench::HELP)]
     LearnBench(crate::learn_bench::LearnBenchArgs),
 }
@@ -134,10 +143,111 @@ mod tests {
             "raster",
             "creep",
             "second-mode",
-            "duration=",
+            "duration (s)",
         ] {
             assert!(help.contains(word), "help lacks {word}");
         }
+    }
+
+    /// Every command and subcommand, with its long help rendered as `--help` prints it.
+    fn rendered_helps() -> Vec<(String, String, String)> {
+        fn walk(cmd: &mut clap::Command, path: &str, out: &mut Vec<(String, String, String)>) {
+            let names: Vec<String> = cmd
+                .get_subcommands()
+                .map(|c| c.get_name().to_string())
+                .filter(|n| n != "help")
+                .collect();
+            for name in names {
+                let sub = cmd.find_subcommand_mut(&name).unwrap();
+                let about = sub.get_about().map(|a| a.to_string()).unwrap_or_default();
+                let help = sub.render_long_help().to_string();
+                let full = format!("{path} {name}");
+                out.push((full.clone(), about, help));
+                walk(sub, &full, out);
+            }
+        }
+        let mut out = Vec::new();
+        walk(&mut Cli::command(), "host-sim", &mut out);
+        out
+    }
+
+    #[test]
+    fn every_command_names_its_units_in_its_first_sentence() {
+        const UNITS: [&str; 10] = [
+            "(V)",
+            "volts",
+            "metres",
+            "(m)",
+            " in m",
+            "(s)",
+            "Hz",
+            "% of stroke",
+            "µm",
+            "t_s",
+        ];
+        let mut commands = 0;
+        for (name, about, _) in rendered_helps() {
+            if name.matches(' ').count() != 1 {
+                continue;
+            }
+            commands += 1;
+            let first = about.split(". ").next().unwrap_or_default();
+            assert!(
+                UNITS.iter().any(|u| first.contains(u)),
+                "`{name} --help` names no unit in its first sentence: {first}"
+            );
+        }
+        assert!(commands >= 14, "{commands} commands");
+    }
+
+    #[test]
+    fn units_in_every_help_are_written_one_way() {
+        let mut offenders = Vec::new();
+        for (name, _, help) in rendered_helps() {
+            for line in help.lines() {
+                let escaped = line.contains("\\[");
+                let bracketed = [
+                    "[Hz]", "[s]", "[V]", "[m]", "[°]", "[%]", "[V/s]", "[nm]", "[µm]",
+                ]
+                .iter()
+                .any(|b| line.contains(b));
+                if escaped || bracketed {
+                    offenders.push(format!("{name}: {}", line.trim()));
+                }
+            }
+        }
+        assert!(
+            offenders.is_empty(),
+            "units are written (unit), never [unit] or \\[unit\\]:\n{}",
+            offenders.join("\n")
+        );
+        fn every_signal(cmd: &clap::Command, path: &str, count: &mut usize) {
+            for arg in cmd.get_arguments().filter(|a| a.get_id() == "signal") {
+                *count += 1;
+                let help = arg
+                    .get_long_help()
+                    .or(arg.get_help())
+                    .map(|h| h.to_string())
+                    .unwrap_or_default();
+                assert!(
+                    ["volts", "metres", "µm"].iter().any(|u| help.contains(u)),
+                    "`{path} --signal` names no unit: {help}"
+                );
+            }
+            for sub in cmd.get_subcommands() {
+                every_signal(sub, &format!("{path} {}", sub.get_name()), count);
+            }
+        }
+        let mut signals = 0;
+        every_signal(&Cli::command(), "host-sim", &mut signals);
+        assert!(signals >= 5, "{signals} --signal options");
+        let mut cmd = Cli::command();
+        let help = cmd
+            .find_subcommand_mut("simulate")
+            .unwrap()
+            .render_long_help()
+            .to_string();
+        assert!(help.contains("U is the signal's own unit"), "{help}");
     }
 
     #[test]

@@ -100,7 +100,7 @@ impl Perturbation {
 pub struct LearnBenchSettings {
     /// Loop rate \[Hz\].
     pub loop_rate_hz: f64,
-    /// Reference frequencies \[Hz\].
+    /// Reference frequencies (Hz).
     pub frequencies_hz: Vec<f64>,
     /// Reference shapes.
     pub shapes: Vec<Shape>,
@@ -821,16 +821,16 @@ pub struct LearnBenchArgs {
     /// Learning steps per run.
     #[arg(long, default_value_t = 15)]
     pub iterations: usize,
-    /// Reference frequencies \[Hz\], comma-separated.
+    /// Reference frequencies (Hz), comma-separated.
     #[arg(long, value_delimiter = ',', default_values_t = [1.0, 10.0, 100.0])]
     pub freq: Vec<f64>,
     /// Skip the robustness rows.
     #[arg(long)]
     pub no_robustness: bool,
-    /// Loop rate \[Hz\]: the stage file, the servo's tuning, the DAC and the plant's steps.
+    /// Loop rate (Hz): the stage file, the servo's tuning, the DAC and the plant's steps.
     #[arg(long, default_value_t = DEFAULT_LOOP_RATE_HZ)]
     pub rate: f64,
-    /// A trial is the fewest whole periods lasting at least this \[s\]; the learning step sees
+    /// A trial is the fewest whole periods lasting at least this (s); the learning step sees
     /// their average (sensor noise falls as the square root of the periods).
     #[arg(long, default_value_t = 0.1)]
     pub trial_s: f64,

@@ -24,14 +24,14 @@ use std::path::PathBuf;
 /// Arguments of `link step`.
 #[derive(Debug, clap::Args)]
 pub struct StepArgs {
-    /// Where to go \[m\]: one value for both axes or `X,Y`.
+    /// Where to go (m): one value for both axes or `X,Y`.
     #[arg(long)]
     pub to: String,
-    /// On-target band \[m\] the host times the move with (default: the firmware's band, from
+    /// On-target band (m) the host times the move with (default: the firmware's band, from
     /// its stage file's `[x.on_target]`).
     #[arg(long)]
     pub tolerance: Option<f64>,
-    /// Longest wait for both axes on target, in the loop's time \[s\].
+    /// Longest wait for both axes on target, in the loop's time (s).
     #[arg(long, default_value_t = 1.0)]
     pub timeout: f64,
     /// Also write every frame of the move (CSV: sequence, rx_m, ry_m, ux_V, uy_V, x_m, y_m,

@@ -1160,7 +1160,7 @@ pub struct ServoBenchArgs {
     /// noise, a 3.125 nm ADC and a 16-bit 0-120 V DAC at the loop rate; `none` for a clean plant).
     #[arg(long = "plant-effect")]
     pub plant_effects: Vec<String>,
-    /// Loop rates \[Hz\], comma-separated: the whole bench (identification, tuning, runs) at each;
+    /// Loop rates (Hz), comma-separated: the whole bench (identification, tuning, runs) at each;
     /// with more than one, each rate's files go to `OUT/<rate>-hz/` and a table across the rates
     /// follows (`rates.json`).
     #[arg(long, value_delimiter = ',', default_value = "10000")]

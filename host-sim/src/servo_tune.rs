@@ -48,13 +48,13 @@ pub struct ServoTuneArgs {
     /// Damping ratio ζ of the mode (with --mode-hz).
     #[arg(long, default_value_t = 0.02)]
     pub damping: f32,
-    /// Phase margin at the crossover [°].
+    /// Phase margin at the crossover (°).
     #[arg(long, default_value_t = 60.0)]
     pub phase_margin_deg: f32,
     /// Sensor-to-actuator latency [loop periods].
     #[arg(long, default_value_t = 1.5)]
     pub latency_periods: f32,
-    /// The converters' latency, added whatever the loop rate \[s\].
+    /// The converters' latency, added whatever the loop rate (s).
     #[arg(long, default_value_t = CONVERTER_LATENCY_S)]
     pub converter_latency_s: f32,
 }

@@ -36,16 +36,16 @@ pub struct SettleArgs {
     /// Stage file (TOML), as the firmware runs it.
     #[arg(long)]
     pub params: PathBuf,
-    /// Where the stage stands before the step \[m\]: one value for both axes or `X,Y`.
+    /// Where the stage stands before the step (m): one value for both axes or `X,Y`.
     #[arg(long)]
     pub from: String,
-    /// Where the step goes \[m\]: one value for both axes or `X,Y`.
+    /// Where the step goes (m): one value for both axes or `X,Y`.
     #[arg(long)]
     pub to: String,
-    /// On-target band \[m\] (default: the stage file's `[x.on_target]`, or its default).
+    /// On-target band (m) (default: the stage file's `[x.on_target]`, or its default).
     #[arg(long)]
     pub tolerance: Option<f64>,
-    /// Longest time watched for each of the two moves \[s\].
+    /// Longest time watched for each of the two moves (s).
     #[arg(long, default_value_t = 1.0)]
     pub timeout: f64,
     /// Run the servo too (feedforward+feedback; the file needs `[x.servo]`, `[y.servo]`).

@@ -15,7 +15,8 @@ pub struct SimulateArgs {
     /// Plant: nac2024, stage, xy-stage, bipolar-stack, relaxing-stack.
     #[arg(long)]
     pub plant: String,
-    /// Signal spec, e.g. `sine:amp=10,offset=10,freq=2,phase_deg=-90,duration=1,rate=10000`.
+    /// Signal spec in stack volts, e.g.
+    /// `sine:amp=10,offset=10,freq=2,phase_deg=-90,duration=1,rate=10000`.
     #[arg(long)]
     pub signal: String,
     /// Effect spec, repeatable, e.g. `creep:tau=0.1/1/10,weight=0.01/0.01/0.01`.

@@ -94,19 +94,22 @@ pub const SIGNAL_KINDS: &str =
 /// Help text for signal specs (used by the `host-sim` command line).
 pub const SIGNAL_HELP: &str = "\
 Signal spec: KIND:key=value,key=value,...  (lists use '/', e.g. levels=0/5/10)
-  common keys: duration=<s>, rate=<Hz> (output sample rate; default: plant's)
-  sine       amp, offset, freq, phase_deg               u = offset + amp*sin(2*pi*freq*t + phase)
-  rising-sine amp, offset, freq, phase_deg, raised=0|1   u = offset + amp*(t/duration)*(sin(2*pi*freq*t + phase) + raised)
-                                                        (amplitude rising from 0; raised=1, phase_deg=-90: valley at offset)
-  multisine  offset, amps=a1/a2/.., freqs=f1/f2/..       sum of sines (sine phases)
-  triangle   low, high, freq                            starts at low, rises first
-  staircase  low, high, step, hold                      low->high->low in steps, each held `hold` s (ZOH)
-  steps      levels=l1/l2/.., hold                      each level held `hold` s (ZOH)
-  square     low, amp, period, rise                     ramp-edged square (seed 000 eq. 4 defaults:
-                                                        amp=7.8335 V, rise=1.8672e-6 s (a=4.1954 MV/s), period=1e-4 s)
-  chirp      amp, offset, f0, f1                        linear chirp f0->f1 over duration
-  raster     x_low, x_high, line_freq, y_low, y_high    two axes: x triangle, y slow ramp (xy-stage)
-  csv        path, column (default u_V or ux_V), hold=foh|zoh
+  Units: U is the signal's own unit: stack volts for `simulate` and `link excite`, metres for
+  `link track` and `link learn`, micrometres for `compensate --signal`; times in s, frequencies in Hz.
+  common keys: duration (s), rate (Hz; the output sample rate, default: the plant's)
+  sine        amp, offset (U), freq (Hz), phase_deg (deg)   u = offset + amp*sin(2*pi*freq*t + phase)
+  rising-sine amp, offset (U), freq (Hz), phase_deg (deg), raised=0|1
+                                                   u = offset + amp*(t/duration)*(sin(2*pi*freq*t + phase) + raised)
+                                                   (amplitude rising from 0; raised=1, phase_deg=-90: valley at offset)
+  multisine   offset (U), amps=a1/a2/.. (U), freqs=f1/f2/.. (Hz)   sum of sines (sine phases)
+  triangle    low, high (U), freq (Hz)                 starts at low, rises first
+  staircase   low, high, step (U), hold (s)            low->high->low in steps, each held `hold` (ZOH)
+  steps       levels=l1/l2/.. (U), hold (s)            each level held `hold` (ZOH)
+  square      low, amp (U), period, rise (s)           ramp-edged square (seed 000 eq. 4 defaults:
+                                                   amp=7.8335 V, rise=1.8672e-6 s (a=4.1954 MV/s), period=1e-4 s)
+  chirp       amp, offset (U), f0, f1 (Hz)             linear chirp f0->f1 over duration
+  raster      x_low, x_high, y_low, y_high (U), line_freq (Hz)   two axes: x triangle, y slow ramp (xy-stage)
+  csv         path, column (default u_V or ux_V; the column's suffix gives its unit), hold=foh|zoh
 Examples: sine:amp=10,offset=10,freq=2,phase_deg=-90,duration=1,rate=10000
           staircase:low=0,high=120,step=10,hold=0.03";
 
