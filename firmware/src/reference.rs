@@ -1,4 +1,5 @@
-//! Reference generator: the two-axis setpoint of each tick, in metres.
+//! Reference generator: the two-axis setpoint of each tick, in the unit of the program's
+//! request (metres for a tracked reference, stack volts for an excitation).
 //!
 //! Programs ([`Program`], piezo-core's, as the command link carries them):
 //! - per axis a [`Wave`]: constant, sine, triangle or steps (square wave), each
@@ -36,7 +37,9 @@ pub const STREAM_CAPACITY: usize = 64;
 /// Entries of the wave table.
 pub const TABLE_CAPACITY: usize = 2048;
 
-/// A [`Wave`]'s value at a phase (piezo-core's `program` module gives the waveforms).
+/// A [`Wave`]'s value at a phase φ as the generator plays it, `offset + amplitude · w(φ)`
+/// (piezo-core's `program` module states w for each shape), with the f32 sine in cycles
+/// [`sin_turns`].
 pub trait WaveAt {
     /// Value at phase `phase` cycles (in `[0, 1)`).
     fn at(&self, phase: f32) -> f32;
