@@ -7,7 +7,9 @@
 //! feedforward compensator ([`compensator`]), the two-axis inverse of the effect chain around it
 //! ([`inverse_chain`]), the learning step for repeated trajectories ([`learning`]), the error
 //! measures of the seeds ([`metrics`]), and the hysteretic oscillator of the Bouc-Wen benchmark
-//! ([`oscillator`]).
+//! ([`oscillator`]). The types the loop, the stage file and the command link share are defined
+//! here once: an axis's output limits ([`limits`]) and the reference generator's programs
+//! ([`program`]).
 //!
 //! `no_std`, no allocation, `unsafe` forbidden, f32 on the per-sample path, SI units (volts, metres,
 //! seconds, newtons). Parameters are validated once, when built, into types that cannot hold an invalid
@@ -30,10 +32,12 @@ pub mod fnv;
 pub mod inverse_chain;
 pub mod io_chain;
 pub mod learning;
+pub mod limits;
 pub mod math;
 pub mod metrics;
 pub mod on_target;
 pub mod oscillator;
+pub mod program;
 pub mod sensitivity;
 pub mod servo;
 pub mod static_model;
@@ -60,8 +64,10 @@ pub use learning::{
     HARMONIC_MODEL_FACTOR, HARMONIC_MODEL_PHASE_RAD, HARMONIC_SNR, HARMONIC_STEP_CAP,
     MAX_HARMONICS, UNMODELLED_MODE_DAMPING,
 };
+pub use limits::Limits;
 pub use on_target::{OnTarget, OnTargetState};
 pub use oscillator::{HystereticOscillator, OscillatorParams, OscillatorState};
+pub use program::{Program, Wave};
 pub use sensitivity::{static_sensitivities, SENSITIVITY_PARAMETERS};
 pub use servo::{Servo, ServoMode, ServoOutput, ServoParams, ServoState, ServoStatus};
 pub use static_model::{Asymmetry, ModelState, StaticMap, StaticModel, ASYMMETRIC_STATE_FACTOR};

@@ -19,7 +19,7 @@ use crate::codes::SensorScale;
 use crate::control::TrackingStats;
 use crate::params::{self, AMPLIFIER_GAIN_V_PER_V, AXES, SAMPLE_PERIOD_S, SENSOR_M_PER_V};
 use crate::plant::{plant_io, XyPlant};
-use crate::reference::{Program, ReferenceGenerator, Waveform};
+use crate::reference::{Program, ReferenceGenerator, Wave};
 use crate::xy_loop::{Axis, ConfigError, Counters, Feedforward, LoopSettings, Mode, TwoAxisLoop};
 
 /// Ticks in one run.
@@ -42,14 +42,14 @@ pub const MAX_ERROR_LIMIT_M: f32 = 100e-9;
 /// The demo reference program.
 pub fn program() -> Program {
     Program::PerAxis([
-        Waveform::Sine {
-            offset_m: REFERENCE_OFFSET_M,
-            amplitude_m: REFERENCE_AMPLITUDE_M,
+        Wave::Sine {
+            offset: REFERENCE_OFFSET_M,
+            amplitude: REFERENCE_AMPLITUDE_M,
             frequency_hz: REFERENCE_FREQUENCY_HZ,
         },
-        Waveform::Triangle {
-            offset_m: REFERENCE_OFFSET_M,
-            amplitude_m: REFERENCE_AMPLITUDE_M,
+        Wave::Triangle {
+            offset: REFERENCE_OFFSET_M,
+            amplitude: REFERENCE_AMPLITUDE_M,
             frequency_hz: REFERENCE_FREQUENCY_HZ,
         },
     ])

@@ -1,7 +1,8 @@
-//! Reference generator: the two-axis setpoint of each tick, in metres.
+//! Reference generator: the two-axis setpoint of each tick, in the unit of the program's
+//! request (metres for a tracked reference, stack volts for an excitation).
 //!
-//! Programs ([`Program`]):
-//! - per axis a [`Waveform`]: constant, sine, triangle or steps (square wave), each
+//! Programs ([`Program`], piezo-core's, as the command link carries them):
+//! - per axis a [`Wave`]: constant, sine, triangle or steps (square wave), each
 //!   `offset + amplitude · w(φ)` with `w ∈ [−1, 1]` and a phase φ in cycles advanced by
 //!   `f · T` per tick and wrapped to `[0, 1)` (no precision loss over long runs);
 //! - a raster: x sweeps a triangle between `x_min` and `x_max`, one line per half period; at
@@ -29,98 +30,54 @@
 //! passed on: the compensator holds its voltage for it and the safety guard counts it.
 
 use heapless::spsc::Queue;
+pub use piezo_core::{Program, Wave};
 
 /// Queue size for streamed setpoints (holds one fewer).
 pub const STREAM_CAPACITY: usize = 64;
 /// Entries of the wave table.
 pub const TABLE_CAPACITY: usize = 2048;
 
-/// One axis's periodic waveform.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum Waveform {
-    /// `offset_m`.
-    Constant {
-        /// Value \[m\].
-        offset_m: f32,
-    },
-    /// `offset + amplitude · sin(2πφ)`.
-    Sine {
-        /// Centre \[m\].
-        offset_m: f32,
-        /// Amplitude \[m\].
-        amplitude_m: f32,
-        /// Frequency \[Hz\].
-        frequency_hz: f32,
-    },
-    /// `offset + amplitude · tri(φ)`, rising from −1 at φ = 0 to +1 at φ = ½.
-    Triangle {
-        /// Centre \[m\].
-        offset_m: f32,
-        /// Amplitude \[m\].
-        amplitude_m: f32,
-        /// Frequency \[Hz\].
-        frequency_hz: f32,
-    },
-    /// `offset − amplitude` for φ < ½, `offset + amplitude` after.
-    Steps {
-        /// Centre \[m\].
-        offset_m: f32,
-        /// Half the step height \[m\].
-        amplitude_m: f32,
-        /// Frequency \[Hz\].
-        frequency_hz: f32,
-    },
+/// A [`Wave`]'s value at a phase φ as the generator plays it, `offset + amplitude · w(φ)`
+/// (piezo-core's `program` module states w for each shape), with the f32 sine in cycles
+/// [`sin_turns`].
+pub trait WaveAt {
+    /// Value at phase `phase` cycles (in `[0, 1)`).
+    fn at(&self, phase: f32) -> f32;
+
+    /// [`WaveAt::at`] for a phase already in \[0, 1) (the generator's wrapped phases): the
+    /// sine without [`sin_turns`]' check for a non-finite phase, which such a phase never takes;
+    /// the same bits as [`WaveAt::at`] there.
+    fn at_wrapped(&self, phase: f32) -> f32;
 }
 
-impl Waveform {
-    fn frequency_hz(&self) -> f32 {
-        match *self {
-            Waveform::Constant { .. } => 0.0,
-            Waveform::Sine { frequency_hz, .. }
-            | Waveform::Triangle { frequency_hz, .. }
-            | Waveform::Steps { frequency_hz, .. } => frequency_hz,
-        }
-    }
-
-    /// [`Waveform::at`] for a phase already in \[0, 1) (the generator's wrapped phases): the
-    /// sine without [`sin_turns`]' check for a non-finite phase, which such a phase never takes;
-    /// the same bits as [`Waveform::at`] there.
+impl WaveAt for Wave {
     #[inline(always)]
     fn at_wrapped(&self, phase: f32) -> f32 {
         match *self {
-            Waveform::Sine {
-                offset_m,
-                amplitude_m,
-                ..
-            } => offset_m + amplitude_m * sin_turns_finite(phase),
+            Wave::Sine {
+                offset, amplitude, ..
+            } => offset + amplitude * sin_turns_finite(phase),
             _ => self.at(phase),
         }
     }
 
-    /// Value at phase `phase` cycles (in `[0, 1)`).
     #[inline(always)]
-    pub fn at(&self, phase: f32) -> f32 {
+    fn at(&self, phase: f32) -> f32 {
         match *self {
-            Waveform::Constant { offset_m } => offset_m,
-            Waveform::Sine {
-                offset_m,
-                amplitude_m,
-                ..
-            } => offset_m + amplitude_m * sin_turns(phase),
-            Waveform::Triangle {
-                offset_m,
-                amplitude_m,
-                ..
-            } => offset_m + amplitude_m * triangle(phase),
-            Waveform::Steps {
-                offset_m,
-                amplitude_m,
-                ..
+            Wave::Constant { offset } => offset,
+            Wave::Sine {
+                offset, amplitude, ..
+            } => offset + amplitude * sin_turns(phase),
+            Wave::Triangle {
+                offset, amplitude, ..
+            } => offset + amplitude * triangle(phase),
+            Wave::Steps {
+                offset, amplitude, ..
             } => {
                 if phase < 0.5 {
-                    offset_m - amplitude_m
+                    offset - amplitude
                 } else {
-                    offset_m + amplitude_m
+                    offset + amplitude
                 }
             }
         }
@@ -185,39 +142,6 @@ fn triangle(phase: f32) -> f32 {
 pub struct TableFull {
     /// Entries it can still take.
     pub room: usize,
-}
-
-/// What the generator plays.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum Program {
-    /// One waveform per axis.
-    PerAxis([Waveform; 2]),
-    /// Raster scan (see module docs).
-    Raster {
-        /// Left end of a line \[m\].
-        x_min_m: f32,
-        /// Right end of a line \[m\].
-        x_max_m: f32,
-        /// First row \[m\].
-        y_min_m: f32,
-        /// Last row \[m\].
-        y_max_m: f32,
-        /// Rows (≥ 2).
-        lines: u16,
-        /// Lines per second (a triangle period is two lines).
-        line_rate_hz: f32,
-    },
-    /// Setpoints from [`ReferenceGenerator::push_setpoint`].
-    Streamed,
-    /// The wave table ([`ReferenceGenerator::table_append`]): entry j at tick
-    /// j·`ticks_per_entry`, linear in between; after the last entry it is held, or the table
-    /// starts again (`repeat`, interpolating from the last entry to the first).
-    Table {
-        /// Ticks from one entry to the next (0 is taken as 1).
-        ticks_per_entry: u32,
-        /// Start again after the last entry.
-        repeat: bool,
-    },
 }
 
 /// Appends all of `entries` to `table`, or none of them with the room left as the error.
@@ -491,19 +415,19 @@ impl ReferenceGenerator {
                 out
             }
             Program::Raster {
-                x_min_m,
-                x_max_m,
-                y_min_m,
-                y_max_m,
+                x_min,
+                x_max,
+                y_min,
+                y_max,
                 lines,
                 ..
             } => {
-                let half = 0.5 * (x_max_m - x_min_m);
-                let x = x_min_m + half + half * triangle(self.phase[0]);
+                let half = 0.5 * (x_max - x_min);
+                let x = x_min + half + half * triangle(self.phase[0]);
                 let rows = u32::from(lines.max(2));
                 let k = self.line % (2 * rows - 2);
                 let row = if k < rows { k } else { 2 * rows - 2 - k };
-                let y = y_min_m + (y_max_m - y_min_m) * row as f32 / (rows - 1) as f32;
+                let y = y_min + (y_max - y_min) * row as f32 / (rows - 1) as f32;
                 let advanced = self.phase[0] + self.increment[0];
                 // A line ends at each half period of the triangle.
                 let before = self.phase[0] < 0.5;
@@ -731,27 +655,27 @@ mod tests {
     }
 
     /// The per-tick phase advance set with the program gives the stream the tick forms from
-    /// `wrap(φ + f·T)` and `Waveform::at`, bit for bit: per-axis programs (sine, triangle,
+    /// `wrap(φ + f·T)` and `Wave::at`, bit for bit: per-axis programs (sine, triangle,
     /// steps, constant) switched with `set_program` to other frequencies, and a raster.
     #[test]
     fn phase_increments_give_the_recomputed_stream_bit_for_bit() {
         let wave = |kind: u8, f: f32| match kind {
-            0 => Waveform::Sine {
-                offset_m: 19e-6,
-                amplitude_m: 12e-6,
+            0 => Wave::Sine {
+                offset: 19e-6,
+                amplitude: 12e-6,
                 frequency_hz: f,
             },
-            1 => Waveform::Triangle {
-                offset_m: 3e-6,
-                amplitude_m: 7e-6,
+            1 => Wave::Triangle {
+                offset: 3e-6,
+                amplitude: 7e-6,
                 frequency_hz: f,
             },
-            2 => Waveform::Steps {
-                offset_m: 1e-6,
-                amplitude_m: 2e-6,
+            2 => Wave::Steps {
+                offset: 1e-6,
+                amplitude: 2e-6,
                 frequency_hz: f,
             },
-            _ => Waveform::Constant { offset_m: 5e-6 },
+            _ => Wave::Constant { offset: 5e-6 },
         };
         let period = 1.0 / 50_000.0f32;
         let mut g = ReferenceGenerator::new(Program::Streamed, period, [0.0; 2]);
@@ -777,10 +701,10 @@ mod tests {
             }
         }
         let raster = Program::Raster {
-            x_min_m: 0.0,
-            x_max_m: 10e-6,
-            y_min_m: 0.0,
-            y_max_m: 4e-6,
+            x_min: 0.0,
+            x_max: 10e-6,
+            y_min: 0.0,
+            y_max: 4e-6,
             lines: 5,
             line_rate_hz: 333.0,
         };
@@ -797,14 +721,14 @@ mod tests {
     fn sine_and_triangle_hit_their_extremes() {
         let mut g = ReferenceGenerator::new(
             Program::PerAxis([
-                Waveform::Sine {
-                    offset_m: 10.0,
-                    amplitude_m: 2.0,
+                Wave::Sine {
+                    offset: 10.0,
+                    amplitude: 2.0,
                     frequency_hz: 100.0,
                 },
-                Waveform::Triangle {
-                    offset_m: 0.0,
-                    amplitude_m: 1.0,
+                Wave::Triangle {
+                    offset: 0.0,
+                    amplitude: 1.0,
                     frequency_hz: 100.0,
                 },
             ]),
@@ -823,9 +747,9 @@ mod tests {
 
     #[test]
     fn steps_switch_at_half_period() {
-        let w = Waveform::Steps {
-            offset_m: 1.0,
-            amplitude_m: 0.5,
+        let w = Wave::Steps {
+            offset: 1.0,
+            amplitude: 0.5,
             frequency_hz: 10.0,
         };
         assert_eq!(w.at(0.1), 0.5);
@@ -836,10 +760,10 @@ mod tests {
     fn raster_visits_every_row_and_returns() {
         let mut g = ReferenceGenerator::new(
             Program::Raster {
-                x_min_m: 0.0,
-                x_max_m: 1.0,
-                y_min_m: 0.0,
-                y_max_m: 3.0,
+                x_min: 0.0,
+                x_max: 1.0,
+                y_min: 0.0,
+                y_max: 3.0,
                 lines: 4,
                 line_rate_hz: 100.0,
             },
@@ -971,7 +895,7 @@ mod tests {
         g.learned_clear();
         assert!(g.next_learned().1.iter().all(|u| u.is_nan()));
         g.learned_append(&[[1.0; 2]; 3]).unwrap();
-        g.set_program(Program::PerAxis([Waveform::Constant { offset_m: 5.0 }; 2]));
+        g.set_program(Program::PerAxis([Wave::Constant { offset: 5.0 }; 2]));
         let (r, u) = g.next_learned();
         assert_eq!(r, [5.0; 2]);
         assert!(u.iter().all(|u| u.is_nan()));

@@ -29,7 +29,7 @@ use crate::codes::SensorScale;
 use crate::control::TrackingStats;
 use crate::params::{self, AMPLIFIER_GAIN_V_PER_V, AXES, SAMPLE_PERIOD_S, SENSOR_M_PER_V};
 use crate::plant::{plant_io, Disturbances, XyPlant};
-use crate::reference::{Program, ReferenceGenerator, Waveform};
+use crate::reference::{Program, ReferenceGenerator, Wave};
 use crate::xy_loop::{
     Axis, ConfigError, ControlError, Feedforward, LoopSettings, Mode, TwoAxisLoop,
 };
@@ -162,16 +162,16 @@ fn band(i: usize) -> (f32, f32) {
     )
 }
 
-fn waveform(shape: Shape, offset_m: f32, amplitude_m: f32, frequency_hz: f32) -> Waveform {
+fn waveform(shape: Shape, offset_m: f32, amplitude_m: f32, frequency_hz: f32) -> Wave {
     match shape {
-        Shape::Triangle => Waveform::Triangle {
-            offset_m,
-            amplitude_m,
+        Shape::Triangle => Wave::Triangle {
+            offset: offset_m,
+            amplitude: amplitude_m,
             frequency_hz,
         },
-        Shape::Sine => Waveform::Sine {
-            offset_m,
-            amplitude_m,
+        Shape::Sine => Wave::Sine {
+            offset: offset_m,
+            amplitude: amplitude_m,
             frequency_hz,
         },
     }
@@ -229,9 +229,9 @@ pub fn sweep_frequency_hz(j: u32) -> f32 {
 pub fn gain_at(mode: ServoMode, frequency_hz: f32) -> Result<[f32; 2], TableError> {
     let mid = [0, 1].map(|i| AXES[i].rest_output_m + 0.5 * stroke_m(i));
     let amplitude = [0, 1].map(|i| BANDWIDTH_AMPLITUDE_FRACTION * stroke_m(i));
-    let program = Program::PerAxis([0, 1].map(|i| Waveform::Sine {
-        offset_m: mid[i],
-        amplitude_m: amplitude[i],
+    let program = Program::PerAxis([0, 1].map(|i| Wave::Sine {
+        offset: mid[i],
+        amplitude: amplitude[i],
         frequency_hz,
     }));
     let period_ticks = 1.0 / (frequency_hz * SAMPLE_PERIOD_S);

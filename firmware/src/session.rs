@@ -66,15 +66,15 @@ use heapless::String;
 use piezo_core::ServoMode;
 use piezo_link::{
     truncated, AxisModel, Control, Counters, Decoder, EnvelopeStatus, Frame, ModelSet,
-    OnTargetStatus, Packet, Program as WireProgram, Refusal, RefusalKind, Request, Response,
-    SequenceChecker, Setpoints, Status, Tracking, Uplink, Wave, MAX_FRAME, PROTOCOL_VERSION,
-    REASON_BYTES, VERSION_BYTES,
+    OnTargetStatus, Packet, Program, Refusal, RefusalKind, Request, Response, SequenceChecker,
+    Setpoints, Status, Tracking, Uplink, Wave, MAX_FRAME, PROTOCOL_VERSION, REASON_BYTES,
+    VERSION_BYTES,
 };
 
 use crate::control::TrackingStats;
 use crate::converter::DacWrite;
 use crate::params;
-use crate::reference::{LearnedError, Program, Waveform, STREAM_CAPACITY, TABLE_CAPACITY};
+use crate::reference::{LearnedError, STREAM_CAPACITY, TABLE_CAPACITY};
 use crate::xy_loop::{
     Axis, AxisConfig, ConfigError, ControlError, Feedforward, Mode, PositionSensor, TickReport,
     TwoAxisLoop, XyIo,
@@ -201,39 +201,6 @@ fn refused(kind: RefusalKind, axis: Option<u8>, why: core::fmt::Arguments<'_>) -
         axis,
         reason: reason(why),
     })
-}
-
-fn waveform(wave: Wave) -> Waveform {
-    match wave {
-        Wave::Constant { offset } => Waveform::Constant { offset_m: offset },
-        Wave::Sine {
-            offset,
-            amplitude,
-            frequency_hz,
-        } => Waveform::Sine {
-            offset_m: offset,
-            amplitude_m: amplitude,
-            frequency_hz,
-        },
-        Wave::Triangle {
-            offset,
-            amplitude,
-            frequency_hz,
-        } => Waveform::Triangle {
-            offset_m: offset,
-            amplitude_m: amplitude,
-            frequency_hz,
-        },
-        Wave::Steps {
-            offset,
-            amplitude,
-            frequency_hz,
-        } => Waveform::Steps {
-            offset_m: offset,
-            amplitude_m: amplitude,
-            frequency_hz,
-        },
-    }
 }
 
 /// An upload's axis checked against the firmware's chain and built by the core, as the build does.
@@ -669,36 +636,28 @@ impl Session {
             let last = self.lp.last_reference();
             if last.iter().all(|r| r.is_finite()) {
                 self.lp.reference.set_program(Program::PerAxis(
-                    last.map(|offset_m| Waveform::Constant { offset_m }),
+                    last.map(|offset| Wave::Constant { offset }),
                 ));
             }
         }
     }
 
-    fn start(&mut self, program: WireProgram, feedforward: Feedforward) -> Response {
-        let program = match program {
-            WireProgram::PerAxis([x, y]) => Program::PerAxis([waveform(x), waveform(y)]),
-            WireProgram::Streamed => Program::Streamed,
-            WireProgram::Table {
-                ticks_per_entry,
-                repeat,
-            } => {
-                if ticks_per_entry == 0 || self.lp.reference.table_len() == 0 {
-                    return refused(
-                        RefusalKind::Program,
-                        None,
-                        format_args!(
-                            "a table program needs ticks_per_entry >= 1 and a filled table ({} entries)",
-                            self.lp.reference.table_len()
-                        ),
-                    );
-                }
-                Program::Table {
-                    ticks_per_entry,
-                    repeat,
-                }
+    fn start(&mut self, program: Program, feedforward: Feedforward) -> Response {
+        if let Program::Table {
+            ticks_per_entry, ..
+        } = program
+        {
+            if ticks_per_entry == 0 || self.lp.reference.table_len() == 0 {
+                return refused(
+                    RefusalKind::Program,
+                    None,
+                    format_args!(
+                        "a table program needs ticks_per_entry >= 1 and a filled table ({} entries)",
+                        self.lp.reference.table_len()
+                    ),
+                );
             }
-        };
+        }
         self.lp.set_feedforward(feedforward);
         self.lp.reference.set_program(program);
         self.tracking = [TrackingStats::default(); 2];
@@ -710,9 +669,9 @@ impl Session {
 
     /// `Track` in a learned control mode: a table program whose learned table passes its check,
     /// played from its start; otherwise refused, nothing changed.
-    fn start_learned(&mut self, program: WireProgram) -> Response {
+    fn start_learned(&mut self, program: Program) -> Response {
         let control = Control::new(self.control.servo_mode(), true);
-        let WireProgram::Table {
+        let Program::Table {
             ticks_per_entry,
             repeat,
         } = program

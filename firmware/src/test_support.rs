@@ -67,10 +67,10 @@ pub fn transfer_frame(out: &[u8], reply: &[u8]) -> [Transaction<u8>; 3] {
 /// reference `offsets_m` \[m\] per axis, its outputs starting at the window's lower edge.
 pub fn loop_holding(offsets_m: [f32; 2]) -> crate::xy_loop::TwoAxisLoop {
     use crate::params;
-    use crate::reference::{Program, ReferenceGenerator, Waveform};
+    use crate::reference::{Program, ReferenceGenerator, Wave};
     use crate::xy_loop::{Feedforward, TwoAxisLoop};
     let reference = ReferenceGenerator::new(
-        Program::PerAxis(offsets_m.map(|offset_m| Waveform::Constant { offset_m })),
+        Program::PerAxis(offsets_m.map(|offset_m| Wave::Constant { offset: offset_m })),
         params::SAMPLE_PERIOD_S,
         [0.0; 2],
     );

@@ -33,7 +33,7 @@ use piezo_core::ServoMode;
 use piezo_firmware::codes::{AdcCode, DacCode, SensorScale};
 use piezo_firmware::converter::{DacWrite, Error, ErrorKind, ErrorType};
 use piezo_firmware::params::{AxisParams, AMPLIFIER_GAIN_V_PER_V, LOOP_RATE_HZ, SAMPLE_PERIOD_S};
-use piezo_firmware::reference::{Program, ReferenceGenerator, Waveform};
+use piezo_firmware::reference::{Program, ReferenceGenerator, Wave};
 use piezo_firmware::xy_loop::{
     Axis, AxisConfig, Feedforward, LoopSettings, Mode, PositionSensor, StuckPolicy, TwoAxisLoop,
     XyIo,
@@ -93,7 +93,7 @@ impl Rng {
         }
     }
 
-    fn waveform(&mut self) -> Waveform {
+    fn waveform(&mut self) -> Wave {
         let offset_m = if self.chance(0.7) {
             self.uniform(0.0, 40e-6)
         } else {
@@ -110,20 +110,20 @@ impl Rng {
             self.hostile_value()
         };
         match self.below(4) {
-            0 => Waveform::Constant { offset_m },
-            1 => Waveform::Sine {
-                offset_m,
-                amplitude_m,
+            0 => Wave::Constant { offset: offset_m },
+            1 => Wave::Sine {
+                offset: offset_m,
+                amplitude: amplitude_m,
                 frequency_hz,
             },
-            2 => Waveform::Triangle {
-                offset_m,
-                amplitude_m,
+            2 => Wave::Triangle {
+                offset: offset_m,
+                amplitude: amplitude_m,
                 frequency_hz,
             },
-            _ => Waveform::Steps {
-                offset_m,
-                amplitude_m,
+            _ => Wave::Steps {
+                offset: offset_m,
+                amplitude: amplitude_m,
                 frequency_hz,
             },
         }
@@ -337,10 +337,10 @@ fn random_program(rng: &mut Rng, reference: &mut ReferenceGenerator) -> Program 
     match rng.below(6) {
         0 | 1 => Program::PerAxis([rng.waveform(), rng.waveform()]),
         2 => Program::Raster {
-            x_min_m: rng.hostile_value(),
-            x_max_m: rng.uniform(0.0, 40e-6),
-            y_min_m: rng.uniform(0.0, 40e-6),
-            y_max_m: rng.hostile_value(),
+            x_min: rng.hostile_value(),
+            x_max: rng.uniform(0.0, 40e-6),
+            y_min: rng.uniform(0.0, 40e-6),
+            y_max: rng.hostile_value(),
             lines: 2 + rng.below(100) as u16,
             line_rate_hz: rng.log_uniform(0.1, 5_000.0),
         },

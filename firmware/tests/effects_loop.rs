@@ -19,7 +19,7 @@ use piezo_core::{ModelState, StaticModel};
 use piezo_firmware::codes::DacCode;
 use piezo_firmware::converter::{DacWrite, ErrorType};
 use piezo_firmware::params::{AxisParams, AMPLIFIER_GAIN_V_PER_V, AXES, SAMPLE_PERIOD_S};
-use piezo_firmware::reference::{Program, ReferenceGenerator, Waveform};
+use piezo_firmware::reference::{Program, ReferenceGenerator, Wave};
 use piezo_firmware::xy_loop::{
     Axis, Feedforward, LoopSettings, Mode, PositionSensor, TwoAxisLoop, XyIo,
 };
@@ -136,14 +136,14 @@ fn stage_effects(axis: usize, k1: f32) -> EffectParams {
 /// from 0 V: the effects add up to ≈ 1.5 µm at the bottom, which the window must allow).
 fn program() -> Program {
     Program::PerAxis([
-        Waveform::Sine {
-            offset_m: 20e-6,
-            amplitude_m: 14e-6,
+        Wave::Sine {
+            offset: 20e-6,
+            amplitude: 14e-6,
             frequency_hz: 10.0,
         },
-        Waveform::Triangle {
-            offset_m: 20e-6,
-            amplitude_m: 14e-6,
+        Wave::Triangle {
+            offset: 20e-6,
+            amplitude: 14e-6,
             frequency_hz: 10.0,
         },
     ])

@@ -13,7 +13,7 @@ use piezo_firmware::converter::{AdcRead, DacWrite, DriverError, ErrorType};
 use piezo_firmware::demo;
 use piezo_firmware::params::SAMPLE_PERIOD_S;
 use piezo_firmware::plant::{plant_io, PlantAdc, PlantDac, XyPlant};
-use piezo_firmware::reference::{Program, ReferenceGenerator, Waveform};
+use piezo_firmware::reference::{Program, ReferenceGenerator, Wave};
 use piezo_firmware::xy_loop::{
     AdcSensor, Axis, Counters, Fault, Feedforward, Mode, PositionSensor, TickReport, TwoAxisLoop,
     XyIo,
@@ -212,20 +212,20 @@ fn no_fault_no_trip_on_every_program() {
     let programs = [
         sine(),
         Program::Raster {
-            x_min_m: 5e-6,
-            x_max_m: 30e-6,
-            y_min_m: 5e-6,
-            y_max_m: 30e-6,
+            x_min: 5e-6,
+            x_max: 30e-6,
+            y_min: 5e-6,
+            y_max: 30e-6,
             lines: 8,
             line_rate_hz: 50.0,
         },
         Program::PerAxis([
-            Waveform::Steps {
-                offset_m: 18e-6,
-                amplitude_m: 10e-6,
+            Wave::Steps {
+                offset: 18e-6,
+                amplitude: 10e-6,
                 frequency_hz: 20.0,
             },
-            Waveform::Constant { offset_m: 12e-6 },
+            Wave::Constant { offset: 12e-6 },
         ]),
     ];
     for p in programs {

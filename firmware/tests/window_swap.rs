@@ -14,12 +14,12 @@ use piezo_firmware::codes::SensorScale;
 use piezo_firmware::demo;
 use piezo_firmware::params::{self, AxisParams};
 use piezo_firmware::plant::{PlantAdc, PlantDac, XyPlant};
-use piezo_firmware::reference::{Program, ReferenceGenerator, Waveform};
+use piezo_firmware::reference::ReferenceGenerator;
 use piezo_firmware::session::Session;
 use piezo_firmware::xy_loop::{AdcSensor, Axis, Feedforward, TickReport, TwoAxisLoop, XyIo};
 use piezo_link::{
-    AxisModel, Control, Decoder, Limits, Mode, ModelSet, Packet, Program as WireProgram, Request,
-    Response, Setpoints, Uplink, Wave, MAX_FRAME,
+    AxisModel, Control, Decoder, Limits, Mode, ModelSet, Packet, Program, Request, Response,
+    Setpoints, Uplink, Wave, MAX_FRAME,
 };
 
 /// `slew · T` in f64, the smaller of T = the firmware's f32 period and T = 1/rate.
@@ -55,7 +55,7 @@ impl Bench {
     /// At rest at the lower end of the windows, compensator on, reference 0 m.
     fn new() -> Self {
         let reference = ReferenceGenerator::new(
-            Program::PerAxis([Waveform::Constant { offset_m: 0.0 }; 2]),
+            Program::PerAxis([Wave::Constant { offset: 0.0 }; 2]),
             params::SAMPLE_PERIOD_S,
             [0.0; 2],
         );
@@ -203,6 +203,7 @@ fn set_with_limits(windows: [(f32, f32); 2], slew_v_per_s: [f32; 2]) -> ModelSet
             output_min_v: min,
             output_max_v: max,
             slew_limit_v_per_s,
+            ..p.limits()
         },
         ..AxisModel::from_params(p)
     };
@@ -219,7 +220,7 @@ fn set_with_limits(windows: [(f32, f32); 2], slew_v_per_s: [f32; 2]) -> ModelSet
 }
 
 fn sine_track() -> Request {
-    Request::Track(WireProgram::PerAxis([
+    Request::Track(Program::PerAxis([
         Wave::Sine {
             offset: 19e-6,
             amplitude: 15e-6,
@@ -239,7 +240,7 @@ fn sine_track() -> Request {
 #[test]
 fn a_window_that_excludes_the_held_voltage_is_slewed_into() {
     let mut b = Bench::new();
-    b.ask(Request::Track(WireProgram::PerAxis([
+    b.ask(Request::Track(Program::PerAxis([
         Wave::Constant { offset: 0.0 },
         Wave::Constant { offset: 50e-6 },
     ])));
@@ -331,7 +332,7 @@ fn the_compensator_at_its_slew_limit_passes_the_guard_unchanged() {
     for control in [Control::Feedforward, Control::FeedforwardFeedback] {
         let mut b = Bench::new();
         assert_eq!(b.ask(Request::Control(control)), Response::Done);
-        b.ask(Request::Track(WireProgram::PerAxis(
+        b.ask(Request::Track(Program::PerAxis(
             [Wave::Steps {
                 offset: 19e-6,
                 amplitude: 15e-6,
@@ -357,7 +358,7 @@ fn the_compensator_at_its_slew_limit_passes_the_guard_unchanged() {
 #[test]
 fn guard_limited_excitation_stays_within_the_slew_bound() {
     let mut b = Bench::new();
-    b.ask(Request::Excite(WireProgram::Streamed));
+    b.ask(Request::Excite(Program::Streamed));
     let values = [
         120.0,
         0.0,

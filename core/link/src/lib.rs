@@ -47,6 +47,9 @@ mod state;
 pub mod text;
 
 pub use message::*;
+/// The loop's own types, carried as they are: an axis's output limits and the reference
+/// programs of [`Request::Track`] and [`Request::Excite`] (piezo-core, serde derives).
+pub use piezo_core::{Limits, Program, Wave};
 pub use sequence::SequenceChecker;
 pub use state::*;
 

@@ -7,8 +7,8 @@ use crate::{Control, Counters, Feedforward, Mode};
 use heapless::{String, Vec};
 use piezo_core::effects::{EffectParams, MAX_CREEP_ELEMENTS, MAX_RELAXATION_ELEMENTS};
 use piezo_core::{
-    Asymmetry, AxisParams, BoucWenParams, Envelope, EnvelopeCounts, Fnv1a32, IoChain, OnTarget,
-    ParamError, ServoParams, StaticMap,
+    Asymmetry, AxisParams, BoucWenParams, Envelope, EnvelopeCounts, Fnv1a32, IoChain, Limits,
+    OnTarget, ParamError, Program, ServoParams, StaticMap,
 };
 use serde::{Deserialize, Serialize};
 
@@ -17,7 +17,10 @@ use serde::{Deserialize, Serialize};
 ///
 /// 2: the loop's counters with the output guard's per axis and cause, the running set's
 /// fingerprint in [`Status`] and [`Response::Loaded`], this version.
-pub const PROTOCOL_VERSION: u16 = 2;
+///
+/// 3: an axis's [`Limits`] are piezo-core's, the stage file's `[x.limits]`, with the envelope
+/// policy after the slew limit; [`Program::Raster`] after the other programs.
+pub const PROTOCOL_VERSION: u16 = 3;
 
 /// Setpoints per [`Request::TableAppend`], [`Request::Stream`] or [`Request::LearnedAppend`]
 /// message.
@@ -41,72 +44,6 @@ pub fn truncated<const N: usize>(text: &str) -> String<N> {
     out
 }
 
-/// One axis's periodic waveform, `offset + amplitude · w(φ)` with `w ∈ [−1, 1]`.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub enum Wave {
-    /// `offset`.
-    Constant {
-        /// Value.
-        offset: f32,
-    },
-    /// `offset + amplitude · sin(2π f t)`.
-    Sine {
-        /// Centre.
-        offset: f32,
-        /// Amplitude.
-        amplitude: f32,
-        /// Frequency \[Hz\].
-        frequency_hz: f32,
-    },
-    /// `offset + amplitude · tri(f t)`, rising from −1 at t = 0.
-    Triangle {
-        /// Centre.
-        offset: f32,
-        /// Amplitude.
-        amplitude: f32,
-        /// Frequency \[Hz\].
-        frequency_hz: f32,
-    },
-    /// `offset − amplitude` for the first half period, `offset + amplitude` for the second.
-    Steps {
-        /// Centre.
-        offset: f32,
-        /// Half the step height.
-        amplitude: f32,
-        /// Frequency \[Hz\].
-        frequency_hz: f32,
-    },
-}
-
-/// What the reference generator plays.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub enum Program {
-    /// One waveform per axis.
-    PerAxis([Wave; 2]),
-    /// The wave table filled by [`Request::TableAppend`]: entry j at tick j·`ticks_per_entry`,
-    /// linear in between; after the last entry it holds it, or starts again (`repeat`).
-    Table {
-        /// Ticks from one entry to the next (≥ 1).
-        ticks_per_entry: u32,
-        /// Start again after the last entry.
-        repeat: bool,
-    },
-    /// Setpoints sent with [`Request::Stream`], one per tick; the last one is held when the queue
-    /// runs dry (counted as an underrun).
-    Streamed,
-}
-
-/// Output limits of one axis (the stage file's `[x.limits]`).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Limits {
-    /// Lowest stack voltage \[V\].
-    pub output_min_v: f32,
-    /// Highest stack voltage \[V\].
-    pub output_max_v: f32,
-    /// Largest rate of change of the stack voltage \[V/s\].
-    pub slew_limit_v_per_s: f32,
-}
-
 /// One axis of a parameter set: piezo-core's own parameter structs.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct AxisModel {
@@ -119,12 +56,14 @@ pub struct AxisModel {
     /// The effects around the model (all zero: none).
     #[serde(with = "effects_wire")]
     pub effects: EffectParams,
-    /// Output limits.
+    /// Output limits (the stage file's `[x.limits]`): the window, the slew limit and the policy
+    /// outside the envelope (which [`AxisModel::params`] gives the envelope).
     pub limits: Limits,
     /// The feedback servo (the stage file's `[x.servo]`; `None`: feed-forward only).
     pub servo: Option<ServoParams>,
-    /// The identified envelope and the policy outside it (the stage file's `[x.identified]`
-    /// and `[x.limits] envelope_policy`; `None`: nothing checked).
+    /// The identified envelope (the stage file's `[x.identified]`; `None`: nothing checked). The
+    /// loop runs it under `limits.envelope_policy` ([`AxisModel::params`]), whatever its own
+    /// `policy` says; [`AxisModel::from_params`] writes the same policy into both.
     pub envelope: Option<Envelope>,
     /// The on-target band (the stage file's `[x.on_target]` with its defaults).
     pub on_target: OnTarget,
@@ -139,11 +78,7 @@ impl AxisModel {
             static_map: p.static_map,
             asymmetry: p.asymmetry,
             effects: p.effects,
-            limits: Limits {
-                output_min_v: p.output_min_v,
-                output_max_v: p.output_max_v,
-                slew_limit_v_per_s: p.slew_limit_v_per_s,
-            },
+            limits: p.limits(),
             servo: p.servo,
             envelope: p.envelope,
             on_target: p.on_target,
@@ -151,16 +86,17 @@ impl AxisModel {
     }
 
     /// The firmware's view of an uploaded axis at the loop period `sample_period_s` \[s\]: the
-    /// core's axis with its first loading from rest at the lower end of the window
+    /// core's axis with its limits ([`AxisParams::with_limits`]: the envelope's policy is the
+    /// limits') and its first loading from rest at the lower end of the window
     /// ([`AxisParams::with_first_loading`]). The core's refusal if it does not build.
     pub fn params(&self, sample_period_s: f32) -> Result<AxisParams, ParamError> {
         AxisParams {
             bouc_wen: self.bouc_wen,
             static_map: self.static_map,
             asymmetry: self.asymmetry,
-            output_min_v: self.limits.output_min_v,
-            output_max_v: self.limits.output_max_v,
-            slew_limit_v_per_s: self.limits.slew_limit_v_per_s,
+            output_min_v: 0.0,
+            output_max_v: 0.0,
+            slew_limit_v_per_s: 0.0,
             linear_gain_m_per_v: 0.0,
             rest_output_m: 0.0,
             effects: self.effects,
@@ -168,6 +104,7 @@ impl AxisModel {
             envelope: self.envelope,
             on_target: self.on_target,
         }
+        .with_limits(self.limits)
         .with_first_loading(sample_period_s)
     }
 }

@@ -35,6 +35,7 @@ fn axis() -> AxisModel {
             output_min_v: 0.0,
             output_max_v: 120.0,
             slew_limit_v_per_s: 1e5,
+            envelope_policy: EnvelopePolicy::FeedbackOnly,
         },
         servo: Some(ServoParams {
             kp_v_per_m: 0.0,
@@ -585,4 +586,121 @@ fn control_modes_map_to_the_cores_and_back() {
         Control::LearnedFeedback.servo_mode(),
         piezo_core::ServoMode::FeedforwardFeedback
     );
+}
+
+/// `x` as postcard writes an f32: 4 bytes, little-endian.
+fn f32_bytes(x: f32) -> [u8; 4] {
+    x.to_le_bytes()
+}
+
+/// The bytes of the reference programs on the wire: the variant's index (one varint byte), then
+/// the fields in order (f32: 4 bytes LE; u32, u16: varint; bool: 1 byte). Written out here from
+/// postcard's format, not from the types: the programs of protocol 2 (per axis, table, streamed;
+/// the four waves) keep their bytes now that the wire carries piezo-core's types, and the
+/// raster and the limits are laid out as protocol 3 says.
+#[test]
+fn programs_and_limits_keep_their_wire_bytes() {
+    let bytes = |v: &[&[u8]]| v.concat();
+    let (o, a, f) = (f32_bytes(1.5e-5), f32_bytes(-2.0), f32_bytes(10.0));
+    let waves = [
+        (Wave::Constant { offset: 1.5e-5 }, bytes(&[&[0], &o])),
+        (
+            Wave::Sine {
+                offset: 1.5e-5,
+                amplitude: -2.0,
+                frequency_hz: 10.0,
+            },
+            bytes(&[&[1], &o, &a, &f]),
+        ),
+        (
+            Wave::Triangle {
+                offset: 1.5e-5,
+                amplitude: -2.0,
+                frequency_hz: 10.0,
+            },
+            bytes(&[&[2], &o, &a, &f]),
+        ),
+        (
+            Wave::Steps {
+                offset: 1.5e-5,
+                amplitude: -2.0,
+                frequency_hz: 10.0,
+            },
+            bytes(&[&[3], &o, &a, &f]),
+        ),
+    ];
+    for (wave, want) in &waves {
+        assert_eq!(&postcard::to_allocvec(wave).unwrap(), want, "{wave:?}");
+        let per_axis = Program::PerAxis([*wave, waves[0].0]);
+        let want = bytes(&[&[0], want, &waves[0].1]);
+        assert_eq!(
+            postcard::to_allocvec(&per_axis).unwrap(),
+            want,
+            "{per_axis:?}"
+        );
+        // As a request: Track is variant 1, Excite 2.
+        let track = postcard::to_allocvec(&Request::Track(per_axis)).unwrap();
+        assert_eq!(track, bytes(&[&[1], &want]));
+        let excite = postcard::to_allocvec(&Request::Excite(per_axis)).unwrap();
+        assert_eq!(excite, bytes(&[&[2], &want]));
+    }
+    let table = Program::Table {
+        ticks_per_entry: 300,
+        repeat: true,
+    };
+    // 300 = 0b10_0101100: varint 0xAC 0x02.
+    assert_eq!(postcard::to_allocvec(&table).unwrap(), [1, 0xAC, 0x02, 1]);
+    assert_eq!(postcard::to_allocvec(&Program::Streamed).unwrap(), [2]);
+    let raster = Program::Raster {
+        x_min: 1.0,
+        x_max: 2.0,
+        y_min: 3.0,
+        y_max: 4.0,
+        lines: 200,
+        line_rate_hz: 5.0,
+    };
+    let want = bytes(&[
+        &[3],
+        &f32_bytes(1.0),
+        &f32_bytes(2.0),
+        &f32_bytes(3.0),
+        &f32_bytes(4.0),
+        &[0xC8, 0x01],
+        &f32_bytes(5.0),
+    ]);
+    assert_eq!(postcard::to_allocvec(&raster).unwrap(), want);
+    for program in [table, Program::Streamed, raster] {
+        assert_eq!(round_trip(Request::Track(program)), Request::Track(program));
+    }
+    for (policy, byte) in [(EnvelopePolicy::Warn, 0), (EnvelopePolicy::FeedbackOnly, 1)] {
+        let limits = Limits {
+            output_min_v: -10.0,
+            output_max_v: 120.0,
+            slew_limit_v_per_s: 1e5,
+            envelope_policy: policy,
+        };
+        let want = bytes(&[
+            &f32_bytes(-10.0),
+            &f32_bytes(120.0),
+            &f32_bytes(1e5),
+            &[byte],
+        ]);
+        assert_eq!(postcard::to_allocvec(&limits).unwrap(), want);
+        assert_eq!(postcard::from_bytes::<Limits>(&want).unwrap(), limits);
+    }
+}
+
+/// An uploaded axis runs with its limits' envelope policy, and an axis taken from the core's
+/// parameters carries its envelope's policy in its limits: the two travel together.
+#[test]
+fn the_envelope_policy_travels_in_the_limits() {
+    let mut a = axis();
+    let p = a.params(1e-4).unwrap();
+    assert_eq!(p.envelope.unwrap().policy, EnvelopePolicy::FeedbackOnly);
+    assert_eq!(AxisModel::from_params(&p), a);
+    a.limits.envelope_policy = EnvelopePolicy::Warn;
+    let p = a.params(1e-4).unwrap();
+    assert_eq!(p.envelope.unwrap().policy, EnvelopePolicy::Warn);
+    assert_eq!(p.limits(), a.limits);
+    assert_eq!(AxisModel::from_params(&p).limits, a.limits);
 }

@@ -254,25 +254,10 @@ impl ModelKind {
 /// 10 µs, four times the 24 kV/s of a 100 Hz triangle over 120 V.
 pub const DEFAULT_SLEW_LIMIT_V_PER_S: f32 = 1e5;
 
-/// `[x.limits]`: what the stage may be commanded.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Limits {
-    /// Lowest stack voltage \[V\] (the oscillator: lowest force \[N\]).
-    pub output_min_v: f32,
-    /// Highest stack voltage \[V\].
-    pub output_max_v: f32,
-    /// Largest rate of change of the stack voltage \[V/s\].
-    pub slew_limit_v_per_s: f32,
-    /// What the firmware does while a command leaves the identified envelope (`warn` when
-    /// absent).
-    #[serde(default, skip_serializing_if = "is_warn")]
-    pub envelope_policy: EnvelopePolicy,
-}
-
-fn is_warn(p: &EnvelopePolicy) -> bool {
-    *p == EnvelopePolicy::Warn
-}
+/// `[x.limits]`: what the stage may be commanded, piezo-core's own type (the one the command
+/// link uploads): `output_min_v`, `output_max_v` (the oscillator: the force range \[N\]),
+/// `slew_limit_v_per_s`, and `envelope_policy` (`warn` when absent, and then not written).
+pub use piezo_core::Limits;
 
 /// `[x.identified]`: where the set came from.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]

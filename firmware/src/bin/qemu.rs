@@ -260,7 +260,7 @@ mod image {
         use piezo_firmware::demo;
         use piezo_firmware::params;
         use piezo_firmware::plant::{plant_io, XyPlant};
-        use piezo_firmware::reference::{Program, ReferenceGenerator, Waveform};
+        use piezo_firmware::reference::{Program, ReferenceGenerator, Wave};
         use piezo_firmware::session::{self, Session};
         use piezo_firmware::xy_loop::{Feedforward, TwoAxisLoop};
 
@@ -294,8 +294,8 @@ mod image {
             let plant = Cell::new(stage);
             let mut io = plant_io(&plant, scale);
             // At rest at the lower end of each window until told otherwise.
-            let rest = [0, 1].map(|i| Waveform::Constant {
-                offset_m: params::AXES[i].rest_output_m,
+            let rest = [0, 1].map(|i| Wave::Constant {
+                offset: params::AXES[i].rest_output_m,
             });
             let reference =
                 ReferenceGenerator::new(Program::PerAxis(rest), params::SAMPLE_PERIOD_S, [0.0; 2]);

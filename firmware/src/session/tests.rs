@@ -103,7 +103,7 @@ fn run(s: &mut Session, plant: &Cell<XyPlant>, host: &mut Host, ticks: u32) {
 fn session() -> (Session, Cell<XyPlant>) {
     let settings = demo::settings().unwrap();
     let reference = ReferenceGenerator::new(
-        Program::PerAxis([Waveform::Constant { offset_m: 0.0 }; 2]),
+        Program::PerAxis([Wave::Constant { offset: 0.0 }; 2]),
         params::SAMPLE_PERIOD_S,
         [0.0; 2],
     );
@@ -132,7 +132,7 @@ fn built_in_set() -> ModelSet {
 }
 
 fn sine_track() -> Request {
-    Request::Track(WireProgram::PerAxis([
+    Request::Track(Program::PerAxis([
         Wave::Sine {
             offset: 19e-6,
             amplitude: 15e-6,
@@ -194,7 +194,7 @@ fn excite_streams_frames_then_track_is_accurate() {
         other => panic!("{other:?}"),
     };
     host.frame_numbers.expect(first);
-    let excite = Request::Excite(WireProgram::PerAxis(
+    let excite = Request::Excite(Program::PerAxis(
         [Wave::Sine {
             offset: 60.0,
             amplitude: 50.0,
@@ -299,7 +299,7 @@ fn table_and_stream_report_their_room() {
     assert!(matches!(
         host.ask(
             &mut s,
-            Request::Track(WireProgram::Table {
+            Request::Track(Program::Table {
                 ticks_per_entry: 1,
                 repeat: false
             })
@@ -327,7 +327,7 @@ fn table_and_stream_report_their_room() {
     ));
     host.ask(
         &mut s,
-        Request::Track(WireProgram::Table {
+        Request::Track(Program::Table {
             ticks_per_entry: 2,
             repeat: false,
         }),
@@ -336,6 +336,63 @@ fn table_and_stream_report_their_room() {
     run(&mut s, &plant, &mut host, 8);
     let r: std::vec::Vec<f32> = host.frames.iter().map(|f| f.reference_m[0]).collect();
     assert!((r[3] - 1.5e-7).abs() < 1e-12, "{r:?}");
+}
+
+/// The program a `Track` carries is the one the generator plays, bit for bit: each frame's
+/// reference is a stand-alone generator's for the same program (per-axis waves, and the raster,
+/// which the link carries from protocol 3 on).
+#[test]
+fn a_tracked_program_plays_as_the_link_carries_it() {
+    let raster = Program::Raster {
+        x_min: 5e-6,
+        x_max: 30e-6,
+        y_min: 2e-6,
+        y_max: 20e-6,
+        lines: 4,
+        line_rate_hz: 1_000.0,
+    };
+    let steps = Program::PerAxis([
+        Wave::Steps {
+            offset: 19e-6,
+            amplitude: 3e-6,
+            frequency_hz: 700.0,
+        },
+        Wave::Sine {
+            offset: 12e-6,
+            amplitude: 5e-6,
+            frequency_hz: 310.0,
+        },
+    ]);
+    for program in [raster, steps] {
+        let (mut s, plant) = session();
+        let mut host = Host::new();
+        host.ask(&mut s, Request::Frames { decimation: 1 });
+        assert!(matches!(
+            host.ask(&mut s, Request::Track(program)),
+            Response::Started { .. }
+        ));
+        run(&mut s, &plant, &mut host, 400);
+        let mut own = ReferenceGenerator::new(program, params::SAMPLE_PERIOD_S, [0.0; 2]);
+        let want: std::vec::Vec<[u32; 2]> = (0..400)
+            .map(|_| own.next_setpoint().map(f32::to_bits))
+            .collect();
+        let got: std::vec::Vec<[u32; 2]> = host
+            .frames
+            .iter()
+            .map(|f| f.reference_m.map(f32::to_bits))
+            .collect();
+        assert_eq!(got, want, "{program:?}");
+        // The raster visits its 4 rows: 1 000 lines a second, at least 8 lines in 400 ticks up
+        // to a 50 kHz loop.
+        if program == raster {
+            let rows: std::collections::BTreeSet<u32> = host
+                .frames
+                .iter()
+                .map(|f| f.reference_m[1].to_bits())
+                .collect();
+            assert_eq!(rows.len(), 4, "{rows:?}");
+        }
+    }
 }
 
 #[test]
@@ -507,7 +564,7 @@ fn an_excitation_beyond_the_window_stays_inside_it() {
     let (mut s, plant) = session();
     let mut host = Host::new();
     host.ask(&mut s, Request::Frames { decimation: 1 });
-    let excite = Request::Excite(WireProgram::PerAxis([Wave::Constant { offset: 200.0 }; 2]));
+    let excite = Request::Excite(Program::PerAxis([Wave::Constant { offset: 200.0 }; 2]));
     host.ask(&mut s, excite);
     run(&mut s, &plant, &mut host, 200);
     let top = host

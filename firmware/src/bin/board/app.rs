@@ -19,7 +19,7 @@ mod app {
     };
     use piezo_firmware::demo;
     use piezo_firmware::params;
-    use piezo_firmware::reference::{Program, ReferenceGenerator, Waveform};
+    use piezo_firmware::reference::{Program, ReferenceGenerator, Wave};
     use piezo_firmware::session::{RequestKind, Session};
     use piezo_firmware::xy_loop::{Feedforward, TwoAxisLoop};
 
@@ -81,8 +81,8 @@ mod app {
         };
         // At rest at the lower end of each window until told otherwise. The DAC init left both
         // outputs at 0 V; the first tick writes the window's lower end (0 V in the default file).
-        let rest = [0, 1].map(|i| Waveform::Constant {
-            offset_m: params::AXES[i].rest_output_m,
+        let rest = [0, 1].map(|i| Wave::Constant {
+            offset: params::AXES[i].rest_output_m,
         });
         let reference =
             ReferenceGenerator::new(Program::PerAxis(rest), params::SAMPLE_PERIOD_S, [0.0; 2]);

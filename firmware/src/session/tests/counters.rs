@@ -4,7 +4,7 @@
 use super::*;
 
 fn excite(x_v: Wave, y_v: Wave) -> Request {
-    Request::Excite(WireProgram::PerAxis([x_v, y_v]))
+    Request::Excite(Program::PerAxis([x_v, y_v]))
 }
 
 /// x excited above its window (clamped, then held there), y by steps larger than the slew limit
@@ -119,7 +119,7 @@ fn a_table_loaded_after_a_finished_excitation_is_not_played() {
         .collect();
     host.ask(&mut s, Request::TableClear);
     host.ask(&mut s, Request::TableAppend(ramp));
-    let program = WireProgram::Table {
+    let program = Program::Table {
         ticks_per_entry: 100,
         repeat: false,
     };

@@ -5,7 +5,8 @@
 use super::*;
 use piezo_core::{Envelope, EnvelopePolicy};
 
-/// The built-in set with an envelope of 0–40 V (any rate) on x, as given on y.
+/// The built-in set with an envelope of 0–40 V (any rate) on x under the policy `x` (the
+/// limits' policy, the one the loop runs), as given on y.
 fn set_with_envelope(x: EnvelopePolicy, y: Option<Envelope>) -> ModelSet {
     let mut set = built_in_set();
     set.axes[0].envelope = Some(Envelope {
@@ -13,7 +14,9 @@ fn set_with_envelope(x: EnvelopePolicy, y: Option<Envelope>) -> ModelSet {
         input_rate_max_v_per_s: f32::MAX,
         policy: x,
     });
+    set.axes[0].limits.envelope_policy = x;
     set.axes[1].envelope = y;
+    set.axes[1].limits.envelope_policy = y.map_or(EnvelopePolicy::Warn, |e| e.policy);
     set
 }
 
@@ -28,7 +31,7 @@ fn track_outside(host: &mut Host, s: &mut Session, plant: &Cell<XyPlant>, ticks:
 
 /// 5 ± 3 µm at 10 Hz: x's command stays inside 0–40 V.
 fn track_inside(host: &mut Host, s: &mut Session, plant: &Cell<XyPlant>, ticks: u32) {
-    let inside = Request::Track(WireProgram::PerAxis(
+    let inside = Request::Track(Program::PerAxis(
         [Wave::Sine {
             offset: 5e-6,
             amplitude: 3e-6,

@@ -19,7 +19,7 @@ fn wave() -> std::vec::Vec<[f32; 2]> {
         .collect()
 }
 
-const PROGRAM: WireProgram = WireProgram::Table {
+const PROGRAM: Program = Program::Table {
     ticks_per_entry: 1,
     repeat: true,
 };
@@ -209,7 +209,7 @@ fn a_table_that_fails_its_check_is_refused_and_never_played() {
     }
     // The wrap only counts for a repeating table: the same table plays once through.
     load(&mut host, &mut s, &wrap_broken(&table), true);
-    let single = WireProgram::Table {
+    let single = Program::Table {
         ticks_per_entry: 1,
         repeat: false,
     };
@@ -240,7 +240,7 @@ fn a_table_that_fails_its_check_is_refused_and_never_played() {
     load(&mut host, &mut s, &spike, true);
     let r = refusal(host.ask(&mut s, Request::Control(Control::Learned)));
     assert!(r.reason.contains("at 1 ticks per entry"), "{}", r.reason);
-    let slow = WireProgram::Table {
+    let slow = Program::Table {
         ticks_per_entry: 2,
         repeat: true,
     };

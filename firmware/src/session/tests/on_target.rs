@@ -7,7 +7,7 @@ use super::*;
 use piezo_core::OnTarget;
 
 fn hold(to_m: f32) -> Request {
-    Request::Track(WireProgram::PerAxis([Wave::Constant { offset: to_m }; 2]))
+    Request::Track(Program::PerAxis([Wave::Constant { offset: to_m }; 2]))
 }
 
 #[test]
