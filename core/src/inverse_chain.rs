@@ -752,6 +752,10 @@ mod tests {
             );
             *u = command.voltage_v;
         }
+        // The record chain of the effects module reads the same window from the slice.
+        let mut record = [0.0f32; N];
+        crate::effects::compensate_axis(&compensator, rest, &effects, &reference, &mut record);
+        assert_eq!(u, record);
         let windowed = score(&u, limited);
         // The curvature in one tick.
         let (mut state, mut u, mut limited) = (rest, [0.0f32; N], 0);
