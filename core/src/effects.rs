@@ -127,6 +127,11 @@
 //!    difference between the sampled and the continuous mode; with relative damping the exact
 //!    inverse (1 + 2ζ·s/ω + s²/ω²)/(1 + 2ρζ·s/ω) is taken to second order in s/ω (the term left
 //!    out is −(2ρζ/ω)·z⃛*/ω², 2ρζ·f/f_mode of the curvature term); s* = z*\[j\] without a mode;
+//!    from 22.2 kHz (W/T ≥ 2) the two differences are taken over 2h + 1 samples centred on j
+//!    ([`MODE_CURVATURE_SPAN_S`], [`Effects::inverse_target_w_window`]): the curvature is the mean
+//!    of the 2h + 1 second differences, so a kink of the reference asks for its impulse Δṙ/ω²
+//!    over ≈ 90 µs at any loop rate instead of in one tick (where the slew limit would cut it
+//!    short); the reference is read h more samples ahead, so the mean adds no delay;
 //! 5. **creep, rate-dependent hysteresis and even term**:
 //!    `w* = s* − c[j] − c_w[j] − e·(u[j−1] − u_c)²`, exact and explicit (the terms depend only on
 //!    commands and w before sample j: [`Effects::creep_m`], [`Effects::relaxation_m`],
@@ -171,6 +176,15 @@ pub const LOG_CREEP_ELEMENTS: usize = 12;
 pub const MAX_DELAY_SAMPLES: usize = 64;
 /// Largest accepted mode frequency, as a fraction of the sample rate.
 pub const MAX_MODE_FREQUENCY_RATIO: f32 = 0.45;
+/// W: the span over which the mode's inverse averages the reference's curvature \[s\]: N·T, the
+/// odd number N = 2h + 1 of samples nearest W/T (h = round((W/T − 1)/2), at least 0, at most
+/// [`MAX_CURVATURE_HALF_WIDTH`]). At 10 and 20 kHz N = 1 (the three-point difference); at
+/// 50 kHz N = 5. It makes the drive at a reference's kink (a triangle's corner: a step of ṙ)
+/// rate-independent: a pulse of height Δṙ/(ω²·N·T) over N·T ≈ W instead of Δṙ/(ω²·T) in one tick,
+/// whose height grows with the rate until the slew limit cuts it short.
+pub const MODE_CURVATURE_SPAN_S: f64 = 90e-6;
+/// Largest h of [`MODE_CURVATURE_SPAN_S`]: the inverse reads the reference h + 1 samples ahead.
+pub const MAX_CURVATURE_HALF_WIDTH: usize = 8;
 /// Bound on |coupling| (the 2×2 coupling matrix keeps det > 0.75).
 pub const MAX_COUPLING: f32 = 0.5;
 /// Largest number of elements of the rate-dependent hysteresis (relaxation of w).
@@ -490,10 +504,19 @@ struct Mode {
     /// Δ₁ = s\[j\] − s\[j−1\] and curvature Δ₂ = s\[j\] − 2s\[j−1\] + s\[j−2\] over the sample
     /// (module doc); None: centred hold.
     ramp_gain: Option<[[f32; 2]; 2]>,
-    /// ζ/(ω·T): multiplies z*\[j+1\] − z*\[j−1\] (= (2ζ/ω)·ż* by central differences).
+    /// (1 − ρ)ζ/(ω·T): multiplies z*\[j+1\] − z*\[j−1\] (= (2(1 − ρ)ζ/ω)·ż* by central
+    /// differences).
     velocity_coefficient: f32,
     /// 1/(ω·T)²: multiplies z*\[j+1\] − 2z*\[j\] + z*\[j−1\] (= z̈*/ω²).
     curvature_coefficient: f32,
+    /// (1 − ρ)ζ/(ω·T·(h + 1)): multiplies z*\[j+h+1\] − z*\[j−h−1\] (= (2(1 − ρ)ζ/ω)·ż* by
+    /// central differences over 2(h + 1) samples).
+    window_velocity_coefficient: f32,
+    /// 1/((ω·T)²·(2h + 1)): multiplies the sum of the 2h + 1 second differences centred on j,
+    /// (z*\[j+h+1\] − z*\[j+h\]) − (z*\[j−h\] − z*\[j−h−1\]) (= z̈*/ω² averaged over N·T).
+    window_curvature_coefficient: f32,
+    /// h: the curvature's half width in samples ([`MODE_CURVATURE_SPAN_S`]).
+    curvature_half_width: usize,
 }
 
 impl Mode {
@@ -901,10 +924,17 @@ impl Effects {
     }
 
     /// How many output samples ahead of the current command the inverse needs the reference:
-    /// ⌈D⌉, plus 1 for the mode's central difference (nothing extra without a mode).
+    /// ⌈D⌉, plus h + 1 for the mode's central differences ([`Effects::curvature_half_width`];
+    /// nothing extra without a mode).
     pub fn lead_samples(&self) -> usize {
         let ceil = self.delay_whole + usize::from(self.delay_fraction > 0.0);
-        ceil + usize::from(self.mode.is_some())
+        ceil + self.mode.map_or(0, |m| m.curvature_half_width + 1)
+    }
+
+    /// h: the mode's inverse averages the curvature over 2h + 1 samples centred on the command
+    /// ([`MODE_CURVATURE_SPAN_S`]; 0 without a mode).
+    pub fn curvature_half_width(&self) -> usize {
+        self.mode.map_or(0, |m| m.curvature_half_width)
     }
 
     /// The reference at the fractional output time j + D, from the samples at j + ⌊D⌋
@@ -1122,7 +1152,9 @@ impl Effects {
     /// the target w\*\[j\] \[m\] for the hysteresis model's inverse (mode inverse by central
     /// differences, then w\* = s\* − c\[j\] − c_w\[j\] − e·(u\[j−1\] − u_c)²; see the module doc). Call before
     /// [`Effects::commit_command`] for sample j. NaN if a reference sample is not finite (the
-    /// compensator then holds its voltage); finite otherwise.
+    /// compensator then holds its voltage); finite otherwise. The curvature in one tick, whatever
+    /// [`Effects::curvature_half_width`]: [`Effects::inverse_target_w_window`] with h = 0 (the
+    /// loop's chain takes the window).
     #[inline]
     pub fn inverse_target_w(
         &self,
@@ -1131,17 +1163,70 @@ impl Effects {
         z_now_m: f32,
         z_next_m: f32,
     ) -> f32 {
-        if !(z_prev_m.is_finite() && z_now_m.is_finite() && z_next_m.is_finite()) {
+        self.target_from(
+            state,
+            [z_prev_m, z_now_m],
+            z_now_m,
+            [z_now_m, z_next_m],
+            |m| (m.velocity_coefficient, m.curvature_coefficient),
+        )
+    }
+
+    /// [`Effects::inverse_target_w`] with the mode's curvature averaged over 2h + 1 samples
+    /// (h = [`Effects::curvature_half_width`]): from z\* at j − h − 1 and j − h (`before`), j
+    /// (`z_now_m`), and j + h and j + h + 1 (`after`) \[m\],
+    /// ```text
+    /// a = z*[j+h+1] − z*[j+h],  m = z*[j+h] − z*[j−h],  b = z*[j−h] − z*[j−h−1]
+    /// s* = z*[j] + (1 − ρ)ζ/(ωT(h+1))·(a + m + b) + (a − b)/((ωT)²·(2h+1))
+    /// ```
+    /// (the velocity by central differences over 2(h + 1) samples, the curvature the mean of the
+    /// 2h + 1 second differences centred on j), then w\* = s\* − c\[j\] − c_w\[j\] −
+    /// e·(u\[j−1\] − u_c)². The mean holds a kink's impulse Δṙ/ω² and spreads it over (2h + 1)·T.
+    #[inline]
+    pub fn inverse_target_w_window(
+        &self,
+        state: &EffectsState,
+        before: [f32; 2],
+        z_now_m: f32,
+        after: [f32; 2],
+    ) -> f32 {
+        self.target_from(state, before, z_now_m, after, |m| {
+            (
+                m.window_velocity_coefficient,
+                m.window_curvature_coefficient,
+            )
+        })
+    }
+
+    /// The mode's inverse and the rest of step 5 with the mode's (velocity, curvature)
+    /// coefficients from `coefficients`.
+    #[inline(always)]
+    fn target_from(
+        &self,
+        state: &EffectsState,
+        before: [f32; 2],
+        z_now_m: f32,
+        after: [f32; 2],
+        coefficients: impl Fn(&Mode) -> (f32, f32),
+    ) -> f32 {
+        let [z_bb, z_b] = before;
+        let [z_a, z_aa] = after;
+        if !(z_bb.is_finite()
+            && z_b.is_finite()
+            && z_now_m.is_finite()
+            && z_a.is_finite()
+            && z_aa.is_finite())
+        {
             return f32::NAN;
         }
         let s = match &self.mode {
             None => z_now_m,
             Some(mode) => {
-                let ahead = z_next_m - z_now_m;
-                let behind = z_now_m - z_prev_m;
-                z_now_m
-                    + mode.velocity_coefficient * (ahead + behind)
-                    + mode.curvature_coefficient * (ahead - behind)
+                let ahead = z_aa - z_a;
+                let behind = z_b - z_bb;
+                let middle = z_a - z_b;
+                let (velocity, curvature) = coefficients(mode);
+                z_now_m + velocity * (ahead + middle + behind) + curvature * (ahead - behind)
             }
         };
         let w = s - self.creep_m(state) - self.relaxation_m(state) - self.even_term_m(state);
@@ -1160,6 +1245,17 @@ impl Effects {
     #[inline]
     pub fn commit_command(&self, state: &mut EffectsState, u_v: f32, w_m: f32) {
         let _ = self.forward_z(state, u_v, w_m);
+    }
+}
+
+/// h = round((W/T − 1)/2) within \[0, [`MAX_CURVATURE_HALF_WIDTH`]\], W = [`MODE_CURVATURE_SPAN_S`]:
+/// 2h + 1 samples span the odd multiple of T nearest W.
+fn curvature_half_width(sample_period_s: f64) -> usize {
+    let h = libm::round((MODE_CURVATURE_SPAN_S / sample_period_s - 1.0) / 2.0);
+    if h >= 1.0 {
+        (h as usize).min(MAX_CURVATURE_HALF_WIDTH)
+    } else {
+        0
     }
 }
 
@@ -1201,13 +1297,23 @@ fn discretise_mode(
         let g2 = [c[0] - 0.5 * g1[0], c[1] - 0.5 * g1[1]];
         [[g1[0] as f32, g1[1] as f32], [g2[0] as f32, g2[1] as f32]]
     });
+    let h = curvature_half_width(t);
+    let (widths, samples) = ((h + 1) as f64, (2 * h + 1) as f64);
     let mode = Mode {
         half_step_minus_identity,
         ramp_gain,
         velocity_coefficient: ((1.0 - rho) * zeta / (omega * t)) as f32,
         curvature_coefficient: (1.0 / ((omega * t) * (omega * t))) as f32,
+        window_velocity_coefficient: ((1.0 - rho) * zeta / (omega * t * widths)) as f32,
+        window_curvature_coefficient: (1.0 / ((omega * t) * (omega * t) * samples)) as f32,
+        curvature_half_width: h,
     };
-    let coefficients = [mode.velocity_coefficient, mode.curvature_coefficient];
+    let coefficients = [
+        mode.velocity_coefficient,
+        mode.curvature_coefficient,
+        mode.window_velocity_coefficient,
+        mode.window_curvature_coefficient,
+    ];
     if !half_step_minus_identity
         .iter()
         .flatten()
@@ -1275,9 +1381,10 @@ pub fn simulate_axis(
 }
 
 /// Runs the single-axis inverse chain (no coupling) over a reference record `reference_m[k]` = y*\[k\]
-/// \[m\] at the output samples: for each command j, z* at j − 1, j, j + 1 by
-/// [`Effects::desired_z_m`] (z* before the first sample = z*\[0\]), the target by
-/// [`Effects::inverse_target_w`], the voltage by `compensator` (from `initial`), then
+/// \[m\] at the output samples: for each command j, z* at j − h − 1, j − h, j, j + h and
+/// j + h + 1 by [`Effects::desired_z_m`] (z* before the first sample = z*\[0\];
+/// h = [`Effects::curvature_half_width`]), the target by
+/// [`Effects::inverse_target_w_window`], the voltage by `compensator` (from `initial`), then
 /// [`Effects::commit_command`] with the voltage commanded and the w it reaches. Writes the commands
 /// \[V\] to `u_out_v`; processes `min(reference_m.len(), u_out_v.len())` samples.
 pub fn compensate_axis(
@@ -1289,11 +1396,15 @@ pub fn compensate_axis(
 ) {
     let mut compensator_state = initial;
     let mut state = EffectsState::at_rest(initial.model.input_v);
+    let h = effects.curvature_half_width();
     for (j, u) in u_out_v.iter_mut().enumerate().take(reference_m.len()) {
-        let z_prev = effects.desired_z_m(reference_m, j.saturating_sub(1));
-        let z_now = effects.desired_z_m(reference_m, j);
-        let z_next = effects.desired_z_m(reference_m, j + 1);
-        let target = effects.inverse_target_w(&state, z_prev, z_now, z_next);
+        let z = |i: usize| effects.desired_z_m(reference_m, i);
+        let target = effects.inverse_target_w_window(
+            &state,
+            [z(j.saturating_sub(h + 1)), z(j.saturating_sub(h))],
+            z(j),
+            [z(j + h), z(j + h + 1)],
+        );
         let command = compensator.compensate(&mut compensator_state, target);
         let w = compensator.model().output(&compensator_state.model);
         effects.commit_command(&mut state, command.voltage_v, w);

@@ -12,8 +12,9 @@
 //!
 //! # One tick ([`InverseChain::next_targets`], then [`InverseChain::commit`])
 //! The reference is a function of the tick index that the chain samples
-//! `L = M + max_axes ⌈D⌉` ticks ahead (M = 1 if either axis has a mode, for the mode inverse's
-//! central difference; L ≤ 65) into a ring of [`REFERENCE_RING`] samples: at reference tick j the
+//! `L = M + max_axes ⌈D⌉` ticks ahead (M = h + 1 if either axis has a mode, for the mode
+//! inverse's central differences over 2h + 1 samples, h = [`Effects::curvature_half_width`]: 0
+//! up to 22 kHz; L ≤ 73) into a ring of [`REFERENCE_RING`] samples: at reference tick j the
 //! ring holds r\[0..=j + L\] (the last [`REFERENCE_RING`] of them). Where the samples come from is
 //! the caller's: a closure that yields the next reference sample pair \[m\] each time it is
 //! called (the firmware's waveform generator or setpoint stream, a record on the host). With
@@ -25,9 +26,10 @@
 //! 2. coupling: `(z*_x[q], z*_y[q]) = decouple(κ_x, κ_y, d_x[q], d_y[q])` — exact also for
 //!    different delays, since each axis's output at q + D is `z[q] + κ·z_other[q]`
 //!    (skipped, κ = 0, for a single axis: [`InverseChain::single`]);
-//! 3. the last three z\* per axis, `z*[q−2], z*[q−1], z*[q]`, give (z\*\[j−1\], z\*\[j\],
-//!    z\*\[j+1\]) to [`Effects::inverse_target_w`] (mode, creep, even term): the target w\*\[j\]
-//!    for the compensator;
+//! 3. the last 2M + 1 z\* per axis, `z*[q−2M] … z*[q]`, are kept in a ring; z\* at j − h − 1,
+//!    j − h, j, j + h and j + h + 1 go to [`Effects::inverse_target_w_window`] (mode, creep, even
+//!    term): the target w\*\[j\] for the compensator (without a mode, M = 0, z\*\[j − 1\] and
+//!    z\*\[j\]);
 //! 4. after the voltage is applied, [`InverseChain::commit`] advances each axis's effects state
 //!    with the voltage actually applied and the w the compensator's model reached — every tick,
 //!    so that the creep, mode, delay line and drift clock follow the stage (a caller that holds
@@ -51,9 +53,12 @@ use crate::compensator::{CommandStatus, Compensator, CompensatorState};
 use crate::effects::{decouple, Effects, EffectsState};
 use crate::math::max;
 
-/// Reference samples kept: a power of two above the largest lead (1 + 64 samples) + 1.
+/// Reference samples kept: a power of two above the largest lead (9 + 64 samples) + 1.
 pub const REFERENCE_RING: usize = 128;
 const RING_MASK: u32 = REFERENCE_RING as u32 - 1;
+/// Desired-z samples kept per axis: a power of two at or above 2M + 1 (M ≤ 9).
+const DESIRED_RING: usize = 32;
+const DESIRED_MASK: u32 = DESIRED_RING as u32 - 1;
 
 /// The inverse effect chain of two axes: settings, effect states, desired-z history and the
 /// reference samples taken ahead.
@@ -63,8 +68,8 @@ pub struct InverseChain {
     state: [EffectsState; 2],
     /// κ_x, κ_y used by the decoupling (0 for a single axis).
     coupling: [f32; 2],
-    /// Per axis z\*\[q − 2\], z\*\[q − 1\], z\*\[q\] \[m\], q = j + M.
-    desired_z_m: [[f32; 3]; 2],
+    /// Per axis, `desired_z_m[axis][s & DESIRED_MASK]` = z\*\[s\] \[m\] for s up to q = j + M.
+    desired_z_m: [[f32; DESIRED_RING]; 2],
     /// `ring[s & RING_MASK]` = reference sample s (both axes) \[m\].
     ring: [[f32; 2]; REFERENCE_RING],
     /// Reference samples taken from the source (wrapping).
@@ -73,7 +78,7 @@ pub struct InverseChain {
     index: u32,
     /// L: how far ahead of tick j the reference is sampled.
     lead: u32,
-    /// M: 1 if either axis has a mode (z\*\[j + 1\] is needed), else 0.
+    /// M: h + 1 if either axis has a mode (z\*\[j + h + 1\] is needed), else 0.
     mode_lead: u32,
     primed: bool,
 }
@@ -97,11 +102,19 @@ impl InverseChain {
         if effects.iter().all(Effects::is_identity) {
             return None;
         }
-        let mode_lead = u32::from(effects.iter().any(Effects::has_mode));
-        // ⌈D⌉ per axis: the lead without the mode's extra sample.
+        // The mode's extra samples, h + 1 (h is the same on both axes: it follows T).
+        let extra = |e: &Effects| {
+            if e.has_mode() {
+                e.curvature_half_width() + 1
+            } else {
+                0
+            }
+        };
+        let mode_lead = effects.iter().map(extra).max().unwrap_or(0) as u32;
+        // ⌈D⌉ per axis: the lead without the mode's extra samples.
         let delay_lead = effects
             .iter()
-            .map(|e| e.lead_samples() - usize::from(e.has_mode()))
+            .map(|e| e.lead_samples() - extra(e))
             .max()
             .unwrap_or(0) as u32;
         Some(Self {
@@ -111,7 +124,7 @@ impl InverseChain {
                 EffectsState::at_rest(rest_v[1]),
             ],
             coupling,
-            desired_z_m: [[0.0; 3]; 2],
+            desired_z_m: [[0.0; DESIRED_RING]; 2],
             ring: [[0.0; 2]; REFERENCE_RING],
             pulled: 0,
             index: 0,
@@ -207,40 +220,59 @@ impl InverseChain {
         mut next_reference: impl FnMut() -> [f32; 2],
     ) -> ([f32; 2], [f32; 2]) {
         let j = self.index;
-        let q = j.wrapping_add(self.mode_lead);
+        let m = self.mode_lead;
+        let q = j.wrapping_add(m);
+        let slot = |s: u32| (s & DESIRED_MASK) as usize;
         if self.primed {
             self.push(next_reference());
-            let (zx, zy) = self.desired(q, self.mode_lead);
-            for (history, z) in self.desired_z_m.iter_mut().zip([zx, zy]) {
-                *history = [history[1], history[2], z];
-            }
+            let (zx, zy) = self.desired(q, m);
+            self.desired_z_m[0][slot(q)] = zx;
+            self.desired_z_m[1][slot(q)] = zy;
         } else {
             for _ in 0..=self.lead {
                 self.push(next_reference());
             }
             // z* before the first sample is z*[0].
             let (x0, y0) = self.desired(j, 0);
-            let (x1, y1) = self.desired(q, self.mode_lead);
-            self.desired_z_m = if self.mode_lead == 1 {
-                [[x0, x0, x1], [y0, y0, y1]]
-            } else {
-                [[x0, x0, x0], [y0, y0, y0]]
-            };
+            for back in 1..=2 * m + 2 {
+                let s = j.wrapping_sub(back);
+                self.desired_z_m[0][slot(s)] = x0;
+                self.desired_z_m[1][slot(s)] = y0;
+            }
+            for ahead in 0..=m {
+                let (x, y) = if ahead == 0 {
+                    (x0, y0)
+                } else {
+                    self.desired(j.wrapping_add(ahead), ahead)
+                };
+                let s = j.wrapping_add(ahead);
+                self.desired_z_m[0][slot(s)] = x;
+                self.desired_z_m[1][slot(s)] = y;
+            }
             self.primed = true;
         }
         let now = [self.sample(j, 0), self.sample(j, 1)];
+        // z* at j − h − 1, j − h, j, j + h, j + h + 1 (q = j + h + 1); without a mode z*[j − 1]
+        // and z*[j] (the mode's terms are absent, the samples only carry a NaN).
+        let at = if m > 0 {
+            [
+                q.wrapping_sub(2 * m),
+                q.wrapping_sub(2 * m - 1),
+                j,
+                q.wrapping_sub(1),
+                q,
+            ]
+        } else {
+            [j.wrapping_sub(1), j, j, j, j]
+        }
+        .map(slot);
         let mut target = [0.0; 2];
         for ((t, (e, s)), h) in target
             .iter_mut()
             .zip(self.effects.iter().zip(self.state.iter()))
             .zip(self.desired_z_m.iter())
         {
-            let (previous, current, next) = if self.mode_lead == 1 {
-                (h[0], h[1], h[2])
-            } else {
-                (h[1], h[2], h[2])
-            };
-            *t = e.inverse_target_w(s, previous, current, next);
+            *t = e.inverse_target_w_window(s, [h[at[0]], h[at[1]]], h[at[2]], [h[at[3]], h[at[4]]]);
         }
         self.index = j.wrapping_add(1);
         (now, target)
@@ -653,6 +685,97 @@ mod tests {
             sample_period_s: T,
         };
         Compensator::new(StaticModel::new(bw, map).unwrap(), settings).unwrap()
+    }
+
+    /// At 50 kHz the mode's inverse spreads a triangle's corner over 5 ticks: the compensator's
+    /// slew limit (1e5 V/s, 2 V per tick) never cuts the drive, and the stage (the forward chain
+    /// with the same mode) follows the triangle at least 5× closer than with the one-tick
+    /// curvature ([`Effects::inverse_target_w`]), whose corner pulse (1.3 µm of w in one tick,
+    /// more than 2 V) the limit cuts short.
+    #[test]
+    fn at_a_fast_rate_the_mode_inverse_keeps_the_corners_impulse_within_the_slew_limit() {
+        const T5: f32 = 2e-5;
+        const N: usize = 2000;
+        let compensator = {
+            let c = compensator();
+            let settings = CompensatorSettings {
+                sample_period_s: T5,
+                ..c.settings()
+            };
+            Compensator::new(*c.model(), settings).unwrap()
+        };
+        let effects = Effects::new(
+            EffectParams {
+                mode_frequency_hz: 2197.0,
+                mode_damping: 0.03,
+                ..EffectParams::default()
+            },
+            T5,
+            crate::effects::OperatingRange {
+                input_v: (0.0, 120.0),
+                output_m: (0.0, 40e-6),
+            },
+        )
+        .unwrap();
+        assert_eq!(effects.curvature_half_width(), 2);
+        // 50 Hz between 4 and 29 µm (1000 ticks a period), from its low end.
+        let mut reference = [0.0f32; N];
+        for (k, r) in reference.iter_mut().enumerate() {
+            let p = (k % 1000) as f32 / 1000.0;
+            *r = 4e-6 + 25e-6 * if p < 0.5 { 2.0 * p } else { 2.0 - 2.0 * p };
+        }
+        let rest = CompensatorState::at_rest(11.2);
+        // (ticks the slew limit cut, RMS error [m]) over the second period.
+        let score = |u: &[f32; N], limited: usize| {
+            let mut y = [0.0f32; N];
+            crate::effects::simulate_axis(compensator.model(), rest.model, &effects, u, &mut y);
+            let sum: f32 = (N / 2..N).map(|k| (y[k] - reference[k]).powi(2)).sum();
+            (limited, libm::sqrtf(sum / (N / 2) as f32))
+        };
+        // The chain (2h + 1 = 5 samples).
+        let mut chain = InverseChain::single(effects, 11.2).unwrap();
+        assert_eq!(chain.lead_ticks(), 3);
+        let (mut state, mut u, mut limited) = (rest, [0.0f32; N], 0);
+        let mut k = 0;
+        for (j, u) in u.iter_mut().enumerate() {
+            let (_, target) = chain.next_targets(|| {
+                let r = held_sample(&reference, k);
+                k += 1;
+                [r, r]
+            });
+            let command = compensator.compensate(&mut state, target[0]);
+            limited += usize::from(j >= N / 2 && command.status == CommandStatus::Limited);
+            chain.commit(
+                0,
+                command.voltage_v,
+                compensator.model().output(&state.model),
+            );
+            *u = command.voltage_v;
+        }
+        // The record chain of the effects module reads the same window from the slice.
+        let mut record = [0.0f32; N];
+        crate::effects::compensate_axis(&compensator, rest, &effects, &reference, &mut record);
+        assert_eq!(u, record);
+        let windowed = score(&u, limited);
+        // The curvature in one tick.
+        let (mut state, mut u, mut limited) = (rest, [0.0f32; N], 0);
+        let mut effects_state = EffectsState::at_rest(11.2);
+        for (j, u) in u.iter_mut().enumerate() {
+            let z = |i: usize| effects.desired_z_m(&reference, i);
+            let target =
+                effects.inverse_target_w(&effects_state, z(j.saturating_sub(1)), z(j), z(j + 1));
+            let command = compensator.compensate(&mut state, target);
+            limited += usize::from(j >= N / 2 && command.status == CommandStatus::Limited);
+            let w = compensator.model().output(&state.model);
+            effects.commit_command(&mut effects_state, command.voltage_v, w);
+            *u = command.voltage_v;
+        }
+        let one_tick = score(&u, limited);
+        extern crate std;
+        std::println!("windowed {windowed:?}, one tick {one_tick:?}");
+        assert_eq!(windowed.0, 0, "{windowed:?}");
+        assert!(one_tick.0 >= 2, "{one_tick:?}");
+        assert!(windowed.1 < 0.2 * one_tick.1, "{windowed:?} {one_tick:?}");
     }
 
     fn triangle(n: usize) -> [f32; 600] {

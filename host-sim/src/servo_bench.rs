@@ -13,9 +13,11 @@
 //! (`s* = z* + (2ζ/ω)·ż* + z̈*/ω²`, [`piezo_core::inverse_chain::InverseChain`], as the
 //! firmware's loop runs a stage file with effects): the drive is pre-shaped and a triangle's
 //! corners do not ring the stage; off with `BenchSettings::mode_feedforward` = false
-//! (`--no-mode-feedforward`). The window's slew limit still bounds every command, so where the
-//! inverse's corner impulse Δṙ/(T·ω²) asks for more than S·T in one tick (y at 50 kHz) it is
-//! cut short.
+//! (`--no-mode-feedforward`). A triangle's corner asks for an impulse Δṙ/ω²; above 22 kHz the
+//! inverse spreads it over the 2h + 1 ticks nearest 90 µs
+//! ([`piezo_core::effects::MODE_CURVATURE_SPAN_S`]), so its height stays that of a 10 kHz tick
+//! (≈ 0.7 V on y) instead of Δṙ/(T·ω²) in one tick (≈ 3.6 V at 50 kHz, which the slew limit,
+//! 2 V per tick there, would cut short).
 //!
 //! **Loop** at the bench's rate (10 kHz unless `--rates` says otherwise: the stack file is run at
 //! that rate, the DAC updates at it and the servo is tuned for it), per tick k: the sensor is sampled at t_k; the compensator is given the
