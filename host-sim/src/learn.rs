@@ -127,7 +127,7 @@ pub const HELP: &str = "One step of iterative learning control per axis: u_next 
 u_0 the compensator's command for the reference, L the inverse of the stage file's model along u (slope dy/du, \
 mode, the error taken D samples later, gain 2/(gain_min + gain_max)), Q a zero-phase 4th-order Butterworth \
 low-pass (forward and backward, circular with --periodic) whose cut-off is the highest with |Q(1 - LG)| <= 1 - margin \
-for plant gains in [gain_min, gain_max] times the model's and its mode within +-mode-tolerance (a file without a mode: none, or one at or above unmodelled-mode-fraction times the loop rate, damping 0.02). Each step learns the share s = max(0, 1 - noise/in-band error) of L(r - y): the sensor noise estimated from the error's fourth differences, so that a trial at the noise does not fill the table with it. With --periodic, the measured record may hold several whole passes: they are averaged and their noise \
+for plant gains in [gain_min, gain_max] times the model's and its mode within +-mode-tolerance (a file without a mode: none, or one at or above unmodelled-mode-fraction times the loop rate, damping 0.02). Each step learns the share s = max(0, 1 - noise/in-band error) of L(r - y): the sensor noise estimated from the error's fourth differences, so that a trial at the noise does not fill the table with it; with --periodic, harmonic by harmonic within twice Q's cut-off (s_h = max(0, 1 - noise/|E(h)|^2)). With --periodic, the measured record may hold several whole passes: they are averaged and their noise \
 read from the spread between them; such a trial also learns at the period's harmonics above the cut-off from the stage's response \
 measured on it (--harmonic-gain rho > 0; off by default). The table is clamped \
 to the output window and slew limit, and carries its reference and the stage file's FNV-1a 32: a table learned \
@@ -193,7 +193,9 @@ pub fn rule_text(p: &LearningParams) -> String {
          Lhat = the learning's own shift by D (linear interpolation) and central-difference mode inverse; \
          a stage file without a mode: none in the plant or one at or above {u}/T, damping {z} (33 values from there \
          to 2/T, and f itself); each step learns the share s = max(0, 1 - sigma^2 b/<(Q e)^2>) of L e, sigma the \
-         noise from the 25th percentile of the error's fourth differences, b the share of a white noise Q passes",
+         noise from the 25th percentile of the error's fourth differences (or the spread between the passes), b the share \
+         of a white noise Q passes; a periodic trial its share per harmonic h <= 2 f_c n T, s_h = max(0, 1 - (sigma^2/n)/|E(h)|^2); \
+         learning above f_c (rho > 0) only once <(Q e)^2> <= 0.5 <e^2>",
         u = p.unmodelled_mode_fraction,
         z = piezo_core::UNMODELLED_MODE_DAMPING,
         m = p.margin,

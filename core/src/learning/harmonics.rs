@@ -85,7 +85,7 @@ pub(super) struct HarmonicInputs<'a> {
 }
 
 /// The DFT coefficient's rotation e^(−j2π·h·j/n).
-fn twiddle(h: usize, j: usize, n: usize) -> (f64, f64) {
+pub(super) fn twiddle(h: usize, j: usize, n: usize) -> (f64, f64) {
     let m = (h as u64 * j as u64 % n as u64) as f64;
     let phase = -2.0 * PI * m / n as f64;
     (libm::cos(phase), libm::sin(phase))
