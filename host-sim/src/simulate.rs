@@ -12,7 +12,7 @@ use std::path::PathBuf;
 /// Arguments of `simulate`.
 #[derive(Debug, clap::Args)]
 pub struct SimulateArgs {
-    /// Plant: nac2024, stage, xy-stage, bipolar-stack, relaxing-stack.
+    /// Plant: nac2024, stage, xy-stage, bipolar-stack, relaxing-stack, relaxing-stack-shaped.
     #[arg(long)]
     pub plant: String,
     /// Signal spec, e.g. `sine:amp=10,offset=10,freq=2,phase_deg=-90,duration=1,rate=10000`.
