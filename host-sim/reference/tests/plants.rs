@@ -536,3 +536,37 @@ fn relaxing_stack_spans_35_um_widens_with_rate_and_rings_at_740_hz() {
     let f = 200_000.0 / (peaks[1] - peaks[0]) as f64;
     assert!((700.0..780.0).contains(&f), "ring at {f} Hz");
 }
+
+/// The shaped relaxing stack (a second, fast-saturating switching population |h₂| ≤ 1.5 V): the
+/// same 35 µm span at ±90 V, loops that still widen with rate, a 1 Hz loop opening wider than the
+/// default's by h₂'s share (2·1.5 V·d ≈ 0.55 µm at most), and the same 740 Hz ring. Run with
+/// `--nocapture` to print the openings.
+#[test]
+fn shaped_relaxing_stack_spans_35_um_widens_with_rate_and_opens_wider() {
+    use piezo_reference::plant::RelaxingStack;
+    let p = RelaxingStack::shaped();
+    let span = span_at_1_hz(&p);
+    assert!((34e-6..36e-6).contains(&span), "span {span:e} m");
+    let opening = |freq: f64| opening_at_zero(&p, freq);
+    let (o1, o20, o40, o100) = (opening(1.0), opening(20.0), opening(40.0), opening(100.0));
+    println!(
+        "relaxing-stack-shaped loop opening at u = 0: 1 Hz {:.3} um, 20 Hz {:.3} um, 40 Hz {:.3} um, 100 Hz {:.3} um",
+        o1 * 1e6,
+        o20 * 1e6,
+        o40 * 1e6,
+        o100 * 1e6
+    );
+    assert!(
+        o1 > 0.0 && o20 > o1 && o40 > 1.05 * o20 && o100 > 1.1 * o40,
+        "openings {o1:e} {o20:e} {o40:e} {o100:e} m"
+    );
+    let plain = opening_at_zero(&RelaxingStack::default(), 1.0);
+    assert!(
+        o1 > plain + 0.2e-6 && o1 < plain + 0.8e-6,
+        "1 Hz opening {o1:e} m, default stack's {plain:e} m"
+    );
+    let peaks = step_ring_peaks(&p);
+    assert!(peaks.len() >= 3, "{} peaks", peaks.len());
+    let f = 200_000.0 / (peaks[1] - peaks[0]) as f64;
+    assert!((700.0..780.0).contains(&f), "ring at {f} Hz");
+}

@@ -120,7 +120,8 @@ impl fmt::Display for PlantError {
 impl std::error::Error for PlantError {}
 
 /// Plant names accepted by [`PlantKind::from_name`].
-pub const PLANT_NAMES: &str = "nac2024, stage, xy-stage, bipolar-stack, relaxing-stack";
+pub const PLANT_NAMES: &str =
+    "nac2024, stage, xy-stage, bipolar-stack, relaxing-stack, relaxing-stack-shaped";
 
 /// A reference plant.
 pub trait Plant: Send + Sync {
@@ -184,7 +185,7 @@ pub enum PlantKind {
 
 impl PlantKind {
     /// `nac2024`, `stage` (Case III; `stage-case1`, `stage-case2` also accepted), `xy-stage`,
-    /// `bipolar-stack`, `relaxing-stack`.
+    /// `bipolar-stack`, `relaxing-stack`, `relaxing-stack-shaped` ([`RelaxingStack::shaped`]).
     pub fn from_name(name: &str) -> Result<Self, PlantError> {
         Ok(match name {
             "nac2024" => Self::Nac2024(Nac2024::published()),
@@ -194,6 +195,7 @@ impl PlantKind {
             "xy-stage" => Self::XyStage(XyStage::default()),
             "bipolar-stack" => Self::BipolarStack(BipolarStack::default()),
             "relaxing-stack" => Self::RelaxingStack(RelaxingStack::default()),
+            "relaxing-stack-shaped" => Self::RelaxingStack(RelaxingStack::shaped()),
             other => {
                 return Err(PlantError::UnknownPlant {
                     given: other.into(),
