@@ -23,7 +23,7 @@ pub enum Command {
     /// Simulate a plant under a signal in stack volts (V) with optional effects; write the CSV of
     /// its displacement in metres (t_s, u_V, y_m) and optionally a plot (SVG or PNG).
     #[command(after_help = format!(
-        "Plants: {PLANT_NAMES}\n  nac2024   Noliac NAC2024 actuator (seed 000), output y_m, 2.56 MHz default rate\n  stage     asymmetric stage (seed 001, Case III; stage-case1/stage-case2 too), output y_m, 10 kHz\n  xy-stage  two-axis flexure stage (seed 002), inputs ux_V/uy_V, outputs x_m/y_m, 10 kHz\n  bipolar-stack   ±100 V stack, hysteresis behind a spread of dielectric relaxations, 740 Hz mode, output y_m, 10 kHz\n  relaxing-stack  ±100 V stack whose whole strain relaxes (loops widen with rate), 740 Hz mode, output y_m, 10 kHz\n\n{SIGNAL_HELP}\n\n{EFFECT_HELP}"
+        "Plants: {PLANT_NAMES}\n  nac2024   Noliac NAC2024 actuator (seed 000), output y_m, 2.56 MHz default rate\n  stage     asymmetric stage (seed 001, Case III; stage-case1/stage-case2 too), output y_m, 10 kHz\n  xy-stage  two-axis flexure stage (seed 002), inputs ux_V/uy_V, outputs x_m/y_m, 10 kHz\n  bipolar-stack   ±100 V stack, hysteresis behind a spread of dielectric relaxations, 740 Hz mode, output y_m, 10 kHz\n  relaxing-stack  ±100 V stack whose whole strain relaxes (loops widen with rate), 740 Hz mode, output y_m, 10 kHz\n  relaxing-stack-shaped  the same with a second, fast-saturating switching population (a loop-shape error no core form has)\n\n{SIGNAL_HELP}\n\n{EFFECT_HELP}"
     ))]
     Simulate(crate::simulate::SimulateArgs),
     /// The whole story on the XY stage with creep no model declares: identify, compensate, find the
