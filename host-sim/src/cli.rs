@@ -130,12 +130,7 @@ mod tests {
 
     #[test]
     fn help_lists_plants_signals_effects() {
-        let mut cmd = Cli::command();
-        let help = cmd
-            .find_subcommand_mut("simulate")
-            .unwrap()
-            .render_long_help()
-            .to_string();
+        let help = long_help("simulate");
         for word in [
             "nac2024",
             "xy-stage",
@@ -147,6 +142,15 @@ mod tests {
         ] {
             assert!(help.contains(word), "help lacks {word}");
         }
+    }
+
+    /// `host-sim COMMAND --help` as printed.
+    fn long_help(command: &str) -> String {
+        Cli::command()
+            .find_subcommand_mut(command)
+            .unwrap()
+            .render_long_help()
+            .to_string()
     }
 
     /// Every command and subcommand, with its long help rendered as `--help` prints it.
@@ -241,23 +245,13 @@ mod tests {
         let mut signals = 0;
         every_signal(&Cli::command(), "host-sim", &mut signals);
         assert!(signals >= 5, "{signals} --signal options");
-        let mut cmd = Cli::command();
-        let help = cmd
-            .find_subcommand_mut("simulate")
-            .unwrap()
-            .render_long_help()
-            .to_string();
+        let help = long_help("simulate");
         assert!(help.contains("U is the signal's own unit"), "{help}");
     }
 
     #[test]
     fn demo_and_reproduce_help_document_their_options() {
-        let mut cmd = Cli::command();
-        let help = cmd
-            .find_subcommand_mut("demo")
-            .unwrap()
-            .render_long_help()
-            .to_string();
+        let help = long_help("demo");
         for word in [
             "--out",
             "--x-freq",
@@ -272,11 +266,7 @@ mod tests {
         ] {
             assert!(help.contains(word), "demo help lacks {word}");
         }
-        let help = cmd
-            .find_subcommand_mut("reproduce")
-            .unwrap()
-            .render_long_help()
-            .to_string();
+        let help = long_help("reproduce");
         for word in ["--out", "--format", "xy_stage", "nac2024", "stage"] {
             assert!(help.contains(word), "reproduce help lacks {word}");
         }
