@@ -516,25 +516,7 @@ fn bipolar_stack_spans_35_um_depends_on_rate_and_rings_at_740_hz() {
 fn relaxing_stack_spans_35_um_widens_with_rate_and_rings_at_740_hz() {
     use piezo_reference::plant::RelaxingStack;
     let p = RelaxingStack::default();
-    let span = span_at_1_hz(&p);
-    assert!((34e-6..36e-6).contains(&span), "span {span:e} m");
-    let opening = |freq: f64| opening_at_zero(&p, freq);
-    let (o1, o20, o40, o100) = (opening(1.0), opening(20.0), opening(40.0), opening(100.0));
-    println!(
-        "relaxing-stack loop opening at u = 0: 1 Hz {:.3} um, 20 Hz {:.3} um, 40 Hz {:.3} um, 100 Hz {:.3} um",
-        o1 * 1e6,
-        o20 * 1e6,
-        o40 * 1e6,
-        o100 * 1e6
-    );
-    assert!(
-        o1 > 0.0 && o20 > o1 && o40 > 1.05 * o20 && o100 > 1.1 * o40,
-        "openings {o1:e} {o20:e} {o40:e} {o100:e} m"
-    );
-    let peaks = step_ring_peaks(&p);
-    assert!(peaks.len() >= 3, "{} peaks", peaks.len());
-    let f = 200_000.0 / (peaks[1] - peaks[0]) as f64;
-    assert!((700.0..780.0).contains(&f), "ring at {f} Hz");
+    widening_stack_figures(&p, "relaxing-stack");
 }
 
 /// The shaped relaxing stack (a second, fast-saturating switching population |h₂| ≤ 1.5 V): the
@@ -545,12 +527,24 @@ fn relaxing_stack_spans_35_um_widens_with_rate_and_rings_at_740_hz() {
 fn shaped_relaxing_stack_spans_35_um_widens_with_rate_and_opens_wider() {
     use piezo_reference::plant::RelaxingStack;
     let p = RelaxingStack::shaped();
-    let span = span_at_1_hz(&p);
+    let o1 = widening_stack_figures(&p, "relaxing-stack-shaped");
+    let plain = opening_at_zero(&RelaxingStack::default(), 1.0);
+    assert!(
+        o1 > plain + 0.2e-6 && o1 < plain + 0.8e-6,
+        "1 Hz opening {o1:e} m, default stack's {plain:e} m"
+    );
+}
+
+/// What the two relaxing stacks share: a 35 µm span at ±90 V, a loop opening at u = 0 that grows
+/// from 1 to 20 to 40 to 100 Hz (printed under `name`), and a ring between 700 and 780 Hz after a
+/// voltage step. Returns the 1 Hz opening (m).
+fn widening_stack_figures(p: &dyn Plant, name: &str) -> f64 {
+    let span = span_at_1_hz(p);
     assert!((34e-6..36e-6).contains(&span), "span {span:e} m");
-    let opening = |freq: f64| opening_at_zero(&p, freq);
+    let opening = |freq: f64| opening_at_zero(p, freq);
     let (o1, o20, o40, o100) = (opening(1.0), opening(20.0), opening(40.0), opening(100.0));
     println!(
-        "relaxing-stack-shaped loop opening at u = 0: 1 Hz {:.3} um, 20 Hz {:.3} um, 40 Hz {:.3} um, 100 Hz {:.3} um",
+        "{name} loop opening at u = 0: 1 Hz {:.3} um, 20 Hz {:.3} um, 40 Hz {:.3} um, 100 Hz {:.3} um",
         o1 * 1e6,
         o20 * 1e6,
         o40 * 1e6,
@@ -560,13 +554,9 @@ fn shaped_relaxing_stack_spans_35_um_widens_with_rate_and_opens_wider() {
         o1 > 0.0 && o20 > o1 && o40 > 1.05 * o20 && o100 > 1.1 * o40,
         "openings {o1:e} {o20:e} {o40:e} {o100:e} m"
     );
-    let plain = opening_at_zero(&RelaxingStack::default(), 1.0);
-    assert!(
-        o1 > plain + 0.2e-6 && o1 < plain + 0.8e-6,
-        "1 Hz opening {o1:e} m, default stack's {plain:e} m"
-    );
-    let peaks = step_ring_peaks(&p);
+    let peaks = step_ring_peaks(p);
     assert!(peaks.len() >= 3, "{} peaks", peaks.len());
     let f = 200_000.0 / (peaks[1] - peaks[0]) as f64;
     assert!((700.0..780.0).contains(&f), "ring at {f} Hz");
+    o1
 }
