@@ -114,18 +114,8 @@ fn servo_table_round_trips_and_is_validated_by_the_core() {
 #[test]
 fn the_bench_runs_and_tunes_at_the_rate_it_is_given() {
     let at = |rate: f64| {
-        let settings = BenchSettings {
-            loop_rate_hz: rate,
-            plant_effects: host_sim::servo_bench::default_plant_effects(rate),
-            frequencies_hz: vec![100.0],
-            shapes: vec![Shape::Triangle],
-            modes: vec![ServoMode::Feedforward, ServoMode::FeedforwardFeedback],
-            periods: 2.0,
-            min_scored_s: 0.02,
-            chirp_s: 0.0,
-            ..Default::default()
-        };
-        run_bench(&settings, &mut |_: &str| {}).unwrap()
+        let modes = [ServoMode::Feedforward, ServoMode::FeedforwardFeedback];
+        run_bench(&triangle_bench(rate, &modes, true), &mut |_: &str| {}).unwrap()
     };
     let slow = at(10_000.0);
     let fast = at(20_000.0);
@@ -144,12 +134,7 @@ fn the_bench_runs_and_tunes_at_the_rate_it_is_given() {
         );
     }
     for report in [&slow, &fast] {
-        let rms = |mode| {
-            report
-                .row(mode, Shape::Triangle, 100.0)
-                .unwrap()
-                .rms_percent
-        };
+        let rms = |mode| triangle_rms(report, mode);
         assert!(rms(ServoMode::FeedforwardFeedback) < rms(ServoMode::Feedforward));
     }
     println!(
@@ -165,27 +150,10 @@ fn the_bench_runs_and_tunes_at_the_rate_it_is_given() {
 #[test]
 fn inverting_the_mode_in_the_feedforward_halves_the_triangles_error() {
     let at = |mode_feedforward: bool| {
-        let rate = 20_000.0;
-        let settings = BenchSettings {
-            loop_rate_hz: rate,
-            plant_effects: host_sim::servo_bench::default_plant_effects(rate),
-            frequencies_hz: vec![100.0],
-            shapes: vec![Shape::Triangle],
-            modes: vec![ServoMode::Feedforward, ServoMode::FeedforwardFeedback],
-            periods: 2.0,
-            min_scored_s: 0.02,
-            chirp_s: 0.0,
-            step_fractions: Vec::new(),
-            mode_feedforward,
-            ..Default::default()
-        };
+        let modes = [ServoMode::Feedforward, ServoMode::FeedforwardFeedback];
+        let settings = triangle_bench(20_000.0, &modes, mode_feedforward);
         let report = run_bench(&settings, &mut |_: &str| {}).unwrap();
-        let rms = |mode| {
-            report
-                .row(mode, Shape::Triangle, 100.0)
-                .unwrap()
-                .rms_percent
-        };
+        let rms = |mode| triangle_rms(&report, mode);
         (
             rms(ServoMode::Feedforward),
             rms(ServoMode::FeedforwardFeedback),
@@ -208,24 +176,12 @@ fn inverting_the_mode_in_the_feedforward_halves_the_triangles_error() {
 #[test]
 fn a_fifty_kilohertz_loop_halves_the_ten_kilohertz_triangles_error() {
     let at = |rate: f64| {
-        let settings = BenchSettings {
-            loop_rate_hz: rate,
-            plant_effects: host_sim::servo_bench::default_plant_effects(rate),
-            frequencies_hz: vec![100.0],
-            shapes: vec![Shape::Triangle],
-            modes: vec![ServoMode::FeedforwardFeedback],
-            periods: 2.0,
-            min_scored_s: 0.02,
-            chirp_s: 0.0,
-            step_fractions: Vec::new(),
-            ..Default::default()
-        };
+        let settings = triangle_bench(rate, &[ServoMode::FeedforwardFeedback], true);
         let report = run_bench(&settings, &mut |_: &str| {}).unwrap();
-        let rms = report
-            .row(ServoMode::FeedforwardFeedback, Shape::Triangle, 100.0)
-            .unwrap()
-            .rms_percent;
-        (rms, report)
+        (
+            triangle_rms(&report, ServoMode::FeedforwardFeedback),
+            report,
+        )
     };
     let (slow, slow_report) = at(10_000.0);
     let (fast, fast_report) = at(50_000.0);
@@ -234,4 +190,30 @@ fn a_fifty_kilohertz_loop_halves_the_ten_kilohertz_triangles_error() {
         host_sim::servo_bench::rates_table(&[(10_000.0, slow_report), (50_000.0, fast_report)])
     );
     assert!(fast <= 0.5 * slow, "50 kHz {fast} % vs 10 kHz {slow} %");
+}
+
+/// A shortened bench at `rate`: two periods of the 100 Hz triangle in `modes`, no chirp and no
+/// steps, the plant's effects at that rate, the identified mode in the feedforward or not.
+fn triangle_bench(rate: f64, modes: &[ServoMode], mode_feedforward: bool) -> BenchSettings {
+    BenchSettings {
+        loop_rate_hz: rate,
+        plant_effects: host_sim::servo_bench::default_plant_effects(rate),
+        frequencies_hz: vec![100.0],
+        shapes: vec![Shape::Triangle],
+        modes: modes.to_vec(),
+        periods: 2.0,
+        min_scored_s: 0.02,
+        chirp_s: 0.0,
+        step_fractions: Vec::new(),
+        mode_feedforward,
+        ..Default::default()
+    }
+}
+
+/// The 100 Hz triangle's RMS error in `mode` (% of stroke, worse axis).
+fn triangle_rms(report: &host_sim::servo_bench::BenchReport, mode: ServoMode) -> f64 {
+    report
+        .row(mode, Shape::Triangle, 100.0)
+        .unwrap()
+        .rms_percent
 }
