@@ -533,27 +533,29 @@ fn close_loop_records(name: &str, data: &str) -> (serde_json::Value, PathBuf) {
     (json(&report), stage)
 }
 
-/// The zeroed RMS with which `stage` predicts `record` from rest, its offset re-estimated \[m\].
+/// The zeroed RMS with which `stage` predicts the x axis of a two-axis `record` from rest, its
+/// offset re-estimated \[m\].
 fn predicted_rms(stage: &Path, record: &Path) -> f64 {
+    predicted_zeroed_rms(stage, record, &["--u", "ux_V", "--y", "x_m"])
+}
+
+/// The zeroed RMS with which `stage` predicts `record` from rest (`predict --free-offset`, with
+/// `columns` naming its u and y when they are not `u_V` and `y_m`) \[m\].
+fn predicted_zeroed_rms(stage: &Path, record: &Path, columns: &[&str]) -> f64 {
     let report = temp(&format!(
         "{}-predict.json",
         stage.file_stem().unwrap().to_str().unwrap()
     ));
-    cli(&[
+    let mut args = vec![
         "predict",
         "--params",
         stage.to_str().unwrap(),
         "--data",
         record.to_str().unwrap(),
-        "--u",
-        "ux_V",
-        "--y",
-        "x_m",
-        "--free-offset",
-        "--report",
-        report.to_str().unwrap(),
-    ])
-    .unwrap();
+    ];
+    args.extend_from_slice(columns);
+    args.extend(["--free-offset", "--report", report.to_str().unwrap()]);
+    cli(&args).unwrap();
     json(&report)["rms_zeroed_m"][0].as_f64().unwrap()
 }
 
@@ -748,21 +750,7 @@ fn an_actuator_with_a_spread_of_relaxation_times_is_predicted_at_a_rate_it_did_n
         "100 Hz zeroed RMS {without:.4e} -> {with:.4e} m\n{words}"
     );
     for record in [&r100a, &r100b] {
-        let p = {
-            let out = temp("stack-predict.json");
-            cli(&[
-                "predict",
-                "--params",
-                stage.to_str().unwrap(),
-                "--data",
-                record.to_str().unwrap(),
-                "--free-offset",
-                "--report",
-                out.to_str().unwrap(),
-            ])
-            .unwrap();
-            json(&out)["rms_zeroed_m"][0].as_f64().unwrap()
-        };
+        let p = predicted_zeroed_rms(&stage, record, &[]);
         assert!(
             p <= 0.5 * without,
             "{}: predicted at {p:.4e} m, base {without:.4e} m\n{words}",
@@ -880,19 +868,7 @@ fn widening_loops_run(plant: &str, tag: &str) -> WideningRun {
     let predicted = [&r100a, &r100b]
         .iter()
         .map(|record| {
-            let out = temp(&format!("{tag}-predict.json"));
-            cli(&[
-                "predict",
-                "--params",
-                stage.to_str().unwrap(),
-                "--data",
-                record.to_str().unwrap(),
-                "--free-offset",
-                "--report",
-                out.to_str().unwrap(),
-            ])
-            .unwrap();
-            let p = json(&out)["rms_zeroed_m"][0].as_f64().unwrap();
+            let p = predicted_zeroed_rms(&stage, record, &[]);
             (record.display().to_string(), p)
         })
         .collect();
