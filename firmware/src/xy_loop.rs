@@ -103,7 +103,7 @@
 //! voltages, `EffectsState::at_rest`, as the compensators do): the reference generator is sampled
 //! `L = M + max ⌈D⌉` ticks ahead (L ticks of added latency for streamed setpoints and program
 //! switches), the desired z of both axes is decoupled, and the compensator is given
-//! `w* = Effects::inverse_target_w(…)` instead of r; after the DAC write each axis's effects state
+//! `w* = Effects::inverse_target_w_window(…)` instead of r; after the DAC write each axis's effects state
 //! is advanced with the voltage applied and the w the compensator's model reached (also while
 //! safe). When both axes' effects are the identity, or with [`Feedforward::Linear`] (the
 //! uncompensated baseline ignores them), the tick is exactly the one without effects.
