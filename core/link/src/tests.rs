@@ -704,3 +704,32 @@ fn the_envelope_policy_travels_in_the_limits() {
     assert_eq!(p.limits(), a.limits);
     assert_eq!(AxisModel::from_params(&p).limits, a.limits);
 }
+
+/// An axis's identified envelope on the wire, written out from postcard's format: `Some` (1),
+/// the input range and the largest rate (f32 LE), then the axis's envelope policy (its limits',
+/// one varint byte), then the on-target band; and the reference set's fingerprint, the FNV-1a
+/// of all its bytes, as protocol 3 laid them out.
+#[test]
+fn an_axis_keeps_its_wire_bytes() {
+    let on_target = [&f32_bytes(2.5e-8)[..], &[0xFF, 0xFF, 0xFF, 0xFF, 0x0F]].concat();
+    for (policy, byte) in [(EnvelopePolicy::Warn, 0), (EnvelopePolicy::FeedbackOnly, 1)] {
+        let mut a = axis();
+        a.limits.envelope_policy = policy;
+        if let Some(e) = &mut a.envelope {
+            e.policy = policy;
+        }
+        let want = [
+            &[1][..],
+            &f32_bytes(0.5),
+            &f32_bytes(119.5),
+            &f32_bytes(f32::MAX),
+            &[byte],
+            &on_target,
+        ]
+        .concat();
+        let got = postcard::to_allocvec(&a).unwrap();
+        assert!(got.ends_with(&want), "{policy:?}: {got:?}");
+        assert_eq!(postcard::from_bytes::<AxisModel>(&got).unwrap(), a);
+    }
+    assert_eq!(model_set().fingerprint(), 0xdb21_d808);
+}
