@@ -1,6 +1,7 @@
 //! One axis of a stage as the firmware runs it, and every tool that builds, uploads or checks a
 //! set for the firmware: the core's parameter structs of the axis (Bouc-Wen set, output map,
-//! asymmetry, effects, servo), its output window and slew limit, and its first loading from rest.
+//! asymmetry, effects, servo), its output [`Limits`] (window, slew limit, envelope policy), and
+//! its first loading from rest.
 //!
 //! This is the one definition: the firmware's built-in set (`firmware/build.rs` writes
 //! [`AxisParams`] consts), the stage file's firmware view (`piezo_stage::FirmwareSet`), an
@@ -16,8 +17,8 @@
 use crate::effects::{EffectParams, Effects, OperatingRange};
 use crate::{
     Asymmetry, BoucWen, BoucWenParams, Compensator, CompensatorSettings, Envelope, EnvelopeMonitor,
-    EnvelopePolicy, IoChain, OnTarget, ParamError, Servo, ServoParams, StaticMap, StaticModel,
-    STATE_LIMIT,
+    EnvelopePolicy, IoChain, Limits, OnTarget, ParamError, Servo, ServoParams, StaticMap,
+    StaticModel, STATE_LIMIT,
 };
 
 /// One axis: the model, its window and its servo (see the module doc).
@@ -29,24 +30,21 @@ pub struct AxisParams {
     pub static_map: StaticMap,
     /// δ and φ of the asymmetric model (zero: the symmetric model).
     pub asymmetry: Asymmetry,
-    /// Lowest actuator voltage \[V\].
-    pub output_min_v: f32,
-    /// Highest actuator voltage \[V\].
-    pub output_max_v: f32,
-    /// Largest rate of change of the actuator voltage \[V/s\].
-    pub slew_limit_v_per_s: f32,
+    /// The output window, the slew limit and the policy outside the envelope (the stage file's
+    /// `[x.limits]`, [`crate::limits`]).
+    pub limits: Limits,
     /// Secant gain of the first loading over the window \[m/V\]: the gain of the uncompensated
     /// (linear) baseline ([`AxisParams::with_first_loading`]).
     pub linear_gain_m_per_v: f32,
-    /// Output at `output_min_v` at rest \[m\].
+    /// Output at the window's lower end at rest \[m\].
     pub rest_output_m: f32,
     /// The effects around the hysteresis model (creep, even term, mode, delay, drift, coupling);
     /// all zero: none.
     pub effects: EffectParams,
     /// The feedback servo on the sensor (`None`: feed-forward only).
     pub servo: Option<ServoParams>,
-    /// The identified envelope and the policy outside it (`None`: not known, nothing checked;
-    /// [`crate::envelope`]).
+    /// The identified envelope (`None`: not known, nothing checked; [`crate::envelope`]); the
+    /// policy outside it is [`Limits::envelope_policy`].
     pub envelope: Option<Envelope>,
     /// The on-target band: |sensor − reference| ≤ tolerance for N ticks ([`crate::on_target`];
     /// the stage file's `[x.on_target]`, or [`OnTarget::default_for`] the chain).
@@ -60,18 +58,17 @@ impl AxisParams {
     pub fn with_first_loading(mut self, sample_period_s: f32) -> Result<Self, ParamError> {
         let (rest, gain) = self
             .quasi_static_model(sample_period_s)?
-            .first_loading(self.output_min_v, self.output_max_v);
+            .first_loading(self.limits.output_min_v, self.limits.output_max_v);
         self.rest_output_m = rest;
         self.linear_gain_m_per_v = gain;
         Ok(self)
     }
 
-    /// Compensator limits with the loop period `sample_period_s` \[s\].
+    /// The compensator's settings: this axis's limits with the loop period `sample_period_s`
+    /// \[s\].
     pub fn settings(&self, sample_period_s: f32) -> CompensatorSettings {
         CompensatorSettings {
-            output_min_v: self.output_min_v,
-            output_max_v: self.output_max_v,
-            slew_limit_v_per_s: self.slew_limit_v_per_s,
+            limits: self.limits,
             sample_period_s,
         }
     }
@@ -81,8 +78,8 @@ impl AxisParams {
     pub fn quasi_static_model(&self, sample_period_s: f32) -> Result<StaticModel, ParamError> {
         let hysteresis = BoucWen::with_input_range(
             self.bouc_wen,
-            self.output_min_v,
-            self.output_max_v,
+            self.limits.output_min_v,
+            self.limits.output_max_v,
             STATE_LIMIT,
         )?;
         StaticModel::with_asymmetry(hysteresis, self.static_map, self.asymmetry, sample_period_s)
@@ -101,7 +98,7 @@ impl AxisParams {
         OperatingRange::first_loading(
             self.rest_output_m,
             self.linear_gain_m_per_v,
-            (self.output_min_v, self.output_max_v),
+            (self.limits.output_min_v, self.limits.output_max_v),
         )
     }
 
@@ -120,8 +117,9 @@ impl AxisParams {
     }
 
     /// The per-tick check of this axis's identified envelope at the loop period
-    /// `sample_period_s` \[s\] ([`Envelope::monitor`]), if it has one. Refused
-    /// ([`ParamError::NeedsServo`]) when the policy is `feedback-only` and the axis has no servo.
+    /// `sample_period_s` \[s\] ([`Envelope::monitor`]) under the policy of its limits
+    /// ([`Limits::envelope_policy`]), if it has one. Refused ([`ParamError::NeedsServo`]) when
+    /// the policy is `feedback-only` and the axis has no servo.
     pub fn envelope_monitor(
         &self,
         sample_period_s: f32,
@@ -129,12 +127,13 @@ impl AxisParams {
         let Some(envelope) = self.envelope else {
             return Ok(None);
         };
-        if envelope.policy == EnvelopePolicy::FeedbackOnly && self.servo.is_none() {
+        let policy = self.limits.envelope_policy;
+        if policy == EnvelopePolicy::FeedbackOnly && self.servo.is_none() {
             return Err(ParamError::NeedsServo {
                 field: "envelope_policy",
             });
         }
-        envelope.monitor(sample_period_s).map(Some)
+        envelope.monitor(policy, sample_period_s).map(Some)
     }
 
     /// This axis's window and slew limit against the chain `io` at the loop period

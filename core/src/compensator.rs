@@ -60,6 +60,7 @@ use crate::dynamic_model::DynamicModel;
 use crate::error::{finite, positive, ParamError, MIN_SLOPE_RATIO};
 use crate::math::{self, clamp};
 use crate::static_model::{ModelState, StaticMap, StaticModel};
+use crate::Limits;
 
 /// A step that h crosses zero in at the slew limit: direction, limit, q, κ, σ
 /// ([`Compensator::slew_limited_n1`]).
@@ -76,15 +77,12 @@ pub const MIN_WINDOW_TICKS: f32 = 2.0;
 /// shrinks at least by half when it does.
 pub const MIN_LAG_ERROR_FACTOR: f32 = -0.5;
 
-/// Output limits of the compensator.
+/// Output limits of the compensator: an axis's [`Limits`] at a loop period.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct CompensatorSettings {
-    /// Lowest voltage ever commanded \[V\].
-    pub output_min_v: f32,
-    /// Highest voltage ever commanded \[V\].
-    pub output_max_v: f32,
-    /// Largest rate of change of the commanded voltage \[V/s\] (+∞ for none).
-    pub slew_limit_v_per_s: f32,
+    /// The window no command ever leaves and the largest rate of change of the commanded
+    /// voltage (+∞ for none); the compensator ignores the envelope policy.
+    pub limits: Limits,
     /// Loop period \[s\].
     pub sample_period_s: f32,
 }
@@ -95,7 +93,7 @@ impl CompensatorSettings {
     /// (the product taken exactly, in f64), so M < S·T whether T is read as the f32 period or as
     /// 1/rate. +∞ for no slew limit; NaN when the limit or the period is not finite.
     pub fn guard_step_v(&self) -> f32 {
-        let step = f64::from(self.slew_limit_v_per_s) * f64::from(self.sample_period_s);
+        let step = f64::from(self.limits.slew_limit_v_per_s) * f64::from(self.sample_period_s);
         if step.is_infinite() {
             return f32::INFINITY;
         }
@@ -118,7 +116,12 @@ impl CompensatorSettings {
         if !(m.is_finite() && m > 0.0 && t.is_finite() && t > 0.0) {
             return *self;
         }
-        let top = libm::fabsf(self.output_min_v).max(libm::fabsf(self.output_max_v));
+        let Limits {
+            output_min_v: min,
+            output_max_v: max,
+            ..
+        } = self.limits;
+        let top = libm::fabsf(min).max(libm::fabsf(max));
         let spacing = top.next_up() - top;
         let step = round_down_f32(f64::from(m) - f64::from(spacing)).min(m.next_down());
         let mut slew = round_down_f32(f64::from(step) / f64::from(t));
@@ -129,7 +132,10 @@ impl CompensatorSettings {
             slew = slew.next_down();
         }
         Self {
-            slew_limit_v_per_s: slew,
+            limits: Limits {
+                slew_limit_v_per_s: slew,
+                ..self.limits
+            },
             ..*self
         }
     }
@@ -137,15 +143,16 @@ impl CompensatorSettings {
     /// The fastest finite slew limit [`CompensatorSettings::check_slew`] accepts for this window
     /// and period, `(output_max_v − output_min_v) / (MIN_WINDOW_TICKS · T)` \[V/s\].
     pub fn fastest_slew_v_per_s(&self) -> f32 {
-        (self.output_max_v - self.output_min_v) / (MIN_WINDOW_TICKS * self.sample_period_s)
+        (self.limits.output_max_v - self.limits.output_min_v)
+            / (MIN_WINDOW_TICKS * self.sample_period_s)
     }
 
     /// Checks the window (finite, min < max), the period (> 0) and the slew limit: > 0, and
     /// either +∞ (none) or `S·T·MIN_WINDOW_TICKS ≤ output_max_v − output_min_v`. The one rule
     /// [`Compensator::new`] and [`crate::Servo::new`] apply.
     pub fn check_slew(&self) -> Result<(), ParamError> {
-        let min = finite("output_min_v", self.output_min_v)?;
-        let max = finite("output_max_v", self.output_max_v)?;
+        let min = finite("output_min_v", self.limits.output_min_v)?;
+        let max = finite("output_max_v", self.limits.output_max_v)?;
         if max <= min {
             return Err(ParamError::OutOfRange {
                 field: "output_max_v",
@@ -154,7 +161,7 @@ impl CompensatorSettings {
             });
         }
         let period = positive("sample_period_s", self.sample_period_s)?;
-        let slew = self.slew_limit_v_per_s;
+        let slew = self.limits.slew_limit_v_per_s;
         if slew.is_nan() || slew <= 0.0 {
             return Err(ParamError::OutOfRange {
                 field: "slew_limit_v_per_s",
@@ -318,8 +325,8 @@ impl FastPath {
             k2,
             offset_m,
             slew_g,
-            min_v: settings.output_min_v,
-            max_v: settings.output_max_v,
+            min_v: settings.limits.output_min_v,
+            max_v: settings.limits.output_max_v,
             max_step_v,
             a,
             branch,
@@ -464,7 +471,7 @@ impl Compensator {
         settings: CompensatorSettings,
     ) -> Result<Self, ParamError> {
         settings.check_slew()?;
-        let (min, max) = (settings.output_min_v, settings.output_max_v);
+        let (min, max) = (settings.limits.output_min_v, settings.limits.output_max_v);
         let (range_min, range_max) = model.hysteresis().input_range_v();
         if min < range_min {
             return Err(ParamError::OutOfRange {
@@ -480,7 +487,7 @@ impl Compensator {
                 requirement: "inside the model's validated input range",
             });
         }
-        let (period, slew) = (settings.sample_period_s, settings.slew_limit_v_per_s);
+        let (period, slew) = (settings.sample_period_s, settings.limits.slew_limit_v_per_s);
         let (lo, hi) = model.slope_range();
         let monotone = (lo > 0.0 || hi < 0.0)
             && lo.abs().min(hi.abs()) >= MIN_SLOPE_RATIO * lo.abs().max(hi.abs());
@@ -1255,11 +1262,11 @@ impl Compensator {
     }
 
     fn solve(&self, state: &mut CompensatorState, target: f32) -> Command {
-        let CompensatorSettings {
+        let Limits {
             output_min_v: min,
             output_max_v: max,
             ..
-        } = self.settings;
+        } = self.settings.limits;
         let model = &self.model;
         let map = model.map();
         let u0 = if state.model.input_v.is_finite() {
@@ -1348,11 +1355,11 @@ impl Compensator {
         direction: f32,
         limit: f32,
     ) -> (ModelState, f32) {
-        let CompensatorSettings {
+        let Limits {
             output_min_v: min,
             output_max_v: max,
             ..
-        } = self.settings;
+        } = self.settings.limits;
         let model = &self.model;
         let map = model.map();
         let orient = self.slope_sign * direction;
@@ -1706,11 +1713,11 @@ impl Compensator {
             let start = toward(linear, direction, rest_limit);
             self.n1_newton(k2a, kappa_after, error_after, direction, rest_limit, start)?
         };
-        let CompensatorSettings {
+        let Limits {
             output_min_v: min,
             output_max_v: max,
             ..
-        } = self.settings;
+        } = self.settings.limits;
         // At the slew limit the step is the limit itself, as the general solve reports it.
         let du = if rest == rest_limit {
             limit
@@ -1759,8 +1766,8 @@ impl Compensator {
     fn n1_commit(&self, u0: f32, du: f32, h1: f32) -> (ModelState, f32) {
         let u = clamp(
             u0 + du,
-            self.settings.output_min_v,
-            self.settings.output_max_v,
+            self.settings.limits.output_min_v,
+            self.settings.limits.output_max_v,
         );
         (
             ModelState {
@@ -1823,9 +1830,7 @@ mod tests {
     /// The stage's window, 0–120 V at 1e5 V/s, at the sample period `period_s`.
     fn window(period_s: f32) -> CompensatorSettings {
         CompensatorSettings {
-            output_min_v: 0.0,
-            output_max_v: 120.0,
-            slew_limit_v_per_s: 1e5,
+            limits: Limits::new(0.0, 120.0, 1e5),
             sample_period_s: period_s,
         }
     }
@@ -2041,7 +2046,7 @@ mod tests {
             settings,
         )
         .unwrap();
-        let max_step = settings.slew_limit_v_per_s * settings.sample_period_s;
+        let max_step = settings.limits.slew_limit_v_per_s * settings.sample_period_s;
         let mut seed = 7u32;
         let mut rand = || {
             seed = seed.wrapping_mul(1664525).wrapping_add(1013904223);
@@ -2607,7 +2612,7 @@ mod tests {
             };
             let u = compensator.compensate(&mut state, y_d).voltage_v;
             assert!(u.is_finite() && (0.0..=120.0).contains(&u), "k = {k}: {u}");
-            assert!((u - last).abs() <= settings.slew_limit_v_per_s * period * 1.000_001);
+            assert!((u - last).abs() <= settings.limits.slew_limit_v_per_s * period * 1.000_001);
             assert!(state.model.hysteresis.h.is_finite());
             last = u;
         }
@@ -2676,7 +2681,7 @@ mod tests {
         };
         let settings = window(1.0 / rate_hz).inside_guard();
         let compensator = Compensator::new(StaticModel::new(bw, map).unwrap(), settings).unwrap();
-        let max_step = settings.slew_limit_v_per_s * settings.sample_period_s;
+        let max_step = settings.limits.slew_limit_v_per_s * settings.sample_period_s;
         let mut seed = 2024u32;
         let mut rand = || {
             seed = seed.wrapping_mul(1664525).wrapping_add(1013904223);

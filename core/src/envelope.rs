@@ -15,7 +15,9 @@
 //! positive and keeps the largest of each; [`EnvelopeMonitor::observe`] is the per-tick step (two
 //! compares and two maxima: no division, no panic).
 //!
-//! What the loop does outside is the axis's [`EnvelopePolicy`]: `warn` counts and flags only;
+//! What the loop does outside is the axis's [`EnvelopePolicy`], held by its limits
+//! ([`crate::Limits::envelope_policy`], the stage file's `[x.limits] envelope_policy`) and given
+//! to the monitor when it is built ([`Envelope::monitor`]): `warn` counts and flags only;
 //! `feedback-only` hands the axis to its servo alone while outside (the feed-forward removed,
 //! bumplessly) and back to the compensator inside, which needs a servo on the axis
 //! ([`crate::AxisParams::envelope_monitor`] refuses it without one).
@@ -46,17 +48,15 @@ impl EnvelopePolicy {
     }
 }
 
-/// The identified envelope of one axis and what to do outside it (see the module doc).
+/// The identified envelope of one axis: what the identification record covered (see the module
+/// doc).
 #[derive(Debug, Clone, Copy, PartialEq)]
-#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct Envelope {
     /// Smallest and largest input of the identification record \[V\].
     pub input_range_v: [f32; 2],
     /// Largest |du/dt| of the identification record \[V/s\] (`f32::MAX`: not known, no rate
     /// check).
     pub input_rate_max_v_per_s: f32,
-    /// What the loop does outside.
-    pub policy: EnvelopePolicy,
 }
 
 /// Per-axis excursion counts (saturating), since the loop started or the monitor was reset.
@@ -71,10 +71,12 @@ pub struct EnvelopeCounts {
     pub max_rate_excursion_v_per_s: f32,
 }
 
-/// An [`Envelope`] checked and set up for one loop period: the per-tick step.
+/// An [`Envelope`] checked and set up for one loop period, with the axis's policy outside it:
+/// the per-tick step.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct EnvelopeMonitor {
     envelope: Envelope,
+    policy: EnvelopePolicy,
     /// r_max·T: the largest step per tick inside \[V\].
     max_step_v: f32,
     /// 1/T \[1/s\].
@@ -82,9 +84,14 @@ pub struct EnvelopeMonitor {
 }
 
 impl Envelope {
-    /// The envelope checked for the loop period `sample_period_s` T: a finite range with
-    /// `u_min ≤ u_max` and a positive rate bound (`f32::MAX` allowed: no rate check).
-    pub fn monitor(&self, sample_period_s: f32) -> Result<EnvelopeMonitor, ParamError> {
+    /// The envelope checked for the loop period `sample_period_s` T, run under `policy` (the
+    /// axis's [`crate::Limits::envelope_policy`]): a finite range with `u_min ≤ u_max` and a
+    /// positive rate bound (`f32::MAX` allowed: no rate check).
+    pub fn monitor(
+        &self,
+        policy: EnvelopePolicy,
+        sample_period_s: f32,
+    ) -> Result<EnvelopeMonitor, ParamError> {
         let [lo, hi] = self.input_range_v;
         finite("input_range_v", lo)?;
         finite("input_range_v", hi)?;
@@ -113,6 +120,7 @@ impl Envelope {
         }
         Ok(EnvelopeMonitor {
             envelope: *self,
+            policy,
             max_step_v: rate * period,
             rate_per_step: 1.0 / period,
         })
@@ -125,9 +133,9 @@ impl EnvelopeMonitor {
         &self.envelope
     }
 
-    /// The policy outside.
+    /// The policy outside (the axis's limits').
     pub fn policy(&self) -> EnvelopePolicy {
-        self.envelope.policy
+        self.policy
     }
 
     /// One tick: the command `u_v` after the command `previous_v` of the tick before \[V\].
@@ -175,9 +183,8 @@ mod tests {
         Envelope {
             input_range_v: [10.0, 50.0],
             input_rate_max_v_per_s: 1000.0,
-            policy: EnvelopePolicy::Warn,
         }
-        .monitor(1e-3)
+        .monitor(EnvelopePolicy::Warn, 1e-3)
         .unwrap()
     }
 
@@ -215,12 +222,21 @@ mod tests {
         let bad = |range: [f32; 2], rate: f32| Envelope {
             input_range_v: range,
             input_rate_max_v_per_s: rate,
-            policy: EnvelopePolicy::Warn,
         };
-        assert!(bad([5.0, 1.0], 1.0).monitor(1e-4).is_err());
-        assert!(bad([0.0, f32::NAN], 1.0).monitor(1e-4).is_err());
-        assert!(bad([0.0, 1.0], 0.0).monitor(1e-4).is_err());
-        assert!(bad([0.0, 1.0], f32::INFINITY).monitor(1e-4).is_err());
-        assert!(bad([0.0, 1.0], f32::MAX).monitor(1e-4).is_ok());
+        assert!(bad([5.0, 1.0], 1.0)
+            .monitor(EnvelopePolicy::Warn, 1e-4)
+            .is_err());
+        assert!(bad([0.0, f32::NAN], 1.0)
+            .monitor(EnvelopePolicy::Warn, 1e-4)
+            .is_err());
+        assert!(bad([0.0, 1.0], 0.0)
+            .monitor(EnvelopePolicy::Warn, 1e-4)
+            .is_err());
+        assert!(bad([0.0, 1.0], f32::INFINITY)
+            .monitor(EnvelopePolicy::Warn, 1e-4)
+            .is_err());
+        assert!(bad([0.0, 1.0], f32::MAX)
+            .monitor(EnvelopePolicy::Warn, 1e-4)
+            .is_ok());
     }
 }

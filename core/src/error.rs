@@ -72,17 +72,13 @@ pub enum ParamError {
         /// Its largest accepted value.
         limit: f32,
     },
-    /// The output window `[output_min_v, output_max_v]` reaches outside the stack voltages the
-    /// DAC and the amplifier can produce, `dac_range_v × amplifier_gain_v_per_v`.
+    /// The output window ([`crate::Limits`]) reaches outside the stack voltages the DAC and the
+    /// amplifier can produce, `dac_range_v × amplifier_gain_v_per_v`.
     WindowOutsideDrive {
-        /// Lowest voltage of the window \[V\].
-        output_min_v: f32,
-        /// Highest voltage of the window \[V\].
-        output_max_v: f32,
-        /// Lowest stack voltage the chain drives \[V\].
-        drive_min_v: f32,
-        /// Highest stack voltage the chain drives \[V\].
-        drive_max_v: f32,
+        /// The window, lowest and highest voltage \[V\].
+        window_v: [f32; 2],
+        /// The lowest and highest stack voltage the chain drives \[V\].
+        drive_v: [f32; 2],
     },
     /// The sensor's output span reaches outside the ADC's input span.
     SensorOutsideAdc {
@@ -160,15 +156,12 @@ impl fmt::Display for ParamError {
                  is accepted"
             ),
             ParamError::WindowOutsideDrive {
-                output_min_v,
-                output_max_v,
-                drive_min_v,
-                drive_max_v,
+                window_v: [u0, u1],
+                drive_v: [d0, d1],
             } => write!(
                 f,
-                "the output window [{output_min_v}, {output_max_v}] V exceeds what the DAC and \
-                 amplifier drive: io.dac_range_v × io.amplifier_gain_v_per_v = [{drive_min_v}, \
-                 {drive_max_v}] V"
+                "the output window [{u0}, {u1}] V exceeds what the DAC and amplifier drive: \
+                 io.dac_range_v × io.amplifier_gain_v_per_v = [{d0}, {d1}] V"
             ),
             ParamError::SensorOutsideAdc {
                 sensor_range_v: [s0, s1],

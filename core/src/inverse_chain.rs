@@ -679,9 +679,7 @@ mod tests {
             offset_m: 0.0,
         };
         let settings = CompensatorSettings {
-            output_min_v: 0.0,
-            output_max_v: 120.0,
-            slew_limit_v_per_s: 1e5,
+            limits: crate::Limits::new(0.0, 120.0, 1e5),
             sample_period_s: T,
         };
         Compensator::new(StaticModel::new(bw, map).unwrap(), settings).unwrap()

@@ -90,32 +90,31 @@ impl IoChain {
     pub fn check_limits(&self, settings: &CompensatorSettings) -> Result<(), ParamError> {
         self.check()?;
         settings.check_slew()?;
-        if !settings.slew_limit_v_per_s.is_finite() {
+        let slew = settings.limits.slew_limit_v_per_s;
+        if !slew.is_finite() {
             return Err(ParamError::OutOfRange {
                 field: "slew_limit_v_per_s",
-                value: settings.slew_limit_v_per_s,
+                value: slew,
                 requirement: "finite: the drive needs a slew limit",
             });
         }
         let (d0, d1) = self.drive_range_v();
-        let swing_ticks = (d1 - d0) / (settings.slew_limit_v_per_s * settings.sample_period_s);
+        let swing_ticks = (d1 - d0) / (slew * settings.sample_period_s);
         if swing_ticks.is_nan() || swing_ticks < MIN_DRIVE_TICKS {
             return Err(ParamError::Implausible {
                 field: "slew_limit_v_per_s",
-                value: settings.slew_limit_v_per_s,
+                value: slew,
                 measure: "the share of the drive span one tick may swing, slew_limit_v_per_s · \
                           sample_period_s / (drive_max − drive_min),",
                 ratio: 1.0 / swing_ticks,
                 limit: 1.0 / MIN_DRIVE_TICKS,
             });
         }
-        let (u0, u1) = (settings.output_min_v, settings.output_max_v);
+        let (u0, u1) = (settings.limits.output_min_v, settings.limits.output_max_v);
         if u0 < d0 - 1e-3 || u1 > d1 + 1e-3 {
             return Err(ParamError::WindowOutsideDrive {
-                output_min_v: u0,
-                output_max_v: u1,
-                drive_min_v: d0,
-                drive_max_v: d1,
+                window_v: [u0, u1],
+                drive_v: [d0, d1],
             });
         }
         Ok(())
@@ -136,9 +135,7 @@ mod tests {
 
     fn window(min: f32, max: f32, slew: f32) -> CompensatorSettings {
         CompensatorSettings {
-            output_min_v: min,
-            output_max_v: max,
-            slew_limit_v_per_s: slew,
+            limits: crate::Limits::new(min, max, slew),
             sample_period_s: 1e-4,
         }
     }
@@ -151,7 +148,7 @@ mod tests {
                 matches!(
                     CHAIN.check_limits(&window(lo, hi, 1e5)),
                     Err(ParamError::WindowOutsideDrive {
-                        drive_max_v: 120.0,
+                        drive_v: [_, 120.0],
                         ..
                     })
                 ),

@@ -123,6 +123,7 @@ use crate::effects::{Effects, MAX_RELAXATION_ELEMENTS};
 use crate::error::{finite, ParamError};
 use crate::math::clamp;
 use crate::static_model::{ModelState, StaticModel};
+use crate::Limits;
 use core::f64::consts::PI;
 
 /// A base held at a window bound over at least this share of the trial is filtered by Q with the
@@ -308,7 +309,7 @@ impl C {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Learning {
     model: StaticModel,
-    limits: CompensatorSettings,
+    settings: CompensatorSettings,
     /// ⌊D⌋ and D − ⌊D⌋.
     delay_whole: usize,
     delay_fraction: f64,
@@ -473,12 +474,12 @@ impl Learning {
                 requirement: "in [0, 1]",
             });
         }
-        let limits = compensator.settings();
+        let settings = compensator.settings();
         let d = f64::from(effects.delay_samples());
         let p = effects.params();
         let mut learning = Self {
             model: *compensator.model(),
-            limits,
+            settings,
             delay_whole: effects.reference_index_offset(),
             delay_fraction: d - libm::floor(d),
             mode: effects.has_mode().then(|| {
@@ -501,7 +502,7 @@ impl Learning {
             noise_band_share: 1.0,
             sections: [Biquad::lowpass(0.1, 1.0); 2],
         };
-        let t = f64::from(limits.sample_period_s);
+        let t = f64::from(settings.sample_period_s);
         let mut cutoff = MAX_CUTOFF_FRACTION / t;
         let bound = 1.0 - f64::from(margin);
         for i in 0..RULE_FREQUENCIES {
@@ -543,14 +544,14 @@ impl Learning {
 
     /// |Q(f)| = 1/(1 + (tan(πfT)/tan(πf_cT))⁸) (zero phase).
     pub fn filter_gain(&self, f_hz: f64) -> f64 {
-        let t = f64::from(self.limits.sample_period_s);
+        let t = f64::from(self.settings.sample_period_s);
         let x = libm::tan(PI * f_hz * t) / libm::tan(PI * self.cutoff_hz * t);
         1.0 / (1.0 + libm::pow(x * x, 4.0))
     }
 
     /// W(f): the largest |1 − L·G| over the gain and mode sets at `f_hz` (module doc).
     pub fn worst_factor(&self, f_hz: f64) -> f64 {
-        let t = f64::from(self.limits.sample_period_s);
+        let t = f64::from(self.settings.sample_period_s);
         let w = 2.0 * PI * f_hz;
         let d = self.delay_whole as f64 + self.delay_fraction;
         // L's shift: e^(jω⌊D⌋T)·((1 − φ) + φ·e^(jωT)); the delay of G: e^(−jωDT).
@@ -654,7 +655,7 @@ impl Learning {
         let mut state = ModelState::at_rest(if trial.periodic {
             trial.command_v[0]
         } else {
-            self.limits.output_min_v
+            self.settings.limits.output_min_v
         });
         if trial.periodic {
             for &u in trial.command_v {
@@ -740,7 +741,7 @@ impl Learning {
             if b.is_finite() {
                 b
             } else {
-                self.limits.output_min_v
+                self.settings.limits.output_min_v
             }
         };
         let command = |j: usize| {
@@ -754,7 +755,7 @@ impl Learning {
         let held = (0..n)
             .filter(|&j| {
                 let b = base(j);
-                b <= self.limits.output_min_v || b >= self.limits.output_max_v
+                b <= self.settings.limits.output_min_v || b >= self.settings.limits.output_max_v
             })
             .count();
         let filter_base = held as f64 >= LIMITED_BASE_SHARE * n as f64;
@@ -839,7 +840,8 @@ impl Learning {
         let n = next_v.len();
         let slope = self.mean_slope(command, n);
         let model = |f: f64, i: usize| self.model_response(f, slope, i);
-        let window = f64::from(self.limits.output_max_v - self.limits.output_min_v);
+        let window =
+            f64::from(self.settings.limits.output_max_v - self.settings.limits.output_min_v);
         // The model's own output along u_k, from its periodic state.
         let mut start = ModelState::at_rest(command(0));
         for j in 0..n {
@@ -859,7 +861,7 @@ impl Learning {
                 reference: &reference,
                 measured: &measured,
                 command: &|j| f64::from(command(j)),
-                sample_period_s: f64::from(self.limits.sample_period_s),
+                sample_period_s: f64::from(self.settings.sample_period_s),
                 cutoff_hz: self.cutoff_hz,
                 noise_measured_m,
                 noise_command_v,
@@ -904,7 +906,7 @@ impl Learning {
     /// the stage file's own mode (or none), 1 ..= [`RULE_MODE_SAMPLES`] the mode at μ across
     /// (1 ± t) (without a mode in the file: at the rule's frequencies from f_u up).
     fn model_response(&self, f_hz: f64, slope: f64, i: usize) -> C {
-        let t = f64::from(self.limits.sample_period_s);
+        let t = f64::from(self.settings.sample_period_s);
         let w = 2.0 * PI * f_hz;
         let d = self.delay_whole as f64 + self.delay_fraction;
         let delay = C::expj(-w * d * t);
@@ -997,7 +999,7 @@ impl Learning {
         learned: &mut [f32],
     ) {
         let n = learned.len();
-        let t = f64::from(self.limits.sample_period_s);
+        let t = f64::from(self.settings.sample_period_s);
         // Where Q passes more than 1/257 of the error: up to twice the cut-off.
         let band = libm::floor(2.0 * self.cutoff_hz * n as f64 * t) as usize;
         let last = band.min((n - 1) / 2).min(SHARED_HARMONICS - 1);
@@ -1059,7 +1061,7 @@ impl Learning {
             let (a, b) = (error(index(k)), error(index(k + 1)));
             a + self.delay_fraction * (b - a)
         };
-        let t = f64::from(self.limits.sample_period_s);
+        let t = f64::from(self.settings.sample_period_s);
         let (velocity, curvature) = self.mode.map_or((0.0, 0.0), |(f, zeta, rho)| {
             let wt = 2.0 * PI * f * t;
             ((1.0 - rho) * zeta / wt, 1.0 / (wt * wt))
@@ -1068,7 +1070,7 @@ impl Learning {
         let mut start = ModelState::at_rest(if periodic {
             command(0)
         } else {
-            self.limits.output_min_v
+            self.settings.limits.output_min_v
         });
         if periodic {
             for j in 0..n {
@@ -1157,11 +1159,15 @@ impl Learning {
     /// Clamps `u` to the window and the slew limit (module doc); returns the samples moved.
     fn limit(&self, u: &mut [f32], periodic: bool) -> usize {
         let CompensatorSettings {
-            output_min_v: lo,
-            output_max_v: hi,
-            slew_limit_v_per_s,
+            limits:
+                Limits {
+                    output_min_v: lo,
+                    output_max_v: hi,
+                    slew_limit_v_per_s,
+                    ..
+                },
             sample_period_s,
-        } = self.limits;
+        } = self.settings;
         let step = slew_limit_v_per_s * sample_period_s;
         let mut moved = 0;
         let mut set = |v: &mut f32, x: f32| {
@@ -1224,9 +1230,7 @@ mod tests {
             .with_input_lag(lag_s, 1e-4)
             .unwrap();
         let settings = CompensatorSettings {
-            output_min_v: 0.0,
-            output_max_v: 120.0,
-            slew_limit_v_per_s,
+            limits: crate::Limits::new(0.0, 120.0, slew_limit_v_per_s),
             sample_period_s: 1e-4,
         };
         let range = crate::effects::OperatingRange {

@@ -3,17 +3,36 @@
 //! (`S_r` = [`Limits::slew_limit_v_per_s`]), and what the loop does while a command leaves the
 //! axis's identified envelope ([`EnvelopePolicy`]).
 //!
-//! The one definition: the stage file's `[x.limits]` (piezo-stage reads and writes this type),
-//! an upload on the command link (`piezo_link::AxisModel`) and [`AxisParams`] (its flat window
-//! fields and its envelope's policy, [`AxisParams::limits`]) hold it; the compensator, the servo
-//! and the firmware's output guard enforce it. Validated where an axis is built
-//! ([`crate::Compensator::new`], [`crate::IoChain::check_limits`]).
+//! [`Limits`] is the one type that carries these values, from the stage file to the output guard;
+//! a slew limit written in the stage file reaches the guard through it unchanged:
+//!
+//! 1. **Stage file**: `[x.limits]` is this type (piezo-stage's `Axis::limits` reads and writes
+//!    it, serde below).
+//! 2. **Validate**: piezo-stage's `StageFile::validate` checks it with the core's rule
+//!    ([`CompensatorSettings::check_slew`], by building the compensator) and against the drive
+//!    ([`crate::IoChain::check_limits`]), and refuses `feedback-only` without an envelope or a
+//!    servo.
+//! 3. **Firmware set / upload**: the firmware's built-in set (`firmware/build.rs` writes it into
+//!    the [`AxisParams`] consts) and an upload on the command link (`piezo_link::AxisModel`'s
+//!    `limits`, validated again by the firmware) carry it as it is.
+//! 4. **[`AxisParams::limits`]**: the axis holds it; [`AxisParams::settings`] pairs it with the
+//!    loop period into [`CompensatorSettings`], and [`AxisParams::envelope_monitor`] gives its
+//!    policy to the envelope's check ([`crate::Envelope::monitor`]).
+//! 5. **Compensator and servo**: [`crate::Compensator::new`] and [`crate::Servo::new`] apply the
+//!    one rule [`CompensatorSettings::check_slew`] and limit their outputs to the window and
+//!    the slew limit (the firmware runs them a hair inside the guard,
+//!    [`CompensatorSettings::inside_guard`]).
+//! 6. **Output guard**: the firmware's `safety::SafetyLimits::from_limits` turns the window and
+//!    `S_r · T` into the exact per-tick bound ([`CompensatorSettings::guard_step_v`]) that every
+//!    written voltage passes.
 //!
 //! With the `serde` feature: `deny_unknown_fields`, `envelope_policy` optional when read (`warn`);
 //! a self-describing format (TOML, JSON) leaves it out when it is `warn`, a positional one
 //! (postcard, the link) always carries it.
 
-use crate::{AxisParams, EnvelopePolicy};
+use crate::EnvelopePolicy;
+#[cfg(doc)]
+use crate::{AxisParams, CompensatorSettings};
 
 /// One axis's output limits (module doc).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -50,28 +69,15 @@ impl serde::Serialize for Limits {
     }
 }
 
-impl AxisParams {
-    /// The axis's output limits: its window, its slew limit and its envelope's policy (`warn`
-    /// without an envelope).
-    pub fn limits(&self) -> Limits {
-        Limits {
-            output_min_v: self.output_min_v,
-            output_max_v: self.output_max_v,
-            slew_limit_v_per_s: self.slew_limit_v_per_s,
-            envelope_policy: self.envelope.map_or(EnvelopePolicy::Warn, |e| e.policy),
+impl Limits {
+    /// The window `[output_min_v, output_max_v]` and the slew limit `slew_limit_v_per_s`, with
+    /// the envelope policy `warn` (not checked here: where the axis is built, module doc).
+    pub const fn new(output_min_v: f32, output_max_v: f32, slew_limit_v_per_s: f32) -> Self {
+        Self {
+            output_min_v,
+            output_max_v,
+            slew_limit_v_per_s,
+            envelope_policy: EnvelopePolicy::Warn,
         }
-    }
-
-    /// This axis with the output limits `limits`: its window and slew limit, and its envelope's
-    /// policy if it has an envelope (nothing else changed; its rest output and baseline gain are
-    /// those of the old window until [`AxisParams::with_first_loading`]).
-    pub fn with_limits(mut self, limits: Limits) -> Self {
-        self.output_min_v = limits.output_min_v;
-        self.output_max_v = limits.output_max_v;
-        self.slew_limit_v_per_s = limits.slew_limit_v_per_s;
-        if let Some(envelope) = &mut self.envelope {
-            envelope.policy = limits.envelope_policy;
-        }
-        self
     }
 }

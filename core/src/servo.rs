@@ -12,14 +12,14 @@
 //! u[k]   = sat_k(u_ff[k] + c*[k])                        the sum, limited
 //! c[k]   = u[k] − u_ff[k]                                stored: anti-windup
 //! ```
-//! `sat_k` limits to the output window `[output_min_v, output_max_v]` and to the slew limit,
-//! `|u[k] − u[k−1]| ≤ S·T` (the window wins when the last output lies outside it). Storing the
-//! *limited* correction as the PI's last output is the anti-windup: at a limit the integrator
-//! holds what was actually applied instead of winding up, so it leaves the limit as soon as the
-//! error changes sign, and a feedforward near the window's edge leaves the servo only the room
-//! that is left. Sign convention: the correction is in volts and is *added* to the feedforward
-//! voltage; for a stage whose displacement rises with voltage (dy/du > 0) the gains are positive,
-//! for dy/du < 0 both are negative.
+//! `sat_k` limits to the axis's output window `[u_min, u_max]` ([`crate::Limits`]) and to the
+//! slew limit, `|u[k] − u[k−1]| ≤ S·T` (the window wins when the last output lies outside it).
+//! Storing the *limited* correction as the PI's last output is the anti-windup: at a limit the
+//! integrator holds what was actually applied instead of winding up, so it leaves the limit as
+//! soon as the error changes sign, and a feedforward near the window's edge leaves the servo only
+//! the room that is left. Sign convention: the correction is in volts and is *added* to the
+//! feedforward voltage; for a stage whose displacement rises with voltage (dy/du > 0) the gains
+//! are positive, for dy/du < 0 both are negative.
 //!
 //! # Filters (idsp biquads, direct form I, coefficients computed once in f64)
 //! Biquads `y0 = b0·x0 + b1·x1 + b2·x2 + a1·y1 + a2·y2` (idsp's sign of a1, a2), from the RBJ
@@ -58,6 +58,7 @@ use crate::compensator::CompensatorSettings;
 use crate::error::{finite, positive, ParamError};
 use crate::math::{clamp, max, min};
 use crate::static_model::StaticModel;
+use crate::Limits;
 use dsp_process::SplitProcess;
 use idsp::iir::{coefficients::Filter, pid, Biquad, DirectForm1};
 use idsp::Build;
@@ -152,8 +153,8 @@ pub struct Servo {
     lowpass: [f32; 5],
     notch: [f32; 5],
     pi: [f32; 5],
-    output_min_v: f32,
-    output_max_v: f32,
+    /// The axis's output window and slew limit (the compensator's, [`CompensatorSettings`]).
+    limits: Limits,
     /// S·T \[V\] (+∞: no slew limit).
     slew_step_v: f32,
     /// exp(−T/τ_transfer).
@@ -306,23 +307,21 @@ fn rbj(hz: f32, q: f32, sample_period_s: f32, notch: bool) -> [f32; 5] {
 
 impl Servo {
     /// Validates `params` for a loop with the output window, slew limit and sample period of
-    /// `limits` (the compensator's settings of the same axis, [`CompensatorSettings::check_slew`])
+    /// `settings` (the compensator's of the same axis, [`CompensatorSettings::check_slew`])
     /// around a stage of gain `gain_m_per_v` = g = dy/du \[m/V\] (its sign is the stage's; the
     /// firmware passes the first-loading secant gain over the window). The gains are checked as
     /// loop gains: ki·g > 0 (negative feedback), |kp·g| ≤ [`MAX_PROPORTIONAL_LOOP_GAIN`] and
     /// |ki·g|·T ≤ [`MAX_INTEGRAL_GAIN_PER_TICK`].
     pub fn new(
         params: ServoParams,
-        limits: CompensatorSettings,
+        settings: CompensatorSettings,
         gain_m_per_v: f32,
     ) -> Result<Self, ParamError> {
-        limits.check_slew()?;
-        let (t, lo, hi) = (
-            limits.sample_period_s,
-            limits.output_min_v,
-            limits.output_max_v,
-        );
-        let slew = limits.slew_limit_v_per_s;
+        settings.check_slew()?;
+        let CompensatorSettings {
+            limits,
+            sample_period_s: t,
+        } = settings;
         let g = finite("gain_m_per_v", gain_m_per_v)?;
         if g == 0.0 {
             return Err(ParamError::OutOfRange {
@@ -381,9 +380,8 @@ impl Servo {
             lowpass: rbj(lp, lp_q, t, false),
             notch: rbj(notch, notch_q, t, true),
             pi,
-            output_min_v: lo,
-            output_max_v: hi,
-            slew_step_v: slew * t,
+            limits,
+            slew_step_v: limits.slew_limit_v_per_s * t,
             transfer_decay: libm::exp(-f64::from(t) / f64::from(tau)) as f32,
             sample_period_s: t,
         };
@@ -424,7 +422,7 @@ impl Servo {
     /// `last_v` (the window wins when `last_v` lies outside it).
     #[inline(always)]
     fn bounds(&self, last_v: f32) -> (f32, f32) {
-        let (lo, hi) = (self.output_min_v, self.output_max_v);
+        let (lo, hi) = (self.limits.output_min_v, self.limits.output_max_v);
         if !last_v.is_finite() {
             return (lo, hi);
         }
@@ -975,9 +973,7 @@ mod tests {
 
     fn limits() -> CompensatorSettings {
         CompensatorSettings {
-            output_min_v: 0.0,
-            output_max_v: 120.0,
-            slew_limit_v_per_s: 1e5,
+            limits: Limits::new(0.0, 120.0, 1e5),
             sample_period_s: T,
         }
     }
@@ -1023,7 +1019,7 @@ mod tests {
         p.transfer_time_constant_s = f32::NAN;
         assert_eq!(refused(p), "transfer_time_constant_s");
         let mut l = limits();
-        l.output_max_v = -1.0;
+        l.limits.output_max_v = -1.0;
         assert!(Servo::new(params(), l, G).is_err());
         // Negative gains for a stage with dy/du < 0.
         let mut p = params();
@@ -1063,7 +1059,7 @@ mod tests {
         assert!(Servo::new(p, limits(), G).is_ok());
         // The slew rule is the compensator's.
         let mut l = limits();
-        l.slew_limit_v_per_s = 1e38;
+        l.limits.slew_limit_v_per_s = 1e38;
         assert!(matches!(
             Servo::new(params(), l, G),
             Err(ParamError::Implausible {

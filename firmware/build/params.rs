@@ -161,9 +161,7 @@ pub fn generate(set: &ParamSet, file: &str) -> String {
              \x20       bouc_wen: {:?},\n\
              \x20       static_map: {:?},\n\
              \x20       asymmetry: {:?},\n\
-             \x20       output_min_v: {:?},\n\
-             \x20       output_max_v: {:?},\n\
-             \x20       slew_limit_v_per_s: {:?},\n\
+             \x20       limits: {:?},\n\
              \x20       linear_gain_m_per_v: {:?},\n\
              \x20       rest_output_m: {:?},\n\
              \x20       effects: {:?},\n\
@@ -174,9 +172,7 @@ pub fn generate(set: &ParamSet, file: &str) -> String {
             a.bouc_wen,
             a.static_map,
             a.asymmetry,
-            a.output_min_v,
-            a.output_max_v,
-            a.slew_limit_v_per_s,
+            a.limits,
             a.linear_gain_m_per_v,
             a.rest_output_m,
             a.effects,

@@ -107,7 +107,10 @@ pub fn run_demo(
     let plant = Cell::new(XyPlant::from_params(SAMPLE_PERIOD_S).ok_or(DemoError::Sensor)?);
     let mut io = plant_io(&plant, scale);
     let reference = ReferenceGenerator::new(program(), SAMPLE_PERIOD_S, [0.0; 2]);
-    let initial = [params::AXES[0].output_min_v, params::AXES[1].output_min_v];
+    let initial = [
+        params::AXES[0].limits.output_min_v,
+        params::AXES[1].limits.output_min_v,
+    ];
     let mut lp = TwoAxisLoop::new(settings, feedforward, reference, initial);
     let mut stats = [TrackingStats::default(); 2];
     let mut previous_reference = [f32::NAN; 2];

@@ -17,9 +17,9 @@
 
 pub use piezo_core::AxisParams;
 // The generated consts below are written with these names (`ServoParams` only for a file with
-// a servo, the envelope's only for one with `[x.identified]`).
+// a servo, `Envelope` only for one with `[x.identified]`, one of the policies per axis).
 use piezo_core::effects::EffectParams;
-use piezo_core::{Asymmetry, BoucWenParams, IoChain, OnTarget, StaticMap};
+use piezo_core::{Asymmetry, BoucWenParams, IoChain, Limits, OnTarget, StaticMap};
 #[allow(unused_imports)]
 use piezo_core::{
     Envelope,

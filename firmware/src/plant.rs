@@ -183,7 +183,7 @@ impl XyPlant {
         let alpha = 1.0 - libm::expf(-sample_period_s / LAG_TIME_CONSTANT_S);
         let axis = |i: usize| {
             let p = AXES[i];
-            StackPlant::new(p.bouc_wen, p.static_map, alpha, p.output_min_v)
+            StackPlant::new(p.bouc_wen, p.static_map, alpha, p.limits.output_min_v)
         };
         Some(Self::new(
             [axis(0), axis(1)],

@@ -3,7 +3,7 @@
 //!
 //! Per tick, with `u` the requested actuator voltage, `y₋` the last applied one, the window
 //! `[V_min, V_max]` and the step bound `M` (volts per tick; from a stage file `M ≤ S·T`, see
-//! [`SafetyLimits::from_slew`]):
+//! [`SafetyLimits::from_limits`]):
 //!
 //! ```text
 //! y₋ outside the window (a new window was swapped in)            (counted: window_entry)
@@ -59,6 +59,7 @@ pub struct SafetyLimits {
     fast_step_volts: f32,
 }
 
+use piezo_core::Limits;
 /// The guard's interventions per cause: the link's type, carried as it is.
 pub use piezo_link::GuardCounters;
 
@@ -111,30 +112,26 @@ impl SafetyLimits {
         })
     }
 
-    /// Limits from a stage file's window, slew limit S \[V/s\] and loop period T \[s\]: the step
-    /// bound M is the f32 below the largest f32 ≤ S·T (the product exact in f64). The extra
-    /// f32 makes M ≤ S·T also for T = 1/f_loop exactly, which the f32 period rounds by at most
-    /// 2⁻²⁴ of itself: at 1e5 V/s and 10 kHz, M = 9.999998 V.
-    pub fn from_slew(
-        min_volts: f32,
-        max_volts: f32,
-        slew_limit_v_per_s: f32,
-        sample_period_s: f32,
-    ) -> Result<Self, LimitsError> {
-        if !(slew_limit_v_per_s.is_finite() && sample_period_s.is_finite()) {
+    /// The guard of an axis's [`Limits`] (the stage file's `[x.limits]`: window and slew limit
+    /// S \[V/s\]) at the loop period T \[s\]: the step bound M is the f32 below the largest
+    /// f32 ≤ S·T (the product exact in f64,
+    /// [`piezo_core::CompensatorSettings::guard_step_v`]). The extra f32 makes M ≤ S·T also for
+    /// T = 1/f_loop exactly, which the f32 period rounds by at most 2⁻²⁴ of itself: at 1e5 V/s
+    /// and 10 kHz, M = 9.999998 V.
+    pub fn from_limits(limits: &Limits, sample_period_s: f32) -> Result<Self, LimitsError> {
+        let slew = limits.slew_limit_v_per_s;
+        if !(slew.is_finite() && sample_period_s.is_finite()) {
             return Err(LimitsError::NotFinite);
         }
-        if !(slew_limit_v_per_s > 0.0 && sample_period_s > 0.0) {
+        if !(slew > 0.0 && sample_period_s > 0.0) {
             return Err(LimitsError::NonPositiveSlew);
         }
         let step = piezo_core::CompensatorSettings {
-            output_min_v: min_volts,
-            output_max_v: max_volts,
-            slew_limit_v_per_s,
+            limits: *limits,
             sample_period_s,
         }
         .guard_step_v();
-        Self::new(min_volts, max_volts, step)
+        Self::new(limits.output_min_v, limits.output_max_v, step)
     }
 
     /// Lower end of the output window.
@@ -303,7 +300,8 @@ mod tests {
     const STAGE_PERIOD_S: f32 = 1.0 / 10_000.0;
 
     fn stage() -> SafetyLimits {
-        SafetyLimits::from_slew(0.0, 120.0, STAGE_SLEW_V_PER_S, STAGE_PERIOD_S).unwrap()
+        SafetyLimits::from_limits(&Limits::new(0.0, 120.0, STAGE_SLEW_V_PER_S), STAGE_PERIOD_S)
+            .unwrap()
     }
 
     /// |a − b| in f64, as a checker outside the firmware computes it (exact for two f32 whose
@@ -364,11 +362,11 @@ mod tests {
         );
         assert!(SafetyLimits::new(0.0, 120.0, 3.1e-5).is_ok());
         assert_eq!(
-            SafetyLimits::from_slew(0.0, 120.0, f32::INFINITY, 1e-4),
+            SafetyLimits::from_limits(&Limits::new(0.0, 120.0, f32::INFINITY), 1e-4),
             Err(LimitsError::NotFinite)
         );
         assert_eq!(
-            SafetyLimits::from_slew(0.0, 120.0, 1e5, 0.0),
+            SafetyLimits::from_limits(&Limits::new(0.0, 120.0, 1e5), 0.0),
             Err(LimitsError::NonPositiveSlew)
         );
     }
@@ -386,7 +384,7 @@ mod tests {
         );
         // Rates whose f32 period rounds up: still below 1/f.
         for rate in [3.0f32, 7.0, 12_345.0, 20_000.0, 33_333.0] {
-            let l = SafetyLimits::from_slew(0.0, 120.0, 1e5, 1.0 / rate).unwrap();
+            let l = SafetyLimits::from_limits(&Limits::new(0.0, 120.0, 1e5), 1.0 / rate).unwrap();
             assert!(
                 f64::from(l.max_step_volts()) <= 1e5 / f64::from(rate),
                 "{rate}"
@@ -400,12 +398,11 @@ mod tests {
     fn a_controller_step_with_its_rounding_passes_unchanged() {
         let g = stage();
         let slew = piezo_core::CompensatorSettings {
-            output_min_v: g.min_volts(),
-            output_max_v: g.max_volts(),
-            slew_limit_v_per_s: STAGE_SLEW_V_PER_S,
+            limits: Limits::new(g.min_volts(), g.max_volts(), STAGE_SLEW_V_PER_S),
             sample_period_s: STAGE_PERIOD_S,
         }
         .inside_guard()
+        .limits
         .slew_limit_v_per_s;
         let step = slew * STAGE_PERIOD_S;
         assert!(f64::from(step) < f64::from(g.max_step_volts()));
@@ -508,7 +505,8 @@ mod tests {
     #[test]
     fn a_new_window_is_entered_at_the_slew_limit() {
         let old = stage();
-        let new = SafetyLimits::from_slew(100.0, 120.0, 1e5, STAGE_PERIOD_S).unwrap();
+        let new =
+            SafetyLimits::from_limits(&Limits::new(100.0, 120.0, 1e5), STAGE_PERIOD_S).unwrap();
         let m = f64::from(new.max_step_volts());
         let mut s = old.state(0.0);
         let mut last = 0.0f32;
@@ -529,7 +527,7 @@ mod tests {
         assert_eq!(ticks_outside, 11);
         assert_eq!(s.counters().window_entry, ticks_outside);
         // Down into 0–20 V from 120 V, the same way.
-        let low = SafetyLimits::from_slew(0.0, 20.0, 1e5, STAGE_PERIOD_S).unwrap();
+        let low = SafetyLimits::from_limits(&Limits::new(0.0, 20.0, 1e5), STAGE_PERIOD_S).unwrap();
         let mut s = old.state(120.0);
         let mut last = 120.0f32;
         for _ in 0..12 {

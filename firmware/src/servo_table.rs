@@ -52,7 +52,7 @@ pub const BANDWIDTH_LOW_HZ: f32 = 10.0;
 /// Creep, drift and sensor noise of the table's plant: creep 2 % of the stroke per 120 V with
 /// τ = 0.1 s, drift 0.1 µm/s, 2 nm RMS sensor noise (the ADC adds its 3.1 nm quantisation).
 pub fn table_disturbances() -> Disturbances {
-    let stroke_per_volt = stroke_m(0) / (AXES[0].output_max_v - AXES[0].output_min_v);
+    let stroke_per_volt = stroke_m(0) / (AXES[0].limits.output_max_v - AXES[0].limits.output_min_v);
     Disturbances {
         creep_gain_m_per_v: 0.02 * stroke_per_volt,
         creep_time_constant_s: 0.1,
@@ -111,7 +111,7 @@ pub enum TableError {
 /// An axis's stroke: the first loading over the window \[m\].
 pub fn stroke_m(axis: usize) -> f32 {
     let p = &AXES[axis];
-    (p.linear_gain_m_per_v * (p.output_max_v - p.output_min_v)).abs()
+    (p.linear_gain_m_per_v * (p.limits.output_max_v - p.limits.output_min_v)).abs()
 }
 
 /// Runs `ticks` ticks of `program` in `mode` on the table's plant; `each(k, reference, truth)`
@@ -130,7 +130,10 @@ fn run(
         .with_disturbances(&table_disturbances(), SAMPLE_PERIOD_S);
     let plant = Cell::new(plant);
     let mut io = plant_io(&plant, scale);
-    let initial = [params::AXES[0].output_min_v, params::AXES[1].output_min_v];
+    let initial = [
+        params::AXES[0].limits.output_min_v,
+        params::AXES[1].limits.output_min_v,
+    ];
     let rest = [AXES[0].rest_output_m, AXES[1].rest_output_m];
     let reference = ReferenceGenerator::new(program, SAMPLE_PERIOD_S, rest);
     let mut lp = TwoAxisLoop::new(settings, Feedforward::Compensator, reference, initial);

@@ -74,7 +74,10 @@ pub fn loop_holding(offsets_m: [f32; 2]) -> crate::xy_loop::TwoAxisLoop {
         params::SAMPLE_PERIOD_S,
         [0.0; 2],
     );
-    let initial = [params::AXES[0].output_min_v, params::AXES[1].output_min_v];
+    let initial = [
+        params::AXES[0].limits.output_min_v,
+        params::AXES[1].limits.output_min_v,
+    ];
     TwoAxisLoop::new(
         crate::demo::settings().expect("the built-in stage's settings are valid"),
         Feedforward::Compensator,

@@ -81,8 +81,9 @@
 //! the entry spacing, the wrap); the guard still stands after it.
 //!
 //! # Output guard
-//! [`crate::safety`]: per axis, `|u_k − u_{k−1}| ≤ slew_limit_v_per_s · T` in exact arithmetic
-//! (T the loop period; the bound is the f32 just below, [`SafetyLimits::from_slew`]) and `u_k`
+//! [`crate::safety`]: per axis, `|u_k − u_{k−1}| ≤ S_r · T` in exact arithmetic (S_r the axis's
+//! [`piezo_core::Limits::slew_limit_v_per_s`], T the loop period; the bound is the f32 just
+//! below, [`SafetyLimits::from_limits`]) and `u_k`
 //! inside the window, whatever the request (NaN, ±∞, 10³⁰, any step). The compensator and the
 //! servo run with a slew limit a hair inside ([`piezo_core::CompensatorSettings::inside_guard`]: their
 //! largest step 9.99999 V instead of 10 V at 1e5 V/s and 10 kHz), so that their outputs, f32
@@ -265,7 +266,6 @@ pub struct AxisConfig {
     limits: SafetyLimits,
     linear_gain_m_per_v: f32,
     rest_output_m: f32,
-    min_v: f32,
 }
 
 /// Why an axis could not be configured.
@@ -281,8 +281,8 @@ pub enum ConfigError {
 
 impl AxisConfig {
     /// An axis from the parameter file, at loop period `sample_period_s` T: a guard with the
-    /// file's window whose step never exceeds `slew_limit_v_per_s · T`
-    /// ([`SafetyLimits::from_slew`]); the core's compensator, its effect chain and the servo with
+    /// window of the axis's [`piezo_core::Limits`] whose step never exceeds their slew limit
+    /// times T ([`SafetyLimits::from_limits`]); the core's compensator, its effect chain and the servo with
     /// the same window and a slew limit a hair inside the guard's
     /// ([`piezo_core::CompensatorSettings::inside_guard`]: 10 V per tick become 9.99999 V at 1e5 V/s
     /// and 10 kHz), so that their own steps, f32 rounding included, pass the guard unchanged
@@ -290,12 +290,7 @@ impl AxisConfig {
     /// its reason.
     pub fn from_params(p: &AxisParams, sample_period_s: f32) -> Result<Self, ConfigError> {
         let model = p.model(sample_period_s).map_err(ConfigError::Core)?;
-        let limits = SafetyLimits::from_slew(
-            p.output_min_v,
-            p.output_max_v,
-            p.slew_limit_v_per_s,
-            sample_period_s,
-        );
+        let limits = SafetyLimits::from_limits(&p.limits, sample_period_s);
         let settings = match &limits {
             Ok(_) => p.settings(sample_period_s).inside_guard(),
             Err(_) => p.settings(sample_period_s),
@@ -324,7 +319,6 @@ impl AxisConfig {
             limits,
             linear_gain_m_per_v: p.linear_gain_m_per_v,
             rest_output_m: p.rest_output_m,
-            min_v: p.output_min_v,
         })
     }
 
@@ -1160,7 +1154,8 @@ impl TwoAxisLoop {
                 out.voltage_v
             }
             Feedforward::Linear => {
-                axis.min_v + (reference - axis.rest_output_m) / axis.linear_gain_m_per_v
+                axis.limits.min_volts()
+                    + (reference - axis.rest_output_m) / axis.linear_gain_m_per_v
             }
             // Learned only reaches the learned copy of the body.
             Feedforward::OpenLoop | Feedforward::Learned => reference,

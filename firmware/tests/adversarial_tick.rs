@@ -200,9 +200,7 @@ fn base_axes() -> Vec<AxisParams> {
                 bouc_wen: a.bouc_wen,
                 static_map: a.static_map,
                 asymmetry: a.asymmetry,
-                output_min_v: a.output_min_v,
-                output_max_v: a.output_max_v,
-                slew_limit_v_per_s: a.slew_limit_v_per_s,
+                limits: a.limits,
                 linear_gain_m_per_v: a.linear_gain_m_per_v,
                 rest_output_m: a.rest_output_m,
                 effects: a.effects,
@@ -237,11 +235,11 @@ fn random_axis(rng: &mut Rng, bases: &[AxisParams]) -> Option<(AxisConfig, InFor
     if rng.chance(0.7) {
         let a = rng.uniform(HARDWARE_V.0, HARDWARE_V.1);
         let b = rng.uniform(HARDWARE_V.0, HARDWARE_V.1);
-        p.output_min_v = a.min(b);
-        p.output_max_v = a.max(b).max(p.output_min_v + 0.5).min(HARDWARE_V.1);
+        p.limits.output_min_v = a.min(b);
+        p.limits.output_max_v = a.max(b).max(p.limits.output_min_v + 0.5).min(HARDWARE_V.1);
     }
     if rng.chance(0.7) {
-        p.slew_limit_v_per_s = rng.log_uniform(1.0, 1e6);
+        p.limits.slew_limit_v_per_s = rng.log_uniform(1.0, 1e6);
     }
     if rng.chance(0.3) {
         p.servo = None;
@@ -253,13 +251,13 @@ fn random_axis(rng: &mut Rng, bases: &[AxisParams]) -> Option<(AxisConfig, InFor
     let (rest, gain) = p
         .model(SAMPLE_PERIOD_S)
         .ok()?
-        .first_loading(p.output_min_v, p.output_max_v);
+        .first_loading(p.limits.output_min_v, p.limits.output_max_v);
     p.rest_output_m = rest;
     p.linear_gain_m_per_v = gain;
     let config = AxisConfig::from_params(&p, SAMPLE_PERIOD_S).ok()?;
     let in_force = InForce {
-        window: (p.output_min_v, p.output_max_v),
-        bound_v: step_bound_v(p.slew_limit_v_per_s),
+        window: (p.limits.output_min_v, p.limits.output_max_v),
+        bound_v: step_bound_v(p.limits.slew_limit_v_per_s),
     };
     Some((config, in_force))
 }

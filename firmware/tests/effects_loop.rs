@@ -43,8 +43,8 @@ impl Stage {
             axes[1].model(SAMPLE_PERIOD_S).unwrap(),
         ];
         let model_state = [
-            ModelState::at_rest(axes[0].output_min_v),
-            ModelState::at_rest(axes[1].output_min_v),
+            ModelState::at_rest(axes[0].limits.output_min_v),
+            ModelState::at_rest(axes[1].limits.output_min_v),
         ];
         Self {
             model,
@@ -55,8 +55,8 @@ impl Stage {
             ],
             // At rest at the rest voltage, as the loop assumes (the start rule of every tool).
             state: [
-                EffectsState::at_rest(axes[0].output_min_v),
-                EffectsState::at_rest(axes[1].output_min_v),
+                EffectsState::at_rest(axes[0].limits.output_min_v),
+                EffectsState::at_rest(axes[1].limits.output_min_v),
             ],
         }
     }
@@ -165,7 +165,10 @@ fn run(loop_axes: &[AxisParams; 2], stage_axes: &[AxisParams; 2]) -> Run {
     let settings =
         LoopSettings::from_params(loop_axes, AMPLIFIER_GAIN_V_PER_V, SAMPLE_PERIOD_S).unwrap();
     let mut stage = Stage::new(stage_axes);
-    let initial = [loop_axes[0].output_min_v, loop_axes[1].output_min_v];
+    let initial = [
+        loop_axes[0].limits.output_min_v,
+        loop_axes[1].limits.output_min_v,
+    ];
     let reference = ReferenceGenerator::new(program(), SAMPLE_PERIOD_S, [0.0; 2]);
     let mut lp = TwoAxisLoop::new(settings, Feedforward::Compensator, reference, initial);
     let codes = [Cell::new(DacCode::SAFE), Cell::new(DacCode::SAFE)];

@@ -236,7 +236,7 @@ fn run(feedforward: Feedforward) -> Outcome {
         },
     };
     let reference = ReferenceGenerator::new(demo::program(), SAMPLE_PERIOD_S, [0.0; 2]);
-    let initial = [AXES[0].output_min_v, AXES[1].output_min_v];
+    let initial = [AXES[0].limits.output_min_v, AXES[1].limits.output_min_v];
     let mut lp = TwoAxisLoop::new(demo::settings().unwrap(), feedforward, reference, initial);
     let mut truth = [Stats::default(); 2];
     let mut sensed = [Stats::default(); 2];
@@ -257,7 +257,7 @@ fn run(feedforward: Feedforward) -> Outcome {
         position_m.set(now);
         let report = lp.tick(&mut io, false);
         for i in 0..2 {
-            let (lo, hi) = (AXES[i].output_min_v, AXES[i].output_max_v);
+            let (lo, hi) = (AXES[i].limits.output_min_v, AXES[i].limits.output_max_v);
             assert!(
                 (lo..=hi).contains(&report.applied_v[i]),
                 "tick {k} axis {i}: {} V",

@@ -221,7 +221,7 @@ fn effects_tables_are_parsed_validated_and_emitted() {
         let range = piezo_core::effects::OperatingRange::first_loading(
             a.rest_output_m,
             a.linear_gain_m_per_v,
-            (a.output_min_v, a.output_max_v),
+            (a.limits.output_min_v, a.limits.output_max_v),
         );
         let (w0, w1) = range.output_m;
         assert!(w0 < w1 && w1 > 37e-6, "{range:?}");

@@ -59,7 +59,10 @@ impl Bench {
             params::SAMPLE_PERIOD_S,
             [0.0; 2],
         );
-        let initial = [params::AXES[0].output_min_v, params::AXES[1].output_min_v];
+        let initial = [
+            params::AXES[0].limits.output_min_v,
+            params::AXES[1].limits.output_min_v,
+        ];
         let lp = TwoAxisLoop::new(
             demo::settings().unwrap(),
             Feedforward::Compensator,
@@ -77,8 +80,8 @@ impl Bench {
             sequence: 0,
             decoder: Decoder::new(),
             applied_v: initial,
-            windows: params::AXES.map(|a| (a.output_min_v, a.output_max_v)),
-            slew_v_per_s: params::AXES.map(|a| a.slew_limit_v_per_s),
+            windows: params::AXES.map(|a| (a.limits.output_min_v, a.limits.output_max_v)),
+            slew_v_per_s: params::AXES.map(|a| a.limits.slew_limit_v_per_s),
             largest_step_v: [0.0; 2],
         }
     }
@@ -193,7 +196,7 @@ impl Bench {
 
 /// The built-in set as the link carries it, with other windows.
 fn set_with_windows(windows: [(f32, f32); 2]) -> ModelSet {
-    set_with_limits(windows, params::AXES.map(|a| a.slew_limit_v_per_s))
+    set_with_limits(windows, params::AXES.map(|a| a.limits.slew_limit_v_per_s))
 }
 
 /// The built-in set as the link carries it, with other windows and slew limits.
@@ -203,7 +206,7 @@ fn set_with_limits(windows: [(f32, f32); 2], slew_v_per_s: [f32; 2]) -> ModelSet
             output_min_v: min,
             output_max_v: max,
             slew_limit_v_per_s,
-            ..p.limits()
+            ..p.limits
         },
         ..AxisModel::from_params(p)
     };
@@ -261,7 +264,7 @@ fn a_window_that_excludes_the_held_voltage_is_slewed_into() {
     }
     // 100 V at the guard's step (9.999998 V per tick at 10 kHz: 11 ticks begin outside the
     // window; 4.999999 V at 20 kHz: 21).
-    let outside = (100.0 / bound_v(params::AXES[0].slew_limit_v_per_s)).ceil() as u32;
+    let outside = (100.0 / bound_v(params::AXES[0].limits.slew_limit_v_per_s)).ceil() as u32;
     assert_eq!(ticks_outside, [outside; 2]);
     assert_eq!(b.applied_v, [100.0, 20.0]);
     let counted = b.guard_interventions() - before;

@@ -350,7 +350,7 @@ pub fn periodic_settings(axes: &[FeedforwardAxis], period_s: f64) -> PeriodicSet
         .iter()
         .map(|a| {
             let s = a.compensator.settings();
-            f64::from(s.output_max_v - s.output_min_v)
+            f64::from(s.limits.output_max_v - s.limits.output_min_v)
         })
         .fold(f64::INFINITY, f64::min);
     PeriodicSettings {

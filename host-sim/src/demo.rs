@@ -273,9 +273,7 @@ pub fn axis_compensator(
 
 fn window(loop_rate_hz: f64) -> CompensatorSettings {
     CompensatorSettings {
-        output_min_v: OUTPUT_MIN_V as f32,
-        output_max_v: OUTPUT_MAX_V as f32,
-        slew_limit_v_per_s: f32::INFINITY,
+        limits: piezo_core::Limits::new(OUTPUT_MIN_V as f32, OUTPUT_MAX_V as f32, f32::INFINITY),
         sample_period_s: (1.0 / loop_rate_hz) as f32,
     }
 }

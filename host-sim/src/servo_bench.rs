@@ -46,9 +46,7 @@ use crate::plant::{InputAt, Plant, XyStage};
 use crate::plot::{plot_grid, Chart, Legend, Panel, Role, Series};
 use piezo_core::inverse_chain::InverseChain;
 use piezo_core::servo::{tune, StageDynamics, Tuning, TuningGoal};
-use piezo_core::{
-    Compensator, CompensatorSettings, CompensatorState, Servo, ServoMode, ServoState,
-};
+use piezo_core::{Compensator, CompensatorState, Servo, ServoMode, ServoState};
 use piezo_stage::{StageFile, ValidStage};
 use rand_chacha::ChaCha8Rng;
 use rand_core::{RngCore, SeedableRng};
@@ -630,21 +628,21 @@ pub(crate) fn controllers_with(
     let build = |a: usize| -> Result<AxisController, String> {
         let v = valid.axes.get(a).ok_or("missing axis")?;
         let compensator = v.compensator.ok_or("no compensator")?;
-        let CompensatorSettings { output_min_v, .. } = compensator.settings();
+        let rest_v = compensator.settings().limits.output_min_v;
         let chain = match v.chain {
             piezo_stage::AxisChain::Static { effects, .. } if mode_feedforward => Some(
-                InverseChain::single(effects, output_min_v)
+                InverseChain::single(effects, rest_v)
                     .ok_or("the mode's inverse chain could not be built")?,
             ),
             _ => None,
         };
         Ok(AxisController {
             compensator,
-            compensator_state: CompensatorState::at_rest(output_min_v),
+            compensator_state: CompensatorState::at_rest(rest_v),
             chain,
             servo: v.servo.ok_or("no servo")?,
-            servo_state: ServoState::at_rest(output_min_v, ServoMode::Feedforward),
-            rest_v: output_min_v,
+            servo_state: ServoState::at_rest(rest_v, ServoMode::Feedforward),
+            rest_v,
             rest_output_m: v.rest_output_m,
             linear_gain_m_per_v: v.linear_gain_m_per_v,
         })

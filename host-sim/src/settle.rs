@@ -117,7 +117,7 @@ impl AxisSim {
         let core = |e: piezo_core::ParamError| format!("{name}: {e}");
         let compensator =
             Compensator::new(p.model(sample_period_s).map_err(core)?, settings).map_err(core)?;
-        let u0 = p.output_min_v;
+        let u0 = p.limits.output_min_v;
         let chain = InverseChain::single(p.effect_chain(sample_period_s).map_err(core)?, u0);
         let servo = if feedback {
             let params = p.servo.ok_or_else(|| {
@@ -320,7 +320,7 @@ mod tests {
         let a = &set.axes[0];
         // The voltage the step needs at least (the first loading's secant gain is the largest
         // dy/du of the loading branch's chord), at 5 V per tick.
-        let per_tick = a.slew_limit_v_per_s / set.loop_rate_hz;
+        let per_tick = a.limits.slew_limit_v_per_s / set.loop_rate_hz;
         let span_v = 16e-6 / (a.linear_gain_m_per_v * 2.0);
         assert!(t[0] as f32 >= span_v / per_tick, "{t:?}");
         assert_eq!(p.band[0], a.on_target);

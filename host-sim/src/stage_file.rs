@@ -306,9 +306,7 @@ pub(crate) fn with_feasible_slew(file: &StageFile) -> StageFile {
     let lower = |a: &mut piezo_stage::Axis| {
         let l = &mut a.limits;
         let fastest = piezo_core::CompensatorSettings {
-            output_min_v: l.output_min_v,
-            output_max_v: l.output_max_v,
-            slew_limit_v_per_s: l.slew_limit_v_per_s,
+            limits: *l,
             sample_period_s: period,
         }
         .fastest_slew_v_per_s();

@@ -5,7 +5,7 @@ use integration_tests::fixtures;
 use integration_tests::reference::{self, BoucWen64};
 use piezo_core::{
     BoucWen, BoucWenParams, CommandStatus, Compensator, CompensatorSettings, CompensatorState,
-    DynamicModel, ParamError, StaticMap, StaticModel,
+    DynamicModel, Limits, ParamError, StaticMap, StaticModel,
 };
 use std::f64::consts::PI;
 
@@ -28,9 +28,7 @@ fn stage_params() -> (BoucWenParams, StaticMap) {
 
 fn stage_settings() -> CompensatorSettings {
     CompensatorSettings {
-        output_min_v: 0.0,
-        output_max_v: 100.0,
-        slew_limit_v_per_s: 1e5,
+        limits: Limits::new(0.0, 100.0, 1e5),
         sample_period_s: 1e-4,
     }
 }
@@ -108,9 +106,7 @@ fn seed001_set_is_a_valid_model_but_not_invertible() {
     // ... but its output is not monotone in u right after a reversal: on unloading at the bound,
     // dh/du·k2 = +1.26e-6 m/V outweighs k1 = −0.35e-6 m/V, so y(u) turns back. No inverse exists there.
     let settings = CompensatorSettings {
-        output_min_v: 0.0,
-        output_max_v: 20.0,
-        slew_limit_v_per_s: 1e4,
+        limits: Limits::new(0.0, 20.0, 1e4),
         sample_period_s: 1e-4,
     };
     match Compensator::new(model, settings) {
@@ -163,9 +159,7 @@ fn nac2024_published_set_is_refused_unbounded_and_accepted_range_limited() {
     let model = DynamicModel::new(bw, msd, 1.0 / 2.56e6).unwrap();
     // A window wider than the validated range is refused.
     let wide = CompensatorSettings {
-        output_min_v: -20.0,
-        output_max_v: 20.0,
-        slew_limit_v_per_s: f32::INFINITY,
+        limits: Limits::new(-20.0, 20.0, f32::INFINITY),
         sample_period_s: 1.0 / 2.56e6,
     };
     assert!(matches!(
@@ -184,9 +178,7 @@ fn nac2024_inverse_dynamics_track_a_50_khz_sine_on_the_independent_plant() {
     let bw = BoucWen::with_input_range(params, -10.0, 10.0, 10.0).unwrap();
     let model = DynamicModel::new(bw, msd, period as f32).unwrap();
     let settings = CompensatorSettings {
-        output_min_v: -10.0,
-        output_max_v: 10.0,
-        slew_limit_v_per_s: f32::INFINITY,
+        limits: Limits::new(-10.0, 10.0, f32::INFINITY),
         sample_period_s: period as f32,
     };
     let compensator = Compensator::for_dynamic(&model, settings).unwrap();
@@ -290,7 +282,7 @@ fn swapping_parameters_between_two_samples_keeps_the_voltage_continuous() {
         step_at_swap <= 2.0 * largest_step,
         "jump of {step_at_swap} V at the swap"
     );
-    assert!(step_at_swap <= settings.slew_limit_v_per_s * settings.sample_period_s);
+    assert!(step_at_swap <= settings.limits.slew_limit_v_per_s * settings.sample_period_s);
 }
 
 #[test]
@@ -327,9 +319,7 @@ fn xy_stage_stack_sets_are_invertible_over_their_0_to_120_v_range() {
             offset_m: 0.0,
         };
         let settings = CompensatorSettings {
-            output_min_v: 0.0,
-            output_max_v: 120.0,
-            slew_limit_v_per_s: 1e5,
+            limits: Limits::new(0.0, 120.0, 1e5),
             sample_period_s: 1e-4,
         };
         assert!(matches!(

@@ -3,7 +3,7 @@
 //! never exceeds its slew limit, for any f32 reference including NaN and ±∞.
 
 use piezo_core::{
-    Asymmetry, BoucWen, BoucWenParams, Compensator, CompensatorSettings, CompensatorState,
+    Asymmetry, BoucWen, BoucWenParams, Compensator, CompensatorSettings, CompensatorState, Limits,
     ModelState, StaticMap, StaticModel,
 };
 use proptest::prelude::*;
@@ -121,9 +121,7 @@ fn invertible_model(
 
 fn settings(slew_limit_v_per_s: f32) -> CompensatorSettings {
     CompensatorSettings {
-        output_min_v: 0.0,
-        output_max_v: 100.0,
-        slew_limit_v_per_s,
+        limits: Limits::new(0.0, 100.0, slew_limit_v_per_s),
         sample_period_s: 1e-4,
     }
 }

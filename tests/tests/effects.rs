@@ -8,7 +8,7 @@ use piezo_core::effects::{
     OperatingRange, LOG_CREEP_ELEMENTS,
 };
 use piezo_core::{
-    BoucWen, BoucWenParams, Compensator, CompensatorSettings, CompensatorState, ModelState,
+    BoucWen, BoucWenParams, Compensator, CompensatorSettings, CompensatorState, Limits, ModelState,
     ParamError, StaticMap, StaticModel,
 };
 use proptest::prelude::*;
@@ -560,9 +560,7 @@ fn compensator(model: StaticModel) -> Compensator {
     Compensator::new(
         model,
         CompensatorSettings {
-            output_min_v: 0.0,
-            output_max_v: 120.0,
-            slew_limit_v_per_s: 1e5,
+            limits: Limits::new(0.0, 120.0, 1e5),
             sample_period_s: PERIOD,
         },
     )

@@ -7,8 +7,8 @@ use crate::{Control, Counters, Feedforward, Mode};
 use heapless::{String, Vec};
 use piezo_core::effects::{EffectParams, MAX_CREEP_ELEMENTS, MAX_RELAXATION_ELEMENTS};
 use piezo_core::{
-    Asymmetry, AxisParams, BoucWenParams, Envelope, EnvelopeCounts, Fnv1a32, IoChain, Limits,
-    OnTarget, ParamError, Program, ServoParams, StaticMap,
+    Asymmetry, AxisParams, BoucWenParams, Envelope, EnvelopeCounts, EnvelopePolicy, Fnv1a32,
+    IoChain, Limits, OnTarget, ParamError, Program, ServoParams, StaticMap,
 };
 use serde::{Deserialize, Serialize};
 
@@ -44,8 +44,12 @@ pub fn truncated<const N: usize>(text: &str) -> String<N> {
     out
 }
 
-/// One axis of a parameter set: piezo-core's own parameter structs.
+/// One axis of a parameter set: piezo-core's own parameter structs. On the wire as protocol 3
+/// laid it out (`AxisWire`): the fields in this order, the envelope followed by the policy
+/// outside it, which is the limits' ([`Limits::envelope_policy`], written there too and not
+/// read back from there).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(from = "AxisWire", into = "AxisWire")]
 pub struct AxisModel {
     /// Bouc-Wen parameters.
     pub bouc_wen: BoucWenParams,
@@ -54,16 +58,14 @@ pub struct AxisModel {
     /// δ and φ (zero: the symmetric model).
     pub asymmetry: Asymmetry,
     /// The effects around the model (all zero: none).
-    #[serde(with = "effects_wire")]
     pub effects: EffectParams,
     /// Output limits (the stage file's `[x.limits]`): the window, the slew limit and the policy
-    /// outside the envelope (which [`AxisModel::params`] gives the envelope).
+    /// outside the envelope.
     pub limits: Limits,
     /// The feedback servo (the stage file's `[x.servo]`; `None`: feed-forward only).
     pub servo: Option<ServoParams>,
-    /// The identified envelope (the stage file's `[x.identified]`; `None`: nothing checked). The
-    /// loop runs it under `limits.envelope_policy` ([`AxisModel::params`]), whatever its own
-    /// `policy` says; [`AxisModel::from_params`] writes the same policy into both.
+    /// The identified envelope (the stage file's `[x.identified]`; `None`: nothing checked),
+    /// run under `limits.envelope_policy`.
     pub envelope: Option<Envelope>,
     /// The on-target band (the stage file's `[x.on_target]` with its defaults).
     pub on_target: OnTarget,
@@ -78,7 +80,7 @@ impl AxisModel {
             static_map: p.static_map,
             asymmetry: p.asymmetry,
             effects: p.effects,
-            limits: p.limits(),
+            limits: p.limits,
             servo: p.servo,
             envelope: p.envelope,
             on_target: p.on_target,
@@ -86,17 +88,14 @@ impl AxisModel {
     }
 
     /// The firmware's view of an uploaded axis at the loop period `sample_period_s` \[s\]: the
-    /// core's axis with its limits ([`AxisParams::with_limits`]: the envelope's policy is the
-    /// limits') and its first loading from rest at the lower end of the window
-    /// ([`AxisParams::with_first_loading`]). The core's refusal if it does not build.
+    /// core's axis with these limits and its first loading from rest at the lower end of the
+    /// window ([`AxisParams::with_first_loading`]). The core's refusal if it does not build.
     pub fn params(&self, sample_period_s: f32) -> Result<AxisParams, ParamError> {
         AxisParams {
             bouc_wen: self.bouc_wen,
             static_map: self.static_map,
             asymmetry: self.asymmetry,
-            output_min_v: 0.0,
-            output_max_v: 0.0,
-            slew_limit_v_per_s: 0.0,
+            limits: self.limits,
             linear_gain_m_per_v: 0.0,
             rest_output_m: 0.0,
             effects: self.effects,
@@ -104,7 +103,6 @@ impl AxisModel {
             envelope: self.envelope,
             on_target: self.on_target,
         }
-        .with_limits(self.limits)
         .with_first_loading(sample_period_s)
     }
 }
@@ -426,6 +424,69 @@ pub enum Uplink {
     },
     /// A sample frame.
     Frame(Frame),
+}
+
+/// [`AxisModel`] on the wire: its fields in order, the effects as a fixed tuple
+/// (`effects_wire`), and the envelope with the policy outside it after its rate (protocol 3).
+#[derive(Serialize, Deserialize)]
+#[serde(rename = "AxisModel")]
+struct AxisWire {
+    bouc_wen: BoucWenParams,
+    static_map: StaticMap,
+    asymmetry: Asymmetry,
+    #[serde(with = "effects_wire")]
+    effects: EffectParams,
+    limits: Limits,
+    servo: Option<ServoParams>,
+    envelope: Option<EnvelopeWire>,
+    on_target: OnTarget,
+}
+
+/// An [`Envelope`] on the wire: the identified range and rate, then the axis's policy outside it.
+#[derive(Serialize, Deserialize)]
+#[serde(rename = "Envelope")]
+struct EnvelopeWire {
+    input_range_v: [f32; 2],
+    input_rate_max_v_per_s: f32,
+    policy: EnvelopePolicy,
+}
+
+impl From<AxisModel> for AxisWire {
+    fn from(a: AxisModel) -> Self {
+        Self {
+            bouc_wen: a.bouc_wen,
+            static_map: a.static_map,
+            asymmetry: a.asymmetry,
+            effects: a.effects,
+            limits: a.limits,
+            servo: a.servo,
+            envelope: a.envelope.map(|e| EnvelopeWire {
+                input_range_v: e.input_range_v,
+                input_rate_max_v_per_s: e.input_rate_max_v_per_s,
+                policy: a.limits.envelope_policy,
+            }),
+            on_target: a.on_target,
+        }
+    }
+}
+
+impl From<AxisWire> for AxisModel {
+    /// The envelope's own policy byte is left: the axis runs under its limits' policy.
+    fn from(a: AxisWire) -> Self {
+        Self {
+            bouc_wen: a.bouc_wen,
+            static_map: a.static_map,
+            asymmetry: a.asymmetry,
+            effects: a.effects,
+            limits: a.limits,
+            servo: a.servo,
+            envelope: a.envelope.map(|e| Envelope {
+                input_range_v: e.input_range_v,
+                input_rate_max_v_per_s: e.input_rate_max_v_per_s,
+            }),
+            on_target: a.on_target,
+        }
+    }
 }
 
 /// [`EffectParams`] as a fixed tuple: its own serde reads the creep and relaxation arrays as

@@ -49,7 +49,6 @@ fn axis() -> AxisModel {
         envelope: Some(Envelope {
             input_range_v: [0.5, 119.5],
             input_rate_max_v_per_s: f32::MAX,
-            policy: EnvelopePolicy::FeedbackOnly,
         }),
         on_target: OnTarget {
             tolerance_m: 2.5e-8,
@@ -691,17 +690,16 @@ fn programs_and_limits_keep_their_wire_bytes() {
 }
 
 /// An uploaded axis runs with its limits' envelope policy, and an axis taken from the core's
-/// parameters carries its envelope's policy in its limits: the two travel together.
+/// parameters carries the same limits: the policy travels in the limits.
 #[test]
 fn the_envelope_policy_travels_in_the_limits() {
     let mut a = axis();
     let p = a.params(1e-4).unwrap();
-    assert_eq!(p.envelope.unwrap().policy, EnvelopePolicy::FeedbackOnly);
+    assert_eq!(p.limits.envelope_policy, EnvelopePolicy::FeedbackOnly);
     assert_eq!(AxisModel::from_params(&p), a);
     a.limits.envelope_policy = EnvelopePolicy::Warn;
     let p = a.params(1e-4).unwrap();
-    assert_eq!(p.envelope.unwrap().policy, EnvelopePolicy::Warn);
-    assert_eq!(p.limits(), a.limits);
+    assert_eq!(p.limits, a.limits);
     assert_eq!(AxisModel::from_params(&p).limits, a.limits);
 }
 
@@ -715,9 +713,6 @@ fn an_axis_keeps_its_wire_bytes() {
     for (policy, byte) in [(EnvelopePolicy::Warn, 0), (EnvelopePolicy::FeedbackOnly, 1)] {
         let mut a = axis();
         a.limits.envelope_policy = policy;
-        if let Some(e) = &mut a.envelope {
-            e.policy = policy;
-        }
         let want = [
             &[1][..],
             &f32_bytes(0.5),

@@ -433,13 +433,12 @@ impl Axis {
 
 impl Axis {
     /// The identified envelope of this axis (`[x.identified]`'s input range and largest rate,
-    /// `f32::MAX` when the rate is not given) with `[x.limits] envelope_policy`; `None` without
-    /// `[x.identified]`.
+    /// `f32::MAX` when the rate is not given; the policy outside it is `[x.limits]
+    /// envelope_policy`); `None` without `[x.identified]`.
     pub fn envelope(&self) -> Option<Envelope> {
         self.identified.as_ref().map(|p| Envelope {
             input_range_v: p.input_range_v,
             input_rate_max_v_per_s: p.input_rate_max_v_per_s.unwrap_or(f32::MAX),
-            policy: self.limits.envelope_policy,
         })
     }
 }

@@ -312,7 +312,7 @@ fn envelope_keys_read_round_trip_and_refuse_feedback_only_without_a_servo() {
     let file = StageFile::parse("old.toml", &old).unwrap();
     let envelope = file.x.envelope().unwrap();
     assert_eq!(envelope.input_rate_max_v_per_s, f32::MAX);
-    assert_eq!(envelope.policy, EnvelopePolicy::Warn);
+    assert_eq!(file.x.limits.envelope_policy, EnvelopePolicy::Warn);
     assert!(file.validate().unwrap().axes[0].envelope.is_some());
 
     let mut stage = example();

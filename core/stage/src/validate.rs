@@ -275,14 +275,15 @@ impl Axis {
             }
             return Ok(None);
         };
-        if envelope.policy == EnvelopePolicy::FeedbackOnly && self.servo.is_none() {
+        let policy = self.limits.envelope_policy;
+        if policy == EnvelopePolicy::FeedbackOnly && self.servo.is_none() {
             let e = ParamError::NeedsServo {
                 field: "envelope_policy",
             };
             return Err(located(core_key(name, &e, "limits"), e));
         }
         envelope
-            .monitor(sample_period_s)
+            .monitor(policy, sample_period_s)
             .map(Some)
             .map_err(|e| located(core_key(name, &e, "identified"), e))
     }
@@ -381,9 +382,7 @@ impl StageFile {
             }
             let mut valid = axis.build(name, sample_period_s, (l.output_min_v, l.output_max_v))?;
             let settings = CompensatorSettings {
-                output_min_v: l.output_min_v,
-                output_max_v: l.output_max_v,
-                slew_limit_v_per_s: l.slew_limit_v_per_s,
+                limits: l,
                 sample_period_s,
             };
             if let AxisChain::Static { model, .. } = valid.chain {

@@ -299,7 +299,10 @@ mod image {
             });
             let reference =
                 ReferenceGenerator::new(Program::PerAxis(rest), params::SAMPLE_PERIOD_S, [0.0; 2]);
-            let initial = [params::AXES[0].output_min_v, params::AXES[1].output_min_v];
+            let initial = [
+                params::AXES[0].limits.output_min_v,
+                params::AXES[1].limits.output_min_v,
+            ];
             let lp = TwoAxisLoop::new(settings, Feedforward::Compensator, reference, initial);
             let mut session = Session::new(
                 lp,

@@ -73,7 +73,10 @@ mod image {
         let plant = Cell::new(stage);
         let mut io = plant_io(&plant, scale);
         let reference = ReferenceGenerator::new(Program::Streamed, SAMPLE_PERIOD_S, first);
-        let initial = [params::AXES[0].output_min_v, params::AXES[1].output_min_v];
+        let initial = [
+            params::AXES[0].limits.output_min_v,
+            params::AXES[1].limits.output_min_v,
+        ];
         let mut lp = TwoAxisLoop::new(settings, Feedforward::Compensator, reference, initial);
         // The first tick takes L + 1 setpoints from a queue that holds STREAM_CAPACITY − 1.
         if lp.lead_ticks() as usize + 1 >= STREAM_CAPACITY {

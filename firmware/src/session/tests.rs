@@ -107,7 +107,10 @@ fn session() -> (Session, Cell<XyPlant>) {
         params::SAMPLE_PERIOD_S,
         [0.0; 2],
     );
-    let initial = [params::AXES[0].output_min_v, params::AXES[1].output_min_v];
+    let initial = [
+        params::AXES[0].limits.output_min_v,
+        params::AXES[1].limits.output_min_v,
+    ];
     let lp = TwoAxisLoop::new(settings, Feedforward::Compensator, reference, initial);
     let plant = Cell::new(XyPlant::from_params(params::SAMPLE_PERIOD_S).unwrap());
     (
@@ -572,7 +575,7 @@ fn an_excitation_beyond_the_window_stays_inside_it() {
         .iter()
         .flat_map(|f| f.commanded_v)
         .fold(f32::MIN, f32::max);
-    assert!(top <= params::AXES[0].output_max_v, "{top}");
+    assert!(top <= params::AXES[0].limits.output_max_v, "{top}");
 }
 
 /// The same upload frame delivered 20 times runs once; the other 19 are answered `Replayed` with

@@ -512,10 +512,12 @@ impl Problem {
             return false;
         };
         let settings = CompensatorSettings {
-            output_min_v: self.input_range_v.0,
-            output_max_v: self.input_range_v.1,
             // Only invertibility is asked here: no slew limit.
-            slew_limit_v_per_s: f32::INFINITY,
+            limits: piezo_core::Limits::new(
+                self.input_range_v.0,
+                self.input_range_v.1,
+                f32::INFINITY,
+            ),
             sample_period_s: 1e-4,
         };
         Compensator::new(m, settings).is_ok()

@@ -248,7 +248,10 @@ pub fn predict_axes(
             check_finite(&r.t_s, &r.y_m, &predicted_m, 0).map_err(named)?;
             let envelope = a
                 .envelope()
-                .and_then(|e| e.monitor(r.sample_period_s() as f32).ok())
+                .and_then(|e| {
+                    e.monitor(a.limits.envelope_policy, r.sample_period_s() as f32)
+                        .ok()
+                })
                 .map(|m| m.count(r.u.iter().map(|&v| v as f32)));
             let effects_ran = match a.model {
                 ModelKind::Dynamic | ModelKind::Oscillator => Vec::new(),

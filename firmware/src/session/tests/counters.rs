@@ -14,8 +14,8 @@ fn excite(x_v: Wave, y_v: Wave) -> Request {
 fn the_guard_is_counted_per_axis_and_cause() {
     let (mut s, plant) = session();
     let mut host = Host::new();
-    let max_v = params::AXES[0].output_max_v;
-    let window = params::AXES[1].output_max_v - params::AXES[1].output_min_v;
+    let max_v = params::AXES[0].limits.output_max_v;
+    let window = params::AXES[1].limits.output_max_v - params::AXES[1].limits.output_min_v;
     host.ask(
         &mut s,
         excite(
@@ -23,7 +23,7 @@ fn the_guard_is_counted_per_axis_and_cause() {
                 offset: max_v + 80.0,
             },
             Wave::Steps {
-                offset: params::AXES[1].output_min_v + window / 2.0,
+                offset: params::AXES[1].limits.output_min_v + window / 2.0,
                 amplitude: window / 2.0,
                 frequency_hz: 50.0,
             },
@@ -108,12 +108,14 @@ fn the_fingerprint_is_the_running_sets_content() {
 fn a_table_loaded_after_a_finished_excitation_is_not_played() {
     let (mut s, plant) = session();
     let mut host = Host::new();
-    let mid_v = [0, 1].map(|i| 0.5 * (params::AXES[i].output_min_v + params::AXES[i].output_max_v));
+    let mid_v = [0, 1]
+        .map(|i| 0.5 * (params::AXES[i].limits.output_min_v + params::AXES[i].limits.output_max_v));
     let ramp: Setpoints = (0..=16)
         .map(|j| {
             let f = j as f32 / 16.0;
             [0, 1].map(|i| {
-                params::AXES[i].output_min_v + f * (mid_v[i] - params::AXES[i].output_min_v)
+                params::AXES[i].limits.output_min_v
+                    + f * (mid_v[i] - params::AXES[i].limits.output_min_v)
             })
         })
         .collect();

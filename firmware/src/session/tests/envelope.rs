@@ -5,18 +5,17 @@
 use super::*;
 use piezo_core::{Envelope, EnvelopePolicy};
 
-/// The built-in set with an envelope of 0–40 V (any rate) on x under the policy `x` (the
-/// limits' policy, the one the loop runs), as given on y.
+/// The built-in set with an envelope of 0–40 V (any rate) on x under the policy `x` (its
+/// limits'), as given on y under the policy `warn`.
 fn set_with_envelope(x: EnvelopePolicy, y: Option<Envelope>) -> ModelSet {
     let mut set = built_in_set();
     set.axes[0].envelope = Some(Envelope {
         input_range_v: [0.0, 40.0],
         input_rate_max_v_per_s: f32::MAX,
-        policy: x,
     });
     set.axes[0].limits.envelope_policy = x;
     set.axes[1].envelope = y;
-    set.axes[1].limits.envelope_policy = y.map_or(EnvelopePolicy::Warn, |e| e.policy);
+    set.axes[1].limits.envelope_policy = EnvelopePolicy::Warn;
     set
 }
 
@@ -107,7 +106,6 @@ fn a_rate_over_the_identified_one_is_an_excursion() {
     set.axes[0].envelope = Some(Envelope {
         input_range_v: [0.0, 120.0],
         input_rate_max_v_per_s: 1000.0,
-        policy: EnvelopePolicy::Warn,
     });
     upload(&mut host, &mut s, set);
     host.ask(&mut s, Request::Frames { decimation: 1 });
@@ -132,7 +130,6 @@ fn feedback_only_runs_the_servo_alone_outside_and_the_compensator_inside() {
     let warn_y = Some(Envelope {
         input_range_v: [0.0, 40.0],
         input_rate_max_v_per_s: f32::MAX,
-        policy: EnvelopePolicy::Warn,
     });
     // The same session twice: x with `feedback-only`, then with `warn`, feed-forward only.
     let mut runs = std::vec::Vec::new();

@@ -233,7 +233,8 @@ fn a_table_that_fails_its_check_is_refused_and_never_played() {
     // A step of 1.5 guard steps (15 V at 10 kHz, 7.5 V at 20 kHz) is over the slew limit at 1
     // tick per entry, within it at 2 (2 × 9.999998 V at 10 kHz).
     host.ask(&mut s, Request::Control(Control::Feedforward));
-    let guard_step = crate::params::AXES[0].slew_limit_v_per_s * crate::params::SAMPLE_PERIOD_S;
+    let guard_step =
+        crate::params::AXES[0].limits.slew_limit_v_per_s * crate::params::SAMPLE_PERIOD_S;
     let mut spike = table.clone();
     spike[200][0] = (spike[199][0] + 1.5 * guard_step).min(119.0);
     spike[201][0] = spike[200][0];
