@@ -272,6 +272,59 @@ mod tests {
         }
     }
 
+    /// Every command with a plot `--format` writes the same formats without it (SVG and PNG), and
+    /// says which in its help.
+    #[test]
+    fn every_plot_format_defaults_alike() {
+        fn walk(cmd: &clap::Command, path: &str, out: &mut Vec<(String, String)>) {
+            for arg in cmd.get_arguments().filter(|a| a.get_id() == "format") {
+                let default: Vec<String> = arg
+                    .get_default_values()
+                    .iter()
+                    .map(|v| v.to_string_lossy().into_owned())
+                    .collect();
+                out.push((path.to_string(), default.join(",")));
+            }
+            for sub in cmd.get_subcommands() {
+                walk(sub, &format!("{path} {}", sub.get_name()), out);
+            }
+        }
+        let mut formats = Vec::new();
+        walk(&Cli::command(), "host-sim", &mut formats);
+        let names: Vec<&str> = formats.iter().map(|(n, _)| n.as_str()).collect();
+        for command in ["demo", "reproduce", "servo-bench", "learn-bench"] {
+            assert!(
+                names.contains(&format!("host-sim {command}").as_str()),
+                "{names:?}"
+            );
+            assert!(
+                long_help(command).contains("[default: both]"),
+                "{command} --help does not state its --format default"
+            );
+        }
+        assert!(
+            formats.iter().all(|(_, d)| d == "both"),
+            "--format defaults differ: {formats:?}"
+        );
+    }
+
+    /// `compensate --reference` is read without `--signal` and written with it: its help says so.
+    #[test]
+    fn compensate_help_says_when_the_reference_is_written() {
+        let help = long_help("compensate");
+        // The option's own entry: after the usage line's mention, before `--signal`'s entry.
+        let entry = help
+            .rsplit("--reference <REFERENCE>")
+            .next()
+            .and_then(|h| h.split("--signal <SIGNAL>").next())
+            .unwrap_or_default();
+        let reference = entry.split_whitespace().collect::<Vec<_>>().join(" ");
+        assert!(
+            reference.contains("With `--signal`: where") && reference.contains("written"),
+            "{reference}"
+        );
+    }
+
     #[test]
     fn demo_errors_name_the_option() {
         let cli = Cli::try_parse_from(["host-sim", "demo", "--x-freq", "0"]).unwrap();

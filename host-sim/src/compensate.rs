@@ -55,7 +55,8 @@ pub struct CompensateArgs {
     #[arg(long)]
     pub params: PathBuf,
     /// Reference record (CSV): `t_s` and `r_m` (one axis) or `rx_m`, `ry_m` (two axes); `_um`,
-    /// `_nm`, `_mm` also accepted; sampled at the stage file's loop rate. With `--signal`: where
+    /// `_nm`, `_mm` also accepted (and `t_ms`, `t_us`, `t_ns`); sampled at the stage file's loop
+    /// rate. With `--signal`: where
     /// the generated reference is written first.
     #[arg(long)]
     pub reference: PathBuf,
@@ -96,12 +97,33 @@ pub struct Reference {
     pub axes: Vec<(String, Vec<f32>)>,
 }
 
-/// Reads a reference record: `t_s` (a record's time base) and `r_<unit>` or `rx_<unit>`,
-/// `ry_<unit>`, finite in f32; errors name the file, the line and the column.
+/// Reads a reference record: `t_<unit>` (a record's time base: `t_s`, or `t_ms`, `t_us`, `t_ns`)
+/// and `r_<unit>` or `rx_<unit>`, `ry_<unit>`, finite in f32, converted to SI; errors name the
+/// file, the line and the column.
 pub fn read_reference(path: &Path) -> Result<Reference, String> {
     let rows = read_rows(path).map_err(|e| e.to_string())?;
     let table = &rows.table;
-    let t_s = rows.time("t_s", 1.0).map_err(|e| e.to_string())?.to_vec();
+    let (t_name, t_factor) = table
+        .names
+        .iter()
+        .filter(|n| n.starts_with("t_"))
+        .find_map(|n| match crate::identify::unit_of(n) {
+            Some((f, crate::identify::Quantity::Time)) => Some((n.clone(), f)),
+            _ => None,
+        })
+        .ok_or_else(|| {
+            format!(
+                "{}: no time column: expected `t_s` (or t_ms, t_us, t_ns); columns: {}",
+                path.display(),
+                table.names.join(", ")
+            )
+        })?;
+    let t_s = rows
+        .time(&t_name, t_factor)
+        .map_err(|e| e.to_string())?
+        .iter()
+        .map(|t| t * t_factor)
+        .collect();
     let find = |prefix: &str| {
         table
             .names
@@ -660,6 +682,11 @@ fn write_reference(params: &Path, spec: &str, path: &Path) -> Result<(), String>
     let spec = crate::signal::SignalSpec::parse(spec).map_err(|e| format!("--signal: {e}"))?;
     let signals = spec.build(axes).map_err(|e| format!("--signal: {e}"))?;
     let rate = f64::from(file.stage.loop_rate_hz);
+    if let Some(duration_s) = spec.duration_s {
+        if let Some(w) = crate::simulate::csv_length_warning(&spec, duration_s, "duration=") {
+            eprintln!("warning: {w}");
+        }
+    }
     let n = (spec.duration_s.unwrap_or(spec.default_duration_s()) * rate).round() as usize + 1;
     let t_s: Vec<f64> = (0..n).map(|k| k as f64 / rate).collect();
     let mut names = vec!["t_s".to_string()];
@@ -725,6 +752,42 @@ mod tests {
             text.push('\n');
         }
         std::fs::write(path, text).unwrap();
+    }
+
+    /// A reference in ms and µm reads as the same one in s and m; a time column of no time unit
+    /// is refused, naming the columns.
+    #[test]
+    fn a_reference_is_read_in_the_units_its_suffixes_name() {
+        let scratch = scratch("units");
+        let dir = scratch.path();
+        let (si, scaled, untimed) = (dir.join("si.csv"), dir.join("ms.csv"), dir.join("no.csv"));
+        let r = |t: f64| 10e-6 + 5e-6 * t;
+        write_reference(&si, 1000.0, 20, &[("rx_m", &r), ("ry_m", &r)]);
+        let mut text = String::from("t_ms,rx_µm,ry_um\n");
+        for k in 0..20 {
+            let t = k as f64 / 1000.0;
+            text.push_str(&format!("{},{},{}\n", t * 1e3, r(t) * 1e6, r(t) * 1e6));
+        }
+        std::fs::write(&scaled, text).unwrap();
+        std::fs::write(&untimed, "x_m,r_m\n0,1e-6\n1,1e-6\n").unwrap();
+        let (a, b) = (
+            read_reference(&si).unwrap(),
+            read_reference(&scaled).unwrap(),
+        );
+        assert_eq!(a.t_s.len(), b.t_s.len());
+        for (x, y) in a.t_s.iter().zip(&b.t_s) {
+            assert!((x - y).abs() < 1e-12, "{x} vs {y}");
+        }
+        for ((_, x), (_, y)) in a.axes.iter().zip(&b.axes) {
+            for (p, q) in x.iter().zip(y) {
+                assert!((p - q).abs() <= 1e-6 * p.abs(), "{p} vs {q}");
+            }
+        }
+        let e = read_reference(&untimed).unwrap_err();
+        assert!(
+            e.contains("no time column") && e.contains("x_m, r_m"),
+            "{e}"
+        );
     }
 
     fn triangle(low: f64, high: f64, frequency_hz: f64) -> impl Fn(f64) -> f64 {

@@ -8,6 +8,7 @@
 //! firmware would command; [`demo`], [`reproduce`] and [`servo_bench`] run the core against the
 //! reference plants; [`capture`] and [`link`] talk to the firmware (its log, its command link) and
 //! turn its frames into records by [`record`]'s one rule;
+//! [`identity`] names a stage file's set as the firmware names the set it runs;
 //! [`servo_tune`] writes the feedback servo of the stage file; [`learn`] takes one step of iterative
 //! learning control and [`learn_bench`] runs it on the XY stage; [`stage_file`] writes the stage file;
 //! [`plot`] draws the figures ([`track_plot`] those of a tracking or excitation run); [`cli`] is
@@ -29,6 +30,7 @@ pub mod close_loop;
 pub mod compensate;
 pub mod demo;
 pub mod identify;
+pub mod identity;
 pub mod learn;
 pub mod learn_bench;
 pub mod link;

@@ -517,6 +517,9 @@ impl Client {
         if !(duration_s > 0.0 && duration_s.is_finite()) || decimation == 0 {
             return Err("--duration must be > 0 and --decimation >= 1".into());
         }
+        if let Some(w) = crate::simulate::csv_length_warning(&parsed, duration_s, "--duration ") {
+            eprintln!("warning: {w}");
+        }
         let status = self.status()?;
         let (rate, capacity) = run_limits(&status)?;
         let ticks = (duration_s * rate).round().max(1.0);

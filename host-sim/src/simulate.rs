@@ -5,7 +5,7 @@
 use crate::csv::write_csv;
 use crate::effects::Effects;
 use crate::plant::PlantKind;
-use crate::signal::SignalSpec;
+use crate::signal::{SignalKind, SignalSpec};
 use crate::sim::{simulate, SimOutput, SimSettings};
 use std::path::PathBuf;
 
@@ -55,17 +55,9 @@ pub fn simulate_cmd(a: &SimulateArgs) -> Result<String, String> {
         spec.sample_rate_hz.unwrap_or(p.default_sample_rate_hz()),
         spec.duration_s.unwrap_or(spec.default_duration_s()),
     );
-    if let (Some(end_s), Some(duration_s)) = (spec.csv_end_s(), spec.duration_s) {
-        if duration_s < end_s {
-            eprintln!(
-                "note: --signal duration={duration_s}: plays {duration_s} s of the file's {end_s} s \
-                 (without duration, the whole file)"
-            );
-        } else if duration_s > end_s {
-            eprintln!(
-                "note: --signal duration={duration_s}: the file's samples end at {end_s} s; its \
-                 last sample is held to {duration_s} s"
-            );
+    if let Some(duration_s) = spec.duration_s {
+        if let Some(w) = csv_length_warning(&spec, duration_s, "duration=") {
+            eprintln!("warning: {w}");
         }
     }
     let out = simulate(p, signals, &effects, &settings).map_err(|e| format!("simulate: {e}"))?;
@@ -83,6 +75,36 @@ pub fn simulate_cmd(a: &SimulateArgs) -> Result<String, String> {
     ))
 }
 
+/// When a `csv` signal's file ends before or after the `duration_s` it is played for (given as
+/// `given`, e.g. `duration=` or `--duration`): what happens, naming the file, its length (samples
+/// and seconds: its last time plus its last step) and the duration. `None` for the other kinds and
+/// when the two agree to 1 ppm.
+pub fn csv_length_warning(spec: &SignalSpec, duration_s: f64, given: &str) -> Option<String> {
+    let SignalKind::Csv { path, end_s, .. } = &spec.kind else {
+        return None;
+    };
+    // To the nanosecond, so that 100 samples at 1 kHz read 0.1 s.
+    let end_s = (end_s * 1e9).round() / 1e9;
+    if (duration_s - end_s).abs() <= 1e-6 * end_s.abs().max(duration_s.abs()) {
+        return None;
+    }
+    let samples = crate::csv::read_rows(path)
+        .map(|r| format!("{} samples, ", r.lines.len()))
+        .unwrap_or_default();
+    let file = format!("{} ({samples}{end_s} s)", path.display());
+    Some(if duration_s < end_s {
+        format!(
+            "--signal csv: {file} is longer than {given}{duration_s} s: only its first \
+             {duration_s} s are played (without a duration, the whole file)"
+        )
+    } else {
+        format!(
+            "--signal csv: {file} is shorter than {given}{duration_s} s: its last sample is held \
+             from {end_s} s to {duration_s} s"
+        )
+    })
+}
+
 /// How the run moved its state: holds propagated exactly, Dormand–Prince steps, or both.
 fn propagation(out: &SimOutput) -> String {
     let steps = format!(
@@ -95,5 +117,42 @@ fn propagation(out: &SimOutput) -> String {
             format!("{n} exact holds, 0 integrator steps")
         }
         n => format!("{n} exact holds, {steps}"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A file of 100 samples at 1 kHz plays 0.1 s: a shorter or longer duration is named with
+    /// the file, its length and the duration; the same length, or another kind of signal, is not.
+    #[test]
+    fn a_csv_signal_of_another_length_than_its_duration_says_so() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("drive.csv");
+        let rows: String = (0..100)
+            .map(|k| format!("{},{}\n", k as f64 * 1e-3, k))
+            .collect();
+        std::fs::write(&path, format!("t_s,u_V\n{rows}")).unwrap();
+        let spec = SignalSpec::parse(&format!("csv:path={}", path.display())).unwrap();
+        let name = path.display().to_string();
+        let longer = csv_length_warning(&spec, 0.05, "duration=").unwrap();
+        assert!(
+            longer.contains(&name)
+                && longer.contains("100 samples, 0.1 s")
+                && longer.contains("longer than duration=0.05 s"),
+            "{longer}"
+        );
+        let shorter = csv_length_warning(&spec, 0.3, "--duration ").unwrap();
+        assert!(
+            shorter.contains(&name)
+                && shorter.contains("100 samples, 0.1 s")
+                && shorter.contains("shorter than --duration 0.3 s")
+                && shorter.contains("held"),
+            "{shorter}"
+        );
+        assert_eq!(csv_length_warning(&spec, 0.1, "duration="), None);
+        let sine = SignalSpec::parse("sine:amp=1,duration=2").unwrap();
+        assert_eq!(csv_length_warning(&sine, 5.0, "duration="), None);
     }
 }

@@ -237,6 +237,18 @@ impl WrittenStage {
         (!out.is_empty()).then(|| out.join("; "))
     }
 
+    /// The written file named as the firmware names the set it runs
+    /// ([`crate::identity::SetIdentity`]), on a line of its own; empty when it was not written.
+    pub fn identity_line(&self) -> String {
+        if self.not_written.is_some() {
+            return String::new();
+        }
+        match crate::identity::SetIdentity::of_file(Path::new(&self.path)) {
+            Ok(id) => format!("\nstage file: {id}"),
+            Err(e) => format!("\nstage file: {e}"),
+        }
+    }
+
     /// The report's fields: `stage_file`, `stage_file_written`, `stage_file_check` (the verdict in
     /// words), `verdict` and `refusal` (the remedy of a refusal, or null).
     pub fn to_json(&self, invertible: bool, given: Option<&Path>) -> serde_json::Value {

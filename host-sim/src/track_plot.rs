@@ -62,7 +62,7 @@ fn transient(t_s: &[f64], from: usize) -> Option<Interval> {
 
 /// `panel` against time over the whole record, its y range that of the traces `scaled` (SI) times
 /// `scale` from sample `from` on, with the transient before it marked.
-fn timed(panel: Panel, t_s: &[f64], from: usize, scaled: &[&[f64]], scale: f64) -> Chart {
+pub fn timed(panel: Panel, t_s: &[f64], from: usize, scaled: &[&[f64]], scale: f64) -> Chart {
     let (t0, t1) = (t_s[0], t_s[t_s.len() - 1]);
     let (lo, hi) = scored_range(scaled.iter().map(|v| &v[from..]), scale);
     let mut chart = Chart::from(panel).y_range(lo, hi);

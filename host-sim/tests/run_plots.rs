@@ -1,6 +1,7 @@
 //! The figures of a run (`compensate --plot`, `link track --plot`, `link excite --plot`) and the
-//! effects `predict` names: each figure is written, non-empty, and names its series; a figure
-//! path that is neither `.svg` nor `.png` is refused naming `--plot` before anything is written.
+//! effects and the set `predict` names: each figure is written, non-empty, and names its series;
+//! a figure path that is neither `.svg` nor `.png` is refused naming `--plot` before anything is
+//! written.
 
 use clap::Parser;
 use host_sim::cli::{run, Cli};
@@ -267,4 +268,33 @@ fn predict_names_the_effects_it_ran() {
     for axis in 0..2 {
         assert_eq!(report["axes"][axis]["effects_ran"], serde_json::json!([]));
     }
+}
+
+/// `predict` names the set it ran first, as the firmware's boot line names its set (capture reads
+/// it back), and its report carries the same values under `link status`'s keys.
+#[test]
+fn predict_names_the_set_it_ran() {
+    let scratch = scratch("predict-set");
+    let dir = scratch.path();
+    let (out, report) = predict(dir, "xy-stage.toml");
+    let first = out.lines().next().unwrap();
+    let boot = host_sim::capture::parse_boot_line(first, 1)
+        .expect("a boot line")
+        .unwrap();
+    let path = params("xy-stage.toml");
+    let set = host_sim::link::model_set(&path).unwrap();
+    let bytes = std::fs::read(&path).unwrap();
+    assert_eq!(boot.version, "xy-stage 4", "{first}");
+    assert_eq!(
+        boot.fingerprint,
+        Some(host_sim::link::hex32(set.fingerprint())),
+        "{first}"
+    );
+    assert_eq!(
+        boot.fnv1a32,
+        host_sim::link::hex32(host_sim::link::fnv1a32(&bytes))
+    );
+    assert_eq!(report["params_version"], "xy-stage 4");
+    assert_eq!(report["params_fingerprint"], boot.fingerprint.unwrap());
+    assert_eq!(report["params_fnv1a32"], boot.fnv1a32);
 }

@@ -155,6 +155,12 @@ pub fn close_loop_cmd(a: &CloseLoopArgs) -> Result<String, String> {
         }
     }
     let (stage, io) = stage::stage_and_io_for(&records, &a.data, a.stage.as_deref())?;
+    if let Some(path) = &a.stage {
+        let u_names = crate::identify::input_columns(&a.data, a.u.as_deref());
+        for w in crate::identify::drive_warnings(&a.data, &u_names, &records, &io, path) {
+            eprintln!("warning: {w}");
+        }
+    }
     let settings = CloseLoopSettings {
         start_s: a.start,
         min_share: a.min_share,
@@ -268,6 +274,7 @@ pub fn close_loop_cmd(a: &CloseLoopArgs) -> Result<String, String> {
     if !plots.is_empty() {
         line.push_str(&format!(", {} plots", plots.len()));
     }
+    line.push_str(&written.identity_line());
     let mut failures = Vec::new();
     failures.extend(written.error(a.invertible, given, a.allow_refused));
     failures.extend(plots_failed);

@@ -150,12 +150,77 @@ pub fn scale_warnings(
             let (min, max) = min_max(values);
             let span = max - min;
             let checked = unit_of(name).is_some_and(|(_, q)| q == quantity);
+            let suffix = name.rsplit_once('_').map_or("", |(_, s)| s);
             (checked && span.is_finite() && span > 0.0 && !(lo..=hi).contains(&span)).then(|| {
                 format!(
-                    "{}: column `{name}` spans {span:.3e} {unit} as read with its unit suffix: \
-                     outside {lo:.0e}–{hi:.0e} {unit}, implausible for {what}; are its values in \
-                     the unit its name says?",
+                    "{}: column `{name}` spans {span:.3e} {unit} as read with its unit suffix \
+                     `_{suffix}`: outside {lo:.0e}–{hi:.0e} {unit}, implausible for {what}; are \
+                     its values in the unit its name says?",
                     path.display()
+                )
+            })
+        })
+        .collect()
+}
+
+/// The input columns a record of `data` (its first file, when several are comma-separated) is
+/// read with: `u` split at its commas (`--u`), or else the header's first `u_*` column (what
+/// [`Record::read_axes`] picks); empty when the header cannot be read.
+pub fn input_columns(data: &Path, u: Option<&str>) -> Vec<String> {
+    if let Some(u) = u {
+        return u.split(',').map(|p| p.trim().to_string()).collect();
+    }
+    let text = data.to_string_lossy();
+    let first = Path::new(text.split(',').next().unwrap_or_default().trim());
+    let header = std::fs::File::open(first).ok().and_then(|f| {
+        use std::io::BufRead;
+        std::io::BufReader::new(f)
+            .lines()
+            .map_while(Result::ok)
+            .find(|l| !l.trim().is_empty() && !l.starts_with('#'))
+    });
+    header
+        .and_then(|h| {
+            h.trim_start_matches('\u{feff}')
+                .split(',')
+                .map(str::trim)
+                .find(|n| n.starts_with("u_"))
+                .map(str::to_string)
+        })
+        .into_iter()
+        .collect()
+}
+
+/// Warnings for records whose input, in volts, leaves the drive range of the io chain `io`
+/// (`dac_range_v × amplifier_gain_v_per_v`, of the stage file `stage`) by more than 0.1 % of it:
+/// the stage could not have been driven there, so the column is in another unit than its suffix
+/// says or `[io]` is not the stage's. Each names the file, the column and its suffix; `u_names`
+/// are the records' input columns ([`input_columns`]).
+pub fn drive_warnings(
+    path: &Path,
+    u_names: &[String],
+    records: &[Record],
+    io: &piezo_stage::Io,
+    stage: &Path,
+) -> Vec<String> {
+    let (lo, hi) = io.chain().drive_range_v();
+    let (lo, hi) = (f64::from(lo), f64::from(hi));
+    let slack = 1e-3 * (hi - lo).abs();
+    u_names
+        .iter()
+        .zip(records)
+        .filter(|(name, _)| unit_of(name).is_some_and(|(_, q)| q == Quantity::Voltage))
+        .filter_map(|(name, r)| {
+            let (min, max) = min_max(&r.u);
+            let suffix = name.rsplit_once('_').map_or("", |(_, s)| s);
+            (min < lo - slack || max > hi + slack).then(|| {
+                format!(
+                    "{}: column `{name}` spans {min:.4}–{max:.4} V as read with its unit suffix \
+                     `_{suffix}`: beyond the {lo}–{hi} V the io chain of {} drives \
+                     (io.dac_range_v × io.amplifier_gain_v_per_v); are its values in the unit its \
+                     name says, and is that [io] your stage's?",
+                    path.display(),
+                    stage.display()
                 )
             })
         })
@@ -1344,6 +1409,10 @@ pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
         Some(path) => {
             let (file, _) =
                 piezo_stage::StageFile::load(path).map_err(|e| format!("--stage: {e}"))?;
+            let u_names = input_columns(&a.data, a.columns.u.as_deref());
+            for w in drive_warnings(&a.data, &u_names, &records, &file.io, path) {
+                eprintln!("warning: {w}");
+            }
             Some((file.stage, file.io))
         }
         None => None,
@@ -1426,13 +1495,14 @@ pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
     .chain(plots)
     .collect();
     let summary = format!(
-        "{}\nwritten: {} ({verdict})",
+        "{}\nwritten: {} ({verdict}){}",
         lines.join("\n"),
         if written.is_empty() {
             "nothing".to_string()
         } else {
             written.join(", ")
-        }
+        },
+        stage_file.identity_line()
     );
     if failures.is_empty() {
         Ok(summary)
@@ -1567,12 +1637,17 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
         .transpose()
         .map_err(|e| format!("--output-filter: {e}"))?;
     let file = predict::read_stage(&a.params)?;
+    let identity = crate::identity::SetIdentity::of_file(&a.params)?;
     if let Some(refusal) = file.firmware_refusal() {
         eprintln!(
             "note: predicted as a forward model; the firmware would refuse this set: {refusal}"
         );
     }
     let mut records = a.columns.read_axes(&a.data)?;
+    let u_names = input_columns(&a.data, a.columns.u.as_deref());
+    for w in drive_warnings(&a.data, &u_names, &records, &file.file.io, &a.params) {
+        eprintln!("warning: {w}");
+    }
     let mut start = a.start;
     if a.periodic_warmup > 0 {
         let period = records[0].sample_period_s() * records[0].u.len() as f64;
@@ -1669,6 +1744,9 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
     }
     let mut report = json!({
         "params_file": a.params.display().to_string(),
+        "params_version": identity.version,
+        "params_fnv1a32": crate::link::hex32(identity.fnv1a32),
+        "params_fingerprint": identity.fingerprint.map(crate::link::hex32),
         "data": a.data.display().to_string(),
         "start_s": a.start,
         "periodic_warmup": a.periodic_warmup,
@@ -1707,7 +1785,7 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
         written.extend(predict::write_plots(dir, "predict", &records, &axes, from)?);
     }
     Ok(format!(
-        "{}\nwritten: {}",
+        "{identity}\n{}\nwritten: {}",
         lines.join("\n"),
         written.join(", ")
     ))
@@ -1716,6 +1794,41 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// An input in millivolts read as volts leaves the 0–120 V the board's chain drives: named
+    /// with its column and suffix; inside the drive range, or not a voltage, it is not.
+    #[test]
+    fn an_input_beyond_the_io_chain_is_named_with_its_column_and_suffix() {
+        let dir = tempfile::tempdir().unwrap();
+        let data = dir.path().join("r.csv");
+        std::fs::write(&data, "# a comment\nt_s,u_mV,y_m\n0,0,0\n").unwrap();
+        assert_eq!(input_columns(&data, None), ["u_mV"]);
+        assert_eq!(input_columns(&data, Some("ux_V, uy_V")), ["ux_V", "uy_V"]);
+        let record = |u_max: f64| {
+            let u: Vec<f64> = (0..20).map(|k| u_max * f64::from(k) / 19.0).collect();
+            Record::from_parts(
+                data.clone(),
+                (0..20).map(f64::from).collect(),
+                u,
+                vec![0.0; 20],
+            )
+        };
+        let io = piezo_stage::Io::placeholder();
+        let stage = Path::new("stage.toml");
+        let names = ["ux_V".to_string(), "uy_V".to_string()];
+        let w = drive_warnings(&data, &names, &[record(120.0), record(1.2e5)], &io, stage);
+        assert_eq!(w.len(), 1, "{w:?}");
+        assert!(
+            w[0].contains("`uy_V`")
+                && w[0].contains("suffix `_V`")
+                && w[0].contains("0–120 V")
+                && w[0].contains("stage.toml"),
+            "{}",
+            w[0]
+        );
+        let force = ["u_N".to_string()];
+        assert!(drive_warnings(&data, &force, &[record(1e3)], &io, stage).is_empty());
+    }
 
     #[test]
     fn the_exponent_at_one_is_no_bound_warning_but_other_bounds_are() {

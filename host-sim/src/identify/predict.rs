@@ -21,7 +21,8 @@
 use super::model::from_axis;
 use super::{check_finite, fit_block, min_max, oscillator, FitBlock, Record};
 use crate::csv::{write_csv, Table};
-use crate::plot::{plot_grid, Panel, Role, Series};
+use crate::plot::{plot_grid, Chart, Panel, Role, Series};
+use crate::track_plot::timed;
 use piezo_stage::{simulate_pair, Axis, AxisChain, Check, ModelKind, StageFile};
 use serde_json::{json, Value};
 use std::path::Path;
@@ -337,25 +338,18 @@ pub fn write_series(
     write_csv(path, &table).map_err(|e| format!("--out: {e}"))
 }
 
-/// Measured against predicted in time and as loops, and the residual, per axis (µm), scored
-/// samples only, as `DIR/NAME.svg` and `DIR/NAME.png`.
-pub fn write_plots(
-    dir: &Path,
-    name: &str,
-    records: &[Record],
-    axes: &[AxisPrediction],
-    from: usize,
-) -> Result<Vec<String>, String> {
-    std::fs::create_dir_all(dir).map_err(|e| format!("--plots {}: {e}", dir.display()))?;
-    let mut panels = Vec::new();
+/// The figure of a prediction, three panels per axis in a row: measured and predicted against
+/// time (the measurement a light band, the prediction drawn over it), the loops (scored samples,
+/// from `from` on) and the residual (measured − predicted) against time. The time panels show the
+/// whole record with the samples before `from` shaded grey as the transient (not scored), and
+/// take their y range from the scored samples only, so a start-up transient runs off the axis
+/// instead of squeezing the scored part.
+pub fn prediction_charts(records: &[Record], axes: &[AxisPrediction], from: usize) -> Vec<Chart> {
+    let mut charts = Vec::new();
     for (r, p) in records.iter().zip(axes) {
         let um = 1e6;
         let time = |v: &[f64]| -> Vec<(f64, f64)> {
-            r.t_s[from..]
-                .iter()
-                .zip(&v[from..])
-                .map(|(&t, &y)| (t, y * um))
-                .collect()
+            r.t_s.iter().zip(v).map(|(&t, &y)| (t, y * um)).collect()
         };
         let residual: Vec<f64> = r
             .y_m
@@ -364,53 +358,70 @@ pub fn write_plots(
             .map(|(y, q)| y - q)
             .collect();
         let label = format!("{} [µm]", p.axis);
-        panels.push(Panel {
-            title: format!("{}: measured and predicted", p.axis),
-            x_label: "t [s]".into(),
-            y_label: label.clone(),
-            series: vec![
-                Series::line("measured", time(&r.y_m), 4000).role(Role::Measured),
-                Series::line("predicted", time(&p.predicted_m), 4000).role(Role::Model),
-            ],
-        });
-        panels.push(Panel {
-            title: format!("{}: loops", p.axis),
-            x_label: "u [V]".into(),
-            y_label: label.clone(),
-            series: vec![
-                Series::line(
-                    "measured",
-                    r.u[from..]
-                        .iter()
-                        .zip(&r.y_m[from..])
-                        .map(|(&u, &y)| (u, y * um))
-                        .collect(),
-                    4000,
-                )
-                .role(Role::Measured),
-                Series::line(
-                    "predicted",
-                    r.u[from..]
-                        .iter()
-                        .zip(&p.predicted_m[from..])
-                        .map(|(&u, &y)| (u, y * um))
-                        .collect(),
-                    4000,
-                )
-                .role(Role::Model),
-            ],
-        });
-        panels.push(Panel {
-            title: format!("{}: residual (measured − predicted)", p.axis),
-            x_label: "t [s]".into(),
-            y_label: format!("{} residual [µm]", p.axis),
-            series: vec![Series::line("residual", time(&residual), 4000).role(Role::Residual)],
-        });
+        charts.push(timed(
+            Panel::new(
+                format!("{}: measured and predicted", p.axis),
+                "t [s]",
+                label.clone(),
+                vec![
+                    Series::line("measured", time(&r.y_m), 4000).role(Role::Measured),
+                    Series::line("predicted", time(&p.predicted_m), 4000).role(Role::Model),
+                ],
+            ),
+            &r.t_s,
+            from,
+            &[&r.y_m, &p.predicted_m],
+            um,
+        ));
+        let scored = |y: &[f64]| -> Vec<(f64, f64)> {
+            r.u[from..]
+                .iter()
+                .zip(&y[from..])
+                .map(|(&u, &y)| (u, y * um))
+                .collect()
+        };
+        charts.push(
+            Panel::new(
+                format!("{}: loops", p.axis),
+                "u [V]",
+                label,
+                vec![
+                    Series::line("measured", scored(&r.y_m), 4000).role(Role::Measured),
+                    Series::line("predicted", scored(&p.predicted_m), 4000).role(Role::Model),
+                ],
+            )
+            .into(),
+        );
+        charts.push(timed(
+            Panel::new(
+                format!("{}: residual (measured − predicted)", p.axis),
+                "t [s]",
+                format!("{} residual [µm]", p.axis),
+                vec![Series::line("residual", time(&residual), 4000).role(Role::Residual)],
+            ),
+            &r.t_s,
+            from,
+            &[&residual],
+            um,
+        ));
     }
+    charts
+}
+
+/// Writes [`prediction_charts`] as `dir`/`name`.svg and .png; returns the files.
+pub fn write_plots(
+    dir: &Path,
+    name: &str,
+    records: &[Record],
+    axes: &[AxisPrediction],
+    from: usize,
+) -> Result<Vec<String>, String> {
+    std::fs::create_dir_all(dir).map_err(|e| format!("--plots {}: {e}", dir.display()))?;
+    let charts = prediction_charts(records, axes, from);
     let mut written = Vec::new();
     for ext in ["svg", "png"] {
         let path = dir.join(format!("{name}.{ext}"));
-        plot_grid(&path, &panels, 3).map_err(|e| e.to_string())?;
+        plot_grid(&path, &charts, 3).map_err(|e| e.to_string())?;
         written.push(path.display().to_string());
     }
     Ok(written)
@@ -453,5 +464,62 @@ impl ReadStage {
             .validate()
             .err()
             .map(|e| e.located(&self.name, &self.text).to_string())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::plot::IntervalKind;
+
+    /// The time panels show the whole record with the transient before the scored window shaded
+    /// grey, and their y range is the scored samples' (a 1 mm start-up jump runs off the axis).
+    #[test]
+    fn prediction_plots_scale_on_the_scored_window_and_mark_the_transient() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../firmware/params/xy-stage.toml");
+        let stage = read_stage(&path).unwrap();
+        let n = 400;
+        let t_s: Vec<f64> = (0..n).map(|k| k as f64 / 20_000.0).collect();
+        let u: Vec<f64> = t_s
+            .iter()
+            .map(|t| 60.0 - 60.0 * (2.0 * std::f64::consts::PI * 50.0 * t).cos())
+            .collect();
+        let from = 100;
+        let y_m: Vec<f64> = (0..n)
+            .map(|k| if k < from { 1e-3 } else { 20e-6 })
+            .collect();
+        let records: Vec<Record> = (0..2)
+            .map(|_| Record::from_parts("r.csv".into(), t_s.clone(), u.clone(), y_m.clone()))
+            .collect();
+        let axes = predict_axes(&stage, &records, from).unwrap();
+        let charts = prediction_charts(&records, &axes, from);
+        assert_eq!(charts.len(), 6);
+        for i in [0, 2, 3, 5] {
+            let o = &charts[i].options;
+            assert_eq!(
+                o.x_range,
+                Some((t_s[0], t_s[n - 1])),
+                "{}",
+                charts[i].panel.title
+            );
+            let band = &o.intervals[0];
+            assert_eq!(band.kind, IntervalKind::Excluded);
+            assert_eq!((band.start, band.end), (t_s[0], t_s[from]));
+            let (lo, hi) = o.y_range.unwrap();
+            assert!(
+                hi < 500.0 && lo > -500.0,
+                "{}: {lo}..{hi} µm",
+                charts[i].panel.title
+            );
+            // The whole record is drawn, the transient too.
+            assert_eq!(charts[i].panel.series[0].points.len(), n);
+        }
+        let measured = &charts[0].panel.series;
+        assert_eq!(
+            (measured[0].role, measured[1].role),
+            (Some(Role::Measured), Some(Role::Model))
+        );
+        // The loops: scored samples only.
+        assert_eq!(charts[1].panel.series[0].points.len(), n - from);
     }
 }
