@@ -403,6 +403,25 @@ pub struct Trial<'a> {
     /// The averaged record's noise from the spread between its passes, when the trial averages
     /// several (else estimated from the error's fourth differences; module doc).
     pub noise: Option<TrialNoise>,
+    /// The trial before on the same trajectory and the same base (periodic trials): the harmonic
+    /// step reads the stage's response from the change between the two where the last step
+    /// moved a harmonic (module `harmonics`, "Two trials"). `None`: from this trial alone.
+    pub previous: Option<PreviousTrial<'a>>,
+    /// The table the trial played, where a servo added its correction on top (`command_v` is
+    /// then the voltage applied): above Q's cut-off the harmonic step learns the table from its
+    /// own response G·S (module `harmonics`, "Under a servo"). `None`: the command is the table.
+    pub table_v: Option<&'a [f32]>,
+}
+
+/// The trial before ([`Trial::previous`]): slices of the same length as the trial's.
+#[derive(Debug, Clone, Copy)]
+pub struct PreviousTrial<'a> {
+    /// u_{k−1}: its command \[V\].
+    pub command_v: &'a [f32],
+    /// y_{k−1}: its measured output \[m\].
+    pub measured_m: &'a [f32],
+    /// Its table, where a servo added its correction on top ([`Trial::table_v`]).
+    pub table_v: Option<&'a [f32]>,
 }
 
 impl Learning {
@@ -706,6 +725,22 @@ impl Learning {
             ("measured_m", trial.measured_m.len()),
             ("base_v", trial.base_v.len()),
             ("next_v", next_v.len()),
+            (
+                "previous.command_v",
+                trial.previous.map_or(n, |p| p.command_v.len()),
+            ),
+            (
+                "previous.measured_m",
+                trial.previous.map_or(n, |p| p.measured_m.len()),
+            ),
+            ("table_v", trial.table_v.map_or(n, <[f32]>::len)),
+            (
+                "previous.table_v",
+                trial
+                    .previous
+                    .and_then(|p| p.table_v)
+                    .map_or(n, <[f32]>::len),
+            ),
         ] {
             if len != n {
                 return Err(ParamError::OutOfRange {
@@ -854,8 +889,47 @@ impl Learning {
             }
             f64::from(self.model.step(&mut state, command(j)))
         };
+        // The trial before, read the same way (a non-finite sample as this trial's).
+        let previous_command = |j: usize| match trial.previous {
+            Some(p) if p.command_v[j].is_finite() => p.command_v[j],
+            _ => command(j),
+        };
+        let previous_measured = |j: usize| match trial.previous {
+            Some(p) if p.measured_m[j].is_finite() => f64::from(p.measured_m[j]),
+            _ => measured(j),
+        };
+        let mut previous_start = ModelState::at_rest(previous_command(0));
+        if trial.previous.is_some() {
+            for j in 0..n {
+                self.model.step(&mut previous_start, previous_command(j));
+            }
+        }
+        let mut previous_state = previous_start;
+        let mut previous_predicted = |j: usize| {
+            if j == 0 {
+                previous_state = previous_start;
+            }
+            f64::from(self.model.step(&mut previous_state, previous_command(j)))
+        };
+        let previous_command_v = |j: usize| f64::from(previous_command(j));
+        // A table's non-finite entry as the command's.
+        let table = |j: usize| match trial.table_v {
+            Some(t) if t[j].is_finite() => f64::from(t[j]),
+            _ => f64::from(command(j)),
+        };
+        let previous_table = |j: usize| match trial.previous.and_then(|p| p.table_v) {
+            Some(t) if t[j].is_finite() => f64::from(t[j]),
+            _ => previous_command_v(j),
+        };
         harmonics::learn_harmonics(
             &mut harmonics::HarmonicInputs {
+                previous: trial.previous.map(|p| harmonics::PreviousInputs {
+                    command: &previous_command_v,
+                    measured: &previous_measured,
+                    predicted: &mut previous_predicted,
+                    table: p.table_v.map(|_| &previous_table as &dyn Fn(usize) -> f64),
+                }),
+                table: trial.table_v.map(|_| &table as &dyn Fn(usize) -> f64),
                 predicted: &mut predicted,
                 slope,
                 reference: &reference,
@@ -1321,6 +1395,8 @@ mod tests {
                 base_v: base,
                 periodic: true,
                 noise: None,
+                previous: None,
+                table_v: None,
             };
             let mut out = [0.0f32; 100];
             let summary = learning.step(&trial, &mut out).unwrap();
@@ -1398,6 +1474,8 @@ mod tests {
                         base_v: &command,
                         periodic: true,
                         noise: None,
+                        previous: None,
+                        table_v: None,
                     },
                     &mut next,
                 )
@@ -1464,6 +1542,8 @@ mod tests {
                             measured_m: sigma,
                             command_v: 1e-6,
                         }),
+                        previous: None,
+                        table_v: None,
                     },
                     &mut next,
                 )
@@ -1524,6 +1604,8 @@ mod tests {
                             measured_m: 1e-11,
                             command_v: 1e-6,
                         }),
+                        previous: None,
+                        table_v: None,
                     },
                     &mut next,
                 )
@@ -1606,6 +1688,8 @@ mod tests {
             base_v: &command,
             periodic: true,
             noise: None,
+            previous: None,
+            table_v: None,
         };
         let (gain, offset) = learning.gain_ratio(&trial).unwrap();
         assert!((gain - 1.5).abs() < 1e-4, "{gain}");
@@ -1670,6 +1754,8 @@ mod tests {
                     base_v: &base,
                     periodic: true,
                     noise: None,
+                    previous: None,
+                    table_v: None,
                 };
                 let mut next = [0.0f32; N];
                 *error = learning.step(&trial, &mut next).unwrap().rms_error_m;

@@ -60,9 +60,9 @@ pub use inverse_chain::{
 };
 pub use io_chain::IoChain;
 pub use learning::{
-    pass_noise_rms, Learning, LearningParams, StepSummary, Trial, TrialNoise, GAIN_FIT_MIN_R2,
-    HARMONIC_MODEL_FACTOR, HARMONIC_MODEL_PHASE_RAD, HARMONIC_SNR, HARMONIC_STEP_CAP,
-    MAX_HARMONICS, UNMODELLED_MODE_DAMPING,
+    pass_noise_rms, Learning, LearningParams, PreviousTrial, StepSummary, Trial, TrialNoise,
+    GAIN_FIT_MIN_R2, HARMONIC_MODEL_FACTOR, HARMONIC_MODEL_PHASE_RAD, HARMONIC_SNR,
+    HARMONIC_STEP_CAP, MAX_HARMONICS, UNMODELLED_MODE_DAMPING,
 };
 pub use limits::Limits;
 pub use on_target::{OnTarget, OnTargetState};

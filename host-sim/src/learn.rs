@@ -45,7 +45,7 @@ use crate::compensate::{
 use crate::csv::{read_csv, write_csv, Table};
 use crate::identify::unit_factor;
 use crate::link::fnv1a32;
-use piezo_core::{FeedforwardAxis, Learning, LearningParams, Trial, TrialNoise};
+use piezo_core::{FeedforwardAxis, Learning, LearningParams, PreviousTrial, Trial, TrialNoise};
 use piezo_stage::StageFile;
 use std::path::{Path, PathBuf};
 
@@ -520,6 +520,8 @@ pub fn model_gains(
                 base_v: &command_v[i],
                 periodic,
                 noise: None,
+                previous: None,
+                table_v: None,
             })
         })
         .collect()
@@ -597,6 +599,23 @@ pub struct AxesTrial<'a> {
     /// spread between them (`piezo_core::pass_noise_rms`), where known; `None` else (the noise
     /// then comes from the error's fourth differences).
     pub noise: Option<&'a [Option<TrialNoise>]>,
+    /// Per axis the table the trial played, where a servo added its correction on top
+    /// (`command_v` the voltages applied); `None`: the command is the table.
+    pub table_v: Option<&'a [Vec<f32>]>,
+    /// The trial before on the same trajectory, for the harmonic step's two-trial estimate
+    /// (`piezo_core::PreviousTrial`).
+    pub previous: Option<AxesPrevious<'a>>,
+}
+
+/// The trial before ([`AxesTrial::previous`]), per axis.
+#[derive(Debug, Clone, Copy)]
+pub struct AxesPrevious<'a> {
+    /// u_{k−1} per axis \[V\].
+    pub command_v: &'a [Vec<f32>],
+    /// y_{k−1} per axis \[m\].
+    pub measured_m: &'a [Vec<f32>],
+    /// Its table per axis, where a servo added its correction on top.
+    pub table_v: Option<&'a [Vec<f32>]>,
 }
 
 /// One learning step per axis: the next command from the trial. The error of the trial and the
@@ -617,6 +636,12 @@ pub fn step_axes(trial: &AxesTrial<'_>) -> Result<(Vec<AxisStep>, Vec<Vec<f32>>)
                     base_v: &trial.base_v[i],
                     periodic: trial.periodic,
                     noise,
+                    previous: trial.previous.map(|p| PreviousTrial {
+                        command_v: &p.command_v[i],
+                        measured_m: &p.measured_m[i],
+                        table_v: p.table_v.map(|t| t[i].as_slice()),
+                    }),
+                    table_v: trial.table_v.map(|t| t[i].as_slice()),
                 },
                 &mut next,
             )
@@ -787,6 +812,8 @@ pub fn learn(a: &LearnArgs) -> Result<LearnStep, String> {
             base_v: &base_v,
             periodic: a.periodic,
             noise: noise.as_deref(),
+            table_v: None,
+            previous: None,
         },
         &files,
     )?;

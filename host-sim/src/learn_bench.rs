@@ -40,8 +40,8 @@ use crate::servo_bench::{
 };
 use piezo_core::learning::{step_back, BackOff, Verdict};
 use piezo_core::{
-    compensate_pair, compensate_periodic_pair, pass_noise_rms, Learning, LearningParams, ServoMode,
-    ServoState, Trial, TrialNoise,
+    compensate_pair, compensate_periodic_pair, pass_noise_rms, Learning, LearningParams,
+    PreviousTrial, ServoMode, ServoState, Trial, TrialNoise,
 };
 use piezo_stage::StageFile;
 use std::path::{Path, PathBuf};
@@ -362,6 +362,10 @@ fn run_case(
     // The error-growth back-off per axis and the table it holds (`piezo_core::learning::back_off`).
     let mut back_off = [BackOff::new(); 2];
     let mut held = table.clone();
+    // The trial before's averaged command and measured period (the harmonic step's two-trial
+    // estimate).
+    let mut last_trial: Option<([Vec<f32>; 2], [Vec<f32>; 2], [Vec<f32>; 2])> = None;
+    let servo_on = mode == LearnMode::LearnedFeedback;
     for trial in 0..=s.iterations {
         if trial > 0 {
             for _ in 0..s.settle_periods {
@@ -423,6 +427,8 @@ fn run_case(
                 base_v: &base[a],
                 periodic: true,
                 noise: None,
+                previous: None,
+                table_v: None,
             })
         });
         let noise = [0, 1].map(|a| {
@@ -469,6 +475,12 @@ fn run_case(
                                 base_v: &base[a],
                                 periodic: true,
                                 noise: noise[a],
+                                previous: last_trial.as_ref().map(|(u, y, t)| PreviousTrial {
+                                    command_v: &u[a],
+                                    measured_m: &y[a],
+                                    table_v: servo_on.then_some(t[a].as_slice()),
+                                }),
+                                table_v: servo_on.then_some(previous[a].as_slice()),
                             },
                             &mut table[a],
                         )
@@ -484,6 +496,7 @@ fn run_case(
             // servo hands it over at the switch (entry 0).
             states[a].take_over(table[a][0] - previous[a][0]);
         }
+        last_trial = Some((u, y, previous));
         harmonics_learned.push(harmonics[0].max(harmonics[1]));
         stepped_back.push(backed);
     }

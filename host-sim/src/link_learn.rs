@@ -43,7 +43,8 @@ use crate::compensate::{feedforward_axes, read_reference, Reference};
 use crate::csv::{write_csv, Table};
 use crate::learn::{
     axis_learnings, base_command, read_learned_table, rule_text, step_axes, step_checked,
-    write_learned_table, AxesTrial, AxisStep, LearnStep, LearningArgs, StepFiles, TableContext,
+    write_learned_table, AxesPrevious, AxesTrial, AxisStep, LearnStep, LearningArgs, StepFiles,
+    TableContext,
 };
 use crate::link::{fnv1a32, run_limits, Client};
 use crate::plot::{plot_grid, Chart, Legend, Panel, Role, Series};
@@ -435,6 +436,8 @@ pub fn link_learn(
                 base_v: &base_v,
                 periodic: true,
                 noise: None,
+                table_v: None,
+                previous: None,
             })?
             .1,
         ),
@@ -457,6 +460,8 @@ pub fn link_learn(
     let mut back_off = [BackOff::new(); 2];
     let mut held = table.clone();
     let (mut stall, mut stopped_early) = (0, false);
+    // The trial before's voltages, readings and table (the harmonic step's two-trial estimate).
+    let mut last_trial: Option<(Vec<Vec<f32>>, Vec<Vec<f32>>, Vec<Vec<f32>>)> = None;
     for k in 0..=a.iterations {
         play(client, &table, mode(a))?;
         let trial_record = record(client, &reference, a.settle_periods, a.periods)?;
@@ -499,6 +504,12 @@ pub fn link_learn(
                 base_v: &base_v,
                 periodic: true,
                 noise: Some(&trial_record.noise),
+                table_v: a.feedback.then_some(table.as_slice()),
+                previous: last_trial.as_ref().map(|(u, y, t)| AxesPrevious {
+                    command_v: u,
+                    measured_m: y,
+                    table_v: a.feedback.then_some(t.as_slice()),
+                }),
             },
             &files,
         )?;
@@ -508,6 +519,11 @@ pub fn link_learn(
                 Verdict::StepBack => step_back(&held[i], &table[i], &mut next[i]),
             }
         }
+        last_trial = Some((
+            trial_record.command_v.clone(),
+            trial_record.measured_m.clone(),
+            table.clone(),
+        ));
         let trial = TrialError {
             iteration: first_iteration + k as u32,
             axes: axes_error,

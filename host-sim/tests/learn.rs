@@ -466,6 +466,8 @@ fn the_q_rule_margin_holds_for_the_model() {
                             base_v: &base,
                             periodic: true,
                             noise: None,
+                            previous: None,
+                            table_v: None,
                         },
                         &mut next,
                     )

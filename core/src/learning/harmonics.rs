@@ -7,6 +7,8 @@
 //! ```text
 //! X(h)       = (1/n)·Σ_j x[j]·e^(−j2πhj/n)          for x = u_k, y_k, r, and the next command
 //! Ĝ(h)       = ḡ·Y(h)/Ŵ(h)                           the stage's response on this trial
+//!            = ḡ·ΔY(h)/ΔŴ(h), Δ = this trial − the one before, where the trial before is given
+//!              and |ΔU(h)| and the predicted |ΔY(h)| clear the SNR gate (with √2 the noise)
 //! U_next(h)  = U(h) + ρ·s_h·(R(h) − Y(h))/Ĝ(h),       s_h = max(0, 1 − (σ_y²/n)/|R(h) − Y(h)|²)
 //! ```
 //! ŵ is the hysteresis model's own output for u_k and ḡ its mean slope dy/du along u_k: for a
@@ -15,6 +17,26 @@
 //! reach Y(h) whatever U(h) is, and Y/U then reads them as the stage's response (on the XY stage
 //! the update at the y mode swung the ring from 28 nm to 67 nm and back); Y/Ŵ leaves them out,
 //! as far as the model holds, and keeps what is linear: the stage's dynamics after the stack.
+//! **Two trials.** Y/Ŵ trusts the model's own harmonics: where they nearly cancel at some h,
+//! Ŵ(h) is mostly the model's error there and Ĝ comes out several times off (with a stage file
+//! whose gain is ×0.6 the 100 Hz triangle then rose up to 1.88× from one trial to the next).
+//! The change between two trials cancels what both share, the model's error along the same
+//! trajectory included, and keeps the stage's response to what the step changed: ΔY/ΔŴ, with
+//! ΔŴ the model's response to the whole ΔU (its mixing of other harmonics into h included). A
+//! harmonic the last step did not move (|ΔU(h)| at the noise) keeps the one-trial estimate.
+//!
+//! **Under a servo** ([`HarmonicInputs::table`]): the command is the voltage applied, the table
+//! plus the servo's correction C·e. Starting the next table from that command hands the
+//! correction to the table; for a linear stage the table's error then moves by
+//! `ε_next = S·(1 − ρ·s_h·G/Ĝ)·ε` (S = 1/(1 + G·C), the servo's sensitivity). Inside the
+//! servo's band |S| ≪ 1 and that is what makes the learning fast; above its crossover
+//! |S| reaches 1.6 on the XY stage, and a harmonic held at U(h) (the gates' edge) or learned
+//! with Ĝ a little off grew by |S| trial after trial. Once the trial before gives a two-trial
+//! estimate, a harmonic is therefore learned from the table itself: `T_next(h) = T(h) +
+//! ρ·s_h·E(h)/Ĝ_T(h)`, `Ĝ_T = ΔY/ΔT` the table's response G·S measured between the two trials,
+//! so the factor is `1 − ρ·s_h·G·S/Ĝ_T`, whatever S is; a harmonic held keeps T(h). The first
+//! step at a harmonic (no ΔT yet) starts from U(h) with the one-trial Ĝ, as without a servo.
+//!
 //! The next command's component at h (what Q left there: about the compensator's own) is
 //! replaced by U_next(h), its conjugate at n − h with it, so the command stays real.
 //! U is the command the trial reports: for the voltage applied (table + servo correction) Ĝ is
@@ -78,10 +100,37 @@ pub(super) struct HarmonicInputs<'a> {
     /// i < `model_count` (i = 0 the stage file's own).
     pub model: &'a dyn Fn(f64, usize) -> C,
     pub model_count: usize,
+    /// The table the trial played, where a servo added its correction on top of it (`command`
+    /// is then the voltage applied); `None`: the command is the table.
+    pub table: Option<&'a dyn Fn(usize) -> f64>,
+    /// The trial before on the same trajectory (its command, measured output and the model's
+    /// output along its command, as the fields above), for the two-trial estimate.
+    pub previous: Option<PreviousInputs<'a>>,
     /// ρ in (0, 1].
     pub gain: f64,
     /// Largest |ΔU(h)| \[V\].
     pub cap_v: f64,
+}
+
+/// The trial before, read as [`HarmonicInputs`] reads this one.
+pub(super) struct PreviousInputs<'a> {
+    /// u_{k−1}, y_{k−1} at sample j.
+    pub command: &'a dyn Fn(usize) -> f64,
+    pub measured: &'a dyn Fn(usize) -> f64,
+    /// The model's output along u_{k−1}, called for j = 0, 1, …, n − 1 in turn \[m\].
+    pub predicted: &'a mut dyn FnMut(usize) -> f64,
+    /// Its table, where [`HarmonicInputs::table`] is given.
+    pub table: Option<&'a dyn Fn(usize) -> f64>,
+}
+
+/// The spectra at one harmonic Ĝ is read from: one trial's (U, Y, Ŵ), or the differences
+/// between two (ΔU, ΔY, ΔŴ), whose noise is √2 times one trial's.
+#[derive(Clone, Copy)]
+struct Response {
+    u: C,
+    y: C,
+    w: C,
+    noise_scale: f64,
 }
 
 /// The DFT coefficient's rotation e^(−j2π·h·j/n).
@@ -108,6 +157,8 @@ pub(super) fn learn_harmonics(inp: &mut HarmonicInputs<'_>, next: &mut [f32]) ->
     for h in (first..=last).take(MAX_HARMONICS) {
         let (mut u, mut y, mut r, mut x) = (C(0.0, 0.0), C(0.0, 0.0), C(0.0, 0.0), C(0.0, 0.0));
         let mut w = C(0.0, 0.0);
+        let (mut pu, mut py, mut pw) = (C(0.0, 0.0), C(0.0, 0.0), C(0.0, 0.0));
+        let (mut tk, mut pt) = (C(0.0, 0.0), C(0.0, 0.0));
         for (j, &next_j) in next.iter().enumerate() {
             let (c, s) = twiddle(h, j, n);
             let add = |acc: &mut C, v: f64| {
@@ -119,17 +170,69 @@ pub(super) fn learn_harmonics(inp: &mut HarmonicInputs<'_>, next: &mut [f32]) ->
             add(&mut r, (inp.reference)(j));
             add(&mut x, f64::from(next_j));
             add(&mut w, (inp.predicted)(j));
+            if let Some(previous) = inp.previous.as_mut() {
+                add(&mut pu, (previous.command)(j));
+                add(&mut py, (previous.measured)(j));
+                add(&mut pw, (previous.predicted)(j));
+                if let Some(table) = previous.table {
+                    add(&mut pt, table(j));
+                }
+            }
+            if let Some(table) = inp.table {
+                add(&mut tk, table(j));
+            }
         }
-        let [u, y, r, x, w] = [u, y, r, x, w].map(|v| C(v.0 * scale, v.1 * scale));
+        let [u, y, r, x, w, pu, py, pw, tk, pt] =
+            [u, y, r, x, w, pu, py, pw, tk, pt].map(|v| C(v.0 * scale, v.1 * scale));
+        // Under a servo the table's response G·S is what the step moves; learned from the table
+        // (module doc, "Under a servo").
+        let by_table =
+            inp.table.is_some() && inp.previous.as_ref().is_some_and(|p| p.table.is_some());
         let f = h as f64 / (n as f64 * t);
-        let target = match gated_step(inp, u, y, r, w, f, bin_noise_y, bin_noise_u, 1.0) {
+        let single = Response {
+            u,
+            y,
+            w,
+            noise_scale: 1.0,
+        };
+        let dy = C(y.0 - py.0, y.1 - py.1);
+        let pair = if by_table {
+            let dt = C(tk.0 - pt.0, tk.1 - pt.1);
+            Response {
+                u: dt,
+                y: dy,
+                w: C(dt.0 * inp.slope, dt.1 * inp.slope),
+                noise_scale: core::f64::consts::SQRT_2,
+            }
+        } else {
+            Response {
+                u: C(u.0 - pu.0, u.1 - pu.1),
+                y: dy,
+                w: C(w.0 - pw.0, w.1 - pw.1),
+                noise_scale: core::f64::consts::SQRT_2,
+            }
+        };
+        // The two-trial estimate where the last step moved this harmonic clear of the noise
+        // (for the stage file's own model); else the one-trial one.
+        let moved = inp.previous.is_some()
+            && clears_noise(inp, pair, (inp.model)(f, 0), bin_noise_y, bin_noise_u, 1.0);
+        // What the step adds to: the table's own component where it learns from the table.
+        let (response, from) = match (moved, by_table) {
+            (true, true) => (pair, tk),
+            (true, false) => (pair, u),
+            (false, _) => (single, u),
+        };
+        let held = if inp.table.is_some() { tk } else { u };
+        let error = C(r.0 - y.0, r.1 - y.1);
+        let step = |widen| gated_step(inp, response, error, f, bin_noise_y, bin_noise_u, widen);
+        let target = match step(1.0) {
             Some(step) => {
                 learned += 1;
-                C(u.0 + step.0, u.1 + step.1)
+                C(from.0 + step.0, from.1 + step.1)
             }
             // Near the gates: held (so that a harmonic on a gate's edge does not swing between
             // learned and Q's trial after trial); far from them: Q's.
-            None if gated_step(inp, u, y, r, w, f, bin_noise_y, bin_noise_u, 2.0).is_some() => u,
+            None if step(2.0).is_some() => held,
             None => continue,
         };
         let delta = C(target.0 - x.0, target.1 - x.1);
@@ -146,56 +249,67 @@ pub(super) fn learn_harmonics(inp: &mut HarmonicInputs<'_>, next: &mut [f32]) ->
     learned
 }
 
-/// ρ·s_h·(R − Y)/Ĝ at one harmonic, or `None` where a gate refuses it (module doc).
-#[allow(clippy::too_many_arguments)]
+/// Whether the response's command and its predicted output stand clear of the noise: |U| ≥
+/// snr·σ_u/√n and |G_model|·|Ŵ|/|ḡ| ≥ snr·σ_y/√n, each noise times the response's scale.
+fn clears_noise(
+    inp: &HarmonicInputs<'_>,
+    response: Response,
+    model: C,
+    bin_noise_y: f64,
+    bin_noise_u: f64,
+    widen: f64,
+) -> bool {
+    let snr = HARMONIC_SNR / widen * response.noise_scale;
+    response.u.abs() > 0.0
+        && response.w.abs() > 0.0
+        && response.u.abs() >= snr * bin_noise_u
+        && model.abs() * response.w.abs() / libm::fabs(inp.slope) >= snr * bin_noise_y
+}
+
+/// ρ·s_h·E(h)/Ĝ at one harmonic, Ĝ = ḡ·Y/Ŵ of `response`, or `None` where a gate refuses it
+/// (module doc).
 fn gated_step(
     inp: &HarmonicInputs<'_>,
-    u: C,
-    y: C,
-    r: C,
-    w: C,
+    response: Response,
+    error: C,
     f: f64,
     bin_noise_y: f64,
     bin_noise_u: f64,
     widen: f64,
 ) -> Option<C> {
-    {
-        let snr = HARMONIC_SNR / widen;
-        let factor = HARMONIC_MODEL_FACTOR * widen;
-        let phase = (HARMONIC_MODEL_PHASE_RAD * widen).min(PI);
-        if !(u.abs() > 0.0 && w.abs() > 0.0) || u.abs() < snr * bin_noise_u {
-            return None;
-        }
-        // The dynamics the trial shows, Y/Ŵ, times the model's small-signal slope.
-        let dynamics = y.div(w);
-        let estimate = C(dynamics.0 * inp.slope, dynamics.1 * inp.slope);
-        let agrees = |model: C| {
-            let ratio = estimate.div(model);
-            let magnitude = ratio.abs();
-            model.abs() * w.abs() / libm::fabs(inp.slope) >= snr * bin_noise_y
-                && magnitude >= 1.0 / factor
-                && magnitude <= factor
-                && libm::fabs(libm::atan2(ratio.1, ratio.0)) <= phase
-        };
-        if !(0..inp.model_count.max(1)).any(|i| agrees((inp.model)(f, i))) {
-            return None;
-        }
-        let error = C(r.0 - y.0, r.1 - y.1);
-        let power = error.0 * error.0 + error.1 * error.1;
-        let share = if power > 0.0 {
-            (1.0 - bin_noise_y * bin_noise_y / power).max(0.0)
-        } else {
-            0.0
-        };
-        let mut step = error.div(estimate);
-        step = C(step.0 * inp.gain * share, step.1 * inp.gain * share);
-        let size = step.abs();
-        if size > inp.cap_v {
-            let k = inp.cap_v / size;
-            step = C(step.0 * k, step.1 * k);
-        }
-        Some(step)
+    let factor = HARMONIC_MODEL_FACTOR * widen;
+    let phase = (HARMONIC_MODEL_PHASE_RAD * widen).min(PI);
+    if !(response.u.abs() > 0.0 && response.w.abs() > 0.0) {
+        return None;
     }
+    // The dynamics the trial shows, Y/Ŵ, times the model's small-signal slope.
+    let dynamics = response.y.div(response.w);
+    let estimate = C(dynamics.0 * inp.slope, dynamics.1 * inp.slope);
+    let agrees = |model: C| {
+        let ratio = estimate.div(model);
+        let magnitude = ratio.abs();
+        clears_noise(inp, response, model, bin_noise_y, bin_noise_u, widen)
+            && magnitude >= 1.0 / factor
+            && magnitude <= factor
+            && libm::fabs(libm::atan2(ratio.1, ratio.0)) <= phase
+    };
+    if !(0..inp.model_count.max(1)).any(|i| agrees((inp.model)(f, i))) {
+        return None;
+    }
+    let power = error.0 * error.0 + error.1 * error.1;
+    let share = if power > 0.0 {
+        (1.0 - bin_noise_y * bin_noise_y / power).max(0.0)
+    } else {
+        0.0
+    };
+    let mut step = error.div(estimate);
+    step = C(step.0 * inp.gain * share, step.1 * inp.gain * share);
+    let size = step.abs();
+    if size > inp.cap_v {
+        let k = inp.cap_v / size;
+        step = C(step.0 * k, step.1 * k);
+    }
+    Some(step)
 }
 
 #[cfg(test)]
@@ -262,6 +376,8 @@ mod tests {
                 noise_command_v: 1e-6,
                 model: &model,
                 model_count: 1,
+                table: None,
+                previous: None,
                 gain: 1.0,
                 cap_v: 1.0,
             },
@@ -282,5 +398,105 @@ mod tests {
             "{}",
             rms(&r, &after)
         );
+    }
+
+    /// Under a servo whose sensitivity at a harmonic is S = 1.5∠30° (above its crossover), a
+    /// table started each trial from the voltage applied carries the servo's correction into
+    /// the next: with ρ = 0.2 the error there grows by |S·(1 − ρ)| = 1.2 per trial. Learned from
+    /// the table, with its response G·S measured between two trials, it falls by 1 − ρ = 0.8.
+    #[test]
+    fn under_a_servo_a_harmonic_is_learned_from_the_table_not_the_voltage_applied() {
+        const N: usize = 100;
+        const H: usize = 15;
+        let t = 1e-4;
+        let g = C(1e-6, 0.0).mul(C(0.9, -0.3));
+        let sensitivity = C(1.5 * libm::cos(PI / 6.0), 1.5 * libm::sin(PI / 6.0));
+        // C·G = 1/S − 1 at H; the servo acts on the error r − y.
+        let loop_gain = C(1.0, 0.0).div(sensitivity);
+        let loop_gain = C(loop_gain.0 - 1.0, loop_gain.1);
+        let component = |x: &[f64; N], h: usize| {
+            let (mut re, mut im) = (0.0, 0.0);
+            for j in 0..N {
+                let (c, s) = twiddle(h, j, N);
+                re += x[j] * c / N as f64;
+                im += x[j] * s / N as f64;
+            }
+            C(re, im)
+        };
+        let wave = |v: C, h: usize| -> [f64; N] {
+            core::array::from_fn(|j| {
+                let (c, s) = twiddle(h, j, N);
+                2.0 * (v.0 * c + v.1 * s)
+            })
+        };
+        // The reference at H asks 10 nm more than the table gives; the loop at H alone.
+        let r_h = C(1e-8, 0.0);
+        // Trial: table T → Y = G·S·T + (1 − S)·R, applied U = T + C·(R − Y).
+        let trial = |table: &[f64; N]| {
+            let tk = component(table, H);
+            let plus = |a: C, b: C| C(a.0 + b.0, a.1 + b.1);
+            let y_h = plus(
+                g.mul(sensitivity).mul(tk),
+                C(1.0 - sensitivity.0, -sensitivity.1).mul(r_h),
+            );
+            let e_h = C(r_h.0 - y_h.0, r_h.1 - y_h.1);
+            let u_h = plus(tk, loop_gain.div(g).mul(e_h));
+            (wave(y_h, H), wave(u_h, H), e_h.abs())
+        };
+        let run = |by_table: bool| {
+            let r = wave(r_h, H);
+            let mut table = [0.0f64; N];
+            let mut last: Option<([f64; N], [f64; N], [f64; N])> = None;
+            let mut errors = [0.0; 8];
+            for error in errors.iter_mut() {
+                let (y, u, e) = trial(&table);
+                *error = e;
+                let mut next: [f32; N] = core::array::from_fn(|j| table[j] as f32);
+                let table_now = table;
+                let (py, pu, pt) = last.unwrap_or(([0.0; N], [0.0; N], [0.0; N]));
+                let (table_of, previous_table_of) = (|j: usize| table_now[j], |j: usize| pt[j]);
+                let (previous_command, previous_measured) = (|j: usize| pu[j], |j: usize| py[j]);
+                let mut previous_predicted = |j: usize| pu[j] * 1e-6;
+                learn_harmonics(
+                    &mut HarmonicInputs {
+                        reference: &|j| r[j],
+                        measured: &|j| y[j],
+                        command: &|j| u[j],
+                        predicted: &mut |j| u[j] * 1e-6,
+                        slope: 1e-6,
+                        sample_period_s: t,
+                        cutoff_hz: 1000.0,
+                        noise_measured_m: 1e-15,
+                        noise_command_v: 1e-12,
+                        model: &|_, _| g,
+                        model_count: 1,
+                        table: by_table.then_some(&table_of as &dyn Fn(usize) -> f64),
+                        previous: last.is_some().then_some(PreviousInputs {
+                            command: &previous_command,
+                            measured: &previous_measured,
+                            predicted: &mut previous_predicted,
+                            table: by_table.then_some(&previous_table_of as &dyn Fn(usize) -> f64),
+                        }),
+                        gain: 0.2,
+                        cap_v: 1.0,
+                    },
+                    &mut next,
+                );
+                last = Some((y, u, table));
+                table = core::array::from_fn(|j| f64::from(next[j]));
+            }
+            errors
+        };
+        let (applied, from_table) = (run(false), run(true));
+        // From the voltage applied: growing from the second step on.
+        assert!(applied[7] > 1.5 * applied[2], "{applied:?}");
+        // From the table: falling by about 0.8 per trial once two trials are known.
+        for k in 3..8 {
+            let ratio = from_table[k] / from_table[k - 1];
+            assert!(
+                (ratio - 0.8).abs() < 0.05,
+                "trial {k}: {ratio} ({from_table:?})"
+            );
+        }
     }
 }
