@@ -364,7 +364,9 @@ fn run_case(
     let mut held = table.clone();
     // The trial before's averaged command and measured period (the harmonic step's two-trial
     // estimate).
-    let mut last_trial: Option<([Vec<f32>; 2], [Vec<f32>; 2], [Vec<f32>; 2])> = None;
+    // (voltages applied, readings, table), per axis.
+    type PerAxis = [Vec<f32>; 2];
+    let mut last_trial: Option<(PerAxis, PerAxis, PerAxis)> = None;
     let servo_on = mode == LearnMode::LearnedFeedback;
     for trial in 0..=s.iterations {
         if trial > 0 {

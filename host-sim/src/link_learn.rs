@@ -461,7 +461,8 @@ pub fn link_learn(
     let mut held = table.clone();
     let (mut stall, mut stopped_early) = (0, false);
     // The trial before's voltages, readings and table (the harmonic step's two-trial estimate).
-    let mut last_trial: Option<(Vec<Vec<f32>>, Vec<Vec<f32>>, Vec<Vec<f32>>)> = None;
+    type PerAxis = Vec<Vec<f32>>;
+    let mut last_trial: Option<(PerAxis, PerAxis, PerAxis)> = None;
     for k in 0..=a.iterations {
         play(client, &table, mode(a))?;
         let trial_record = record(client, &reference, a.settle_periods, a.periods)?;
