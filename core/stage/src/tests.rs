@@ -436,3 +436,32 @@ fn on_target_band_defaults_round_trips_and_refuses_bad_values_at_their_line() {
     let e = StageFile::parse("f.toml", &text).unwrap_err();
     assert!(e.to_string().contains("tolerance"), "{e}");
 }
+
+/// The firmware's build reads its stage file through [`crate::FirmwareSet::from_bytes`]: the
+/// firmware's own file with its gains read a million times too small (an output in µm taken
+/// for metres) gives a 40 pm stroke and is refused, naming the key, its line and the stroke.
+#[test]
+fn the_firmware_refuses_a_stroke_no_piezo_stage_has() {
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../firmware/params/xy-stage.toml"
+    );
+    let text = std::fs::read_to_string(path).unwrap();
+    assert!(crate::FirmwareSet::from_bytes(path, text.as_bytes()).is_ok());
+    let scaled: String = text
+        .lines()
+        .map(|line| match line.split_once(" = ") {
+            Some((key, value)) if key.starts_with("k1_") || key.starts_with("k2_") => {
+                format!("{key} = {:e}\n", value.parse::<f64>().unwrap() * 1e-6)
+            }
+            _ => format!("{line}\n"),
+        })
+        .collect();
+    let e = crate::FirmwareSet::from_bytes(path, scaled.as_bytes()).unwrap_err();
+    assert_eq!(e.key, "x.static_map.k1_m_per_v", "{e}");
+    let message = e.to_string();
+    assert!(
+        message.contains("stroke") && message.contains("xy-stage.toml"),
+        "{message}"
+    );
+}
