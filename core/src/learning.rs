@@ -671,16 +671,11 @@ impl Learning {
         if n < 2 || trial.measured_m.len() != n {
             return None;
         }
-        let mut state = ModelState::at_rest(if trial.periodic {
-            trial.command_v[0]
+        let mut state = if trial.periodic {
+            self.periodic_state(&|j| trial.command_v[j], n)
         } else {
-            self.settings.limits.output_min_v
-        });
-        if trial.periodic {
-            for &u in trial.command_v {
-                self.model.step(&mut state, u);
-            }
-        }
+            ModelState::at_rest(self.settings.limits.output_min_v)
+        };
         let (mut count, mut sp, mut sy, mut spp, mut syy, mut spy) =
             (0.0f64, 0.0, 0.0, 0.0, 0.0, 0.0);
         for (&u, &y) in trial.command_v.iter().zip(trial.measured_m) {
@@ -873,15 +868,12 @@ impl Learning {
             }
         };
         let n = next_v.len();
-        let slope = self.mean_slope(command, n);
+        // The model's own output along u_k, from its periodic state.
+        let start = self.periodic_state(command, n);
+        let slope = self.mean_slope(command, n, start);
         let model = |f: f64, i: usize| self.model_response(f, slope, i);
         let window =
             f64::from(self.settings.limits.output_max_v - self.settings.limits.output_min_v);
-        // The model's own output along u_k, from its periodic state.
-        let mut start = ModelState::at_rest(command(0));
-        for j in 0..n {
-            self.model.step(&mut start, command(j));
-        }
         let mut state = start;
         let mut predicted = |j: usize| {
             if j == 0 {
@@ -898,12 +890,11 @@ impl Learning {
             Some(p) if p.measured_m[j].is_finite() => f64::from(p.measured_m[j]),
             _ => measured(j),
         };
-        let mut previous_start = ModelState::at_rest(previous_command(0));
-        if trial.previous.is_some() {
-            for j in 0..n {
-                self.model.step(&mut previous_start, previous_command(j));
-            }
-        }
+        let previous_start = if trial.previous.is_some() {
+            self.periodic_state(&previous_command, n)
+        } else {
+            ModelState::at_rest(previous_command(0))
+        };
         let mut previous_state = previous_start;
         let mut previous_predicted = |j: usize| {
             if j == 0 {
@@ -948,13 +939,20 @@ impl Learning {
         )
     }
 
-    /// ḡ: the model's mean slope dy/du along one period of the command \[m/V\] (from its
-    /// periodic state).
-    fn mean_slope(&self, command: &dyn Fn(usize) -> f32, n: usize) -> f64 {
+    /// The model's periodic state for a command repeated with period `n`: from rest at its first
+    /// sample, after one whole period (the state each pass of the periodic trial starts from).
+    fn periodic_state(&self, command: &dyn Fn(usize) -> f32, n: usize) -> ModelState {
         let mut state = ModelState::at_rest(command(0));
         for j in 0..n {
             self.model.step(&mut state, command(j));
         }
+        state
+    }
+
+    /// ḡ: the model's mean slope dy/du along one period of the command \[m/V\], from its
+    /// periodic state `start` ([`Self::periodic_state`]).
+    fn mean_slope(&self, command: &dyn Fn(usize) -> f32, n: usize, start: ModelState) -> f64 {
+        let mut state = start;
         let (mut sum, mut count, mut direction) = (0.0f64, 0usize, 1.0f32);
         for j in 0..n {
             let from = state;
