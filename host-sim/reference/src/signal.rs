@@ -1123,7 +1123,8 @@ mod tests {
     }
 
     /// A `csv:` signal's time column is read in the unit its suffix names: `t_ms` plays as the
-    /// same file in `t_s`, where it was refused for lacking `t_s`.
+    /// same file in `t_s`, where it was refused for lacking `t_s`; a unit no time has is refused,
+    /// naming the file, its line and the column.
     #[test]
     fn a_csv_signal_reads_its_time_in_the_unit_its_suffix_names() {
         let dir = tempfile::tempdir().unwrap();
@@ -1161,6 +1162,6 @@ mod tests {
             .and_then(|spec| spec.build(1).map(|_| ()))
             .unwrap_err()
             .to_string();
-        assert!(err.contains("t_s"), "{err}");
+        assert!(err.contains("min.csv:1") && err.contains("`t_min`"), "{err}");
     }
 }
