@@ -109,7 +109,7 @@ Signal spec: KIND:key=value,key=value,...  (lists use '/', e.g. levels=0/5/10)
                                                    amp=7.8335 V, rise=1.8672e-6 s (a=4.1954 MV/s), period=1e-4 s)
   chirp       amp, offset (U), f0, f1 (Hz)             linear chirp f0->f1 over duration
   raster      x_low, x_high, y_low, y_high (U), line_freq (Hz)   two axes: x triangle, y slow ramp (xy-stage)
-  csv         path, column (default u_V or ux_V; the column's suffix gives its unit), hold=foh|zoh
+  csv         path, column (default u_V or ux_V; the column's suffix gives its unit; time t_s, t_ms, t_us or t_ns), hold=foh|zoh
 Examples: sine:amp=10,offset=10,freq=2,phase_deg=-90,duration=1,rate=10000
           staircase:low=0,high=120,step=10,hold=0.03";
 
@@ -543,7 +543,8 @@ pub enum SignalKind {
         /// V.
         y_high_v: f64,
     },
-    /// Samples from a CSV file (its `t_s` a record's time base, `crate::csv::Rows::time`).
+    /// Samples from a CSV file (its `t_s`, or `t_ms`, `t_us`, `t_ns`, a record's time base,
+    /// `crate::csv::Rows::time`).
     Csv {
         /// File.
         path: PathBuf,
@@ -786,8 +787,32 @@ fn signal_kind(
 fn csv_rows(path: &std::path::Path) -> Result<(crate::csv::Rows, Vec<f64>), SignalError> {
     let csv = |e: crate::csv::CsvError| SignalError::Csv(e.to_string());
     let rows = crate::csv::read_rows(path).map_err(csv)?;
-    let t = rows.time("t_s", 1.0).map_err(csv)?.to_vec();
+    // The time base in the unit its suffix names (`t_s`, `t_ms`, `t_us`/`t_µs`, `t_ns`), in
+    // seconds; without one, the error for `t_s`.
+    let (name, factor) = rows
+        .table
+        .names
+        .iter()
+        .find_map(|n| time_unit_factor(n).map(|f| (n.clone(), f)))
+        .unwrap_or_else(|| ("t_s".to_string(), 1.0));
+    let t = rows
+        .time(&name, factor)
+        .map_err(csv)?
+        .iter()
+        .map(|t| t * factor)
+        .collect();
     Ok((rows, t))
+}
+
+/// Seconds per unit of a time column named `t_<unit>` (`s`, `ms`, `us` or `µs`, `ns`).
+fn time_unit_factor(name: &str) -> Option<f64> {
+    match name.strip_prefix("t_")? {
+        "s" => Some(1.0),
+        "ms" => Some(1e-3),
+        "us" | "µs" => Some(1e-6),
+        "ns" => Some(1e-9),
+        _ => None,
+    }
 }
 
 fn csv_times(path: &std::path::Path) -> Result<Vec<f64>, SignalError> {
@@ -1095,5 +1120,48 @@ mod tests {
         assert!((sig[0].value(0.05) - 50.0).abs() < 1e-9);
         assert!((sig[1].value(0.5) - 10.0).abs() < 1e-9);
         assert!(s.build(1).is_err());
+    }
+
+    /// A `csv:` signal's time column is read in the unit its suffix names: `t_ms` plays as the
+    /// same file in `t_s`, where it was refused for lacking `t_s`; a unit no time has is refused,
+    /// naming the file, its line and the column.
+    #[test]
+    fn a_csv_signal_reads_its_time_in_the_unit_its_suffix_names() {
+        let dir = tempfile::tempdir().unwrap();
+        let write = |name: &str, header: &str, scale: f64| {
+            let path = dir.path().join(name);
+            let mut text = format!("{header},u_V\n");
+            for k in 0..20 {
+                text += &format!("{},{}\n", k as f64 * 1e-3 * scale, (k * k) as f64 * 0.1);
+            }
+            std::fs::write(&path, text).unwrap();
+            path
+        };
+        let in_s = write("s.csv", "t_s", 1.0);
+        let in_ms = write("ms.csv", "t_ms", 1e3);
+        let play = |path: &std::path::Path| {
+            let spec = SignalSpec::parse(&format!("csv:path={}", path.display())).unwrap();
+            let signal = spec.build(1).unwrap().remove(0);
+            (
+                spec.csv_end_s(),
+                [0.0, 0.0041, 0.0105, 0.019].map(|t| signal.value(t)),
+            )
+        };
+        let (end_s, values) = play(&in_s);
+        let (end_ms, values_ms) = play(&in_ms);
+        let (end_s, end_ms) = (end_s.unwrap(), end_ms.unwrap());
+        assert!(
+            (end_s - 0.02).abs() < 1e-12 && (end_ms - end_s).abs() < 1e-12,
+            "{end_ms}"
+        );
+        for (a, b) in values.iter().zip(values_ms) {
+            assert!((a - b).abs() < 1e-9, "{values:?} against {values_ms:?}");
+        }
+        let other = write("min.csv", "t_min", 1.0);
+        let err = SignalSpec::parse(&format!("csv:path={}", other.display()))
+            .and_then(|spec| spec.build(1).map(|_| ()))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("min.csv:1") && err.contains("`t_min`"), "{err}");
     }
 }

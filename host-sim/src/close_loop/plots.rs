@@ -94,7 +94,6 @@ fn fit_panels(a: &AxisOutcome, r: &Record, from: usize, after_name: &str) -> Vec
         |p: &[f64]| -> Vec<f64> { (from..p.len()).map(|k| (r.y_m[k] - p[k]) * 1e6).collect() };
     let rb = res(&a.before);
     let ra = res(&a.after);
-    let t: Vec<f64> = r.t_s[from..].to_vec();
     let u: Vec<f64> = r.u[from..].to_vec();
     let spec = |v: &[f64]| -> Vec<(f64, f64)> {
         diagnose::spectrum(v, ts)
@@ -105,17 +104,29 @@ fn fit_panels(a: &AxisOutcome, r: &Record, from: usize, after_name: &str) -> Vec
     // The amplitude a white noise of the estimated σ gives in this spectrum (Hann window over
     // N samples: 2σ·√(Σw²)/Σw = σ·√(6/N)) [µm].
     let noise_floor_um = a.noise_m * 1e6 * (6.0 / rb.len().max(1) as f64).sqrt();
+    // In time the whole record, its scale set by the fit window and the transient before it
+    // shaded (\[m\] for the scale, drawn in µm).
+    let whole = |p: &[f64]| -> Vec<f64> { (0..p.len()).map(|k| r.y_m[k] - p[k]).collect() };
+    let (wb, wa) = (whole(&a.before), whole(&a.after));
+    let in_um = |v: &[f64]| -> Vec<(f64, f64)> {
+        r.t_s.iter().zip(v).map(|(&t, &y)| (t, y * 1e6)).collect()
+    };
     vec![
-        Panel {
-            title: format!("{}: residual in time (fit window)", a.name),
-            x_label: "t [s]".into(),
-            y_label: "residual [um]".into(),
-            series: vec![
-                Series::line("before (base model)", pts(&t, &rb), 4000),
-                Series::line(after_name, pts(&t, &ra), 4000),
-            ],
-        }
-        .into(),
+        crate::track_plot::timed(
+            Panel {
+                title: format!("{}: residual in time (scored from the fit window)", a.name),
+                x_label: "t [s]".into(),
+                y_label: "residual [um]".into(),
+                series: vec![
+                    Series::line("before (base model)", in_um(&wb), 4000),
+                    Series::line(after_name, in_um(&wa), 4000),
+                ],
+            },
+            &r.t_s,
+            from,
+            &[&wb, &wa],
+            1e6,
+        ),
         Panel {
             title: format!("{}: residual against the input", a.name),
             x_label: "u [V]".into(),
