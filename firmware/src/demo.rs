@@ -60,6 +60,18 @@ pub fn settings() -> Result<LoopSettings, ConfigError> {
     LoopSettings::from_params(&AXES, AMPLIFIER_GAIN_V_PER_V, SAMPLE_PERIOD_S)
 }
 
+/// The loop a powered-up image starts: the built-in set's compensator, each axis at rest at its
+/// window's lower end (the rest voltage of a stage left unpowered, and the reference its rest
+/// output `rest_output_m`) until a request says otherwise.
+pub fn at_rest(settings: LoopSettings) -> TwoAxisLoop {
+    let rest = [0, 1].map(|i| Wave::Constant {
+        offset: AXES[i].rest_output_m,
+    });
+    let reference = ReferenceGenerator::new(Program::PerAxis(rest), SAMPLE_PERIOD_S, [0.0; 2]);
+    let initial = [AXES[0].limits.output_min_v, AXES[1].limits.output_min_v];
+    TwoAxisLoop::new(settings, Feedforward::Compensator, reference, initial)
+}
+
 /// The sensor gain of the parameter file.
 pub fn sensor_scale() -> Option<SensorScale> {
     SensorScale::new(SENSOR_M_PER_V)

@@ -260,9 +260,7 @@ mod image {
         use piezo_firmware::demo;
         use piezo_firmware::params;
         use piezo_firmware::plant::{plant_io, XyPlant};
-        use piezo_firmware::reference::{Program, ReferenceGenerator, Wave};
         use piezo_firmware::session::{self, Session};
-        use piezo_firmware::xy_loop::{Feedforward, TwoAxisLoop};
 
         /// mps2-an386's CPU clock, SysTick's source \[Hz\].
         const CPU_CLOCK_HZ: u32 = 25_000_000;
@@ -293,17 +291,7 @@ mod image {
             };
             let plant = Cell::new(stage);
             let mut io = plant_io(&plant, scale);
-            // At rest at the lower end of each window until told otherwise.
-            let rest = [0, 1].map(|i| Wave::Constant {
-                offset: params::AXES[i].rest_output_m,
-            });
-            let reference =
-                ReferenceGenerator::new(Program::PerAxis(rest), params::SAMPLE_PERIOD_S, [0.0; 2]);
-            let initial = [
-                params::AXES[0].limits.output_min_v,
-                params::AXES[1].limits.output_min_v,
-            ];
-            let lp = TwoAxisLoop::new(settings, Feedforward::Compensator, reference, initial);
+            let lp = demo::at_rest(settings);
             let mut session = Session::new(
                 lp,
                 params::VERSION,

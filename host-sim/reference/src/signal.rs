@@ -1162,6 +1162,9 @@ mod tests {
             .and_then(|spec| spec.build(1).map(|_| ()))
             .unwrap_err()
             .to_string();
-        assert!(err.contains("min.csv:1") && err.contains("`t_min`"), "{err}");
+        assert!(
+            err.contains("min.csv:1") && err.contains("`t_min`"),
+            "{err}"
+        );
     }
 }

@@ -19,9 +19,7 @@ mod app {
     };
     use piezo_firmware::demo;
     use piezo_firmware::params;
-    use piezo_firmware::reference::{Program, ReferenceGenerator, Wave};
     use piezo_firmware::session::{RequestKind, Session};
-    use piezo_firmware::xy_loop::{Feedforward, TwoAxisLoop};
 
     /// The link's state as telemetry reports it.
     #[derive(Clone, Copy, Default)]
@@ -81,16 +79,7 @@ mod app {
         };
         // At rest at the lower end of each window until told otherwise. The DAC init left both
         // outputs at 0 V; the first tick writes the window's lower end (0 V in the default file).
-        let rest = [0, 1].map(|i| Wave::Constant {
-            offset: params::AXES[i].rest_output_m,
-        });
-        let reference =
-            ReferenceGenerator::new(Program::PerAxis(rest), params::SAMPLE_PERIOD_S, [0.0; 2]);
-        let initial = [
-            params::AXES[0].limits.output_min_v,
-            params::AXES[1].limits.output_min_v,
-        ];
-        let lp = TwoAxisLoop::new(settings, Feedforward::Compensator, reference, initial);
+        let lp = demo::at_rest(settings);
         // Moved into its static slot (in .bss: the wave table makes it large); init runs once.
         let session: &'static mut Session = cx.local.session.write(Session::new(
             lp,
