@@ -50,23 +50,7 @@ mod app;
 
 #[cfg(target_os = "none")]
 mod exits {
-    use cortex_m_rt::{exception, ExceptionFrame};
-
-    use piezo_firmware::semihosting_exit::fail;
-
-    #[panic_handler]
-    fn panic(info: &core::panic::PanicInfo<'_>) -> ! {
-        fail(format_args!("board-emu: panic: {info}"))
-    }
-
-    #[allow(unsafe_code)] // cortex-m-rt requires HardFault to be an `unsafe fn`.
-    #[exception]
-    unsafe fn HardFault(frame: &ExceptionFrame) -> ! {
-        fail(format_args!(
-            "board-emu: HardFault at pc {:#010x}",
-            frame.pc()
-        ))
-    }
+    piezo_firmware::semihosting_fault_handlers!("board-emu: ");
 }
 
 #[cfg(not(target_os = "none"))]

@@ -29,7 +29,7 @@
 mod image {
     use core::cell::Cell;
 
-    use cortex_m_rt::{entry, exception, ExceptionFrame};
+    use cortex_m_rt::{entry, exception};
     use cortex_m_semihosting::{debug, hprintln};
 
     use piezo_firmware::demo;
@@ -131,16 +131,7 @@ mod image {
 
     use piezo_firmware::semihosting_exit::fail;
 
-    #[panic_handler]
-    fn panic(info: &core::panic::PanicInfo<'_>) -> ! {
-        fail(format_args!("panic: {info}"))
-    }
-
-    #[allow(unsafe_code)] // cortex-m-rt requires HardFault to be an `unsafe fn`.
-    #[exception]
-    unsafe fn HardFault(frame: &ExceptionFrame) -> ! {
-        fail(format_args!("HardFault at pc {:#010x}", frame.pc()))
-    }
+    piezo_firmware::semihosting_fault_handlers!("");
 
     #[allow(unsafe_code)] // cortex-m-rt requires DefaultHandler to be an `unsafe fn`.
     #[exception]
