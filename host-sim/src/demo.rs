@@ -427,7 +427,7 @@ pub fn run_demo(
         let pr = run_xy_stage(&stage, &probe, fs, &plant_effects);
         (
             id.join()
-                .unwrap_or_else(|_| Err(crate::Error::Panicked("identification run"))),
+                .unwrap_or(Err(crate::Error::Panicked("identification run"))),
             pr,
         )
     });
@@ -567,8 +567,7 @@ fn run_in_parallel(
         let hb = s.spawn(|| run_xy_stage(stage, b, fs, effects));
         let yc = run_xy_stage(stage, c, fs, effects);
         let join = |h: std::thread::ScopedJoinHandle<'_, crate::Result<[Vec<f64>; 2]>>| {
-            h.join()
-                .unwrap_or_else(|_| Err(crate::Error::Panicked("plant run")))
+            h.join().unwrap_or(Err(crate::Error::Panicked("plant run")))
         };
         (join(ha), join(hb), yc)
     });
