@@ -183,6 +183,9 @@ impl fmt::Display for ParamError {
     }
 }
 
+/// So that a caller's error can name the core's refusal as its `source()`.
+impl core::error::Error for ParamError {}
+
 /// Smallest accepted ratio min|dy/du| / max|dy/du| for an invertible map: the inverse amplifies an
 /// error in the reference by at most the inverse of this ratio relative to its best direction.
 pub const MIN_SLOPE_RATIO: f32 = 0.01;

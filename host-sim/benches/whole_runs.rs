@@ -33,7 +33,7 @@ fn forgione() -> Result<Record, String> {
     if !path.exists() {
         return Err(format!("{} not found", path.display()));
     }
-    Record::read(&path, None, None, None)
+    Record::read(&path, None, None, None).map_err(|e| e.to_string())
 }
 
 fn benches(c: &mut Criterion) {

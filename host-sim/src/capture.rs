@@ -261,24 +261,24 @@ impl fmt::Display for CaptureError {
 
 impl std::error::Error for CaptureError {}
 
-fn number<T: std::str::FromStr>(word: Option<&str>, what: &str) -> Result<T, String> {
-    let w = word.ok_or_else(|| format!("{what}: missing"))?;
+fn number<T: std::str::FromStr>(word: Option<&str>, what: &str) -> crate::Result<T> {
+    let w = word.ok_or_else(|| crate::Error::Data(format!("{what}: missing")))?;
     w.parse()
-        .map_err(|_| format!("{what}: `{w}` is not a number"))
+        .map_err(|_| crate::Error::Data(format!("{what}: `{w}` is not a number")))
 }
 
 /// Parses one log line: `None` if it is not a frame line, else the frame or what is wrong.
-pub fn parse_frame_line(line: &str) -> Option<Result<Frame, String>> {
+pub fn parse_frame_line(line: &str) -> Option<crate::Result<Frame>> {
     let text = &line[piezo_link::text::find_frame(line)?..];
     Some(
         text.parse::<Frame>()
-            .map_err(|e| e.in_text(text).to_string()),
+            .map_err(|e| crate::Error::Data(e.in_text(text).to_string())),
     )
 }
 
 /// Parses a boot line (`parameters <version> (<file>), fnv1a32 0x…[, fingerprint 0x…], loop
 /// <rate> Hz[, one frame every <n> ticks]`): `None` if the line is not one.
-pub fn parse_boot_line(line: &str, number_1: usize) -> Option<Result<BootLine, String>> {
+pub fn parse_boot_line(line: &str, number_1: usize) -> Option<crate::Result<BootLine>> {
     let p = line.find("parameters ")?;
     let rest = &line[p + "parameters ".len()..];
     let fnv_at = rest.find(", fnv1a32 ")?;
@@ -289,14 +289,20 @@ pub fn parse_boot_line(line: &str, number_1: usize) -> Option<Result<BootLine, S
         let fnv1a32 = fields
             .next()
             .and_then(|f| f.strip_prefix("fnv1a32 "))
-            .ok_or("no `fnv1a32 0x…`")?
+            .ok_or_else(|| crate::Error::Data("no `fnv1a32 0x…`".into()))?
             .trim()
             .to_string();
-        let mut loop_field = fields.next().ok_or("no `loop <rate> Hz` field")?.trim();
+        let mut loop_field = fields
+            .next()
+            .ok_or_else(|| crate::Error::Data("no `loop <rate> Hz` field".into()))?
+            .trim();
         let fingerprint = match loop_field.strip_prefix("fingerprint ") {
             Some(f) => {
                 let f = f.trim().to_string();
-                loop_field = fields.next().ok_or("no `loop <rate> Hz` field")?.trim();
+                loop_field = fields
+                    .next()
+                    .ok_or_else(|| crate::Error::Data("no `loop <rate> Hz` field".into()))?
+                    .trim();
                 Some(f)
             }
             None => None,
@@ -304,10 +310,14 @@ pub fn parse_boot_line(line: &str, number_1: usize) -> Option<Result<BootLine, S
         let rate = loop_field
             .strip_prefix("loop ")
             .and_then(|s| s.strip_suffix(" Hz"))
-            .ok_or_else(|| format!("expected `loop <rate> Hz`, found `{loop_field}`"))?;
+            .ok_or_else(|| {
+                crate::Error::Data(format!("expected `loop <rate> Hz`, found `{loop_field}`"))
+            })?;
         let loop_rate_hz: f64 = number(Some(rate), "loop rate")?;
         if !(loop_rate_hz > 0.0 && loop_rate_hz.is_finite()) {
-            return Err(format!("loop rate {loop_rate_hz} Hz is not positive"));
+            return Err(crate::Error::Data(format!(
+                "loop rate {loop_rate_hz} Hz is not positive"
+            )));
         }
         let decimation = match fields.next() {
             Some(d) => {
@@ -315,7 +325,11 @@ pub fn parse_boot_line(line: &str, number_1: usize) -> Option<Result<BootLine, S
                     .trim()
                     .strip_prefix("one frame every ")
                     .and_then(|s| s.split_whitespace().next())
-                    .ok_or_else(|| format!("expected `one frame every <n> ticks`, found `{d}`"))?;
+                    .ok_or_else(|| {
+                        crate::Error::Data(format!(
+                            "expected `one frame every <n> ticks`, found `{d}`"
+                        ))
+                    })?;
                 let n: u32 = number(Some(n), "frame decimation")?;
                 Some(n.max(1))
             }
@@ -374,7 +388,7 @@ pub fn parse_log(path: &Path, text: &str, allow_gaps: bool) -> Result<CapturedLo
                 }
                 continue;
             }
-            Some(f) => f.map_err(malformed)?,
+            Some(f) => f.map_err(|e| malformed(e.to_string()))?,
         };
         let unwrapped = match last {
             None => u64::from(frame.sequence),
@@ -489,16 +503,20 @@ pub struct CaptureArgs {
 }
 
 /// Runs `capture`: progress and gap reports go to `progress` (stderr), the summary is returned.
-pub fn run(a: &CaptureArgs, progress: &mut dyn FnMut(&str)) -> Result<String, String> {
+pub fn run(a: &CaptureArgs, progress: &mut dyn FnMut(&str)) -> crate::Result<String> {
     if let Some(r) = a.rate {
         if !(r > 0.0 && r.is_finite()) {
-            return Err(format!("--rate: {r} is not a positive rate in Hz"));
+            return Err(crate::Error::Data(format!(
+                "--rate: {r} is not a positive rate in Hz"
+            )));
         }
     }
     if a.decimation == Some(0) {
-        return Err("--decimation: must be at least 1".into());
+        return Err(crate::Error::Data(
+            "--decimation: must be at least 1".into(),
+        ));
     }
-    let log = read_log(&a.log, a.allow_gaps).map_err(|e| e.to_string())?;
+    let log = read_log(&a.log, a.allow_gaps).map_err(crate::Error::from)?;
     let mut notes = Vec::new();
     let loop_rate_hz = match (a.rate, &log.boot) {
         (Some(r), Some(b)) if r != b.loop_rate_hz => {
@@ -510,7 +528,7 @@ pub fn run(a: &CaptureArgs, progress: &mut dyn FnMut(&str)) -> Result<String, St
         }
         (Some(r), _) => r,
         (None, Some(b)) => b.loop_rate_hz,
-        (None, None) => return Err(CaptureError::NoRate { path: log.path }.to_string()),
+        (None, None) => return Err(CaptureError::NoRate { path: log.path }.into()),
     };
     let decimation = match (a.decimation, log.boot.as_ref().and_then(|b| b.decimation)) {
         (Some(d), _) => d,
@@ -544,7 +562,7 @@ pub fn run(a: &CaptureArgs, progress: &mut dyn FnMut(&str)) -> Result<String, St
             path: log.path.clone(),
             frames: log.frames.len(),
         }
-        .to_string());
+        .into());
     }
     if let Some(note) = record.lead_note() {
         progress(&format!("capture: {note}"));
@@ -579,7 +597,7 @@ pub fn run(a: &CaptureArgs, progress: &mut dyn FnMut(&str)) -> Result<String, St
     ];
     table
         .write(&a.out, &comments)
-        .map_err(|e| format!("--out: {e}"))?;
+        .map_err(|e| crate::Error::Data(format!("--out: {e}")))?;
     let summary = format!(
         "capture: {} frames {first}..={last} from {} ({params}; {} lines) at {} Hz per frame, {}; {} rows written to {} ({})",
         log.frames.len(),

@@ -94,7 +94,7 @@ All modes command one sample ahead. Output window 0-120 V."
 }
 
 /// Runs a parsed command line; errors are returned as messages that name the argument at fault.
-pub fn run(cli: Cli) -> Result<String, String> {
+pub fn run(cli: Cli) -> crate::Result<String> {
     match cli.command {
         Command::Simulate(a) => crate::simulate::simulate_cmd(&a),
         Command::Demo(a) => crate::demo::demo_cmd(&a),
@@ -328,11 +328,11 @@ mod tests {
     #[test]
     fn demo_errors_name_the_option() {
         let cli = Cli::try_parse_from(["host-sim", "demo", "--x-freq", "0"]).unwrap();
-        let e = run(cli).unwrap_err();
+        let e = run(cli).unwrap_err().to_string();
         assert!(e.starts_with("--x-freq"), "{e}");
         let cli =
             Cli::try_parse_from(["host-sim", "demo", "--low", "0.5", "--high", "0.2"]).unwrap();
-        assert!(run(cli).unwrap_err().starts_with("--low"));
+        assert!(run(cli).unwrap_err().to_string().starts_with("--low"));
         let e = Cli::try_parse_from(["host-sim", "demo", "--rate", "fast"])
             .unwrap_err()
             .to_string();
@@ -343,13 +343,19 @@ mod tests {
     fn errors_name_the_argument_and_choices() {
         let scratch = tempfile::tempdir().unwrap();
         let out = scratch.path().join("refused.csv");
-        let e = run(args("nac", "sine", &[], &out)).unwrap_err();
+        let e = run(args("nac", "sine", &[], &out)).unwrap_err().to_string();
         assert!(e.starts_with("--plant") && e.contains("xy-stage"), "{e}");
-        let e = run(args("stage", "sine:freq=fast", &[], &out)).unwrap_err();
+        let e = run(args("stage", "sine:freq=fast", &[], &out))
+            .unwrap_err()
+            .to_string();
         assert!(e.starts_with("--signal") && e.contains("fast"), "{e}");
-        let e = run(args("stage", "sine", &["creeep"], &out)).unwrap_err();
+        let e = run(args("stage", "sine", &["creeep"], &out))
+            .unwrap_err()
+            .to_string();
         assert!(e.starts_with("--effect") && e.contains("drift"), "{e}");
-        let e = run(args("stage", "sine", &["coupling"], &out)).unwrap_err();
+        let e = run(args("stage", "sine", &["coupling"], &out))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("xy-stage only"), "{e}");
     }
 
@@ -397,7 +403,7 @@ mod tests {
         run(cli_with_plot("stage.png")).unwrap();
         let png = std::fs::read(dir.join("stage.png")).unwrap();
         assert!(png.starts_with(b"\x89PNG\r\n\x1a\n"));
-        let e = run(cli_with_plot("stage.pdf")).unwrap_err();
+        let e = run(cli_with_plot("stage.pdf")).unwrap_err().to_string();
         assert!(e.starts_with("--plot") && e.contains(".pdf"), "{e}");
         assert!(!dir.join("stage.pdf").exists());
     }

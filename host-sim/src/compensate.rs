@@ -100,8 +100,8 @@ pub struct Reference {
 /// Reads a reference record: `t_<unit>` (a record's time base: `t_s`, or `t_ms`, `t_us`, `t_ns`)
 /// and `r_<unit>` or `rx_<unit>`, `ry_<unit>`, finite in f32, converted to SI; errors name the
 /// file, the line and the column.
-pub fn read_reference(path: &Path) -> Result<Reference, String> {
-    let rows = read_rows(path).map_err(|e| e.to_string())?;
+pub fn read_reference(path: &Path) -> crate::Result<Reference> {
+    let rows = read_rows(path).map_err(crate::Error::from)?;
     let table = &rows.table;
     let (t_name, t_factor) = table
         .names
@@ -112,15 +112,15 @@ pub fn read_reference(path: &Path) -> Result<Reference, String> {
             _ => None,
         })
         .ok_or_else(|| {
-            format!(
+            crate::Error::Usage(format!(
                 "{}: no time column: expected `t_s` (or t_ms, t_us, t_ns); columns: {}",
                 path.display(),
                 table.names.join(", ")
-            )
+            ))
         })?;
     let t_s = rows
         .time(&t_name, t_factor)
-        .map_err(|e| e.to_string())?
+        .map_err(crate::Error::from)?
         .iter()
         .map(|t| t * t_factor)
         .collect();
@@ -135,22 +135,22 @@ pub fn read_reference(path: &Path) -> Result<Reference, String> {
         (Some(x), Some(y), _) => vec![x, y],
         (_, _, Some(r)) => vec![r],
         _ => {
-            return Err(format!(
+            return Err(crate::Error::Usage(format!(
                 "{}: no reference column: expected `r_m` (one axis) or `rx_m` and `ry_m` (two \
                  axes), or the same in mm, um, nm; columns: {}",
                 path.display(),
                 table.names.join(", ")
-            ))
+            )))
         }
     };
     let axes = names
         .into_iter()
         .map(|name| {
             let factor = unit_factor(&name).unwrap_or(1.0);
-            let column = rows.f32_column(&name, factor).map_err(|e| e.to_string())?;
+            let column = rows.f32_column(&name, factor).map_err(crate::Error::from)?;
             Ok((name, column.iter().map(|&v| v as f32).collect()))
         })
-        .collect::<Result<_, String>>()?;
+        .collect::<crate::Result<_>>()?;
     Ok(Reference {
         t_s,
         lines: rows.lines,
@@ -164,7 +164,7 @@ fn check_period(
     record: &Reference,
     params: &Path,
     rate_hz: f32,
-) -> Result<(), String> {
+) -> crate::Result<()> {
     let t_s = &record.t_s;
     let period_s = 1.0 / f64::from(rate_hz);
     let mean = (t_s[t_s.len() - 1] - t_s[0]) / (t_s.len() - 1) as f64;
@@ -182,7 +182,7 @@ fn check_period(
                 t_s[i + 1] - t_s[i]
             )
         });
-        return Err(format!(
+        return Err(crate::Error::Usage(format!(
             "{}: sample period {mean} s (column t_s, lines {}-{}){at} differs from the loop \
              period {period_s} s of {} (stage.loop_rate_hz = {rate_hz} Hz): resample the \
              reference at the loop rate",
@@ -190,7 +190,7 @@ fn check_period(
             line(0),
             line(t_s.len() - 1),
             params.display()
-        ));
+        )));
     }
     Ok(())
 }
@@ -200,7 +200,7 @@ pub fn feedforward_axes(
     file: &StageFile,
     valid: &ValidStage,
     params: &Path,
-) -> Result<Vec<FeedforwardAxis>, String> {
+) -> crate::Result<Vec<FeedforwardAxis>> {
     let text = std::fs::read_to_string(params).unwrap_or_default();
     feedforward_axes_of(file, valid, &params.display().to_string(), &text)
 }
@@ -212,7 +212,7 @@ pub fn feedforward_axes_of(
     valid: &ValidStage,
     name: &str,
     text: &str,
-) -> Result<Vec<FeedforwardAxis>, String> {
+) -> crate::Result<Vec<FeedforwardAxis>> {
     valid
         .axes
         .iter()
@@ -233,7 +233,7 @@ pub fn feedforward_axes_of(
                 Err(
                     StageError::new(name, StageErrorKind::Invalid, &key, message)
                         .located(name, text)
-                        .to_string(),
+                        .into(),
                 )
             }
         })
@@ -274,21 +274,21 @@ impl Compensation {
 
 /// Runs the firmware's chain for the stage file at `params` over the record at `reference`;
 /// every voltage must be finite (refused naming the tick, its time and the reference's line).
-pub fn compensate(params: &Path, reference: &Path) -> Result<Compensation, String> {
+pub fn compensate(params: &Path, reference: &Path) -> crate::Result<Compensation> {
     compensate_record(params, reference, &|| read_reference(reference))
 }
 
 /// The record `read` gives, from `reference` (perhaps changed; errors name that file's lines),
 /// read after the stage file loaded.
-type ReadRecord<'a> = &'a dyn Fn() -> Result<Reference, String>;
+type ReadRecord<'a> = &'a dyn Fn() -> crate::Result<Reference>;
 
 /// [`compensate`] over the record `read` gives.
 fn compensate_record(
     params: &Path,
     reference: &Path,
     read: ReadRecord<'_>,
-) -> Result<Compensation, String> {
-    let (file, valid) = StageFile::load(params).map_err(|e| e.to_string())?;
+) -> crate::Result<Compensation> {
+    let (file, valid) = StageFile::load(params).map_err(crate::Error::from)?;
     let text = std::fs::read_to_string(params).unwrap_or_default();
     let record = &read()?;
     compensate_stage(&file, &valid, (params, &text), reference, record, false)
@@ -305,7 +305,7 @@ pub fn compensate_stage(
     reference: &Path,
     record: &Reference,
     periodic: bool,
-) -> Result<Compensation, String> {
+) -> crate::Result<Compensation> {
     if periodic {
         return compensate_periodic_stage(file, valid, (params, text), reference, record);
     }
@@ -314,13 +314,13 @@ pub fn compensate_stage(
     let result = run_chain(&axes, params, reference, record)?;
     for (name, u) in &result.voltages_v {
         if let Some(k) = u.iter().position(|v| !v.is_finite()) {
-            return Err(format!(
+            return Err(crate::Error::Usage(format!(
                 "{name} is not a finite number at tick {k} (t = {} s, line {} of {}): nothing \
                  is written",
                 record.t_s[k],
                 record.lines[k],
                 reference.display()
-            ));
+            )));
         }
     }
     Ok(result)
@@ -334,7 +334,7 @@ pub fn compensate_for_gain(
     reference: &Path,
     periodic: bool,
     gain_offset: &[(f64, f64)],
-) -> Result<Compensation, String> {
+) -> crate::Result<Compensation> {
     let read = || {
         let mut record = read_reference(reference)?;
         for ((_, r), &(gain, offset)) in record.axes.iter_mut().zip(gain_offset) {
@@ -391,7 +391,7 @@ pub fn periodic_settings(axes: &[FeedforwardAxis], period_s: f64) -> PeriodicSet
 /// does only geometrically) and at most [`MAX_SETTLING_S`]; the look-ahead of the period's end
 /// reads the next period. The period taken, `t_s` the record's; `counts` are of the whole run,
 /// `settling` says how it ended (a stage file with drift moves every period).
-pub fn compensate_periodic(params: &Path, reference: &Path) -> Result<Compensation, String> {
+pub fn compensate_periodic(params: &Path, reference: &Path) -> crate::Result<Compensation> {
     compensate_periodic_record(params, reference, &|| read_reference(reference))
 }
 
@@ -400,8 +400,8 @@ fn compensate_periodic_record(
     params: &Path,
     reference: &Path,
     read: ReadRecord<'_>,
-) -> Result<Compensation, String> {
-    let (file, valid) = StageFile::load(params).map_err(|e| e.to_string())?;
+) -> crate::Result<Compensation> {
+    let (file, valid) = StageFile::load(params).map_err(crate::Error::from)?;
     let text = std::fs::read_to_string(params).unwrap_or_default();
     let record = &read()?;
     compensate_periodic_stage(&file, &valid, (params, &text), reference, record)
@@ -414,7 +414,7 @@ fn compensate_periodic_stage(
     (params, text): (&Path, &str),
     reference: &Path,
     record: &Reference,
-) -> Result<Compensation, String> {
+) -> crate::Result<Compensation> {
     check_period(reference, record, params, file.stage.loop_rate_hz)?;
     let axes = feedforward_axes_of(file, valid, &params.display().to_string(), text)?;
     let n = record.t_s.len();
@@ -442,13 +442,13 @@ fn compensate_periodic_stage(
     };
     for (name, u) in &voltages_v {
         if let Some(k) = u.iter().position(|v| !v.is_finite()) {
-            return Err(format!(
+            return Err(crate::Error::Usage(format!(
                 "{name} is not a finite number at tick {k} of the period (t = {} s, line {} of \
                  {}), played in a loop: nothing is written",
                 record.t_s[k],
                 record.lines[k],
                 reference.display()
-            ));
+            )));
         }
     }
     Ok(Compensation {
@@ -466,8 +466,8 @@ fn axes_mismatch(
     stage_axes: &[FeedforwardAxis],
     reference: &Path,
     columns: &[(String, Vec<f32>)],
-) -> String {
-    format!(
+) -> crate::Error {
+    crate::Error::Usage(format!(
         "{} has {} axis(es) but {} has {} reference column(s) ({}): give `r_m` for a one-axis \
          stage file, `rx_m` and `ry_m` for a two-axis one",
         params.display(),
@@ -479,7 +479,7 @@ fn axes_mismatch(
             .map(|(name, _)| name.as_str())
             .collect::<Vec<_>>()
             .join(", ")
-    )
+    ))
 }
 
 /// The chain of `axes` (from `params`) over `record` (from `reference`).
@@ -488,7 +488,7 @@ fn run_chain(
     params: &Path,
     reference: &Path,
     record: &Reference,
-) -> Result<Compensation, String> {
+) -> crate::Result<Compensation> {
     let n = record.t_s.len();
     match (axes, record.axes.as_slice()) {
         ([x], [(_, r)]) => {
@@ -519,19 +519,23 @@ fn run_chain(
 }
 
 /// `host-sim compensate`: computes and writes the voltages; returns the summary line.
-pub fn compensate_cmd(a: &CompensateArgs) -> Result<String, String> {
+pub fn compensate_cmd(a: &CompensateArgs) -> crate::Result<String> {
     if let Some(plot) = &a.plot {
         crate::track_plot::check_plot_path("--plot", plot)?;
     }
     if !(a.settle >= 0.0 && a.settle.is_finite()) {
-        return Err(format!("--settle {}: must be a time ≥ 0 s", a.settle));
+        return Err(crate::Error::Usage(format!(
+            "--settle {}: must be a time ≥ 0 s",
+            a.settle
+        )));
     }
     if let Some(spec) = &a.signal {
         write_reference(&a.params, spec, &a.reference)?;
     }
     let result = compensate(&a.params, &a.reference)?;
-    write_csv(&a.out, &result.to_table()).map_err(|e| format!("--out: {e}"))?;
-    let (_, valid) = StageFile::load(&a.params).map_err(|e| e.to_string())?;
+    write_csv(&a.out, &result.to_table())
+        .map_err(|e| crate::Error::Usage(format!("--out: {e}")))?;
+    let (_, valid) = StageFile::load(&a.params).map_err(crate::Error::from)?;
     let envelope = envelope_summary(&valid, &result.voltages_v);
     let plotted = match &a.plot {
         Some(plot) => plot_compensation(a, plot, &result)?,
@@ -563,7 +567,7 @@ fn plot_compensation(
     a: &CompensateArgs,
     plot: &Path,
     result: &Compensation,
-) -> Result<String, String> {
+) -> crate::Result<String> {
     use crate::identify::{predict, Record};
     use crate::track_plot::{tracking_charts, write_figure, TrackAxis};
     let stage = predict::read_stage(&a.params)?;
@@ -571,11 +575,11 @@ fn plot_compensation(
     let t_s = &result.t_s;
     let from = t_s.partition_point(|&t| t < t_s[0] + a.settle);
     if from + 1 >= t_s.len() {
-        return Err(format!(
+        return Err(crate::Error::Usage(format!(
             "--settle {}: leaves fewer than two of the {} samples to score",
             a.settle,
             t_s.len()
-        ));
+        )));
     }
     // The compensator starts from rest at each axis's output_min_v; the model starts from rest at
     // its first input: one sample at output_min_v, one period before the first tick, puts it in
@@ -676,11 +680,14 @@ fn envelope_summary(valid: &ValidStage, voltages_v: &[(String, Vec<f32>)]) -> St
 
 /// Writes the reference of `spec` (values in µm) at the loop rate of the stage file at `params`:
 /// `t_s,r_um` for one axis, `t_s,rx_um,ry_um` for two.
-fn write_reference(params: &Path, spec: &str, path: &Path) -> Result<(), String> {
-    let (file, _) = StageFile::load(params).map_err(|e| e.to_string())?;
+fn write_reference(params: &Path, spec: &str, path: &Path) -> crate::Result<()> {
+    let (file, _) = StageFile::load(params).map_err(crate::Error::from)?;
     let axes = file.axes().len();
-    let spec = crate::signal::SignalSpec::parse(spec).map_err(|e| format!("--signal: {e}"))?;
-    let signals = spec.build(axes).map_err(|e| format!("--signal: {e}"))?;
+    let spec = crate::signal::SignalSpec::parse(spec)
+        .map_err(|e| crate::Error::Usage(format!("--signal: {e}")))?;
+    let signals = spec
+        .build(axes)
+        .map_err(|e| crate::Error::Usage(format!("--signal: {e}")))?;
     let rate = f64::from(file.stage.loop_rate_hz);
     if let Some(duration_s) = spec.duration_s {
         if let Some(w) = crate::simulate::csv_length_warning(&spec, duration_s, "duration=") {
@@ -704,9 +711,10 @@ fn write_reference(params: &Path, spec: &str, path: &Path) -> Result<(), String>
         columns,
     };
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).map_err(|e| format!("--reference {}: {e}", dir.display()))?;
+        std::fs::create_dir_all(dir)
+            .map_err(|e| crate::Error::Usage(format!("--reference {}: {e}", dir.display())))?;
     }
-    write_csv(path, &table).map_err(|e| format!("--reference: {e}"))
+    write_csv(path, &table).map_err(|e| crate::Error::Usage(format!("--reference: {e}")))
 }
 
 #[cfg(test)]
@@ -783,7 +791,7 @@ mod tests {
                 assert!((p - q).abs() <= 1e-6 * p.abs(), "{p} vs {q}");
             }
         }
-        let e = read_reference(&untimed).unwrap_err();
+        let e = read_reference(&untimed).unwrap_err().to_string();
         assert!(
             e.contains("no time column") && e.contains("x_m, r_m"),
             "{e}"
@@ -916,7 +924,7 @@ mod tests {
         let f = |t: f64| 10e-6 + t;
         // Wrong rate: names both files and both periods.
         write_reference(&reference, 5_000.0, 100, &[("rx_m", &f), ("ry_m", &f)]);
-        let e = compensate(&params, &reference).unwrap_err();
+        let e = compensate(&params, &reference).unwrap_err().to_string();
         assert!(
             e.contains("ref.csv")
                 && e.contains("xy-stage-effects.toml")
@@ -926,18 +934,20 @@ mod tests {
         );
         // One column for two axes.
         write_reference(&reference, 10_000.0, 100, &[("r_m", &f)]);
-        let e = compensate(&params, &reference).unwrap_err();
+        let e = compensate(&params, &reference).unwrap_err().to_string();
         assert!(e.contains("2 axis") && e.contains("r_m"), "{e}");
         // No reference column.
         write_reference(&reference, 10_000.0, 100, &[("u_V", &f)]);
-        let e = compensate(&params, &reference).unwrap_err();
+        let e = compensate(&params, &reference).unwrap_err().to_string();
         assert!(e.contains("ref.csv") && e.contains("rx_m"), "{e}");
         // A bad cell: file, line and column.
         std::fs::write(&reference, "t_s,r_m\n0,1e-6\n0.0001,oops\n").unwrap();
-        let e = compensate(&params, &reference).unwrap_err();
+        let e = compensate(&params, &reference).unwrap_err().to_string();
         assert!(e.contains("ref.csv:3") && e.contains("r_m"), "{e}");
         // A stage file that does not exist.
-        let e = compensate(&dir.join("none.toml"), &reference).unwrap_err();
+        let e = compensate(&dir.join("none.toml"), &reference)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("none.toml"), "{e}");
     }
 }

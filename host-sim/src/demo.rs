@@ -96,12 +96,14 @@ impl Default for DemoSettings {
 
 impl DemoSettings {
     /// Checks ranges; the error names the setting (as its command-line option).
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> crate::Result<()> {
         let pos = |name: &str, v: f64| {
             if v > 0.0 && v.is_finite() {
                 Ok(())
             } else {
-                Err(format!("{name}: must be positive and finite, got {v}"))
+                Err(crate::Error::Usage(format!(
+                    "{name}: must be positive and finite, got {v}"
+                )))
             }
         };
         pos("--x-freq", self.x_frequency_hz)?;
@@ -110,19 +112,19 @@ impl DemoSettings {
         pos("--rate", self.loop_rate_hz)?;
         pos("--identify", self.identify_s)?;
         if !(self.settle_s >= 0.0 && self.settle_s < self.duration_s) {
-            return Err(format!(
+            return Err(crate::Error::Usage(format!(
                 "--settle: must be in [0, duration), got {}",
                 self.settle_s
-            ));
+            )));
         }
         if !(0.0 <= self.low_fraction
             && self.low_fraction < self.high_fraction
             && self.high_fraction <= 1.0)
         {
-            return Err(format!(
+            return Err(crate::Error::Usage(format!(
                 "--low/--high: need 0 <= low < high <= 1, got {} and {}",
                 self.low_fraction, self.high_fraction
-            ));
+            )));
         }
         for (name, seconds) in [
             ("--duration", self.duration_s),
@@ -130,18 +132,20 @@ impl DemoSettings {
         ] {
             let n = (seconds * self.loop_rate_hz).round();
             if !(10.0..=5e7).contains(&n) {
-                return Err(format!("{name} × --rate: {n} samples, need 10 .. 5e7"));
+                return Err(crate::Error::Usage(format!(
+                    "{name} × --rate: {n} samples, need 10 .. 5e7"
+                )));
             }
         }
         self.effects()?;
         Ok(())
     }
 
-    fn effects(&self) -> Result<Effects, String> {
+    fn effects(&self) -> crate::Result<Effects> {
         let mut e = Effects::default();
         for spec in &self.plant_effects {
             e.add_spec(spec)
-                .map_err(|err| format!("--plant-effect {spec}: {err}"))?;
+                .map_err(|err| crate::Error::Usage(format!("--plant-effect {spec}: {err}")))?;
         }
         Ok(e)
     }
@@ -216,20 +220,22 @@ pub fn run_xy_stage(
     voltages_v: &[Vec<f64>; 2],
     loop_rate_hz: f64,
     effects: &Effects,
-) -> Result<[Vec<f64>; 2], String> {
+) -> crate::Result<[Vec<f64>; 2]> {
     let n = voltages_v[0].len();
     let times: Vec<f64> = (0..n).map(|k| k as f64 / loop_rate_hz).collect();
     let mut signals: Vec<Box<dyn Signal>> = Vec::with_capacity(2);
     for v in voltages_v {
-        let zoh = Piecewise::new(times.clone(), v.clone(), true).map_err(|e| e.to_string())?;
+        let zoh = Piecewise::new(times.clone(), v.clone(), true).map_err(crate::Error::from)?;
         signals.push(Box::new(zoh));
     }
     let settings = SimSettings::new(loop_rate_hz, n as f64 / loop_rate_hz);
-    let out = simulate(stage, signals, effects, &settings).map_err(|e| e.to_string())?;
+    let out = simulate(stage, signals, effects, &settings).map_err(crate::Error::from)?;
     let mut it = out.outputs_m.into_iter();
     match (it.next(), it.next()) {
         (Some(x), Some(y)) => Ok([x, y]),
-        _ => Err("xy-stage returned fewer than two outputs".into()),
+        _ => Err(crate::Error::Usage(
+            "xy-stage returned fewer than two outputs".into(),
+        )),
     }
 }
 
@@ -242,7 +248,7 @@ pub fn axis_compensator(
     stage: &XyStage,
     axis: usize,
     loop_rate_hz: f64,
-) -> Result<(Compensator, BoucWenParams), String> {
+) -> crate::Result<(Compensator, BoucWenParams)> {
     let (ax, ay) = stage.axes();
     let a = if axis == 0 { ax } else { ay };
     let k1 = stage.static_gain()[axis] * stage.stack_gain_m_per_v()[axis];
@@ -266,8 +272,12 @@ pub fn axis_compensator(
         };
         Compensator::new(StaticModel::new(bw, map)?, window(loop_rate_hz))
     };
-    let compensator =
-        build().map_err(|e| format!("piezo-core refused the {} axis set: {e}", AXES[axis]))?;
+    let compensator = build().map_err(|e| {
+        crate::Error::Refused(format!(
+            "piezo-core refused the {} axis set: {e}",
+            AXES[axis]
+        ))
+    })?;
     Ok((compensator, bouc_wen))
 }
 
@@ -279,10 +289,13 @@ fn window(loop_rate_hz: f64) -> CompensatorSettings {
 }
 
 /// The compensator of an identified axis model (its hysteresis part) over 0–120 V.
-fn model_compensator(m: &AxisModel, loop_rate_hz: f64) -> Result<Compensator, String> {
+fn model_compensator(m: &AxisModel, loop_rate_hz: f64) -> crate::Result<Compensator> {
     let (model, _) = m.build()?;
-    Compensator::new(model, window(loop_rate_hz))
-        .map_err(|e| format!("piezo-core's compensator refused the identified set: {e}"))
+    Compensator::new(model, window(loop_rate_hz)).map_err(|e| {
+        crate::Error::Refused(format!(
+            "piezo-core's compensator refused the identified set: {e}"
+        ))
+    })
 }
 
 /// Feed-forward voltages for the references `r[k+1]` of both axes with the identified models: the
@@ -294,7 +307,7 @@ fn compensate(
     reference_m: &[Vec<f64>; 2],
     loop_rate_hz: f64,
     effects: bool,
-) -> Result<[Vec<f64>; 2], String> {
+) -> crate::Result<[Vec<f64>; 2]> {
     let n = reference_m[0].len();
     // u[k] is for r[k+1]: the reference one sample ahead, its last sample held.
     let ahead: [Vec<f32>; 2] = std::array::from_fn(|a| {
@@ -302,7 +315,7 @@ fn compensate(
             .map(|k| reference_m[a][(k + 1).min(n - 1)] as f32)
             .collect()
     });
-    let axis = |a: usize| -> Result<FeedforwardAxis, String> {
+    let axis = |a: usize| -> crate::Result<FeedforwardAxis> {
         let m = models[a];
         let params = if effects {
             m.effects
@@ -319,7 +332,12 @@ fn compensate(
                     output_m: m.w_range_m,
                 },
             )
-            .map_err(|e| format!("piezo-core refused the {} axis effects: {e}", AXES[a]))?,
+            .map_err(|e| {
+                crate::Error::Refused(format!(
+                    "piezo-core refused the {} axis effects: {e}",
+                    AXES[a]
+                ))
+            })?,
             rest_v: OUTPUT_MIN_V as f32,
         })
     };
@@ -364,7 +382,7 @@ fn affine_fit(u: &[f64], y: &[f64], skip: usize) -> (f64, f64) {
 pub fn run_demo(
     settings: &DemoSettings,
     progress: &mut dyn FnMut(&str),
-) -> Result<DemoResult, String> {
+) -> crate::Result<DemoResult> {
     settings.validate()?;
     let plant_effects = settings.effects()?;
     let stage = XyStage::default();
@@ -409,7 +427,7 @@ pub fn run_demo(
         let pr = run_xy_stage(&stage, &probe, fs, &plant_effects);
         (
             id.join()
-                .unwrap_or_else(|_| Err("identification run panicked".into())),
+                .unwrap_or(Err(crate::Error::Panicked("identification run"))),
             pr,
         )
     });
@@ -507,7 +525,7 @@ fn close_loop_on_record(
     id_y: &[Vec<f64>; 2],
     fs: f64,
     progress: &mut dyn FnMut(&str),
-) -> Result<Outcome, String> {
+) -> crate::Result<Outcome> {
     let records = identification_records(id_u, id_y, fs);
     let outcome = close_loop(
         &records,
@@ -542,15 +560,14 @@ fn run_in_parallel(
     voltages_v: [&[Vec<f64>; 2]; 3],
     fs: f64,
     effects: &Effects,
-) -> Result<[[Vec<f64>; 2]; 3], String> {
+) -> crate::Result<[[Vec<f64>; 2]; 3]> {
     let [a, b, c] = voltages_v;
     let (ya, yb, yc) = std::thread::scope(|s| {
         let ha = s.spawn(|| run_xy_stage(stage, a, fs, effects));
         let hb = s.spawn(|| run_xy_stage(stage, b, fs, effects));
         let yc = run_xy_stage(stage, c, fs, effects);
-        let join = |h: std::thread::ScopedJoinHandle<'_, Result<[Vec<f64>; 2], String>>| {
-            h.join()
-                .unwrap_or_else(|_| Err("plant run panicked".into()))
+        let join = |h: std::thread::ScopedJoinHandle<'_, crate::Result<[Vec<f64>; 2]>>| {
+            h.join().unwrap_or(Err(crate::Error::Panicked("plant run")))
         };
         (join(ha), join(hb), yc)
     });
@@ -671,13 +688,15 @@ impl DemoResult {
     /// Writes `summary.json`, `demo.csv`, `demo-params.toml` (the final model in the firmware's
     /// format) and the plots (`tracking`, `error`, `loops`, in each of `formats`, e.g.
     /// `["svg", "png"]`) into `dir`. Returns the files written.
-    pub fn write(&self, dir: &Path, formats: &[&str]) -> Result<Vec<String>, String> {
-        std::fs::create_dir_all(dir).map_err(|e| format!("--out {}: {e}", dir.display()))?;
+    pub fn write(&self, dir: &Path, formats: &[&str]) -> crate::Result<Vec<String>> {
+        std::fs::create_dir_all(dir)
+            .map_err(|e| crate::Error::Usage(format!("--out {}: {e}", dir.display())))?;
         let mut written = Vec::new();
         let json_path = dir.join("summary.json");
-        let text = serde_json::to_string_pretty(&self.summary_json()).map_err(|e| e.to_string())?;
+        let text =
+            serde_json::to_string_pretty(&self.summary_json()).map_err(crate::Error::from)?;
         std::fs::write(&json_path, text + "\n")
-            .map_err(|e| format!("--out {}: {e}", json_path.display()))?;
+            .map_err(|e| crate::Error::Usage(format!("--out {}: {e}", json_path.display())))?;
         written.push(json_path.display().to_string());
         let params_path = dir.join("demo-params.toml");
         // The XY stage's own board: DAC8563 0–5 V, 24 V/V amplifier, ADS8681 ±10.24 V, 0–10 V
@@ -698,7 +717,7 @@ impl DemoResult {
             io,
         );
         std::fs::write(&params_path, params)
-            .map_err(|e| format!("--out {}: {e}", params_path.display()))?;
+            .map_err(|e| crate::Error::Usage(format!("--out {}: {e}", params_path.display())))?;
         written.push(params_path.display().to_string());
 
         let mut names = vec!["t_s".to_string()];
@@ -727,14 +746,14 @@ impl DemoResult {
                 columns,
             },
         )
-        .map_err(|e| format!("--out: {e}"))?;
+        .map_err(|e| crate::Error::Usage(format!("--out: {e}")))?;
         written.push(csv_path.display().to_string());
 
         let figures = self.figures();
         for format in formats {
             for (name, charts, columns) in &figures {
                 let path = dir.join(format!("{name}.{format}"));
-                plot_grid(&path, charts, *columns).map_err(|e| e.to_string())?;
+                plot_grid(&path, charts, *columns).map_err(crate::Error::from)?;
                 written.push(path.display().to_string());
             }
         }
@@ -976,7 +995,7 @@ pub struct DemoArgs {
 }
 
 /// `host-sim demo`: runs the story with the arguments and writes its files.
-pub fn demo_cmd(a: &DemoArgs) -> Result<String, String> {
+pub fn demo_cmd(a: &DemoArgs) -> crate::Result<String> {
     let defaults = DemoSettings::default();
     let plant_effects = if a.plant_effects.is_empty() {
         defaults.plant_effects
@@ -1028,12 +1047,16 @@ mod tests {
             x_frequency_hz: -1.0,
             ..Default::default()
         };
-        assert!(s.validate().unwrap_err().starts_with("--x-freq"));
+        assert!(s
+            .validate()
+            .unwrap_err()
+            .to_string()
+            .starts_with("--x-freq"));
         let s = DemoSettings {
             low_fraction: 0.9,
             high_fraction: 0.1,
             ..Default::default()
         };
-        assert!(s.validate().unwrap_err().starts_with("--low"));
+        assert!(s.validate().unwrap_err().to_string().starts_with("--low"));
     }
 }

@@ -32,13 +32,14 @@ pub struct SetIdentity {
 
 impl SetIdentity {
     /// The identity of the stage file at `path`.
-    pub fn of_file(path: &Path) -> Result<Self, String> {
-        let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    pub fn of_file(path: &Path) -> crate::Result<Self> {
+        let bytes = std::fs::read(path)
+            .map_err(|e| crate::Error::Usage(format!("{}: {e}", path.display())))?;
         Self::of_bytes(path, &bytes)
     }
 
     /// The identity of the stage file `bytes`, read from `path` (named in the line and in errors).
-    pub fn of_bytes(path: &Path, bytes: &[u8]) -> Result<Self, String> {
+    pub fn of_bytes(path: &Path, bytes: &[u8]) -> crate::Result<Self> {
         let file = path.display().to_string();
         let fnv1a32 = piezo_stage::fnv1a32(bytes);
         match piezo_stage::FirmwareSet::from_bytes(&file, bytes) {
@@ -50,9 +51,10 @@ impl SetIdentity {
                 file,
             }),
             Err(_) => {
-                let text = std::str::from_utf8(bytes).map_err(|e| format!("{file}: {e}"))?;
+                let text = std::str::from_utf8(bytes)
+                    .map_err(|e| crate::Error::Usage(format!("{file}: {e}")))?;
                 let stage = piezo_stage::StageFile::parse(&file, text)
-                    .map_err(|e| e.to_string())?
+                    .map_err(crate::Error::from)?
                     .stage;
                 Ok(Self {
                     version: format!("{} {}", stage.name, stage.version),

@@ -283,18 +283,19 @@ struct CommandFile {
     stage: Option<(u32, String)>,
 }
 
-fn read_command(path: &Path) -> Result<CommandFile, String> {
-    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
-    let table = crate::csv::parse_csv(path, &text).map_err(|e| e.to_string())?;
+fn read_command(path: &Path) -> crate::Result<CommandFile> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| crate::Error::Usage(format!("{}: {e}", path.display())))?;
+    let table = crate::csv::parse_csv(path, &text).map_err(crate::Error::from)?;
     let mut iteration = 0;
     let mut stage = None;
     for (i, line) in text.lines().enumerate().filter(|(_, l)| l.starts_with('#')) {
         let bad = || {
-            format!(
+            crate::Error::Usage(format!(
                 "{}:{}: unreadable learn header `{line}`",
                 path.display(),
                 i + 1
-            )
+            ))
         };
         if let Some(rest) = line.strip_prefix(ITERATION_KEY) {
             iteration = rest.trim().parse().map_err(|_| bad())?;
@@ -324,7 +325,7 @@ fn mean_period(t_s: &[f64]) -> f64 {
 }
 
 /// The command's voltage columns for `axes` axes (`u_V`, or `ux_V` and `uy_V`).
-fn command_columns(file: &CommandFile, path: &Path, axes: usize) -> Result<Vec<Vec<f32>>, String> {
+fn command_columns(file: &CommandFile, path: &Path, axes: usize) -> crate::Result<Vec<Vec<f32>>> {
     let names: &[&str] = if axes == 1 {
         &["u_V"]
     } else {
@@ -334,7 +335,10 @@ fn command_columns(file: &CommandFile, path: &Path, axes: usize) -> Result<Vec<V
         .iter()
         .map(|name| {
             let column = file.table.column(name).map_err(|e| {
-                format!("{e} ({} is read as `compensate` writes it)", path.display())
+                crate::Error::Usage(format!(
+                    "{e} ({} is read as `compensate` writes it)",
+                    path.display()
+                ))
             })?;
             Ok(column.iter().map(|&v| v as f32).collect())
         })
@@ -359,17 +363,17 @@ fn check_table_belongs(
     file: &CommandFile,
     command: &Path,
     c: &TableContext<'_>,
-) -> Result<(), String> {
+) -> crate::Result<()> {
     let (stage_hash, reference) = (c.stage_hash, c.reference);
     if let Some((hash, name)) = &file.stage {
         if *hash != stage_hash {
-            return Err(format!(
+            return Err(crate::Error::Usage(format!(
                 "{} was learned with the stage file {name} (fnv1a32 {hash:#010x}), not with {} \
                  (fnv1a32 {stage_hash:#010x}): learn from that file's table, or start again from \
                  `host-sim compensate` with this one",
                 command.display(),
                 c.params.display()
-            ));
+            )));
         }
     }
     let names: &[&str] = if reference.axes.len() == 1 {
@@ -377,19 +381,19 @@ fn check_table_belongs(
     } else {
         &["rx_m", "ry_m"]
     };
-    let t = file.table.column("t_s").map_err(|e| e.to_string())?;
+    let t = file.table.column("t_s").map_err(crate::Error::from)?;
     for (name, (given, r)) in names.iter().zip(&reference.axes) {
         let Ok(stored) = file.table.column(name) else {
             if file.stage.is_some() {
-                return Err(format!(
+                return Err(crate::Error::Usage(format!(
                     "{}: a learned table without its reference column `{name}`",
                     command.display()
-                ));
+                )));
             }
             continue;
         };
         if let Some(j) = (0..stored.len()).find(|&j| stored[j] as f32 != r[j]) {
-            return Err(format!(
+            return Err(crate::Error::Usage(format!(
                 "{} was learned for another reference than {}: at t_s = {} s the table's `{name}` \
                  is {} m, the reference's `{given}` {} m",
                 command.display(),
@@ -397,14 +401,14 @@ fn check_table_belongs(
                 t[j],
                 stored[j],
                 r[j]
-            ));
+            )));
         }
     }
     Ok(())
 }
 
 /// The measured output columns: `--y`, or the defaults for `axes` axes.
-fn measured_columns(table: &Table, y: Option<&str>, axes: usize) -> Result<Vec<String>, String> {
+fn measured_columns(table: &Table, y: Option<&str>, axes: usize) -> crate::Result<Vec<String>> {
     let names: Vec<String> = match y {
         Some(list) => list.split(',').map(|s| s.trim().to_string()).collect(),
         None if axes == 2 && table.has("x_m") && table.has("y_m") => {
@@ -419,14 +423,14 @@ fn measured_columns(table: &Table, y: Option<&str>, axes: usize) -> Result<Vec<S
             .collect(),
     };
     if names.len() != axes {
-        return Err(format!(
+        return Err(crate::Error::Usage(format!(
             "{}: {} output column(s) ({}) for a {axes}-axis stage file; name them with --y \
              (columns: {})",
             table.path.display(),
             names.len(),
             names.join(", "),
             table.names.join(", ")
-        ));
+        )));
     }
     Ok(names)
 }
@@ -449,17 +453,17 @@ pub fn read_learned_table(
     path: &Path,
     c: &TableContext<'_>,
     axes: usize,
-) -> Result<LearnedTable, String> {
+) -> crate::Result<LearnedTable> {
     let command = read_command(path)?;
     let n = c.reference.t_s.len();
-    let t_u = command.table.column("t_s").map_err(|e| e.to_string())?;
+    let t_u = command.table.column("t_s").map_err(crate::Error::from)?;
     if t_u.len() != n {
-        return Err(format!(
+        return Err(crate::Error::Usage(format!(
             "{} has {} samples but the reference {} has {n}",
             path.display(),
             t_u.len(),
             c.reference_path.display()
-        ));
+        )));
     }
     check_table_belongs(&command, path, c)?;
     let voltages_v = command_columns(&command, path, axes)?;
@@ -477,7 +481,7 @@ pub fn base_command(
     params: &Path,
     reference: &Path,
     periodic: bool,
-) -> Result<Compensation, String> {
+) -> crate::Result<Compensation> {
     if periodic {
         let base = compensate_periodic(params, reference)?;
         if let Some(s) = base.settling.filter(|s| !s.settled) {
@@ -553,11 +557,11 @@ pub fn rebase(gains: &[Option<(f64, f64)>], params: &LearningParams) -> Option<V
 pub fn rescaled(
     learnings: &[Learning],
     gain_offset: &[(f64, f64)],
-) -> Result<Vec<Learning>, String> {
+) -> crate::Result<Vec<Learning>> {
     learnings
         .iter()
         .zip(gain_offset)
-        .map(|(learning, &(gain, _))| learning.with_model_gain(gain).map_err(|e| e.to_string()))
+        .map(|(learning, &(gain, _))| learning.with_model_gain(gain).map_err(crate::Error::from))
         .collect()
 }
 
@@ -566,12 +570,12 @@ pub fn axis_learnings(
     axes: &[FeedforwardAxis],
     names: &[&str],
     params: LearningParams,
-) -> Result<Vec<Learning>, String> {
+) -> crate::Result<Vec<Learning>> {
     axes.iter()
         .zip(names)
         .map(|(axis, name)| {
             Learning::new(&axis.compensator, &axis.effects, params)
-                .map_err(|e| format!("learning settings of axis {name}: {e}"))
+                .map_err(|e| crate::Error::Usage(format!("learning settings of axis {name}: {e}")))
         })
         .collect()
 }
@@ -620,7 +624,7 @@ pub struct AxesPrevious<'a> {
 
 /// One learning step per axis: the next command from the trial. The error of the trial and the
 /// next command per axis.
-pub fn step_axes(trial: &AxesTrial<'_>) -> Result<(Vec<AxisStep>, Vec<Vec<f32>>), String> {
+pub fn step_axes(trial: &AxesTrial<'_>) -> crate::Result<(Vec<AxisStep>, Vec<Vec<f32>>)> {
     let mut steps = Vec::new();
     let mut next_v = Vec::new();
     for (i, learning) in trial.learnings.iter().enumerate() {
@@ -645,7 +649,7 @@ pub fn step_axes(trial: &AxesTrial<'_>) -> Result<(Vec<AxisStep>, Vec<Vec<f32>>)
                 },
                 &mut next,
             )
-            .map_err(|e| format!("axis {name}: {e}"))?;
+            .map_err(|e| crate::Error::Usage(format!("axis {name}: {e}")))?;
         steps.push(AxisStep {
             axis: name,
             rms_m: summary.rms_error_m,
@@ -682,7 +686,7 @@ pub struct StepFiles<'a> {
 pub fn step_checked(
     trial: &AxesTrial<'_>,
     files: &StepFiles<'_>,
-) -> Result<(Vec<AxisStep>, Vec<Vec<f32>>), String> {
+) -> crate::Result<(Vec<AxisStep>, Vec<Vec<f32>>)> {
     let gains = model_gains(
         trial.learnings,
         trial.reference,
@@ -716,11 +720,13 @@ pub fn step_checked(
 }
 
 /// Runs one learning step (nothing written).
-pub fn learn(a: &LearnArgs) -> Result<LearnStep, String> {
+pub fn learn(a: &LearnArgs) -> crate::Result<LearnStep> {
     let base = base_command(&a.params, &a.reference, a.periodic)?;
-    let (file, valid) = StageFile::load(&a.params).map_err(|e| e.to_string())?;
-    let stage_hash =
-        fnv1a32(&std::fs::read(&a.params).map_err(|e| format!("{}: {e}", a.params.display()))?);
+    let (file, valid) = StageFile::load(&a.params).map_err(crate::Error::from)?;
+    let stage_hash = fnv1a32(
+        &std::fs::read(&a.params)
+            .map_err(|e| crate::Error::Usage(format!("{}: {e}", a.params.display())))?,
+    );
     let axes = feedforward_axes(&file, &valid, &a.params)?;
     let reference = read_reference(&a.reference)?;
     let n = reference.t_s.len();
@@ -735,12 +741,12 @@ pub fn learn(a: &LearnArgs) -> Result<LearnStep, String> {
         t_s: t_u,
         voltages_v: u,
     } = read_learned_table(&a.command, &context, axes.len())?;
-    let measured = read_csv(&a.measured).map_err(|e| e.to_string())?;
-    let t_y = measured.column("t_s").map_err(|e| e.to_string())?;
+    let measured = read_csv(&a.measured).map_err(crate::Error::from)?;
+    let t_y = measured.column("t_s").map_err(crate::Error::from)?;
     let passes = t_y.len() / n.max(1);
     let whole_passes = a.periodic && passes >= 2 && t_y.len() == passes * n;
     if t_y.len() != n && !whole_passes {
-        return Err(format!(
+        return Err(crate::Error::Usage(format!(
             "{}: {} samples, but the command {} has {n}: record one trial of the table{}",
             a.measured.display(),
             t_y.len(),
@@ -750,15 +756,15 @@ pub fn learn(a: &LearnArgs) -> Result<LearnStep, String> {
             } else {
                 ""
             }
-        ));
+        )));
     }
     let (period_u, period_y) = (mean_period(&t_u), mean_period(t_y));
     if !((period_y - period_u).abs() <= 1e-6 * period_u.abs()) {
-        return Err(format!(
+        return Err(crate::Error::Usage(format!(
             "{}: sample period {period_y} s differs from the command {}'s {period_u} s",
             a.measured.display(),
             a.command.display()
-        ));
+        )));
     }
     let columns = measured_columns(&measured, a.y.as_deref(), axes.len())?;
     let params = a.learning.params();
@@ -767,16 +773,16 @@ pub fn learn(a: &LearnArgs) -> Result<LearnStep, String> {
     let mut y = Vec::new();
     for column in &columns {
         let factor = unit_factor(column).ok_or_else(|| {
-            format!(
+            crate::Error::Usage(format!(
                 "{}: column `{}` has no length unit (m, mm, um, nm)",
                 a.measured.display(),
                 column
-            )
+            ))
         })?;
         y.push(
             measured
                 .column(column)
-                .map_err(|e| format!("--y: {e}"))?
+                .map_err(|e| crate::Error::Usage(format!("--y: {e}")))?
                 .iter()
                 .map(|&v| (v * factor) as f32)
                 .collect::<Vec<f32>>(),
@@ -853,21 +859,27 @@ pub fn average_passes(record: &[f32], period: usize) -> Vec<f32> {
 
 /// Writes `step`'s table to `out` with its `#` lines (the iteration, the stage file `params`'s
 /// fingerprint and name): the file `learn` reads as `--command`.
-pub fn write_learned_table(out: &Path, step: &LearnStep, params: &Path) -> Result<(), String> {
-    write_csv(out, &step.to_table()).map_err(|e| format!("{}: {e}", out.display()))?;
-    let text = std::fs::read_to_string(out).map_err(|e| format!("{}: {e}", out.display()))?;
-    std::fs::write(out, step.header(params) + &text).map_err(|e| format!("{}: {e}", out.display()))
+pub fn write_learned_table(out: &Path, step: &LearnStep, params: &Path) -> crate::Result<()> {
+    write_csv(out, &step.to_table())
+        .map_err(|e| crate::Error::Usage(format!("{}: {e}", out.display())))?;
+    let text = std::fs::read_to_string(out)
+        .map_err(|e| crate::Error::Usage(format!("{}: {e}", out.display())))?;
+    std::fs::write(out, step.header(params) + &text)
+        .map_err(|e| crate::Error::Usage(format!("{}: {e}", out.display())))
 }
 
 /// `host-sim learn`: computes and writes the next command and the report; returns a summary.
-pub fn learn_cmd(a: &LearnArgs) -> Result<String, String> {
+pub fn learn_cmd(a: &LearnArgs) -> crate::Result<String> {
     let step = learn(a)?;
-    write_learned_table(&a.out, &step, &a.params).map_err(|e| format!("--out {e}"))?;
-    let json = serde_json::to_string_pretty(&step.json()).map_err(|e| e.to_string())?;
+    write_learned_table(&a.out, &step, &a.params)
+        .map_err(|e| crate::Error::Usage(format!("--out {e}")))?;
+    let json = serde_json::to_string_pretty(&step.json()).map_err(crate::Error::from)?;
     if let Some(dir) = a.report.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).map_err(|e| format!("--report {}: {e}", dir.display()))?;
+        std::fs::create_dir_all(dir)
+            .map_err(|e| crate::Error::Usage(format!("--report {}: {e}", dir.display())))?;
     }
-    std::fs::write(&a.report, json).map_err(|e| format!("--report {}: {e}", a.report.display()))?;
+    std::fs::write(&a.report, json)
+        .map_err(|e| crate::Error::Usage(format!("--report {}: {e}", a.report.display())))?;
     let axes: Vec<String> = step
         .axes
         .iter()

@@ -239,13 +239,16 @@ struct Context<'a> {
 }
 
 /// The stage file with `p` applied.
-fn perturbed(file: &StageFile, p: Perturbation) -> Result<StageFile, String> {
+fn perturbed(file: &StageFile, p: Perturbation) -> crate::Result<StageFile> {
     let mut file = file.clone();
     for axis in [Some(&mut file.x), file.y.as_mut()].into_iter().flatten() {
         match p {
             Perturbation::Nominal => {}
             Perturbation::Gain(g) => {
-                let map = axis.static_map.as_mut().ok_or("no static map")?;
+                let map = axis
+                    .static_map
+                    .as_mut()
+                    .ok_or_else(|| crate::Error::Usage("no static map".into()))?;
                 map.k1_m_per_v = (f64::from(map.k1_m_per_v) * g) as f32;
                 map.k2_m_per_h = (f64::from(map.k2_m_per_h) * g) as f32;
             }
@@ -265,20 +268,23 @@ fn run_case(
     freq_hz: f64,
     mode: LearnMode,
     perturbation: Perturbation,
-) -> Result<Curve, String> {
+) -> crate::Result<Curve> {
     let s = ctx.settings;
     let fs = s.loop_rate_hz;
     let file = perturbed(&ctx.file, perturbation)?;
-    let valid = file.validate().map_err(|e| e.to_string())?;
+    let valid = file.validate().map_err(crate::Error::from)?;
     let axes = feedforward_axes(&file, &valid, Path::new("learn-bench stage file"))?;
     let mut learning = Vec::new();
     let mut servos = Vec::new();
     for (a, v) in valid.axes.iter().enumerate() {
         learning.push(
             Learning::new(&axes[a].compensator, &axes[a].effects, s.params)
-                .map_err(|e| format!("learning of axis {}: {e}", v.name))?,
+                .map_err(|e| crate::Error::Usage(format!("learning of axis {}: {e}", v.name)))?,
         );
-        servos.push(v.servo.ok_or("the stage file has no servo")?);
+        servos.push(
+            v.servo
+                .ok_or_else(|| crate::Error::Usage("the stage file has no servo".into()))?,
+        );
     }
     let period = (fs / freq_hz).round() as usize;
     let whole = |min_s: f64| ((min_s * freq_hz).ceil() as usize).max(1);
@@ -344,7 +350,7 @@ fn run_case(
                 .voltage_v;
         }
         rig.apply(u.map(f64::from))?;
-        Ok::<_, String>((truth, read, u))
+        Ok::<_, crate::Error>((truth, read, u))
     };
     for k in 0..warm {
         tick(&mut states, [full_r[0][k], full_r[1][k]], [ux[k], uy[k]])?;
@@ -468,7 +474,7 @@ fn run_case(
                     let rho = s.params.harmonic_gain * back_off[a].harmonic_scale() as f32;
                     stepping[a]
                         .with_harmonic_gain(rho)
-                        .map_err(|e| e.to_string())?
+                        .map_err(crate::Error::from)?
                         .step(
                             &Trial {
                                 reference_m: &r[a],
@@ -487,7 +493,7 @@ fn run_case(
                             &mut table[a],
                         )
                         .map(|summary| harmonics[a] = summary.harmonics_learned)
-                        .map_err(|e| e.to_string())?;
+                        .map_err(crate::Error::from)?;
                 }
                 Verdict::StepBack => {
                     backed = true;
@@ -538,17 +544,19 @@ fn rms_above(e: &[f64], fs: f64, cutoff_hz: f64) -> f64 {
 pub fn run_learn_bench(
     settings: &LearnBenchSettings,
     progress: &mut (dyn FnMut(&str) + Send),
-) -> Result<LearnBenchReport, String> {
+) -> crate::Result<LearnBenchReport> {
     use rayon::prelude::*;
     let start = Instant::now();
     let fs = settings.loop_rate_hz;
     let mut effects = Effects::default();
     for spec in &settings.plant_effects {
-        effects.add_spec(spec).map_err(|e| format!("{spec}: {e}"))?;
+        effects
+            .add_spec(spec)
+            .map_err(|e| crate::Error::Usage(format!("{spec}: {e}")))?;
     }
     let stage = XyStage::default();
     let stack_file = stack_file_at(fs)?;
-    let stack = stack_file.validate().map_err(|e| e.to_string())?;
+    let stack = stack_file.validate().map_err(crate::Error::from)?;
     progress("identifying the platform gain and the first mode");
     let identified = identify_rig(&stage, &effects, &stack, fs)?;
     let (_, tunings, mut file) = controllers(&stack_file, &identified)?;
@@ -594,7 +602,7 @@ pub fn run_learn_bench(
     let mut curves: Vec<Curve> = cases
         .par_iter()
         .map(|&(shape, f, mode, p)| run_case(&ctx, shape, f, mode, p))
-        .collect::<Result<_, String>>()?;
+        .collect::<crate::Result<_>>()?;
     let robustness = curves.split_off(nominal);
     Ok(LearnBenchReport {
         curves,
@@ -734,20 +742,23 @@ impl LearnBenchReport {
     }
 
     /// Writes `learn.json`, `learn-stage.toml` and the plot `learn-curves.*` into `dir`.
-    pub fn write(&self, dir: &Path, extensions: &[&str]) -> Result<Vec<String>, String> {
-        std::fs::create_dir_all(dir).map_err(|e| format!("--out {}: {e}", dir.display()))?;
+    pub fn write(&self, dir: &Path, extensions: &[&str]) -> crate::Result<Vec<String>> {
+        std::fs::create_dir_all(dir)
+            .map_err(|e| crate::Error::Usage(format!("--out {}: {e}", dir.display())))?;
         let mut files = Vec::new();
         let json = dir.join("learn.json");
-        let text = serde_json::to_string_pretty(&self.json()).map_err(|e| e.to_string())?;
-        std::fs::write(&json, text).map_err(|e| format!("{}: {e}", json.display()))?;
+        let text = serde_json::to_string_pretty(&self.json()).map_err(crate::Error::from)?;
+        std::fs::write(&json, text)
+            .map_err(|e| crate::Error::Usage(format!("{}: {e}", json.display())))?;
         files.push(json.display().to_string());
         let toml = dir.join("learn-stage.toml");
-        std::fs::write(&toml, &self.stage_toml).map_err(|e| format!("{}: {e}", toml.display()))?;
+        std::fs::write(&toml, &self.stage_toml)
+            .map_err(|e| crate::Error::Usage(format!("{}: {e}", toml.display())))?;
         files.push(toml.display().to_string());
         let panels = self.panels();
         for ext in extensions {
             let path: PathBuf = dir.join(format!("learn-curves.{ext}"));
-            plot_grid(&path, &panels, 2).map_err(|e| e.to_string())?;
+            plot_grid(&path, &panels, 2).map_err(crate::Error::from)?;
             files.push(path.display().to_string());
         }
         Ok(files)
@@ -877,20 +888,29 @@ learned (table alone) and learned+feedback (the stage file's servo on top). Robu
 mode frequency x1.15 and x0.85 on the 100 Hz sine and triangle and the 10 Hz triangle (learned+feedback).";
 
 /// Runs `learn-bench`.
-pub fn learn_bench_cmd(a: &LearnBenchArgs) -> Result<String, String> {
+pub fn learn_bench_cmd(a: &LearnBenchArgs) -> crate::Result<String> {
     let mut settings = LearnBenchSettings {
         iterations: a.iterations,
         params: a.learning.params(),
         ..Default::default()
     };
     if a.freq.is_empty() || a.freq.iter().any(|&f| !(f > 0.0 && f <= 1000.0)) {
-        return Err(format!("--freq {:?}: frequencies in (0, 1000] Hz", a.freq));
+        return Err(crate::Error::Usage(format!(
+            "--freq {:?}: frequencies in (0, 1000] Hz",
+            a.freq
+        )));
     }
     if !(a.trial_s > 0.0 && a.trial_s <= 10.0) {
-        return Err(format!("--trial-s {}: a trial lasts (0, 10] s", a.trial_s));
+        return Err(crate::Error::Usage(format!(
+            "--trial-s {}: a trial lasts (0, 10] s",
+            a.trial_s
+        )));
     }
     if !(a.rate.is_finite() && (1_000.0..=1e6).contains(&a.rate)) {
-        return Err(format!("--rate {}: a loop rate in [1000, 1e6] Hz", a.rate));
+        return Err(crate::Error::Usage(format!(
+            "--rate {}: a loop rate in [1000, 1e6] Hz",
+            a.rate
+        )));
     }
     settings.loop_rate_hz = a.rate;
     settings.plant_effects = default_plant_effects(a.rate);

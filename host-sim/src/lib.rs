@@ -14,7 +14,8 @@
 //! [`plot`] draws the figures ([`track_plot`] those of a tracking or excitation run); [`cli`] is
 //! the command line; [`optimise`] is the one differential
 //! evolution, Levenberg–Marquardt and linear solver their fits share; [`uncertainty`] gives a fit's
-//! standard errors, correlations and prediction band.
+//! standard errors, correlations and prediction band; [`error`] is the one [`Error`] every command
+//! and helper returns, whose text is what the command line prints.
 //!
 //! The plants, effects, signals, solver and CSV files live in `piezo-reference` (`host-sim/reference`),
 //! which does not depend on the core; they are re-exported here ([`plant`], [`sim`], [`signal`],
@@ -29,6 +30,7 @@ pub mod cli;
 pub mod close_loop;
 pub mod compensate;
 pub mod demo;
+pub mod error;
 pub mod identify;
 pub mod identity;
 pub mod learn;
@@ -48,6 +50,7 @@ pub mod stage_file;
 pub mod track_plot;
 pub mod uncertainty;
 
+pub use error::{Error, Result};
 pub use piezo_reference::{bouc_wen, csv, effects, ode, plant, signal, sim};
 
 /// Progress lines of the long commands: to stderr, so that stdout keeps the result.

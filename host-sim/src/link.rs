@@ -49,19 +49,19 @@ pub const MAX_RECORD_FRAMES: u64 = 1 << 26;
 
 /// The parts of a device's status a run is sized by, checked: a finite loop rate in
 /// (0, [`MAX_LOOP_RATE_HZ`]] and a table capacity in [2, [`MAX_TABLE_ENTRIES`]].
-pub fn run_limits(status: &Status) -> Result<(f64, u32), String> {
+pub fn run_limits(status: &Status) -> crate::Result<(f64, u32)> {
     let rate = f64::from(status.loop_rate_hz);
     if !(rate > 0.0 && rate <= MAX_LOOP_RATE_HZ) {
-        return Err(format!(
+        return Err(crate::Error::Link(format!(
             "the device reports loop_rate_hz = {:?}: expected a finite rate in (0, {MAX_LOOP_RATE_HZ}] Hz",
             status.loop_rate_hz
-        ));
+        )));
     }
     let capacity = status.table[1];
     if !(2..=MAX_TABLE_ENTRIES).contains(&capacity) {
-        return Err(format!(
+        return Err(crate::Error::Link(format!(
             "the device reports a wave table of {capacity} entries (table[1]): expected 2 to {MAX_TABLE_ENTRIES}"
-        ));
+        )));
     }
     Ok((rate, capacity))
 }
@@ -158,24 +158,27 @@ pub struct RunArgs {
 /// Puts a serial device in raw mode without echo (`stty -F PATH raw -echo`): the terminal's
 /// default line handling would echo bytes back and rewrite newlines inside the packets. A path
 /// that is not a terminal (a pipe, a file) is left as it is.
-fn raw_mode(path: &str) -> Result<(), String> {
+fn raw_mode(path: &str) -> crate::Result<()> {
     let out = std::process::Command::new("stty")
         .args(["-F", path, "raw", "-echo"])
         .output()
-        .map_err(|e| format!("stty (to set raw mode): {e}"))?;
+        .map_err(|e| crate::Error::Link(format!("stty (to set raw mode): {e}")))?;
     let err = String::from_utf8_lossy(&out.stderr);
     if out.status.success() || err.contains("Inappropriate ioctl") || err.contains("not a tty") {
         Ok(())
     } else {
-        Err(format!("stty -F {path} raw -echo: {}", err.trim()))
+        Err(crate::Error::Link(format!(
+            "stty -F {path} raw -echo: {}",
+            err.trim()
+        )))
     }
 }
 
 /// The error for a firmware that speaks link protocol `theirs`.
-fn protocol_error(theirs: u16) -> String {
-    format!(
+fn protocol_error(theirs: u16) -> crate::Error {
+    crate::Error::Link(format!(
         "the firmware speaks link protocol {theirs}, this host-sim {PROTOCOL_VERSION}: build both from one commit"
-    )
+    ))
 }
 
 /// A connection to the firmware: numbered requests, answers matched by number, frames kept.
@@ -229,29 +232,29 @@ pub struct Recording {
 
 impl Client {
     /// Connects to `tcp:HOST:PORT` or `serial:PATH`.
-    pub fn connect(spec: &str, timeout: Duration) -> Result<Self, String> {
+    pub fn connect(spec: &str, timeout: Duration) -> crate::Result<Self> {
         let mut tcp = None;
         let (reader, writer): (Box<dyn Read + Send>, Box<dyn Write + Send>) =
             if let Some(address) = spec.strip_prefix("tcp:") {
                 let stream = std::net::TcpStream::connect(address)
-                    .map_err(|e| format!("--connect {spec}: {e}"))?;
+                    .map_err(|e| crate::Error::Link(format!("--connect {spec}: {e}")))?;
                 let _ = stream.set_nodelay(true);
-                let reader = stream.try_clone().map_err(|e| e.to_string())?;
-                tcp = Some(stream.try_clone().map_err(|e| e.to_string())?);
+                let reader = stream.try_clone().map_err(crate::Error::from)?;
+                tcp = Some(stream.try_clone().map_err(crate::Error::from)?);
                 (Box::new(reader), Box::new(stream))
             } else if let Some(path) = spec.strip_prefix("serial:") {
-                raw_mode(path).map_err(|e| format!("--connect {spec}: {e}"))?;
+                raw_mode(path).map_err(|e| crate::Error::Link(format!("--connect {spec}: {e}")))?;
                 let file = std::fs::OpenOptions::new()
                     .read(true)
                     .write(true)
                     .open(path)
-                    .map_err(|e| format!("--connect {spec}: {e}"))?;
-                let reader = file.try_clone().map_err(|e| e.to_string())?;
+                    .map_err(|e| crate::Error::Link(format!("--connect {spec}: {e}")))?;
+                let reader = file.try_clone().map_err(crate::Error::from)?;
                 (Box::new(reader), Box::new(file))
             } else {
-                return Err(format!(
+                return Err(crate::Error::Link(format!(
                     "--connect {spec}: give tcp:HOST:PORT or serial:PATH"
-                ));
+                )));
             };
         // A reader thread, so that every wait has a timeout (a tty read has none in std).
         let (tx, rx) = mpsc::channel();
@@ -283,7 +286,7 @@ impl Client {
     /// request: each try connects, asks with an answer timeout of at most 1 s, and on failure
     /// drops the connection and tries again 0.2 s later. The error after `wait` names the last
     /// failure. The client returned waits `timeout` for every later answer.
-    pub fn connect_waiting(spec: &str, timeout: Duration, wait: Duration) -> Result<Self, String> {
+    pub fn connect_waiting(spec: &str, timeout: Duration, wait: Duration) -> crate::Result<Self> {
         let deadline = Instant::now() + wait;
         let per_try = timeout.min(Duration::from_secs(1));
         loop {
@@ -298,10 +301,10 @@ impl Client {
                 Err(e) => e,
             };
             if Instant::now() >= deadline {
-                return Err(format!(
+                return Err(crate::Error::Link(format!(
                     "--connect {spec}: the firmware did not answer within --wait {:.1} s: {last}",
                     wait.as_secs_f64()
-                ));
+                )));
             }
             std::thread::sleep(Duration::from_millis(200));
         }
@@ -310,7 +313,7 @@ impl Client {
     /// The next packet from the firmware, by `deadline`.
     /// A frame that does not parse but holds a status of another protocol version is that
     /// error.
-    fn next(&mut self, deadline: Instant) -> Result<Uplink, String> {
+    fn next(&mut self, deadline: Instant) -> crate::Result<Uplink> {
         loop {
             while let Some(byte) = self.pending.pop_front() {
                 if byte != 0 && self.raw.len() < MAX_FRAME {
@@ -343,13 +346,13 @@ impl Client {
             match self.bytes.recv_timeout(left) {
                 Ok(chunk) => self.pending.extend(chunk),
                 Err(RecvTimeoutError::Timeout) => {
-                    return Err(format!(
+                    return Err(crate::Error::Link(format!(
                         "no answer from the firmware within {:.1} s",
                         self.timeout.as_secs_f64()
-                    ))
+                    )))
                 }
                 Err(RecvTimeoutError::Disconnected) => {
-                    return Err("the firmware closed the link".into())
+                    return Err(crate::Error::Link("the firmware closed the link".into()))
                 }
             }
         }
@@ -358,15 +361,15 @@ impl Client {
     /// Sends `request` and waits for its answer (frames that arrive meanwhile are kept). A
     /// `Replayed { next }` answer (the firmware handled this number already, e.g. from an earlier
     /// client) moves the count to `next` and sends the request once more.
-    pub fn request(&mut self, request: Request) -> Result<Response, String> {
+    pub fn request(&mut self, request: Request) -> crate::Result<Response> {
         match self.send_once(&request)? {
             Response::Replayed { next } => {
                 self.sequence = next;
                 match self.send_once(&request)? {
-                    Response::Replayed { next } => Err(format!(
+                    Response::Replayed { next } => Err(crate::Error::Link(format!(
                         "the firmware refused request {} as already handled (next {next})",
                         self.sequence.wrapping_sub(1)
-                    )),
+                    ))),
                     other => Ok(other),
                 }
             }
@@ -374,7 +377,7 @@ impl Client {
         }
     }
 
-    fn send_once(&mut self, request: &Request) -> Result<Response, String> {
+    fn send_once(&mut self, request: &Request) -> crate::Result<Response> {
         let asked = self.sequence;
         self.sequence = self.sequence.wrapping_add(1);
         let mut out = [0u8; MAX_FRAME + 1];
@@ -385,11 +388,11 @@ impl Client {
             },
             &mut out,
         )
-        .map_err(|e| format!("cannot encode the request: {e}"))?;
+        .map_err(|e| crate::Error::Link(format!("cannot encode the request: {e}")))?;
         self.writer
             .write_all(&out[..n])
             .and_then(|()| self.writer.flush())
-            .map_err(|e| format!("link: {e}"))?;
+            .map_err(|e| crate::Error::Link(format!("link: {e}")))?;
         let deadline = Instant::now() + self.timeout;
         loop {
             match self.next(deadline)? {
@@ -401,21 +404,26 @@ impl Client {
     }
 
     /// Like [`Client::request`], a refusal as an error carrying the firmware's reason.
-    pub fn expect(&mut self, request: Request) -> Result<Response, String> {
+    pub fn expect(&mut self, request: Request) -> crate::Result<Response> {
         match self.request(request)? {
-            Response::Refused(r) => Err(format!("refused ({:?}): {}", r.kind, r.reason)),
+            Response::Refused(r) => Err(crate::Error::Link(format!(
+                "refused ({:?}): {}",
+                r.kind, r.reason
+            ))),
             other => Ok(other),
         }
     }
 
     /// The firmware's state.
-    pub fn status(&mut self) -> Result<Status, String> {
+    pub fn status(&mut self) -> crate::Result<Status> {
         match self.request(Request::Status)? {
             Response::Status(s) if s.protocol != PROTOCOL_VERSION => {
                 Err(protocol_error(s.protocol))
             }
             Response::Status(s) => Ok(s),
-            other => Err(format!("unexpected answer to status: {other:?}")),
+            other => Err(crate::Error::Link(format!(
+                "unexpected answer to status: {other:?}"
+            ))),
         }
     }
 
@@ -426,7 +434,7 @@ impl Client {
 
     /// Fills the wave table (`learned` false) or the learned voltage table with `entries`,
     /// in chunks; a refusal is an error with the firmware's reason.
-    pub fn load_table(&mut self, entries: &[[f32; 2]], learned: bool) -> Result<(), String> {
+    pub fn load_table(&mut self, entries: &[[f32; 2]], learned: bool) -> crate::Result<()> {
         let clear = if learned {
             Request::LearnedClear
         } else {
@@ -449,7 +457,7 @@ impl Client {
     pub fn frames_through(
         &mut self,
         mut last: impl FnMut(&Frame) -> bool,
-    ) -> Result<Vec<Frame>, String> {
+    ) -> crate::Result<Vec<Frame>> {
         let mut out = Vec::new();
         for f in self.take_frames() {
             out.push(f);
@@ -474,7 +482,7 @@ impl Client {
         &mut self,
         first: u32,
         count: usize,
-    ) -> Result<(Vec<Frame>, SequenceChecker), String> {
+    ) -> crate::Result<(Vec<Frame>, SequenceChecker)> {
         let mut checker = SequenceChecker::default();
         checker.expect(first);
         // Grown as frames arrive: `count` comes from the device's numbers.
@@ -511,11 +519,16 @@ impl Client {
         duration_s: f64,
         decimation: u32,
         excite: bool,
-    ) -> Result<Recording, String> {
-        let parsed = SignalSpec::parse(spec).map_err(|e| format!("--signal: {e}"))?;
-        let signals = parsed.build(2).map_err(|e| format!("--signal: {e}"))?;
+    ) -> crate::Result<Recording> {
+        let parsed =
+            SignalSpec::parse(spec).map_err(|e| crate::Error::Link(format!("--signal: {e}")))?;
+        let signals = parsed
+            .build(2)
+            .map_err(|e| crate::Error::Link(format!("--signal: {e}")))?;
         if !(duration_s > 0.0 && duration_s.is_finite()) || decimation == 0 {
-            return Err("--duration must be > 0 and --decimation >= 1".into());
+            return Err(crate::Error::Link(
+                "--duration must be > 0 and --decimation >= 1".into(),
+            ));
         }
         if let Some(w) = crate::simulate::csv_length_warning(&parsed, duration_s, "--duration ") {
             eprintln!("warning: {w}");
@@ -524,17 +537,17 @@ impl Client {
         let (rate, capacity) = run_limits(&status)?;
         let ticks = (duration_s * rate).round().max(1.0);
         if !(ticks / f64::from(decimation) <= MAX_RECORD_FRAMES as f64) {
-            return Err(format!(
+            return Err(crate::Error::Link(format!(
                 "--duration {duration_s} s at the device's {rate} Hz and --decimation {decimation} \
                  is more than {MAX_RECORD_FRAMES} frames"
-            ));
+            )));
         }
         let ticks = ticks as u64;
         let per_entry = ticks.div_ceil(u64::from(capacity - 1)).max(1);
         if per_entry > u64::from(u32::MAX) {
-            return Err(format!(
+            return Err(crate::Error::Link(format!(
                 "--duration {duration_s} s needs {per_entry} ticks per table entry, more than the link carries"
-            ));
+            )));
         }
         let entries = ticks / per_entry + 1;
         let table: Vec<[f32; 2]> = (0..entries)
@@ -560,7 +573,11 @@ impl Client {
         };
         let first_frame = match self.expect(request)? {
             Response::Started { first_frame } => first_frame,
-            other => return Err(format!("unexpected answer to a program: {other:?}")),
+            other => {
+                return Err(crate::Error::Link(format!(
+                    "unexpected answer to a program: {other:?}"
+                )))
+            }
         };
         let count = (ticks / u64::from(decimation)) as usize;
         let (frames, checker) = self.collect(first_frame, count)?;
@@ -580,22 +597,22 @@ impl Client {
 
 /// The control mode named `mode` (`open-loop`, `feedforward`, `feedback`,
 /// `feedforward+feedback`, `learned`, `learned+feedback`).
-pub fn control_mode(mode: &str) -> Result<Control, String> {
+pub fn control_mode(mode: &str) -> crate::Result<Control> {
     Control::ALL
         .into_iter()
         .chain(Control::LEARNED)
         .find(|c| c.name() == mode)
-        .ok_or_else(|| format!("unknown control mode {mode:?}"))
+        .ok_or_else(|| crate::Error::Link(format!("unknown control mode {mode:?}")))
 }
 
 impl Recording {
     /// Refuses a record with gaps in its frame numbers unless `allow_gaps`.
-    pub fn check_gaps(&self, allow_gaps: bool) -> Result<(), String> {
+    pub fn check_gaps(&self, allow_gaps: bool) -> crate::Result<()> {
         if self.gaps > 0 && !allow_gaps {
-            return Err(format!(
+            return Err(crate::Error::Link(format!(
                 "{} gaps ({} frames lost) in the record; --allow-gaps writes it anyway",
                 self.gaps, self.lost
-            ));
+            )));
         }
         Ok(())
     }
@@ -637,18 +654,18 @@ pub const TRACK_SCORED_AFTER_S: f64 = 0.1;
 /// Draws a link record (`t_s, ux_V, uy_V, x_m, y_m` and, when `tracking`, `rx_m, ry_m`) to
 /// `path`: [`crate::track_plot::tracking_charts`] (sensor against reference) or
 /// [`crate::track_plot::excitation_charts`]; errors name `--plot`.
-pub fn plot_record(path: &Path, columns: &RecordTable, tracking: bool) -> Result<(), String> {
+pub fn plot_record(path: &Path, columns: &RecordTable, tracking: bool) -> crate::Result<()> {
     use crate::track_plot::{
         excitation_charts, tracking_charts, write_figure, ExciteAxis, TrackAxis,
     };
-    let column = |name: &str| -> Result<Vec<f64>, String> {
+    let column = |name: &str| -> crate::Result<Vec<f64>> {
         columns
             .names
             .iter()
             .skip(1)
             .position(|n| n == name)
             .map(|i| columns.data[i].iter().map(|&v| f64::from(v)).collect())
-            .ok_or_else(|| format!("--plot: the record has no column {name}"))
+            .ok_or_else(|| crate::Error::Link(format!("--plot: the record has no column {name}")))
     };
     let names = ["x", "y"];
     let traces = names
@@ -664,7 +681,7 @@ pub fn plot_record(path: &Path, columns: &RecordTable, tracking: bool) -> Result
                 },
             ))
         })
-        .collect::<Result<Vec<_>, String>>()?;
+        .collect::<crate::Result<Vec<_>>>()?;
     let (charts, columns_drawn) = if tracking {
         let axes: Vec<TrackAxis<'_>> = names
             .iter()
@@ -698,7 +715,8 @@ pub fn plot_record(path: &Path, columns: &RecordTable, tracking: bool) -> Result
             .collect();
         (excitation_charts(&columns.t_s, &axes), 3)
     };
-    let charts = charts.map_err(|e| format!("--plot {}: {e}", path.display()))?;
+    let charts =
+        charts.map_err(|e| crate::Error::Link(format!("--plot {}: {e}", path.display())))?;
     write_figure("--plot", path, &charts, columns_drawn)
 }
 
@@ -709,16 +727,17 @@ pub use piezo_stage::fnv1a32;
 /// A stage file as the upload message: piezo-stage's [`piezo_stage::FirmwareSet`] (the set the
 /// firmware's build makes of the same file: its refusals, a one-axis file driving both axes with
 /// x, the version string and the hash), per axis the core's parameter structs.
-pub fn model_set(path: &Path) -> Result<ModelSet, String> {
-    let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
+pub fn model_set(path: &Path) -> crate::Result<ModelSet> {
+    let bytes =
+        std::fs::read(path).map_err(|e| crate::Error::Link(format!("{}: {e}", path.display())))?;
     model_set_of(path, &bytes)
 }
 
 /// The upload message of the stage file `bytes` (validated as the firmware's build validates
 /// it), read from `path` (named in errors).
-pub fn model_set_of(path: &Path, bytes: &[u8]) -> Result<ModelSet, String> {
+pub fn model_set_of(path: &Path, bytes: &[u8]) -> crate::Result<ModelSet> {
     let set = piezo_stage::FirmwareSet::from_bytes(&path.display().to_string(), bytes)
-        .map_err(|e| e.to_string())?;
+        .map_err(crate::Error::from)?;
     Ok(ModelSet {
         version: piezo_link::truncated(&set.version),
         fnv1a32: set.fnv1a32,
@@ -729,7 +748,7 @@ pub fn model_set_of(path: &Path, bytes: &[u8]) -> Result<ModelSet, String> {
 }
 
 /// Uploads the stage file at `path`; the firmware's refusal (the core's reason) as an error.
-pub fn upload(client: &mut Client, path: &Path) -> Result<u32, String> {
+pub fn upload(client: &mut Client, path: &Path) -> crate::Result<u32> {
     upload_set(client, model_set(path)?, path)
 }
 
@@ -737,30 +756,30 @@ pub fn upload(client: &mut Client, path: &Path) -> Result<u32, String> {
 /// core's reason) as an error.
 /// The firmware's fingerprint of the set it loaded must be the host's
 /// ([`ModelSet::fingerprint`]): it runs what was sent.
-pub fn upload_set(client: &mut Client, set: ModelSet, path: &Path) -> Result<u32, String> {
+pub fn upload_set(client: &mut Client, set: ModelSet, path: &Path) -> crate::Result<u32> {
     let fingerprint = set.fingerprint();
     match client.request(Request::Upload(set))? {
         Response::Loaded {
             params_fnv1a32,
             params_fingerprint,
-        } if params_fingerprint != fingerprint => Err(format!(
+        } if params_fingerprint != fingerprint => Err(crate::Error::Link(format!(
             "{}: the firmware loaded a set with fingerprint {params_fingerprint:#010x}, the file's is \
              {fingerprint:#010x}: it does not run what was sent (fnv1a32 {params_fnv1a32:#010x})",
             path.display()
-        )),
+        ))),
         Response::Loaded { params_fnv1a32, .. } => Ok(params_fnv1a32),
-        Response::Refused(r) => Err(format!(
+        Response::Refused(r) => Err(crate::Error::Link(format!(
             "{}: refused by the firmware ({:?}): {}",
             path.display(),
             r.kind,
             r.reason
-        )),
-        other => Err(format!("unexpected answer to upload: {other:?}")),
+        ))),
+        other => Err(crate::Error::Link(format!("unexpected answer to upload: {other:?}"))),
     }
 }
 
-fn json<T: Serialize>(value: &T) -> Result<String, String> {
-    serde_json::to_string(value).map_err(|e| e.to_string())
+fn json<T: Serialize>(value: &T) -> crate::Result<String> {
+    serde_json::to_string(value).map_err(crate::Error::from)
 }
 
 /// `0x` and 8 hex digits, as host-sim prints an FNV-1a 32.
@@ -772,8 +791,8 @@ pub fn hex32(value: u32) -> String {
 /// (`params_fnv1a32`, `params_fingerprint`) in hex, and `guard_interventions`, the output
 /// guard's interventions of all causes on both axes, next to `counters.guard` (per axis: x, y;
 /// per cause: `non_finite`, `window_clamped`, `slew_limited`, `window_entry`).
-pub fn status_json(status: &Status) -> Result<serde_json::Value, String> {
-    let mut value = serde_json::to_value(status).map_err(|e| e.to_string())?;
+pub fn status_json(status: &Status) -> crate::Result<serde_json::Value> {
+    let mut value = serde_json::to_value(status).map_err(crate::Error::from)?;
     if let Some(fields) = value.as_object_mut() {
         fields.insert("params_fnv1a32".into(), hex32(status.params_fnv1a32).into());
         fields.insert(
@@ -789,12 +808,12 @@ pub fn status_json(status: &Status) -> Result<serde_json::Value, String> {
 }
 
 /// Runs `link`.
-pub fn link_cmd(a: &LinkArgs) -> Result<String, String> {
+pub fn link_cmd(a: &LinkArgs) -> crate::Result<String> {
     if !(a.timeout > 0.0 && a.timeout.is_finite()) {
-        return Err("--timeout must be > 0".into());
+        return Err(crate::Error::Link("--timeout must be > 0".into()));
     }
     if !(a.wait >= 0.0 && a.wait.is_finite()) {
-        return Err("--wait must be ≥ 0".into());
+        return Err(crate::Error::Link("--wait must be ≥ 0".into()));
     }
     if let LinkCommand::Excite(RunArgs { plot: Some(p), .. })
     | LinkCommand::Track(RunArgs { plot: Some(p), .. }) = &a.command
@@ -815,10 +834,10 @@ pub fn link_cmd(a: &LinkArgs) -> Result<String, String> {
             recording.check_gaps(r.allow_gaps)?;
             let record = recording.record();
             if record.rows.is_empty() {
-                return Err(format!(
+                return Err(crate::Error::Link(format!(
                     "{} frames but no two consecutive ones: no row for the record",
                     recording.frames.len()
-                ));
+                )));
             }
             let comments = [
                 format!(
@@ -846,7 +865,7 @@ pub fn link_cmd(a: &LinkArgs) -> Result<String, String> {
             let columns = record.table(AxisChoice::Both, tracking, recording.gaps > 0);
             columns
                 .write(&r.record, &comments)
-                .map_err(|e| e.to_string())?;
+                .map_err(crate::Error::from)?;
             if let Some(plot) = &r.plot {
                 plot_record(plot, &columns, tracking)?;
             }
@@ -967,7 +986,7 @@ mod tests {
             })
         });
         let mut client = Client::connect(&address, Duration::from_secs(5)).unwrap();
-        let e = client.status().unwrap_err();
+        let e = client.status().unwrap_err().to_string();
         let theirs = format!(
             "protocol {}, this host-sim {PROTOCOL_VERSION}",
             PROTOCOL_VERSION + 1
@@ -1002,7 +1021,7 @@ mod tests {
         });
         let mut client = Client::connect(&address, Duration::from_secs(5)).unwrap();
         let started = Instant::now();
-        let e = client.status().unwrap_err();
+        let e = client.status().unwrap_err().to_string();
         assert!(
             e.contains(&format!("protocol 1, this host-sim {PROTOCOL_VERSION}")),
             "{e}"
@@ -1031,7 +1050,8 @@ mod tests {
             let mut client = Client::connect(&address, Duration::from_secs(5)).unwrap();
             let e = client
                 .run("sine:amp=1,offset=1,freq=1", 1.0, 1, true)
-                .unwrap_err();
+                .unwrap_err()
+                .to_string();
             assert!(e.contains(expected), "{rate} {table}: {e}");
             drop(client);
             device.join().unwrap();
@@ -1044,7 +1064,8 @@ mod tests {
         let mut client = Client::connect(&address, Duration::from_secs(5)).unwrap();
         let e = client
             .run("sine:amp=1,offset=1,freq=1", 1e9, 1, true)
-            .unwrap_err();
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("frames"), "{e}");
         drop(client);
         device.join().unwrap();
@@ -1125,7 +1146,8 @@ mod tests {
         });
         let e = Client::connect(&address, Duration::from_secs(5))
             .err()
-            .expect("nothing listens yet");
+            .expect("nothing listens yet")
+            .to_string();
         assert!(e.contains(&address), "{e}");
         let mut client =
             Client::connect_waiting(&address, Duration::from_secs(5), Duration::from_secs(10))
@@ -1142,7 +1164,8 @@ mod tests {
         let e =
             Client::connect_waiting(&address, Duration::from_secs(5), Duration::from_millis(300))
                 .err()
-                .expect("nothing listens any more");
+                .expect("nothing listens any more")
+                .to_string();
         assert!(e.contains("did not answer within --wait 0.3 s"), "{e}");
     }
 
@@ -1169,7 +1192,7 @@ mod tests {
         .unwrap()
         .replacen("model = \"symmetric\"", "model = \"dynamic\"", 1);
         std::fs::write(&path, &text).unwrap();
-        let e = model_set(&path).unwrap_err();
+        let e = model_set(&path).unwrap_err().to_string();
         let line = 1 + text[..text.find("model = \"dynamic\"").unwrap()]
             .matches('\n')
             .count();

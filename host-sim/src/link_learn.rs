@@ -175,15 +175,18 @@ fn write_signal_reference(
     rate_hz: f64,
     capacity: u32,
     path: &Path,
-) -> Result<(), String> {
-    let parsed = SignalSpec::parse(spec).map_err(|e| format!("--signal: {e}"))?;
-    let signals = parsed.build(2).map_err(|e| format!("--signal: {e}"))?;
+) -> crate::Result<()> {
+    let parsed =
+        SignalSpec::parse(spec).map_err(|e| crate::Error::Link(format!("--signal: {e}")))?;
+    let signals = parsed
+        .build(2)
+        .map_err(|e| crate::Error::Link(format!("--signal: {e}")))?;
     let n = (duration_s * rate_hz).round();
     if !(duration_s.is_finite() && n >= 2.0 && n <= f64::from(capacity)) {
-        return Err(format!(
+        return Err(crate::Error::Link(format!(
             "--duration-per-trial {duration_s} s is {n} ticks at the device's {rate_hz} Hz: one \
              table entry per tick needs 2 to {capacity}"
-        ));
+        )));
     }
     let t_s: Vec<f64> = (0..n as usize).map(|k| k as f64 / rate_hz).collect();
     let axis = |i: usize| -> Vec<f64> {
@@ -196,12 +199,12 @@ fn write_signal_reference(
         names: vec!["t_s".into(), "rx_m".into(), "ry_m".into()],
         columns: vec![t_s.clone(), axis(0), axis(1)],
     };
-    write_csv(path, &table).map_err(|e| format!("{}: {e}", path.display()))
+    write_csv(path, &table).map_err(|e| crate::Error::Link(format!("{}: {e}", path.display())))
 }
 
 /// Loads `table` as the learned table and plays it from the next tick: the compensator plays
 /// while it is replaced.
-fn play(client: &mut Client, table: &[Vec<f32>], control: Control) -> Result<(), String> {
+fn play(client: &mut Client, table: &[Vec<f32>], control: Control) -> crate::Result<()> {
     if client.status()?.feedforward == piezo_link::Feedforward::Learned {
         client.expect(Request::Control(Control::Feedforward))?;
     }
@@ -211,11 +214,13 @@ fn play(client: &mut Client, table: &[Vec<f32>], control: Control) -> Result<(),
     client.load_table(&entries, true)?;
     match client.request(Request::Control(control))? {
         Response::Done => Ok(()),
-        Response::Refused(r) => Err(format!(
+        Response::Refused(r) => Err(crate::Error::Link(format!(
             "the firmware refused the learned table ({:?}): {}",
             r.kind, r.reason
-        )),
-        other => Err(format!("unexpected answer to control: {other:?}")),
+        ))),
+        other => Err(crate::Error::Link(format!(
+            "unexpected answer to control: {other:?}"
+        ))),
     }
 }
 
@@ -252,11 +257,15 @@ fn record(
     reference: &Reference,
     settle: u32,
     periods: u32,
-) -> Result<TrialRecord, String> {
+) -> crate::Result<TrialRecord> {
     let n = reference.t_s.len();
     let first = match client.expect(Request::Frames { decimation: 1 })? {
         Response::Streaming { next_frame, .. } => next_frame,
-        other => return Err(format!("unexpected answer to frames: {other:?}")),
+        other => {
+            return Err(crate::Error::Link(format!(
+                "unexpected answer to frames: {other:?}"
+            )))
+        }
     };
     let mut start = None;
     let frames = client.frames_through(|f: &Frame| {
@@ -269,7 +278,7 @@ fn record(
     client.expect(Request::Frames { decimation: 0 })?;
     client.take_frames();
     let frames = frames?;
-    let start = start.ok_or("no frame")?;
+    let start = start.ok_or_else(|| crate::Error::Link("no frame".into()))?;
     let kept: Vec<&Frame> = frames
         .iter()
         .filter(|f| f.sequence.wrapping_sub(first) < u32::MAX / 2)
@@ -280,7 +289,7 @@ fn record(
         .windows(2)
         .all(|w| w[1].sequence == w[0].sequence.wrapping_add(1));
     if kept.len() != expected || !contiguous {
-        return Err(format!(
+        return Err(crate::Error::Link(format!(
             "the record of {periods} passes of {n} entries has {} frames, {} (frames lost: \
              the link does not keep up with one frame per tick)",
             kept.len(),
@@ -289,7 +298,7 @@ fn record(
             } else {
                 "with gaps"
             }
-        ));
+        )));
     }
     let frames: Vec<LoopFrame> = kept
         .iter()
@@ -316,12 +325,12 @@ fn record(
         for i in 0..2 {
             let r = reference.axes[i].1[j];
             if row.reference_m[i] != r {
-                return Err(format!(
+                return Err(crate::Error::Link(format!(
                     "frame {}: the firmware's reference {} m is not entry {j}'s {r} m: the wave \
                      table is not the reference (another client changed it?)",
                     first.wrapping_add(row.sequence as u32),
                     row.reference_m[i]
-                ));
+                )));
             }
             u[i][j] += f64::from(row.commanded_v[i]);
             y[i][j] += f64::from(row.sensor_m[i]);
@@ -360,34 +369,36 @@ pub fn link_learn(
     client: &mut Client,
     a: &LinkLearnArgs,
     progress: &mut dyn FnMut(&str),
-) -> Result<LinkLearnReport, String> {
+) -> crate::Result<LinkLearnReport> {
     if a.periods == 0 {
-        return Err("--periods must be at least 1".into());
+        return Err(crate::Error::Link("--periods must be at least 1".into()));
     }
-    std::fs::create_dir_all(&a.out).map_err(|e| format!("--out {}: {e}", a.out.display()))?;
-    let (file, valid) = StageFile::load(&a.params).map_err(|e| e.to_string())?;
-    let bytes = std::fs::read(&a.params).map_err(|e| format!("{}: {e}", a.params.display()))?;
+    std::fs::create_dir_all(&a.out)
+        .map_err(|e| crate::Error::Link(format!("--out {}: {e}", a.out.display())))?;
+    let (file, valid) = StageFile::load(&a.params).map_err(crate::Error::from)?;
+    let bytes = std::fs::read(&a.params)
+        .map_err(|e| crate::Error::Link(format!("{}: {e}", a.params.display())))?;
     let stage_hash = fnv1a32(&bytes);
     let axes = feedforward_axes(&file, &valid, &a.params)?;
     if axes.len() != 2 {
-        return Err(format!(
+        return Err(crate::Error::Link(format!(
             "{}: {} axis; the firmware's tables are two-axis: give a stage file with [x] and [y]",
             a.params.display(),
             axes.len()
-        ));
+        )));
     }
     let status = client.status()?;
     let (rate, capacity) = run_limits(&status)?;
     let capacity = capacity.min(status.learned[1]);
     if status.params_fnv1a32 != stage_hash {
-        return Err(format!(
+        return Err(crate::Error::Link(format!(
             "the firmware runs {} (fnv1a32 {:#010x}), not {} (fnv1a32 {stage_hash:#010x}): \
              `host-sim link upload --params {}` first",
             status.params_version,
             status.params_fnv1a32,
             a.params.display(),
             a.params.display()
-        ));
+        )));
     }
     let reference_path = match (&a.signal, a.duration_per_trial, &a.reference) {
         (Some(spec), Some(s), None) => {
@@ -396,17 +407,21 @@ pub fn link_learn(
             path
         }
         (None, _, Some(path)) => path.clone(),
-        _ => return Err("give --signal with --duration-per-trial, or --reference".into()),
+        _ => {
+            return Err(crate::Error::Link(
+                "give --signal with --duration-per-trial, or --reference".into(),
+            ))
+        }
     };
     let reference = read_reference(&reference_path)?;
     let n = reference.t_s.len();
     if reference.axes.len() != 2 || !(2..=capacity as usize).contains(&n) {
-        return Err(format!(
+        return Err(crate::Error::Link(format!(
             "{}: {n} samples of {} axis(es): the tables take rx_m and ry_m, 2 to {capacity} entries \
              (one per tick)",
             reference_path.display(),
             reference.axes.len()
-        ));
+        )));
     }
     let base = base_command(&a.params, &reference_path, true)?;
     let base_v: Vec<Vec<f32>> = base.voltages_v.iter().map(|(_, u)| u.clone()).collect();
@@ -468,10 +483,10 @@ pub fn link_learn(
         let trial_record = record(client, &reference, a.settle_periods, a.periods)?;
         let status = client.status()?;
         if status.mode != piezo_link::Mode::Running {
-            return Err(format!(
+            return Err(crate::Error::Link(format!(
                 "trial {k}: the firmware left the running state ({:?})",
                 status.mode
-            ));
+            )));
         }
         let files = StepFiles {
             params: &a.params,
@@ -492,7 +507,7 @@ pub fn link_learn(
             stepping.push(
                 learning
                     .with_harmonic_gain(rho)
-                    .map_err(|e| format!("axis {}: {e}", names[i]))?,
+                    .map_err(|e| crate::Error::Link(format!("axis {}: {e}", names[i])))?,
             );
         }
         let (axes_error, mut next) = step_checked(
@@ -568,7 +583,7 @@ pub fn link_learn(
         }
         table = next;
     }
-    let (best, best_table) = best.ok_or("no trial ran")?;
+    let (best, best_table) = best.ok_or_else(|| crate::Error::Link("no trial ran".into()))?;
     play(client, &best_table, mode(a))?;
     Ok(LinkLearnReport {
         trials,
@@ -690,16 +705,17 @@ impl LinkLearnReport {
 
 /// `host-sim link learn`: learns, writes `DIR/learn.json`, `DIR/table.csv`, `DIR/learn.png`;
 /// returns a summary (JSON).
-pub fn link_learn_cmd(client: &mut Client, a: &LinkLearnArgs) -> Result<String, String> {
+pub fn link_learn_cmd(client: &mut Client, a: &LinkLearnArgs) -> crate::Result<String> {
     let report = link_learn(client, a, &mut |line| eprintln!("{line}"))?;
     let json_path = a.out.join("learn.json");
     let table_path = a.out.join("table.csv");
     let png_path = a.out.join("learn.png");
-    let json = serde_json::to_string_pretty(&report.json(a)).map_err(|e| e.to_string())?;
-    std::fs::write(&json_path, json).map_err(|e| format!("{}: {e}", json_path.display()))?;
+    let json = serde_json::to_string_pretty(&report.json(a)).map_err(crate::Error::from)?;
+    std::fs::write(&json_path, json)
+        .map_err(|e| crate::Error::Link(format!("{}: {e}", json_path.display())))?;
     write_learned_table(&table_path, &report.table_step(a), &a.params)?;
     plot_grid(&png_path, &[report.chart()], 1)
-        .map_err(|e| format!("{}: {e}", png_path.display()))?;
+        .map_err(|e| crate::Error::Link(format!("{}: {e}", png_path.display())))?;
     let written: Vec<String> = [&json_path, &table_path, &png_path]
         .iter()
         .map(|p| p.display().to_string())
@@ -713,5 +729,5 @@ pub fn link_learn_cmd(client: &mut Client, a: &LinkLearnArgs) -> Result<String, 
         "stopped_early": report.stopped_early,
         "written": written,
     }))
-    .map_err(|e| e.to_string())
+    .map_err(crate::Error::from)
 }

@@ -41,21 +41,27 @@ pub struct StepArgs {
 }
 
 /// Runs `link step`: JSON on stdout; an error when an axis is not on target in time.
-pub fn link_step_cmd(client: &mut Client, a: &StepArgs) -> Result<String, String> {
+pub fn link_step_cmd(client: &mut Client, a: &StepArgs) -> crate::Result<String> {
     let to = crate::settle::parse_pair("--to", &a.to)?;
     let status = client.status()?;
     let (rate, _) = run_limits(&status)?;
     if !(a.timeout > 0.0 && a.timeout * rate <= 1e8) {
-        return Err(format!(
+        return Err(crate::Error::Link(format!(
             "--timeout {}: expected > 0 s and at most 1e8 ticks",
             a.timeout
-        ));
+        )));
     }
     let max_frames = (a.timeout * rate).ceil() as usize;
     let device_band = status.on_target.map(|b| (b.tolerance_m, b.ticks));
     let bands = device_band
         .map(|(t, n)| OnTarget::new(a.tolerance.map_or(t, |t| t as f32), n))
-        .map(|b| b.map_err(|e| format!("--tolerance: {e} (the firmware's band: {device_band:?})")));
+        .map(|b| {
+            b.map_err(|e| {
+                crate::Error::Link(format!(
+                    "--tolerance: {e} (the firmware's band: {device_band:?})"
+                ))
+            })
+        });
     let [bx, by] = bands;
     let bands = [bx?, by?];
 
@@ -63,7 +69,11 @@ pub fn link_step_cmd(client: &mut Client, a: &StepArgs) -> Result<String, String
     let program = Program::PerAxis(to.map(|offset| Wave::Constant { offset }));
     let first = match client.expect(Request::Track(program))? {
         Response::Started { first_frame } => first_frame,
-        other => return Err(format!("unexpected answer to a program: {other:?}")),
+        other => {
+            return Err(crate::Error::Link(format!(
+                "unexpected answer to a program: {other:?}"
+            )))
+        }
     };
     let mut host = [OnTargetState::default(); 2];
     let mut previous_reference: Option<[f32; 2]> = None;
@@ -128,15 +138,15 @@ pub fn link_step_cmd(client: &mut Client, a: &StepArgs) -> Result<String, String
         "counters": after.counters,
     });
     if settle.iter().any(Option::is_none) {
-        return Err(format!(
+        return Err(crate::Error::Link(format!(
             "not on target within --timeout {} s: {value}",
             a.timeout
-        ));
+        )));
     }
-    serde_json::to_string(&value).map_err(|e| e.to_string())
+    serde_json::to_string(&value).map_err(crate::Error::from)
 }
 
-fn write_frames(path: &std::path::Path, frames: &[Frame]) -> Result<(), String> {
+fn write_frames(path: &std::path::Path, frames: &[Frame]) -> crate::Result<()> {
     let name = path.display();
     let mut out = String::from("sequence,rx_m,ry_m,ux_V,uy_V,x_m,y_m,flags\n");
     for f in frames {
@@ -153,9 +163,9 @@ fn write_frames(path: &std::path::Path, frames: &[Frame]) -> Result<(), String> 
         ));
     }
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).map_err(|e| format!("{name}: {e}"))?;
+        std::fs::create_dir_all(dir).map_err(|e| crate::Error::Link(format!("{name}: {e}")))?;
     }
     std::fs::File::create(path)
         .and_then(|mut f| f.write_all(out.as_bytes()))
-        .map_err(|e| format!("{name}: {e}"))
+        .map_err(|e| crate::Error::Link(format!("{name}: {e}")))
 }

@@ -113,14 +113,14 @@ fn run(
     signals: Vec<Box<dyn Signal>>,
     fs: f64,
     duration_s: f64,
-) -> Result<SimOutput, String> {
+) -> crate::Result<SimOutput> {
     simulate(
         plant,
         signals,
         &Effects::default(),
         &SimSettings::new(fs, duration_s),
     )
-    .map_err(|e| format!("{}: {e}", plant.name()))
+    .map_err(|e| crate::Error::Usage(format!("{}: {e}", plant.name())))
 }
 
 /// Settled points at the end of each level and the loop figures of `axis`.
@@ -149,11 +149,11 @@ fn loop_figures(out: &SimOutput, axis: usize, levels: usize) -> LoopFigures {
     }
 }
 
-fn xy_staircase(stage: &XyStage, high_v: f64, step_v: f64) -> Result<[LoopFigures; 2], String> {
+fn xy_staircase(stage: &XyStage, high_v: f64, step_v: f64) -> crate::Result<[LoopFigures; 2]> {
     let levels = 2 * (high_v / step_v).round() as usize + 1;
     let mut signals: Vec<Box<dyn Signal>> = Vec::new();
     for _ in 0..2 {
-        let s = staircase(0.0, high_v, step_v, HOLD_S).map_err(|e| e.to_string())?;
+        let s = staircase(0.0, high_v, step_v, HOLD_S).map_err(crate::Error::from)?;
         signals.push(Box::new(s));
     }
     let out = run(stage, signals, XY_RATE_HZ, levels as f64 * HOLD_S)?;
@@ -161,7 +161,7 @@ fn xy_staircase(stage: &XyStage, high_v: f64, step_v: f64) -> Result<[LoopFigure
 }
 
 /// The core's NAC2024 model (Table 1) at 2.56 MHz, valid over ±10 V with state limit 10.
-pub fn nac_core_model() -> Result<DynamicModel, String> {
+pub fn nac_core_model() -> crate::Result<DynamicModel> {
     let bw = BoucWen::with_input_range(
         BoucWenParams {
             a: 0.192,
@@ -173,7 +173,7 @@ pub fn nac_core_model() -> Result<DynamicModel, String> {
         10.0,
         10.0,
     )
-    .map_err(|e| format!("piezo-core BoucWen: {e}"))?;
+    .map_err(|e| crate::Error::Usage(format!("piezo-core BoucWen: {e}")))?;
     DynamicModel::new(
         bw,
         MassSpringDamperParams {
@@ -185,7 +185,7 @@ pub fn nac_core_model() -> Result<DynamicModel, String> {
         },
         (1.0 / NAC_SAMPLE_RATE_HZ) as f32,
     )
-    .map_err(|e| format!("piezo-core DynamicModel: {e}"))
+    .map_err(|e| crate::Error::Usage(format!("piezo-core DynamicModel: {e}")))
 }
 
 /// (R², MRD %) of the core model against `plant` for a sine at `frequency_hz`.
@@ -193,7 +193,7 @@ pub fn nac_fit(
     model: &DynamicModel,
     plant: &Nac2024,
     frequency_hz: f64,
-) -> Result<(f64, f64), String> {
+) -> crate::Result<(f64, f64)> {
     let periods = 10.0;
     let sine = Sine {
         amplitude_v: NAC_SINE_AMPLITUDE_V,
@@ -214,12 +214,14 @@ pub fn nac_fit(
         .collect();
     let measured = &out.outputs_m[0];
     let start = measured.len() / 2;
-    let r2 = r_squared(&measured[start..], &predicted[start..]).ok_or("R² undefined")?;
-    let mrd = mrd_percent(&measured[start..], &predicted[start..]).ok_or("MRD undefined")?;
+    let r2 = r_squared(&measured[start..], &predicted[start..])
+        .ok_or_else(|| crate::Error::Usage("R² undefined".into()))?;
+    let mrd = mrd_percent(&measured[start..], &predicted[start..])
+        .ok_or_else(|| crate::Error::Usage("MRD undefined".into()))?;
     Ok((r2, mrd))
 }
 
-fn nac_rows(progress: &mut dyn FnMut(&str)) -> Result<Vec<NacRow>, String> {
+fn nac_rows(progress: &mut dyn FnMut(&str)) -> crate::Result<Vec<NacRow>> {
     let model = nac_core_model()?;
     let published = Nac2024::published();
     let perturbed = Nac2024 {
@@ -249,7 +251,7 @@ fn nac_rows(progress: &mut dyn FnMut(&str)) -> Result<Vec<NacRow>, String> {
 }
 
 /// The core's seed-001 model of `case` (standard for Case I), y in metres, at 10 kHz.
-pub fn stage_core_model(case: StageCase) -> Result<StaticModel, String> {
+pub fn stage_core_model(case: StageCase) -> crate::Result<StaticModel> {
     let p = AsymmetricStage::new(case);
     let bw = BoucWen::new(BoucWenParams {
         a: p.hysteresis.a as f32,
@@ -257,7 +259,7 @@ pub fn stage_core_model(case: StageCase) -> Result<StaticModel, String> {
         gamma: p.hysteresis.gamma as f32,
         n: p.hysteresis.n as f32,
     })
-    .map_err(|e| format!("piezo-core BoucWen (stage): {e}"))?;
+    .map_err(|e| crate::Error::Usage(format!("piezo-core BoucWen (stage): {e}")))?;
     let map = StaticMap {
         k1_m_per_v: (1e-3 * p.k1_mm_per_v) as f32,
         k2_m_per_h: (1e-3 * p.k2_mm) as f32,
@@ -276,7 +278,7 @@ pub fn stage_core_model(case: StageCase) -> Result<StaticModel, String> {
             1e-4,
         )
     };
-    model.map_err(|e| format!("piezo-core StaticModel (stage): {e}"))
+    model.map_err(|e| crate::Error::Usage(format!("piezo-core StaticModel (stage): {e}")))
 }
 
 fn stage_input() -> Vec<Box<dyn Signal>> {
@@ -288,15 +290,17 @@ fn stage_input() -> Vec<Box<dyn Signal>> {
     })]
 }
 
-fn stage_fit(model: &StaticModel, out: &SimOutput) -> Result<(StageFit, Vec<f64>), String> {
+fn stage_fit(model: &StaticModel, out: &SimOutput) -> crate::Result<(StageFit, Vec<f64>)> {
     let mut state = ModelState::at_rest(0.0);
     let predicted: Vec<f64> = out.inputs_v[0]
         .iter()
         .map(|&u| f64::from(model.step(&mut state, u as f32)))
         .collect();
     let measured = &out.outputs_m[0];
-    let rae_m = rae(measured, &predicted).ok_or("RAE undefined")?;
-    let afv_m = rms(measured, &predicted).ok_or("AFV undefined")?;
+    let rae_m =
+        rae(measured, &predicted).ok_or_else(|| crate::Error::Usage("RAE undefined".into()))?;
+    let afv_m =
+        rms(measured, &predicted).ok_or_else(|| crate::Error::Usage("AFV undefined".into()))?;
     Ok((StageFit { rae_m, afv_m }, predicted))
 }
 
@@ -306,7 +310,7 @@ type StageResults = (
     (Vec<f64>, Vec<f64>, [Vec<f64>; 3]),
 );
 
-fn stage_results() -> Result<StageResults, String> {
+fn stage_results() -> crate::Result<StageResults> {
     let cases = [StageCase::I, StageCase::II, StageCase::III];
     let models = cases
         .iter()
@@ -342,7 +346,7 @@ fn stage_results() -> Result<StageResults, String> {
 }
 
 /// Runs all three sections; `progress` receives one line per step.
-pub fn run_reproduce(progress: &mut dyn FnMut(&str)) -> Result<Report, String> {
+pub fn run_reproduce(progress: &mut dyn FnMut(&str)) -> crate::Result<Report> {
     progress("reproduce [1/3] xy_stage staircases 0-120-0 V and 0-12-0 V");
     let stage = XyStage::default();
     let xy_120v = xy_staircase(&stage, 120.0, 10.0)?;
@@ -529,11 +533,13 @@ impl Report {
     }
 
     /// Writes `reproduce.json` and the plots (`xy_loops`, `nac2024_table2`, `stage_error`) into `dir`.
-    pub fn write(&self, dir: &Path, formats: &[&str]) -> Result<Vec<String>, String> {
-        std::fs::create_dir_all(dir).map_err(|e| format!("--out {}: {e}", dir.display()))?;
+    pub fn write(&self, dir: &Path, formats: &[&str]) -> crate::Result<Vec<String>> {
+        std::fs::create_dir_all(dir)
+            .map_err(|e| crate::Error::Usage(format!("--out {}: {e}", dir.display())))?;
         let path = dir.join("reproduce.json");
-        let text = serde_json::to_string_pretty(&self.json()).map_err(|e| e.to_string())?;
-        std::fs::write(&path, text + "\n").map_err(|e| format!("--out {}: {e}", path.display()))?;
+        let text = serde_json::to_string_pretty(&self.json()).map_err(crate::Error::from)?;
+        std::fs::write(&path, text + "\n")
+            .map_err(|e| crate::Error::Usage(format!("--out {}: {e}", path.display())))?;
         let mut written = vec![path.display().to_string()];
         let um = |pts: &[(f64, f64)]| pts.iter().map(|&(u, y)| (u, y * 1e6)).collect::<Vec<_>>();
         let xy = vec![
@@ -615,7 +621,7 @@ impl Report {
                 ("stage_error", &stage),
             ] {
                 let p = dir.join(format!("{name}.{format}"));
-                plot_panels(&p, panels).map_err(|e| e.to_string())?;
+                plot_panels(&p, panels).map_err(crate::Error::from)?;
                 written.push(p.display().to_string());
             }
         }
@@ -635,7 +641,7 @@ pub struct ReproduceArgs {
 }
 
 /// `host-sim reproduce`: runs the figures and writes the report and plots.
-pub fn reproduce_cmd(a: &ReproduceArgs) -> Result<String, String> {
+pub fn reproduce_cmd(a: &ReproduceArgs) -> crate::Result<String> {
     let report = crate::reproduce::run_reproduce(&mut crate::progress)?;
     let files = report.write(&a.out, a.format.extensions())?;
     Ok(format!("{}written: {}", report.table(), files.join(", ")))

@@ -370,7 +370,7 @@ impl<'a> Rig<'a> {
     }
 
     /// Applies `u_v` (through the DAC) and advances to the next tick.
-    pub fn apply(&mut self, u_v: [f64; 2]) -> Result<(), String> {
+    pub fn apply(&mut self, u_v: [f64; 2]) -> crate::Result<()> {
         let n = self.stage.state_dim();
         for ch in 0..2 {
             let u = self.effects.dac.map_or(u_v[ch], |d| d.quantise(u_v[ch]));
@@ -388,11 +388,11 @@ impl<'a> Rig<'a> {
         let end = self.t_s + self.period_s;
         self.ode
             .advance(&seg, &mut self.t_s, &mut self.x, end)
-            .map_err(|e| e.to_string())?;
+            .map_err(crate::Error::from)?;
         self.t_s = end;
         self.stage
             .check_state(&self.x[..n])
-            .map_err(|e| e.to_string())
+            .map_err(crate::Error::from)
     }
 }
 
@@ -409,7 +409,7 @@ fn drive(
     effects: &Effects,
     loop_rate_hz: f64,
     voltages: impl Iterator<Item = [f64; 2]>,
-) -> Result<Vec<[f64; 2]>, String> {
+) -> crate::Result<Vec<[f64; 2]>> {
     let mut rig = Rig::new(stage, effects, loop_rate_hz);
     let mut out = Vec::new();
     for u in voltages {
@@ -462,7 +462,7 @@ pub(crate) fn identify_rig(
     effects: &Effects,
     stack: &ValidStage,
     fs: f64,
-) -> Result<[(f64, f64, f64); 2], String> {
+) -> crate::Result<[(f64, f64, f64); 2]> {
     let n_cos = fs as usize;
     let n_rest = (0.2 * fs) as usize;
     let n_step = (0.02 * fs) as usize;
@@ -485,7 +485,9 @@ pub(crate) fn identify_rig(
     for a in 0..2 {
         let Some(piezo_stage::AxisChain::Static { model, .. }) = stack.axes.get(a).map(|v| v.chain)
         else {
-            return Err("the stack file has no static model for both axes".into());
+            return Err(crate::Error::Usage(
+                "the stack file has no static model for both axes".into(),
+            ));
         };
         let mut state = piezo_core::ModelState::at_rest(0.0);
         let (mut sym, mut smm) = (0.0, 0.0);
@@ -496,8 +498,9 @@ pub(crate) fn identify_rig(
             smm += m * m;
         }
         let step: Vec<f64> = y[n_cos + n_rest + 1..].iter().map(|v| v[a]).collect();
-        let (f, zeta) =
-            mode_from_step(&step, 1.0 / fs).ok_or("no oscillatory mode in the step response")?;
+        let (f, zeta) = mode_from_step(&step, 1.0 / fs).ok_or_else(|| {
+            crate::Error::Usage("no oscillatory mode in the step response".into())
+        })?;
         out[a] = (sym / smm, f, zeta);
     }
     Ok(out)
@@ -571,9 +574,9 @@ impl AxisController {
 /// the identified mode, both validated through the stage file.
 /// The stack file (`firmware/params/xy-stage.toml`) with its compensator and servo at the loop
 /// rate `fs` \[Hz\], whatever rate the file itself runs at.
-pub(crate) fn stack_file_at(fs: f64) -> Result<StageFile, String> {
-    let mut file =
-        StageFile::parse("firmware/params/xy-stage.toml", STACK_FILE).map_err(|e| e.to_string())?;
+pub(crate) fn stack_file_at(fs: f64) -> crate::Result<StageFile> {
+    let mut file = StageFile::parse("firmware/params/xy-stage.toml", STACK_FILE)
+        .map_err(crate::Error::from)?;
     file.stage.loop_rate_hz = fs as f32;
     Ok(file)
 }
@@ -581,7 +584,7 @@ pub(crate) fn stack_file_at(fs: f64) -> Result<StageFile, String> {
 pub(crate) fn controllers(
     stack_file: &StageFile,
     identified: &[(f64, f64, f64); 2],
-) -> Result<([AxisController; 2], [Tuning; 2], StageFile), String> {
+) -> crate::Result<([AxisController; 2], [Tuning; 2], StageFile)> {
     controllers_with(stack_file, identified, false)
 }
 
@@ -592,24 +595,29 @@ pub(crate) fn controllers_with(
     stack_file: &StageFile,
     identified: &[(f64, f64, f64); 2],
     mode_feedforward: bool,
-) -> Result<([AxisController; 2], [Tuning; 2], StageFile), String> {
+) -> crate::Result<([AxisController; 2], [Tuning; 2], StageFile)> {
     let mut file = stack_file.clone();
     let axes = [Some(&mut file.x), file.y.as_mut()];
     for (axis, &(gain, f_n, zeta)) in axes.into_iter().zip(identified) {
-        let axis = axis.ok_or("the stack file has one axis")?;
+        let axis = axis.ok_or_else(|| crate::Error::Usage("the stack file has one axis".into()))?;
         if mode_feedforward {
             axis.effects.mode_frequency_hz = f_n as f32;
             axis.effects.mode_damping = zeta as f32;
             axis.effects.mode_relative_damping = 0.0;
         }
-        let map = axis.static_map.as_mut().ok_or("no static map")?;
+        let map = axis
+            .static_map
+            .as_mut()
+            .ok_or_else(|| crate::Error::Usage("no static map".into()))?;
         map.k1_m_per_v = (f64::from(map.k1_m_per_v) * gain) as f32;
         map.k2_m_per_h = (f64::from(map.k2_m_per_h) * gain) as f32;
     }
-    let valid = file.validate().map_err(|e| e.to_string())?;
+    let valid = file.validate().map_err(crate::Error::from)?;
     let mut tunings = Vec::new();
     for (a, v) in valid.axes.iter().enumerate() {
-        let compensator = v.compensator.ok_or("no compensator")?;
+        let compensator = v
+            .compensator
+            .ok_or_else(|| crate::Error::Usage("no compensator".into()))?;
         let dynamics = StageDynamics::from_model(
             compensator.model(),
             identified[a].1 as f32,
@@ -617,30 +625,38 @@ pub(crate) fn controllers_with(
             1.5 * valid.sample_period_s,
         );
         let tuning = tune(&dynamics, &TuningGoal::default(), compensator.settings())
-            .map_err(|e| format!("servo tuning of axis {}: {e}", v.name))?;
+            .map_err(|e| crate::Error::Usage(format!("servo tuning of axis {}: {e}", v.name)))?;
         tunings.push(tuning);
     }
     file.x.servo = Some(tunings[0].params);
     if let Some(y) = file.y.as_mut() {
         y.servo = Some(tunings[1].params);
     }
-    let valid = file.validate().map_err(|e| e.to_string())?;
-    let build = |a: usize| -> Result<AxisController, String> {
-        let v = valid.axes.get(a).ok_or("missing axis")?;
-        let compensator = v.compensator.ok_or("no compensator")?;
+    let valid = file.validate().map_err(crate::Error::from)?;
+    let build = |a: usize| -> crate::Result<AxisController> {
+        let v = valid
+            .axes
+            .get(a)
+            .ok_or_else(|| crate::Error::Usage("missing axis".into()))?;
+        let compensator = v
+            .compensator
+            .ok_or_else(|| crate::Error::Usage("no compensator".into()))?;
         let rest_v = compensator.settings().limits.output_min_v;
         let chain = match v.chain {
-            piezo_stage::AxisChain::Static { effects, .. } if mode_feedforward => Some(
-                InverseChain::single(effects, rest_v)
-                    .ok_or("the mode's inverse chain could not be built")?,
-            ),
+            piezo_stage::AxisChain::Static { effects, .. } if mode_feedforward => {
+                Some(InverseChain::single(effects, rest_v).ok_or_else(|| {
+                    crate::Error::Usage("the mode's inverse chain could not be built".into())
+                })?)
+            }
             _ => None,
         };
         Ok(AxisController {
             compensator,
             compensator_state: CompensatorState::at_rest(rest_v),
             chain,
-            servo: v.servo.ok_or("no servo")?,
+            servo: v
+                .servo
+                .ok_or_else(|| crate::Error::Usage("no servo".into()))?,
             servo_state: ServoState::at_rest(rest_v, ServoMode::Feedforward),
             rest_v,
             rest_output_m: v.rest_output_m,
@@ -660,7 +676,7 @@ fn run_loop(
     mode: ServoMode,
     n: usize,
     reference: &dyn Fn(usize) -> [f64; 2],
-) -> Result<[Vec<f64>; 2], String> {
+) -> crate::Result<[Vec<f64>; 2]> {
     let mut c = controllers.clone();
     for axis in &mut c {
         axis.servo_state = ServoState::at_rest(axis.rest_v, mode);
@@ -758,7 +774,7 @@ fn measure_response(
     controllers: &[AxisController; 2],
     stroke_m: [f64; 2],
     mode: ServoMode,
-) -> Result<Response, String> {
+) -> crate::Result<Response> {
     let fs = settings.loop_rate_hz;
     let hold = (0.1 * fs) as usize;
     let n = (settings.chirp_s * fs) as usize;
@@ -797,17 +813,19 @@ fn measure_response(
 pub fn run_bench(
     settings: &BenchSettings,
     progress: &mut (dyn FnMut(&str) + Send),
-) -> Result<BenchReport, String> {
+) -> crate::Result<BenchReport> {
     use rayon::prelude::*;
     let start = Instant::now();
     let fs = settings.loop_rate_hz;
     let mut effects = Effects::default();
     for spec in &settings.plant_effects {
-        effects.add_spec(spec).map_err(|e| format!("{spec}: {e}"))?;
+        effects
+            .add_spec(spec)
+            .map_err(|e| crate::Error::Usage(format!("{spec}: {e}")))?;
     }
     let stage = XyStage::default();
     let stack_file = stack_file_at(fs)?;
-    let stack = stack_file.validate().map_err(|e| e.to_string())?;
+    let stack = stack_file.validate().map_err(crate::Error::from)?;
     progress("identifying the platform gain and the first mode");
     let identified = identify_rig(&stage, &effects, &stack, fs)?;
     let (ctl, tunings, _) = controllers_with(&stack_file, &identified, settings.mode_feedforward)?;
@@ -878,7 +896,7 @@ pub fn run_bench(
                 },
             ))
         })
-        .collect::<Result<_, String>>()?;
+        .collect::<crate::Result<_>>()?;
     let (rows, traces) = runs.into_iter().unzip();
     let steps: Vec<(ServoMode, f64)> = settings
         .modes
@@ -911,7 +929,7 @@ pub fn run_bench(
                 settle_s,
             })
         })
-        .collect::<Result<_, String>>()?;
+        .collect::<crate::Result<_>>()?;
     Ok(BenchReport {
         settling,
         step_watch_s: settings.step_watch_s,
@@ -1027,12 +1045,14 @@ impl BenchReport {
     }
 
     /// Writes `servo.json` and the plots (`servo-error.*`, `servo-bode.*`) into `dir`.
-    pub fn write(&self, dir: &Path, extensions: &[&str]) -> Result<Vec<String>, String> {
-        std::fs::create_dir_all(dir).map_err(|e| format!("--out {}: {e}", dir.display()))?;
+    pub fn write(&self, dir: &Path, extensions: &[&str]) -> crate::Result<Vec<String>> {
+        std::fs::create_dir_all(dir)
+            .map_err(|e| crate::Error::Usage(format!("--out {}: {e}", dir.display())))?;
         let mut files = Vec::new();
         let json = dir.join("servo.json");
-        let text = serde_json::to_string_pretty(&self.json()).map_err(|e| e.to_string())?;
-        std::fs::write(&json, text).map_err(|e| format!("{}: {e}", json.display()))?;
+        let text = serde_json::to_string_pretty(&self.json()).map_err(crate::Error::from)?;
+        std::fs::write(&json, text)
+            .map_err(|e| crate::Error::Usage(format!("{}: {e}", json.display())))?;
         files.push(json.display().to_string());
         let figures: [(&str, Vec<Chart>, usize); 2] = [
             ("servo-error", self.error_panels(), 2),
@@ -1044,7 +1064,7 @@ impl BenchReport {
             }
             for ext in extensions {
                 let path: PathBuf = dir.join(format!("{name}.{ext}"));
-                plot_grid(&path, &panels, columns).map_err(|e| e.to_string())?;
+                plot_grid(&path, &panels, columns).map_err(crate::Error::from)?;
                 files.push(path.display().to_string());
             }
         }
@@ -1182,15 +1202,19 @@ of the stroke (faded in over 50 ms, scored after 0.1 s) in open-loop, feedforwar
 closed-loop bandwidth from a chirp (lower axis).";
 
 /// Runs `servo-bench`.
-pub fn servo_bench_cmd(a: &ServoBenchArgs) -> Result<String, String> {
+pub fn servo_bench_cmd(a: &ServoBenchArgs) -> crate::Result<String> {
     let extensions = a.format.extensions();
     if a.rates.is_empty() {
-        return Err("--rates: give at least one loop rate".into());
+        return Err(crate::Error::Usage(
+            "--rates: give at least one loop rate".into(),
+        ));
     }
     for &rate in &a.rates {
         // The core's limit on the filters (0.45·f_s) and the firmware's loop rates.
         if !(rate.is_finite() && (1_000.0..=1e6).contains(&rate)) {
-            return Err(format!("--rates {rate}: a loop rate in [1000, 1e6] Hz"));
+            return Err(crate::Error::Usage(format!(
+                "--rates {rate}: a loop rate in [1000, 1e6] Hz"
+            )));
         }
     }
     let mut reports = Vec::new();
@@ -1227,8 +1251,9 @@ pub fn servo_bench_cmd(a: &ServoBenchArgs) -> Result<String, String> {
     if reports.len() > 1 {
         let json = a.out.join("rates.json");
         let text =
-            serde_json::to_string_pretty(&rates_json(&reports)).map_err(|e| e.to_string())?;
-        std::fs::write(&json, text).map_err(|e| format!("{}: {e}", json.display()))?;
+            serde_json::to_string_pretty(&rates_json(&reports)).map_err(crate::Error::from)?;
+        std::fs::write(&json, text)
+            .map_err(|e| crate::Error::Usage(format!("{}: {e}", json.display())))?;
         out += &format!("\n{}written: {}\n", rates_table(&reports), json.display());
     }
     Ok(out.trim_end().to_string())

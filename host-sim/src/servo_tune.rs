@@ -102,16 +102,16 @@ fn first_mode(
     index: usize,
     given: &[f32],
     damping: f32,
-) -> Result<(f32, f32), String> {
+) -> crate::Result<(f32, f32)> {
     match given.len() {
         0 => {}
         1 => return Ok((given[0], damping)),
         n if n == file.axes().len() => return Ok((given[index], damping)),
         n => {
-            return Err(format!(
+            return Err(crate::Error::Refused(format!(
                 "--mode-hz has {n} values for {} axes",
                 file.axes().len()
-            ))
+            )))
         }
     }
     let (name, axis) = file.axes()[index];
@@ -119,10 +119,10 @@ fn first_mode(
     if e.mode_frequency_hz > 0.0 {
         Ok((e.mode_frequency_hz, e.mode_damping))
     } else {
-        Err(format!(
+        Err(crate::Error::Refused(format!(
             "axis {name}: no first mode: give --mode-hz (and --damping), or let close-loop find \
              the `mode` effect"
-        ))
+        )))
     }
 }
 
@@ -133,15 +133,15 @@ pub fn tune_file(
     damping: f32,
     goal: &TuningGoal,
     latency: Latency,
-) -> Result<Vec<AxisTuning>, String> {
-    let valid = file.validate().map_err(|e| e.to_string())?;
+) -> crate::Result<Vec<AxisTuning>> {
+    let valid = file.validate().map_err(crate::Error::from)?;
     let mut out = Vec::new();
     for (index, v) in valid.axes.iter().enumerate() {
         let compensator = v.compensator.ok_or_else(|| {
-            format!(
+            crate::Error::Refused(format!(
                 "axis {}: servo tuning needs a static model (symmetric or asymmetric)",
                 v.name
-            )
+            ))
         })?;
         let (f, zeta) = first_mode(file, index, mode_hz, damping)?;
         let dynamics = StageDynamics::from_model(
@@ -151,7 +151,7 @@ pub fn tune_file(
             latency.at_period(valid.sample_period_s),
         );
         let tuning = tune(&dynamics, goal, compensator.settings())
-            .map_err(|e| format!("servo tuning of axis {}: {e}", v.name))?;
+            .map_err(|e| crate::Error::Refused(format!("servo tuning of axis {}: {e}", v.name)))?;
         out.push(AxisTuning {
             axis: v.name,
             dynamics,
@@ -162,7 +162,7 @@ pub fn tune_file(
     if let (Some(y), Some(t)) = (file.y.as_mut(), out.get(1)) {
         y.servo = Some(t.tuning.params);
     }
-    file.validate().map_err(|e| e.to_string())?;
+    file.validate().map_err(crate::Error::from)?;
     Ok(out)
 }
 
@@ -204,8 +204,9 @@ pub fn report(tunings: &[AxisTuning]) -> serde_json::Value {
 }
 
 /// `host-sim servo-tune`.
-pub fn servo_tune_cmd(a: &ServoTuneArgs) -> Result<String, String> {
-    let (mut file, _) = StageFile::load(&a.stage).map_err(|e| format!("--stage: {e}"))?;
+pub fn servo_tune_cmd(a: &ServoTuneArgs) -> crate::Result<String> {
+    let (mut file, _) =
+        StageFile::load(&a.stage).map_err(|e| crate::Error::Refused(format!("--stage: {e}")))?;
     let goal = TuningGoal {
         phase_margin_deg: a.phase_margin_deg,
         ..TuningGoal::default()
@@ -215,10 +216,10 @@ pub fn servo_tune_cmd(a: &ServoTuneArgs) -> Result<String, String> {
         converter_s: a.converter_latency_s,
     };
     if !(latency.periods >= 0.0 && latency.converter_s >= 0.0 && latency.converter_s.is_finite()) {
-        return Err(format!(
+        return Err(crate::Error::Refused(format!(
             "--latency-periods {} / --converter-latency-s {}: each must be finite and >= 0",
             latency.periods, latency.converter_s
-        ));
+        )));
     }
     let tunings = tune_file(&mut file, &a.mode_hz, a.damping, &goal, latency)?;
     let header = format!(
@@ -226,9 +227,9 @@ pub fn servo_tune_cmd(a: &ServoTuneArgs) -> Result<String, String> {
         a.stage.display()
     );
     file.write(&a.out, &header)
-        .map_err(|e| format!("--out: {e}"))?;
+        .map_err(|e| crate::Error::Refused(format!("--out: {e}")))?;
     eprintln!("wrote {}", a.out.display());
-    serde_json::to_string_pretty(&report(&tunings)).map_err(|e| e.to_string())
+    serde_json::to_string_pretty(&report(&tunings)).map_err(crate::Error::from)
 }
 
 #[cfg(test)]
@@ -264,7 +265,8 @@ mod tests {
             &TuningGoal::default(),
             Latency::DEFAULT,
         )
-        .unwrap_err();
+        .unwrap_err()
+        .to_string();
         assert!(e.contains("axis x") && e.contains("--mode-hz"), "{e}");
         let e = tune_file(
             &mut file,
@@ -273,7 +275,8 @@ mod tests {
             &TuningGoal::default(),
             Latency::DEFAULT,
         )
-        .unwrap_err();
+        .unwrap_err()
+        .to_string();
         assert!(e.contains("3 values"), "{e}");
     }
 

@@ -54,17 +54,19 @@ pub struct SettleArgs {
 }
 
 /// Parses `V` or `X,Y` \[m\] into two finite f32 values (`what` names the option).
-pub fn parse_pair(what: &str, text: &str) -> Result<[f32; 2], String> {
+pub fn parse_pair(what: &str, text: &str) -> crate::Result<[f32; 2]> {
     let values: Vec<&str> = text.split(',').map(str::trim).collect();
-    let parse = |s: &str| -> Result<f32, String> {
+    let parse = |s: &str| -> crate::Result<f32> {
         let v: f64 = s
             .parse()
-            .map_err(|_| format!("{what}: `{s}` is not a number (metres)"))?;
+            .map_err(|_| crate::Error::Usage(format!("{what}: `{s}` is not a number (metres)")))?;
         let v = v as f32;
         if v.is_finite() {
             Ok(v)
         } else {
-            Err(format!("{what}: `{s}` is not a finite f32 (metres)"))
+            Err(crate::Error::Usage(format!(
+                "{what}: `{s}` is not a finite f32 (metres)"
+            )))
         }
     };
     match values.as_slice() {
@@ -73,18 +75,17 @@ pub fn parse_pair(what: &str, text: &str) -> Result<[f32; 2], String> {
             Ok([v, v])
         }
         [x, y] => Ok([parse(x)?, parse(y)?]),
-        _ => Err(format!(
+        _ => Err(crate::Error::Refused(format!(
             "{what}: `{text}`: expected one value or two separated by a comma"
-        )),
+        ))),
     }
 }
 
 /// The band of `p`, with its tolerance replaced by `tolerance_m` if given (validated).
-pub fn band(p: &AxisParams, tolerance_m: Option<f64>) -> Result<OnTarget, String> {
+pub fn band(p: &AxisParams, tolerance_m: Option<f64>) -> crate::Result<OnTarget> {
     match tolerance_m {
-        Some(t) => {
-            OnTarget::new(t as f32, p.on_target.ticks).map_err(|e| format!("--tolerance {t}: {e}"))
-        }
+        Some(t) => OnTarget::new(t as f32, p.on_target.ticks)
+            .map_err(|e| crate::Error::Refused(format!("--tolerance {t}: {e}"))),
         None => Ok(p.on_target),
     }
 }
@@ -112,16 +113,21 @@ impl AxisSim {
         band: OnTarget,
         feedback: bool,
         name: &str,
-    ) -> Result<Self, String> {
+    ) -> crate::Result<Self> {
         let settings = p.settings(sample_period_s).inside_guard();
-        let core = |e: piezo_core::ParamError| format!("{name}: {e}");
+        let core = |source: piezo_core::ParamError| crate::Error::Params {
+            context: name.to_string(),
+            source,
+        };
         let compensator =
             Compensator::new(p.model(sample_period_s).map_err(core)?, settings).map_err(core)?;
         let u0 = p.limits.output_min_v;
         let chain = InverseChain::single(p.effect_chain(sample_period_s).map_err(core)?, u0);
         let servo = if feedback {
             let params = p.servo.ok_or_else(|| {
-                format!("--feedback: the stage file has no [{name}.servo] (servo-tune writes one)")
+                crate::Error::Refused(format!(
+                    "--feedback: the stage file has no [{name}.servo] (servo-tune writes one)"
+                ))
             })?;
             let servo = Servo::new(params, settings, p.linear_gain_m_per_v).map_err(core)?;
             Some((
@@ -132,7 +138,9 @@ impl AxisSim {
             None
         };
         let AxisChain::Static { model, effects } = plant else {
-            return Err(format!("{name}: the firmware runs static models only"));
+            return Err(crate::Error::Refused(format!(
+                "{name}: the firmware runs static models only"
+            )));
         };
         let mut plant_state = ModelState::at_rest(u0);
         let mut plant_effects = piezo_core::effects::EffectsState::at_rest(u0);
@@ -215,14 +223,14 @@ pub fn predict(
     tolerance_m: Option<f64>,
     timeout_s: f64,
     feedback: bool,
-) -> Result<Prediction, String> {
-    let valid = set.file.validate().map_err(|e| e.to_string())?;
+) -> crate::Result<Prediction> {
+    let valid = set.file.validate().map_err(crate::Error::from)?;
     let sample_period_s = 1.0 / set.loop_rate_hz;
     let rate = f64::from(set.loop_rate_hz);
     if !(timeout_s > 0.0 && timeout_s * rate <= 1e8) {
-        return Err(format!(
+        return Err(crate::Error::Refused(format!(
             "--timeout {timeout_s}: expected > 0 s and at most 1e8 ticks"
-        ));
+        )));
     }
     let max_ticks = (timeout_s * rate).ceil() as u32;
     let mut settle_ticks = [None; 2];
@@ -236,10 +244,10 @@ pub fn predict(
         let mut sim = AxisSim::new(p, plant, sample_period_s, bands[i], feedback, name)?;
         // The first move, to A, and on target there.
         if !(0..max_ticks).any(|_| sim.tick(from[i])) {
-            return Err(format!(
+            return Err(crate::Error::Refused(format!(
                 "{name} is not on target at --from {} m within {timeout_s} s: no step to time",
                 from[i]
-            ));
+            )));
         }
         // The step: the first tick plays X, the next reading answers it.
         sim.tick(to[i]);
@@ -261,12 +269,13 @@ pub fn predict(
 }
 
 /// Runs `settle`: JSON on stdout.
-pub fn settle_cmd(a: &SettleArgs) -> Result<String, String> {
+pub fn settle_cmd(a: &SettleArgs) -> crate::Result<String> {
     let from = parse_pair("--from", &a.from)?;
     let to = parse_pair("--to", &a.to)?;
     let file = a.params.display().to_string();
-    let bytes = std::fs::read(&a.params).map_err(|e| format!("{file}: {e}"))?;
-    let set = FirmwareSet::from_bytes(&file, &bytes).map_err(|e| e.to_string())?;
+    let bytes =
+        std::fs::read(&a.params).map_err(|e| crate::Error::Refused(format!("{file}: {e}")))?;
+    let set = FirmwareSet::from_bytes(&file, &bytes).map_err(crate::Error::from)?;
     let p = predict(&set, from, to, a.tolerance, a.timeout, a.feedback)?;
     let seconds = |t: Option<u32>| t.map(|t| f64::from(t) / p.loop_rate_hz);
     let value = serde_json::json!({
@@ -283,12 +292,12 @@ pub fn settle_cmd(a: &SettleArgs) -> Result<String, String> {
         "on_target_s": p.flag_ticks.map(seconds),
     });
     if p.settle_ticks.iter().any(Option::is_none) {
-        return Err(format!(
+        return Err(crate::Error::Refused(format!(
             "not on target at --to within {} s: {value}",
             a.timeout
-        ));
+        )));
     }
-    serde_json::to_string(&value).map_err(|e| e.to_string())
+    serde_json::to_string(&value).map_err(crate::Error::from)
 }
 
 #[cfg(test)]
@@ -305,7 +314,7 @@ mod tests {
         assert_eq!(parse_pair("--to", "2e-6").unwrap(), [2e-6, 2e-6]);
         assert_eq!(parse_pair("--to", "1e-6, 3e-6").unwrap(), [1e-6, 3e-6]);
         for bad in ["", "x", "1e-6,2e-6,3e-6", "1e40", "nan"] {
-            let e = parse_pair("--to", bad).unwrap_err();
+            let e = parse_pair("--to", bad).unwrap_err().to_string();
             assert!(e.starts_with("--to: "), "{e}");
         }
     }
@@ -330,6 +339,7 @@ mod tests {
         assert!(small.settle_ticks[0].unwrap() < t[0]);
         assert!(predict(&set, [2e-6; 2], [18e-6; 2], Some(-1.0), 0.5, false)
             .unwrap_err()
+            .to_string()
             .contains("--tolerance"));
     }
 }

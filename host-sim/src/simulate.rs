@@ -31,26 +31,29 @@ pub struct SimulateArgs {
 }
 
 /// `host-sim simulate`: the plant under the signal with the effects; writes the CSV and the plot.
-pub fn simulate_cmd(a: &SimulateArgs) -> Result<String, String> {
+pub fn simulate_cmd(a: &SimulateArgs) -> crate::Result<String> {
     // Refuse an unknown plot format before the simulation runs.
     if let Some(path) = &a.plot {
-        crate::plot::Format::of_path(path).map_err(|e| format!("--plot: {e}"))?;
+        crate::plot::Format::of_path(path)
+            .map_err(|e| crate::Error::Usage(format!("--plot: {e}")))?;
     }
-    let mut plant = PlantKind::from_name(&a.plant).map_err(|e| format!("--plant: {e}"))?;
-    let spec = SignalSpec::parse(&a.signal).map_err(|e| format!("--signal: {e}"))?;
+    let mut plant =
+        PlantKind::from_name(&a.plant).map_err(|e| crate::Error::Usage(format!("--plant: {e}")))?;
+    let spec =
+        SignalSpec::parse(&a.signal).map_err(|e| crate::Error::Usage(format!("--signal: {e}")))?;
     let mut effects = Effects::default();
     for e in &a.effects {
         effects
             .add_spec(e)
-            .map_err(|err| format!("--effect {e}: {err}"))?;
+            .map_err(|err| crate::Error::Usage(format!("--effect {e}: {err}")))?;
     }
     effects
         .apply_to_plant(&mut plant)
-        .map_err(|e| format!("--effect: {e}"))?;
+        .map_err(|e| crate::Error::Usage(format!("--effect: {e}")))?;
     let p = plant.as_plant();
     let signals = spec
         .build(p.input_names().len())
-        .map_err(|e| format!("--signal: {e}"))?;
+        .map_err(|e| crate::Error::Usage(format!("--signal: {e}")))?;
     let settings = SimSettings::new(
         spec.sample_rate_hz.unwrap_or(p.default_sample_rate_hz()),
         spec.duration_s.unwrap_or(spec.default_duration_s()),
@@ -60,10 +63,12 @@ pub fn simulate_cmd(a: &SimulateArgs) -> Result<String, String> {
             eprintln!("warning: {w}");
         }
     }
-    let out = simulate(p, signals, &effects, &settings).map_err(|e| format!("simulate: {e}"))?;
-    write_csv(&a.out, &out.to_table()).map_err(|e| format!("--out: {e}"))?;
+    let out = simulate(p, signals, &effects, &settings)
+        .map_err(|e| crate::Error::Usage(format!("simulate: {e}")))?;
+    write_csv(&a.out, &out.to_table()).map_err(|e| crate::Error::Usage(format!("--out: {e}")))?;
     if let Some(path) = &a.plot {
-        crate::plot::plot_simulation(path, &out, p.name()).map_err(|e| format!("--plot: {e}"))?;
+        crate::plot::plot_simulation(path, &out, p.name())
+            .map_err(|e| crate::Error::Usage(format!("--plot: {e}")))?;
     }
     Ok(format!(
         "{}: {} samples at {} Hz written to {} ({})",

@@ -17,10 +17,11 @@ pub fn stage_and_io(
     name: &str,
     record_rate_hz: f64,
     drive_range_v: (f32, f32),
-) -> Result<(Stage, Io), String> {
+) -> crate::Result<(Stage, Io)> {
     match given {
         Some(path) => {
-            let (file, _) = StageFile::load(path).map_err(|e| format!("--stage: {e}"))?;
+            let (file, _) =
+                StageFile::load(path).map_err(|e| crate::Error::Usage(format!("--stage: {e}")))?;
             Ok((file.stage, file.io))
         }
         None => {
@@ -117,9 +118,9 @@ impl Verdict {
         };
         match crate::compensate::feedforward_axes_of(&file, &valid, &name, text) {
             Ok(_) => Self::Accepted,
-            Err(message) => Self::Refused {
+            Err(e) => Self::Refused {
                 kind: RefusalKind::Other,
-                message,
+                message: e.to_string(),
             },
         }
     }
@@ -296,11 +297,11 @@ pub fn write_stage(path: &Path, header: &str, file: &StageFile) -> WrittenStage 
     let file = &with_feasible_slew(file);
     let written = file
         .write(path, header)
-        .map_err(|e| e.to_string())
-        .and_then(|()| std::fs::read_to_string(path).map_err(|e| e.to_string()));
+        .map_err(crate::Error::from)
+        .and_then(|()| std::fs::read_to_string(path).map_err(crate::Error::from));
     let (text, not_written) = match written {
         Ok(text) => (Some(text), None),
-        Err(e) => (None, Some(e)),
+        Err(e) => (None, Some(e.to_string())),
     };
     WrittenStage {
         path: path.display().to_string(),

@@ -25,10 +25,10 @@ const MAX_POINTS: usize = 4000;
 const UM: f64 = 1e6;
 
 /// Refuses a figure path whose extension is not `.svg` or `.png`, naming the option `option`.
-pub fn check_plot_path(option: &str, path: &Path) -> Result<(), String> {
+pub fn check_plot_path(option: &str, path: &Path) -> crate::Result<()> {
     Format::of_path(path)
         .map(|_| ())
-        .map_err(|e| format!("{option} {e}"))
+        .map_err(|e| crate::Error::Usage(format!("{option} {e}")))
 }
 
 /// One axis of a tracking run.
@@ -85,7 +85,7 @@ pub fn tracking_charts(
     t_s: &[f64],
     axes: &[TrackAxis<'_>],
     from: usize,
-) -> Result<Vec<Chart>, String> {
+) -> crate::Result<Vec<Chart>> {
     check_lengths(
         t_s,
         from,
@@ -179,7 +179,7 @@ pub struct ExciteAxis<'a> {
 
 /// The excitation figure's panels: per axis (a row each) the commanded voltage, the sensor and
 /// the loop sensor against voltage.
-pub fn excitation_charts(t_s: &[f64], axes: &[ExciteAxis<'_>]) -> Result<Vec<Chart>, String> {
+pub fn excitation_charts(t_s: &[f64], axes: &[ExciteAxis<'_>]) -> crate::Result<Vec<Chart>> {
     check_lengths(t_s, 0, axes.iter().flat_map(|a| [a.voltage_v, a.sensor_m]))?;
     let mut charts = Vec::new();
     for a in axes {
@@ -228,20 +228,20 @@ fn check_lengths<'a>(
     t_s: &[f64],
     from: usize,
     traces: impl Iterator<Item = &'a [f64]>,
-) -> Result<(), String> {
+) -> crate::Result<()> {
     if t_s.len() < 2 || from + 1 >= t_s.len() {
-        return Err(format!(
+        return Err(crate::Error::Usage(format!(
             "{} samples scored from sample {from}: nothing to draw",
             t_s.len()
-        ));
+        )));
     }
     for v in traces {
         if v.len() != t_s.len() {
-            return Err(format!(
+            return Err(crate::Error::Usage(format!(
                 "a trace of {} samples against {} times",
                 v.len(),
                 t_s.len()
-            ));
+            )));
         }
     }
     Ok(())
@@ -254,6 +254,6 @@ pub fn write_figure(
     path: &Path,
     charts: &[Chart],
     columns: usize,
-) -> Result<(), String> {
-    plot_grid(path, charts, columns).map_err(|e| format!("{option} {e}"))
+) -> crate::Result<()> {
+    plot_grid(path, charts, columns).map_err(|e| crate::Error::Usage(format!("{option} {e}")))
 }

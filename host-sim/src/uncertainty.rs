@@ -144,15 +144,15 @@ pub fn bartlett_bandwidth(rho: f64, n: usize) -> usize {
 /// The inverse of the symmetric positive definite `a` (p × p), by Gauss–Jordan with partial
 /// pivoting on its unit-diagonal scaling; an error when a column is zero or the columns are
 /// linearly dependent (`names` name them).
-fn inverse(a: &[Vec<f64>], names: &[String]) -> Result<Vec<Vec<f64>>, String> {
+fn inverse(a: &[Vec<f64>], names: &[String]) -> crate::Result<Vec<Vec<f64>>> {
     let p = a.len();
     let mut d = vec![0.0; p];
     for i in 0..p {
         if !(a[i][i] > 0.0) || !a[i][i].is_finite() {
-            return Err(format!(
+            return Err(crate::Error::Fit(format!(
                 "the model's output does not depend on {} at the fit (its Jacobian column is zero)",
                 names.get(i).map_or("a nuisance parameter", String::as_str)
-            ));
+            )));
         }
         d[i] = 1.0 / a[i][i].sqrt();
     }
@@ -169,11 +169,11 @@ fn inverse(a: &[Vec<f64>], names: &[String]) -> Result<Vec<Vec<f64>>, String> {
             .max_by(|&x, &y| m[x][c].abs().total_cmp(&m[y][c].abs()))
             .unwrap_or(c);
         if !(m[pivot][c].abs() > SINGULAR_PIVOT) {
-            return Err(format!(
+            return Err(crate::Error::Fit(format!(
                 "the parameters are not identifiable from this record: {} is a linear combination \
                  of the others to within 1e-12 (its Jacobian column)",
                 names.get(c).map_or("a nuisance parameter", String::as_str)
-            ));
+            )));
         }
         m.swap(c, pivot);
         let inv = 1.0 / m[c][c];
@@ -210,21 +210,29 @@ fn product(a: &[Vec<f64>], b: &[Vec<f64>]) -> Vec<Vec<f64>> {
 /// The uncertainty of a fit from its Jacobian and residual at the optimum (module doc). An error
 /// says why it cannot be given: fewer samples than parameters, a non-finite entry, parameters the
 /// record does not identify.
-pub fn estimate(fit: &Linearised) -> Result<Uncertainty, String> {
+pub fn estimate(fit: &Linearised) -> crate::Result<Uncertainty> {
     let p = fit.columns.len();
     let n = fit.residual.len();
     let reported = fit.parameters.len();
     if reported > p {
-        return Err("fewer Jacobian columns than parameters".into());
+        return Err(crate::Error::Fit(
+            "fewer Jacobian columns than parameters".into(),
+        ));
     }
     if n <= p {
-        return Err(format!("{n} fitted samples for {p} parameters"));
+        return Err(crate::Error::Fit(format!(
+            "{n} fitted samples for {p} parameters"
+        )));
     }
     if fit.columns.iter().any(|c| c.len() != n) {
-        return Err("a Jacobian column and the residual differ in length".into());
+        return Err(crate::Error::Fit(
+            "a Jacobian column and the residual differ in length".into(),
+        ));
     }
     if let Some(k) = fit.residual.iter().position(|v| !v.is_finite()) {
-        return Err(format!("the residual is not finite at fitted sample {k}"));
+        return Err(crate::Error::Fit(format!(
+            "the residual is not finite at fitted sample {k}"
+        )));
     }
     for (j, c) in fit.columns.iter().enumerate() {
         if let Some(k) = c.iter().position(|v| !v.is_finite()) {
@@ -232,9 +240,9 @@ pub fn estimate(fit: &Linearised) -> Result<Uncertainty, String> {
                 .parameters
                 .get(j)
                 .map_or("a nuisance parameter", |q| q.name.as_str());
-            return Err(format!(
+            return Err(crate::Error::Fit(format!(
                 "the output's derivative by {name} is not finite at fitted sample {k}"
-            ));
+            )));
         }
     }
     let mut names: Vec<String> = fit.parameters.iter().map(|q| q.name.clone()).collect();
@@ -321,7 +329,7 @@ pub fn estimate(fit: &Linearised) -> Result<Uncertainty, String> {
         })
         .collect();
     if !band.is_finite() || sigma.iter().any(|v| !v.is_finite()) {
-        return Err("the covariance is not finite".into());
+        return Err(crate::Error::Fit("the covariance is not finite".into()));
     }
     Ok(Uncertainty {
         parameters: fit.parameters.clone(),
@@ -436,10 +444,10 @@ pub fn missing_keys(why: &str) -> Map<String, Value> {
 }
 
 /// The report keys of `u` ([`Uncertainty::report_keys`] or [`missing_keys`]).
-pub fn keys_of(u: &Result<Uncertainty, String>) -> Map<String, Value> {
+pub fn keys_of(u: &crate::Result<Uncertainty>) -> Map<String, Value> {
     match u {
         Ok(u) => u.report_keys(),
-        Err(why) => missing_keys(why),
+        Err(why) => missing_keys(&why.to_string()),
     }
 }
 
@@ -545,7 +553,7 @@ mod tests {
             ],
             residual: (0..n).map(|k| (k as f64).sin()).collect(),
         };
-        let e = estimate(&fit).unwrap_err();
+        let e = estimate(&fit).unwrap_err().to_string();
         assert!(e.contains("not identifiable") && e.contains('c'), "{e}");
         let zero = Linearised {
             parameters: vec![Parameter::new("a", 0.0), Parameter::new("b", 0.0)],
@@ -554,6 +562,7 @@ mod tests {
         };
         assert!(estimate(&zero)
             .unwrap_err()
+            .to_string()
             .contains("does not depend on b"));
     }
 

@@ -90,7 +90,7 @@ fn capture(
     let mut a = args(&log, &out);
     tweak(&mut a);
     let mut stderr = Vec::new();
-    let r = run(&a, &mut |l: &str| stderr.push(l.to_string()));
+    let r = run(&a, &mut |l: &str| stderr.push(l.to_string())).map_err(|e| e.to_string());
     (r, stderr, Scratch { _dir: d, path: out })
 }
 

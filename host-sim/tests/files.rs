@@ -18,7 +18,7 @@ fn scratch(name: &str) -> tempfile::TempDir {
 fn cli(args: &[&str]) -> Result<String, String> {
     let mut v = vec!["host-sim"];
     v.extend_from_slice(args);
-    run(Cli::try_parse_from(v).map_err(|e| e.to_string())?)
+    run(Cli::try_parse_from(v).map_err(|e| e.to_string())?).map_err(|e| e.to_string())
 }
 
 fn s(p: &Path) -> &str {

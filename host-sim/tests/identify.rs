@@ -94,7 +94,7 @@ fn recovers_the_stage_case1_set_at_the_noise_floor() {
 fn cli(args: &[&str]) -> Result<String, String> {
     let mut v = vec!["host-sim"];
     v.extend_from_slice(args);
-    run(Cli::try_parse_from(v).map_err(|e| e.to_string())?)
+    run(Cli::try_parse_from(v).map_err(|e| e.to_string())?).map_err(|e| e.to_string())
 }
 
 fn json(path: &std::path::Path) -> serde_json::Value {
@@ -302,13 +302,17 @@ fn a_bipolar_record_gets_an_io_chain_that_covers_it() {
 fn bad_csv_errors_name_file_line_and_column() {
     let path = temp("bad.csv");
     std::fs::write(&path, "t_s,u_V,y_um\n0,1,2\n0.1,x,3\n").unwrap();
-    let e = Record::read(&path, None, None, None).unwrap_err();
+    let e = Record::read(&path, None, None, None)
+        .unwrap_err()
+        .to_string();
     assert!(
         e.contains("bad.csv:3") && e.contains("column 2") && e.contains("u_V"),
         "{e}"
     );
     std::fs::write(&path, "t_s,v_V,y_um\n0,1,2\n").unwrap();
-    let e = Record::read(&path, None, None, None).unwrap_err();
+    let e = Record::read(&path, None, None, None)
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("u_*") && e.contains("--u"), "{e}");
 }
 

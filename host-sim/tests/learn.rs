@@ -62,7 +62,7 @@ fn write_table(path: &Path, names: &[&str], columns: Vec<Vec<f64>>) {
 fn cli(args: &[&str]) -> Result<String, String> {
     let mut v = vec!["host-sim"];
     v.extend_from_slice(args);
-    run(Cli::try_parse_from(v).map_err(|e| e.to_string())?)
+    run(Cli::try_parse_from(v).map_err(|e| e.to_string())?).map_err(|e| e.to_string())
 }
 
 fn p(path: &Path) -> &str {

@@ -23,7 +23,7 @@ fn scratch(name: &str) -> tempfile::TempDir {
 }
 
 fn run_args(args: &[&str]) -> Result<String, String> {
-    run(Cli::try_parse_from(args).map_err(|e| e.to_string())?)
+    run(Cli::try_parse_from(args).map_err(|e| e.to_string())?).map_err(|e| e.to_string())
 }
 
 /// `compensate` of a triangle on the XY stage file with effects, drawn to `plot`.
@@ -194,7 +194,9 @@ fn link_track_and_excite_draw_their_record() {
         assert!(svg.contains(name), "the excite figure lacks {name}");
     }
     // A track record without its reference columns is refused, naming the option and column.
-    let e = host_sim::link::plot_record(&track, &link_record(2000, false), true).unwrap_err();
+    let e = host_sim::link::plot_record(&track, &link_record(2000, false), true)
+        .unwrap_err()
+        .to_string();
     assert!(e.starts_with("--plot") && e.contains("rx_m"), "{e}");
 }
 

@@ -201,7 +201,7 @@ fn write_csv(name: &str, r: &Record) -> PathBuf {
 fn cli(args: &[&str]) -> Result<String, String> {
     let mut v = vec!["host-sim"];
     v.extend_from_slice(args);
-    run(Cli::try_parse_from(v).map_err(|e| e.to_string())?)
+    run(Cli::try_parse_from(v).map_err(|e| e.to_string())?).map_err(|e| e.to_string())
 }
 
 fn json(path: &std::path::Path) -> serde_json::Value {

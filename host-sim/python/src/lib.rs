@@ -42,8 +42,8 @@ type Times<'py> = PyArrayLike1<'py, f64, AllowTypeChange>;
 /// Samples of one axis (1-D) or two (N × 2): any array-like, converted to f64.
 type Samples<'py> = PyArrayLikeDyn<'py, f64, AllowTypeChange>;
 
-fn error(message: impl Into<String>) -> PyErr {
-    PiezoError::new_err(message.into())
+fn error(message: impl ToString) -> PyErr {
+    PiezoError::new_err(message.to_string())
 }
 
 /// A JSON value as Python objects (dicts, lists, floats; `null` as `None`).
@@ -145,7 +145,7 @@ fn records(name: &str, t: &Times<'_>, u: &Samples<'_>, y: &Samples<'_>) -> PyRes
 fn run_interruptible<T: Send + 'static>(
     py: Python<'_>,
     progress: Option<&Bound<'_, PyAny>>,
-    work: impl FnOnce() -> Result<T, String> + Send + 'static,
+    work: impl FnOnce() -> host_sim::Result<T> + Send + 'static,
 ) -> PyResult<T> {
     let (tx, mut rx) = mpsc::channel();
     std::thread::spawn(move || {
@@ -198,7 +198,7 @@ impl Stage {
         name: &str,
         header: &str,
         file: &piezo_stage::StageFile,
-    ) -> Result<(Self, Verdict), String> {
+    ) -> host_sim::Result<(Self, Verdict)> {
         let (file, text) = stage_text(header, file);
         let verdict = Verdict::of(&file, Path::new(name), None);
         let read = ReadStage::parse(name.to_string(), text)?;
@@ -529,7 +529,7 @@ fn close_loop<'py>(
             &settings,
             validation.as_deref().map(|v| (v, validate_start)),
         )
-        .map_err(|e| e.to_string())?;
+        .map_err(host_sim::Error::from)?;
         let file = cl::stage::stage_file(&outcome, &name, stage, io)?;
         let header = cl::stage::header(&outcome, &name);
         let (stage, verdict) = Stage::written(&name, &header, &file)?;
@@ -565,14 +565,15 @@ impl Link {
     fn with<T: Send>(
         &self,
         py: Python<'_>,
-        f: impl FnOnce(&mut Client) -> Result<T, String> + Send,
+        f: impl FnOnce(&mut Client) -> host_sim::Result<T> + Send,
     ) -> PyResult<T> {
         py.detach(|| {
-            let mut guard = self
-                .client
-                .lock()
-                .map_err(|_| "the link was poisoned by an earlier failure".to_string())?;
-            let client = guard.as_mut().ok_or("the link is closed")?;
+            let mut guard = self.client.lock().map_err(|_| {
+                host_sim::Error::Link("the link was poisoned by an earlier failure".into())
+            })?;
+            let client = guard
+                .as_mut()
+                .ok_or_else(|| host_sim::Error::Link("the link is closed".into()))?;
             f(client)
         })
         .map_err(error)
@@ -720,7 +721,7 @@ impl Link {
     /// Switches the control mode of `track` (`open-loop`, `feedforward`, `feedback`,
     /// `feedforward+feedback`, `learned`, `learned+feedback`); returns the firmware's answer.
     fn control<'py>(&self, py: Python<'py>, mode: &str) -> PyResult<Bound<'py, PyAny>> {
-        let control = control_mode(mode).map_err(PyValueError::new_err)?;
+        let control = control_mode(mode).map_err(|e| PyValueError::new_err(e.to_string()))?;
         self.request(py, piezo_link::Request::Control(control))
     }
 

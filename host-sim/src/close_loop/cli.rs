@@ -92,7 +92,7 @@ pub fn read_records(
     u: Option<&str>,
     y: Option<&str>,
     end: Option<f64>,
-) -> Result<Vec<Record>, String> {
+) -> crate::Result<Vec<Record>> {
     let mut records = Record::read_axes(data, t, u, y)?;
     if let Some(end) = end {
         for r in &mut records {
@@ -107,9 +107,12 @@ pub fn read_records(
 /// written whatever became of the others; the report (written last) holds the firmware's verdict
 /// on the set, the refusal and what could not be written. A refused set (unless `--allow-refused`)
 /// or a file not written makes the command fail after that.
-pub fn close_loop_cmd(a: &CloseLoopArgs) -> Result<String, String> {
+pub fn close_loop_cmd(a: &CloseLoopArgs) -> crate::Result<String> {
     if !(a.min_share > 0.0 && a.min_share < 1.0) {
-        return Err(format!("--min-share {}: must be in (0, 1)", a.min_share));
+        return Err(crate::Error::Usage(format!(
+            "--min-share {}: must be in (0, 1)",
+            a.min_share
+        )));
     }
     let mut parts: Vec<Vec<Record>> = Vec::new();
     let data_text = a.data.to_string_lossy();
@@ -125,7 +128,7 @@ pub fn close_loop_cmd(a: &CloseLoopArgs) -> Result<String, String> {
             a.y.as_deref(),
             a.end,
         )
-        .map_err(|e| format!("--data: {e}"))?;
+        .map_err(|e| crate::Error::Usage(format!("--data: {e}")))?;
         parts.resize_with(axes.len(), Vec::new);
         for (i, r) in axes.into_iter().enumerate() {
             parts[i].push(r);
@@ -133,25 +136,27 @@ pub fn close_loop_cmd(a: &CloseLoopArgs) -> Result<String, String> {
     }
     let records = parts
         .into_iter()
-        .map(|p| Record::concatenate(p).map_err(|e| format!("--data: {e}")))
+        .map(|p| Record::concatenate(p).map_err(|e| crate::Error::Usage(format!("--data: {e}"))))
         .collect::<Result<Vec<_>, _>>()?;
     if records[0].segments.len() > 1 && a.start > 0.0 {
-        return Err("--start: with several records each is scored from its first sample".into());
+        return Err(crate::Error::Usage(
+            "--start: with several records each is scored from its first sample".into(),
+        ));
     }
     let validation = match &a.validate {
         Some(v) => Some(
             read_records(v, a.t.as_deref(), a.u.as_deref(), a.y.as_deref(), None)
-                .map_err(|e| format!("--validate: {e}"))?,
+                .map_err(|e| crate::Error::Usage(format!("--validate: {e}")))?,
         ),
         None => None,
     };
     if let Some(v) = &validation {
         if v.len() != records.len() {
-            return Err(format!(
+            return Err(crate::Error::Usage(format!(
                 "--validate: {} axes, --data has {}",
                 v.len(),
                 records.len()
-            ));
+            )));
         }
     }
     let (stage, io) = stage::stage_and_io_for(&records, &a.data, a.stage.as_deref())?;
@@ -207,12 +212,13 @@ pub fn close_loop_cmd(a: &CloseLoopArgs) -> Result<String, String> {
     }
     // Written as a JSON value, so that the keys are sorted as in every report.
     let reported = serde_json::to_string_pretty(&report)
-        .map_err(|e| e.to_string())
+        .map_err(crate::Error::from)
         .and_then(|json| {
             if let Some(dir) = a.report.parent().filter(|d| !d.as_os_str().is_empty()) {
-                std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+                std::fs::create_dir_all(dir)
+                    .map_err(|e| crate::Error::Usage(format!("{}: {e}", dir.display())))?;
             }
-            std::fs::write(&a.report, json).map_err(|e| e.to_string())
+            std::fs::write(&a.report, json).map_err(crate::Error::from)
         });
     let mut line = format!(
         "close-loop {data}: rms {:.4e} -> {:.4e} m, effects added: [{}]",
@@ -284,7 +290,10 @@ pub fn close_loop_cmd(a: &CloseLoopArgs) -> Result<String, String> {
     if failures.is_empty() {
         Ok(line)
     } else {
-        Err(format!("{line}\n{}", failures.join("\n")))
+        Err(crate::Error::Usage(format!(
+            "{line}\n{}",
+            failures.join("\n")
+        )))
     }
 }
 

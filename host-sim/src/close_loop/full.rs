@@ -359,30 +359,31 @@ pub const AT_BOUND_SHARE: f64 = 0.01;
 
 impl AxisModel {
     /// Builds the core objects (validation).
-    pub fn build(&self) -> Result<(StaticModel, Effects), String> {
-        let h = bouc_wen(self.bouc_wen, self.input_range_v)
-            .map_err(|e| format!("Bouc-Wen set refused by piezo-core: {e}"))?;
+    pub fn build(&self) -> crate::Result<(StaticModel, Effects)> {
+        let h = bouc_wen(self.bouc_wen, self.input_range_v).map_err(|e| {
+            crate::Error::Refused(format!("Bouc-Wen set refused by piezo-core: {e}"))
+        })?;
         self.build_on(h)
     }
 
     /// The core's model (this map on the operator `h`) and effects, validated.
-    fn build_on(&self, h: BoucWen) -> Result<(StaticModel, Effects), String> {
+    fn build_on(&self, h: BoucWen) -> crate::Result<(StaticModel, Effects)> {
         let model = StaticModel::new(h, self.map)
-            .map_err(|e| format!("static map refused by piezo-core: {e}"))?;
+            .map_err(|e| crate::Error::Refused(format!("static map refused by piezo-core: {e}")))?;
         let range = piezo_core::effects::OperatingRange {
             input_v: self.input_range_v,
             output_m: self.w_range_m,
         };
         let effects = Effects::new(self.effects, self.sample_period_s, range)
-            .map_err(|e| format!("effects refused by piezo-core: {e}"))?;
-        let model = effects
-            .hysteresis_model(model)
-            .map_err(|e| format!("hysteresis input lag refused by piezo-core: {e}"))?;
+            .map_err(|e| crate::Error::Refused(format!("effects refused by piezo-core: {e}")))?;
+        let model = effects.hysteresis_model(model).map_err(|e| {
+            crate::Error::Refused(format!("hysteresis input lag refused by piezo-core: {e}"))
+        })?;
         Ok((model, effects))
     }
 
     /// Simulates the record (the model sees only u, and the other axis's z for coupling).
-    pub fn simulate(&self, u: &[f32], other_z: Option<&[f64]>) -> Result<Simulation, String> {
+    pub fn simulate(&self, u: &[f32], other_z: Option<&[f64]>) -> crate::Result<Simulation> {
         let mut out = Simulation {
             y: Vec::with_capacity(u.len()),
             h: Vec::with_capacity(u.len()),
@@ -403,7 +404,7 @@ impl AxisModel {
         u: &[f32],
         other_z: Option<&[f64]>,
         visit: impl FnMut(usize, f64, f64, f64),
-    ) -> Result<(), String> {
+    ) -> crate::Result<()> {
         let (model, effects) = self.build()?;
         let Some(&u0) = u.first() else {
             return Ok(());
@@ -427,7 +428,7 @@ impl AxisModel {
 
     /// The hysteresis operator's path over `u` from rest at u\[0\]: what every model with this
     /// model's Bouc-Wen set and input range shares, whatever its map and effects.
-    pub fn hysteresis_path(&self, u: &[f32]) -> Result<HysteresisPath, String> {
+    pub fn hysteresis_path(&self, u: &[f32]) -> crate::Result<HysteresisPath> {
         let (model, _) = self.build()?;
         let mut path = HysteresisPath {
             bouc_wen: self.bouc_wen,
@@ -460,7 +461,7 @@ impl AxisModel {
         u: &[f32],
         other_z: Option<&[f64]>,
         visit: impl FnMut(usize, f64, f64, f64),
-    ) -> Result<(), String> {
+    ) -> crate::Result<()> {
         if !path.fits(self) || path.h.len() != u.len() {
             return self.simulate_into(u, other_z, visit);
         }
@@ -1293,7 +1294,7 @@ pub fn report_name(param: Param) -> String {
 /// delta method). Held entries (with free offsets, y0) are not parameters; with free offsets
 /// each record's own offset, re-estimated in every prediction, is a nuisance parameter (its
 /// indicator column, orthogonal to the others, counts it in N − p).
-pub fn linearise(model: &AxisModel, d: &FitData) -> Result<Linearised, String> {
+pub fn linearise(model: &AxisModel, d: &FitData) -> crate::Result<Linearised> {
     let (th, typ, spec) = model.encode();
     let th: Vec<f64> = th
         .iter()
@@ -1307,10 +1308,10 @@ pub fn linearise(model: &AxisModel, d: &FitData) -> Result<Linearised, String> {
     };
     let base = problem
         .predict(&th, None)
-        .ok_or("the core refuses the fitted set")?;
+        .ok_or_else(|| crate::Error::Refused("the core refuses the fitted set".into()))?;
     let steps = difference_steps(&th, &typ, &spec, UNCERTAINTY_STEP_SCALE);
     let free: Vec<usize> = (0..th.len()).filter(|&i| spec[i].lo < spec[i].hi).collect();
-    let columns: Vec<Result<Vec<f64>, String>> = free
+    let columns: Vec<crate::Result<Vec<f64>>> = free
         .par_iter()
         .map(|&i| {
             let h = steps[i].abs();
@@ -1331,10 +1332,10 @@ pub fn linearise(model: &AxisModel, d: &FitData) -> Result<Linearised, String> {
                     y.iter().zip(&base.y).map(|(p, q)| (p - q) / a).collect()
                 }
                 (None, None) => {
-                    return Err(format!(
+                    return Err(crate::Error::Refused(format!(
                         "the core refuses the set with {} moved by its difference step",
                         spec[i].param
-                    ))
+                    )))
                 }
             };
             let per_unit = if spec[i].log {
@@ -1652,7 +1653,7 @@ mod tests {
     }
 
     fn outputs(
-        run: impl FnOnce(&mut dyn FnMut(usize, f64, f64, f64)) -> Result<(), String>,
+        run: impl FnOnce(&mut dyn FnMut(usize, f64, f64, f64)) -> crate::Result<()>,
     ) -> Vec<(f64, f64, f64)> {
         let mut out = Vec::new();
         run(&mut |_, y, h, z| out.push((y, h, z))).unwrap();
@@ -1703,13 +1704,15 @@ mod tests {
         refused.map.k2_m_per_h = 0.0;
         let err = refused
             .simulate_on_path(&path, &u, None, |_, _, _, _| {})
-            .unwrap_err();
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("static map refused"), "{err}");
         let mut bad_effect = base.clone();
         bad_effect.effects.mode_damping = -1.0;
         let err = bad_effect
             .simulate_on_path(&path, &u, None, |_, _, _, _| {})
-            .unwrap_err();
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("effects refused"), "{err}");
     }
 }

@@ -99,6 +99,12 @@ impl std::fmt::Display for CloseLoopError {
 
 impl std::error::Error for CloseLoopError {}
 
+impl From<crate::Error> for CloseLoopError {
+    fn from(e: crate::Error) -> Self {
+        Self::Other(e.to_string())
+    }
+}
+
 impl From<IdentifyError> for CloseLoopError {
     fn from(e: IdentifyError) -> Self {
         Self::Identify(e)
@@ -108,12 +114,6 @@ impl From<IdentifyError> for CloseLoopError {
 impl From<String> for CloseLoopError {
     fn from(e: String) -> Self {
         Self::Other(e)
-    }
-}
-
-impl From<CloseLoopError> for String {
-    fn from(e: CloseLoopError) -> Self {
-        e.to_string()
     }
 }
 
@@ -223,7 +223,7 @@ pub struct AxisOutcome {
     pub records: Vec<RecordFits>,
     /// The final fit's uncertainty on the fitted record ([`full::linearise`],
     /// [`crate::uncertainty::estimate`]), or why it was not computed.
-    pub uncertainty: Result<Uncertainty, String>,
+    pub uncertainty: crate::Result<Uncertainty>,
 }
 
 /// One record's scores before and after, when several records were fitted together.
@@ -243,7 +243,7 @@ fn predict_records(
     models: &[&AxisModel],
     us: &[Vec<f32>],
     record: &Record,
-) -> Result<Vec<Vec<f64>>, String> {
+) -> crate::Result<Vec<Vec<f64>>> {
     let n = us.iter().map(Vec::len).min().unwrap_or(0);
     let mut out = vec![vec![0.0; n]; models.len()];
     for (a, b) in record.segment_ranges() {
@@ -263,7 +263,7 @@ fn hold_first_record_offset(
     record: &Record,
     u: &[f32],
     from: usize,
-) -> Result<(), String> {
+) -> crate::Result<()> {
     if !model.free_offset {
         return Ok(());
     }
@@ -1178,7 +1178,7 @@ fn close_axis(
     s: &CloseLoopSettings,
     base: AxisModel,
     run: Option<&OtherRun>,
-) -> Result<AxisSearch, String> {
+) -> crate::Result<AxisSearch> {
     let from = record.index_at(s.start_s);
     let u: Vec<f32> = record.u.iter().map(|&v| v as f32).collect();
     // Several records: leave one record out; one record: blocks over time, interleaved when the
@@ -1215,7 +1215,7 @@ fn close_axis(
     let (data, blocks) = (&search.data, &search.blocks);
     let mut model = base.clone();
     // With free offsets the residual the screening reads has each record's own offset removed.
-    let simulate = |m: &AxisModel| -> Result<Simulation, String> {
+    let simulate = |m: &AxisModel| -> crate::Result<Simulation> {
         let mut sim = m.simulate(&u, other_z)?;
         if m.free_offset {
             full::add_record_offsets(&mut sim.y, &record.y_m, &m.segments, |k| k >= from);
@@ -1320,7 +1320,7 @@ fn search_axis(
     s: &CloseLoopSettings,
     base: (&mut AxisModel, Option<&AxisModel>),
     run: Option<&OtherRun>,
-) -> Result<AxisSearch, String> {
+) -> crate::Result<AxisSearch> {
     let (free, held) = base;
     let first = close_axis(name, record, other_z, s, free.clone(), run)?;
     let (Some(rate), Some(held)) = (invertible_at_hz(record, s), held) else {
@@ -1347,7 +1347,9 @@ fn search_axis(
             screened: Vec::new(),
             not_tried: Vec::new(),
             trials: Vec::new(),
-            outcome: StepOutcome::Restarted { refusal },
+            outcome: StepOutcome::Restarted {
+                refusal: refusal.to_string(),
+            },
         });
     }
     for step in &mut second.steps {
@@ -1436,7 +1438,7 @@ pub fn close_loop_validated(
         coupled = vec![Some(z_y), Some(z_x)];
     }
     // The uncertainty of each final fit, on the data it was fitted on.
-    let uncertainty: Vec<Result<Uncertainty, String>> = finals
+    let uncertainty: Vec<crate::Result<Uncertainty>> = finals
         .iter()
         .zip(records)
         .zip(&coupled)

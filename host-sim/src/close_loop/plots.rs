@@ -22,8 +22,9 @@ pub fn write_plots(
     records: &[Record],
     dir: &Path,
     formats: &[&str],
-) -> Result<Vec<String>, String> {
-    std::fs::create_dir_all(dir).map_err(|e| format!("--plots {}: {e}", dir.display()))?;
+) -> crate::Result<Vec<String>> {
+    std::fs::create_dir_all(dir)
+        .map_err(|e| crate::Error::Usage(format!("--plots {}: {e}", dir.display())))?;
     let mut written = Vec::new();
     for (i, a) in outcome.axes.iter().enumerate() {
         let after_name = after_name(a);
@@ -52,10 +53,10 @@ fn write_files<P: AsChart>(
     formats: &[&str],
     panels: &[P],
     written: &mut Vec<String>,
-) -> Result<(), String> {
+) -> crate::Result<()> {
     for ext in formats {
         let path = dir.join(format!("{stem}.{ext}"));
-        plot_panels(&path, panels).map_err(|e| e.to_string())?;
+        plot_panels(&path, panels).map_err(crate::Error::from)?;
         written.push(path.display().to_string());
     }
     Ok(())

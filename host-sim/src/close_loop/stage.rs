@@ -57,14 +57,17 @@ pub fn stage_axis(m: &AxisModel, identified: Option<Provenance>) -> Axis {
 
 /// Predicts the records' outputs \[m\] from their inputs with `models` through piezo-stage's chain
 /// at the models' sample period; two axes run coupled (`simulate_pair`).
-pub fn predict(models: &[&AxisModel], us: &[Vec<f32>]) -> Result<Vec<Vec<f64>>, String> {
-    let ts = models.first().ok_or("no axis")?.sample_period_s;
+pub fn predict(models: &[&AxisModel], us: &[Vec<f32>]) -> crate::Result<Vec<Vec<f64>>> {
+    let ts = models
+        .first()
+        .ok_or_else(|| crate::Error::Refused("no axis".into()))?
+        .sample_period_s;
     let mut chains = Vec::new();
     for (m, name) in models.iter().zip(AXIS_NAMES) {
         let axis = stage_axis(m, None);
-        let valid = axis
-            .build(name, ts, m.input_range_v)
-            .map_err(|e| format!("piezo-stage refused the {name} axis: {e}"))?;
+        let valid = axis.build(name, ts, m.input_range_v).map_err(|e| {
+            crate::Error::Refused(format!("piezo-stage refused the {name} axis: {e}"))
+        })?;
         chains.push(valid.chain);
     }
     let n = us.iter().map(Vec::len).min().unwrap_or(0);
@@ -86,7 +89,11 @@ pub fn predict(models: &[&AxisModel], us: &[Vec<f32>]) -> Result<Vec<Vec<f64>>, 
                 [&mut ox[0], &mut oy[0]],
             );
         }
-        _ => return Err("close-loop predicts one or two static axes".into()),
+        _ => {
+            return Err(crate::Error::Refused(
+                "close-loop predicts one or two static axes".into(),
+            ))
+        }
     }
     Ok(out
         .into_iter()
@@ -187,13 +194,13 @@ impl Validation {
 }
 
 /// Both models predict `records` from their first sample (seeing only u), scored from `start_s`.
-pub fn validate(outcome: &Outcome, records: &[Record], start_s: f64) -> Result<Validation, String> {
+pub fn validate(outcome: &Outcome, records: &[Record], start_s: f64) -> crate::Result<Validation> {
     if records.len() != outcome.axes.len() {
-        return Err(format!(
+        return Err(crate::Error::Refused(format!(
             "--validate: {} axes, the fit has {}",
             records.len(),
             outcome.axes.len()
-        ));
+        )));
     }
     let from = records[0].index_at(start_s);
     let us: Vec<Vec<f32>> = records
@@ -287,12 +294,14 @@ pub fn stage_file(
     data: &str,
     stage: piezo_stage::Stage,
     io: piezo_stage::Io,
-) -> Result<StageFile, String> {
+) -> crate::Result<StageFile> {
     let mut axes = with_servo(&stage, &io, final_axes(outcome, data)).into_iter();
     Ok(StageFile {
         stage,
         io,
-        x: axes.next().ok_or("no axis to write")?,
+        x: axes
+            .next()
+            .ok_or_else(|| crate::Error::Refused("no axis to write".into()))?,
         y: axes.next(),
     })
 }
@@ -304,12 +313,16 @@ pub fn stage_and_io_for(
     records: &[Record],
     data: &Path,
     given: Option<&Path>,
-) -> Result<(piezo_stage::Stage, piezo_stage::Io), String> {
+) -> crate::Result<(piezo_stage::Stage, piezo_stage::Io)> {
     let name = data
         .file_stem()
         .map_or("stage".into(), |s| s.to_string_lossy().to_string());
     let windows: Vec<(f32, f32)> = records.iter().map(|r| output_window(&r.u)).collect();
-    let rate = 1.0 / records.first().ok_or("no record")?.sample_period_s();
+    let rate = 1.0
+        / records
+            .first()
+            .ok_or_else(|| crate::Error::Refused("no record".into()))?
+            .sample_period_s();
     stage_and_io(given, &name, rate, drive_range(&windows))
 }
 
@@ -322,7 +335,7 @@ pub fn write_stage_file(
     data: &str,
     stage: piezo_stage::Stage,
     io: piezo_stage::Io,
-) -> Result<WrittenStage, String> {
+) -> crate::Result<WrittenStage> {
     let file = stage_file(outcome, data, stage, io)?;
     Ok(write_stage(path, &header(outcome, data), &file))
 }
@@ -342,7 +355,7 @@ pub fn drive_range(windows: &[(f32, f32)]) -> (f32, f32) {
 /// Bouc-Wen set over the window, the static map, `Compensator::new` (strictly monotone map),
 /// `Effects::new` at the loop period) and `compensate`'s feed-forward axes. The io chain of the
 /// file finally written is checked with it ([`crate::stage_file::Verdict`]). `Err`: the refusal.
-pub fn compensator_check(m: &AxisModel, loop_rate_hz: f32) -> Result<(), String> {
+pub fn compensator_check(m: &AxisModel, loop_rate_hz: f32) -> crate::Result<()> {
     let file = StageFile {
         stage: piezo_stage::Stage {
             name: "check".into(),
@@ -357,7 +370,7 @@ pub fn compensator_check(m: &AxisModel, loop_rate_hz: f32) -> Result<(), String>
     let file = crate::stage_file::with_feasible_slew(&file);
     let valid = file
         .validate()
-        .map_err(|e| format!("`{}`: {}", e.key, e.message))?;
+        .map_err(|e| crate::Error::Refused(format!("`{}`: {}", e.key, e.message)))?;
     crate::compensate::feedforward_axes(&file, &valid, Path::new("the axis"))?;
     Ok(())
 }

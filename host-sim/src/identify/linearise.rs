@@ -37,16 +37,18 @@ pub fn linearise(
     model: ModelKind,
     fit_shift: bool,
     free_offset: bool,
-) -> Result<Linearised, String> {
+) -> crate::Result<Linearised> {
     let (predicted, _, _) =
-        fit_records(set, record, from, free_offset).map_err(|e| e.to_string())?;
+        fit_records(set, record, from, free_offset).map_err(crate::Error::from)?;
     let n = record.u.len();
     let residual: Vec<f64> = (from..n).map(|k| record.y_m[k] - predicted[k]).collect();
     let (parameters, mut columns, offset) = match *set {
         Identified::Static { .. } => static_columns(set, record, from, model, fit_shift)?,
         Identified::Dynamic { .. } => dynamic_columns(set, record, from)?,
         Identified::Oscillator { .. } => {
-            return Err("not computed for the oscillator model".into());
+            return Err(crate::Error::Fit(
+                "not computed for the oscillator model".into(),
+            ));
         }
     };
     if free_offset && record.segments.len() > 1 {
@@ -76,7 +78,7 @@ fn static_columns(
     from: usize,
     model: ModelKind,
     fit_shift: bool,
-) -> Result<Columns, String> {
+) -> crate::Result<Columns> {
     let Identified::Static {
         bouc_wen,
         map,
@@ -84,10 +86,10 @@ fn static_columns(
         ..
     } = *set
     else {
-        return Err("not a static set".into());
+        return Err(crate::Error::Fit("not a static set".into()));
     };
     let Ok(CoreModel::Static(core)) = set.build() else {
-        return Err("the core refuses the set".into());
+        return Err(crate::Error::Fit("the core refuses the set".into()));
     };
     let u: Vec<f32> = record.u.iter().map(|&v| v as f32).collect();
     let n = u.len();
@@ -132,7 +134,7 @@ fn static_columns(
 }
 
 /// The dynamic model's columns by central differences (module doc) and the index of x0's.
-fn dynamic_columns(set: &Identified, record: &Record, from: usize) -> Result<Columns, String> {
+fn dynamic_columns(set: &Identified, record: &Record, from: usize) -> crate::Result<Columns> {
     const NAMES: [&str; 8] = [
         "bouc_wen.a",
         "bouc_wen.beta",
@@ -171,12 +173,14 @@ fn dynamic_columns(set: &Identified, record: &Record, from: usize) -> Result<Col
             .all(|v| v.is_finite())
             .then(|| y[from..].to_vec())
     };
-    let base = simulate(set).ok_or("the core refuses the set")?;
+    let base = simulate(set).ok_or_else(|| crate::Error::Fit("the core refuses the set".into()))?;
     let mut parameters = Vec::new();
     let mut columns = Vec::new();
     for (i, name) in NAMES.iter().enumerate() {
         let mut s = *set;
-        let value = f64::from(*field(&mut s, i).ok_or("not a dynamic set")?);
+        let value = f64::from(
+            *field(&mut s, i).ok_or_else(|| crate::Error::Fit("not a dynamic set".into()))?,
+        );
         parameters.push(Parameter::new(*name, value));
         // x0's step on the scale of the output; the others relative to their value.
         let scale = if i == 7 {
@@ -202,10 +206,10 @@ fn dynamic_columns(set: &Identified, record: &Record, from: usize) -> Result<Col
                 y.iter().zip(&base).map(|(p, q)| (p - q) / a).collect()
             }
             (None, None) => {
-                return Err(format!(
+                return Err(crate::Error::Fit(format!(
                     "the core refuses the set with {name} moved by ±{:.0e} of its value",
                     RELATIVE_STEP
-                ))
+                )))
             }
         };
         columns.push(column);

@@ -75,9 +75,11 @@ pub fn unit_factor(name: &str) -> Option<f64> {
     unit_of(name).map(|(f, _)| f)
 }
 
-fn pick(table: &Table, given: Option<&str>, prefix: &str, flag: &str) -> Result<String, String> {
+fn pick(table: &Table, given: Option<&str>, prefix: &str, flag: &str) -> crate::Result<String> {
     if let Some(name) = given {
-        table.column(name).map_err(|e| format!("{flag}: {e}"))?;
+        table
+            .column(name)
+            .map_err(|e| crate::Error::Usage(format!("{flag}: {e}")))?;
         return Ok(name.to_string());
     }
     table
@@ -86,17 +88,17 @@ fn pick(table: &Table, given: Option<&str>, prefix: &str, flag: &str) -> Result<
         .find(|n| n.starts_with(prefix))
         .cloned()
         .ok_or_else(|| {
-            format!(
+            crate::Error::Usage(format!(
                 "{}: no `{prefix}*` column (columns: {}); name one with {flag}",
                 table.path.display(),
                 table.names.join(", ")
-            )
+            ))
         })
 }
 
 /// The SI factor of column `name`'s unit, which must measure one of `wanted`, or an error naming
 /// the file, the column, the flag and what the suffix is: none, unknown, or of another quantity.
-fn si_factor(path: &Path, name: &str, flag: &str, wanted: &[Quantity]) -> Result<f64, String> {
+fn si_factor(path: &Path, name: &str, flag: &str, wanted: &[Quantity]) -> crate::Result<f64> {
     let expected = wanted
         .iter()
         .map(|q| q.name())
@@ -108,11 +110,11 @@ fn si_factor(path: &Path, name: &str, flag: &str, wanted: &[Quantity]) -> Result
         (Some((_, unit)), None) => format!("its unit suffix `{unit}` is unknown"),
         (None, None) => "it has no unit suffix (`name_unit`)".to_string(),
     };
-    Err(format!(
+    Err(crate::Error::Usage(format!(
         "{flag}: {}: column `{name}`: {why} (units: {})",
         path.display(),
         crate::csv::unit_names(wanted)
-    ))
+    )))
 }
 
 /// Warnings for a record whose values look read in the wrong unit: an output span outside
@@ -240,14 +242,14 @@ impl Record {
         t: Option<&str>,
         u: Option<&str>,
         y: Option<&str>,
-    ) -> Result<Self, String> {
+    ) -> crate::Result<Self> {
         let mut records = Self::read_axes(path, t, u, y)?;
         if records.len() != 1 {
-            return Err(format!(
+            return Err(crate::Error::Usage(format!(
                 "{}: one axis expected, --u and --y name {}",
                 path.display(),
                 records.len()
-            ));
+            )));
         }
         Ok(records.remove(0))
     }
@@ -264,7 +266,7 @@ impl Record {
         t: Option<&str>,
         u: Option<&str>,
         y: Option<&str>,
-    ) -> Result<Vec<Self>, String> {
+    ) -> crate::Result<Vec<Self>> {
         let split = |v: Option<&str>| -> Vec<Option<String>> {
             match v {
                 None => vec![None],
@@ -273,14 +275,14 @@ impl Record {
         };
         let (us, ys) = (split(u), split(y));
         if us.len() != ys.len() || us.len() > 2 {
-            return Err(format!(
+            return Err(crate::Error::Usage(format!(
                 "--u and --y: give one column each, or two comma-separated each for a two-axis \
                  record (got {} and {})",
                 us.len(),
                 ys.len()
-            ));
+            )));
         }
-        let rows = read_rows(path).map_err(|e| e.to_string())?;
+        let rows = read_rows(path).map_err(crate::Error::from)?;
         let table = &rows.table;
         let t_name = pick(table, t, "t_", "--t")?;
         let columns = us
@@ -292,18 +294,18 @@ impl Record {
                     pick(table, y.as_deref(), "y_", "--y")?,
                 ))
             })
-            .collect::<Result<Vec<_>, String>>()?;
+            .collect::<crate::Result<Vec<_>>>()?;
         let t_s: Vec<f64> = {
             let factor = si_factor(path, &t_name, "--t", &[Quantity::Time])?;
-            let t = rows.time(&t_name, factor).map_err(|e| e.to_string())?;
+            let t = rows.time(&t_name, factor).map_err(crate::Error::from)?;
             t.iter().map(|v| v * factor).collect()
         };
         if t_s.len() < 10 {
-            return Err(format!(
+            return Err(crate::Error::Usage(format!(
                 "{}: {} samples, fewer than 10",
                 path.display(),
                 t_s.len()
-            ));
+            )));
         }
         columns
             .into_iter()
@@ -313,11 +315,11 @@ impl Record {
                         &u_name,
                         si_factor(path, &u_name, "--u", &[Quantity::Voltage, Quantity::Force])?,
                     )
-                    .map_err(|e| e.to_string())?;
+                    .map_err(crate::Error::from)?;
                 let factor = si_factor(path, &y_name, "--y", &[Quantity::Length, Quantity::Force])?;
                 let y_m: Vec<f64> = table
                     .column(&y_name)
-                    .map_err(|e| e.to_string())?
+                    .map_err(crate::Error::from)?
                     .iter()
                     .map(|v| v * factor)
                     .collect();
@@ -352,20 +354,20 @@ impl Record {
     /// Several records of one stage end to end, each a segment that models start from rest at its
     /// own first sample; times continue from one record to the next. The sample periods must agree
     /// within 0.1 %.
-    pub fn concatenate(parts: Vec<Record>) -> Result<Record, String> {
+    pub fn concatenate(parts: Vec<Record>) -> crate::Result<Record> {
         let mut parts = parts.into_iter();
         let Some(mut out) = parts.next() else {
-            return Err("no record".into());
+            return Err(crate::Error::Usage("no record".into()));
         };
         let ts = out.sample_period_s();
         for r in parts {
             let t = r.sample_period_s();
             if (t - ts).abs() > 1e-3 * ts {
-                return Err(format!(
+                return Err(crate::Error::Usage(format!(
                     "{}: sample period {t:.6e} s differs from {}'s {ts:.6e} s",
                     r.path.display(),
                     out.path.display()
-                ));
+                )));
             }
             let shift = out.t_s[out.t_s.len() - 1] + ts - r.t_s[0];
             let at = out.u.len();
@@ -401,14 +403,16 @@ impl Record {
     }
 
     /// Cuts the record after `end_s` (`--end`); an error if fewer than 10 samples remain.
-    pub fn cut_after(&mut self, end_s: f64) -> Result<(), String> {
+    pub fn cut_after(&mut self, end_s: f64) -> crate::Result<()> {
         let n = self
             .t_s
             .iter()
             .position(|&t| t > end_s)
             .unwrap_or(self.t_s.len());
         if n < 10 {
-            return Err(format!("--end {end_s}: fewer than 10 samples before it"));
+            return Err(crate::Error::Usage(format!(
+                "--end {end_s}: fewer than 10 samples before it"
+            )));
         }
         self.t_s.truncate(n);
         self.u.truncate(n);
@@ -533,9 +537,9 @@ impl From<String> for IdentifyError {
     }
 }
 
-impl From<IdentifyError> for String {
-    fn from(e: IdentifyError) -> Self {
-        e.to_string()
+impl From<crate::Error> for IdentifyError {
+    fn from(e: crate::Error) -> Self {
+        Self::Other(e.to_string())
     }
 }
 
@@ -1098,7 +1102,7 @@ pub struct Columns {
 impl Columns {
     /// Reads `data` with these columns: one record per axis; several comma-separated files are
     /// records of one stage held end to end ([`Record::concatenate`]); errors name `--data`.
-    pub fn read_axes(&self, data: &std::path::Path) -> Result<Vec<Record>, String> {
+    pub fn read_axes(&self, data: &std::path::Path) -> crate::Result<Vec<Record>> {
         let text = data.to_string_lossy();
         if !text.contains(',') {
             return self.read_axes_one(data);
@@ -1113,25 +1117,27 @@ impl Columns {
         }
         per_axis
             .into_iter()
-            .map(|parts| Record::concatenate(parts).map_err(|e| format!("--data: {e}")))
+            .map(|parts| {
+                Record::concatenate(parts).map_err(|e| crate::Error::Usage(format!("--data: {e}")))
+            })
             .collect()
     }
 
     /// One file ([`Record::read_axes`]): one record per axis; errors name `--data`.
-    fn read_axes_one(&self, data: &std::path::Path) -> Result<Vec<Record>, String> {
+    fn read_axes_one(&self, data: &std::path::Path) -> crate::Result<Vec<Record>> {
         Record::read_axes(
             data,
             self.t.as_deref(),
             self.u.as_deref(),
             self.y.as_deref(),
         )
-        .map_err(|e| format!("--data: {e}"))
+        .map_err(|e| crate::Error::Usage(format!("--data: {e}")))
     }
 
-    fn read(&self, data: &std::path::Path) -> Result<Record, String> {
+    fn read(&self, data: &std::path::Path) -> crate::Result<Record> {
         let mut records = self.read_axes(data)?;
         if records.len() != 1 {
-            return Err("--mech-data: one axis only".into());
+            return Err(crate::Error::Usage("--mech-data: one axis only".into()));
         }
         Ok(records.remove(0))
     }
@@ -1201,13 +1207,19 @@ fn identify_axis(
     record: &Record,
     settings: &IdentifySettings,
     mech: Option<&Record>,
-) -> Result<Identification, String> {
+) -> crate::Result<Identification> {
     if settings.method == Method::TwoStep {
-        let mech = mech.ok_or("--method two-step: give the square-wave record with --mech-data")?;
+        let mech = mech.ok_or_else(|| {
+            crate::Error::Usage(
+                "--method two-step: give the square-wave record with --mech-data".into(),
+            )
+        })?;
         Ok(two_step::identify(mech, record, settings)?)
     } else {
         if mech.is_some() {
-            return Err("--mech-data is used by --method two-step only".into());
+            return Err(crate::Error::Usage(
+                "--mech-data is used by --method two-step only".into(),
+            ));
         }
         Ok(identify(record, settings)?)
     }
@@ -1223,7 +1235,7 @@ pub struct IdentifiedStage {
     /// Per axis: the identification and its data warnings ([`data_warnings`]).
     pub axes: Vec<(Identification, Vec<String>)>,
     /// Per axis: the fit's uncertainty ([`fit_uncertainty`]), or why it was not computed.
-    pub uncertainty: Vec<Result<Uncertainty, String>>,
+    pub uncertainty: Vec<crate::Result<Uncertainty>>,
     /// The summary lines the command prints.
     pub lines: Vec<String>,
 }
@@ -1232,7 +1244,7 @@ impl IdentifiedStage {
     /// The report's identification part: one axis's summary, parameters, uncertainty
     /// ([`crate::uncertainty::keys_of`]: `uncertainty`, `correlation`, `prediction_band_rms_m`)
     /// and warnings, or `{"axes": [...]}` for two.
-    pub fn report(&self) -> Result<serde_json::Value, String> {
+    pub fn report(&self) -> crate::Result<serde_json::Value> {
         let mut summaries = Vec::new();
         for (((id, warnings), axis), u) in self.axes.iter().zip(["x", "y"]).zip(&self.uncertainty) {
             let mut value = to_json(&IdentifyResult {
@@ -1265,10 +1277,14 @@ pub fn identify_stage(
     mech: Option<&Record>,
     given: Option<(piezo_stage::Stage, piezo_stage::Io)>,
     data: &str,
-) -> Result<IdentifiedStage, String> {
-    let first = records.first().ok_or("no record to identify")?;
+) -> crate::Result<IdentifiedStage> {
+    let first = records
+        .first()
+        .ok_or_else(|| crate::Error::Usage("no record to identify".into()))?;
     if first.segments.len() > 1 && settings.start_s > 0.0 {
-        return Err("--start: with several records each is scored from its first sample".into());
+        return Err(crate::Error::Usage(
+            "--start: with several records each is scored from its first sample".into(),
+        ));
     }
     let (stage, io) = match given {
         Some(given) => given,
@@ -1347,7 +1363,9 @@ pub fn identify_stage(
     let file = piezo_stage::StageFile {
         stage,
         io,
-        x: axes.next().ok_or("no axis to write")?,
+        x: axes
+            .next()
+            .ok_or_else(|| crate::Error::Usage("no axis to write".into()))?,
         y: axes.next(),
     };
     Ok(IdentifiedStage {
@@ -1367,7 +1385,7 @@ pub fn fit_uncertainty(
     id: &Identification,
     record: &Record,
     settings: &IdentifySettings,
-) -> Result<Uncertainty, String> {
+) -> crate::Result<Uncertainty> {
     let from = record.index_at(settings.start_s);
     let fitted = linearise::linearise(
         &id.set,
@@ -1381,23 +1399,25 @@ pub fn fit_uncertainty(
 }
 
 /// A typed report as JSON (the f32 figures widened to f64 and the keys sorted, as every report).
-fn to_json(value: &impl serde::Serialize) -> Result<serde_json::Value, String> {
-    serde_json::to_value(value).map_err(|e| e.to_string())
+fn to_json(value: &impl serde::Serialize) -> crate::Result<serde_json::Value> {
+    serde_json::to_value(value).map_err(crate::Error::from)
 }
 
-fn write_json(path: &Path, value: &serde_json::Value, flag: &str) -> Result<(), String> {
+fn write_json(path: &Path, value: &serde_json::Value, flag: &str) -> crate::Result<()> {
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+        std::fs::create_dir_all(dir)
+            .map_err(|e| crate::Error::Usage(format!("{}: {e}", dir.display())))?;
     }
-    let text = serde_json::to_string_pretty(value).map_err(|e| e.to_string())?;
-    std::fs::write(path, text).map_err(|e| format!("{flag} {}: {e}", path.display()))
+    let text = serde_json::to_string_pretty(value).map_err(crate::Error::from)?;
+    std::fs::write(path, text)
+        .map_err(|e| crate::Error::Usage(format!("{flag} {}: {e}", path.display())))
 }
 
 /// Runs `identify`: one set per axis, one stage file. The stage file, the plots and the report
 /// are each written whatever became of the others; the report (written last) holds the firmware's
 /// verdict on the set and says what could not be written. A set the firmware refuses (unless
 /// `--allow-refused`) or a file not written makes the command fail after that.
-pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
+pub fn identify_cmd(a: &IdentifyArgs) -> crate::Result<String> {
     let mut records = a.columns.read_axes(&a.data)?;
     if let Some(end) = a.end {
         for r in &mut records {
@@ -1407,8 +1427,8 @@ pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
     // `[stage]` and `[io]` before the fit, so that a bad --stage is said at once.
     let given = match &a.stage {
         Some(path) => {
-            let (file, _) =
-                piezo_stage::StageFile::load(path).map_err(|e| format!("--stage: {e}"))?;
+            let (file, _) = piezo_stage::StageFile::load(path)
+                .map_err(|e| crate::Error::Usage(format!("--stage: {e}")))?;
             let u_names = input_columns(&a.data, a.columns.u.as_deref());
             for w in drive_warnings(&a.data, &u_names, &records, &file.io, path) {
                 eprintln!("warning: {w}");
@@ -1418,12 +1438,14 @@ pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
         None => None,
     };
     let mech = match (&a.mech_data, a.method) {
-        (Some(path), Method::TwoStep) => Some(
-            a.columns
-                .read(path)
-                .map_err(|e| e.replacen("--data", "--mech-data", 1))?,
-        ),
-        (Some(_), _) => return Err("--mech-data is used by --method two-step only".into()),
+        (Some(path), Method::TwoStep) => Some(a.columns.read(path).map_err(|e| {
+            crate::Error::Usage(e.to_string().replacen("--data", "--mech-data", 1))
+        })?),
+        (Some(_), _) => {
+            return Err(crate::Error::Usage(
+                "--mech-data is used by --method two-step only".into(),
+            ))
+        }
         (None, _) => None,
     };
     let settings = IdentifySettings {
@@ -1453,7 +1475,9 @@ pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
         // The fit as written: the stage file's chain on the fitted record.
         let from = records[0].index_at(a.start);
         let made = if stage_file.not_written.is_some() {
-            Err("the stage file they show was not written".to_string())
+            Err(crate::Error::Usage(
+                "the stage file they show was not written".to_string(),
+            ))
         } else {
             predict::read_stage(&a.out)
                 .and_then(|file| predict::predict_axes(&file, &records, from))
@@ -1507,7 +1531,10 @@ pub fn identify_cmd(a: &IdentifyArgs) -> Result<String, String> {
     if failures.is_empty() {
         Ok(summary)
     } else {
-        Err(format!("{summary}\n{}", failures.join("\n")))
+        Err(crate::Error::Usage(format!(
+            "{summary}\n{}",
+            failures.join("\n")
+        )))
     }
 }
 
@@ -1584,11 +1611,12 @@ fn repeated(record: &Record, copies: usize) -> Record {
 /// `--fit-report`): `axes[i].prediction_band_rms_m`, or the top level's for a one-axis `identify`
 /// report; `Err(why)` for an axis whose fit has no band (`uncertainty_not_computed`). An error
 /// names the file and the key when the file is not such a report or its axes differ.
-pub fn prediction_bands(path: &Path, axes: usize) -> Result<Vec<Result<f64, String>>, String> {
+pub fn prediction_bands(path: &Path, axes: usize) -> crate::Result<Vec<crate::Result<f64>>> {
     let name = path.display();
-    let text = std::fs::read_to_string(path).map_err(|e| format!("--fit-report {name}: {e}"))?;
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| crate::Error::Usage(format!("--fit-report {name}: {e}")))?;
     let report: serde_json::Value = serde_json::from_str(&text)
-        .map_err(|e| format!("--fit-report {name}: not a JSON report: {e}"))?;
+        .map_err(|e| crate::Error::Usage(format!("--fit-report {name}: not a JSON report: {e}")))?;
     let entries: Vec<(String, &serde_json::Value)> = match report.get("axes") {
         Some(serde_json::Value::Array(list)) => list
             .iter()
@@ -1598,44 +1626,46 @@ pub fn prediction_bands(path: &Path, axes: usize) -> Result<Vec<Result<f64, Stri
         _ => vec![(String::new(), &report)],
     };
     if entries.len() != axes {
-        return Err(format!(
+        return Err(crate::Error::Usage(format!(
             "--fit-report {name}: {} axes, the stage file and record have {axes}",
             entries.len()
-        ));
+        )));
     }
     entries
         .into_iter()
         .map(|(at, entry)| match entry.get("prediction_band_rms_m") {
-            Some(v) if v.is_null() => Ok(Err(entry
-                .get("uncertainty_not_computed")
-                .and_then(|w| w.as_str())
-                .unwrap_or("the fit has no prediction band")
-                .to_string())),
+            Some(v) if v.is_null() => Ok(Err(crate::Error::Fit(
+                entry
+                    .get("uncertainty_not_computed")
+                    .and_then(|w| w.as_str())
+                    .unwrap_or("the fit has no prediction band")
+                    .to_string(),
+            ))),
             Some(v) => v
                 .as_f64()
                 .filter(|b| b.is_finite() && *b >= 0.0)
                 .map(Ok)
                 .ok_or_else(|| {
-                    format!(
+                    crate::Error::Usage(format!(
                         "--fit-report {name}: {at}prediction_band_rms_m: {v} is not a length in m"
-                    )
+                    ))
                 }),
-            None => Err(format!(
+            None => Err(crate::Error::Usage(format!(
                 "--fit-report {name}: no {at}prediction_band_rms_m (a report of `identify` or \
                  `close-loop` with the fit's uncertainty)"
-            )),
+            ))),
         })
         .collect()
 }
 
 /// Runs `predict`.
-pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
+pub fn predict_cmd(a: &PredictArgs) -> crate::Result<String> {
     let output_filter = a
         .output_filter
         .as_deref()
         .map(output_filter::OutputFilter::parse)
         .transpose()
-        .map_err(|e| format!("--output-filter: {e}"))?;
+        .map_err(|e| crate::Error::Usage(format!("--output-filter: {e}")))?;
     let file = predict::read_stage(&a.params)?;
     let identity = crate::identity::SetIdentity::of_file(&a.params)?;
     if let Some(refusal) = file.firmware_refusal() {
@@ -1659,7 +1689,10 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
     }
     let from = records[0].index_at(start);
     if records[0].u.len() - from < 1 {
-        return Err(format!("--start {}: no samples left", a.start));
+        return Err(crate::Error::Usage(format!(
+            "--start {}: no samples left",
+            a.start
+        )));
     }
     let bands = match &a.fit_report {
         Some(path) => Some(prediction_bands(path, records.len())?),
@@ -1669,8 +1702,9 @@ pub fn predict_cmd(a: &PredictArgs) -> Result<String, String> {
     if let Some(filter) = &output_filter {
         for (p, r) in axes.iter_mut().zip(&records) {
             p.predicted_m = filter.apply(&p.predicted_m, 1.0 / r.sample_period_s());
-            p.fit = fit_block(&r.t_s, &r.y_m, &p.predicted_m, from)
-                .map_err(|e| format!("{} with --output-filter: {e}", p.axis))?;
+            p.fit = fit_block(&r.t_s, &r.y_m, &p.predicted_m, from).map_err(|e| {
+                crate::Error::Usage(format!("{} with --output-filter: {e}", p.axis))
+            })?;
         }
     }
     let mut lines = Vec::new();

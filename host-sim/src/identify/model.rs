@@ -290,8 +290,10 @@ pub fn from_axis(
     axis: &Axis,
     sample_period_s: f32,
     input_range_v: (f32, f32),
-) -> Result<Identified, String> {
-    let need = |what: &str| format!("model \"{}\" without `{what}`", axis.model.name());
+) -> crate::Result<Identified> {
+    let need = |what: &str| {
+        crate::Error::Usage(format!("model \"{}\" without `{what}`", axis.model.name()))
+    };
     Ok(match axis.model {
         ModelKind::Symmetric | ModelKind::Asymmetric => Identified::Static {
             bouc_wen: axis.bouc_wen.ok_or_else(|| need("bouc_wen"))?,

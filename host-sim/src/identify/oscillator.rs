@@ -638,12 +638,12 @@ pub fn score(set: &Identified, record: &Record, from: usize) -> Result<FitBlock,
 }
 
 /// The oscillator's output per sample of `record` \[m\] (input upsampled by `substeps`).
-pub fn predict(set: &Identified, record: &Record) -> Result<Vec<f64>, String> {
+pub fn predict(set: &Identified, record: &Record) -> crate::Result<Vec<f64>> {
     let Identified::Oscillator {
         params, substeps, ..
     } = *set
     else {
-        return Err("not an oscillator set".into());
+        return Err(crate::Error::Fit("not an oscillator set".into()));
     };
     let factor = substeps as usize;
     let fine: Vec<f32> = upsample(&record.u, factor)
@@ -656,7 +656,7 @@ pub fn predict(set: &Identified, record: &Record) -> Result<Vec<f64>, String> {
             predicted[k] = f64::from(v);
         }
     })
-    .map_err(|e| format!("parameter set refused by piezo-core: {e}"))?;
+    .map_err(|e| crate::Error::Fit(format!("parameter set refused by piezo-core: {e}")))?;
     Ok(predicted)
 }
 

@@ -55,12 +55,12 @@ pub struct OutputFilter {
 impl OutputFilter {
     /// Parses `fir-decimate:factors=R1/R2/…[,identified_with=Q1/Q2/…][,order=N]`; errors name the
     /// key.
-    pub fn parse(spec: &str) -> Result<Self, String> {
+    pub fn parse(spec: &str) -> crate::Result<Self> {
         let (kind, rest) = spec.split_once(':').unwrap_or((spec, ""));
         if kind != "fir-decimate" {
-            return Err(format!(
+            return Err(crate::Error::Usage(format!(
                 "`{kind}`: unknown output filter (valid: fir-decimate:factors=R1/R2/…[,identified_with=Q1/Q2/…][,order=N])"
-            ));
+            )));
         }
         let mut factors = None;
         let mut identified_with = Vec::new();
@@ -68,7 +68,7 @@ impl OutputFilter {
         for pair in rest.split(',').filter(|p| !p.is_empty()) {
             let (key, value) = pair
                 .split_once('=')
-                .ok_or_else(|| format!("`{pair}`: expected key=value"))?;
+                .ok_or_else(|| crate::Error::Usage(format!("`{pair}`: expected key=value")))?;
             match key {
                 "factors" => factors = Some(parse_factors(key, value)?),
                 "identified_with" => identified_with = parse_factors(key, value)?,
@@ -76,20 +76,22 @@ impl OutputFilter {
                     order = match value.trim().parse::<usize>() {
                         Ok(n) if n >= 2 && n % 2 == 0 && n <= 10_000 => n,
                         _ => {
-                            return Err(format!(
+                            return Err(crate::Error::Usage(format!(
                                 "order=`{value}`: expected an even FIR order 2…10000"
-                            ))
+                            )))
                         }
                     }
                 }
                 _ => {
-                    return Err(format!(
+                    return Err(crate::Error::Usage(format!(
                         "`{key}`: unknown key (valid: factors, identified_with, order)"
-                    ))
+                    )))
                 }
             }
         }
-        let factors = factors.ok_or("fir-decimate: `factors` is required (e.g. factors=20)")?;
+        let factors = factors.ok_or_else(|| {
+            crate::Error::Usage("fir-decimate: `factors` is required (e.g. factors=20)".into())
+        })?;
         Ok(Self {
             factors,
             identified_with,
@@ -141,13 +143,13 @@ impl OutputFilter {
 }
 
 /// Parses `R1/R2/…` of `key`: whole factors 2…1000.
-fn parse_factors(key: &str, value: &str) -> Result<Vec<usize>, String> {
+fn parse_factors(key: &str, value: &str) -> crate::Result<Vec<usize>> {
     let parsed: Result<Vec<usize>, _> = value.split('/').map(|r| r.trim().parse()).collect();
     match parsed {
         Ok(f) if !f.is_empty() && f.iter().all(|r| (2..=1000).contains(r)) => Ok(f),
-        _ => Err(format!(
+        _ => Err(crate::Error::Usage(format!(
             "{key}=`{value}`: expected whole factors 2…1000 separated by `/` (e.g. 20 or 2/2/5)"
-        )),
+        ))),
     }
 }
 
@@ -301,7 +303,7 @@ mod tests {
                 "identified_with=`0`",
             ),
         ] {
-            let err = OutputFilter::parse(spec).unwrap_err();
+            let err = OutputFilter::parse(spec).unwrap_err().to_string();
             assert!(err.contains(says), "{spec}: {err}");
         }
     }

@@ -137,7 +137,7 @@ fn build_for(
     name: &'static str,
     axis: &Axis,
     record: &Record,
-) -> Result<(piezo_stage::ValidAxis, bool), String> {
+) -> crate::Result<(piezo_stage::ValidAxis, bool)> {
     let t = record.sample_period_s() as f32;
     let (ilo, ihi) = identified_range(axis);
     let own = (
@@ -152,11 +152,11 @@ fn build_for(
             .build(name, t, own)
             .map(|v| (v, hull != own))
             .map_err(|e| {
-                format!(
+                crate::Error::Usage(format!(
                     "--params: {} (axis {name} built at the sample period {t} s of {})",
                     e.located(&stage.name, &stage.text),
                     record.path.display()
-                )
+                ))
             }),
     }
 }
@@ -167,14 +167,14 @@ pub fn predict_axes(
     stage: &ReadStage,
     records: &[Record],
     from: usize,
-) -> Result<Vec<AxisPrediction>, String> {
+) -> crate::Result<Vec<AxisPrediction>> {
     let axes = stage.file.axes();
     if records.len() != axes.len() {
-        return Err(format!(
+        return Err(crate::Error::Usage(format!(
             "--params has {} axis(es), the record {}: give one --u/--y column per axis",
             axes.len(),
             records.len()
-        ));
+        )));
     }
     let mut built = Vec::new();
     for ((name, axis), record) in axes.iter().zip(records) {
@@ -219,7 +219,9 @@ pub fn predict_axes(
     };
     if let Some(((mx, ex), (my, ey))) = pair {
         if us[1].len() != n {
-            return Err("the two axes' records differ in length".into());
+            return Err(crate::Error::Usage(
+                "the two axes' records differ in length".into(),
+            ));
         }
         let mut ox = vec![0.0f32; n];
         let mut oy = vec![0.0f32; n];
@@ -244,7 +246,11 @@ pub fn predict_axes(
         .zip(records)
         .map(|(((axis, a, _, excursion), predicted_m), r)| {
             let named = |e: super::NonFinite| {
-                format!("{axis}: {} on {}: {e}", a.model.name(), r.path.display())
+                crate::Error::Usage(format!(
+                    "{axis}: {} on {}: {e}",
+                    a.model.name(),
+                    r.path.display()
+                ))
             };
             check_finite(&r.t_s, &r.y_m, &predicted_m, 0).map_err(named)?;
             let envelope = a
@@ -300,11 +306,7 @@ pub fn effects_json(effects: &[(&'static str, String)]) -> Value {
 
 /// Writes `t_s`, then per axis input, measured, predicted and residual (`u_V,measured_m,…` for one
 /// axis; `ux_V,x_measured_m,…,uy_V,y_measured_m,…` for two).
-pub fn write_series(
-    path: &Path,
-    records: &[Record],
-    axes: &[AxisPrediction],
-) -> Result<(), String> {
+pub fn write_series(path: &Path, records: &[Record], axes: &[AxisPrediction]) -> crate::Result<()> {
     let mut names = vec!["t_s".to_string()];
     let mut columns = vec![records[0].t_s.clone()];
     for (r, p) in records.iter().zip(axes) {
@@ -335,7 +337,7 @@ pub fn write_series(
         names,
         columns,
     };
-    write_csv(path, &table).map_err(|e| format!("--out: {e}"))
+    write_csv(path, &table).map_err(|e| crate::Error::Usage(format!("--out: {e}")))
 }
 
 /// The figure of a prediction, three panels per axis in a row: measured and predicted against
@@ -415,13 +417,14 @@ pub fn write_plots(
     records: &[Record],
     axes: &[AxisPrediction],
     from: usize,
-) -> Result<Vec<String>, String> {
-    std::fs::create_dir_all(dir).map_err(|e| format!("--plots {}: {e}", dir.display()))?;
+) -> crate::Result<Vec<String>> {
+    std::fs::create_dir_all(dir)
+        .map_err(|e| crate::Error::Usage(format!("--plots {}: {e}", dir.display())))?;
     let charts = prediction_charts(records, axes, from);
     let mut written = Vec::new();
     for ext in ["svg", "png"] {
         let path = dir.join(format!("{name}.{ext}"));
-        plot_grid(&path, &charts, 3).map_err(|e| e.to_string())?;
+        plot_grid(&path, &charts, 3).map_err(crate::Error::from)?;
         written.push(path.display().to_string());
     }
     Ok(written)
@@ -440,19 +443,20 @@ pub struct ReadStage {
 
 /// Reads and validates a stage file for prediction ([`Check::Models`]: every value the
 /// firmware's check reads; errors name the file, line, column and key).
-pub fn read_stage(path: &Path) -> Result<ReadStage, String> {
+pub fn read_stage(path: &Path) -> crate::Result<ReadStage> {
     let name = path.display().to_string();
-    let text = std::fs::read_to_string(path).map_err(|e| format!("--params {name}: {e}"))?;
-    ReadStage::parse(name, text).map_err(|e| format!("--params: {e}"))
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| crate::Error::Usage(format!("--params {name}: {e}")))?;
+    ReadStage::parse(name, text).map_err(|e| crate::Error::Usage(format!("--params: {e}")))
 }
 
 impl ReadStage {
     /// Parses and validates the text of a stage file named `name` ([`Check::Models`]); the error
     /// names the file, line, column and key.
-    pub fn parse(name: String, text: String) -> Result<Self, String> {
-        let file = StageFile::parse(&name, &text).map_err(|e| e.to_string())?;
+    pub fn parse(name: String, text: String) -> crate::Result<Self> {
+        let file = StageFile::parse(&name, &text).map_err(crate::Error::from)?;
         file.validate_with(Check::Models)
-            .map_err(|e| e.located(&name, &text).to_string())?;
+            .map_err(|e| crate::Error::from(e.located(&name, &text)))?;
         Ok(ReadStage { name, text, file })
     }
 

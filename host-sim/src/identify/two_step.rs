@@ -113,28 +113,28 @@ pub struct Mechanics {
     pub mass_kg: f64,
 }
 
-fn check_uniform(rec: &Record, what: &str) -> Result<f64, String> {
+fn check_uniform(rec: &Record, what: &str) -> crate::Result<f64> {
     let dt = rec.sample_period_s();
     if !(dt > 0.0 && dt.is_finite()) {
-        return Err(format!(
+        return Err(crate::Error::Data(format!(
             "{what} {}: column t: times must increase",
             rec.path.display()
-        ));
+        )));
     }
     for (k, w) in rec.t_s.windows(2).enumerate() {
         if ((w[1] - w[0]) - dt).abs() > 1e-3 * dt {
-            return Err(format!(
+            return Err(crate::Error::Data(format!(
                 "{what} {}: column t: sample {} is not on a uniform grid (period {dt:e} s); two-step needs uniform sampling",
                 rec.path.display(),
                 k + 1
-            ));
+            )));
         }
     }
     Ok(dt)
 }
 
 /// Step 1 on a ramp-edged square-wave record (eq. 4–14).
-pub fn mechanics_from_square(rec: &Record) -> Result<Mechanics, String> {
+pub fn mechanics_from_square(rec: &Record) -> crate::Result<Mechanics> {
     let name = rec.path.display();
     let dt_mech = check_uniform(rec, "--mech-data")?;
     let (t, u, x) = (&rec.t_s, &rec.u, &rec.y_m);
@@ -142,15 +142,17 @@ pub fn mechanics_from_square(rec: &Record) -> Result<Mechanics, String> {
     let high = u.iter().copied().fold(f64::NEG_INFINITY, f64::max);
     let b = high - low;
     if !(b > 0.0) {
-        return Err(format!(
+        return Err(crate::Error::Data(format!(
             "--mech-data {name}: column u: the input never rises above its first value {low} V; need a ramp-edged square wave starting at its low level"
-        ));
+        )));
     }
     // First rising edge: samples strictly inside (2 %, 98 %) of the step.
     let inside = |v: f64| v > low + 0.02 * b && v < high - 0.02 * b;
     let first = u.iter().position(|&v| inside(v) || v >= high - 0.02 * b);
     let Some(first) = first else {
-        return Err(format!("--mech-data {name}: column u: no rising edge"));
+        return Err(crate::Error::Data(format!(
+            "--mech-data {name}: column u: no rising edge"
+        )));
     };
     let top = u[first..]
         .iter()
@@ -159,10 +161,10 @@ pub fn mechanics_from_square(rec: &Record) -> Result<Mechanics, String> {
         .unwrap_or(u.len());
     let ramp: Vec<usize> = (first..top).filter(|&k| inside(u[k])).collect();
     if ramp.len() < 2 {
-        return Err(format!(
+        return Err(crate::Error::Data(format!(
             "--mech-data {name}: column u: the rising edge has {} sample(s) inside it; need at least 2 to measure its slope a and rise time T1 (sample faster or use a slower edge)",
             ramp.len()
-        ));
+        )));
     }
     let (mut st, mut su, mut stt, mut stu) = (0.0, 0.0, 0.0, 0.0);
     let nr = ramp.len() as f64;
@@ -175,9 +177,9 @@ pub fn mechanics_from_square(rec: &Record) -> Result<Mechanics, String> {
     let slope = (nr * stu - st * su) / (nr * stt - st * st);
     let intercept = (su - slope * st) / nr;
     if !(slope > 0.0) {
-        return Err(format!(
+        return Err(crate::Error::Data(format!(
             "--mech-data {name}: column u: the rising edge has no positive slope"
-        ));
+        )));
     }
     let t0 = (low - intercept) / slope;
     let rise = b / slope;
@@ -207,10 +209,10 @@ pub fn mechanics_from_square(rec: &Record) -> Result<Mechanics, String> {
         }
     }
     if tt.len() < 40 {
-        return Err(format!(
+        return Err(crate::Error::Data(format!(
             "--mech-data {name}: only {} samples between the rising edge and the falling edge; need at least 40",
             tt.len()
-        ));
+        )));
     }
     // K0: the mean of g0 over the last quarter of the window. K1 = ∫(K0 − g0) dτ and, integrating
     // eq. 9 by parts, K2 = ∫(K1 − g1) dτ = ∫(τ − t0)·(K0 − g0) dτ: composite Simpson on the uniform
@@ -399,7 +401,7 @@ pub struct SineData {
 
 impl SineData {
     /// Central-difference derivatives and the 25–75 % band; `mech` from step 1.
-    pub fn new(rec: &Record, mech: &Mechanics) -> Result<Self, String> {
+    pub fn new(rec: &Record, mech: &Mechanics) -> crate::Result<Self> {
         let dt = check_uniform(rec, "--data")?;
         let n = rec.u.len();
         let x0 = rec.y_m[0];
@@ -417,10 +419,10 @@ impl SineData {
         let lo = rec.u.iter().copied().fold(f64::INFINITY, f64::min);
         let hi = rec.u.iter().copied().fold(f64::NEG_INFINITY, f64::max);
         if !(hi > lo) {
-            return Err(format!(
+            return Err(crate::Error::Data(format!(
                 "--data {}: column u is constant",
                 rec.path.display()
-            ));
+            )));
         }
         let edge = (5.0 * scale) as usize;
         let band = (0..n)
@@ -673,7 +675,7 @@ pub fn set_of(mech: &Mechanics, r: f64, hy: &HysteresisFit, rec: &Record) -> Ide
 #[derive(Debug, Clone)]
 struct Candidate {
     r: f64,
-    outcome: Result<(HysteresisFit, Identified, f64), String>,
+    outcome: crate::Result<(HysteresisFit, Identified, f64)>,
 }
 
 impl Candidate {
@@ -700,7 +702,7 @@ impl Scan<'_> {
                     Step2Failure::SignPattern { .. } => self.sign_failures += 1,
                     Step2Failure::IllPosed(_) => self.other_failures += 1,
                 }
-                Err(e.to_string())
+                Err(crate::Error::Fit(e.to_string()))
             }
             Ok(hy) => {
                 let set = set_of(self.mech, r, &hy, self.rec);
@@ -712,12 +714,14 @@ impl Scan<'_> {
                             Ok((hy, set, rms))
                         } else {
                             self.other_failures += 1;
-                            Err("the simulated output is not finite".into())
+                            Err(crate::Error::Fit(
+                                "the simulated output is not finite".into(),
+                            ))
                         }
                     }
                     Err(e) => {
                         self.other_failures += 1;
-                        Err(e.to_string())
+                        Err(e.into())
                     }
                 }
             }
@@ -901,7 +905,7 @@ pub fn identify(
         }
         let why = match &published.outcome {
             Err(e) => e.clone(),
-            Ok(_) => "no candidate gave a finite output".into(),
+            Ok(_) => crate::Error::Fit("no candidate gave a finite output".into()),
         };
         format!(
             "two-step failed on --data {}: {why} (as published); over all {} scale candidates (r = 0 and the scan) {} had the beta + gamma >= 0 sign pattern and {} were ill-posed or refused by piezo-core",
@@ -926,7 +930,9 @@ impl AsPublished {
                 regression: *hy,
                 rms: *rms,
             },
-            Err(e) => AsPublished::Failed { failed: e.clone() },
+            Err(e) => AsPublished::Failed {
+                failed: e.to_string(),
+            },
         }
     }
 }

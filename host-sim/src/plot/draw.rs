@@ -14,12 +14,12 @@ use std::fmt::Display;
 
 type Area<'a> = DrawingArea<SVGBackend<'a>, Shift>;
 
-fn fail(e: impl Display) -> String {
-    e.to_string()
+fn fail(e: impl Display) -> crate::Error {
+    crate::Error::Draw(e.to_string())
 }
 
 /// Draws `charts` row by row in `columns` columns; returns the SVG text.
-pub fn figure(charts: &[(&Panel, &PanelOptions)], columns: usize) -> Result<String, String> {
+pub fn figure(charts: &[(&Panel, &PanelOptions)], columns: usize) -> crate::Result<String> {
     let columns = columns.min(charts.len()).max(1);
     let rows = charts.len().div_ceil(columns).max(1);
     let legend_width = charts
@@ -264,7 +264,7 @@ fn wrap(name: &str, width: u32) -> Vec<String> {
     lines
 }
 
-fn draw_key(area: &Area, key: Key, x: i32, y: i32) -> Result<(), String> {
+fn draw_key(area: &Area, key: Key, x: i32, y: i32) -> crate::Result<()> {
     let len = style::LEGEND_SAMPLE as i32;
     match key {
         Key::Series(look) => {
@@ -305,7 +305,7 @@ fn draw_key(area: &Area, key: Key, x: i32, y: i32) -> Result<(), String> {
     Ok(())
 }
 
-fn draw_right_legend(area: &Area, entries: &[(String, Key)]) -> Result<(), String> {
+fn draw_right_legend(area: &Area, entries: &[(String, Key)]) -> crate::Result<()> {
     let width = area.dim_in_pixel().0;
     let text_room = width.saturating_sub(KEY_WIDTH + 2 * style::LEGEND_GAP);
     let x = style::LEGEND_GAP as i32;
@@ -348,7 +348,7 @@ fn flow(entries: &[(String, Key)], width: u32) -> (Vec<(u32, u32)>, u32) {
     (at, (row + 1) * ROW + style::LEGEND_GAP)
 }
 
-fn draw_below_legend(area: &Area, entries: &[(String, Key)], width: u32) -> Result<(), String> {
+fn draw_below_legend(area: &Area, entries: &[(String, Key)], width: u32) -> crate::Result<()> {
     let (at, _) = flow(entries, width);
     for ((name, key), (x, row)) in entries.iter().zip(at) {
         let y = (row * ROW + ROW / 2) as i32;
@@ -361,7 +361,7 @@ fn draw_below_legend(area: &Area, entries: &[(String, Key)], width: u32) -> Resu
 }
 
 /// The chart of one panel in `area`, on linear or logarithmic axes.
-fn chart(area: &Area, panel: &Panel, options: &PanelOptions) -> Result<(), String> {
+fn chart(area: &Area, panel: &Panel, options: &PanelOptions) -> crate::Result<()> {
     let (x, y) = axes(panel, options);
     let mut builder = ChartBuilder::on(area);
     builder
@@ -417,7 +417,7 @@ fn contents<X, Y>(
     options: &PanelOptions,
     x: Axis,
     y: Axis,
-) -> Result<(), String>
+) -> crate::Result<()>
 where
     X: Ranged<ValueType = f64> + ValueFormatter<f64>,
     Y: Ranged<ValueType = f64> + ValueFormatter<f64>,

@@ -430,7 +430,7 @@ pub fn plot_grid<P: AsChart>(path: &Path, panels: &[P], columns: usize) -> Resul
     write(path, format, &svg).map_err(|e| failed(path, e))
 }
 
-fn failed(path: &Path, message: String) -> PlotError {
+fn failed(path: &Path, message: crate::Error) -> PlotError {
     PlotError {
         path: path.display().to_string(),
         message: format!("plotting failed: {message}"),
@@ -438,7 +438,7 @@ fn failed(path: &Path, message: String) -> PlotError {
 }
 
 /// The SVG text of `panels` in `columns` columns.
-pub fn render_svg<P: AsChart>(panels: &[P], columns: usize) -> Result<String, String> {
+pub fn render_svg<P: AsChart>(panels: &[P], columns: usize) -> crate::Result<String> {
     ensure_fonts();
     let charts: Vec<(&Panel, &PanelOptions)> =
         panels.iter().map(|p| (p.panel(), p.options())).collect();
@@ -446,15 +446,15 @@ pub fn render_svg<P: AsChart>(panels: &[P], columns: usize) -> Result<String, St
 }
 
 /// Writes the SVG text `svg` to `path` as `format`.
-fn write(path: &Path, format: Format, svg: &str) -> Result<(), String> {
+fn write(path: &Path, format: Format, svg: &str) -> crate::Result<()> {
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).map_err(|e| e.to_string())?;
+        std::fs::create_dir_all(dir).map_err(crate::Error::from)?;
     }
     let bytes = match format {
         Format::Svg => svg.as_bytes().to_vec(),
         Format::Png => raster::png(svg)?,
     };
-    std::fs::write(path, bytes).map_err(|e| e.to_string())
+    std::fs::write(path, bytes).map_err(crate::Error::from)
 }
 
 /// Plot errors.

@@ -19,17 +19,21 @@ fn fonts() -> Arc<fontdb::Database> {
 }
 
 /// The PNG bytes of the SVG text `svg`.
-pub fn png(svg: &str) -> Result<Vec<u8>, String> {
+pub fn png(svg: &str) -> crate::Result<Vec<u8>> {
     let options = Options {
         font_family: "DejaVu Sans".into(),
         fontdb: fonts(),
         ..Options::default()
     };
-    let tree = Tree::from_str(svg, &options).map_err(|e| format!("SVG: {e}"))?;
+    let tree =
+        Tree::from_str(svg, &options).map_err(|e| crate::Error::Usage(format!("SVG: {e}")))?;
     let size = tree.size().to_int_size();
-    let mut pixmap = Pixmap::new(size.width(), size.height())
-        .ok_or_else(|| format!("empty figure ({}×{})", size.width(), size.height()))?;
+    let mut pixmap = Pixmap::new(size.width(), size.height()).ok_or_else(|| {
+        crate::Error::Usage(format!("empty figure ({}×{})", size.width(), size.height()))
+    })?;
     pixmap.fill(Color::WHITE);
     resvg::render(&tree, Transform::identity(), &mut pixmap.as_mut());
-    pixmap.encode_png().map_err(|e| format!("PNG: {e}"))
+    pixmap
+        .encode_png()
+        .map_err(|e| crate::Error::Usage(format!("PNG: {e}")))
 }
