@@ -335,7 +335,9 @@ fn requests_served_during_a_recording_never_make_a_tick_late() {
                 .expect("table during the recording");
         } else if i % 10 == 0 {
             assert_eq!(
-                client.request(Request::Control(Control::Feedforward)),
+                client
+                    .request(Request::Control(Control::Feedforward))
+                    .map_err(|e| e.to_string()),
                 Ok(Response::Done)
             );
         } else {

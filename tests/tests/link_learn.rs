@@ -40,7 +40,7 @@ fn link_learn(port: u16, args: &[String]) -> Result<String, String> {
     ];
     line.extend(args.iter().cloned());
     let cli = host_sim::cli::Cli::try_parse_from(line).map_err(|e| e.to_string())?;
-    host_sim::cli::run(cli)
+    host_sim::cli::run(cli).map_err(|e| e.to_string())
 }
 
 fn arg(p: &Path) -> String {
