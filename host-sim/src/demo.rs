@@ -639,8 +639,9 @@ impl DemoResult {
     }
 
     /// The JSON summary.
-    pub fn summary_json(&self) -> serde_json::Value {
+    pub fn summary_json(&self) -> crate::Result<serde_json::Value> {
         use serde_json::json;
+        let close_loop = crate::to_json(&self.close_loop.report())?;
         let axis = |a: usize| {
             let st = |r: &ModeRun| {
                 let e = r.errors[a];
@@ -664,7 +665,7 @@ impl DemoResult {
                 "effects_added": self.close_loop.axes[a].model.added.iter().map(|e| e.name()).collect::<Vec<_>>(),
             })
         };
-        json!({
+        Ok(json!({
             "plant": "xy-stage",
             "plant_effects": self.settings.plant_effects,
             "settings": {
@@ -680,9 +681,9 @@ impl DemoResult {
             },
             "x": axis(0),
             "y": axis(1),
-            "close_loop": self.close_loop.to_json(),
+            "close_loop": close_loop,
             "seconds": self.seconds,
-        })
+        }))
     }
 
     /// Writes `summary.json`, `demo.csv`, `demo-params.toml` (the final model in the firmware's
@@ -694,7 +695,7 @@ impl DemoResult {
         let mut written = Vec::new();
         let json_path = dir.join("summary.json");
         let text =
-            serde_json::to_string_pretty(&self.summary_json()).map_err(crate::Error::from)?;
+            serde_json::to_string_pretty(&self.summary_json()?).map_err(crate::Error::from)?;
         std::fs::write(&json_path, text + "\n")
             .map_err(|e| crate::Error::Usage(format!("--out {}: {e}", json_path.display())))?;
         written.push(json_path.display().to_string());

@@ -14,20 +14,40 @@
 use std::fmt;
 use std::path::Path;
 
-/// The version, file hash and content fingerprint of a stage file.
-#[derive(Debug, Clone, PartialEq)]
+/// The version, file hash and content fingerprint of a stage file. Serialised as a report's
+/// fields, named and written as `link status` writes them: `params_version`, `params_fnv1a32` and
+/// `params_fingerprint` (`0x` and 8 hex digits; null without one).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct SetIdentity {
     /// The file, as named.
+    #[serde(skip)]
     pub file: String,
     /// `name version` of its `[stage]` (the firmware's `params_version`).
+    #[serde(rename = "params_version")]
     pub version: String,
     /// FNV-1a 32 of the file's bytes (`params_fnv1a32`).
+    #[serde(rename = "params_fnv1a32", serialize_with = "hex32")]
     pub fnv1a32: u32,
     /// The content fingerprint of the set the firmware builds from it (`params_fingerprint`);
     /// `None` when the firmware would refuse the file.
+    #[serde(rename = "params_fingerprint", serialize_with = "hex32_or_null")]
     pub fingerprint: Option<u32>,
     /// `[stage] loop_rate_hz` \[Hz\].
+    #[serde(skip)]
     pub loop_rate_hz: f32,
+}
+
+/// A hash as [`crate::link::hex32`] writes it.
+fn hex32<S: serde::Serializer>(value: &u32, s: S) -> Result<S::Ok, S::Error> {
+    s.serialize_str(&crate::link::hex32(*value))
+}
+
+/// A hash as [`crate::link::hex32`] writes it, or null.
+fn hex32_or_null<S: serde::Serializer>(value: &Option<u32>, s: S) -> Result<S::Ok, S::Error> {
+    match value {
+        Some(value) => hex32(value, s),
+        None => s.serialize_none(),
+    }
 }
 
 impl SetIdentity {
@@ -65,16 +85,6 @@ impl SetIdentity {
                 })
             }
         }
-    }
-
-    /// The report's fields, named and written as `link status` writes them: `params_version`,
-    /// `params_fnv1a32` and `params_fingerprint` (`0x` and 8 hex digits; null without one).
-    pub fn to_json(&self) -> serde_json::Value {
-        serde_json::json!({
-            "params_version": self.version,
-            "params_fnv1a32": crate::link::hex32(self.fnv1a32),
-            "params_fingerprint": self.fingerprint.map(crate::link::hex32),
-        })
     }
 }
 
@@ -130,10 +140,38 @@ mod tests {
         );
         assert_eq!(boot.loop_rate_hz, 20_000.0);
         assert!(line.contains(&path.display().to_string()), "{line}");
-        let json = id.to_json();
+        let json = crate::to_json(&id).unwrap();
         assert_eq!(json["params_version"], set.version.as_str());
         assert_eq!(json["params_fingerprint"], boot.fingerprint.unwrap());
         assert_eq!(json["params_fnv1a32"], boot.fnv1a32);
+    }
+
+    /// Serialised, a set's identity is the three fields `link status` writes, and no others.
+    #[test]
+    fn an_identity_serialises_as_the_three_fields_of_link_status() {
+        let id = SetIdentity {
+            file: "stage.toml".into(),
+            version: "xy-stage 4".into(),
+            fnv1a32: 0x0012_abcd,
+            fingerprint: Some(0xdead_beef),
+            loop_rate_hz: 20_000.0,
+        };
+        let json = crate::to_json(&id).unwrap();
+        assert_eq!(
+            json,
+            serde_json::json!({
+                "params_version": "xy-stage 4",
+                "params_fnv1a32": "0x0012abcd",
+                "params_fingerprint": "0xdeadbeef",
+            })
+        );
+        let refused = SetIdentity {
+            fingerprint: None,
+            ..id
+        };
+        let json = crate::to_json(&refused).unwrap();
+        assert_eq!(json["params_fingerprint"], serde_json::Value::Null);
+        assert_eq!(json.as_object().map(|m| m.len()), Some(3));
     }
 
     /// `identify` and `close-loop` name the file they wrote by the same line; nothing for a file
@@ -189,6 +227,6 @@ mod tests {
         assert_eq!(refused.version, "xy-stage 4");
         let boot = parse_boot_line(&refused.to_string(), 1).unwrap().unwrap();
         assert_eq!(boot.fingerprint, None);
-        assert!(refused.to_json()["params_fingerprint"].is_null());
+        assert!(crate::to_json(&refused).unwrap()["params_fingerprint"].is_null());
     }
 }

@@ -53,6 +53,12 @@ pub mod uncertainty;
 pub use error::{Error, Result};
 pub use piezo_reference::{bouc_wen, csv, effects, ode, plant, signal, sim};
 
+/// A typed report as JSON: every report is written through this value, so that its f32 figures
+/// are widened to f64 and its keys sorted; a failure is [`Error::Json`].
+pub fn to_json(value: &impl serde::Serialize) -> Result<serde_json::Value> {
+    serde_json::to_value(value).map_err(Error::from)
+}
+
 /// Progress lines of the long commands: to stderr, so that stdout keeps the result.
 pub fn progress(line: &str) {
     eprintln!("{line}");

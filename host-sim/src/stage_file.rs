@@ -250,33 +250,68 @@ impl WrittenStage {
         }
     }
 
-    /// The report's fields: `stage_file`, `stage_file_written`, `stage_file_check` (the verdict in
-    /// words), `verdict` and `refusal` (the remedy of a refusal, or null).
-    pub fn to_json(&self, invertible: bool, given: Option<&Path>) -> serde_json::Value {
-        let mut json = self.verdict.to_json(invertible, given);
-        json["stage_file"] = self.path.clone().into();
-        json["stage_file_written"] = self.not_written.is_none().into();
-        json["stage_file_not_written"] = self.not_written.clone().into();
-        json
+    /// The report's fields: `stage_file`, `stage_file_written`, `stage_file_not_written` and the
+    /// verdict's ([`Verdict::report`]), for a run with `invertible` and `given`.
+    pub fn report(&self, invertible: bool, given: Option<&Path>) -> StageFileReport<'_> {
+        StageFileReport {
+            stage_file: &self.path,
+            stage_file_written: self.not_written.is_none(),
+            stage_file_not_written: self.not_written.as_deref(),
+            verdict: self.verdict.report(invertible, given),
+        }
     }
 }
 
 impl Verdict {
     /// The report's fields of the verdict: `stage_file_check` (in words), `verdict` and `refusal`
     /// (the reason and remedy of a refusal, or null), for a run with `invertible` and `given`.
-    pub fn to_json(&self, invertible: bool, given: Option<&Path>) -> serde_json::Value {
-        serde_json::json!({
-            "stage_file_check": self.words(),
-            "verdict": self.name(),
-            "refusal": match self {
-                Verdict::Refused { message, .. } => serde_json::json!({
-                    "reason": message,
-                    "remedy": self.remedy(invertible, given),
+    pub fn report(&self, invertible: bool, given: Option<&Path>) -> VerdictReport<'_> {
+        VerdictReport {
+            stage_file_check: self.words(),
+            verdict: self.name(),
+            refusal: match self {
+                Verdict::Refused { message, .. } => Some(RefusalReport {
+                    reason: message,
+                    remedy: self.remedy(invertible, given),
                 }),
-                _ => serde_json::Value::Null,
+                _ => None,
             },
-        })
+        }
     }
+}
+
+/// A written stage file in a report ([`WrittenStage::report`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct StageFileReport<'a> {
+    /// Where it was (to be) written.
+    pub stage_file: &'a str,
+    /// Whether it was written.
+    pub stage_file_written: bool,
+    /// Why it could not be written (null: written).
+    pub stage_file_not_written: Option<&'a str>,
+    /// The firmware's verdict on it, its fields beside these.
+    #[serde(flatten)]
+    pub verdict: VerdictReport<'a>,
+}
+
+/// The firmware's verdict in a report ([`Verdict::report`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct VerdictReport<'a> {
+    /// The verdict in words ([`Verdict::words`]).
+    pub stage_file_check: String,
+    /// `accepted`, `not-run-by-firmware` or `refused` ([`Verdict::name`]).
+    pub verdict: &'static str,
+    /// Why the set was refused and what to do (null unless refused).
+    pub refusal: Option<RefusalReport<'a>>,
+}
+
+/// A refusal in a report: the check's message and the remedy ([`Verdict::remedy`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct RefusalReport<'a> {
+    /// The check's message.
+    pub reason: &'a str,
+    /// What to do about it.
+    pub remedy: Option<String>,
 }
 
 /// The file as [`write_stage`] writes it (each axis's slew limit lowered where needed) and its
@@ -334,4 +369,74 @@ pub(crate) fn with_feasible_slew(file: &StageFile) -> StageFile {
         lower(y);
     }
     file
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::collections::BTreeSet;
+
+    fn keys(value: &serde_json::Value) -> BTreeSet<&str> {
+        value
+            .as_object()
+            .map(|m| m.keys().map(String::as_str).collect())
+            .unwrap_or_default()
+    }
+
+    /// A written file's report has the verdict's keys beside its own; a refusal carries the
+    /// check's message and the remedy, and a file not written says why.
+    #[test]
+    fn a_written_stage_file_reports_its_verdict_beside_its_path() {
+        let refused = WrittenStage {
+            path: "out/stage.toml".into(),
+            not_written: Some("read-only".into()),
+            verdict: Verdict::Refused {
+                kind: RefusalKind::NotInvertible,
+                message: "stage.toml:30:1: `x.static_map`: not invertible".into(),
+            },
+        };
+        let json = crate::to_json(&refused.report(false, None)).unwrap();
+        assert_eq!(
+            keys(&json),
+            BTreeSet::from([
+                "stage_file",
+                "stage_file_written",
+                "stage_file_not_written",
+                "stage_file_check",
+                "verdict",
+                "refusal",
+            ])
+        );
+        assert_eq!(json["stage_file"], "out/stage.toml");
+        assert_eq!(json["stage_file_written"], false);
+        assert_eq!(json["stage_file_not_written"], "read-only");
+        assert_eq!(json["verdict"], "refused");
+        assert_eq!(json["stage_file_check"], refused.verdict.words().as_str());
+        assert_eq!(keys(&json["refusal"]), BTreeSet::from(["reason", "remedy"]));
+        assert_eq!(
+            json["refusal"]["reason"],
+            "stage.toml:30:1: `x.static_map`: not invertible"
+        );
+        assert_eq!(
+            json["refusal"]["remedy"],
+            refused.verdict.remedy(false, None).unwrap().as_str()
+        );
+
+        let accepted = WrittenStage {
+            not_written: None,
+            verdict: Verdict::Accepted,
+            ..refused
+        };
+        let json = crate::to_json(&accepted.report(true, None)).unwrap();
+        assert_eq!(json["stage_file_written"], true);
+        assert!(json["stage_file_not_written"].is_null());
+        assert!(json["refusal"].is_null());
+        assert_eq!(json["verdict"], "accepted");
+        let verdict = crate::to_json(&Verdict::NotRunByFirmware.report(true, None)).unwrap();
+        assert_eq!(
+            keys(&verdict),
+            BTreeSet::from(["stage_file_check", "verdict", "refusal"])
+        );
+        assert_eq!(verdict["verdict"], "not-run-by-firmware");
+    }
 }

@@ -153,7 +153,7 @@ fn creep_is_named_and_removed() {
     assert!(u.standard_errors.iter().all(|s| s.is_finite() && *s > 0.0));
     let ratio = u.prediction_band_rms_m / axis.fit_after.rms;
     assert!((0.9..1.5).contains(&ratio), "band / in-sample rms {ratio}");
-    let report = o.to_json();
+    let report = host_sim::to_json(&o.report()).unwrap();
     let r = &report["axes"][0];
     assert!(r["params"]["effects"]["creep_gain_m_per_v"][0].is_number());
     assert!(

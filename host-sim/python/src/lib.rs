@@ -460,7 +460,10 @@ fn identify<'py>(
     let (stage, report) = run_interruptible(py, progress.as_ref(), move || {
         let identified = identify_stage(&records, &settings, None, given, &name)?;
         let (stage, verdict) = Stage::written(&name, &identified.header, &identified.file)?;
-        let report = merged(identified.report()?, verdict.to_json(invertible, None));
+        let report = merged(
+            identified.report()?,
+            host_sim::to_json(&verdict.report(invertible, None))?,
+        );
         Ok((stage, report))
     })?;
     Ok((stage, json_to_py(py, &report)?))
@@ -533,7 +536,10 @@ fn close_loop<'py>(
         let file = cl::stage::stage_file(&outcome, &name, stage, io)?;
         let header = cl::stage::header(&outcome, &name);
         let (stage, verdict) = Stage::written(&name, &header, &file)?;
-        let mut report = merged(outcome.to_json(), verdict.to_json(invertible, None));
+        let mut report = merged(
+            host_sim::to_json(&outcome.report())?,
+            host_sim::to_json(&verdict.report(invertible, None))?,
+        );
         report["seconds"] = started.elapsed().as_secs_f64().into();
         Ok((stage, report))
     })?;

@@ -18,7 +18,6 @@
 //!    axis to couple to).
 
 use super::diagnose::{Candidate, EffectKind};
-use serde_json::{json, Value};
 
 /// The effects the screening cannot tell apart on a periodic record (module doc).
 pub const PHASE_EFFECTS: [EffectKind; 4] = [
@@ -37,8 +36,9 @@ pub enum Tried {
     Inseparable(EffectKind),
 }
 
-/// Why an effect is not fitted in a step.
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// Why an effect is not fitted in a step (serialised as [`NotTried::name`]).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+#[serde(into = "&'static str")]
 pub enum NotTried {
     /// Another form of the effect, with a larger share, is fitted.
     OtherForm,
@@ -99,6 +99,12 @@ impl NotTried {
     }
 }
 
+impl From<NotTried> for &'static str {
+    fn from(reason: NotTried) -> Self {
+        reason.name()
+    }
+}
+
 /// An effect (or a form of it) not fitted in a step, and why.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Skipped {
@@ -130,16 +136,31 @@ impl Skipped {
         }
     }
 
-    /// JSON for the report.
-    pub fn to_json(&self) -> Value {
-        json!({
-            "effect": self.effect.name(),
-            "form": self.form,
-            "share": self.share,
-            "reason": self.reason.name(),
-            "words": self.words(),
-        })
+    /// For the report, with its words.
+    pub fn report(&self) -> SkippedReport {
+        SkippedReport {
+            effect: self.effect,
+            form: self.form,
+            share: self.share,
+            reason: self.reason,
+            words: self.words(),
+        }
     }
+}
+
+/// An effect not fitted in a report ([`Skipped::report`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct SkippedReport {
+    /// The effect.
+    pub effect: EffectKind,
+    /// The form screened ("" when not screened).
+    pub form: &'static str,
+    /// Its screening share (null when not screened).
+    pub share: Option<f64>,
+    /// Why ([`NotTried::name`]).
+    pub reason: NotTried,
+    /// In words ([`Skipped::words`]).
+    pub words: String,
 }
 
 /// The candidates (indices into `candidates`, best first by share) that are fitted, with why,
@@ -230,6 +251,38 @@ pub fn not_screened(
 mod tests {
     use super::*;
     use crate::close_loop::diagnose::EffectInit;
+
+    /// An effect not fitted serialises with the keys of the report: its name, form, share, the
+    /// reason's short name and the words.
+    #[test]
+    fn a_skipped_effect_serialises_as_in_the_report() {
+        let skipped = Skipped {
+            effect: EffectKind::RateDependent,
+            form: "relaxation",
+            share: Some(0.01),
+            reason: NotTried::BelowShare { needed: 0.05 },
+        };
+        let json = crate::to_json(&skipped.report()).unwrap();
+        assert_eq!(
+            json,
+            serde_json::json!({
+                "effect": "rate-dependent hysteresis",
+                "form": "relaxation",
+                "share": 0.01,
+                "reason": "below-share",
+                "words": skipped.words(),
+            })
+        );
+        let unscreened = Skipped {
+            form: "",
+            share: None,
+            reason: NotTried::NoScreening,
+            ..skipped
+        };
+        let json = crate::to_json(&unscreened.report()).unwrap();
+        assert!(json["share"].is_null());
+        assert_eq!(json["reason"], "no-screening");
+    }
 
     fn cand(effect: EffectKind, share: f64) -> Candidate {
         let init = match effect {

@@ -2,9 +2,9 @@
 //! parsed; the others are ignored, whatever their names), and the files it writes (report JSON,
 //! stage file, plots).
 
-use super::{close_loop_validated, stage, write_plots, CloseLoopSettings};
+use super::{close_loop_validated, stage, write_plots, CloseLoopSettings, OutcomeReport};
 use crate::identify::Record;
-use crate::stage_file::{RefusalKind, Verdict, WrittenStage};
+use crate::stage_file::{RefusalKind, StageFileReport, Verdict, WrittenStage};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -200,19 +200,17 @@ pub fn close_loop_cmd(a: &CloseLoopArgs) -> crate::Result<String> {
             Err(e) => plots_failed = Some(format!("--plots {}: not written: {e}", dir.display())),
         }
     }
-    let mut report = outcome.to_json();
-    if let (Some(r), serde_json::Value::Object(w)) =
-        (report.as_object_mut(), written.to_json(a.invertible, given))
-    {
-        r.extend(w);
-        r.insert("invertible".into(), invertible_json(a.invertible, &written));
-        r.insert("plots".into(), plots.clone().into());
-        r.insert("plots_not_written".into(), plots_failed.clone().into());
-        r.insert("seconds".into(), started.elapsed().as_secs_f64().into());
-    }
+    let report = CloseLoopReport {
+        outcome: outcome.report(),
+        stage_file: written.report(a.invertible, given),
+        invertible: invertible_report(a.invertible, &written),
+        plots: &plots,
+        plots_not_written: plots_failed.as_deref(),
+        seconds: started.elapsed().as_secs_f64(),
+    };
     // Written as a JSON value, so that the keys are sorted as in every report.
-    let reported = serde_json::to_string_pretty(&report)
-        .map_err(crate::Error::from)
+    let reported = crate::to_json(&report)
+        .and_then(|report| serde_json::to_string_pretty(&report).map_err(crate::Error::from))
         .and_then(|json| {
             if let Some(dir) = a.report.parent().filter(|d| !d.as_os_str().is_empty()) {
                 std::fs::create_dir_all(dir)
@@ -297,9 +295,39 @@ pub fn close_loop_cmd(a: &CloseLoopArgs) -> crate::Result<String> {
     }
 }
 
+/// The report `close-loop` writes: the outcome, the stage file written and its verdict, whether
+/// it is invertible, the plots and the run's wall time.
+#[derive(serde::Serialize)]
+struct CloseLoopReport<'a> {
+    /// The outcome's keys.
+    #[serde(flatten)]
+    outcome: OutcomeReport<'a>,
+    /// The stage file's keys.
+    #[serde(flatten)]
+    stage_file: StageFileReport<'a>,
+    /// Whether the set written is invertible.
+    invertible: InvertibleReport,
+    /// The plots written.
+    plots: &'a [String],
+    /// Why the plots could not be written (null: written, or none asked for).
+    plots_not_written: Option<&'a str>,
+    /// Wall time of the run \[s\].
+    seconds: f64,
+}
+
 /// The report's `invertible`: whether `--invertible` was asked for and whether the set written is
 /// one `host-sim compensate` runs (the check it makes: [`Verdict`]), and why not.
-fn invertible_json(required: bool, written: &WrittenStage) -> serde_json::Value {
+#[derive(serde::Serialize)]
+struct InvertibleReport {
+    /// `--invertible` was given.
+    required: bool,
+    /// The set written is one `compensate` runs.
+    holds: bool,
+    /// Why not (null when it holds).
+    reason: Option<String>,
+}
+
+fn invertible_report(required: bool, written: &WrittenStage) -> InvertibleReport {
     let reason = match &written.verdict {
         Verdict::Accepted => None,
         Verdict::Refused {
@@ -308,9 +336,9 @@ fn invertible_json(required: bool, written: &WrittenStage) -> serde_json::Value 
         } => Some(format!("not invertible: {message}")),
         v => Some(v.words()),
     };
-    serde_json::json!({
-        "required": required,
-        "holds": reason.is_none(),
-        "reason": reason,
-    })
+    InvertibleReport {
+        required,
+        holds: reason.is_none(),
+        reason,
+    }
 }

@@ -34,10 +34,9 @@
 // Small dense linear algebra reads best with index loops.
 #![allow(clippy::needless_range_loop)]
 
-use serde_json::{json, Value};
-
-/// The effects `close-loop` can add (names as in the report).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// The effects `close-loop` can add (names as in the report; serialised as [`EffectKind::name`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(into = "&'static str")]
 pub enum EffectKind {
     /// Creep: first-order elements driven by the input (Kelvin–Voigt or logarithmic).
     Creep,
@@ -78,6 +77,12 @@ impl EffectKind {
             Self::Coupling => "coupling",
             Self::RateDependent => "rate-dependent hysteresis",
         }
+    }
+}
+
+impl From<EffectKind> for &'static str {
+    fn from(effect: EffectKind) -> Self {
+        effect.name()
     }
 }
 
@@ -405,16 +410,31 @@ impl ResidualFigures {
         }
     }
 
-    /// JSON for the report.
-    pub fn to_json(&self) -> Value {
-        json!({
-            "rms": self.rms,
-            "noise_estimate": self.noise,
-            "ljung_box_q20": self.ljung_box_q20,
-            "ljung_box_limit": LJUNG_BOX_LIMIT_20,
-            "white": self.ljung_box_q20 < LJUNG_BOX_LIMIT_20,
-        })
+    /// The figures for the report, with the whiteness limit and verdict.
+    pub fn report(&self) -> ResidualReport {
+        ResidualReport {
+            rms: self.rms,
+            noise_estimate: self.noise,
+            ljung_box_q20: self.ljung_box_q20,
+            ljung_box_limit: LJUNG_BOX_LIMIT_20,
+            white: self.ljung_box_q20 < LJUNG_BOX_LIMIT_20,
+        }
     }
+}
+
+/// A residual's figures in a report ([`ResidualFigures::report`]).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct ResidualReport {
+    /// RMS \[m\].
+    pub rms: f64,
+    /// Sensor noise estimate σ \[m\].
+    pub noise_estimate: f64,
+    /// Ljung–Box Q over 20 lags.
+    pub ljung_box_q20: f64,
+    /// The 95 % limit of Q over 20 lags ([`LJUNG_BOX_LIMIT_20`]).
+    pub ljung_box_limit: f64,
+    /// Whether Q is below the limit.
+    pub white: bool,
 }
 
 fn log_grid(lo: f64, hi: f64, n: usize) -> Vec<f64> {
@@ -868,6 +888,36 @@ pub fn spectrum(r: &[f64], ts: f64) -> Vec<(f64, f64)> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A residual's figures serialise with the keys of the report, the whiteness verdict against
+    /// the limit; an effect serialises as its name.
+    #[test]
+    fn residual_figures_and_effects_serialise_as_in_the_report() {
+        let figures = ResidualFigures {
+            rms: 2e-7,
+            noise: 2e-9,
+            ljung_box_q20: 12.5,
+        };
+        let json = crate::to_json(&figures.report()).unwrap();
+        assert_eq!(
+            json,
+            serde_json::json!({
+                "rms": 2e-7,
+                "noise_estimate": 2e-9,
+                "ljung_box_q20": 12.5,
+                "ljung_box_limit": LJUNG_BOX_LIMIT_20,
+                "white": true,
+            })
+        );
+        let coloured = ResidualFigures {
+            ljung_box_q20: 1e4,
+            ..figures
+        };
+        assert_eq!(crate::to_json(&coloured.report()).unwrap()["white"], false);
+        for effect in EffectKind::ALL {
+            assert_eq!(crate::to_json(&effect).unwrap(), effect.name());
+        }
+    }
 
     #[test]
     fn mode_filter_has_unit_dc_gain_and_rings_at_its_frequency() {

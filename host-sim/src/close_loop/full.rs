@@ -1276,7 +1276,7 @@ impl RefitProblem<'_> {
 /// of second order in the step).
 const UNCERTAINTY_STEP_SCALE: f64 = 10.0;
 
-/// The name of a parameter in the report's `params` ([`super::params_json`]).
+/// The name of a parameter in the report's `params` ([`super::params_report`]).
 pub fn report_name(param: Param) -> String {
     let group = match param {
         Param::Beta | Param::Gamma | Param::Exponent => "bouc_wen",

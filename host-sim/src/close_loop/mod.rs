@@ -47,7 +47,7 @@ pub use cli::{close_loop_cmd, read_records, CloseLoopArgs};
 pub use plots::write_plots;
 pub use stage::{
     compensator_check, parameter_file, stage_and_io_for, validate, write_stage_file, Fit,
-    Validation,
+    Validation, ValidationReport,
 };
 
 use crate::identify::{identify, min_max, IdentifyError, IdentifySettings, Method, Record};
@@ -56,10 +56,11 @@ use diagnose::{
     noise_estimate, screen, Candidate, EffectInit, EffectKind, ResidualFigures, Signals,
 };
 use full::{last_accepted_on_the_way, refit, sse, AxisModel, EffectBounds, FitData, Simulation};
+use piezo_core::effects::EffectParams;
+use piezo_core::{BoucWenParams, StaticMap};
 use rayon::prelude::*;
-use report::{Step, StepOutcome, Trial};
+use report::{Step, StepOutcome, StepReport, Trial};
 use select::{held_out_sse, Decision, Floor, OutOfSample, Plausibility, Refusal, RunGain, Stop};
-use serde_json::{json, Value};
 use std::time::Instant;
 
 /// Most candidates fitted per step (the best by screening share).
@@ -227,7 +228,7 @@ pub struct AxisOutcome {
 }
 
 /// One record's scores before and after, when several records were fitted together.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct RecordFits {
     /// The record's file.
     pub data: String,
@@ -310,54 +311,163 @@ impl Outcome {
     }
 
     /// The report (the command writes it with the stage file's name and verdict added).
-    pub fn to_json(&self) -> Value {
-        let mut r = json!({
-            "unit": "m",
-            "data": self.data,
-            "window_s": [self.window_s.0, self.window_s.1],
-            "samples": self.axes.first().map_or(0, |a| a.before.len() - self.from),
-            "base_model": "symmetric Bouc-Wen y = k1*u + k2*h + y0 (vp-de-lm)",
-            "before": self.before.to_json(),
-            "after": self.after.to_json(),
-            "effects_added": self.effects_added(),
-            "steps": self.axes.iter().flat_map(|a| a.steps.iter().map(Step::to_json)).collect::<Vec<_>>(),
-            "words": self.axes.iter().flat_map(|a| a.steps.iter().map(Step::words)).collect::<Vec<_>>(),
-            "axes": self.axes.iter().map(|a| json!({
-                "axis": a.name,
-                "effects_added": a.model.added.iter().map(|e| json!({"effect": e.name(), "form": a.model.form(*e)})).collect::<Vec<_>>(),
-                "noise_estimate_m": a.noise_m,
-                "before": a.fit_before.to_json(),
-                "after": a.fit_after.to_json(),
-                "held_out": {"rms_before": a.held_out_rms.0, "rms_after": a.held_out_rms.1,
-                    "method": a.held_out_method},
-                "records": a.records.iter().map(|r| json!({"data": r.data, "before": r.before.to_json(), "after": r.after.to_json()})).collect::<Vec<_>>(),
-                "base_params": params_json(&a.base),
-                "params": params_json(&a.model),
-            })).collect::<Vec<_>>(),
-        });
-        if let Some(axes) = r["axes"].as_array_mut() {
-            for (entry, a) in axes.iter_mut().zip(&self.axes) {
-                if let Some(map) = entry.as_object_mut() {
-                    map.extend(crate::uncertainty::keys_of(&a.uncertainty));
-                }
-            }
+    pub fn report(&self) -> OutcomeReport<'_> {
+        OutcomeReport {
+            unit: "m",
+            data: &self.data,
+            window_s: self.window_s,
+            samples: self.axes.first().map_or(0, |a| a.before.len() - self.from),
+            base_model: "symmetric Bouc-Wen y = k1*u + k2*h + y0 (vp-de-lm)",
+            before: self.before,
+            after: self.after,
+            effects_added: self.effects_added(),
+            steps: self
+                .axes
+                .iter()
+                .flat_map(|a| a.steps.iter().map(Step::report))
+                .collect(),
+            words: self
+                .axes
+                .iter()
+                .flat_map(|a| a.steps.iter().map(Step::words))
+                .collect(),
+            axes: self.axes.iter().map(AxisOutcome::report).collect(),
+            validation: self.validation.as_ref().map(Validation::report),
         }
-        if let Some(v) = &self.validation {
-            r["validation"] = v.to_json();
-        }
-        r
     }
 }
 
-/// Parameters of an axis model (JSON, SI).
-pub fn params_json(m: &AxisModel) -> Value {
-    json!({
-        "bouc_wen": {"a": m.bouc_wen.a, "beta": m.bouc_wen.beta, "gamma": m.bouc_wen.gamma, "n": m.bouc_wen.n},
-        "static_map": {"k1_m_per_v": m.map.k1_m_per_v, "k2_m_per_h": m.map.k2_m_per_h, "offset_m": m.map.offset_m},
-        "effects": serde_json::to_value(m.effects).unwrap_or(Value::Null),
-        "input_range_v": [m.input_range_v.0, m.input_range_v.1],
-        "sample_period_s": m.sample_period_s,
-    })
+impl AxisOutcome {
+    /// The axis's part of the report: its effects, scores, parameters and uncertainty.
+    pub fn report(&self) -> AxisReport<'_> {
+        AxisReport {
+            axis: &self.name,
+            effects_added: self
+                .model
+                .added
+                .iter()
+                .map(|&effect| AddedEffect {
+                    effect,
+                    form: self.model.form(effect),
+                })
+                .collect(),
+            noise_estimate_m: self.noise_m,
+            before: self.fit_before,
+            after: self.fit_after,
+            held_out: HeldOutReport {
+                rms_before: self.held_out_rms.0,
+                rms_after: self.held_out_rms.1,
+                method: &self.held_out_method,
+            },
+            records: &self.records,
+            base_params: params_report(&self.base),
+            params: params_report(&self.model),
+            uncertainty: crate::uncertainty::keys_of(&self.uncertainty),
+        }
+    }
+}
+
+/// The outcome of a run in a report ([`Outcome::report`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct OutcomeReport<'a> {
+    /// The unit of every RMS, offset and error: `m`.
+    pub unit: &'static str,
+    /// The fitted record.
+    pub data: &'a str,
+    /// The scored window \[s\].
+    pub window_s: (f64, f64),
+    /// Scored samples per axis.
+    pub samples: usize,
+    /// The base model, in words.
+    pub base_model: &'static str,
+    /// All axes together, base model.
+    pub before: Fit,
+    /// All axes together, final model.
+    pub after: Fit,
+    /// The effects added on any axis, in order ([`Outcome::effects_added`]).
+    pub effects_added: Vec<&'static str>,
+    /// Every step of every axis.
+    pub steps: Vec<StepReport<'a>>,
+    /// Every step of every axis in words.
+    pub words: Vec<String>,
+    /// Per axis.
+    pub axes: Vec<AxisReport<'a>>,
+    /// The prediction of `--validate` (absent without it).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub validation: Option<ValidationReport<'a>>,
+}
+
+/// One axis in a report ([`AxisOutcome::report`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct AxisReport<'a> {
+    /// Axis name (`x`, `y`).
+    pub axis: &'a str,
+    /// The effects of the final model, in the order they were added, with their forms.
+    pub effects_added: Vec<AddedEffect>,
+    /// Sensor noise estimate \[m\].
+    pub noise_estimate_m: f64,
+    /// Scores of the base model.
+    pub before: Fit,
+    /// Scores of the final model.
+    pub after: Fit,
+    /// Held-out RMS of both models.
+    pub held_out: HeldOutReport<'a>,
+    /// Per record.
+    pub records: &'a [RecordFits],
+    /// The base model's parameters.
+    pub base_params: ParamsReport<'a>,
+    /// The final model's parameters.
+    pub params: ParamsReport<'a>,
+    /// `uncertainty`, `correlation` and `prediction_band_rms_m`
+    /// ([`crate::uncertainty::keys_of`]), beside the other keys.
+    #[serde(flatten)]
+    pub uncertainty: serde_json::Map<String, serde_json::Value>,
+}
+
+/// An effect of the final model in a report.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct AddedEffect {
+    /// The effect.
+    pub effect: EffectKind,
+    /// Its form ([`AxisModel::form`]).
+    pub form: String,
+}
+
+/// The held-out RMS of an axis in a report.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct HeldOutReport<'a> {
+    /// Base model \[m\].
+    pub rms_before: f64,
+    /// Final model \[m\].
+    pub rms_after: f64,
+    /// How the held-out blocks were chosen, in words.
+    pub method: &'a str,
+}
+
+/// Parameters of an axis model in a report (SI; [`params_report`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct ParamsReport<'a> {
+    /// Bouc-Wen parameters.
+    pub bouc_wen: BoucWenParams,
+    /// y = k1·u + k2·h + y0.
+    pub static_map: StaticMap,
+    /// The effect chain's parameters.
+    pub effects: &'a EffectParams,
+    /// The input range the set is valid over \[V\].
+    pub input_range_v: (f32, f32),
+    /// Sample period \[s\].
+    pub sample_period_s: f32,
+}
+
+/// Parameters of an axis model (for the report, SI).
+pub fn params_report(m: &AxisModel) -> ParamsReport<'_> {
+    ParamsReport {
+        bouc_wen: m.bouc_wen,
+        static_map: m.map,
+        effects: &m.effects,
+        input_range_v: m.input_range_v,
+        sample_period_s: m.sample_period_s,
+    }
 }
 
 fn log(show: bool, msg: impl AsRef<str>) {

@@ -7,8 +7,9 @@
 
 use super::full::AxisModel;
 
-/// One named parameter of θ.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+/// One named parameter of θ (serialised as [`Param::name`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize)]
+#[serde(into = "&'static str")]
 pub enum Param {
     /// Bouc-Wen β.
     Beta,
@@ -58,6 +59,12 @@ pub enum Param {
     RelaxationGain1,
     /// Second relaxation element's time constant τ_w₁ \[s\].
     RelaxationTimeConstant1,
+}
+
+impl From<Param> for &'static str {
+    fn from(param: Param) -> Self {
+        param.name()
+    }
 }
 
 impl Param {

@@ -1,16 +1,20 @@
 //! The decision log of `close-loop` as typed values: per step the residual and the noise floor, the
 //! candidates with their screening, in-sample and out-of-sample gains, plausibility and decision, and
-//! the step's outcome; each in words ([`Step::words`]) and as JSON ([`Step::to_json`]), built last.
+//! the step's outcome; each in words ([`Step::words`]) and for the JSON report ([`Step::report`]),
+//! built last.
 //! In-sample gain: 1 − MSE₁/MSE₀ on the whole scored record; ΔBIC = N·ln(SSE₁/SSE₀) + p·ln N is
 //! reported for reference only (with N in the thousands it favours any effect that lowers the
 //! residual at all).
 
-use super::choose::Skipped;
+use super::choose::{Skipped, SkippedReport};
 use super::diagnose::{Candidate, EffectKind};
 use super::full::AxisModel;
 use super::param::Param;
-use super::select::{Decision, Floor, OutOfSample, Plausibility, RunGain, Stop};
-use serde_json::{json, Map, Value};
+use super::select::{
+    Decision, Floor, FloorReport, OutOfSample, OutOfSampleReport, Plausibility, PlausibilityReport,
+    RunGain, RunGainReport, Stop,
+};
+use std::collections::BTreeMap;
 
 /// One candidate effect, fitted and judged.
 #[derive(Debug, Clone)]
@@ -102,44 +106,90 @@ impl Trial {
         s
     }
 
-    /// JSON for the report.
-    pub fn to_json(&self) -> Value {
-        let mut figures = Map::new();
-        for (k, v) in &self.screening.figures {
-            figures.insert((*k).into(), json!(v));
-        }
-        let mut parameters = Map::new();
-        for (k, v) in &self.parameters {
-            parameters.insert(k.name().into(), json!(v));
-        }
-        json!({
-            "effect": self.effect.name(),
-            "form": self.form,
-            "screening": {
-                "test": self.screening.test,
-                "share": self.screening.share,
-                "delta_bic": self.screening.delta_bic,
-                "figures": figures,
+    /// For the report: the screening, the fitted parameters, the in-sample and out-of-sample
+    /// gains, the plausibility, the decision and the words.
+    pub fn report(&self) -> TrialReport<'_> {
+        TrialReport {
+            effect: self.effect,
+            form: &self.form,
+            screening: ScreeningReport {
+                test: self.screening.test,
+                share: self.screening.share,
+                delta_bic: self.screening.delta_bic,
+                figures: self.screening.figures.iter().copied().collect(),
             },
-            "parameters": parameters,
-            "in_sample": {
-                "rms_before": self.rms_before,
-                "rms_after": self.rms_after,
-                "gain": self.in_sample_gain(),
-                "delta_bic": self.delta_bic,
+            parameters: self
+                .parameters
+                .iter()
+                .map(|&(p, v)| (p.name(), v))
+                .collect(),
+            in_sample: InSampleReport {
+                rms_before: self.rms_before,
+                rms_after: self.rms_after,
+                gain: self.in_sample_gain(),
+                delta_bic: self.delta_bic,
             },
-            "out_of_sample": self.out_of_sample.as_ref().map(OutOfSample::to_json),
-            "another_run": self.another_run.map(|r| json!({
-                "rms_zeroed_without": r.rms_zeroed_without,
-                "rms_zeroed_with": r.rms_zeroed_with,
-                "holds": r.holds(),
-            })),
-            "plausibility": self.plausibility.to_json(),
-            "invertibility": self.invertibility,
-            "decision": self.decision.name(),
-            "words": self.words(),
-        })
+            out_of_sample: self.out_of_sample.as_ref().map(OutOfSample::report),
+            another_run: self.another_run.as_ref().map(RunGain::report),
+            plausibility: self.plausibility.report(),
+            invertibility: self.invertibility.as_deref(),
+            decision: self.decision,
+            words: self.words(),
+        }
     }
+}
+
+/// A candidate in a report ([`Trial::report`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct TrialReport<'a> {
+    /// The effect.
+    pub effect: EffectKind,
+    /// Its form in words.
+    pub form: &'a str,
+    /// Its screening on the residual.
+    pub screening: ScreeningReport,
+    /// The fitted effect parameters by name ([`Param::name`]).
+    pub parameters: BTreeMap<&'static str, f64>,
+    /// The in-sample gain of the refit.
+    pub in_sample: InSampleReport,
+    /// The cross-validated gain (null when it was refused before).
+    pub out_of_sample: Option<OutOfSampleReport<'a>>,
+    /// The gain on the `--validate` record (null unless given and reached).
+    pub another_run: Option<RunGainReport>,
+    /// Plausibility of the fitted parameters.
+    pub plausibility: PlausibilityReport<'a>,
+    /// With `--invertible`, the compensator's refusal of the free fit (null otherwise).
+    pub invertibility: Option<&'a str>,
+    /// The decision ([`Decision::name`]).
+    pub decision: Decision,
+    /// In words ([`Trial::words`]).
+    pub words: String,
+}
+
+/// A candidate's screening in a report.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct ScreeningReport {
+    /// What was tested, in words.
+    pub test: &'static str,
+    /// Share of the residual variance explained.
+    pub share: f64,
+    /// ΔBIC of adding it.
+    pub delta_bic: f64,
+    /// The screening's figures by name.
+    pub figures: BTreeMap<&'static str, f64>,
+}
+
+/// A candidate's in-sample gain in a report.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct InSampleReport {
+    /// RMS before \[m\].
+    pub rms_before: f64,
+    /// RMS with the effect, whole model refitted \[m\].
+    pub rms_after: f64,
+    /// [`Trial::in_sample_gain`].
+    pub gain: f64,
+    /// ΔBIC of the refit.
+    pub delta_bic: f64,
 }
 
 /// What a step did.
@@ -249,49 +299,98 @@ impl Step {
         s
     }
 
-    /// JSON for the report.
-    pub fn to_json(&self) -> Value {
+    /// For the report: the outcome, the noise floor, the screening, the candidates fitted and
+    /// those not, and the words.
+    pub fn report(&self) -> StepReport<'_> {
         let (effect, form, outcome) = match &self.outcome {
             StepOutcome::Added { effect, form, .. } => {
-                (json!(effect.name()), json!(form), json!("added"))
+                (Some(*effect), Some(form.as_str()), "added")
             }
-            StepOutcome::Removed { effect, .. } => {
-                (json!(effect.name()), json!(null), json!("removed"))
-            }
+            StepOutcome::Removed { effect, .. } => (Some(*effect), None, "removed"),
             StepOutcome::Stopped(stop) => (
-                json!(null),
-                json!(null),
-                json!(match stop {
+                None,
+                None,
+                match stop {
                     Stop::NoiseFloor => "stopped-noise-floor",
                     Stop::NothingHolds => "stopped-nothing-holds",
                     Stop::NoCandidates => "stopped-no-candidates",
-                }),
+                },
             ),
-            StepOutcome::Restarted { .. } => {
-                (json!(null), json!(null), json!("restarted-from-held-base"))
-            }
+            StepOutcome::Restarted { .. } => (None, None, "restarted-from-held-base"),
         };
         let rms = match &self.outcome {
             StepOutcome::Added { rms_after, .. } => *rms_after,
             StepOutcome::Removed { rms_without, .. } => *rms_without,
             StepOutcome::Stopped(_) | StepOutcome::Restarted { .. } => self.rms_before,
         };
-        json!({
-            "axis": self.axis,
-            "step": self.number,
-            "outcome": outcome,
-            "effect": effect,
-            "form": form,
-            "removed": matches!(self.outcome, StepOutcome::Removed { .. }),
-            "rms_before": self.rms_before,
-            "rms": rms,
-            "noise": self.floor.to_json(),
-            "screening": self.screened.iter().map(|(e, f, share, bic)| json!({
-                "effect": e.name(), "form": f, "share": share, "delta_bic": bic,
-            })).collect::<Vec<_>>(),
-            "candidates": self.trials.iter().map(Trial::to_json).collect::<Vec<_>>(),
-            "not_tried": self.not_tried.iter().map(Skipped::to_json).collect::<Vec<_>>(),
-            "words": self.words(),
-        })
+        StepReport {
+            axis: &self.axis,
+            step: self.number,
+            outcome,
+            effect,
+            form,
+            removed: matches!(self.outcome, StepOutcome::Removed { .. }),
+            rms_before: self.rms_before,
+            rms,
+            noise: self.floor.report(),
+            screening: self
+                .screened
+                .iter()
+                .map(|&(effect, form, share, delta_bic)| ScreenedReport {
+                    effect,
+                    form,
+                    share,
+                    delta_bic,
+                })
+                .collect(),
+            candidates: self.trials.iter().map(Trial::report).collect(),
+            not_tried: self.not_tried.iter().map(Skipped::report).collect(),
+            words: self.words(),
+        }
     }
+}
+
+/// A step of the search in a report ([`Step::report`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct StepReport<'a> {
+    /// Axis name.
+    pub axis: &'a str,
+    /// Step number (from 1).
+    pub step: usize,
+    /// `added`, `removed`, `stopped-noise-floor`, `stopped-nothing-holds`,
+    /// `stopped-no-candidates` or `restarted-from-held-base`.
+    pub outcome: &'static str,
+    /// The effect added or removed (null otherwise).
+    pub effect: Option<EffectKind>,
+    /// The form of the effect added (null otherwise).
+    pub form: Option<&'a str>,
+    /// Whether an effect was removed.
+    pub removed: bool,
+    /// In-sample RMS at the start \[m\].
+    pub rms_before: f64,
+    /// In-sample RMS after the step \[m\].
+    pub rms: f64,
+    /// Residual and noise floor at the start.
+    pub noise: FloorReport,
+    /// Every screened candidate, best first.
+    pub screening: Vec<ScreenedReport>,
+    /// The candidates fitted and judged.
+    pub candidates: Vec<TrialReport<'a>>,
+    /// The effects not fitted, and why.
+    pub not_tried: Vec<SkippedReport>,
+    /// In words ([`Step::words`]).
+    pub words: String,
+}
+
+/// One screened candidate in a report.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct ScreenedReport {
+    /// The effect.
+    pub effect: EffectKind,
+    /// The form screened.
+    pub form: &'static str,
+    /// Share of the residual variance explained.
+    pub share: f64,
+    /// ΔBIC of adding it.
+    pub delta_bic: f64,
 }

@@ -51,11 +51,10 @@
 //! samples are still correlated holds structure, and the candidates are tried on it (they must
 //! still hold out of sample).
 
-use super::diagnose::{EffectKind, ResidualFigures};
+use super::diagnose::{EffectKind, ResidualFigures, ResidualReport};
 use super::full::{refit, sse_where, AxisModel, Block, FitData};
 use super::param::Param;
 use rayon::prelude::*;
-use serde_json::{json, Value};
 
 /// Number of blocks of the cross-validation.
 pub const FOLDS: usize = 4;
@@ -313,31 +312,58 @@ impl OutOfSample {
             && self.relative_gain >= MIN_RELATIVE_GAIN
     }
 
-    /// JSON for the report.
-    pub fn to_json(&self) -> Value {
-        json!({
-            "method": format!("blocked cross-validation, {} blocks (over time in one record; one record each with several): refit on the other blocks, simulate the whole record, score the held-out block", self.log_ratios.len()),
-            "blocks_s": self.blocks_s.iter().map(|(a, b)| [a, b]).collect::<Vec<_>>(),
-            "mse_without_m2": self.mse_without,
-            "mse_with_m2": self.mse_with,
-            "log_ratios": self.log_ratios,
-            "mean_log_ratio": self.mean_log_ratio,
-            "spread": self.spread,
-            "t_statistic": self.t_statistic(),
-            "relative_gain": self.relative_gain,
-            "rule": format!(
+    /// For the report: the blocks' figures, the t statistic, the rule and whether it holds.
+    pub fn report(&self) -> OutOfSampleReport<'_> {
+        OutOfSampleReport {
+            method: format!("blocked cross-validation, {} blocks (over time in one record; one record each with several): refit on the other blocks, simulate the whole record, score the held-out block", self.log_ratios.len()),
+            blocks_s: &self.blocks_s,
+            mse_without_m2: &self.mse_without,
+            mse_with_m2: &self.mse_with,
+            log_ratios: &self.log_ratios,
+            mean_log_ratio: self.mean_log_ratio,
+            spread: self.spread,
+            t_statistic: self.t_statistic(),
+            relative_gain: self.relative_gain,
+            rule: format!(
                 "mean of ln(MSE with / MSE without) over the blocks more than {} standard errors below 0 (one-sided t-test, 90 %; with two blocks: or the pooled held-out MSE >= {:.0} % lower), no block more than {MAX_BLOCK_LOSS} x worse, pooled held-out MSE >= {:.0} % lower",
                 t_critical(self.log_ratios.len()),
                 100.0 * TWO_BLOCK_GAIN,
                 100.0 * MIN_RELATIVE_GAIN
             ),
-            "holds": self.holds(),
-        })
+            holds: self.holds(),
+        }
     }
 }
 
+/// The cross-validated gain in a report ([`OutOfSample::report`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct OutOfSampleReport<'a> {
+    /// How the blocks were held out, in words.
+    pub method: String,
+    /// The held-out blocks \[s\].
+    pub blocks_s: &'a [(f64, f64)],
+    /// Held-out MSE per block without the effect \[m²\].
+    pub mse_without_m2: &'a [f64],
+    /// Held-out MSE per block with it \[m²\].
+    pub mse_with_m2: &'a [f64],
+    /// Per block, ln(MSE with / MSE without).
+    pub log_ratios: &'a [f64],
+    /// Mean of the log ratios.
+    pub mean_log_ratio: f64,
+    /// Standard deviation of the log ratios.
+    pub spread: f64,
+    /// [`OutOfSample::t_statistic`].
+    pub t_statistic: f64,
+    /// Share by which the pooled held-out MSE falls.
+    pub relative_gain: f64,
+    /// The rule, in words.
+    pub rule: String,
+    /// [`OutOfSample::holds`].
+    pub holds: bool,
+}
+
 /// One parameter against the range that makes the effect that effect.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct Check {
     /// The parameter (its name in reports: the core's field).
     pub parameter: Param,
@@ -400,16 +426,22 @@ impl Plausibility {
             .join("; ")
     }
 
-    /// JSON for the report.
-    pub fn to_json(&self) -> Value {
-        json!({
-            "plausible": self.plausible(),
-            "checks": self.checks.iter().map(|c| json!({
-                "parameter": c.parameter.name(), "value": c.value, "range": [c.range.0, c.range.1],
-                "at_bound": c.at_bound,
-            })).collect::<Vec<_>>(),
-        })
+    /// For the report: the checks and whether every one passed.
+    pub fn report(&self) -> PlausibilityReport<'_> {
+        PlausibilityReport {
+            plausible: self.plausible(),
+            checks: &self.checks,
+        }
     }
+}
+
+/// The plausibility of a fitted effect in a report ([`Plausibility::report`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct PlausibilityReport<'a> {
+    /// [`Plausibility::plausible`].
+    pub plausible: bool,
+    /// One check per parameter.
+    pub checks: &'a [Check],
 }
 
 /// The RMS on another run with and without the effect (one offset re-estimated on that run).
@@ -426,6 +458,26 @@ impl RunGain {
     pub fn holds(&self) -> bool {
         self.rms_zeroed_with < self.rms_zeroed_without
     }
+
+    /// For the report: both RMS and whether it holds.
+    pub fn report(&self) -> RunGainReport {
+        RunGainReport {
+            rms_zeroed_without: self.rms_zeroed_without,
+            rms_zeroed_with: self.rms_zeroed_with,
+            holds: self.holds(),
+        }
+    }
+}
+
+/// The gain on another run in a report ([`RunGain::report`]).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct RunGainReport {
+    /// Without the effect \[m\].
+    pub rms_zeroed_without: f64,
+    /// With it \[m\].
+    pub rms_zeroed_with: f64,
+    /// [`RunGain::holds`].
+    pub holds: bool,
 }
 
 /// Why an effect was not added.
@@ -460,8 +512,9 @@ impl Refusal {
     }
 }
 
-/// What became of a candidate.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// What became of a candidate (serialised as [`Decision::name`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(into = "&'static str")]
 pub enum Decision {
     /// Added to the model.
     Added,
@@ -493,6 +546,12 @@ impl Decision {
             Self::Refused(Refusal::WorseOnAnotherRun) => "refused-worse-on-another-run",
             Self::Refused(Refusal::NotInvertible) => "refused-not-invertible",
         }
+    }
+}
+
+impl From<Decision> for &'static str {
+    fn from(decision: Decision) -> Self {
+        decision.name()
     }
 }
 
@@ -538,15 +597,29 @@ impl Floor {
             && self.residual.ljung_box_q20 < super::diagnose::LJUNG_BOX_LIMIT_20
     }
 
-    /// JSON for the report.
-    pub fn to_json(&self) -> Value {
-        json!({
-            "residual": self.residual.to_json(),
-            "noise_estimate_m": self.noise_m,
-            "noise_floor_m": NOISE_FLOOR_FACTOR * self.noise_m,
-            "at_noise_floor": self.reached(),
-        })
+    /// For the report: the residual's figures, the noise estimate, the floor and whether it is
+    /// reached.
+    pub fn report(&self) -> FloorReport {
+        FloorReport {
+            residual: self.residual.report(),
+            noise_estimate_m: self.noise_m,
+            noise_floor_m: NOISE_FLOOR_FACTOR * self.noise_m,
+            at_noise_floor: self.reached(),
+        }
     }
+}
+
+/// The residual and the noise floor in a report ([`Floor::report`]).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct FloorReport {
+    /// The residual's figures.
+    pub residual: ResidualReport,
+    /// The sensor noise estimate of the axis \[m\].
+    pub noise_estimate_m: f64,
+    /// [`NOISE_FLOOR_FACTOR`] times the noise estimate \[m\].
+    pub noise_floor_m: f64,
+    /// [`Floor::reached`].
+    pub at_noise_floor: bool,
 }
 
 #[cfg(test)]

@@ -13,7 +13,6 @@ use crate::identify::Record;
 use crate::stage_file::{stage_and_io, write_stage, WrittenStage};
 use piezo_core::Asymmetry;
 use piezo_stage::{simulate_pair, Axis, AxisChain, Limits, Provenance, StageFile, AXIS_NAMES};
-use serde_json::{json, Value};
 use std::path::Path;
 
 /// Slew limit written for every axis \[V/s\]: the stage file's default.
@@ -102,7 +101,7 @@ pub fn predict(models: &[&AxisModel], us: &[Vec<f32>]) -> crate::Result<Vec<Vec<
 }
 
 /// The scores of a prediction (module doc).
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
 pub struct Fit {
     /// RMS \[m\].
     pub rms: f64,
@@ -132,17 +131,6 @@ impl Fit {
             max_abs: r.iter().fold(0.0, |m, v| m.max(v.abs())),
             r2: if sst > 0.0 { 1.0 - sse / sst } else { f64::NAN },
         }
-    }
-
-    /// JSON for the report.
-    pub fn to_json(&self) -> Value {
-        json!({
-            "rms": self.rms,
-            "rms_zeroed": self.rms_zeroed,
-            "offset": self.offset,
-            "max_abs": self.max_abs,
-            "r2": self.r2,
-        })
     }
 }
 
@@ -179,18 +167,37 @@ pub struct Validation {
 }
 
 impl Validation {
-    /// JSON for the report.
-    pub fn to_json(&self) -> Value {
-        json!({
-            "data": self.data,
-            "start_s": self.start_s,
-            "samples": self.samples,
-            "before": self.before.to_json(),
-            "after": self.after.to_json(),
-            "ratio_rms": self.after.rms / self.before.rms,
-            "ratio_rms_zeroed": self.after.rms_zeroed / self.before.rms_zeroed,
-        })
+    /// For the report: the record, both models' scores and their ratios (not the series).
+    pub fn report(&self) -> ValidationReport<'_> {
+        ValidationReport {
+            data: &self.data,
+            start_s: self.start_s,
+            samples: self.samples,
+            before: self.before,
+            after: self.after,
+            ratio_rms: self.after.rms / self.before.rms,
+            ratio_rms_zeroed: self.after.rms_zeroed / self.before.rms_zeroed,
+        }
     }
+}
+
+/// The prediction of another record in a report ([`Validation::report`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct ValidationReport<'a> {
+    /// The record.
+    pub data: &'a str,
+    /// First scored time \[s\].
+    pub start_s: f64,
+    /// Scored samples per axis.
+    pub samples: usize,
+    /// Base model, all axes together.
+    pub before: Fit,
+    /// Final model, all axes together.
+    pub after: Fit,
+    /// RMS of the final model over that of the base.
+    pub ratio_rms: f64,
+    /// The same with one offset re-estimated.
+    pub ratio_rms_zeroed: f64,
 }
 
 /// Both models predict `records` from their first sample (seeing only u), scored from `start_s`.

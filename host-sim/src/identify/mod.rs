@@ -21,6 +21,7 @@ pub mod predict;
 pub mod two_step;
 
 use crate::csv::{read_rows, Table};
+use crate::to_json;
 use crate::uncertainty::Uncertainty;
 use fit::{Problem, Progress, TracePoint};
 use model::{to_axis, Identified, ModelKind};
@@ -800,7 +801,6 @@ pub struct IdentifyResult<'a> {
     #[serde(flatten)]
     pub summary: &'a IdentifySummary,
     /// The set.
-    #[serde(serialize_with = "model::serialize_params")]
     pub params: &'a Identified,
     /// Data warnings ([`data_warnings`]).
     pub warnings: Vec<String>,
@@ -1398,11 +1398,6 @@ pub fn fit_uncertainty(
     crate::uncertainty::estimate(&fitted)
 }
 
-/// A typed report as JSON (the f32 figures widened to f64 and the keys sorted, as every report).
-fn to_json(value: &impl serde::Serialize) -> crate::Result<serde_json::Value> {
-    serde_json::to_value(value).map_err(crate::Error::from)
-}
-
 fn write_json(path: &Path, value: &serde_json::Value, flag: &str) -> crate::Result<()> {
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir)
@@ -1493,7 +1488,7 @@ pub fn identify_cmd(a: &IdentifyArgs) -> crate::Result<String> {
     let mut report = identified.report()?;
     if let (Some(r), serde_json::Value::Object(s)) = (
         report.as_object_mut(),
-        stage_file.to_json(a.invertible, a.stage.as_deref()),
+        to_json(&stage_file.report(a.invertible, a.stage.as_deref()))?,
     ) {
         r.extend(s);
         r.insert("plots".into(), json!(plots));
@@ -1778,15 +1773,16 @@ pub fn predict_cmd(a: &PredictArgs) -> crate::Result<String> {
     }
     let mut report = json!({
         "params_file": a.params.display().to_string(),
-        "params_version": identity.version,
-        "params_fnv1a32": crate::link::hex32(identity.fnv1a32),
-        "params_fingerprint": identity.fingerprint.map(crate::link::hex32),
         "data": a.data.display().to_string(),
         "start_s": a.start,
         "periodic_warmup": a.periodic_warmup,
         "output_filter": a.output_filter,
         "axes": axes.iter().map(predict::axis_json).collect::<Vec<_>>(),
     });
+    if let (Some(r), serde_json::Value::Object(id)) = (report.as_object_mut(), to_json(&identity)?)
+    {
+        r.extend(id);
+    }
     if a.free_offset {
         report["rms_zeroed_m"] = json!(zeroed);
     }

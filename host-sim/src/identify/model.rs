@@ -22,14 +22,18 @@ pub const STATE_LIMIT: f32 = piezo_stage::STATE_LIMIT;
 /// its command-line names (`symmetric`, `asymmetric`, `dynamic`, `oscillator`).
 pub use piezo_stage::ModelKind;
 
-/// One identified parameter set, in SI units.
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// One identified parameter set, in SI units. Serialised as its parameters, named as in the core's
+/// structs: `bouc_wen`, then `static_map` and `asymmetry`, `mass_spring_damper` or `oscillator`,
+/// with `sample_period_s` and `input_range_v` (`substeps` for the oscillator).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+#[serde(untagged)]
 pub enum Identified {
     /// Static (and asymmetric static) model.
     Static {
         /// Bouc-Wen parameters.
         bouc_wen: BoucWenParams,
         /// y = k1·u + k2·h + y0.
+        #[serde(rename = "static_map")]
         map: StaticMap,
         /// δ and φ (zero for the symmetric model).
         asymmetry: Asymmetry,
@@ -43,6 +47,7 @@ pub enum Identified {
         /// Bouc-Wen parameters.
         bouc_wen: BoucWenParams,
         /// Mechanics.
+        #[serde(rename = "mass_spring_damper")]
         mechanics: MassSpringDamperParams,
         /// Sample period of the discretisation \[s\].
         sample_period_s: f32,
@@ -52,6 +57,7 @@ pub enum Identified {
     /// Hysteretic oscillator of the Bouc-Wen benchmark.
     Oscillator {
         /// Parameters.
+        #[serde(rename = "oscillator")]
         params: piezo_core::OscillatorParams,
         /// Sample period \[s\].
         sample_period_s: f32,
@@ -129,62 +135,6 @@ impl Identified {
             )),
         }
     }
-
-    /// JSON of the parameters (SI, names as in the core's structs).
-    pub fn to_json(&self) -> serde_json::Value {
-        use serde_json::json;
-        let bw = |p: &BoucWenParams| json!({"a": p.a, "beta": p.beta, "gamma": p.gamma, "n": p.n});
-        match self {
-            Self::Static {
-                bouc_wen,
-                map,
-                asymmetry,
-                sample_period_s,
-                input_range_v,
-            } => json!({
-                "bouc_wen": bw(bouc_wen),
-                "static_map": {"k1_m_per_v": map.k1_m_per_v, "k2_m_per_h": map.k2_m_per_h, "offset_m": map.offset_m},
-                "asymmetry": {"delta_per_v_s": asymmetry.delta_per_v_s, "input_shift_s": asymmetry.input_shift_s},
-                "sample_period_s": sample_period_s,
-                "input_range_v": [input_range_v.0, input_range_v.1],
-            }),
-            Self::Dynamic {
-                bouc_wen,
-                mechanics: m,
-                sample_period_s,
-                input_range_v,
-            } => json!({
-                "bouc_wen": bw(bouc_wen),
-                "mass_spring_damper": {
-                    "mass_kg": m.mass_kg, "damping_n_s_per_m": m.damping_n_s_per_m,
-                    "stiffness_n_per_m": m.stiffness_n_per_m, "rest_position_m": m.rest_position_m,
-                    "force_per_volt_n_per_v": m.force_per_volt_n_per_v},
-                "sample_period_s": sample_period_s,
-                "input_range_v": [input_range_v.0, input_range_v.1],
-            }),
-            Self::Oscillator {
-                params: p,
-                sample_period_s,
-                substeps,
-            } => json!({
-                "oscillator": {
-                    "mass_kg": p.mass_kg, "damping_n_s_per_m": p.damping_n_s_per_m,
-                    "stiffness_n_per_m": p.stiffness_n_per_m, "alpha_n_per_m": p.alpha_n_per_m,
-                    "beta_per_m": p.beta_per_m, "gamma": p.gamma, "delta": p.delta, "nu": p.nu},
-                "sample_period_s": sample_period_s,
-                "substeps": substeps,
-            }),
-        }
-    }
-}
-
-/// Serialises a set as its [`Identified::to_json`] (for `#[serde(serialize_with)]`).
-pub fn serialize_params<S, P>(set: &P, s: S) -> Result<S::Ok, S::Error>
-where
-    S: serde::Serializer,
-    P: std::ops::Deref<Target = Identified>,
-{
-    serde::Serialize::serialize(&set.to_json(), s)
 }
 
 impl CoreModel {

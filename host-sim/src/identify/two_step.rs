@@ -800,7 +800,6 @@ pub enum AsPublished {
     /// The set, its regression and its output RMS \[m\].
     Fitted {
         /// The set.
-        #[serde(serialize_with = "super::model::serialize_params")]
         params: Box<Identified>,
         /// Step 2's regression.
         regression: HysteresisFit,
