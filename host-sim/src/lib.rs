@@ -59,6 +59,15 @@ pub fn to_json(value: &impl serde::Serialize) -> Result<serde_json::Value> {
     serde_json::to_value(value).map_err(Error::from)
 }
 
+/// The keys of a JSON object (none for any other value): what a test of a report's shape compares.
+#[cfg(test)]
+pub(crate) fn json_keys(value: &serde_json::Value) -> std::collections::BTreeSet<&str> {
+    value
+        .as_object()
+        .map(|m| m.keys().map(String::as_str).collect())
+        .unwrap_or_default()
+}
+
 /// Progress lines of the long commands: to stderr, so that stdout keeps the result.
 pub fn progress(line: &str) {
     eprintln!("{line}");

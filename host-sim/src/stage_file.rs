@@ -374,14 +374,8 @@ pub(crate) fn with_feasible_slew(file: &StageFile) -> StageFile {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::json_keys as keys;
     use std::collections::BTreeSet;
-
-    fn keys(value: &serde_json::Value) -> BTreeSet<&str> {
-        value
-            .as_object()
-            .map(|m| m.keys().map(String::as_str).collect())
-            .unwrap_or_default()
-    }
 
     /// A written file's report has the verdict's keys beside its own; a refusal carries the
     /// check's message and the remedy, and a file not written says why.

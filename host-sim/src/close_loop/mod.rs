@@ -1650,3 +1650,163 @@ pub fn close_loop_validated(
     }
     Ok(outcome)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::json_keys as keys;
+    use std::collections::BTreeSet;
+
+    /// One axis that added creep in one step, with a `--validate` record.
+    fn outcome() -> Outcome {
+        let fit = |rms: f64| Fit {
+            rms,
+            rms_zeroed: 0.9 * rms,
+            offset: 1e-9,
+            max_abs: 3.0 * rms,
+            r2: 0.999,
+        };
+        let model = report::tests::model();
+        let axis = AxisOutcome {
+            name: "x".into(),
+            base: AxisModel {
+                added: Vec::new(),
+                effects: Default::default(),
+                ..model.clone()
+            },
+            model,
+            steps: vec![report::tests::step()],
+            noise_m: 2e-9,
+            input_range_v: (0.0, 20.0),
+            envelope: (None, None),
+            before: vec![0.0; 1000],
+            after: vec![0.0; 1000],
+            fit_before: fit(2e-7),
+            fit_after: fit(1e-7),
+            held_out_rms: (2.1e-7, 1.1e-7),
+            held_out_method: "blocked".into(),
+            records: vec![RecordFits {
+                data: "record.csv".into(),
+                before: fit(2e-7),
+                after: fit(1e-7),
+            }],
+            uncertainty: Err(crate::Error::Fit("singular".into())),
+        };
+        Outcome {
+            axes: vec![axis],
+            from: 100,
+            window_s: (0.1, 1.0),
+            data: "record.csv".into(),
+            before: fit(2e-7),
+            after: fit(1e-7),
+            validation: None,
+        }
+    }
+
+    /// The outcome serialises with the keys of the report: per axis its effects, scores,
+    /// held-out RMS, records, both parameter sets and the uncertainty's keys beside them; the
+    /// validation only when there is one.
+    #[test]
+    fn an_outcome_serialises_with_the_keys_of_the_report() {
+        let o = outcome();
+        let json = crate::to_json(&o.report()).unwrap();
+        let top = BTreeSet::from([
+            "unit",
+            "data",
+            "window_s",
+            "samples",
+            "base_model",
+            "before",
+            "after",
+            "effects_added",
+            "steps",
+            "words",
+            "axes",
+        ]);
+        assert_eq!(keys(&json), top);
+        assert_eq!(json["unit"], "m");
+        assert_eq!(json["samples"], 900);
+        assert_eq!(json["window_s"], serde_json::json!([0.1, 1.0]));
+        assert_eq!(json["effects_added"], serde_json::json!(["creep"]));
+        assert_eq!(json["steps"][0]["outcome"], "added");
+        assert_eq!(json["words"][0], o.axes[0].steps[0].words().as_str());
+        let fit = BTreeSet::from(["rms", "rms_zeroed", "offset", "max_abs", "r2"]);
+        assert_eq!(keys(&json["before"]), fit);
+        let axis = &json["axes"][0];
+        assert_eq!(
+            keys(axis),
+            BTreeSet::from([
+                "axis",
+                "effects_added",
+                "noise_estimate_m",
+                "before",
+                "after",
+                "held_out",
+                "records",
+                "base_params",
+                "params",
+                "uncertainty",
+                "correlation",
+                "prediction_band_rms_m",
+                "uncertainty_not_computed",
+            ])
+        );
+        assert_eq!(
+            axis["effects_added"],
+            serde_json::json!([{"effect": "creep", "form": "Kelvin-Voigt, 1 element"}])
+        );
+        assert_eq!(
+            keys(&axis["held_out"]),
+            BTreeSet::from(["rms_before", "rms_after", "method"])
+        );
+        assert_eq!(
+            keys(&axis["records"][0]),
+            BTreeSet::from(["data", "before", "after"])
+        );
+        assert_eq!(keys(&axis["records"][0]["after"]), fit);
+        let params = BTreeSet::from([
+            "bouc_wen",
+            "static_map",
+            "effects",
+            "input_range_v",
+            "sample_period_s",
+        ]);
+        assert_eq!(keys(&axis["params"]), params);
+        assert_eq!(keys(&axis["base_params"]), params);
+        assert_eq!(
+            keys(&axis["params"]["bouc_wen"]),
+            BTreeSet::from(["a", "beta", "gamma", "n"])
+        );
+        assert_eq!(
+            keys(&axis["params"]["static_map"]),
+            BTreeSet::from(["k1_m_per_v", "k2_m_per_h", "offset_m"])
+        );
+        assert_eq!(
+            axis["params"]["effects"],
+            serde_json::to_value(o.axes[0].model.effects).unwrap()
+        );
+        assert_eq!(
+            axis["params"]["input_range_v"],
+            serde_json::json!([0.0, 20.0])
+        );
+        assert!(axis["uncertainty"].is_null());
+        assert_eq!(axis["uncertainty_not_computed"], "singular");
+
+        let validated = Outcome {
+            validation: Some(Validation {
+                data: "check.csv".into(),
+                start_s: 0.0,
+                samples: 500,
+                before: o.before,
+                after: o.after,
+                axes: Vec::new(),
+            }),
+            ..outcome()
+        };
+        let json = crate::to_json(&validated.report()).unwrap();
+        let mut with_validation = top.clone();
+        with_validation.insert("validation");
+        assert_eq!(keys(&json), with_validation);
+        assert_eq!(json["validation"]["data"], "check.csv");
+    }
+}

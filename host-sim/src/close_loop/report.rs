@@ -394,3 +394,291 @@ pub struct ScreenedReport {
     /// ΔBIC of adding it.
     pub delta_bic: f64,
 }
+
+#[cfg(test)]
+pub(super) mod tests {
+    use super::*;
+    use crate::close_loop::choose::NotTried;
+    use crate::close_loop::diagnose::{EffectInit, ResidualFigures};
+    use crate::close_loop::full::{CreepForm, DriftForm, EffectBounds, RateForm};
+    use crate::close_loop::select::{Check, Refusal};
+    use crate::json_keys as keys;
+    use piezo_core::{BoucWenParams, StaticMap};
+    use std::collections::BTreeSet;
+
+    /// A static axis model with one creep element.
+    pub(in crate::close_loop) fn model() -> AxisModel {
+        AxisModel {
+            bouc_wen: BoucWenParams {
+                a: 1.0,
+                beta: 0.02,
+                gamma: 0.015,
+                n: 1.5,
+            },
+            map: StaticMap {
+                k1_m_per_v: 1.0e-7,
+                k2_m_per_h: -2.0e-8,
+                offset_m: 1e-7,
+            },
+            effects: piezo_core::effects::EffectParams {
+                creep_gain_m_per_v: [3e-9, 0.0, 0.0],
+                creep_time_constant_s: [0.2, 0.0, 0.0],
+                ..Default::default()
+            },
+            added: vec![EffectKind::Creep],
+            creep_form: CreepForm::KelvinVoigt,
+            creep_elements: 1,
+            rate_form: RateForm::InputLag,
+            drift_form: DriftForm::Linear,
+            input_range_v: (0.0, 20.0),
+            w_range_m: (-1e-5, 1e-5),
+            sample_period_s: 1e-3,
+            bounds: EffectBounds::for_record(1e-3, 2.0, 1.0, 2e-6, 1e-7, 20.0),
+            segments: vec![0],
+            free_offset: false,
+        }
+    }
+
+    /// A creep candidate, added, with its out-of-sample gain and another run.
+    pub(in crate::close_loop) fn trial() -> Trial {
+        Trial {
+            effect: EffectKind::Creep,
+            form: "Kelvin-Voigt, 1 element".into(),
+            screening: Candidate {
+                effect: EffectKind::Creep,
+                share: 0.6,
+                delta_bic: -700.0,
+                init: EffectInit::Creep {
+                    gains_m_per_v: [3e-9, 0.0],
+                    time_constants_s: [0.2, 0.0],
+                },
+                test: "first-order lag of u",
+                figures: vec![("time_constant_s", 0.2), ("gain_m_per_v", 3e-9)],
+            },
+            parameters: vec![(Param::CreepGain0, 3e-9), (Param::CreepTimeConstant0, 0.2)],
+            rms_before: 2e-7,
+            rms_after: 1e-7,
+            delta_bic: -650.0,
+            plausibility: Plausibility {
+                checks: vec![Check {
+                    parameter: Param::CreepTimeConstant0,
+                    value: 0.2,
+                    range: (3e-4, 1.0),
+                    at_bound: false,
+                }],
+            },
+            out_of_sample: Some(OutOfSample {
+                blocks_s: vec![(0.0, 0.5), (0.5, 1.0)],
+                mse_without: vec![4e-14, 4e-14],
+                mse_with: vec![1e-14, 2e-14],
+                log_ratios: vec![(0.25f64).ln(), (0.5f64).ln()],
+                mean_log_ratio: -1.0,
+                spread: 0.5,
+                relative_gain: 0.625,
+            }),
+            another_run: Some(RunGain {
+                rms_zeroed_without: 3e-7,
+                rms_zeroed_with: 2e-7,
+            }),
+            invertibility: None,
+            decision: Decision::Added,
+            model: model(),
+            sse: 1e-11,
+        }
+    }
+
+    /// The step that added [`trial`], with one effect not fitted.
+    pub(in crate::close_loop) fn step() -> Step {
+        Step {
+            axis: "x".into(),
+            number: 1,
+            rms_before: 2e-7,
+            floor: Floor {
+                residual: ResidualFigures {
+                    rms: 2e-7,
+                    noise: 2e-9,
+                    ljung_box_q20: 900.0,
+                },
+                noise_m: 2e-9,
+            },
+            screened: vec![
+                (EffectKind::Creep, "Kelvin-Voigt", 0.6, -700.0),
+                (EffectKind::Drift, "linear", 0.01, 3.0),
+            ],
+            not_tried: vec![Skipped {
+                effect: EffectKind::Drift,
+                form: "linear",
+                share: Some(0.01),
+                reason: NotTried::BelowShare { needed: 0.05 },
+            }],
+            trials: vec![trial()],
+            outcome: StepOutcome::Added {
+                effect: EffectKind::Creep,
+                form: "Kelvin-Voigt, 1 element".into(),
+                rms_after: 1e-7,
+            },
+        }
+    }
+
+    /// A candidate serialises with the keys of the report, nested as before: screening,
+    /// parameters by name, in-sample and out-of-sample gains, another run, plausibility.
+    #[test]
+    fn a_trial_serialises_with_the_keys_of_the_report() {
+        let t = trial();
+        let json = crate::to_json(&t.report()).unwrap();
+        assert_eq!(
+            keys(&json),
+            BTreeSet::from([
+                "effect",
+                "form",
+                "screening",
+                "parameters",
+                "in_sample",
+                "out_of_sample",
+                "another_run",
+                "plausibility",
+                "invertibility",
+                "decision",
+                "words",
+            ])
+        );
+        assert_eq!(json["effect"], "creep");
+        assert_eq!(json["decision"], "added");
+        assert_eq!(json["words"], t.words().as_str());
+        assert!(json["invertibility"].is_null());
+        assert_eq!(
+            keys(&json["screening"]),
+            BTreeSet::from(["test", "share", "delta_bic", "figures"])
+        );
+        assert_eq!(json["screening"]["figures"]["time_constant_s"], 0.2);
+        assert_eq!(
+            keys(&json["parameters"]),
+            BTreeSet::from([Param::CreepGain0.name(), Param::CreepTimeConstant0.name()])
+        );
+        assert_eq!(
+            keys(&json["in_sample"]),
+            BTreeSet::from(["rms_before", "rms_after", "gain", "delta_bic"])
+        );
+        assert_eq!(json["in_sample"]["gain"], t.in_sample_gain());
+        assert_eq!(
+            keys(&json["out_of_sample"]),
+            BTreeSet::from([
+                "method",
+                "blocks_s",
+                "mse_without_m2",
+                "mse_with_m2",
+                "log_ratios",
+                "mean_log_ratio",
+                "spread",
+                "t_statistic",
+                "relative_gain",
+                "rule",
+                "holds",
+            ])
+        );
+        assert_eq!(
+            json["out_of_sample"]["blocks_s"][1],
+            serde_json::json!([0.5, 1.0])
+        );
+        assert_eq!(
+            keys(&json["another_run"]),
+            BTreeSet::from(["rms_zeroed_without", "rms_zeroed_with", "holds"])
+        );
+        assert_eq!(json["another_run"]["holds"], true);
+        assert_eq!(
+            keys(&json["plausibility"]),
+            BTreeSet::from(["plausible", "checks"])
+        );
+        assert_eq!(
+            keys(&json["plausibility"]["checks"][0]),
+            BTreeSet::from(["parameter", "value", "range", "at_bound"])
+        );
+        assert_eq!(
+            json["plausibility"]["checks"][0]["parameter"],
+            Param::CreepTimeConstant0.name()
+        );
+
+        let refused = Trial {
+            out_of_sample: None,
+            another_run: None,
+            invertibility: Some("not invertible".into()),
+            decision: Decision::Refused(Refusal::Implausible),
+            ..trial()
+        };
+        let json = crate::to_json(&refused.report()).unwrap();
+        assert!(json["out_of_sample"].is_null() && json["another_run"].is_null());
+        assert_eq!(json["invertibility"], "not invertible");
+        assert_eq!(json["decision"], "refused-implausible");
+    }
+
+    /// A step serialises with the keys of the report: its outcome, the effect and form it added
+    /// (null when it stopped), the noise floor, the screening, the candidates and those not fitted.
+    #[test]
+    fn a_step_serialises_with_the_keys_of_the_report() {
+        let s = step();
+        let json = crate::to_json(&s.report()).unwrap();
+        assert_eq!(
+            keys(&json),
+            BTreeSet::from([
+                "axis",
+                "step",
+                "outcome",
+                "effect",
+                "form",
+                "removed",
+                "rms_before",
+                "rms",
+                "noise",
+                "screening",
+                "candidates",
+                "not_tried",
+                "words",
+            ])
+        );
+        assert_eq!(json["outcome"], "added");
+        assert_eq!(json["effect"], "creep");
+        assert_eq!(json["form"], "Kelvin-Voigt, 1 element");
+        assert_eq!(json["removed"], false);
+        assert_eq!(json["rms"], 1e-7);
+        assert_eq!(json["words"], s.words().as_str());
+        assert_eq!(
+            keys(&json["noise"]),
+            BTreeSet::from([
+                "residual",
+                "noise_estimate_m",
+                "noise_floor_m",
+                "at_noise_floor",
+            ])
+        );
+        assert_eq!(json["noise"]["residual"]["white"], false);
+        assert_eq!(
+            keys(&json["screening"][1]),
+            BTreeSet::from(["effect", "form", "share", "delta_bic"])
+        );
+        assert_eq!(json["screening"][1]["effect"], "drift");
+        assert_eq!(json["candidates"][0]["effect"], "creep");
+        assert_eq!(json["not_tried"][0]["reason"], "below-share");
+
+        let removed = Step {
+            outcome: StepOutcome::Removed {
+                effect: EffectKind::Drift,
+                rms_without: 1.5e-7,
+            },
+            ..step()
+        };
+        let json = crate::to_json(&removed.report()).unwrap();
+        assert_eq!(json["outcome"], "removed");
+        assert_eq!(json["effect"], "drift");
+        assert!(json["form"].is_null());
+        assert_eq!(json["removed"], true);
+        assert_eq!(json["rms"], 1.5e-7);
+        let stopped = Step {
+            outcome: StepOutcome::Stopped(Stop::NothingHolds),
+            ..step()
+        };
+        let json = crate::to_json(&stopped.report()).unwrap();
+        assert_eq!(json["outcome"], "stopped-nothing-holds");
+        assert!(json["effect"].is_null() && json["form"].is_null());
+        assert_eq!(json["rms"], 2e-7);
+    }
+}

@@ -625,6 +625,118 @@ pub struct FloorReport {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::json_keys as keys;
+    use std::collections::BTreeSet;
+
+    /// The noise floor, the out-of-sample gain, the plausibility and another run's gain serialise
+    /// with the keys of the report; a decision as its short name.
+    #[test]
+    fn the_evidence_serialises_with_the_keys_of_the_report() {
+        let floor = Floor {
+            residual: ResidualFigures {
+                rms: 2.5e-9,
+                noise: 2e-9,
+                ljung_box_q20: 10.0,
+            },
+            noise_m: 2e-9,
+        };
+        let json = crate::to_json(&floor.report()).unwrap();
+        assert_eq!(
+            keys(&json),
+            BTreeSet::from([
+                "residual",
+                "noise_estimate_m",
+                "noise_floor_m",
+                "at_noise_floor",
+            ])
+        );
+        assert_eq!(json["noise_floor_m"], NOISE_FLOOR_FACTOR * 2e-9);
+        assert_eq!(json["at_noise_floor"], floor.reached());
+        assert_eq!(
+            json["residual"],
+            crate::to_json(&floor.residual.report()).unwrap()
+        );
+
+        let gain = OutOfSample {
+            blocks_s: vec![(0.0, 0.5), (0.5, 1.0), (1.0, 1.5)],
+            mse_without: vec![4e-14, 4e-14, 4e-14],
+            mse_with: vec![1e-14, 2e-14, 3e-14],
+            log_ratios: vec![(0.25f64).ln(), (0.5f64).ln(), (0.75f64).ln()],
+            mean_log_ratio: -0.7,
+            spread: 0.5,
+            relative_gain: 0.5,
+        };
+        let json = crate::to_json(&gain.report()).unwrap();
+        assert_eq!(
+            keys(&json),
+            BTreeSet::from([
+                "method",
+                "blocks_s",
+                "mse_without_m2",
+                "mse_with_m2",
+                "log_ratios",
+                "mean_log_ratio",
+                "spread",
+                "t_statistic",
+                "relative_gain",
+                "rule",
+                "holds",
+            ])
+        );
+        assert_eq!(json["blocks_s"][2], serde_json::json!([1.0, 1.5]));
+        assert_eq!(
+            json["mse_with_m2"],
+            serde_json::json!([1e-14, 2e-14, 3e-14])
+        );
+        assert_eq!(json["t_statistic"], gain.t_statistic());
+        assert_eq!(json["holds"], gain.holds());
+        assert!(json["method"].as_str().unwrap().contains("3 blocks"));
+
+        let plausibility = Plausibility {
+            checks: vec![Check {
+                parameter: Param::Delay,
+                value: 6.4e-3,
+                range: (0.0, 6.4e-3),
+                at_bound: true,
+            }],
+        };
+        let json = crate::to_json(&plausibility.report()).unwrap();
+        assert_eq!(
+            json,
+            serde_json::json!({
+                "plausible": false,
+                "checks": [{
+                    "parameter": Param::Delay.name(),
+                    "value": 6.4e-3,
+                    "range": [0.0, 6.4e-3],
+                    "at_bound": true,
+                }],
+            })
+        );
+
+        let run = RunGain {
+            rms_zeroed_without: 1e-7,
+            rms_zeroed_with: 2e-7,
+        };
+        assert_eq!(
+            crate::to_json(&run.report()).unwrap(),
+            serde_json::json!({
+                "rms_zeroed_without": 1e-7,
+                "rms_zeroed_with": 2e-7,
+                "holds": false,
+            })
+        );
+        for (decision, name) in [
+            (Decision::Added, "added"),
+            (Decision::HoldsNotBest, "holds-not-best"),
+            (
+                Decision::Refused(Refusal::NotOutOfSample),
+                "refused-not-out-of-sample",
+            ),
+        ] {
+            assert_eq!(crate::to_json(&decision).unwrap(), name);
+        }
+    }
 
     /// 2 s of a 10 Hz sine at 1 kHz, amplitude `amp(t)`.
     fn sine(amp: impl Fn(f64) -> f64) -> Vec<f64> {

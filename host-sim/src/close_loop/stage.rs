@@ -444,3 +444,62 @@ pub fn parameter_file(
     };
     file.to_toml(&header(outcome, data))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The scores and a validation serialise with the keys of the report (the validation's
+    /// series stay out of it).
+    #[test]
+    fn fits_and_validations_serialise_with_the_keys_of_the_report() {
+        use crate::json_keys as keys;
+        use std::collections::BTreeSet;
+        let before = Fit::of(&[1.0, 2.0, 3.0], &[1.1, 2.0, 2.8]);
+        let after = Fit::of(&[1.0, 2.0, 3.0], &[1.0, 2.0, 2.9]);
+        let json = crate::to_json(&before).unwrap();
+        assert_eq!(
+            json,
+            serde_json::json!({
+                "rms": before.rms,
+                "rms_zeroed": before.rms_zeroed,
+                "offset": before.offset,
+                "max_abs": before.max_abs,
+                "r2": before.r2,
+            })
+        );
+        let validation = Validation {
+            data: "check.csv".into(),
+            start_s: 0.25,
+            samples: 3,
+            before,
+            after,
+            axes: vec![ValidationAxis {
+                t_s: vec![0.0; 3],
+                u: vec![0.0; 3],
+                y: vec![0.0; 3],
+                before: vec![0.0; 3],
+                after: vec![0.0; 3],
+            }],
+        };
+        let json = crate::to_json(&validation.report()).unwrap();
+        assert_eq!(
+            keys(&json),
+            BTreeSet::from([
+                "data",
+                "start_s",
+                "samples",
+                "before",
+                "after",
+                "ratio_rms",
+                "ratio_rms_zeroed",
+            ])
+        );
+        assert_eq!(json["ratio_rms"], after.rms / before.rms);
+        assert_eq!(
+            json["ratio_rms_zeroed"],
+            after.rms_zeroed / before.rms_zeroed
+        );
+        assert_eq!(json["after"], crate::to_json(&after).unwrap());
+    }
+}

@@ -267,3 +267,118 @@ pub fn from_axis(
         },
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::json_keys as keys;
+    use std::collections::BTreeSet;
+
+    const BOUC_WEN: BoucWenParams = BoucWenParams {
+        a: 1.0,
+        beta: 0.02,
+        gamma: 0.015,
+        n: 1.5,
+    };
+
+    /// Each family serialises as its parameters, named as in the core's structs, with no tag.
+    #[test]
+    fn each_family_serialises_as_its_parameters() {
+        let bouc_wen = BTreeSet::from(["a", "beta", "gamma", "n"]);
+        let static_set = Identified::Static {
+            bouc_wen: BOUC_WEN,
+            map: StaticMap {
+                k1_m_per_v: 1e-6,
+                k2_m_per_h: -5e-7,
+                offset_m: 1e-7,
+            },
+            asymmetry: Asymmetry {
+                delta_per_v_s: 1e-4,
+                input_shift_s: 0.0,
+            },
+            sample_period_s: 1e-4,
+            input_range_v: (0.0, 120.0),
+        };
+        let json = crate::to_json(&static_set).unwrap();
+        assert_eq!(
+            keys(&json),
+            BTreeSet::from([
+                "bouc_wen",
+                "static_map",
+                "asymmetry",
+                "sample_period_s",
+                "input_range_v",
+            ])
+        );
+        assert_eq!(keys(&json["bouc_wen"]), bouc_wen);
+        assert_eq!(
+            keys(&json["static_map"]),
+            BTreeSet::from(["k1_m_per_v", "k2_m_per_h", "offset_m"])
+        );
+        assert_eq!(
+            keys(&json["asymmetry"]),
+            BTreeSet::from(["delta_per_v_s", "input_shift_s"])
+        );
+        // f32 figures widened to f64, as every report writes them.
+        assert_eq!(json["static_map"]["k1_m_per_v"], f64::from(1e-6f32));
+        assert_eq!(json["input_range_v"], serde_json::json!([0.0, 120.0]));
+
+        let dynamic = Identified::Dynamic {
+            bouc_wen: BOUC_WEN,
+            mechanics: MassSpringDamperParams {
+                mass_kg: 0.01,
+                damping_n_s_per_m: 5.0,
+                stiffness_n_per_m: 1e5,
+                rest_position_m: 0.0,
+                force_per_volt_n_per_v: 0.1,
+            },
+            sample_period_s: 1e-4,
+            input_range_v: (0.0, 120.0),
+        };
+        let json = crate::to_json(&dynamic).unwrap();
+        assert_eq!(
+            keys(&json),
+            BTreeSet::from([
+                "bouc_wen",
+                "mass_spring_damper",
+                "sample_period_s",
+                "input_range_v",
+            ])
+        );
+        assert_eq!(
+            keys(&json["mass_spring_damper"]),
+            BTreeSet::from([
+                "mass_kg",
+                "damping_n_s_per_m",
+                "stiffness_n_per_m",
+                "rest_position_m",
+                "force_per_volt_n_per_v",
+            ])
+        );
+
+        let oscillator = Identified::Oscillator {
+            params: piezo_core::OscillatorParams::BENCHMARK,
+            sample_period_s: 1.0 / 750.0,
+            substeps: 4,
+        };
+        let json = crate::to_json(&oscillator).unwrap();
+        assert_eq!(
+            keys(&json),
+            BTreeSet::from(["oscillator", "sample_period_s", "substeps"])
+        );
+        assert_eq!(
+            keys(&json["oscillator"]),
+            BTreeSet::from([
+                "mass_kg",
+                "damping_n_s_per_m",
+                "stiffness_n_per_m",
+                "alpha_n_per_m",
+                "beta_per_m",
+                "gamma",
+                "delta",
+                "nu",
+            ])
+        );
+        assert_eq!(json["substeps"], 4);
+    }
+}
