@@ -711,8 +711,7 @@ fn write_reference(params: &Path, spec: &str, path: &Path) -> crate::Result<()> 
         columns,
     };
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir)
-            .map_err(|e| crate::Error::Usage(format!("--reference {}: {e}", dir.display())))?;
+        std::fs::create_dir_all(dir).map_err(crate::Error::write("--reference", dir))?;
     }
     write_csv(path, &table).map_err(|e| crate::Error::Usage(format!("--reference: {e}")))
 }

@@ -690,14 +690,13 @@ impl DemoResult {
     /// format) and the plots (`tracking`, `error`, `loops`, in each of `formats`, e.g.
     /// `["svg", "png"]`) into `dir`. Returns the files written.
     pub fn write(&self, dir: &Path, formats: &[&str]) -> crate::Result<Vec<String>> {
-        std::fs::create_dir_all(dir)
-            .map_err(|e| crate::Error::Usage(format!("--out {}: {e}", dir.display())))?;
+        std::fs::create_dir_all(dir).map_err(crate::Error::write("--out", dir))?;
         let mut written = Vec::new();
         let json_path = dir.join("summary.json");
         let text =
             serde_json::to_string_pretty(&self.summary_json()?).map_err(crate::Error::from)?;
         std::fs::write(&json_path, text + "\n")
-            .map_err(|e| crate::Error::Usage(format!("--out {}: {e}", json_path.display())))?;
+            .map_err(crate::Error::write("--out", &json_path))?;
         written.push(json_path.display().to_string());
         let params_path = dir.join("demo-params.toml");
         // The XY stage's own board: DAC8563 0–5 V, 24 V/V amplifier, ADS8681 ±10.24 V, 0–10 V
@@ -717,8 +716,7 @@ impl DemoResult {
             stage,
             io,
         );
-        std::fs::write(&params_path, params)
-            .map_err(|e| crate::Error::Usage(format!("--out {}: {e}", params_path.display())))?;
+        std::fs::write(&params_path, params).map_err(crate::Error::write("--out", &params_path))?;
         written.push(params_path.display().to_string());
 
         let mut names = vec!["t_s".to_string()];

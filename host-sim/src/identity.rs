@@ -53,8 +53,7 @@ fn hex32_or_null<S: serde::Serializer>(value: &Option<u32>, s: S) -> Result<S::O
 impl SetIdentity {
     /// The identity of the stage file at `path`.
     pub fn of_file(path: &Path) -> crate::Result<Self> {
-        let bytes = std::fs::read(path)
-            .map_err(|e| crate::Error::Usage(format!("{}: {e}", path.display())))?;
+        let bytes = std::fs::read(path).map_err(crate::Error::read("", path))?;
         Self::of_bytes(path, &bytes)
     }
 

@@ -284,8 +284,7 @@ struct CommandFile {
 }
 
 fn read_command(path: &Path) -> crate::Result<CommandFile> {
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| crate::Error::Usage(format!("{}: {e}", path.display())))?;
+    let text = std::fs::read_to_string(path).map_err(crate::Error::read("", path))?;
     let table = crate::csv::parse_csv(path, &text).map_err(crate::Error::from)?;
     let mut iteration = 0;
     let mut stage = None;
@@ -723,10 +722,7 @@ pub fn step_checked(
 pub fn learn(a: &LearnArgs) -> crate::Result<LearnStep> {
     let base = base_command(&a.params, &a.reference, a.periodic)?;
     let (file, valid) = StageFile::load(&a.params).map_err(crate::Error::from)?;
-    let stage_hash = fnv1a32(
-        &std::fs::read(&a.params)
-            .map_err(|e| crate::Error::Usage(format!("{}: {e}", a.params.display())))?,
-    );
+    let stage_hash = fnv1a32(&std::fs::read(&a.params).map_err(crate::Error::read("", &a.params))?);
     let axes = feedforward_axes(&file, &valid, &a.params)?;
     let reference = read_reference(&a.reference)?;
     let n = reference.t_s.len();
@@ -862,10 +858,8 @@ pub fn average_passes(record: &[f32], period: usize) -> Vec<f32> {
 pub fn write_learned_table(out: &Path, step: &LearnStep, params: &Path) -> crate::Result<()> {
     write_csv(out, &step.to_table())
         .map_err(|e| crate::Error::Usage(format!("{}: {e}", out.display())))?;
-    let text = std::fs::read_to_string(out)
-        .map_err(|e| crate::Error::Usage(format!("{}: {e}", out.display())))?;
-    std::fs::write(out, step.header(params) + &text)
-        .map_err(|e| crate::Error::Usage(format!("{}: {e}", out.display())))
+    let text = std::fs::read_to_string(out).map_err(crate::Error::read("", out))?;
+    std::fs::write(out, step.header(params) + &text).map_err(crate::Error::write("", out))
 }
 
 /// `host-sim learn`: computes and writes the next command and the report; returns a summary.
@@ -875,11 +869,9 @@ pub fn learn_cmd(a: &LearnArgs) -> crate::Result<String> {
         .map_err(|e| crate::Error::Usage(format!("--out {e}")))?;
     let json = serde_json::to_string_pretty(&step.json()).map_err(crate::Error::from)?;
     if let Some(dir) = a.report.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir)
-            .map_err(|e| crate::Error::Usage(format!("--report {}: {e}", dir.display())))?;
+        std::fs::create_dir_all(dir).map_err(crate::Error::write("--report", dir))?;
     }
-    std::fs::write(&a.report, json)
-        .map_err(|e| crate::Error::Usage(format!("--report {}: {e}", a.report.display())))?;
+    std::fs::write(&a.report, json).map_err(crate::Error::write("--report", &a.report))?;
     let axes: Vec<String> = step
         .axes
         .iter()

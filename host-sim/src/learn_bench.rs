@@ -743,17 +743,14 @@ impl LearnBenchReport {
 
     /// Writes `learn.json`, `learn-stage.toml` and the plot `learn-curves.*` into `dir`.
     pub fn write(&self, dir: &Path, extensions: &[&str]) -> crate::Result<Vec<String>> {
-        std::fs::create_dir_all(dir)
-            .map_err(|e| crate::Error::Usage(format!("--out {}: {e}", dir.display())))?;
+        std::fs::create_dir_all(dir).map_err(crate::Error::write("--out", dir))?;
         let mut files = Vec::new();
         let json = dir.join("learn.json");
         let text = serde_json::to_string_pretty(&self.json()).map_err(crate::Error::from)?;
-        std::fs::write(&json, text)
-            .map_err(|e| crate::Error::Usage(format!("{}: {e}", json.display())))?;
+        std::fs::write(&json, text).map_err(crate::Error::write("", &json))?;
         files.push(json.display().to_string());
         let toml = dir.join("learn-stage.toml");
-        std::fs::write(&toml, &self.stage_toml)
-            .map_err(|e| crate::Error::Usage(format!("{}: {e}", toml.display())))?;
+        std::fs::write(&toml, &self.stage_toml).map_err(crate::Error::write("", &toml))?;
         files.push(toml.display().to_string());
         let panels = self.panels();
         for ext in extensions {

@@ -534,12 +534,10 @@ impl Report {
 
     /// Writes `reproduce.json` and the plots (`xy_loops`, `nac2024_table2`, `stage_error`) into `dir`.
     pub fn write(&self, dir: &Path, formats: &[&str]) -> crate::Result<Vec<String>> {
-        std::fs::create_dir_all(dir)
-            .map_err(|e| crate::Error::Usage(format!("--out {}: {e}", dir.display())))?;
+        std::fs::create_dir_all(dir).map_err(crate::Error::write("--out", dir))?;
         let path = dir.join("reproduce.json");
         let text = serde_json::to_string_pretty(&self.json()).map_err(crate::Error::from)?;
-        std::fs::write(&path, text + "\n")
-            .map_err(|e| crate::Error::Usage(format!("--out {}: {e}", path.display())))?;
+        std::fs::write(&path, text + "\n").map_err(crate::Error::write("--out", &path))?;
         let mut written = vec![path.display().to_string()];
         let um = |pts: &[(f64, f64)]| pts.iter().map(|&(u, y)| (u, y * 1e6)).collect::<Vec<_>>();
         let xy = vec![

@@ -1046,13 +1046,11 @@ impl BenchReport {
 
     /// Writes `servo.json` and the plots (`servo-error.*`, `servo-bode.*`) into `dir`.
     pub fn write(&self, dir: &Path, extensions: &[&str]) -> crate::Result<Vec<String>> {
-        std::fs::create_dir_all(dir)
-            .map_err(|e| crate::Error::Usage(format!("--out {}: {e}", dir.display())))?;
+        std::fs::create_dir_all(dir).map_err(crate::Error::write("--out", dir))?;
         let mut files = Vec::new();
         let json = dir.join("servo.json");
         let text = serde_json::to_string_pretty(&self.json()).map_err(crate::Error::from)?;
-        std::fs::write(&json, text)
-            .map_err(|e| crate::Error::Usage(format!("{}: {e}", json.display())))?;
+        std::fs::write(&json, text).map_err(crate::Error::write("", &json))?;
         files.push(json.display().to_string());
         let figures: [(&str, Vec<Chart>, usize); 2] = [
             ("servo-error", self.error_panels(), 2),
@@ -1252,8 +1250,7 @@ pub fn servo_bench_cmd(a: &ServoBenchArgs) -> crate::Result<String> {
         let json = a.out.join("rates.json");
         let text =
             serde_json::to_string_pretty(&rates_json(&reports)).map_err(crate::Error::from)?;
-        std::fs::write(&json, text)
-            .map_err(|e| crate::Error::Usage(format!("{}: {e}", json.display())))?;
+        std::fs::write(&json, text).map_err(crate::Error::write("", &json))?;
         out += &format!("\n{}written: {}\n", rates_table(&reports), json.display());
     }
     Ok(out.trim_end().to_string())

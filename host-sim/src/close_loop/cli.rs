@@ -213,8 +213,7 @@ pub fn close_loop_cmd(a: &CloseLoopArgs) -> crate::Result<String> {
         .and_then(|report| serde_json::to_string_pretty(&report).map_err(crate::Error::from))
         .and_then(|json| {
             if let Some(dir) = a.report.parent().filter(|d| !d.as_os_str().is_empty()) {
-                std::fs::create_dir_all(dir)
-                    .map_err(|e| crate::Error::Usage(format!("{}: {e}", dir.display())))?;
+                std::fs::create_dir_all(dir).map_err(crate::Error::write("", dir))?;
             }
             std::fs::write(&a.report, json).map_err(crate::Error::from)
         });

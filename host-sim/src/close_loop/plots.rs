@@ -23,8 +23,7 @@ pub fn write_plots(
     dir: &Path,
     formats: &[&str],
 ) -> crate::Result<Vec<String>> {
-    std::fs::create_dir_all(dir)
-        .map_err(|e| crate::Error::Usage(format!("--plots {}: {e}", dir.display())))?;
+    std::fs::create_dir_all(dir).map_err(crate::Error::write("--plots", dir))?;
     let mut written = Vec::new();
     for (i, a) in outcome.axes.iter().enumerate() {
         let after_name = after_name(a);

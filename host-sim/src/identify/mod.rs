@@ -1398,14 +1398,12 @@ pub fn fit_uncertainty(
     crate::uncertainty::estimate(&fitted)
 }
 
-fn write_json(path: &Path, value: &serde_json::Value, flag: &str) -> crate::Result<()> {
+fn write_json(path: &Path, value: &serde_json::Value, flag: &'static str) -> crate::Result<()> {
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir)
-            .map_err(|e| crate::Error::Usage(format!("{}: {e}", dir.display())))?;
+        std::fs::create_dir_all(dir).map_err(crate::Error::write("", dir))?;
     }
     let text = serde_json::to_string_pretty(value).map_err(crate::Error::from)?;
-    std::fs::write(path, text)
-        .map_err(|e| crate::Error::Usage(format!("{flag} {}: {e}", path.display())))
+    std::fs::write(path, text).map_err(crate::Error::write(flag, path))
 }
 
 /// Runs `identify`: one set per axis, one stage file. The stage file, the plots and the report
@@ -1608,8 +1606,7 @@ fn repeated(record: &Record, copies: usize) -> Record {
 /// names the file and the key when the file is not such a report or its axes differ.
 pub fn prediction_bands(path: &Path, axes: usize) -> crate::Result<Vec<crate::Result<f64>>> {
     let name = path.display();
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| crate::Error::Usage(format!("--fit-report {name}: {e}")))?;
+    let text = std::fs::read_to_string(path).map_err(crate::Error::read("--fit-report", path))?;
     let report: serde_json::Value = serde_json::from_str(&text)
         .map_err(|e| crate::Error::Usage(format!("--fit-report {name}: not a JSON report: {e}")))?;
     let entries: Vec<(String, &serde_json::Value)> = match report.get("axes") {

@@ -418,8 +418,7 @@ pub fn write_plots(
     axes: &[AxisPrediction],
     from: usize,
 ) -> crate::Result<Vec<String>> {
-    std::fs::create_dir_all(dir)
-        .map_err(|e| crate::Error::Usage(format!("--plots {}: {e}", dir.display())))?;
+    std::fs::create_dir_all(dir).map_err(crate::Error::write("--plots", dir))?;
     let charts = prediction_charts(records, axes, from);
     let mut written = Vec::new();
     for ext in ["svg", "png"] {
@@ -445,8 +444,7 @@ pub struct ReadStage {
 /// firmware's check reads; errors name the file, line, column and key).
 pub fn read_stage(path: &Path) -> crate::Result<ReadStage> {
     let name = path.display().to_string();
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| crate::Error::Usage(format!("--params {name}: {e}")))?;
+    let text = std::fs::read_to_string(path).map_err(crate::Error::read("--params", path))?;
     ReadStage::parse(name, text).map_err(|e| crate::Error::Usage(format!("--params: {e}")))
 }
 
