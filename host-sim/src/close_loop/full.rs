@@ -1547,45 +1547,22 @@ mod tests {
     /// A model with every effect of the chain that a path leaves untouched: creep, drift, delay,
     /// even term, mode and coupling.
     fn model_with_effects() -> AxisModel {
-        let ts = 1e-3;
-        AxisModel {
-            bouc_wen: BoucWenParams {
-                a: 1.0,
-                beta: 0.02,
-                gamma: 0.015,
-                n: 1.5,
-            },
-            map: StaticMap {
-                k1_m_per_v: 1.0e-7,
-                k2_m_per_h: -2.0e-8,
-                offset_m: 1e-7,
-            },
-            effects: EffectParams {
-                creep_gain_m_per_v: [3e-9, 0.0, 0.0],
-                creep_time_constant_s: [0.2, 0.0, 0.0],
-                even_coefficient_m_per_v2: 1e-11,
-                even_center_v: 5.0,
-                mode_frequency_hz: 120.0,
-                mode_damping: 0.3,
-                delay_s: 2.5e-3,
-                drift_rate_m_per_s: 1e-8,
-                coupling: 0.05,
-                drift_settling_m: 2e-8,
-                drift_settling_time_constant_s: 0.5,
-                ..EffectParams::default()
-            },
-            added: Vec::new(),
-            creep_form: CreepForm::KelvinVoigt,
-            creep_elements: 1,
-            rate_form: RateForm::InputLag,
-            drift_form: DriftForm::Settling,
-            input_range_v: (0.0, 20.0),
-            w_range_m: (-1e-5, 1e-5),
-            sample_period_s: ts as f32,
-            bounds: EffectBounds::for_record(ts, 2.0, 1.0, 2e-6, 1e-7, 20.0),
-            segments: vec![0],
-            free_offset: false,
-        }
+        let mut model = crate::close_loop::report::tests::model();
+        model.effects = EffectParams {
+            even_coefficient_m_per_v2: 1e-11,
+            even_center_v: 5.0,
+            mode_frequency_hz: 120.0,
+            mode_damping: 0.3,
+            delay_s: 2.5e-3,
+            drift_rate_m_per_s: 1e-8,
+            coupling: 0.05,
+            drift_settling_m: 2e-8,
+            drift_settling_time_constant_s: 0.5,
+            ..model.effects
+        };
+        model.added = Vec::new();
+        model.drift_form = DriftForm::Settling;
+        model
     }
 
     /// Every entry of θ reaches its own field of the model: each one moved inside its range (or

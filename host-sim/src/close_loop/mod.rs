@@ -69,7 +69,7 @@ pub const MAX_TRIALS: usize = 4;
 const TRIAL_ITERATIONS: usize = 20;
 
 /// Why `close-loop` failed. `Display` gives the message the command line prints.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone)]
 pub enum CloseLoopError {
     /// Too few samples from `--start` on to fit and cross-validate.
     TooFewSamples {
@@ -80,8 +80,8 @@ pub enum CloseLoopError {
     Identify(IdentifyError),
     /// The base identification gave a model other than a static one.
     BaseNotStatic,
-    /// A model the core refused, or a record it could not run, in words.
-    Other(String),
+    /// A model the core refused, or a record it could not run, with its cause.
+    Host(Box<crate::Error>),
 }
 
 impl std::fmt::Display for CloseLoopError {
@@ -93,28 +93,30 @@ impl std::fmt::Display for CloseLoopError {
             ),
             Self::Identify(e) => e.fmt(f),
             Self::BaseNotStatic => f.write_str("base identification did not give a static model"),
-            Self::Other(e) => f.write_str(e),
+            Self::Host(e) => e.fmt(f),
         }
     }
 }
 
-impl std::error::Error for CloseLoopError {}
+impl std::error::Error for CloseLoopError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            Self::Identify(e) => e.source(),
+            Self::Host(e) => e.source(),
+            _ => None,
+        }
+    }
+}
 
 impl From<crate::Error> for CloseLoopError {
     fn from(e: crate::Error) -> Self {
-        Self::Other(e.to_string())
+        Self::Host(Box::new(e))
     }
 }
 
 impl From<IdentifyError> for CloseLoopError {
     fn from(e: IdentifyError) -> Self {
         Self::Identify(e)
-    }
-}
-
-impl From<String> for CloseLoopError {
-    fn from(e: String) -> Self {
-        Self::Other(e)
     }
 }
 

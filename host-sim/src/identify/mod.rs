@@ -480,7 +480,7 @@ impl IdentifySettings {
 }
 
 /// Why an identification failed. `Display` gives the message the command line prints.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone)]
 pub enum IdentifyError {
     /// Fewer than 10 samples from `--start` on.
     TooFewSamples {
@@ -499,8 +499,9 @@ pub enum IdentifyError {
     TwoStepDynamicOnly(ModelKind),
     /// A score that is not a finite number.
     NonFinite(NonFinite),
-    /// Anything else (unreadable or unsuitable data), in words.
-    Other(String),
+    /// Anything else (unreadable or unsuitable data, options that do not go together), with its
+    /// cause.
+    Host(Box<crate::Error>),
 }
 
 impl std::fmt::Display for IdentifyError {
@@ -525,22 +526,23 @@ impl std::fmt::Display for IdentifyError {
                 "--method two-step: seed 000's two-step method identifies the dynamic model only (got --model {})",
                 model.name()
             ),
-            Self::Other(e) => f.write_str(e),
+            Self::Host(e) => e.fmt(f),
         }
     }
 }
 
-impl std::error::Error for IdentifyError {}
-
-impl From<String> for IdentifyError {
-    fn from(e: String) -> Self {
-        Self::Other(e)
+impl std::error::Error for IdentifyError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            Self::Host(e) => e.source(),
+            _ => None,
+        }
     }
 }
 
 impl From<crate::Error> for IdentifyError {
     fn from(e: crate::Error) -> Self {
-        Self::Other(e.to_string())
+        Self::Host(Box::new(e))
     }
 }
 
@@ -851,10 +853,11 @@ pub fn identify_traced(
     problem.segments = record.segments.clone();
     problem.free_offset = s.free_offset;
     if record.segments.len() > 1 && s.method != Method::VpDeLm {
-        return Err(IdentifyError::Other(format!(
+        return Err(crate::Error::Usage(format!(
             "several records: method {} fits one record; use vp-de-lm",
             s.method.name()
-        )));
+        ))
+        .into());
     }
     let mut at_bounds = Vec::new();
     let set = match s.method {
