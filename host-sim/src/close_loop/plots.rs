@@ -90,10 +90,12 @@ fn after_name(a: &AxisOutcome) -> String {
 /// time, against u and as a spectrum, and the loops.
 fn fit_panels(a: &AxisOutcome, r: &Record, from: usize, after_name: &str) -> Vec<Chart> {
     let ts = r.sample_period_s();
-    let res =
-        |p: &[f64]| -> Vec<f64> { (from..p.len()).map(|k| (r.y_m[k] - p[k]) * 1e6).collect() };
-    let rb = res(&a.before);
-    let ra = res(&a.after);
+    // The residual over the whole record \[m\]; the fit window's, from `from` on, in µm.
+    let whole = |p: &[f64]| -> Vec<f64> { (0..p.len()).map(|k| r.y_m[k] - p[k]).collect() };
+    let (wb, wa) = (whole(&a.before), whole(&a.after));
+    let fit_um =
+        |w: &[f64]| -> Vec<f64> { w[from.min(w.len())..].iter().map(|v| v * 1e6).collect() };
+    let (rb, ra) = (fit_um(&wb), fit_um(&wa));
     let u: Vec<f64> = r.u[from..].to_vec();
     let spec = |v: &[f64]| -> Vec<(f64, f64)> {
         diagnose::spectrum(v, ts)
@@ -106,8 +108,6 @@ fn fit_panels(a: &AxisOutcome, r: &Record, from: usize, after_name: &str) -> Vec
     let noise_floor_um = a.noise_m * 1e6 * (6.0 / rb.len().max(1) as f64).sqrt();
     // In time the whole record, its scale set by the fit window and the transient before it
     // shaded (\[m\] for the scale, drawn in µm).
-    let whole = |p: &[f64]| -> Vec<f64> { (0..p.len()).map(|k| r.y_m[k] - p[k]).collect() };
-    let (wb, wa) = (whole(&a.before), whole(&a.after));
     let in_um = |v: &[f64]| -> Vec<(f64, f64)> {
         r.t_s.iter().zip(v).map(|(&t, &y)| (t, y * 1e6)).collect()
     };
