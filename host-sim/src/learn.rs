@@ -240,36 +240,79 @@ impl LearnStep {
         )
     }
 
-    /// `STEP.json`.
-    pub fn json(&self) -> serde_json::Value {
-        let mut out = serde_json::Map::new();
-        for a in &self.axes {
-            out.insert(
-                a.axis.to_string(),
-                serde_json::json!({
-                    "rms_m": a.rms_m,
-                    "max_abs_m": a.max_abs_m,
-                    "q_cutoff_hz": a.q_cutoff_hz,
-                    "learning_gain": a.learning_gain,
-                    "limited": a.limited,
-                    "noise_rms_m": a.noise_rms_m,
-                    "learned_share": a.learned_share,
-                    "harmonics_learned": a.harmonics_learned,
-                    "noise_from_passes": a.noise_from_passes,
-                    "model_gain_ratio": a.model_gain.map(|g| g.0),
-                    "base_resolved": rebase(&[a.model_gain], &self.params).is_some(),
-                }),
-            );
+    /// `STEP.json`: one entry per axis, named by its column, beside the iteration, the stage
+    /// file's fingerprint, whether the trial was periodic and the rule.
+    pub fn report(&self) -> StepReport {
+        StepReport {
+            axes: self
+                .axes
+                .iter()
+                .map(|a| {
+                    let report = AxisStepReport {
+                        rms_m: a.rms_m,
+                        max_abs_m: a.max_abs_m,
+                        q_cutoff_hz: a.q_cutoff_hz,
+                        learning_gain: a.learning_gain,
+                        limited: a.limited,
+                        noise_rms_m: a.noise_rms_m,
+                        learned_share: a.learned_share,
+                        harmonics_learned: a.harmonics_learned,
+                        noise_from_passes: a.noise_from_passes,
+                        model_gain_ratio: a.model_gain.map(|g| g.0),
+                        base_resolved: rebase(&[a.model_gain], &self.params).is_some(),
+                    };
+                    (a.axis.to_string(), report)
+                })
+                .collect(),
+            iteration: self.iteration,
+            stage_fnv1a32: format!("{:#010x}", self.stage_fnv1a32),
+            periodic: self.periodic,
+            rule: rule_text(&self.params),
         }
-        out.insert("iteration".into(), self.iteration.into());
-        out.insert(
-            "stage_fnv1a32".into(),
-            format!("{:#010x}", self.stage_fnv1a32).into(),
-        );
-        out.insert("periodic".into(), self.periodic.into());
-        out.insert("rule".into(), rule_text(&self.params).into());
-        serde_json::Value::Object(out)
     }
+}
+
+/// `STEP.json` ([`LearnStep::report`]).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct StepReport {
+    /// Per axis, by its column name.
+    #[serde(flatten)]
+    pub axes: std::collections::BTreeMap<String, AxisStepReport>,
+    /// The iteration of the table written.
+    pub iteration: u32,
+    /// FNV-1a 32 of the stage file, `0x%08x`.
+    pub stage_fnv1a32: String,
+    /// Whether the trial was periodic.
+    pub periodic: bool,
+    /// The rule the cut-off and the shares follow.
+    pub rule: String,
+}
+
+/// One axis of [`StepReport`]: the error of the trial just measured (SI) and how the step learned.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct AxisStepReport {
+    /// RMS of r − y over the trial \[m\].
+    pub rms_m: f64,
+    /// Largest |r − y| of the trial \[m\].
+    pub max_abs_m: f64,
+    /// Q's cut-off \[Hz\].
+    pub q_cutoff_hz: f64,
+    /// λ.
+    pub learning_gain: f64,
+    /// Samples the window or the slew limit held.
+    pub limited: usize,
+    /// The noise σ the shares were set by \[m\].
+    pub noise_rms_m: f64,
+    /// The share s of L·e learned.
+    pub learned_share: f64,
+    /// Harmonics above the cut-off learned from the trial's response.
+    pub harmonics_learned: usize,
+    /// Whether σ came from the spread between the trial's passes.
+    pub noise_from_passes: bool,
+    /// The plant/model gain the trial showed, where it showed one.
+    pub model_gain_ratio: Option<f64>,
+    /// Whether the learning's base could be scaled to that gain.
+    pub base_resolved: bool,
 }
 
 const STAGE_KEY: &str = "stage_fnv1a32 = ";
@@ -867,7 +910,7 @@ pub fn learn_cmd(a: &LearnArgs) -> crate::Result<String> {
     let step = learn(a)?;
     write_learned_table(&a.out, &step, &a.params)
         .map_err(|e| crate::Error::Usage(format!("--out {e}")))?;
-    let json = serde_json::to_string_pretty(&step.json()).map_err(crate::Error::from)?;
+    let json = serde_json::to_string_pretty(&step.report()).map_err(crate::Error::from)?;
     if let Some(dir) = a.report.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).map_err(crate::Error::write("--report", dir))?;
     }
