@@ -717,28 +717,13 @@ impl LearnBenchReport {
         s
     }
 
-    /// `learn.json`: every curve.
-    pub fn json(&self) -> serde_json::Value {
-        let curve = |c: &Curve| {
-            serde_json::json!({
-                "mode": c.mode.name(),
-                "signal": c.shape.name(),
-                "freq_hz": c.freq_hz,
-                "perturbation": c.perturbation.label(),
-                "q_cutoff_hz": c.cutoff_hz,
-                "periods_per_trial": c.periods_per_trial,
-                "rms_percent": c.rms_percent,
-                "max_percent": c.max_percent,
-                "above_cutoff_percent": c.above_cutoff_percent,
-                "harmonics_learned": c.harmonics_learned,
-                "stepped_back": c.stepped_back,
-            })
-        };
-        serde_json::json!({
-            "rule": rule_text(&self.settings.params),
-            "curves": self.curves.iter().map(curve).collect::<Vec<_>>(),
-            "robustness": self.robustness.iter().map(curve).collect::<Vec<_>>(),
-        })
+    /// `learn.json`: the rule and every curve.
+    pub fn report(&self) -> LearnJson<'_> {
+        LearnJson {
+            rule: rule_text(&self.settings.params),
+            curves: self.curves.iter().map(Curve::report).collect(),
+            robustness: self.robustness.iter().map(Curve::report).collect(),
+        }
     }
 
     /// Writes `learn.json`, `learn-stage.toml` and the plot `learn-curves.*` into `dir`.
@@ -746,7 +731,7 @@ impl LearnBenchReport {
         std::fs::create_dir_all(dir).map_err(crate::Error::write("--out", dir))?;
         let mut files = Vec::new();
         let json = dir.join("learn.json");
-        let text = serde_json::to_string_pretty(&self.json()).map_err(crate::Error::from)?;
+        let text = serde_json::to_string_pretty(&self.report()).map_err(crate::Error::from)?;
         std::fs::write(&json, text).map_err(crate::Error::write("", &json))?;
         files.push(json.display().to_string());
         let toml = dir.join("learn-stage.toml");
@@ -932,6 +917,63 @@ pub fn learn_bench_cmd(a: &LearnBenchArgs) -> crate::Result<String> {
     let report = run_learn_bench(&settings, &mut |line: &str| eprintln!("{line}"))?;
     let files = report.write(&a.out, a.format.extensions())?;
     Ok(format!("{}written: {}", report.table(), files.join(", ")))
+}
+
+/// `learn.json` ([`LearnBenchReport::report`]).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct LearnJson<'a> {
+    /// The rule the cut-off and the shares follow.
+    pub rule: String,
+    /// One per mode, signal and frequency, with the nominal model.
+    pub curves: Vec<CurveJson<'a>>,
+    /// The same with the model perturbed.
+    pub robustness: Vec<CurveJson<'a>>,
+}
+
+/// A [`Curve`] as `learn.json` writes it (percentages of the stroke, per trial).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct CurveJson<'a> {
+    /// The mode's name.
+    pub mode: &'static str,
+    /// The signal's name.
+    pub signal: &'static str,
+    /// Its frequency \[Hz\].
+    pub freq_hz: f64,
+    /// The model's perturbation.
+    pub perturbation: String,
+    /// Q's cut-off per axis \[Hz\].
+    pub q_cutoff_hz: [f64; 2],
+    /// Periods averaged per trial.
+    pub periods_per_trial: usize,
+    /// RMS error per trial.
+    pub rms_percent: &'a [f64],
+    /// Largest error per trial.
+    pub max_percent: &'a [f64],
+    /// The final trial's error above Q's cut-off.
+    pub above_cutoff_percent: f64,
+    /// Harmonics learned per trial.
+    pub harmonics_learned: &'a [usize],
+    /// Whether the trial stepped back to the best table.
+    pub stepped_back: &'a [bool],
+}
+
+impl Curve {
+    /// This curve as `learn.json` writes it.
+    pub fn report(&self) -> CurveJson<'_> {
+        CurveJson {
+            mode: self.mode.name(),
+            signal: self.shape.name(),
+            freq_hz: self.freq_hz,
+            perturbation: self.perturbation.label(),
+            q_cutoff_hz: self.cutoff_hz,
+            periods_per_trial: self.periods_per_trial,
+            rms_percent: &self.rms_percent,
+            max_percent: &self.max_percent,
+            above_cutoff_percent: self.above_cutoff_percent,
+            harmonics_learned: &self.harmonics_learned,
+            stepped_back: &self.stepped_back,
+        }
+    }
 }
 
 #[cfg(test)]

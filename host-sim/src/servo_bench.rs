@@ -1008,40 +1008,22 @@ impl BenchReport {
         s
     }
 
-    /// `{"rows": [...]}`.
-    pub fn json(&self) -> serde_json::Value {
-        let num = |v: f64| {
-            serde_json::Number::from_f64(v)
-                .map_or(serde_json::Value::Null, serde_json::Value::Number)
-        };
-        let rows: Vec<serde_json::Value> = self
-            .rows
-            .iter()
-            .map(|r| {
-                serde_json::json!({
-                    "mode": r.mode.name(),
-                    "signal": r.shape.name(),
-                    "freq_hz": num(r.freq_hz),
-                    "rms_percent": num(r.rms_percent),
-                    "max_percent": num(r.max_percent),
-                    "bandwidth_hz": num(r.bandwidth_hz),
+    /// `servo.json`: `{"rows": [...], "settling": [...]}` (a figure that is not a number is
+    /// `null`).
+    pub fn report(&self) -> BenchJson {
+        BenchJson {
+            rows: self.rows.iter().map(Row::report).collect(),
+            settling: self
+                .settling
+                .iter()
+                .map(|st| SettlingJson {
+                    mode: st.mode.name(),
+                    step_fraction: st.fraction,
+                    band_fraction_of_step: SETTLING_BAND,
+                    settle_s: st.settle_s,
                 })
-            })
-            .collect();
-        let settling: Vec<serde_json::Value> = self
-            .settling
-            .iter()
-            .map(|st| {
-                let t = |v: Option<f64>| v.map_or(serde_json::Value::Null, num);
-                serde_json::json!({
-                    "mode": st.mode.name(),
-                    "step_fraction": num(st.fraction),
-                    "band_fraction_of_step": num(SETTLING_BAND),
-                    "settle_s": [t(st.settle_s[0]), t(st.settle_s[1])],
-                })
-            })
-            .collect();
-        serde_json::json!({ "rows": rows, "settling": settling })
+                .collect(),
+        }
     }
 
     /// Writes `servo.json` and the plots (`servo-error.*`, `servo-bode.*`) into `dir`.
@@ -1049,7 +1031,7 @@ impl BenchReport {
         std::fs::create_dir_all(dir).map_err(crate::Error::write("--out", dir))?;
         let mut files = Vec::new();
         let json = dir.join("servo.json");
-        let text = serde_json::to_string_pretty(&self.json()).map_err(crate::Error::from)?;
+        let text = serde_json::to_string_pretty(&self.report()).map_err(crate::Error::from)?;
         std::fs::write(&json, text).map_err(crate::Error::write("", &json))?;
         files.push(json.display().to_string());
         let figures: [(&str, Vec<Chart>, usize); 2] = [
@@ -1300,34 +1282,122 @@ pub fn rates_table(reports: &[(f64, BenchReport)]) -> String {
 }
 
 /// `{"rates": [{"loop_rate_hz", "tunings": [...], "rows": [...]}]}`.
-pub fn rates_json(reports: &[(f64, BenchReport)]) -> serde_json::Value {
-    let rates: Vec<serde_json::Value> = reports
-        .iter()
-        .map(|(rate, r)| {
-            let tunings: Vec<serde_json::Value> = ["x", "y"]
-                .iter()
-                .zip(&r.tunings)
-                .map(|(axis, t)| {
-                    serde_json::json!({
-                        "axis": axis,
-                        "crossover_hz": t.crossover_hz,
-                        "phase_margin_deg": t.phase_margin_deg,
-                        "sensitivity_peak": t.sensitivity_peak,
-                        "lowpass_frequency_hz": t.params.lowpass_frequency_hz,
-                        "notch_frequency_hz": t.params.notch_frequency_hz,
-                        "notch_q": t.params.notch_q,
-                        "ki_v_per_m_s": t.params.ki_v_per_m_s,
+pub fn rates_json(reports: &[(f64, BenchReport)]) -> RatesJson {
+    RatesJson {
+        rates: reports
+            .iter()
+            .map(|(rate, r)| RateJson {
+                loop_rate_hz: *rate,
+                tunings: ["x", "y"]
+                    .iter()
+                    .zip(&r.tunings)
+                    .map(|(axis, t)| TuningJson {
+                        axis,
+                        crossover_hz: t.crossover_hz,
+                        phase_margin_deg: t.phase_margin_deg,
+                        sensitivity_peak: t.sensitivity_peak,
+                        lowpass_frequency_hz: t.params.lowpass_frequency_hz,
+                        notch_frequency_hz: t.params.notch_frequency_hz,
+                        notch_q: t.params.notch_q,
+                        ki_v_per_m_s: t.params.ki_v_per_m_s,
                     })
-                })
-                .collect();
-            serde_json::json!({
-                "loop_rate_hz": rate,
-                "tunings": tunings,
-                "rows": r.json()["rows"].clone(),
+                    .collect(),
+                rows: r.rows.iter().map(Row::report).collect(),
             })
-        })
-        .collect();
-    serde_json::json!({ "rates": rates })
+            .collect(),
+    }
+}
+
+/// `servo.json` ([`BenchReport::report`]).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct BenchJson {
+    /// One per mode, signal and frequency.
+    pub rows: Vec<RowJson>,
+    /// One per mode: the settling of the step.
+    pub settling: Vec<SettlingJson>,
+}
+
+/// A [`Row`] as `servo.json` writes it.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct RowJson {
+    /// The servo mode's name.
+    pub mode: &'static str,
+    /// The signal's name.
+    pub signal: &'static str,
+    /// Its frequency \[Hz\].
+    pub freq_hz: f64,
+    /// RMS error, % of stroke.
+    pub rms_percent: f64,
+    /// Largest error, % of stroke.
+    pub max_percent: f64,
+    /// The −3 dB bandwidth of the mode \[Hz\].
+    pub bandwidth_hz: f64,
+}
+
+impl Row {
+    /// This row as `servo.json` writes it.
+    pub fn report(&self) -> RowJson {
+        RowJson {
+            mode: self.mode.name(),
+            signal: self.shape.name(),
+            freq_hz: self.freq_hz,
+            rms_percent: self.rms_percent,
+            max_percent: self.max_percent,
+            bandwidth_hz: self.bandwidth_hz,
+        }
+    }
+}
+
+/// A [`Settling`] as `servo.json` writes it.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct SettlingJson {
+    /// The servo mode's name.
+    pub mode: &'static str,
+    /// The step, as a share of the stroke.
+    pub step_fraction: f64,
+    /// The settling band, as a share of the step.
+    pub band_fraction_of_step: f64,
+    /// Time to settle per axis \[s\] (`null`: never within the watch).
+    pub settle_s: [Option<f64>; 2],
+}
+
+/// `servo-rates.json` ([`rates_json`]).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct RatesJson {
+    /// One per loop rate.
+    pub rates: Vec<RateJson>,
+}
+
+/// One loop rate of [`RatesJson`].
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct RateJson {
+    /// The loop rate \[Hz\].
+    pub loop_rate_hz: f64,
+    /// The tuning per axis.
+    pub tunings: Vec<TuningJson>,
+    /// The rows at this rate.
+    pub rows: Vec<RowJson>,
+}
+
+/// One axis's tuning in [`RateJson`].
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct TuningJson {
+    /// `x` or `y`.
+    pub axis: &'static str,
+    /// Crossover \[Hz\].
+    pub crossover_hz: f32,
+    /// Phase margin \[°\].
+    pub phase_margin_deg: f32,
+    /// Peak of |S|.
+    pub sensitivity_peak: f32,
+    /// The servo's low-pass \[Hz\].
+    pub lowpass_frequency_hz: f32,
+    /// The servo's notch \[Hz\].
+    pub notch_frequency_hz: f32,
+    /// The notch's Q.
+    pub notch_q: f32,
+    /// The integral gain \[V/(m·s)\].
+    pub ki_v_per_m_s: f32,
 }
 
 #[cfg(test)]
