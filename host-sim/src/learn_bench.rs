@@ -981,6 +981,45 @@ mod tests {
     use super::*;
     use clap::Parser;
 
+    /// A curve serialises with the keys `learn.json` has always had, NaN as `null`.
+    #[test]
+    fn a_curve_serialises_with_the_keys_of_learn_json() {
+        let curve = Curve {
+            mode: LearnMode::LearnedFeedback,
+            shape: Shape::Triangle,
+            freq_hz: 100.0,
+            perturbation: Perturbation::Gain(0.6),
+            rms_percent: vec![1.0, 0.1],
+            max_percent: vec![2.0, f64::NAN],
+            cutoff_hz: [900.0, 800.0],
+            periods_per_trial: 10,
+            above_cutoff_percent: 0.01,
+            harmonics_learned: vec![3],
+            stepped_back: vec![false],
+        };
+        let json = crate::to_json(&curve.report()).unwrap();
+        assert_eq!(
+            crate::json_keys(&json),
+            std::collections::BTreeSet::from([
+                "mode",
+                "signal",
+                "freq_hz",
+                "perturbation",
+                "q_cutoff_hz",
+                "periods_per_trial",
+                "rms_percent",
+                "max_percent",
+                "above_cutoff_percent",
+                "harmonics_learned",
+                "stepped_back",
+            ])
+        );
+        assert_eq!(json["mode"], "learned+feedback");
+        assert_eq!(json["perturbation"], Perturbation::Gain(0.6).label());
+        assert_eq!(json["max_percent"], serde_json::json!([2.0, null]));
+        assert_eq!(json["q_cutoff_hz"], serde_json::json!([900.0, 800.0]));
+    }
+
     #[derive(Parser)]
     struct Bench {
         #[command(flatten)]

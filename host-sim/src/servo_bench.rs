@@ -1404,6 +1404,51 @@ pub struct TuningJson {
 mod tests {
     use super::*;
 
+    /// A row and a settling serialise with the keys `servo.json` has always had, a figure that
+    /// is not a number as `null`.
+    #[test]
+    fn a_bench_report_serialises_with_the_keys_of_servo_json() {
+        let row = Row {
+            mode: ServoMode::Feedforward,
+            shape: Shape::Sine,
+            freq_hz: 10.0,
+            rms_percent: 0.5,
+            max_percent: 1.0,
+            bandwidth_hz: f64::NAN,
+        };
+        let json = crate::to_json(&row.report()).unwrap();
+        assert_eq!(
+            crate::json_keys(&json),
+            std::collections::BTreeSet::from([
+                "mode",
+                "signal",
+                "freq_hz",
+                "rms_percent",
+                "max_percent",
+                "bandwidth_hz",
+            ])
+        );
+        assert_eq!(json["mode"], ServoMode::Feedforward.name());
+        assert!(json["bandwidth_hz"].is_null());
+        let settling = SettlingJson {
+            mode: ServoMode::Feedforward.name(),
+            step_fraction: 0.1,
+            band_fraction_of_step: SETTLING_BAND,
+            settle_s: [Some(1e-3), None],
+        };
+        let json = crate::to_json(&settling).unwrap();
+        assert_eq!(json["settle_s"], serde_json::json!([1e-3, null]));
+        assert_eq!(
+            crate::json_keys(&json),
+            std::collections::BTreeSet::from([
+                "mode",
+                "step_fraction",
+                "band_fraction_of_step",
+                "settle_s",
+            ])
+        );
+    }
+
     #[test]
     fn settling_is_the_time_after_the_last_sample_outside_the_band() {
         let fs = 1000.0;
