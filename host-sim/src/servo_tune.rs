@@ -172,35 +172,78 @@ fn tidy(x: f32) -> f64 {
 }
 
 /// The JSON report of a tuning.
-pub fn report(tunings: &[AxisTuning]) -> serde_json::Value {
-    serde_json::Value::Array(
-        tunings
-            .iter()
-            .map(|t| {
-                let p = t.tuning.params;
-                serde_json::json!({
-                    "axis": t.axis,
-                    "gain_m_per_v": tidy(t.dynamics.gain_m_per_v),
-                    "mode_frequency_hz": tidy(t.dynamics.mode_frequency_hz),
-                    "mode_damping": tidy(t.dynamics.mode_damping),
-                    "latency_s": tidy(t.dynamics.latency_s),
-                    "crossover_hz": tidy(t.tuning.crossover_hz),
-                    "phase_margin_deg": tidy(t.tuning.phase_margin_deg),
-                    "sensitivity_peak": tidy(t.tuning.sensitivity_peak),
-                    "closed_loop_bandwidth_hz": tidy(t.tuning.closed_loop_bandwidth_hz),
-                    "servo": {
-                        "kp_v_per_m": tidy(p.kp_v_per_m),
-                        "ki_v_per_m_s": tidy(p.ki_v_per_m_s),
-                        "lowpass_frequency_hz": tidy(p.lowpass_frequency_hz),
-                        "lowpass_q": tidy(p.lowpass_q),
-                        "notch_frequency_hz": tidy(p.notch_frequency_hz),
-                        "notch_q": tidy(p.notch_q),
-                        "transfer_time_constant_s": tidy(p.transfer_time_constant_s),
-                    },
-                })
-            })
-            .collect(),
-    )
+pub fn report(tunings: &[AxisTuning]) -> Vec<TuningReport> {
+    tunings
+        .iter()
+        .map(|t| {
+            let p = t.tuning.params;
+            TuningReport {
+                axis: t.axis,
+                gain_m_per_v: tidy(t.dynamics.gain_m_per_v),
+                mode_frequency_hz: tidy(t.dynamics.mode_frequency_hz),
+                mode_damping: tidy(t.dynamics.mode_damping),
+                latency_s: tidy(t.dynamics.latency_s),
+                crossover_hz: tidy(t.tuning.crossover_hz),
+                phase_margin_deg: tidy(t.tuning.phase_margin_deg),
+                sensitivity_peak: tidy(t.tuning.sensitivity_peak),
+                closed_loop_bandwidth_hz: tidy(t.tuning.closed_loop_bandwidth_hz),
+                servo: ServoReport {
+                    kp_v_per_m: tidy(p.kp_v_per_m),
+                    ki_v_per_m_s: tidy(p.ki_v_per_m_s),
+                    lowpass_frequency_hz: tidy(p.lowpass_frequency_hz),
+                    lowpass_q: tidy(p.lowpass_q),
+                    notch_frequency_hz: tidy(p.notch_frequency_hz),
+                    notch_q: tidy(p.notch_q),
+                    transfer_time_constant_s: tidy(p.transfer_time_constant_s),
+                },
+            }
+        })
+        .collect()
+}
+
+/// One axis of the tuning report (SI; each f32 figure as its shortest decimal).
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+pub struct TuningReport {
+    /// `x` or `y`.
+    pub axis: &'static str,
+    /// The dynamics the rule was given: static gain \[m/V\], first mode \[Hz\] and its damping,
+    /// latency \[s\].
+    pub gain_m_per_v: f64,
+    /// First mode \[Hz\].
+    pub mode_frequency_hz: f64,
+    /// Its damping ratio.
+    pub mode_damping: f64,
+    /// Latency \[s\].
+    pub latency_s: f64,
+    /// Crossover \[Hz\].
+    pub crossover_hz: f64,
+    /// Phase margin \[°\].
+    pub phase_margin_deg: f64,
+    /// Peak of |S|.
+    pub sensitivity_peak: f64,
+    /// Closed-loop −3 dB bandwidth \[Hz\].
+    pub closed_loop_bandwidth_hz: f64,
+    /// The servo's parameters.
+    pub servo: ServoReport,
+}
+
+/// The servo's parameters in [`TuningReport`] (as the stage file's `servo` table).
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+pub struct ServoReport {
+    /// Proportional gain \[V/m\].
+    pub kp_v_per_m: f64,
+    /// Integral gain \[V/(m·s)\].
+    pub ki_v_per_m_s: f64,
+    /// Low-pass corner \[Hz\].
+    pub lowpass_frequency_hz: f64,
+    /// Low-pass Q.
+    pub lowpass_q: f64,
+    /// Notch centre \[Hz\].
+    pub notch_frequency_hz: f64,
+    /// Notch Q.
+    pub notch_q: f64,
+    /// Bumpless-transfer time constant \[s\].
+    pub transfer_time_constant_s: f64,
 }
 
 /// `host-sim servo-tune`.
