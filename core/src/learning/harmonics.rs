@@ -51,20 +51,17 @@
 //! trial to the next after trial 3 (`host-sim learn-bench --freq 100 --harmonic-gain 0.5
 //! --trial-s 0.3`; the harmonics learned grow from 5 to 16 at the steps after trials 1–5):
 //!
-//! | first step | 3 | 4 | 5 | 6 | 7 | 8 | 15 | worst rise |
-//! |---|---|---|---|---|---|---|---|---|
-//! | from U(h), ρ | 0.1111 | 0.1003 | 0.1157 | 0.1309 | 0.1288 | 0.1213 | 0.0713 | 1.153× |
-//! | from U(h), ρ = 1 | 0.1300 | 0.1181 | 0.1375 | 0.0949 | 0.0644 | 0.0609 | 0.0579 | 1.165× |
-//! | from T(h), ρ of U − T | 0.1111 | 0.1040 | 0.1142 | 0.1208 | 0.1233 | 0.1040 | 0.0657 | 1.099× |
+//! | 3 | 4 | 5 | 6 | 7 | 8 | 15 | worst rise |
+//! |---|---|---|---|---|---|---|---|
+//! | 0.1111 | 0.1040 | 0.1142 | 0.1208 | 0.1233 | 0.1040 | 0.0657 | 1.099× |
 //!
-//! The last is the rule. The sine's row is the same with each (0.0029 %, 1.042×): it learns
-//! no harmonic. What is left of the rise (trials 5–7) comes while the number learned stays at
-//! 16 (the steps after trials 5–9), not while it grows. The same command's robustness rows
-//! (the stage file's gain ×0.6 and ×1.5, its mode ×1.15 and ×0.85) rise at most 1.122× after
-//! trial 1 (gain ×0.6, triangle; 1.26× with the first step from U(h)) and end within
-//! 0.73–1.17× the nominal file's error. With 0.1 s trials (the default; `--trial-s` left out)
-//! the triangle ends at 0.0717 % (0.0806 % from U(h)) and rises at most 1.059× after trial 3
-//! with either, the sine at 0.0030 % and 1.082×.
+//! (From U(h) the same run rose 1.153× and ended at 0.0713 %.) The sine's row does not
+//! change (0.0029 %, 1.042×): it learns no harmonic. What is left of the rise (trials 5–7)
+//! comes while the number learned stays at 16, not while it grows. The same command's
+//! robustness rows (the stage file's gain ×0.6 and ×1.5, its mode ×1.15 and ×0.85) rise at
+//! most 1.122× after trial 1 (gain ×0.6, triangle) and end within 0.73–1.17× the nominal
+//! file's error. With 0.1 s trials (the default; `--trial-s` left out) the triangle ends at
+//! 0.0717 % and rises at most 1.059× after trial 3, the sine at 0.0030 % and 1.082×.
 //!
 //! The next command's component at h (what Q left there: about the compensator's own) is
 //! replaced by U_next(h), its conjugate at n − h with it, so the command stays real.
