@@ -206,8 +206,7 @@ pub fn report(tunings: &[AxisTuning]) -> Vec<TuningReport> {
 pub struct TuningReport {
     /// `x` or `y`.
     pub axis: &'static str,
-    /// The dynamics the rule was given: static gain \[m/V\], first mode \[Hz\] and its damping,
-    /// latency \[s\].
+    /// The static gain the rule was given \[m/V\].
     pub gain_m_per_v: f64,
     /// First mode \[Hz\].
     pub mode_frequency_hz: f64,
