@@ -54,6 +54,7 @@ use piezo_core::learning::{step_back, BackOff, Verdict};
 use piezo_core::{pass_noise_rms, TrialNoise};
 use piezo_link::{Control, Frame, Program, Request, Response};
 use piezo_stage::StageFile;
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 /// An iteration lowers the error when it is below this fraction of the best so far.
@@ -600,59 +601,54 @@ pub fn link_learn(
 }
 
 impl LinkLearnReport {
-    /// `learn.json`.
-    pub fn json(&self, a: &LinkLearnArgs) -> serde_json::Value {
-        let axis = |s: &AxisStep, raw: f64| {
-            serde_json::json!({
-                "rms_m": s.rms_m,
-                "max_abs_m": s.max_abs_m,
-                "rms_raw_m": raw,
-                "limited": s.limited,
-                "noise_rms_m": s.noise_rms_m,
-                "noise_from_passes": s.noise_from_passes,
-                "harmonics_learned": s.harmonics_learned,
-            })
+    /// `learn.json`: the run's settings, the rule and the error per iteration and axis.
+    pub fn report(&self, a: &LinkLearnArgs) -> LinkLearnJson {
+        let per_axis = |v: &[f64]| -> BTreeMap<&'static str, f64> {
+            ["x", "y"].into_iter().zip(v.iter().copied()).collect()
         };
-        let iterations: Vec<serde_json::Value> = self
+        let iterations = self
             .trials
             .iter()
-            .map(|t| {
-                let mut o = serde_json::Map::new();
-                o.insert("iteration".into(), t.iteration.into());
-                for (s, &raw) in t.axes.iter().zip(&t.rms_raw_m) {
-                    o.insert(s.axis.into(), axis(s, raw));
-                }
-                o.insert("rms_m".into(), t.combined_m().into());
-                serde_json::Value::Object(o)
+            .map(|t| IterationJson {
+                iteration: t.iteration,
+                axes: t
+                    .axes
+                    .iter()
+                    .zip(&t.rms_raw_m)
+                    .map(|(s, &raw)| {
+                        let axis = TrialAxisJson {
+                            rms_m: s.rms_m,
+                            max_abs_m: s.max_abs_m,
+                            rms_raw_m: raw,
+                            limited: s.limited,
+                            noise_rms_m: s.noise_rms_m,
+                            noise_from_passes: s.noise_from_passes,
+                            harmonics_learned: s.harmonics_learned,
+                        };
+                        (s.axis, axis)
+                    })
+                    .collect(),
+                rms_m: t.combined_m(),
             })
             .collect();
-        let names = ["x", "y"];
-        let per_axis = |v: &[f64]| -> serde_json::Value {
-            names
-                .iter()
-                .zip(v)
-                .map(|(n, &x)| (n.to_string(), serde_json::Value::from(x)))
-                .collect::<serde_json::Map<_, _>>()
-                .into()
-        };
-        serde_json::json!({
-            "params": a.params.display().to_string(),
-            "stage_fnv1a32": format!("{:#010x}", self.stage_fnv1a32),
-            "reference": self.reference_path.display().to_string(),
-            "entries": self.reference.t_s.len(),
-            "loop_rate_hz": self.loop_rate_hz,
-            "control": mode(a).name(),
-            "periods_per_trial": a.periods,
-            "settle_periods": a.settle_periods,
-            "q_cutoff_hz": per_axis(&self.q_cutoff_hz),
-            "learning_gain": per_axis(&self.learning_gain),
-            "best_iteration": self.trials[self.best].iteration,
-            "stopped_early": self.stopped_early,
-            "iterations": iterations,
-            "rule": rule_text(&a.learning.params()),
-            "stop_rule": stop_rule(a.patience),
-            "error": "e = r - y of the period averaged over the trial's passes (rms_m, max_abs_m; rms_m of the iteration: sqrt((rms_x^2 + rms_y^2)/2)); rms_raw_m over the passes unaveraged; y of entry j is the reading of the tick after it",
-        })
+        LinkLearnJson {
+            params: a.params.display().to_string(),
+            stage_fnv1a32: format!("{:#010x}", self.stage_fnv1a32),
+            reference: self.reference_path.display().to_string(),
+            entries: self.reference.t_s.len(),
+            loop_rate_hz: self.loop_rate_hz,
+            control: mode(a).name(),
+            periods_per_trial: a.periods,
+            settle_periods: a.settle_periods,
+            q_cutoff_hz: per_axis(&self.q_cutoff_hz),
+            learning_gain: per_axis(&self.learning_gain),
+            best_iteration: self.trials[self.best].iteration,
+            stopped_early: self.stopped_early,
+            iterations,
+            rule: rule_text(&a.learning.params()),
+            stop_rule: stop_rule(a.patience),
+            error: "e = r - y of the period averaged over the trial's passes (rms_m, max_abs_m; rms_m of the iteration: sqrt((rms_x^2 + rms_y^2)/2)); rms_raw_m over the passes unaveraged; y of entry j is the reading of the tick after it",
+        }
     }
 
     /// The best table as `host-sim learn` writes and reads it.
@@ -710,7 +706,7 @@ pub fn link_learn_cmd(client: &mut Client, a: &LinkLearnArgs) -> crate::Result<S
     let json_path = a.out.join("learn.json");
     let table_path = a.out.join("table.csv");
     let png_path = a.out.join("learn.png");
-    let json = serde_json::to_string_pretty(&report.json(a)).map_err(crate::Error::from)?;
+    let json = serde_json::to_string_pretty(&report.report(a)).map_err(crate::Error::from)?;
     std::fs::write(&json_path, json)
         .map_err(|e| crate::Error::Link(format!("{}: {e}", json_path.display())))?;
     write_learned_table(&table_path, &report.table_step(a), &a.params)?;
@@ -730,4 +726,71 @@ pub fn link_learn_cmd(client: &mut Client, a: &LinkLearnArgs) -> crate::Result<S
         "written": written,
     }))
     .map_err(crate::Error::from)
+}
+/// `DIR/learn.json` of `link learn` ([`LinkLearnReport::report`]).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct LinkLearnJson {
+    /// The stage file.
+    pub params: String,
+    /// Its FNV-1a 32, `0x%08x`.
+    pub stage_fnv1a32: String,
+    /// The reference file or signal.
+    pub reference: String,
+    /// Entries of the table.
+    pub entries: usize,
+    /// The firmware's loop rate \[Hz\].
+    pub loop_rate_hz: f64,
+    /// The control mode the table ran in.
+    pub control: &'static str,
+    /// Passes averaged per trial.
+    pub periods_per_trial: u32,
+    /// Passes let settle before them.
+    pub settle_periods: u32,
+    /// Q's cut-off per axis \[Hz\].
+    pub q_cutoff_hz: BTreeMap<&'static str, f64>,
+    /// λ per axis.
+    pub learning_gain: BTreeMap<&'static str, f64>,
+    /// The iteration whose table was kept.
+    pub best_iteration: u32,
+    /// Whether the run stopped before its iterations ran out.
+    pub stopped_early: bool,
+    /// The error of each iteration.
+    pub iterations: Vec<IterationJson>,
+    /// The learning's rule.
+    pub rule: String,
+    /// When the run stops early.
+    pub stop_rule: String,
+    /// What the error figures measure.
+    pub error: &'static str,
+}
+
+/// One iteration of [`LinkLearnJson`]: per axis by name, and combined.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct IterationJson {
+    /// The table's iteration.
+    pub iteration: u32,
+    /// Per axis.
+    #[serde(flatten)]
+    pub axes: BTreeMap<&'static str, TrialAxisJson>,
+    /// √((rms_x² + rms_y²)/2) \[m\].
+    pub rms_m: f64,
+}
+
+/// One axis of an iteration (SI).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct TrialAxisJson {
+    /// RMS of the averaged period's error \[m\].
+    pub rms_m: f64,
+    /// Its largest |error| \[m\].
+    pub max_abs_m: f64,
+    /// RMS over the passes unaveraged \[m\].
+    pub rms_raw_m: f64,
+    /// Samples the window or the slew limit held.
+    pub limited: usize,
+    /// The noise σ the learning's shares were set by \[m\].
+    pub noise_rms_m: f64,
+    /// Whether σ came from the spread between the passes.
+    pub noise_from_passes: bool,
+    /// Harmonics above the cut-off learned.
+    pub harmonics_learned: usize,
 }
