@@ -28,7 +28,6 @@ use piezo_core::{
     Asymmetry, BoucWen, BoucWenParams, DynamicModel, MassSpringDamperParams, ModelState, StaticMap,
     StaticModel,
 };
-use serde_json::{json, Value};
 use std::path::Path;
 
 /// Excitation frequencies of Table 2, Hz.
@@ -380,64 +379,66 @@ const STAGE_PAPER_AFV_UM: [f64; 3] = [0.361547, 0.345347, 0.343951];
 const XY_PAPER_MAX_UM: f64 = 8.67 / 0.1354;
 
 impl Report {
-    /// `reproduce.json`.
-    pub fn json(&self) -> Value {
-        let vp = |value: f64, paper: f64| json!({"value": value, "paper": paper});
+    /// `reproduce.json`: each figure beside the paper's.
+    pub fn report(&self) -> ReproduceJson {
         let um = 1e6;
-        let stage_fit = |f: &StageFit, i: usize| {
-            json!({
-                "rae_um": [f.rae_m.0 * um, f.rae_m.1 * um],
-                "afv_um": f.afv_m * um,
-                "paper": {"rae_um": [STAGE_PAPER_RAE_UM[i].0, STAGE_PAPER_RAE_UM[i].1], "afv_um": STAGE_PAPER_AFV_UM[i]},
-            })
+        let stage_fit = |f: &StageFit, i: usize| StageFitJson {
+            rae_um: [f.rae_m.0 * um, f.rae_m.1 * um],
+            afv_um: f.afv_m * um,
+            paper: StagePaperJson {
+                rae_um: [STAGE_PAPER_RAE_UM[i].0, STAGE_PAPER_RAE_UM[i].1],
+                afv_um: STAGE_PAPER_AFV_UM[i],
+            },
         };
-        let mut vs3 = serde_json::Map::new();
-        let mut matched = serde_json::Map::new();
-        for i in 0..3 {
-            vs3.insert(STAGE_NAMES[i].into(), stage_fit(&self.stage_vs_case3[i], i));
-            matched.insert(STAGE_NAMES[i].into(), stage_fit(&self.stage_matched[i], i));
+        let xy = |at_120v: &[LoopFigures; 2], at_12v: &[LoopFigures; 2], method| XyJson {
+            loop_opening_x_um_120v: ValuePaper::new(at_120v[0].opening_m * um, 7.91),
+            loop_opening_y_um_120v: ValuePaper::new(at_120v[1].opening_m * um, 7.55),
+            loop_opening_x_um_12v: ValuePaper::new(at_12v[0].opening_m * um, 0.344),
+            loop_opening_y_um_12v: ValuePaper::new(at_12v[1].opening_m * um, 0.264),
+            max_displacement_um: ValuePaper::new(at_120v[0].max_m * um, XY_PAPER_MAX_UM),
+            max_displacement_y_um: ValuePaper::new(at_120v[1].max_m * um, XY_PAPER_MAX_UM),
+            loop_opening_x_at_v_120v: ValuePaper::new(at_120v[0].opening_at_v, 80.0),
+            loop_opening_y_at_v_120v: ValuePaper::new(at_120v[1].opening_at_v, 80.0),
+            method,
+        };
+        ReproduceJson {
+            xy_stage: xy(
+                &self.xy_120v,
+                &self.xy_12v,
+                "settled output at the end of each 30 ms level, 10 kHz; opening = max |descending - ascending| at equal voltage",
+            ),
+            xy_stage_gain_variant: xy(
+                &self.xy_gain_variant[0],
+                &self.xy_gain_variant[1],
+                "XyStage::paper_opening_at_80v: the same mechanism with a stack gain rising with voltage, d(u) = d0*(1 + 0.002/V*u); with y = d*(u - h) and n = 1 the default plant's largest opening lies at u0/2 < 60 V",
+            ),
+            nac2024: NacJson {
+                method: "core DynamicModel (Table 1, f32, 2.56 MHz, BoucWen range +-10 V, state limit 10) vs plant with second mode (480 kHz, zeta 0.05, 5 %) and mass 1.1*m0; sine 9.738 V, 10 periods from rest, metrics over the last 5; baseline = plant with Table 1 only",
+                rows: self
+                    .nac
+                    .iter()
+                    .enumerate()
+                    .map(|(i, r)| NacRowJson {
+                        frequency_khz: r.frequency_hz / 1e3,
+                        r2: r.r2,
+                        mrd_percent: r.mrd_percent,
+                        paper_r2: NAC_PAPER_R2[i],
+                        paper_mrd_percent: NAC_PAPER_MRD[i],
+                        baseline_r2: r.baseline_r2,
+                        baseline_mrd_percent: r.baseline_mrd_percent,
+                    })
+                    .collect(),
+            },
+            stage: StageJson {
+                method: "truth = stage plant Case III (delta, phi) under u = 10 - 10 cos(4 pi t), 1 s at 10 kHz; error = core model - plant; paper values are model vs measurement",
+                models_vs_plant_case_iii: (0..3)
+                    .map(|i| (STAGE_NAMES[i], stage_fit(&self.stage_vs_case3[i], i)))
+                    .collect(),
+                matched_case_model_vs_plant: (0..3)
+                    .map(|i| (STAGE_NAMES[i], stage_fit(&self.stage_matched[i], i)))
+                    .collect(),
+            },
         }
-        json!({
-            "xy_stage": {
-                "loop_opening_x_um_120V": vp(self.xy_120v[0].opening_m * um, 7.91),
-                "loop_opening_y_um_120V": vp(self.xy_120v[1].opening_m * um, 7.55),
-                "loop_opening_x_um_12V": vp(self.xy_12v[0].opening_m * um, 0.344),
-                "loop_opening_y_um_12V": vp(self.xy_12v[1].opening_m * um, 0.264),
-                "max_displacement_um": vp(self.xy_120v[0].max_m * um, XY_PAPER_MAX_UM),
-                "max_displacement_y_um": vp(self.xy_120v[1].max_m * um, XY_PAPER_MAX_UM),
-                "loop_opening_x_at_V_120V": vp(self.xy_120v[0].opening_at_v, 80.0),
-                "loop_opening_y_at_V_120V": vp(self.xy_120v[1].opening_at_v, 80.0),
-                "method": "settled output at the end of each 30 ms level, 10 kHz; opening = max |descending - ascending| at equal voltage",
-            },
-            "xy_stage_gain_variant": {
-                "loop_opening_x_um_120V": vp(self.xy_gain_variant[0][0].opening_m * um, 7.91),
-                "loop_opening_y_um_120V": vp(self.xy_gain_variant[0][1].opening_m * um, 7.55),
-                "loop_opening_x_um_12V": vp(self.xy_gain_variant[1][0].opening_m * um, 0.344),
-                "loop_opening_y_um_12V": vp(self.xy_gain_variant[1][1].opening_m * um, 0.264),
-                "max_displacement_um": vp(self.xy_gain_variant[0][0].max_m * um, XY_PAPER_MAX_UM),
-                "max_displacement_y_um": vp(self.xy_gain_variant[0][1].max_m * um, XY_PAPER_MAX_UM),
-                "loop_opening_x_at_V_120V": vp(self.xy_gain_variant[0][0].opening_at_v, 80.0),
-                "loop_opening_y_at_V_120V": vp(self.xy_gain_variant[0][1].opening_at_v, 80.0),
-                "method": "XyStage::paper_opening_at_80v: the same mechanism with a stack gain rising with voltage, d(u) = d0*(1 + 0.002/V*u); with y = d*(u - h) and n = 1 the default plant's largest opening lies at u0/2 < 60 V",
-            },
-            "nac2024": {
-                "method": "core DynamicModel (Table 1, f32, 2.56 MHz, BoucWen range +-10 V, state limit 10) vs plant with second mode (480 kHz, zeta 0.05, 5 %) and mass 1.1*m0; sine 9.738 V, 10 periods from rest, metrics over the last 5; baseline = plant with Table 1 only",
-                "rows": self.nac.iter().enumerate().map(|(i, r)| json!({
-                    "frequency_khz": r.frequency_hz / 1e3,
-                    "r2": r.r2,
-                    "mrd_percent": r.mrd_percent,
-                    "paper_r2": NAC_PAPER_R2[i],
-                    "paper_mrd_percent": NAC_PAPER_MRD[i],
-                    "baseline_r2": r.baseline_r2,
-                    "baseline_mrd_percent": r.baseline_mrd_percent,
-                })).collect::<Vec<_>>(),
-            },
-            "stage": {
-                "method": "truth = stage plant Case III (delta, phi) under u = 10 - 10 cos(4 pi t), 1 s at 10 kHz; error = core model - plant; paper values are model vs measurement",
-                "models_vs_plant_case_III": vs3,
-                "matched_case_model_vs_plant": matched,
-            },
-        })
     }
 
     /// The table printed by `host-sim reproduce`.
@@ -536,7 +537,7 @@ impl Report {
     pub fn write(&self, dir: &Path, formats: &[&str]) -> crate::Result<Vec<String>> {
         std::fs::create_dir_all(dir).map_err(crate::Error::write("--out", dir))?;
         let path = dir.join("reproduce.json");
-        let text = serde_json::to_string_pretty(&self.json()).map_err(crate::Error::from)?;
+        let text = serde_json::to_string_pretty(&self.report()).map_err(crate::Error::from)?;
         std::fs::write(&path, text + "\n").map_err(crate::Error::write("--out", &path))?;
         let mut written = vec![path.display().to_string()];
         let um = |pts: &[(f64, f64)]| pts.iter().map(|&(u, y)| (u, y * 1e6)).collect::<Vec<_>>();
@@ -643,4 +644,120 @@ pub fn reproduce_cmd(a: &ReproduceArgs) -> crate::Result<String> {
     let report = crate::reproduce::run_reproduce(&mut crate::progress)?;
     let files = report.write(&a.out, a.format.extensions())?;
     Ok(format!("{}written: {}", report.table(), files.join(", ")))
+}
+/// A figure beside the paper's.
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+pub struct ValuePaper {
+    /// Ours.
+    pub value: f64,
+    /// The paper's.
+    pub paper: f64,
+}
+
+impl ValuePaper {
+    fn new(value: f64, paper: f64) -> Self {
+        Self { value, paper }
+    }
+}
+
+/// `reproduce.json` ([`Report::report`]).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ReproduceJson {
+    /// The XY stage's loops.
+    pub xy_stage: XyJson,
+    /// The same with the stack gain rising with voltage.
+    pub xy_stage_gain_variant: XyJson,
+    /// The NAC2024 actuator's Table 2.
+    pub nac2024: NacJson,
+    /// The asymmetric stage's errors.
+    pub stage: StageJson,
+}
+
+/// The XY stage's loop figures \[µm, V\].
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct XyJson {
+    /// Loop opening, x, 0 → 120 V.
+    #[serde(rename = "loop_opening_x_um_120V")]
+    pub loop_opening_x_um_120v: ValuePaper,
+    /// Loop opening, y, 0 → 120 V.
+    #[serde(rename = "loop_opening_y_um_120V")]
+    pub loop_opening_y_um_120v: ValuePaper,
+    /// Loop opening, x, 0 → 12 V.
+    #[serde(rename = "loop_opening_x_um_12V")]
+    pub loop_opening_x_um_12v: ValuePaper,
+    /// Loop opening, y, 0 → 12 V.
+    #[serde(rename = "loop_opening_y_um_12V")]
+    pub loop_opening_y_um_12v: ValuePaper,
+    /// Largest displacement, x.
+    pub max_displacement_um: ValuePaper,
+    /// Largest displacement, y.
+    pub max_displacement_y_um: ValuePaper,
+    /// The voltage of the largest opening, x \[V\].
+    #[serde(rename = "loop_opening_x_at_V_120V")]
+    pub loop_opening_x_at_v_120v: ValuePaper,
+    /// The voltage of the largest opening, y \[V\].
+    #[serde(rename = "loop_opening_y_at_V_120V")]
+    pub loop_opening_y_at_v_120v: ValuePaper,
+    /// How they were measured.
+    pub method: &'static str,
+}
+
+/// The NAC2024 rows.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct NacJson {
+    /// How they were measured.
+    pub method: &'static str,
+    /// One per frequency.
+    pub rows: Vec<NacRowJson>,
+}
+
+/// One frequency of [`NacJson`].
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+pub struct NacRowJson {
+    /// \[kHz\].
+    pub frequency_khz: f64,
+    /// R² of the core model against the plant.
+    pub r2: f64,
+    /// Mean relative deviation \[%\].
+    pub mrd_percent: f64,
+    /// The paper's R².
+    pub paper_r2: f64,
+    /// The paper's MRD \[%\].
+    pub paper_mrd_percent: f64,
+    /// R² against the plant with Table 1 only.
+    pub baseline_r2: f64,
+    /// MRD against it \[%\].
+    pub baseline_mrd_percent: f64,
+}
+
+/// The asymmetric stage's errors per model.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct StageJson {
+    /// How they were measured.
+    pub method: &'static str,
+    /// Each model against the Case III plant.
+    #[serde(rename = "models_vs_plant_case_III")]
+    pub models_vs_plant_case_iii: std::collections::BTreeMap<&'static str, StageFitJson>,
+    /// Each model against the plant of its own case.
+    pub matched_case_model_vs_plant: std::collections::BTreeMap<&'static str, StageFitJson>,
+}
+
+/// One model's error \[µm\].
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+pub struct StageFitJson {
+    /// Relative absolute error, rising and falling.
+    pub rae_um: [f64; 2],
+    /// Absolute fitting value.
+    pub afv_um: f64,
+    /// The paper's.
+    pub paper: StagePaperJson,
+}
+
+/// The paper's figures of [`StageFitJson`] \[µm\].
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+pub struct StagePaperJson {
+    /// Relative absolute error, rising and falling.
+    pub rae_um: [f64; 2],
+    /// Absolute fitting value.
+    pub afv_um: f64,
 }

@@ -55,7 +55,7 @@ fn shortened_demo_finds_creep_and_compensates_it() {
 #[test]
 fn reproduce_writes_every_figure_with_the_paper_value() {
     let report = host_sim::reproduce::run_reproduce(&mut |_| {}).unwrap();
-    let j = report.json();
+    let j = host_sim::to_json(&report.report()).unwrap();
     for key in [
         "loop_opening_x_um_120V",
         "loop_opening_y_um_120V",
