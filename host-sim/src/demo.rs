@@ -638,52 +638,59 @@ impl DemoResult {
         s
     }
 
-    /// The JSON summary.
-    pub fn summary_json(&self) -> crate::Result<serde_json::Value> {
-        use serde_json::json;
-        let close_loop = crate::to_json(&self.close_loop.report())?;
+    /// `summary.json`: the settings, the error per axis in each mode, the close-loop report.
+    pub fn summary(&self) -> Summary<'_> {
         let axis = |a: usize| {
             let st = |r: &ModeRun| {
                 let e = r.errors[a];
-                json!({
-                    "rms_um": e.rms_m * 1e6,
-                    "max_um": e.max_abs_m * 1e6,
-                    "rms_percent_of_stroke": 100.0 * e.rms_m / self.stroke_m[a],
-                    "max_percent_of_stroke": 100.0 * e.max_abs_m / self.stroke_m[a],
-                })
+                ModeError {
+                    rms_um: e.rms_m * 1e6,
+                    max_um: e.max_abs_m * 1e6,
+                    rms_percent_of_stroke: 100.0 * e.rms_m / self.stroke_m[a],
+                    max_percent_of_stroke: 100.0 * e.max_abs_m / self.stroke_m[a],
+                }
             };
-            json!({
-                "stroke_um": self.stroke_m[a] * 1e6,
-                "uncompensated": st(&self.linear),
-                "compensated_base_model": st(&self.base),
-                "compensated_with_effects": st(&self.closed),
-                "rms_ratio_with_effects_over_base":
-                    self.closed.errors[a].rms_m / self.base.errors[a].rms_m,
-                "rms_ratio_base_over_uncompensated":
-                    self.base.errors[a].rms_m / self.linear.errors[a].rms_m,
-                "linear_feedforward": {"gain_um_per_v": self.linear_fit[a].0 * 1e6, "offset_um": self.linear_fit[a].1 * 1e6},
-                "effects_added": self.close_loop.axes[a].model.added.iter().map(|e| e.name()).collect::<Vec<_>>(),
-            })
+            AxisSummary {
+                stroke_um: self.stroke_m[a] * 1e6,
+                uncompensated: st(&self.linear),
+                compensated_base_model: st(&self.base),
+                compensated_with_effects: st(&self.closed),
+                rms_ratio_with_effects_over_base: self.closed.errors[a].rms_m
+                    / self.base.errors[a].rms_m,
+                rms_ratio_base_over_uncompensated: self.base.errors[a].rms_m
+                    / self.linear.errors[a].rms_m,
+                linear_feedforward: LinearFeedforward {
+                    gain_um_per_v: self.linear_fit[a].0 * 1e6,
+                    offset_um: self.linear_fit[a].1 * 1e6,
+                },
+                effects_added: self.close_loop.axes[a]
+                    .model
+                    .added
+                    .iter()
+                    .map(|e| e.name())
+                    .collect(),
+            }
         };
-        Ok(json!({
-            "plant": "xy-stage",
-            "plant_effects": self.settings.plant_effects,
-            "settings": {
-                "x_frequency_hz": self.settings.x_frequency_hz,
-                "y_frequency_hz": self.settings.y_frequency_hz,
-                "duration_s": self.settings.duration_s,
-                "low_fraction_of_stroke": self.settings.low_fraction,
-                "high_fraction_of_stroke": self.settings.high_fraction,
-                "loop_rate_hz": self.settings.loop_rate_hz,
-                "settle_s": self.settings.settle_s,
-                "identify_s": self.settings.identify_s,
-                "output_window_v": [OUTPUT_MIN_V, OUTPUT_MAX_V],
+        let settings = &self.settings;
+        Summary {
+            plant: "xy-stage",
+            plant_effects: &settings.plant_effects,
+            settings: SettingsSummary {
+                x_frequency_hz: settings.x_frequency_hz,
+                y_frequency_hz: settings.y_frequency_hz,
+                duration_s: settings.duration_s,
+                low_fraction_of_stroke: settings.low_fraction,
+                high_fraction_of_stroke: settings.high_fraction,
+                loop_rate_hz: settings.loop_rate_hz,
+                settle_s: settings.settle_s,
+                identify_s: settings.identify_s,
+                output_window_v: [OUTPUT_MIN_V, OUTPUT_MAX_V],
             },
-            "x": axis(0),
-            "y": axis(1),
-            "close_loop": close_loop,
-            "seconds": self.seconds,
-        }))
+            x: axis(0),
+            y: axis(1),
+            close_loop: self.close_loop.report(),
+            seconds: self.seconds,
+        }
     }
 
     /// Writes `summary.json`, `demo.csv`, `demo-params.toml` (the final model in the firmware's
@@ -693,8 +700,7 @@ impl DemoResult {
         std::fs::create_dir_all(dir).map_err(crate::Error::write("--out", dir))?;
         let mut written = Vec::new();
         let json_path = dir.join("summary.json");
-        let text =
-            serde_json::to_string_pretty(&self.summary_json()?).map_err(crate::Error::from)?;
+        let text = serde_json::to_string_pretty(&self.summary()).map_err(crate::Error::from)?;
         std::fs::write(&json_path, text + "\n")
             .map_err(crate::Error::write("--out", &json_path))?;
         written.push(json_path.display().to_string());
@@ -1019,6 +1025,91 @@ pub fn demo_cmd(a: &DemoArgs) -> crate::Result<String> {
     let result = run_demo(&settings, &mut crate::progress)?;
     let files = result.write(&a.out, a.format.extensions())?;
     Ok(format!("{}written: {}", result.table(), files.join(", ")))
+}
+
+/// `summary.json` ([`DemoResult::summary`]).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Summary<'a> {
+    /// The plant's name.
+    pub plant: &'static str,
+    /// The effects the plant was given.
+    pub plant_effects: &'a [String],
+    /// The run's settings.
+    pub settings: SettingsSummary,
+    /// Axis x.
+    pub x: AxisSummary,
+    /// Axis y.
+    pub y: AxisSummary,
+    /// The close-loop run's report.
+    pub close_loop: crate::close_loop::OutcomeReport<'a>,
+    /// Wall time of the run \[s\].
+    pub seconds: f64,
+}
+
+/// The settings of [`Summary`].
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+pub struct SettingsSummary {
+    /// The raster's frequencies \[Hz\].
+    pub x_frequency_hz: f64,
+    /// The raster's y frequency \[Hz\].
+    pub y_frequency_hz: f64,
+    /// Each mode's run \[s\].
+    pub duration_s: f64,
+    /// The lower end of the trajectory, share of the stroke.
+    pub low_fraction_of_stroke: f64,
+    /// The upper end, share of the stroke.
+    pub high_fraction_of_stroke: f64,
+    /// The loop rate \[Hz\].
+    pub loop_rate_hz: f64,
+    /// Settling before the scored part \[s\].
+    pub settle_s: f64,
+    /// The identification record \[s\].
+    pub identify_s: f64,
+    /// The output window \[V\].
+    pub output_window_v: [f64; 2],
+}
+
+/// One axis of [`Summary`] (µm and % of the axis's stroke).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct AxisSummary {
+    /// The axis's stroke \[µm\].
+    pub stroke_um: f64,
+    /// With the linear feedforward.
+    pub uncompensated: ModeError,
+    /// With the base model's compensator.
+    pub compensated_base_model: ModeError,
+    /// With the compensator of the model close-loop chose.
+    pub compensated_with_effects: ModeError,
+    /// RMS with effects / RMS with the base model.
+    pub rms_ratio_with_effects_over_base: f64,
+    /// RMS with the base model / RMS uncompensated.
+    pub rms_ratio_base_over_uncompensated: f64,
+    /// The straight line the uncompensated run follows.
+    pub linear_feedforward: LinearFeedforward,
+    /// The effects close-loop added.
+    pub effects_added: Vec<&'static str>,
+}
+
+/// The tracking error of one mode on one axis.
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+pub struct ModeError {
+    /// RMS \[µm\].
+    pub rms_um: f64,
+    /// Largest \[µm\].
+    pub max_um: f64,
+    /// RMS, % of the stroke.
+    pub rms_percent_of_stroke: f64,
+    /// Largest, % of the stroke.
+    pub max_percent_of_stroke: f64,
+}
+
+/// y = gain·u + offset.
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+pub struct LinearFeedforward {
+    /// \[µm/V\].
+    pub gain_um_per_v: f64,
+    /// \[µm\].
+    pub offset_um: f64,
 }
 
 #[cfg(test)]
