@@ -133,10 +133,12 @@ measured on it (--harmonic-gain rho > 0; off by default). The table is clamped \
 to the output window and slew limit, and carries its reference and the stage file's FNV-1a 32: a table learned \
 for another reference or stage file is refused.";
 
-/// The learning of one axis in a step.
-#[derive(Debug, Clone, PartialEq)]
+/// The learning of one axis in a step; serialised as its entry of `STEP.json` (without the
+/// axis's name, the key, and the model gain's offset).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct AxisStep {
     /// `x` or `y`.
+    #[serde(skip)]
     pub axis: &'static str,
     /// RMS of r − y over the trial just measured \[m\].
     pub rms_m: f64,
@@ -159,6 +161,7 @@ pub struct AxisStep {
     pub noise_from_passes: bool,
     /// (γ̂, ĉ \[m\]): the stage's output against the model's for the trial's command, when the
     /// model explains the trial (`Learning::gain_ratio`).
+    #[serde(skip)]
     pub model_gain: Option<(f64, f64)>,
 }
 
@@ -242,22 +245,14 @@ impl LearnStep {
 
     /// `STEP.json`: one entry per axis, named by its column, beside the iteration, the stage
     /// file's fingerprint, whether the trial was periodic and the rule.
-    pub fn report(&self) -> StepReport {
+    pub fn report(&self) -> StepReport<'_> {
         StepReport {
             axes: self
                 .axes
                 .iter()
                 .map(|a| {
                     let report = AxisStepReport {
-                        rms_m: a.rms_m,
-                        max_abs_m: a.max_abs_m,
-                        q_cutoff_hz: a.q_cutoff_hz,
-                        learning_gain: a.learning_gain,
-                        limited: a.limited,
-                        noise_rms_m: a.noise_rms_m,
-                        learned_share: a.learned_share,
-                        harmonics_learned: a.harmonics_learned,
-                        noise_from_passes: a.noise_from_passes,
+                        step: a,
                         model_gain_ratio: a.model_gain.map(|g| g.0),
                         base_resolved: rebase(&[a.model_gain], &self.params).is_some(),
                     };
@@ -274,10 +269,10 @@ impl LearnStep {
 
 /// `STEP.json` ([`LearnStep::report`]).
 #[derive(Debug, Clone, serde::Serialize)]
-pub struct StepReport {
+pub struct StepReport<'a> {
     /// Per axis, by its column name.
     #[serde(flatten)]
-    pub axes: std::collections::BTreeMap<String, AxisStepReport>,
+    pub axes: std::collections::BTreeMap<String, AxisStepReport<'a>>,
     /// The iteration of the table written.
     pub iteration: u32,
     /// FNV-1a 32 of the stage file, `0x%08x`.
@@ -290,26 +285,11 @@ pub struct StepReport {
 
 /// One axis of [`StepReport`]: the error of the trial just measured (SI) and how the step learned.
 #[derive(Debug, Clone, serde::Serialize)]
-pub struct AxisStepReport {
-    /// RMS of r − y over the trial \[m\].
-    pub rms_m: f64,
-    /// Largest |r − y| of the trial \[m\].
-    pub max_abs_m: f64,
-    /// Q's cut-off \[Hz\].
-    pub q_cutoff_hz: f64,
-    /// λ.
-    pub learning_gain: f64,
-    /// Samples the window or the slew limit held.
-    pub limited: usize,
-    /// The noise σ the shares were set by \[m\].
-    pub noise_rms_m: f64,
-    /// The share s of L·e learned.
-    pub learned_share: f64,
-    /// Harmonics above the cut-off learned from the trial's response.
-    pub harmonics_learned: usize,
-    /// Whether σ came from the spread between the trial's passes.
-    pub noise_from_passes: bool,
-    /// The plant/model gain the trial showed, where it showed one.
+pub struct AxisStepReport<'a> {
+    /// The step's figures.
+    #[serde(flatten)]
+    pub step: &'a AxisStep,
+    /// γ̂, the plant/model gain the trial showed, where it showed one.
     pub model_gain_ratio: Option<f64>,
     /// Whether the learning's base could be scaled to that gain.
     pub base_resolved: bool,
@@ -932,4 +912,51 @@ pub fn learn_cmd(a: &LearnArgs) -> crate::Result<String> {
         axes.join("; "),
         a.report.display()
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// An axis's entry of `STEP.json` has the keys it has always had, the model gain's ratio
+    /// alone and no axis name (the entry's key).
+    #[test]
+    fn an_axis_step_serialises_with_the_keys_of_step_json() {
+        let step = AxisStep {
+            axis: "x",
+            rms_m: 1e-8,
+            max_abs_m: 3e-8,
+            q_cutoff_hz: 900.0,
+            learning_gain: 0.9,
+            limited: 0,
+            noise_rms_m: 1e-9,
+            learned_share: 0.95,
+            harmonics_learned: 2,
+            noise_from_passes: true,
+            model_gain: Some((1.2, 1e-7)),
+        };
+        let report = AxisStepReport {
+            step: &step,
+            model_gain_ratio: step.model_gain.map(|g| g.0),
+            base_resolved: true,
+        };
+        let json = crate::to_json(&report).unwrap();
+        assert_eq!(
+            crate::json_keys(&json),
+            std::collections::BTreeSet::from([
+                "rms_m",
+                "max_abs_m",
+                "q_cutoff_hz",
+                "learning_gain",
+                "limited",
+                "noise_rms_m",
+                "learned_share",
+                "harmonics_learned",
+                "noise_from_passes",
+                "model_gain_ratio",
+                "base_resolved",
+            ])
+        );
+        assert_eq!(json["model_gain_ratio"], 1.2);
+    }
 }
