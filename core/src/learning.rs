@@ -58,6 +58,14 @@
 //!   at most 0.4/T. Then ‖e_{k+1}‖ ≤ (1 − m)·‖e_k‖ for every plant in that set (the linear
 //!   part, on a periodic trial). With a feedback servo whose sensitivity is S, learning on the
 //!   applied command gives the factor |S·Q·(1 − L·G)| instead.
+//! * **Under a servo** (a periodic trial with [`Trial::table_v`]): the command measured is the
+//!   voltage applied U, the table T plus the servo's correction. The step starts from T and
+//!   learns the same share of the correction U − T as of L·e, harmonic by harmonic:
+//!   `T_next = u₀ + Q·(T − u₀ + s_h·(U − T + L·e))`, and for a linear stage
+//!   `ε_next = (1 − s_h + s_h·S·(1 − L·G))·ε`: the factor S·(1 − L·G) at s_h = 1, and a
+//!   harmonic at the noise (s_h ≈ 0) held. Started from U, the whole correction was handed
+//!   over whatever s_h, `ε_next = S·(1 − s_h·L·G)·ε`, and a harmonic at the noise near the
+//!   servo's crossover grew by |S| (up to 1.6 on the XY stage).
 //! * **Sensor noise**: the measured error carries the sensor's noise, and L passes it into the
 //!   next command: at full gain the table gathers noise trial after trial, and once the error is
 //!   down at the noise the trials rise and fall with it. Each step therefore learns the share
@@ -801,11 +809,21 @@ impl Learning {
         let (learned_share, in_band_ms) =
             self.learned_share(trial.periodic, noise_rms_m, &error, next_v);
         if trial.periodic {
-            // L·e alone, then each harmonic's own share of it (module doc, "Sensor noise").
+            // L·e alone, plus under a servo its correction U − T, then each harmonic's own
+            // share of both (module doc, "Sensor noise" and "Under a servo"); from the table.
+            let table = |j: usize| match trial.table_v {
+                Some(t) if t[j].is_finite() => t[j],
+                _ => command(j),
+            };
             self.learned_update(true, self.learning_gain, &error, &command, &command, next_v);
+            if trial.table_v.is_some() {
+                for (j, v) in next_v.iter_mut().enumerate() {
+                    *v += command(j) - table(j);
+                }
+            }
             self.share_per_harmonic(noise_rms_m, learned_share, &error, next_v);
             for (j, v) in next_v.iter_mut().enumerate() {
-                *v += command(j) - kept(j);
+                *v += table(j) - kept(j);
             }
         } else {
             self.learned_update(
@@ -1489,6 +1507,50 @@ mod tests {
                 summary.learned_share
             );
         }
+    }
+
+    /// Under a servo, a trial already at the reference (no error left to learn, each harmonic's
+    /// share 0) keeps its table: the servo's correction U − T in the voltage applied is handed
+    /// over with the share learned, not whole (from U the table took a 0.5 V correction at
+    /// 300 Hz, where the servo's |S| can exceed 1, into the next trial).
+    #[test]
+    fn under_a_servo_a_trial_at_the_reference_keeps_its_table() {
+        let (_, _, learning) = x_stage(1e5, 0.0, Default::default());
+        const N: usize = 1000;
+        let table: [f32; N] = core::array::from_fn(|j| {
+            (60.0 + 30.0 * libm::sin(2.0 * PI * j as f64 / N as f64)) as f32
+        });
+        let applied: [f32; N] = core::array::from_fn(|j| {
+            table[j] + (0.5 * libm::sin(2.0 * PI * 3.0 * j as f64 / N as f64)) as f32
+        });
+        let reference = [3e-6f32; N];
+        let step = |table_v: Option<&[f32]>| {
+            let mut next = [0.0f32; N];
+            learning
+                .step(
+                    &Trial {
+                        reference_m: &reference,
+                        command_v: &applied,
+                        measured_m: &reference,
+                        base_v: &table,
+                        periodic: true,
+                        noise: Some(TrialNoise {
+                            measured_m: 1e-9,
+                            command_v: 1e-3,
+                        }),
+                        previous: None,
+                        table_v,
+                    },
+                    &mut next,
+                )
+                .unwrap();
+            (0..N)
+                .map(|j| (next[j] - table[j]).abs())
+                .fold(0.0f32, f32::max)
+        };
+        assert!(step(Some(&table)) < 1e-3, "{}", step(Some(&table)));
+        // Without the table the correction is taken whole (Q passes 300 Hz).
+        assert!(step(None) > 0.4, "{}", step(None));
     }
 
     /// A reproducible standard normal sequence (Box–Muller over splitmix64).
