@@ -30,7 +30,7 @@
 //! correction to the table; for a linear stage the table's error then moves by
 //! `ε_next = S·(1 − ρ·s_h·G/Ĝ)·ε` (S = 1/(1 + G·C), the servo's sensitivity). Inside the
 //! servo's band |S| ≪ 1 and that is what makes the learning fast; above its crossover
-//! |S| reaches 1.6 on the XY stage, and a harmonic held at U(h) (the gates' edge) or learned
+//! |S| reaches 1.6 on the XY stage, and a harmonic held at U(h) or learned
 //! with Ĝ a little off grew by |S| trial after trial. Once the trial before gives a two-trial
 //! estimate, a harmonic is therefore learned from the table itself: `T_next(h) = T(h) +
 //! ρ·s_h·E(h)/Ĝ_T(h)`, with the table's response G·S measured between the two trials,
@@ -40,14 +40,14 @@
 //! M is what the hysteresis mixed into h from the change at the other harmonics (the model's
 //! output beyond its slope; its linear part, and with it the servo's noise in ΔU, cancels):
 //! learning moves the fundamental and its first harmonics, the stack carries part of that
-//! change into h, and a plain ΔY/ΔT read it as the table's response (on the XY stage 6–11×
-//! off and turned by 135–150°). For a linear stage after the hysteresis ΔY = G·S·(ΔT + M/ḡ),
+//! change into h, and a plain ΔY/ΔT read it as the table's response. For a linear stage
+//! after the hysteresis ΔY = G·S·(ΔT + M/ḡ),
 //! so the factor is `1 − ρ·s_h·G·S/Ĝ_T`, whatever S is; a harmonic held keeps T(h). ΔT is
 //! computed, not measured, so its gate is the predicted |ΔY| alone: gated also on the noise of
 //! the voltage applied (the servo's response to the sensor's noise), no table step counted as
 //! moved, and every step under the servo fell back to the one-trial estimate.
 //! The first step at a harmonic (no ΔT clear of the noise: the first trial learned from, or
-//! one after the harmonic was held or left to Q) has only the one-trial Ĝ, the stage's own
+//! one after the harmonic was held) has only the one-trial Ĝ, the stage's own
 //! response. Started from U(h) it handed over the whole correction with ρ of the error, and the
 //! error moved by `S·(1 − ρ·s_h·G/Ĝ)`: 0.8 at best with |S| = 1.6 and ρ = 0.5, above 1 with Ĝ a
 //! little off. It now starts from the table and hands over the same share of the correction
@@ -82,8 +82,7 @@
 //!
 //! **Gates** (a harmonic that passes them all learns; any other keeps the component it has,
 //! T(h) under a servo, U(h) else: one learned before and then refused went back to Q's, the
-//! compensator's own, undoing in one step what it had learned, and a 100 Hz triangle with a
-//! stage file of gain ×0.6 rose 2.3× from one trial to the next at that step):
+//! compensator's own, undoing in one step what it had learned):
 //! * SNR: `|G_model(h)|·|U(h)| ≥ 8·σ_y/√n` (for the G_model that agrees, below) and `|U(h)| ≥ 8·σ_u/√n` ([`HARMONIC_SNR`]; σ/√n is
 //!   the RMS of a white noise's DFT coefficient; σ_y, σ_u from the spread between the trial's
 //!   passes, so the step runs only on trials that average several). Then the noise moves Ĝ by
@@ -317,12 +316,11 @@ fn clears_noise(
     bin_noise_y: f64,
     bin_noise_u: f64,
 ) -> bool {
-    let snr = HARMONIC_SNR;
     response.u.abs() > 0.0
         && response.w.abs() > 0.0
-        && response.u.abs() >= snr * response.u_noise_scale * bin_noise_u
+        && response.u.abs() >= HARMONIC_SNR * response.u_noise_scale * bin_noise_u
         && model.abs() * response.w.abs() / libm::fabs(inp.slope)
-            >= snr * response.y_noise_scale * bin_noise_y
+            >= HARMONIC_SNR * response.y_noise_scale * bin_noise_y
 }
 
 /// ρ·s_h·E(h)/Ĝ at one harmonic, Ĝ = ḡ·Y/Ŵ of `response`, plus ρ·s_h·`handed_over` (the
@@ -338,7 +336,6 @@ fn gated_step(
     bin_noise_y: f64,
     bin_noise_u: f64,
 ) -> Option<C> {
-    let (factor, phase) = (HARMONIC_MODEL_FACTOR, HARMONIC_MODEL_PHASE_RAD);
     if !(response.u.abs() > 0.0 && response.w.abs() > 0.0) {
         return None;
     }
@@ -349,9 +346,8 @@ fn gated_step(
         let ratio = estimate.div(model);
         let magnitude = ratio.abs();
         clears_noise(inp, response, model, bin_noise_y, bin_noise_u)
-            && magnitude >= 1.0 / factor
-            && magnitude <= factor
-            && libm::fabs(libm::atan2(ratio.1, ratio.0)) <= phase
+            && (1.0 / HARMONIC_MODEL_FACTOR..=HARMONIC_MODEL_FACTOR).contains(&magnitude)
+            && libm::fabs(libm::atan2(ratio.1, ratio.0)) <= HARMONIC_MODEL_PHASE_RAD
     };
     if !(0..inp.model_count.max(1)).any(|i| agrees((inp.model)(f, i))) {
         return None;
