@@ -179,12 +179,19 @@ pub(super) fn twiddle(h: usize, j: usize, n: usize) -> (f64, f64) {
     (libm::cos(phase), libm::sin(phase))
 }
 
-/// Replaces `next`'s component at each gated harmonic (module doc); returns how many.
-pub(super) fn learn_harmonics(inp: &mut HarmonicInputs<'_>, next: &mut [f32]) -> usize {
+/// Replaces `next`'s component at each gated harmonic (module doc); returns how many, and
+/// writes each learned harmonic's change of the stage's input, (h, U_next(h) − U(h)) (T for
+/// U under a servo), to `changes` while it has room (their count is the second value).
+pub(super) fn learn_harmonics(
+    inp: &mut HarmonicInputs<'_>,
+    next: &mut [f32],
+    changes: &mut [(usize, C)],
+) -> (usize, usize) {
     let n = next.len();
     if n < 4 || inp.gain.is_nan() || inp.gain <= 0.0 {
-        return 0;
+        return (0, 0);
     }
+    let mut changed = 0;
     let t = inp.sample_period_s;
     let first = libm::floor(inp.cutoff_hz * n as f64 * t) as usize + 1;
     // Below the Nyquist frequency (its component has no phase to learn).
@@ -288,7 +295,12 @@ pub(super) fn learn_harmonics(inp: &mut HarmonicInputs<'_>, next: &mut [f32]) ->
         let target = match step {
             Some(step) => {
                 learned += 1;
-                C(from.0 + step.0, from.1 + step.1)
+                let target = C(from.0 + step.0, from.1 + step.1);
+                if let Some(slot) = changes.get_mut(changed) {
+                    *slot = (h, C(target.0 - held.0, target.1 - held.1));
+                    changed += 1;
+                }
+                target
             }
             // Refused: held where it stands (module doc, "Gates").
             None => held,
@@ -304,7 +316,7 @@ pub(super) fn learn_harmonics(inp: &mut HarmonicInputs<'_>, next: &mut [f32]) ->
             *v += (2.0 * (delta.0 * c + delta.1 * s)) as f32;
         }
     }
-    learned
+    (learned, changed)
 }
 
 /// Whether the response's command and its predicted output stand clear of the noise: |U| ≥
@@ -425,7 +437,7 @@ mod tests {
         let r = respond(&wanted);
         let model = |f: f64, _: usize| plant(f, 2000.0);
         let mut next: [f32; N] = core::array::from_fn(|j| u[j] as f32);
-        let learned = learn_harmonics(
+        let (learned, _) = learn_harmonics(
             &mut HarmonicInputs {
                 reference: &|j| r[j],
                 measured: &|j| y[j],
@@ -444,6 +456,7 @@ mod tests {
                 cap_v: 1.0,
             },
             &mut next,
+            &mut [],
         );
         // Harmonics 11 … 49 with content: 15 (in u and y) only; 22 has none in u (no estimate).
         assert_eq!(learned, 1);
@@ -476,7 +489,7 @@ mod tests {
         let r: [f64; N] = core::array::from_fn(|j| y[j] + wave(1e-8, H, j));
         // Q's result: the command without its content at H.
         let mut next: [f32; N] = core::array::from_fn(|j| (60.0 + wave(40.0, 1, j)) as f32);
-        let learned = learn_harmonics(
+        let (learned, _) = learn_harmonics(
             &mut HarmonicInputs {
                 reference: &|j| r[j],
                 measured: &|j| y[j],
@@ -495,6 +508,7 @@ mod tests {
                 cap_v: 1.0,
             },
             &mut next,
+            &mut [],
         );
         assert_eq!(learned, 0);
         for j in 0..N {
@@ -590,6 +604,7 @@ mod tests {
                         cap_v: 1.0,
                     },
                     &mut next,
+                    &mut [],
                 );
                 last = Some((y, u, table));
                 table = core::array::from_fn(|j| f64::from(next[j]));
