@@ -191,15 +191,15 @@ pub struct LearningParams {
     /// claim of no dynamics up to the Nyquist frequency.
     pub unmodelled_mode_fraction: f32,
     /// ρ of the learning at a periodic trial's harmonics above Q's cut-off from the stage's
-    /// response measured on the trial (module doc), 0 ≤ ρ ≤ 1; 0 (the default) leaves them to
-    /// Q. On the XY stage 0.5 takes the 100 Hz triangle below 0.1 % of the stroke; on a stage
-    /// with an unmodelled 2 ms dielectric lag it let one trial rise 1.12× above the one before.
+    /// response measured on the trial (module doc), 0 ≤ ρ ≤ 1; 0 leaves them to Q. The default
+    /// 0.5 takes the XY stage's 100 Hz triangle below 0.1 % of the stroke, where Q alone stops
+    /// above it; it runs only on trials that average several passes ([`Trial::noise`]).
     pub harmonic_gain: f32,
 }
 
 impl Default for LearningParams {
     /// γ in [0.6, 1.7] (a stage file whose gain is ×1.5 or ×0.6 off stays inside), mode ±20 %,
-    /// margin 0.1, no learning above the cut-off (ρ = 0); without a mode, one may lie at or above 1/20 of the sample rate (500 Hz at
+    /// margin 0.1, learning above the cut-off at ρ = 0.5; without a mode, one may lie at or above 1/20 of the sample rate (500 Hz at
     /// 10 kHz: a piezo stage's first flexure or load mode lies between a few hundred hertz and
     /// tens of kilohertz).
     fn default() -> Self {
@@ -209,7 +209,7 @@ impl Default for LearningParams {
             mode_frequency_tolerance: 0.2,
             margin: 0.1,
             unmodelled_mode_fraction: 0.05,
-            harmonic_gain: 0.0,
+            harmonic_gain: 0.5,
         }
     }
 }
@@ -377,9 +377,18 @@ pub struct TrialNoise {
     pub command_v: f64,
 }
 
+/// Share of a record's nonzero sample-to-sample differences that must be whole multiples of the
+/// smallest for [`quantum`] to read it as a quantised record.
+pub const QUANTISED_SHARE: f64 = 0.9;
+
+/// Fewest small sample-to-sample differences [`quantum`] judges a record by.
+pub const QUANTUM_MIN_STEPS: usize = 10;
+
 /// σ of one sample of the average of `record`'s passes: `record` holds m ≥ 2 whole passes of
 /// `period` samples; per sample j the passes' unbiased variance v_j = Σ_p (x_pj − x̄_j)²/(m − 1),
-/// and `σ² = ⟨v_j⟩_j / m` (the noise of a mean of m draws). Needs no assumption about the
+/// and `σ² = ⟨v_j⟩_j / m` (the noise of a mean of m draws), at least q/√12 for a quantised
+/// record of step q ([`quantum`]): passes of a quantised sensor that agree to the bit read no
+/// spread, while their average still carries the quantisation error. Needs no assumption about the
 /// noise's spectrum within a pass, only that it is independent between passes; what the passes
 /// share (the trajectory, its rings) does not count. `None` for fewer than two passes, a length
 /// that is not a whole number of them, or no finite sample; non-finite samples are left out.
@@ -405,7 +414,46 @@ pub fn pass_noise_rms(record: &[f32], period: usize) -> Option<f64> {
         sum += variance / count as f64;
         samples += 1;
     }
-    (samples > 0).then(|| libm::sqrt(sum / samples as f64))
+    let spread = (samples > 0).then(|| libm::sqrt(sum / samples as f64))?;
+    // Repeated readings of a quantised sensor agree to the bit, and their spread reads no
+    // noise where the average still carries the quantisation error: not below q/√12.
+    Some(match quantum(record) {
+        Some(q) => spread.max(q / libm::sqrt(12.0)),
+        None => spread,
+    })
+}
+
+/// The step q of a quantised record: the mean of the nonzero differences between consecutive
+/// finite samples within 1.3× the smallest, accepted when at least [`QUANTUM_MIN_STEPS`] nonzero differences lie within 20 q and
+/// at least [`QUANTISED_SHARE`] of those are whole multiples of it (within 1 %); `None` for a
+/// record that is not quantised (or shows too few steps).
+pub fn quantum(record: &[f32]) -> Option<f64> {
+    let steps = || {
+        record.windows(2).filter_map(|w| {
+            let d = libm::fabs(f64::from(w[1]) - f64::from(w[0]));
+            (d.is_finite() && d > 0.0).then_some(d)
+        })
+    };
+    let smallest = steps().fold(f64::INFINITY, f64::min);
+    if !smallest.is_finite() {
+        return None;
+    }
+    // The mean of the one-step differences: each reading carries its own rounding (a record in
+    // f32 metres), which the smallest alone would carry into every multiple.
+    let (sum, count) = steps()
+        .filter(|&d| d <= 1.3 * smallest)
+        .fold((0.0, 0usize), |(s, c), d| (s + d, c + 1));
+    let q = sum / count as f64;
+    // Steps of up to 20 q, so that q's own rounding does not add up.
+    let (mut whole, mut all) = (0usize, 0usize);
+    for d in steps().filter(|&d| d <= 20.0 * q) {
+        let k = d / q;
+        all += 1;
+        if libm::fabs(k - libm::round(k)) <= 0.01 {
+            whole += 1;
+        }
+    }
+    (all >= QUANTUM_MIN_STEPS && whole as f64 >= QUANTISED_SHARE * all as f64).then_some(q)
 }
 
 /// One trial, per axis: all slices of the same length.
@@ -1854,6 +1902,34 @@ mod tests {
         let (without, with) = (in_band_error(&alone), in_band_error(&next));
         assert!(without > 1e-9, "the change mixes {without} m into the band");
         assert!(with < 0.35 * without, "{with} m left of {without} m");
+    }
+
+    /// Four passes of a 20 Hz sine read by a sensor of 3.1 nm steps without noise agree to the
+    /// bit: their spread is zero, and the noise is the quantisation's q/√12; the same sine
+    /// unquantised keeps its spread (zero), and a quantised record with noise keeps its spread
+    /// where that is larger.
+    #[test]
+    fn a_quantised_record_s_noise_is_at_least_its_quantisation() {
+        const N: usize = 1000;
+        let q = 3.1e-9;
+        let sine = |j: usize| 20e-6 + 10e-6 * libm::sin(2.0 * PI * (j % N) as f64 / N as f64);
+        let quantised: [f32; 4 * N] =
+            core::array::from_fn(|j| (libm::round(sine(j) / q) * q) as f32);
+        let step = quantum(&quantised).unwrap();
+        assert!((step / q - 1.0).abs() < 0.01, "{step}");
+        let sigma = pass_noise_rms(&quantised, N).unwrap();
+        assert!(
+            (sigma / (q / libm::sqrt(12.0)) - 1.0).abs() < 0.01,
+            "{sigma}"
+        );
+        let smooth: [f32; 4 * N] = core::array::from_fn(|j| sine(j) as f32);
+        assert_eq!(quantum(&smooth), None);
+        assert_eq!(pass_noise_rms(&smooth, N), Some(0.0));
+        let mut draw = gaussian(7);
+        let noisy: [f32; 4 * N] =
+            core::array::from_fn(|j| (libm::round((sine(j) + 20e-9 * draw()) / q) * q) as f32);
+        let sigma = pass_noise_rms(&noisy, N).unwrap();
+        assert!((sigma / 10e-9 - 1.0).abs() < 0.1, "{sigma}");
     }
 
     /// Four passes of a record whose every pass rings at 2.2 kHz (50 nm, as a lightly damped

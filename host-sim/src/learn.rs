@@ -24,7 +24,7 @@
 //! * With `--periodic`, `Y.csv` may hold several whole passes of the table: they are averaged,
 //!   and the averaged record's noise is read from the spread between them
 //!   (`piezo_core::pass_noise_rms`; `noise_from_passes` in `STEP.json`) instead of the error's
-//!   fourth differences. Only such a trial learns above Q's cut-off (`--harmonic-gain` ρ > 0):
+//!   fourth differences. Only such a trial learns above Q's cut-off (`--harmonic-gain` ρ, 0.5 by default):
 //!   at each harmonic of the period the stage's response measured on the trial, gated
 //!   (`piezo_core::learning`, module `harmonics`). With a servo the command file does not
 //!   show (learned+feedback over the link, the table as U), Ĝ is the table → output response,
@@ -129,7 +129,7 @@ mode, the error taken D samples later, gain 2/(gain_min + gain_max)), Q a zero-p
 low-pass (forward and backward, circular with --periodic) whose cut-off is the highest with |Q(1 - LG)| <= 1 - margin \
 for plant gains in [gain_min, gain_max] times the model's and its mode within +-mode-tolerance (a file without a mode: none, or one at or above unmodelled-mode-fraction times the loop rate, damping 0.02). Each step learns the share s = max(0, 1 - noise/in-band error) of L(r - y): the sensor noise estimated from the error's fourth differences, so that a trial at the noise does not fill the table with it; with --periodic, harmonic by harmonic within twice Q's cut-off (s_h = max(0, 1 - noise/|E(h)|^2)). With --periodic, the measured record may hold several whole passes: they are averaged and their noise \
 read from the spread between them; such a trial also learns at the period's harmonics above the cut-off from the stage's response \
-measured on it (--harmonic-gain rho > 0; off by default). The table is clamped \
+measured on it (--harmonic-gain rho, 0.5 by default; 0 leaves them to Q). The table is clamped \
 to the output window and slew limit, and carries its reference and the stage file's FNV-1a 32: a table learned \
 for another reference or stage file is refused.";
 

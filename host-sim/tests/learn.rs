@@ -640,8 +640,7 @@ fn a_stage_file_whose_gain_is_off_learns_as_fast_as_a_right_one() {
 /// settling ones; `learn` averages the passes and reads their noise from the spread between them
 /// (a measured record of several passes was refused). After ten steps the error is at most
 /// 0.2 × the first trial's (or within twice the sensor noise), and no trial rises more than 10 %
-/// above the one before (the largest rise here is 1.09×; with `--harmonic-gain 0.5` it is 1.12×,
-/// which is why the learning above the cut-off is not on by default).
+/// above the one before, the learning above the cut-off on (its default).
 #[test]
 fn a_periodic_file_per_trial_loop_converges_on_a_stage_its_file_does_not_describe() {
     let scratch = scratch("periodic_loop");

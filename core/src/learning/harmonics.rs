@@ -66,12 +66,14 @@
 //! | | 3 | 4 | 5 | 6 | 7 | 8 | 15 | worst rise |
 //! |---|---|---|---|---|---|---|---|---|
 //! | before | 0.1113 | 0.1044 | 0.1105 | 0.1134 | 0.1116 | 0.1010 | 0.0717 | 1.059× |
-//! | now | 0.0860 | 0.0826 | 0.0776 | 0.0750 | 0.0752 | 0.0639 | 0.0333 | 1.028× |
+//! | with it (before the mixing cancellation) | 0.0860 | 0.0826 | 0.0776 | 0.0750 | 0.0752 | 0.0639 | 0.0333 | 1.028× |
 //!
 //! The sine's row learns no harmonic (0.0029 %). The same command's robustness rows (the
 //! stage file's gain ×0.6 and ×1.5, its mode ×1.15 and ×0.85) end within 0.68–1.38× the
 //! nominal file's error and rise at most 1.31× after trial 1 (mode ×0.85, triangle: one trial
-//! whose error gathers at the sample after the corners, back down at the next).
+//! whose error gathers at the sample after the corners, back down at the next). That was the
+//! hysteresis mixing a first step near the Nyquist frequency into Q's band; the step now
+//! cancels it there (`super`'s module doc, "Mixing into the band").
 //!
 //! The next command's component at h (what Q left there: about the compensator's own) is
 //! replaced by U_next(h), its conjugate at n − h with it, so the command stays real.
