@@ -1779,6 +1779,35 @@ mod tests {
     /// Learning above the cut-off waits for the error inside Q's band to settle: a periodic
     /// trial whose 40 nm error at harmonic 20 (2 kHz, above the cut-off) comes with a 1 µm error
     /// at its fundamental learns no harmonic; without the latter it learns harmonic 20.
+    /// One periodic step from the command as its own base, with a nearly noiseless trial
+    /// (10 pm, 1 µV) that averages passes.
+    fn quiet_periodic_step(
+        learning: &Learning,
+        reference: &[f32],
+        command: &[f32],
+        measured: &[f32],
+        next: &mut [f32],
+    ) -> StepSummary {
+        learning
+            .step(
+                &Trial {
+                    reference_m: reference,
+                    command_v: command,
+                    measured_m: measured,
+                    base_v: command,
+                    periodic: true,
+                    noise: Some(TrialNoise {
+                        measured_m: 1e-11,
+                        command_v: 1e-6,
+                    }),
+                    previous: None,
+                    table_v: None,
+                },
+                next,
+            )
+            .unwrap()
+    }
+
     #[test]
     fn harmonics_above_the_cut_off_wait_for_the_error_inside_q_s_band() {
         let (model, _, learning) = x_stage(1e5, 0.0, Default::default());
@@ -1800,24 +1829,7 @@ mod tests {
                 (f64::from(measured[j]) + 4e-8 * wave(20.0, j) + in_band_m * wave(1.0, j)) as f32
             });
             let mut next = [0.0f32; N];
-            learning
-                .step(
-                    &Trial {
-                        reference_m: &reference,
-                        command_v: &command,
-                        measured_m: &measured,
-                        base_v: &command,
-                        periodic: true,
-                        noise: Some(TrialNoise {
-                            measured_m: 1e-11,
-                            command_v: 1e-6,
-                        }),
-                        previous: None,
-                        table_v: None,
-                    },
-                    &mut next,
-                )
-                .unwrap()
+            quiet_periodic_step(&learning, &reference, &command, &measured, &mut next)
                 .harmonics_learned
         };
         assert_eq!(learned(1e-6), 0);
@@ -1850,24 +1862,7 @@ mod tests {
         let reference: [f32; N] =
             core::array::from_fn(|j| (f64::from(measured[j]) + 2e-7 * wave(H, j)) as f32);
         let mut next = [0.0f32; N];
-        let summary = learning
-            .step(
-                &Trial {
-                    reference_m: &reference,
-                    command_v: &command,
-                    measured_m: &measured,
-                    base_v: &command,
-                    periodic: true,
-                    noise: Some(TrialNoise {
-                        measured_m: 1e-11,
-                        command_v: 1e-6,
-                    }),
-                    previous: None,
-                    table_v: None,
-                },
-                &mut next,
-            )
-            .unwrap();
+        let summary = quiet_periodic_step(&learning, &reference, &command, &measured, &mut next);
         assert!(summary.harmonics_learned >= 1);
         // The command with the harmonic's change alone: the next table's component at H.
         let component = |x: &dyn Fn(usize) -> f64, h: usize| {
