@@ -424,9 +424,10 @@ pub fn pass_noise_rms(record: &[f32], period: usize) -> Option<f64> {
 }
 
 /// The step q of a quantised record: the mean of the nonzero differences between consecutive
-/// finite samples within 1.3× the smallest, accepted when at least [`QUANTUM_MIN_STEPS`] nonzero differences lie within 20 q and
-/// at least [`QUANTISED_SHARE`] of those are whole multiples of it (within 1 %); `None` for a
-/// record that is not quantised (or shows too few steps).
+/// finite samples within 1.3× the smallest, accepted when at least [`QUANTUM_MIN_STEPS`]
+/// nonzero differences lie within 20 q and at least [`QUANTISED_SHARE`] of those are whole
+/// multiples of it (within 1 %); `None` for a record that is not quantised (or shows too few
+/// steps).
 pub fn quantum(record: &[f32]) -> Option<f64> {
     let steps = || {
         record.windows(2).filter_map(|w| {
@@ -1021,8 +1022,9 @@ impl Learning {
         );
         self.cancel_mixing(
             command,
+            start,
+            slope,
             &changes[..changed],
-            &model,
             HARMONIC_STEP_CAP * window,
             next_v,
         );
@@ -1033,11 +1035,13 @@ impl Learning {
     /// `changes` (module doc, "Mixing into the band"): with Δ(j) the changes in time,
     /// M = Ŵ(u + Δ) − Ŵ(u) − ḡ·Δ along one period of each (from its periodic state), and each
     /// harmonic h below the step's first, `next(h) −= λ·M(h)/G_model(f_h)` (at most `cap_v`).
+    /// `start` is the model's periodic state along u ([`Self::periodic_state`]) and `slope` ḡ.
     fn cancel_mixing(
         &self,
         command: &dyn Fn(usize) -> f32,
+        start: ModelState,
+        slope: f64,
         changes: &[(usize, C)],
-        model: &dyn Fn(f64, usize) -> C,
         cap_v: f64,
         next_v: &mut [f32],
     ) {
@@ -1059,11 +1063,7 @@ impl Learning {
                 .sum::<f64>()
         };
         let changed = |j: usize| (f64::from(command(j)) + delta(j)) as f32;
-        let (mut now, mut then) = (
-            self.periodic_state(command, n),
-            self.periodic_state(&changed, n),
-        );
-        let slope = model(0.0, 0).0;
+        let (mut now, mut then) = (start, self.periodic_state(&changed, n));
         let mut mixed = [C(0.0, 0.0); SHARED_HARMONICS];
         for j in 0..n {
             let (u, v) = (command(j), changed(j));
@@ -1081,7 +1081,7 @@ impl Learning {
         }
         let mut corrections = [C(0.0, 0.0); SHARED_HARMONICS];
         for (h, (m, out)) in mixed[..band].iter().zip(&mut corrections).enumerate() {
-            let g = model(h as f64 / (n as f64 * t), 0);
+            let g = self.model_response(h as f64 / (n as f64 * t), slope, 0);
             let mut c = C(m.0 / n as f64, m.1 / n as f64).div(g);
             c = C(-self.learning_gain * c.0, -self.learning_gain * c.1);
             let size = c.abs();
@@ -1776,9 +1776,6 @@ mod tests {
         );
     }
 
-    /// Learning above the cut-off waits for the error inside Q's band to settle: a periodic
-    /// trial whose 40 nm error at harmonic 20 (2 kHz, above the cut-off) comes with a 1 µm error
-    /// at its fundamental learns no harmonic; without the latter it learns harmonic 20.
     /// One periodic step from the command as its own base, with a nearly noiseless trial
     /// (10 pm, 1 µV) that averages passes.
     fn quiet_periodic_step(
@@ -1808,6 +1805,9 @@ mod tests {
             .unwrap()
     }
 
+    /// Learning above the cut-off waits for the error inside Q's band to settle: a periodic
+    /// trial whose 40 nm error at harmonic 20 (2 kHz, above the cut-off) comes with a 1 µm error
+    /// at its fundamental learns no harmonic; without the latter it learns harmonic 20.
     #[test]
     fn harmonics_above_the_cut_off_wait_for_the_error_inside_q_s_band() {
         let (model, _, learning) = x_stage(1e5, 0.0, Default::default());
