@@ -1299,6 +1299,7 @@ pub fn rates_json(reports: &[(f64, BenchReport)]) -> RatesJson {
                         lowpass_frequency_hz: t.params.lowpass_frequency_hz,
                         notch_frequency_hz: t.params.notch_frequency_hz,
                         notch_q: t.params.notch_q,
+                        notch_pole_frequency_hz: t.params.notch_pole_frequency_hz,
                         ki_v_per_m_s: t.params.ki_v_per_m_s,
                     })
                     .collect(),
@@ -1396,6 +1397,8 @@ pub struct TuningJson {
     pub notch_frequency_hz: f32,
     /// The notch's Q.
     pub notch_q: f32,
+    /// The notch's poles \[Hz\] (0: at its centre, a plain notch).
+    pub notch_pole_frequency_hz: f32,
     /// The integral gain \[V/(m·s)\].
     pub ki_v_per_m_s: f32,
 }

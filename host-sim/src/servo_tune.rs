@@ -14,10 +14,12 @@
 //!   measured on a board). A faster loop has less delay, so the same stage gets a higher
 //!   crossover at the same phase margin.
 //!
-//! The rule (core docs, `piezo_core::servo::tune`): a notch near f_n (centre 0.8–1.25·f_n, Q 1,
-//! 0.7, 0.5 or 0.35) and a Butterworth low-pass from 0.7 to 5 times max(f_n, 1/(4τ)), searched
-//! for the highest crossover with pure integral action, the phase margin asked for (phase
-//! unwrapped) and |1/(1 + L)| ≤ 1.6, also with f_n ± 10 %. The
+//! The rule (core docs, `piezo_core::servo::tune`): a notch near f_n (centre 0.8–1.25·f_n; a
+//! plain notch of Q 1, 0.7, 0.5 or 0.35, or a notch with lead, its poles 2, 4 or 8 times its
+//! centre with Q 1, 2 or 2.8, which holds the mode by phase when the loop is fast enough) and a
+//! Butterworth low-pass from 0.7 to 5 times max(f_n, 1/(4τ)), searched for the highest crossover
+//! with pure integral action, the phase margin asked for (phase unwrapped), a closed loop stable
+//! by the Nyquist criterion and |1/(1 + L)| ≤ 1.6, also with f_n ± 10 %. The
 //! parameters are written into the stage file and validated by the core with the rest of it.
 
 use piezo_core::servo::{tune, StageDynamics, Tuning, TuningGoal};
@@ -194,6 +196,7 @@ pub fn report(tunings: &[AxisTuning]) -> Vec<TuningReport> {
                     lowpass_q: tidy(p.lowpass_q),
                     notch_frequency_hz: tidy(p.notch_frequency_hz),
                     notch_q: tidy(p.notch_q),
+                    notch_pole_frequency_hz: tidy(p.notch_pole_frequency_hz),
                     transfer_time_constant_s: tidy(p.transfer_time_constant_s),
                 },
             }
@@ -241,6 +244,8 @@ pub struct ServoReport {
     pub notch_frequency_hz: f64,
     /// Notch Q.
     pub notch_q: f64,
+    /// The notch's poles \[Hz\] (0: at its centre, a plain notch).
+    pub notch_pole_frequency_hz: f64,
     /// Bumpless-transfer time constant \[s\].
     pub transfer_time_constant_s: f64,
 }

@@ -20,7 +20,10 @@ use serde::{Deserialize, Serialize};
 ///
 /// 3: an axis's [`Limits`] are piezo-core's, the stage file's `[x.limits]`, with the envelope
 /// policy after the slew limit; [`Program::Raster`] after the other programs.
-pub const PROTOCOL_VERSION: u16 = 3;
+///
+/// 4: an axis's servo carries the notch's pole frequency (`notch_pole_frequency_hz`, a notch
+/// with lead) after its Q.
+pub const PROTOCOL_VERSION: u16 = 4;
 
 /// Setpoints per [`Request::TableAppend`], [`Request::Stream`] or [`Request::LearnedAppend`]
 /// message.

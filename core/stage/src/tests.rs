@@ -279,6 +279,7 @@ fn the_models_check_skips_only_invertibility_and_the_drive_span() {
         lowpass_q: 0.70710677,
         notch_frequency_hz: 3221.0,
         notch_q: 1.0,
+        notch_pole_frequency_hz: 0.0,
         transfer_time_constant_s: f32::NAN,
     });
     let e = stage.validate_with(Check::Models).unwrap_err();

@@ -67,6 +67,7 @@ mod image {
         lowpass_q: core::f32::consts::FRAC_1_SQRT_2,
         notch_frequency_hz: 3000.0,
         notch_q: 1.0,
+        notch_pole_frequency_hz: 0.0,
         transfer_time_constant_s: 0.02,
     };
 

@@ -478,6 +478,7 @@ fn implausible_sets_and_other_chains_are_refused_and_counted() {
         lowpass_q: core::f32::consts::FRAC_1_SQRT_2,
         notch_frequency_hz: 3221.0,
         notch_q: 1.0,
+        notch_pole_frequency_hz: 0.0,
         transfer_time_constant_s: 0.02,
     };
     type Edit = fn(&mut ModelSet);
