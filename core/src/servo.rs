@@ -691,12 +691,18 @@ pub struct TuningGoal {
     pub notch_q: f32,
     /// τ of the bumpless hand-over without feedback \[s\].
     pub transfer_time_constant_s: f32,
+    /// Also try notches with lead, which hold the mode by phase ([`tune`]): a higher crossover
+    /// on a fast loop, but a loop that needs the mode where `StageDynamics` puts it. Off by
+    /// default: on the XY stage at 50 kHz the loop so tuned is stable with the mode at
+    /// 0.85–1.6·f_n only, where the plain notch's is stable from 0.6 to 3·f_n and without the mode
+    /// (`a_notch_with_lead_holds_the_mode_in_time`).
+    pub mode_by_phase: bool,
 }
 
 impl Default for TuningGoal {
     /// φ_m = 60°, M_s = 1.6, f_n ± 10 %, pure integral action, the low-pass search starting at
     /// f_n (Butterworth; or 1/(4τ) when higher), notch Q = 1 (or 0.7, 0.5, 0.35), hand-over
-    /// τ = 20 ms.
+    /// τ = 20 ms, plain notches only.
     fn default() -> Self {
         Self {
             phase_margin_deg: 60.0,
@@ -706,6 +712,7 @@ impl Default for TuningGoal {
             lowpass_ratio: 1.0,
             notch_q: 1.0,
             transfer_time_constant_s: 0.02,
+            mode_by_phase: false,
         }
     }
 }
@@ -923,9 +930,9 @@ impl Scan<'_> {
 /// Servo parameters from the stage's dynamics, by loop shaping against the nominal plant
 /// `P(s) = g·ω_n²/(s² + 2ζω_n s + ω_n²)·e^{−sτ}` and the discrete controller itself.
 ///
-/// The rule: the mode is held by a notch near f_n — a plain notch (gain stabilisation), or a
-/// notch with lead (module doc) whose poles lie above it, which holds the mode by phase
-/// instead — a Butterworth low-pass rolls the loop off, PI zero at f_z = `zero_ratio`·f_c, and
+/// The rule: the mode is held by a notch near f_n — a plain notch (gain stabilisation), or, with
+/// `goal.mode_by_phase`, also a notch with lead (module doc) whose poles lie above it, which
+/// holds the mode by phase instead — a Butterworth low-pass rolls the loop off, PI zero at f_z = `zero_ratio`·f_c, and
 /// ki is scaled so that |L(f_c)| = 1. The filters' placement is searched around a start set by
 /// the loop's latency τ (which falls with the loop period):
 /// ```text
@@ -959,7 +966,10 @@ impl Scan<'_> {
 /// towards −1 (on the XY stage, ζ = 0.03, the peak of |1/(1 + L)| sits near f_n/2, and f_c stays
 /// near f_n/5 at every rate). A notch with lead needs a loop whose latency leaves the phase at
 /// the mode free (τ·f_n well below 1/4): on the XY stage at 50 kHz (τ = 35 µs) it is chosen and
-/// f_c rises to about f_n/2.5; at 10 and 20 kHz the plain notch still wins.
+/// f_c rises to about f_n/2.5; at 10 and 20 kHz the plain notch still wins. It also needs the
+/// mode itself: its gain above f_n rises by (f_p/f_notch)², which only the mode's roll-off keeps
+/// below 1, so a stage whose mode lies well below the stated f_n (a payload) or that has none
+/// is unstable under it; hence it is tried only when the goal asks.
 /// Refused (`OutOfRange` on `phase_margin_deg`) when no crossover above f_n/10⁴ meets the goal.
 pub fn tune(
     dynamics: &StageDynamics,
@@ -1022,7 +1032,12 @@ pub fn tune(
     // The notch shapes in the order tried: (pole / centre, Q relative to the goal's): the
     // plain notches first, then the notches with lead.
     let plain = NOTCH_WIDENING.map(|w| (1.0, w));
-    let lead = LEAD_POLE_PLACEMENT
+    let lead_poles: &[f64] = if goal.mode_by_phase {
+        &LEAD_POLE_PLACEMENT
+    } else {
+        &[]
+    };
+    let lead = lead_poles
         .iter()
         .flat_map(|&p| LEAD_POLE_Q.iter().map(move |&q| (p, q)));
     let mut best: Option<Tuning> = None;
@@ -1347,10 +1362,11 @@ mod tests {
 
     /// The filters follow the latency: at 10 kHz (τ = 1.5·T + 5 µs, 1/(4τ) = 1.6 kHz below the
     /// mode) the low-pass stays at f_n with the goal's notch; at 50 kHz (1/(4τ) = 7.1 kHz) it
-    /// moves up and a wider notch wins: x-like stage 387 → 575 Hz at the same margins.
+    /// moves up and a wider notch wins, at the same margins; and when the goal allows a notch
+    /// with lead, the 50 kHz loop holds the mode by phase at twice the 10 kHz crossover.
     #[test]
     fn a_faster_loop_moves_the_filters_and_raises_the_crossover() {
-        let at = |rate: f32| {
+        let at_with = |rate: f32, goal: TuningGoal| {
             let t = 1.0 / rate;
             let dynamics = StageDynamics {
                 gain_m_per_v: 3.4e-7,
@@ -1362,8 +1378,9 @@ mod tests {
                 sample_period_s: t,
                 ..limits()
             };
-            tune(&dynamics, &TuningGoal::default(), limits).unwrap()
+            tune(&dynamics, &goal, limits).unwrap()
         };
+        let at = |rate: f32| at_with(rate, TuningGoal::default());
         let slow = at(10_000.0);
         let fast = at(50_000.0);
         // The low-pass moves up with the rate (the latency leaves the phase free), the notch
@@ -1382,15 +1399,28 @@ mod tests {
             let notch = t.params.notch_frequency_hz / 3221.0;
             assert!((0.8..=1.25).contains(&notch), "{t:?}");
         }
-        // At 50 kHz the latency leaves room to hold the mode by phase: a notch with lead, and
-        // twice the crossover at the same margins.
         assert!(
-            fast.crossover_hz >= 2.0 * slow.crossover_hz,
+            fast.crossover_hz > 1.4 * slow.crossover_hz,
             "{slow:?} {fast:?}"
         );
+        assert_eq!(fast.params.notch_pole_frequency_hz, 0.0, "{fast:?}");
+        // At 50 kHz the latency leaves room to hold the mode by phase: a notch with lead, and
+        // twice the crossover at the same margins; at 10 kHz the plain notch still wins.
+        let by_phase = TuningGoal {
+            mode_by_phase: true,
+            ..TuningGoal::default()
+        };
+        assert_eq!(at_with(10_000.0, by_phase), slow);
+        let lead = at_with(50_000.0, by_phase);
         assert!(
-            fast.params.notch_pole_frequency_hz > fast.params.notch_frequency_hz,
-            "{fast:?}"
+            lead.crossover_hz >= 2.0 * slow.crossover_hz
+                && lead.phase_margin_deg >= 60.0
+                && lead.sensitivity_peak <= 1.6,
+            "{slow:?} {lead:?}"
+        );
+        assert!(
+            lead.params.notch_pole_frequency_hz > lead.params.notch_frequency_hz,
+            "{lead:?}"
         );
     }
 
@@ -1433,9 +1463,9 @@ mod tests {
         }
     }
 
-    /// What the frequency rule accepts at 50 kHz, the notch with lead holding the mode by
-    /// phase with |L| > 1 around it, is stable in time, with the mode at f_n and ±10 %: a step
-    /// settles within 1 nm; and with four times the gain, which the rule finds unstable (three
+    /// What the frequency rule accepts at 50 kHz when the goal allows it, the notch with lead
+    /// holding the mode by phase with |L| > 1 around it, is stable in time, with the mode at f_n
+    /// and ±10 %: a step settles within 1 nm; and with four times the gain, which the rule finds unstable (three
     /// times is still stable there, with |S| up to 8), the error does not decay (the window
     /// holds it in a limit cycle of tens of µm).
     #[test]
@@ -1452,7 +1482,11 @@ mod tests {
             limits: Limits::new(-1000.0, 1000.0, 1e7),
             sample_period_s: t,
         };
-        let tuned = tune(&dynamics, &TuningGoal::default(), limits).unwrap();
+        let by_phase = TuningGoal {
+            mode_by_phase: true,
+            ..TuningGoal::default()
+        };
+        let tuned = tune(&dynamics, &by_phase, limits).unwrap();
         assert!(tuned.params.notch_pole_frequency_hz > 0.0, "{tuned:?}");
         let servo = Servo::new(tuned.params, limits, dynamics.gain_m_per_v).unwrap();
         // |L| > 1 at the mode: held by phase, not by gain.
@@ -1484,6 +1518,22 @@ mod tests {
         step_errors(&hot, &dynamics, 1.0, converter_s, &mut e);
         let tail = e[ticks - 500..].iter().fold(0.0_f64, |m, &x| m.max(x));
         assert!(tail > 1e-6, "{tail:e}");
+        // The price: the mode 20 % below f_n (a payload) or far above it (a stage without
+        // it) and the loop held by phase no longer settles, where the plain notch's does.
+        let plain = tune(&dynamics, &TuningGoal::default(), limits).unwrap();
+        let plain = Servo::new(plain.params, limits, dynamics.gain_m_per_v).unwrap();
+        for scale in [0.8, 100.0] {
+            let tail_of = |servo: &Servo, e: &mut [f64]| {
+                step_errors(servo, &dynamics, scale, converter_s, e);
+                e[ticks - 500..].iter().fold(0.0_f64, |m, &x| m.max(x))
+            };
+            let held = tail_of(&servo, &mut e);
+            let gained = tail_of(&plain, &mut e);
+            assert!(
+                held > 1e-8 && gained < 1e-9,
+                "mode ×{scale}: {held:e} vs {gained:e}"
+            );
+        }
     }
 
     /// The notch with lead: unit gain at DC, zero gain at its centre, (f_p/f_z)² at the

@@ -139,6 +139,10 @@ pub struct BenchSettings {
     /// mode, [`piezo_core::inverse_chain::InverseChain`]), so that the drive is pre-shaped and a
     /// reference's corners do not ring the stage.
     pub mode_feedforward: bool,
+    /// Whether the tuning may hold the mode by phase, with a notch with lead
+    /// ([`piezo_core::servo::TuningGoal::mode_by_phase`]; `--mode-by-phase`): on a fast loop a
+    /// higher crossover, with a loop that needs the mode where it was identified.
+    pub mode_by_phase: bool,
 }
 
 impl BenchSettings {
@@ -173,6 +177,7 @@ impl Default for BenchSettings {
             step_hold_s: 0.1,
             step_watch_s: 0.1,
             mode_feedforward: true,
+            mode_by_phase: false,
         }
     }
 }
@@ -585,17 +590,23 @@ pub(crate) fn controllers(
     stack_file: &StageFile,
     identified: &[(f64, f64, f64); 2],
 ) -> crate::Result<([AxisController; 2], [Tuning; 2], StageFile)> {
-    controllers_with(stack_file, identified, false)
+    controllers_with(stack_file, identified, false, false)
 }
 
 /// [`controllers`], with `mode_feedforward`: the identified first mode (f_n, ζ; a force-driven
 /// mode, ρ = 0) in each axis's effects, so the feedforward inverts it as well
-/// (`s* = z* + (2ζ/ω)·ż* + z̈*/ω²`, [`piezo_core::effects`]).
+/// (`s* = z* + (2ζ/ω)·ż* + z̈*/ω²`, [`piezo_core::effects`]); with `mode_by_phase` the tuning
+/// may hold the mode by phase ([`TuningGoal::mode_by_phase`]).
 pub(crate) fn controllers_with(
     stack_file: &StageFile,
     identified: &[(f64, f64, f64); 2],
     mode_feedforward: bool,
+    mode_by_phase: bool,
 ) -> crate::Result<([AxisController; 2], [Tuning; 2], StageFile)> {
+    let goal = TuningGoal {
+        mode_by_phase,
+        ..TuningGoal::default()
+    };
     let mut file = stack_file.clone();
     let axes = [Some(&mut file.x), file.y.as_mut()];
     for (axis, &(gain, f_n, zeta)) in axes.into_iter().zip(identified) {
@@ -624,7 +635,7 @@ pub(crate) fn controllers_with(
             identified[a].2 as f32,
             1.5 * valid.sample_period_s,
         );
-        let tuning = tune(&dynamics, &TuningGoal::default(), compensator.settings())
+        let tuning = tune(&dynamics, &goal, compensator.settings())
             .map_err(|e| crate::Error::Usage(format!("servo tuning of axis {}: {e}", v.name)))?;
         tunings.push(tuning);
     }
@@ -828,7 +839,12 @@ pub fn run_bench(
     let stack = stack_file.validate().map_err(crate::Error::from)?;
     progress("identifying the platform gain and the first mode");
     let identified = identify_rig(&stage, &effects, &stack, fs)?;
-    let (ctl, tunings, _) = controllers_with(&stack_file, &identified, settings.mode_feedforward)?;
+    let (ctl, tunings, _) = controllers_with(
+        &stack_file,
+        &identified,
+        settings.mode_feedforward,
+        settings.mode_by_phase,
+    )?;
     let (ax, ay) = stage.axes();
     let g = stage.static_gain();
     let stroke_m = [g[0] * ax.free_stroke_m, g[1] * ay.free_stroke_m];
@@ -1169,6 +1185,10 @@ pub struct ServoBenchArgs {
     /// reference itself), to measure what pre-shaping the drive gains.
     #[arg(long)]
     pub no_mode_feedforward: bool,
+    /// Let the tuning hold the mode by phase as well (a notch with lead, chosen where it gives
+    /// the higher crossover: on a fast loop), not only by gain (a plain notch).
+    #[arg(long)]
+    pub mode_by_phase: bool,
 }
 
 /// Help after the options.
@@ -1177,7 +1197,7 @@ sensor noise, ADC and DAC quantisation, stepped tick by tick at the loop rate (-
 add a table across them). The feedforward is piezo-core's compensator \
 (firmware/params/xy-stage.toml scaled to the platform by the identified gain) behind the inverse of the identified first mode \
 (the effects chain's mode; --no-mode-feedforward: the compensator alone), the servo piezo-core's, tuned by \
-piezo_core::servo::tune from the identified first mode. Rows: 1, 10, 100 Hz triangles and sines between 20 % and 90 % \
+piezo_core::servo::tune from the identified first mode (--mode-by-phase: also notches with lead). Rows: 1, 10, 100 Hz triangles and sines between 20 % and 90 % \
 of the stroke (faded in over 50 ms, scored after 0.1 s) in open-loop, feedforward, feedback and feedforward+feedback; errors in % of stroke (worse axis), \
 closed-loop bandwidth from a chirp (lower axis).";
 
@@ -1204,6 +1224,7 @@ pub fn servo_bench_cmd(a: &ServoBenchArgs) -> crate::Result<String> {
             loop_rate_hz: rate,
             plant_effects: default_plant_effects(rate),
             mode_feedforward: !a.no_mode_feedforward,
+            mode_by_phase: a.mode_by_phase,
             ..BenchSettings::default()
         };
         if !a.plant_effects.is_empty() {

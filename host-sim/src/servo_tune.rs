@@ -15,8 +15,9 @@
 //!   crossover at the same phase margin.
 //!
 //! The rule (core docs, `piezo_core::servo::tune`): a notch near f_n (centre 0.8–1.25·f_n; a
-//! plain notch of Q 1, 0.7, 0.5 or 0.35, or a notch with lead, its poles 2, 4 or 8 times its
-//! centre with Q 1, 2 or 2.8, which holds the mode by phase when the loop is fast enough) and a
+//! plain notch of Q 1, 0.7, 0.5 or 0.35, or with `--mode-by-phase` also a notch with lead, its
+//! poles 2, 4 or 8 times its centre with Q 1, 2 or 2.8, which holds the mode by phase when the
+//! loop is fast enough and is unstable when the mode is not where `--mode-hz` says) and a
 //! Butterworth low-pass from 0.7 to 5 times max(f_n, 1/(4τ)), searched for the highest crossover
 //! with pure integral action, the phase margin asked for (phase unwrapped), a closed loop stable
 //! by the Nyquist criterion and |1/(1 + L)| ≤ 1.6, also with f_n ± 10 %. The
@@ -59,6 +60,11 @@ pub struct ServoTuneArgs {
     /// The converters' latency, added whatever the loop rate (s).
     #[arg(long, default_value_t = CONVERTER_LATENCY_S)]
     pub converter_latency_s: f32,
+    /// Also try notches with lead, which hold the mode by phase: on a fast loop a higher
+    /// crossover, but a loop that is unstable when the mode lies well below --mode-hz (a
+    /// payload) or is absent (see piezo_core::servo::TuningGoal::mode_by_phase).
+    #[arg(long)]
+    pub mode_by_phase: bool,
 }
 
 /// τ_c: the ADC conversion and both SPI frames plus the DAC's settling \[s\] (module docs).
@@ -256,6 +262,7 @@ pub fn servo_tune_cmd(a: &ServoTuneArgs) -> crate::Result<String> {
         StageFile::load(&a.stage).map_err(|e| crate::Error::Refused(format!("--stage: {e}")))?;
     let goal = TuningGoal {
         phase_margin_deg: a.phase_margin_deg,
+        mode_by_phase: a.mode_by_phase,
         ..TuningGoal::default()
     };
     let latency = Latency {
