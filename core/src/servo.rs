@@ -693,8 +693,8 @@ pub struct TuningGoal {
     pub transfer_time_constant_s: f32,
     /// Also try notches with lead, which hold the mode by phase ([`tune`]): a higher crossover
     /// on a fast loop, but a loop that needs the mode where `StageDynamics` puts it. Off by
-    /// default: on the XY stage at 50 kHz the loop so tuned is stable with the mode at
-    /// 0.85–1.6·f_n only, where the plain notch's is stable from 0.6 to 3·f_n and without the mode
+    /// default: on an XY-like stage at 50 kHz the loop so tuned is unstable with the mode 20 %
+    /// below f_n or without it, where the plain notch's is stable
     /// (`a_notch_with_lead_holds_the_mode_in_time`).
     pub mode_by_phase: bool,
 }
