@@ -952,7 +952,7 @@ impl Scan<'_> {
 /// 1. the phase margin at f_c (the first frequency where |L| falls below 1) is at least φ_m,
 ///    the phase unwrapped from low frequencies (a loop whose phase passes −180° below its
 ///    crossover encircles −1 and is refused);
-/// 2. the closed loop is stable by the Nyquist criterion ([`margins`]: the angle of 1 + L rises
+/// 2. the closed loop is stable by the Nyquist criterion (the angle of 1 + L rises
 ///    by exactly 90° from 0⁺ to Nyquist), and |L| < 1 at Nyquist;
 /// 3. |1/(1 + L)| ≤ M_s at every frequency up to Nyquist;
 ///
