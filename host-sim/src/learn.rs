@@ -106,6 +106,11 @@ pub struct LearningArgs {
     /// stage's response measured on the trial (0 leaves them to Q).
     #[arg(long, default_value_t = LearningParams::default().harmonic_gain)]
     pub harmonic_gain: f32,
+    /// Largest share of the trial's error RMS that the step at the harmonics above Q's cut-off
+    /// may mix, as the stage file's model predicts, into the harmonics above the cut-off (the
+    /// step is scaled down to it; 0 leaves it unscaled).
+    #[arg(long, default_value_t = LearningParams::default().collateral_share)]
+    pub collateral_share: f32,
 }
 
 impl LearningArgs {
@@ -118,6 +123,7 @@ impl LearningArgs {
             margin: self.margin,
             unmodelled_mode_fraction: self.unmodelled_mode_fraction,
             harmonic_gain: self.harmonic_gain,
+            collateral_share: self.collateral_share,
         }
     }
 }
@@ -156,6 +162,9 @@ pub struct AxisStep {
     pub learned_share: f64,
     /// Harmonics above Q's cut-off learned from the stage's response measured on the trial.
     pub harmonics_learned: usize,
+    /// α: the factor their step was scaled by so that its mixing above the cut-off, as the
+    /// model predicts it, stays within `--collateral-share` of the error (1 unscaled).
+    pub harmonic_scale: f64,
     /// Whether the noise came from the spread between the record's passes (else from the
     /// error's fourth differences).
     pub noise_from_passes: bool,
@@ -682,6 +691,7 @@ pub fn step_axes(trial: &AxesTrial<'_>) -> crate::Result<(Vec<AxisStep>, Vec<Vec
             noise_rms_m: summary.noise_rms_m,
             learned_share: summary.learned_share,
             harmonics_learned: summary.harmonics_learned,
+            harmonic_scale: summary.harmonic_scale,
             noise_from_passes: noise.is_some(),
             model_gain: None,
         });
@@ -932,6 +942,7 @@ mod tests {
             noise_rms_m: 1e-9,
             learned_share: 0.95,
             harmonics_learned: 2,
+            harmonic_scale: 0.5,
             noise_from_passes: true,
             model_gain: Some((1.2, 1e-7)),
         };
@@ -952,6 +963,7 @@ mod tests {
                 "noise_rms_m",
                 "learned_share",
                 "harmonics_learned",
+                "harmonic_scale",
                 "noise_from_passes",
                 "model_gain_ratio",
                 "base_resolved",

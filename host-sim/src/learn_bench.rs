@@ -132,6 +132,10 @@ pub struct LearnBenchSettings {
     /// default: on this bench, with one settling period per table, it moved the targets' final
     /// errors by at most 5 % and made the learned-only 10 Hz sine erratic, rises up to 2.0×).
     pub back_off: bool,
+    /// Trials the last table plays again after the last trial, without learning: the spread
+    /// of one table's error from trial to trial (the sensor's noise, the drift), against which
+    /// a rise between learning trials is read.
+    pub repeat_trials: usize,
 }
 
 impl Default for LearnBenchSettings {
@@ -161,6 +165,7 @@ impl Default for LearnBenchSettings {
             ],
             robustness_mode: LearnMode::LearnedFeedback,
             back_off: false,
+            repeat_trials: 3,
         }
     }
 }
@@ -193,12 +198,26 @@ pub struct Curve {
     /// Per learning step: whether an axis stepped back (its trial's measured error grew more
     /// than 5 % above the trial before's; `piezo_core::learning::back_off`).
     pub stepped_back: Vec<bool>,
+    /// The last table played again, without learning, per trial: RMS error, % of stroke, worse
+    /// axis ([`LearnBenchSettings::repeat_trials`]).
+    pub repeat_percent: Vec<f64>,
 }
 
 impl Curve {
     /// The error of the last trial (RMS, % of stroke).
     pub fn last(&self) -> f64 {
         self.rms_percent.last().copied().unwrap_or(f64::NAN)
+    }
+
+    /// The largest ratio between consecutive trials of the last table played again (the last
+    /// trial and its repeats): how much one table's error moves from trial to trial by itself.
+    pub fn repeat_spread(&self) -> f64 {
+        std::iter::once(self.last())
+            .chain(self.repeat_percent.iter().copied())
+            .collect::<Vec<_>>()
+            .windows(2)
+            .map(|w| w[1] / w[0])
+            .fold(f64::NAN, f64::max)
     }
 
     /// The largest ratio rms\[k\]/rms\[k−1\] for k > `after`.
@@ -365,6 +384,7 @@ fn run_case(
     let mut above_cutoff_percent = 0.0f64;
     let mut harmonics_learned = Vec::new();
     let mut stepped_back = Vec::new();
+    let mut repeat_percent = Vec::new();
     // The error-growth back-off per axis and the table it holds (`piezo_core::learning::back_off`).
     let mut back_off = [BackOff::new(); 2];
     let mut held = table.clone();
@@ -422,6 +442,24 @@ fn run_case(
                     .collect();
                 let above = rms_above(&e, fs, learning[a].cutoff_hz());
                 above_cutoff_percent = above_cutoff_percent.max(100.0 * above / ctx.stroke_m[a]);
+            }
+            // The same table again, without learning (its spread from trial to trial).
+            for _ in 0..s.repeat_trials {
+                let mut sq = [0.0f64; 2];
+                for _ in 0..trial_periods {
+                    for j in 0..period {
+                        let (truth, _, _) =
+                            tick(&mut states, [r[0][j], r[1][j]], [table[0][j], table[1][j]])?;
+                        for a in 0..2 {
+                            sq[a] += (truth[a] - f64::from(r[a][j])).powi(2);
+                        }
+                    }
+                }
+                repeat_percent.push(
+                    (0..2)
+                        .map(|a| 100.0 * (sq[a] / ticks).sqrt() / ctx.stroke_m[a])
+                        .fold(0.0, f64::max),
+                );
             }
             break;
         }
@@ -520,6 +558,7 @@ fn run_case(
         above_cutoff_percent,
         harmonics_learned,
         stepped_back,
+        repeat_percent,
     })
 }
 
@@ -649,21 +688,22 @@ impl LearnBenchReport {
         for k in 0..=n {
             s += &format!(" {k} |");
         }
-        s += " max after last [%] | above cut-off [%] | worst ratio after 3 | harmonics learned (last step) |\n|---|---|---|---|";
-        s += &"---|".repeat(n + 5);
+        s += " max after last [%] | above cut-off [%] | worst ratio after 3 | same table again, worst ratio | harmonics learned (last step) |\n|---|---|---|---|";
+        s += &"---|".repeat(n + 6);
         s += "\n";
         for c in &self.curves {
             s += &self.row(c, &format!("| {} ", c.mode.name()));
         }
         s += "\nRobustness (stage file perturbed; final / nominal final):\n\n";
         s += "| perturbation | mode | signal | freq [Hz] | Q cut-off x/y [Hz] | first | last | \
-              worst ratio after 1 | final / nominal |\n|---|---|---|---|---|---|---|---|---|\n";
+              worst ratio after 1 | same table again, worst ratio | final / nominal |\n\
+              |---|---|---|---|---|---|---|---|---|---|\n";
         for c in &self.robustness {
             let nominal = self
                 .curve(c.mode, c.shape, c.freq_hz)
                 .map_or(f64::NAN, Curve::last);
             s += &format!(
-                "| {} | {} | {} | {} | {:.0}/{:.0} | {:.4} | {:.5} | {:.3} | {:.2} |\n",
+                "| {} | {} | {} | {} | {:.0}/{:.0} | {:.4} | {:.5} | {:.3} | {:.3} | {:.2} |\n",
                 c.perturbation.label(),
                 c.mode.name(),
                 c.shape.name(),
@@ -673,6 +713,7 @@ impl LearnBenchReport {
                 c.rms_percent[0],
                 c.last(),
                 c.worst_ratio_after(1),
+                c.repeat_spread(),
                 c.last() / nominal
             );
         }
@@ -708,10 +749,11 @@ impl LearnBenchReport {
             s += &format!(" {v:.4} |");
         }
         s += &format!(
-            " {:.4} | {:.4} | {:.3} | {} |\n",
+            " {:.4} | {:.4} | {:.3} | {:.3} | {} |\n",
             c.max_percent.last().copied().unwrap_or(f64::NAN),
             c.above_cutoff_percent,
             c.worst_ratio_after(3),
+            c.repeat_spread(),
             c.harmonics_learned.last().copied().unwrap_or(0)
         );
         s
@@ -846,6 +888,10 @@ pub struct LearnBenchArgs {
     /// not the table's error), as `link learn --settle-periods`.
     #[arg(long, default_value_t = 1)]
     pub settle_periods: usize,
+    /// Trials the last table plays again without learning after the last trial (the table's
+    /// spread from trial to trial, against which a rise between learning trials is read).
+    #[arg(long, default_value_t = 3)]
+    pub repeat_trials: usize,
     /// Effect the plant carries (host-sim effect spec, repeatable; default as servo-bench;
     /// `none` for a clean plant).
     #[arg(long = "plant-effect")]
@@ -898,6 +944,7 @@ pub fn learn_bench_cmd(a: &LearnBenchArgs) -> crate::Result<String> {
     settings.plant_effects = default_plant_effects(a.rate);
     settings.trial_min_s = a.trial_s;
     settings.settle_periods = a.settle_periods;
+    settings.repeat_trials = a.repeat_trials;
     settings.back_off = a.back_off;
     settings.frequencies_hz = a.freq.clone();
     settings
@@ -955,6 +1002,8 @@ pub struct CurveJson<'a> {
     pub harmonics_learned: &'a [usize],
     /// Whether the trial stepped back to the best table.
     pub stepped_back: &'a [bool],
+    /// The last table played again without learning: RMS error per trial.
+    pub repeat_percent: &'a [f64],
 }
 
 impl Curve {
@@ -972,6 +1021,7 @@ impl Curve {
             above_cutoff_percent: self.above_cutoff_percent,
             harmonics_learned: &self.harmonics_learned,
             stepped_back: &self.stepped_back,
+            repeat_percent: &self.repeat_percent,
         }
     }
 }
@@ -996,6 +1046,7 @@ mod tests {
             above_cutoff_percent: 0.01,
             harmonics_learned: vec![3],
             stepped_back: vec![false],
+            repeat_percent: vec![0.11, 0.09],
         };
         let json = crate::to_json(&curve.report()).unwrap();
         assert_eq!(
@@ -1012,8 +1063,10 @@ mod tests {
                 "above_cutoff_percent",
                 "harmonics_learned",
                 "stepped_back",
+                "repeat_percent",
             ])
         );
+        assert!((curve.repeat_spread() - 1.1).abs() < 1e-12);
         assert_eq!(json["mode"], "learned+feedback");
         assert_eq!(json["perturbation"], Perturbation::Gain(0.6).label());
         assert_eq!(json["max_percent"], serde_json::json!([2.0, null]));
