@@ -207,7 +207,9 @@ pub fn rule_text(p: &LearningParams) -> String {
          to 2/T, and f itself); each step learns the share s = max(0, 1 - sigma^2 b/<(Q e)^2>) of L e, sigma the \
          noise from the 25th percentile of the error's fourth differences (or the spread between the passes), b the share \
          of a white noise Q passes; a periodic trial its share per harmonic h <= 2 f_c n T, s_h = max(0, 1 - (sigma^2/n)/|E(h)|^2); \
-         learning above f_c (rho > 0) only once <(Q e)^2> <= 0.5 <e^2>",
+         learning above f_c (rho > 0) only once <(Q e)^2> <= 0.5 <e^2>, its step scaled by alpha = min(1, kappa e_rms/c), \
+         c the RMS the model predicts it mixes into the harmonics above f_c through the stage file's dynamics, kappa = {k}",
+        k = p.collateral_share,
         u = p.unmodelled_mode_fraction,
         z = piezo_core::UNMODELLED_MODE_DAMPING,
         m = p.margin,
