@@ -344,6 +344,17 @@ impl C {
     }
 }
 
+/// The harmonic step's changes (h, Δ(h)) at sample j of a period of n: Σ 2·Re(Δ(h)·e^(+j2πhj/n)).
+fn change_at(changes: &[(usize, C)], j: usize, n: usize) -> f64 {
+    changes
+        .iter()
+        .map(|&(h, d)| {
+            let (c, s) = harmonics::twiddle(h, j, n);
+            2.0 * (d.0 * c + d.1 * s)
+        })
+        .sum()
+}
+
 /// The validated learning settings of one axis: the model it inverts, the delay and mode of its
 /// effects, the limits, and the filter its rule chose.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -1106,32 +1117,18 @@ impl Learning {
         if first > last {
             return 1.0;
         }
-        let delta = |j: usize| {
-            changes
-                .iter()
-                .map(|&(h, d)| {
-                    let (c, s) = harmonics::twiddle(h, j, n);
-                    2.0 * (d.0 * c + d.1 * s)
-                })
-                .sum::<f64>()
-        };
-        let changed = |j: usize| (f64::from(command(j)) + delta(j)) as f32;
-        let (mut now, mut then) = (start, self.periodic_state(&changed, n));
         let mut mixed = [C(0.0, 0.0); MAX_HARMONICS];
         let count = last + 1 - first;
-        for j in 0..n {
-            let (u, v) = (command(j), changed(j));
-            let w = f64::from(self.model.step(&mut now, u));
-            let x = f64::from(self.model.step(&mut then, v));
-            let m = x - w - slope * (f64::from(v) - f64::from(u));
-            if !m.is_finite() {
-                return 1.0;
-            }
-            for (k, acc) in mixed[..count].iter_mut().enumerate() {
-                let (c, s) = harmonics::twiddle(first + k, j, n);
-                acc.0 += m * c;
-                acc.1 += m * s;
-            }
+        if !self.mixing(
+            command,
+            start,
+            slope,
+            changes,
+            n,
+            first,
+            &mut mixed[..count],
+        ) {
+            return 1.0;
         }
         let mut collateral_ms = 0.0;
         for (k, m) in mixed[..count].iter().enumerate() {
@@ -1150,12 +1147,46 @@ impl Learning {
             return 1.0;
         }
         for (j, v) in next_v.iter_mut().enumerate() {
-            *v -= ((1.0 - alpha) * delta(j)) as f32;
+            *v -= ((1.0 - alpha) * change_at(changes, j, n)) as f32;
         }
         for (_, d) in changes.iter_mut() {
             *d = C(d.0 * alpha, d.1 * alpha);
         }
         alpha
+    }
+
+    /// M = Ŵ(u + Δ) − Ŵ(u) − ḡ·Δ along one period (each from its periodic state; Δ(j) the
+    /// harmonic step's `changes` in time, `start` the model's periodic state along u, `slope` ḡ),
+    /// as the unnormalised DFT sums `out[k] = Σ_j M(j)·e^(−j2π(first + k)j/n)`. False where M is
+    /// not finite (`out` then undefined).
+    #[allow(clippy::too_many_arguments)]
+    fn mixing(
+        &self,
+        command: &dyn Fn(usize) -> f32,
+        start: ModelState,
+        slope: f64,
+        changes: &[(usize, C)],
+        n: usize,
+        first: usize,
+        out: &mut [C],
+    ) -> bool {
+        let changed = |j: usize| (f64::from(command(j)) + change_at(changes, j, n)) as f32;
+        let (mut now, mut then) = (start, self.periodic_state(&changed, n));
+        for j in 0..n {
+            let (u, v) = (command(j), changed(j));
+            let w = f64::from(self.model.step(&mut now, u));
+            let x = f64::from(self.model.step(&mut then, v));
+            let m = x - w - slope * (f64::from(v) - f64::from(u));
+            if !m.is_finite() {
+                return false;
+            }
+            for (k, acc) in out.iter_mut().enumerate() {
+                let (c, s) = harmonics::twiddle(first + k, j, n);
+                acc.0 += m * c;
+                acc.1 += m * s;
+            }
+        }
+        true
     }
 
     /// Cancels in Q's band what the hysteresis model mixes there from the harmonic step's
@@ -1180,31 +1211,9 @@ impl Learning {
         let band = (libm::floor(self.cutoff_hz * n as f64 * t) as usize + 1)
             .min((n - 1) / 2 + 1)
             .min(SHARED_HARMONICS);
-        let delta = |j: usize| {
-            changes
-                .iter()
-                .map(|&(h, d)| {
-                    let (c, s) = harmonics::twiddle(h, j, n);
-                    2.0 * (d.0 * c + d.1 * s)
-                })
-                .sum::<f64>()
-        };
-        let changed = |j: usize| (f64::from(command(j)) + delta(j)) as f32;
-        let (mut now, mut then) = (start, self.periodic_state(&changed, n));
         let mut mixed = [C(0.0, 0.0); SHARED_HARMONICS];
-        for j in 0..n {
-            let (u, v) = (command(j), changed(j));
-            let w = f64::from(self.model.step(&mut now, u));
-            let x = f64::from(self.model.step(&mut then, v));
-            let m = x - w - slope * (f64::from(v) - f64::from(u));
-            if !m.is_finite() {
-                return;
-            }
-            for (h, acc) in mixed[..band].iter_mut().enumerate() {
-                let (c, s) = harmonics::twiddle(h, j, n);
-                acc.0 += m * c;
-                acc.1 += m * s;
-            }
+        if !self.mixing(command, start, slope, changes, n, 0, &mut mixed[..band]) {
+            return;
         }
         let mut corrections = [C(0.0, 0.0); SHARED_HARMONICS];
         for (h, (m, out)) in mixed[..band].iter().zip(&mut corrections).enumerate() {
@@ -2026,15 +2035,21 @@ mod tests {
         assert!(with < 0.35 * without, "{with} m left of {without} m");
     }
 
-    /// A negative or non-finite κ is refused when the learning is built, naming the field.
-    #[test]
-    fn a_collateral_share_below_zero_is_refused() {
+    /// The x stage's compensator (window 0–120 V, slew 1e5 V/s, 10 kHz) and effects, for a
+    /// learning built with other parameters.
+    fn x_compensator() -> (Compensator, Effects) {
         let (model, effects, _) = x_stage(1e5, 0.0, Default::default());
         let settings = CompensatorSettings {
             limits: crate::Limits::new(0.0, 120.0, 1e5),
             sample_period_s: 1e-4,
         };
-        let compensator = Compensator::new(model, settings).unwrap();
+        (Compensator::new(model, settings).unwrap(), effects)
+    }
+
+    /// A negative or non-finite κ is refused when the learning is built, naming the field.
+    #[test]
+    fn a_collateral_share_below_zero_is_refused() {
+        let (compensator, effects) = x_compensator();
         for share in [-0.1, f32::NAN, f32::INFINITY] {
             let params = LearningParams {
                 collateral_share: share,
@@ -2060,12 +2075,8 @@ mod tests {
     /// κ = 0 (the step unscaled) the same trial's change mixes more than that.
     #[test]
     fn a_learned_harmonic_s_mixing_above_the_band_is_bounded() {
-        let (model, effects, _) = x_stage(1e5, 0.0, Default::default());
-        let settings = CompensatorSettings {
-            limits: crate::Limits::new(0.0, 120.0, 1e5),
-            sample_period_s: 1e-4,
-        };
-        let compensator = Compensator::new(model, settings).unwrap();
+        let (compensator, effects) = x_compensator();
+        let model = *compensator.model();
         let with_share = |share: f32| {
             Learning::new(
                 &compensator,
