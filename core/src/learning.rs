@@ -128,8 +128,8 @@
 //!   the stage's mode amplifies it and the step cannot cancel it (there the stage's response is
 //!   the measured one, not the model's). On the XY stage with the stage file's mode ×1.15 the
 //!   100 Hz triangle with feedback rose 1.15× in the trial after two first steps at 3.3 and
-//!   3.5 kHz: their error fell from 24 to 3 nm while the y mode's harmonic at 2.1 kHz rose from
-//!   32 to 54 nm. The step is therefore scaled, all harmonics by one factor α ≤ 1, so that the
+//!   3.5 kHz: the error there fell, and the y mode's harmonics near 2.1 kHz grew by more (a
+//!   per-harmonic trace of the bench's error). The step is therefore scaled, all harmonics by one factor α ≤ 1, so that the
 //!   mixing the model predicts there through the stage file's dynamics stays within κ of the
 //!   trial's error RMS ([`LearningParams::collateral_share`], default 0.12):
 //!   `c² = Σ_h 2·|G(f_h)/ḡ|²·|M(h)|²` over the harmonics the step examines, `α = min(1, κ·e/c)`

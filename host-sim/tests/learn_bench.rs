@@ -139,7 +139,7 @@ fn harmonics_under_the_servo_are_learned_from_the_table() {
 /// A harmonic learned above Q's cut-off mixes, through the stack's hysteresis, into every other
 /// harmonic, and the stage's mode amplifies what lands near it. With the stage file's mode ×1.15
 /// the 100 Hz triangle with feedback rose 1.15× in the trial after two first steps at 3.3 and
-/// 3.5 kHz (the y mode's harmonic at 2.1 kHz from 32 to 54 nm). The step is now scaled so that
+/// 3.5 kHz (the error there fell, the y mode's harmonics near 2.1 kHz grew by more). The step is now scaled so that
 /// the mixing the model predicts there stays within 12 % of the trial's error
 /// (`piezo_core::learning`, "Mixing above the band"); unscaled (`collateral_share` 0) the same
 /// rows rise above 1.1×.
