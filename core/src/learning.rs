@@ -129,9 +129,9 @@
 //!   the measured one, not the model's). On the XY stage with the stage file's mode ×1.15 the
 //!   100 Hz triangle with feedback rose 1.15× in the trial after two first steps at 3.3 and
 //!   3.5 kHz: the error there fell, and the y mode's harmonics near 2.1 kHz grew by more (a
-//!   per-harmonic trace of the bench's error). The step is therefore scaled, all harmonics by one factor α ≤ 1, so that the
-//!   mixing the model predicts there through the stage file's dynamics stays within κ of the
-//!   trial's error RMS ([`LearningParams::collateral_share`], default 0.12):
+//!   per-harmonic trace of the bench's error). The step is therefore scaled, all harmonics by
+//!   one factor α ≤ 1, so that the mixing the model predicts there through the stage file's
+//!   dynamics stays within κ of the trial's error RMS ([`LearningParams::collateral_share`], default 0.12):
 //!   `c² = Σ_h 2·|G(f_h)/ḡ|²·|M(h)|²` over the harmonics the step examines, `α = min(1, κ·e/c)`
 //!   (`cargo test -p piezo-core a_learned_harmonic_s_mixing_above_the_band`). It trades speed
 //!   for monotony; `host-sim learn-bench --collateral-share 0` runs without it, and the README
@@ -1112,7 +1112,7 @@ impl Learning {
             return 1.0;
         }
         let t = f64::from(self.settings.sample_period_s);
-        let first = libm::floor(self.cutoff_hz * n as f64 * t) as usize + 1;
+        let first = self.first_above_cutoff(n);
         let last = ((n - 1) / 2).min(first + MAX_HARMONICS - 1);
         if first > last {
             return 1.0;
@@ -1138,14 +1138,10 @@ impl Learning {
             collateral_ms += 2.0 * size * size;
         }
         let collateral = libm::sqrt(collateral_ms);
-        let alpha = if collateral > share * error_rms_m {
-            share * error_rms_m / collateral
-        } else {
-            return 1.0;
-        };
-        if !alpha.is_finite() {
+        if collateral.is_nan() || collateral <= share * error_rms_m {
             return 1.0;
         }
+        let alpha = share * error_rms_m / collateral;
         for (j, v) in next_v.iter_mut().enumerate() {
             *v -= ((1.0 - alpha) * change_at(changes, j, n)) as f32;
         }
@@ -1153,6 +1149,13 @@ impl Learning {
             *d = C(d.0 * alpha, d.1 * alpha);
         }
         alpha
+    }
+
+    /// The lowest harmonic of a period of n samples above Q's cut-off: the first the harmonic
+    /// step examines, and the end of the band the in-band learning keeps.
+    fn first_above_cutoff(&self, n: usize) -> usize {
+        let t = f64::from(self.settings.sample_period_s);
+        libm::floor(self.cutoff_hz * n as f64 * t) as usize + 1
     }
 
     /// M = Ŵ(u + Δ) − Ŵ(u) − ḡ·Δ along one period (each from its periodic state; Δ(j) the
@@ -1208,7 +1211,8 @@ impl Learning {
             return;
         }
         let t = f64::from(self.settings.sample_period_s);
-        let band = (libm::floor(self.cutoff_hz * n as f64 * t) as usize + 1)
+        let band = self
+            .first_above_cutoff(n)
             .min((n - 1) / 2 + 1)
             .min(SHARED_HARMONICS);
         let mut mixed = [C(0.0, 0.0); SHARED_HARMONICS];
@@ -1987,13 +1991,7 @@ mod tests {
         let wave = |h: usize, j: usize| libm::sin(2.0 * PI * (h * j) as f64 / N as f64);
         let command: [f32; N] =
             core::array::from_fn(|j| (60.0 + 40.0 * wave(1, j) + 0.3 * wave(H, j)) as f32);
-        let periodic_output = |u: &[f32; N]| -> [f64; N] {
-            let mut state = ModelState::at_rest(u[0]);
-            for &v in u {
-                model.step(&mut state, v);
-            }
-            core::array::from_fn(|j| f64::from(model.step(&mut state, u[j])))
-        };
+        let periodic_output = |u: &[f32; N]| periodic_output(&model, u);
         let measured = periodic_output(&command).map(|y| y as f32);
         let reference: [f32; N] =
             core::array::from_fn(|j| (f64::from(measured[j]) + 2e-7 * wave(H, j)) as f32);
@@ -2001,14 +1999,7 @@ mod tests {
         let summary = quiet_periodic_step(&learning, &reference, &command, &measured, &mut next);
         assert!(summary.harmonics_learned >= 1);
         // The command with the harmonic's change alone: the next table's component at H.
-        let component = |x: &dyn Fn(usize) -> f64, h: usize| {
-            let mut acc = C(0.0, 0.0);
-            for j in 0..N {
-                let (c, s) = harmonics::twiddle(h, j, N);
-                acc = C(acc.0 + x(j) * c, acc.1 + x(j) * s);
-            }
-            C(acc.0 / N as f64, acc.1 / N as f64)
-        };
+        let component = |x: &dyn Fn(usize) -> f64, h: usize| component(x, h, N);
         let change = {
             let (a, b) = (
                 component(&|j| f64::from(next[j]), H),
@@ -2033,6 +2024,25 @@ mod tests {
         let (without, with) = (in_band_error(&alone), in_band_error(&next));
         assert!(without > 1e-9, "the change mixes {without} m into the band");
         assert!(with < 0.35 * without, "{with} m left of {without} m");
+    }
+
+    /// The model's output along `u` repeated, from its periodic state (one period from rest).
+    fn periodic_output<const N: usize>(model: &StaticModel, u: &[f32; N]) -> [f64; N] {
+        let mut state = ModelState::at_rest(u[0]);
+        for &v in u {
+            model.step(&mut state, v);
+        }
+        core::array::from_fn(|j| f64::from(model.step(&mut state, u[j])))
+    }
+
+    /// X(h) = (1/n)·Σ_j x(j)·e^(−j2πhj/n) over a period of n samples.
+    fn component(x: &dyn Fn(usize) -> f64, h: usize, n: usize) -> C {
+        let mut acc = C(0.0, 0.0);
+        for j in 0..n {
+            let (c, s) = harmonics::twiddle(h, j, n);
+            acc = C(acc.0 + x(j) * c, acc.1 + x(j) * s);
+        }
+        C(acc.0 / n as f64, acc.1 / n as f64)
     }
 
     /// The x stage's compensator (window 0–120 V, slew 1e5 V/s, 10 kHz) and effects, for a
@@ -2101,13 +2111,7 @@ mod tests {
             }
         };
         let command: [f32; N] = core::array::from_fn(|j| (60.0 + 50.0 * triangle(j)) as f32);
-        let periodic_output = |u: &[f32; N]| -> [f64; N] {
-            let mut state = ModelState::at_rest(u[0]);
-            for &v in u {
-                model.step(&mut state, v);
-            }
-            core::array::from_fn(|j| f64::from(model.step(&mut state, u[j])))
-        };
+        let periodic_output = |u: &[f32; N]| periodic_output(&model, u);
         let measured = periodic_output(&command).map(|y| y as f32);
         // An error at the harmonics above the band, as a corner's ring leaves it.
         let error = |j: usize| (30..45).map(|h| 1.5e-7 * wave(h, j)).sum::<f64>();
@@ -2125,14 +2129,7 @@ mod tests {
             let t = 1e-4;
             let first = libm::floor(learning.cutoff_hz() * N as f64 * t) as usize + 1;
             // The step's change above the band, alone.
-            let component = |x: &dyn Fn(usize) -> f64, h: usize| {
-                let mut acc = C(0.0, 0.0);
-                for j in 0..N {
-                    let (c, s) = harmonics::twiddle(h, j, N);
-                    acc = C(acc.0 + x(j) * c, acc.1 + x(j) * s);
-                }
-                C(acc.0 / N as f64, acc.1 / N as f64)
-            };
+            let component = |x: &dyn Fn(usize) -> f64, h: usize| component(x, h, N);
             let diff = |j: usize| f64::from(next[j]) - f64::from(command[j]);
             let changes: [C; N] = core::array::from_fn(|h| {
                 if (first..N / 2).contains(&h) {

@@ -212,23 +212,28 @@ impl Curve {
     /// The largest ratio between consecutive trials of the last table played again (the last
     /// trial and its repeats): how much one table's error moves from trial to trial by itself.
     pub fn repeat_spread(&self) -> f64 {
-        std::iter::once(self.last())
-            .chain(self.repeat_percent.iter().copied())
-            .collect::<Vec<_>>()
-            .windows(2)
-            .map(|w| w[1] / w[0])
-            .fold(f64::NAN, f64::max)
+        let again = std::iter::once(self.last()).chain(self.repeat_percent.iter().copied());
+        worst_ratio(again, f64::NAN)
     }
 
     /// The largest ratio rms\[k\]/rms\[k−1\] for k > `after`.
     pub fn worst_ratio_after(&self, after: usize) -> f64 {
-        self.rms_percent
-            .windows(2)
-            .enumerate()
-            .filter(|(k, _)| k + 1 > after)
-            .map(|(_, w)| w[1] / w[0])
-            .fold(0.0, f64::max)
+        worst_ratio(self.rms_percent.iter().skip(after).copied(), 0.0)
     }
+}
+
+/// The largest ratio of a value to the one before it, folded from `empty` (what fewer than two
+/// values give) with `f64::max`.
+fn worst_ratio(values: impl Iterator<Item = f64>, empty: f64) -> f64 {
+    let mut before = None;
+    let mut worst = empty;
+    for v in values {
+        if let Some(b) = before {
+            worst = f64::max(worst, v / b);
+        }
+        before = Some(v);
+    }
+    worst
 }
 
 /// Everything the bench measured.
@@ -385,6 +390,13 @@ fn run_case(
     let mut harmonics_learned = Vec::new();
     let mut stepped_back = Vec::new();
     let mut repeat_percent = Vec::new();
+    // A trial's RMS error from its sums of squares per axis, % of stroke, the worse axis.
+    let ticks = (trial_periods * period) as f64;
+    let worst_percent = |sq: [f64; 2]| {
+        (0..2)
+            .map(|a| 100.0 * (sq[a] / ticks).sqrt() / ctx.stroke_m[a])
+            .fold(0.0, f64::max)
+    };
     // The error-growth back-off per axis and the table it holds (`piezo_core::learning::back_off`).
     let mut back_off = [BackOff::new(); 2];
     let mut held = table.clone();
@@ -423,12 +435,7 @@ fn run_case(
                 }
             }
         }
-        let ticks = (trial_periods * period) as f64;
-        rms_percent.push(
-            (0..2)
-                .map(|a| 100.0 * (sq[a] / ticks).sqrt() / ctx.stroke_m[a])
-                .fold(0.0, f64::max),
-        );
+        rms_percent.push(worst_percent(sq));
         max_percent.push(
             (0..2)
                 .map(|a| 100.0 * max[a] / ctx.stroke_m[a])
@@ -455,11 +462,7 @@ fn run_case(
                         }
                     }
                 }
-                repeat_percent.push(
-                    (0..2)
-                        .map(|a| 100.0 * (sq[a] / ticks).sqrt() / ctx.stroke_m[a])
-                        .fold(0.0, f64::max),
-                );
+                repeat_percent.push(worst_percent(sq));
             }
             break;
         }
