@@ -11,7 +11,9 @@
 //! **Run** (one continuous run per row, tick by tick at the loop rate): a fade-in from rest to
 //! the reference's first sample (50 ms), the compensator's own command over whole periods of at
 //! least 0.1 s (`compensate`'s chain on that reference), then trials: trial k plays the periodic
-//! table u_k over the fewest whole periods lasting ≥ 0.1 s, after `settle_periods` whole periods
+//! table u_k over the fewest whole periods lasting ≥ 0.1 s and numbering ≥ 10 as far as they fit
+//! in 1 s (a trial's RMS error at the sensor's noise spreads less from one trial to the next the
+//! more periods it holds), after `settle_periods` whole periods
 //! (1 by default, as `link learn`) in which the new table settles: the switch's transient — with
 //! feedback the servo unwinding the correction the table took over, and the creep of the step —
 //! is not periodic, and a trial of one period that recorded it taught the next table to undo it
@@ -108,8 +110,13 @@ pub struct LearnBenchSettings {
     pub modes: Vec<LearnMode>,
     /// Learning steps (trials 0 ..= this).
     pub iterations: usize,
-    /// A trial is the fewest whole periods lasting at least this \[s\].
+    /// A trial is the fewest whole periods lasting at least this \[s\] ...
     pub trial_min_s: f64,
+    /// ... and numbering at least this many, as far as they fit in [`TRIAL_PERIODS_WITHIN_S`]:
+    /// at the sensor's noise a trial's RMS error spreads from one trial to the next, less the
+    /// more periods it holds (a 10 Hz trial of one period rose up to 1.08× with its table
+    /// replayed unchanged, of ten periods 1.03×).
+    pub trial_min_periods: usize,
     /// Whole periods each new table plays before its trial is recorded (`link learn`'s
     /// `--settle-periods`): the switch's transient, the servo unwinding the correction the table
     /// took over, is not the table's error.
@@ -147,6 +154,7 @@ impl Default for LearnBenchSettings {
             modes: vec![LearnMode::Learned, LearnMode::LearnedFeedback],
             iterations: 15,
             trial_min_s: 0.1,
+            trial_min_periods: 10,
             settle_periods: 1,
             warmup_min_s: 0.1,
             fade_in_s: 0.05,
@@ -312,7 +320,10 @@ fn run_case(
     }
     let period = (fs / freq_hz).round() as usize;
     let whole = |min_s: f64| ((min_s * freq_hz).ceil() as usize).max(1);
-    let (trial_periods, warm_periods) = (whole(s.trial_min_s), whole(s.warmup_min_s));
+    let trial_periods = whole(s.trial_min_s)
+        .max(s.trial_min_periods.min(whole(TRIAL_PERIODS_WITHIN_S)))
+        .max(1);
+    let warm_periods = whole(s.warmup_min_s);
     let lead = (s.fade_in_s * fs).round() as usize;
     let r: [Vec<f32>; 2] = [0, 1].map(|a| {
         (0..period)
@@ -662,6 +673,10 @@ pub fn run_learn_bench(
     })
 }
 
+/// A trial holds at least [`LearnBenchSettings::trial_min_periods`] periods as far as they fit
+/// in this \[s\].
+pub const TRIAL_PERIODS_WITHIN_S: f64 = 1.0;
+
 /// A target of the bench: (shape, frequency, largest RMS % of stroke after the last trial).
 pub const TARGETS: [(Shape, f64, f64); 3] = [
     (Shape::Sine, 100.0, 0.01),
@@ -883,10 +898,15 @@ pub struct LearnBenchArgs {
     /// Loop rate (Hz): the stage file, the servo's tuning, the DAC and the plant's steps.
     #[arg(long, default_value_t = DEFAULT_LOOP_RATE_HZ)]
     pub rate: f64,
-    /// A trial is the fewest whole periods lasting at least this (s); the learning step sees
-    /// their average (sensor noise falls as the square root of the periods).
+    /// A trial is the fewest whole periods lasting at least this (s) and numbering at least
+    /// --trial-periods; the learning step sees their average (sensor noise falls as the square
+    /// root of the periods).
     #[arg(long, default_value_t = 0.1)]
     pub trial_s: f64,
+    /// Whole periods a trial holds at least, as far as they fit in 1 s: at the sensor's noise
+    /// a shorter trial's RMS error spreads more from one trial to the next.
+    #[arg(long, default_value_t = 10)]
+    pub trial_periods: usize,
     /// Whole periods each new table plays before its trial is recorded (the switch's transient is
     /// not the table's error), as `link learn --settle-periods`.
     #[arg(long, default_value_t = 1)]
@@ -913,7 +933,7 @@ pub struct LearnBenchArgs {
 pub const HELP: &str = "The plant is servo-bench's: host-sim's f64 XY stage (seed 002, modes at 3.2 and 2.2 kHz) with creep, \
 thermal drift, sensor noise, ADC and DAC quantisation, stepped tick by tick at 10 kHz. The stage file is servo-bench's with the \
 identified first mode and half a loop period of delay. Each run: a 50 ms fade-in, the compensator's command over >= 0.1 s, then \
-trials of whole periods (>= 0.1 s) playing the periodic table, each new table first settling over --settle-periods periods; after each \
+trials of whole periods (>= 0.1 s, and >= 10 periods as far as they fit in 1 s) playing the periodic table, each new table first settling over --settle-periods periods; after each \
 trial one learning step on the averaged period. Modes \
 learned (table alone) and learned+feedback (the stage file's servo on top). Robustness: the stage file's gain x0.6 and x1.5 and its \
 mode frequency x1.15 and x0.85 on the 100 Hz sine and triangle and the 10 Hz triangle (learned+feedback).";
@@ -937,6 +957,11 @@ pub fn learn_bench_cmd(a: &LearnBenchArgs) -> crate::Result<String> {
             a.trial_s
         )));
     }
+    if a.trial_periods == 0 {
+        return Err(crate::Error::Usage(
+            "--trial-periods 0: a trial holds at least one period".into(),
+        ));
+    }
     if !(a.rate.is_finite() && (1_000.0..=1e6).contains(&a.rate)) {
         return Err(crate::Error::Usage(format!(
             "--rate {}: a loop rate in [1000, 1e6] Hz",
@@ -946,6 +971,7 @@ pub fn learn_bench_cmd(a: &LearnBenchArgs) -> crate::Result<String> {
     settings.loop_rate_hz = a.rate;
     settings.plant_effects = default_plant_effects(a.rate);
     settings.trial_min_s = a.trial_s;
+    settings.trial_min_periods = a.trial_periods;
     settings.settle_periods = a.settle_periods;
     settings.repeat_trials = a.repeat_trials;
     settings.back_off = a.back_off;

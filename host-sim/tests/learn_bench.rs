@@ -44,6 +44,8 @@ fn a_single_period_trial_does_not_learn_the_switch_transient() {
         shapes: vec![Shape::Triangle],
         modes: vec![LearnMode::LearnedFeedback],
         iterations: 4,
+        // One period per trial.
+        trial_min_periods: 1,
         perturbations: vec![Perturbation::ModeFrequency(0.85)],
         robustness_cases: vec![(Shape::Triangle, 10.0)],
         ..LearnBenchSettings::default()
