@@ -1986,7 +1986,7 @@ mod tests {
         let learning = learning.with_harmonic_gain(1.0).unwrap();
         const N: usize = 100;
         const H: usize = 40;
-        let band = libm::floor(learning.cutoff_hz() * N as f64 * 1e-4) as usize + 1;
+        let band = learning.first_above_cutoff(N);
         assert!(band < H, "{band}");
         let wave = |h: usize, j: usize| libm::sin(2.0 * PI * (h * j) as f64 / N as f64);
         let command: [f32; N] =
@@ -2127,7 +2127,7 @@ mod tests {
                 summary.harmonics_learned
             );
             let t = 1e-4;
-            let first = libm::floor(learning.cutoff_hz() * N as f64 * t) as usize + 1;
+            let first = learning.first_above_cutoff(N);
             // The step's change above the band, alone.
             let component = |x: &dyn Fn(usize) -> f64, h: usize| component(x, h, N);
             let diff = |j: usize| f64::from(next[j]) - f64::from(command[j]);

@@ -320,9 +320,8 @@ fn run_case(
     }
     let period = (fs / freq_hz).round() as usize;
     let whole = |min_s: f64| ((min_s * freq_hz).ceil() as usize).max(1);
-    let trial_periods = whole(s.trial_min_s)
-        .max(s.trial_min_periods.min(whole(TRIAL_PERIODS_WITHIN_S)))
-        .max(1);
+    let trial_periods =
+        whole(s.trial_min_s).max(s.trial_min_periods.min(whole(TRIAL_PERIODS_WITHIN_S)));
     let warm_periods = whole(s.warmup_min_s);
     let lead = (s.fade_in_s * fs).round() as usize;
     let r: [Vec<f32>; 2] = [0, 1].map(|a| {

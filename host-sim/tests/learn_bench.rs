@@ -32,6 +32,30 @@ fn learning_keeps_a_clean_plant_at_its_first_trial() {
     }
 }
 
+/// A trial is the fewest whole periods that last 0.1 s and number 10 as far as they fit in 1 s:
+/// one 1 Hz period, ten at 10 and at 100 Hz (at the sensor's noise a one-period 10 Hz trial's RMS
+/// spread from trial to trial as much as the rise allowed between them).
+#[test]
+fn a_trial_holds_ten_periods_as_far_as_they_fit_in_a_second() {
+    let settings = LearnBenchSettings {
+        frequencies_hz: vec![1.0, 10.0, 100.0],
+        shapes: vec![Shape::Sine],
+        modes: vec![LearnMode::LearnedFeedback],
+        iterations: 1,
+        repeat_trials: 0,
+        plant_effects: Vec::new(),
+        perturbations: Vec::new(),
+        ..LearnBenchSettings::default()
+    };
+    let report = run_learn_bench(&settings, &mut |_| {}).unwrap();
+    for (freq_hz, periods) in [(1.0, 1), (10.0, 10), (100.0, 10)] {
+        let curve = report
+            .curve(LearnMode::LearnedFeedback, Shape::Sine, freq_hz)
+            .expect("the sine row");
+        assert_eq!(curve.periods_per_trial, periods, "{freq_hz} Hz");
+    }
+}
+
 /// A 10 Hz trial is a single period: recorded right after the switch to a new table, it held
 /// that switch's transient (the servo unwinding the correction the table took over, the creep of
 /// the step), which is not periodic, and the next table learned it: the second trial rose 1.33×
