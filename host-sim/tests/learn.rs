@@ -859,15 +859,6 @@ fn a_mode_between_the_rule_s_frequencies_is_learned_at_its_harmonics() {
             "--periodic",
         ])
         .unwrap();
-        println!(
-            "DEBUG {}",
-            std::fs::read_to_string(dir.join(format!("step{k}.json")))
-                .unwrap()
-                .replace('\n', " ")
-                .split("\"rule\"")
-                .next()
-                .unwrap()
-        );
         command = next;
     }
     println!("RMS error per trial [m]: {errors:?}");
