@@ -173,6 +173,15 @@ pub const SHARED_HARMONICS: usize = 512;
 pub const RULE_FREQUENCIES: usize = 2048;
 /// Mode frequencies (relative, spread over the tolerance) the rule checks per frequency.
 pub const RULE_MODE_SAMPLES: usize = 33;
+
+/// Modes of the set the harmonic step's model gate accepts ([`harmonics`], "The model"): the
+/// rule's span sampled this densely. A mode of damping ζ moves its response by ×2 or 45° within
+/// about ζ of its frequency at the harmonics that ring most: the rule's 33 frequencies from f_u
+/// (12 % apart over 500 Hz – 20 kHz at 10 kHz) left a stage's 740 Hz mode between two of them,
+/// and its harmonic at 700 Hz, the error's largest, was refused every step; now 1 % apart
+/// (at the default `unmodelled_mode_fraction`).
+pub const HARMONIC_MODEL_SAMPLES: usize = 385;
+
 /// Damping ratio of the mode a model without one may lack (module doc): light, as a flexure's.
 pub const UNMODELLED_MODE_DAMPING: f64 = 0.02;
 /// Least R² of `y ≈ γ̂·ŷ + c` for [`Learning::gain_ratio`] to give γ̂.
@@ -1045,6 +1054,8 @@ impl Learning {
             _ => previous_command_v(j),
         };
         let mut changes = [(0usize, C(0.0, 0.0)); MAX_HARMONICS];
+        // |Ĝ/ḡ| measured at each harmonic the step learned, from the first above the cut-off.
+        let mut gains = [0.0f64; MAX_HARMONICS];
         let (learned, changed) = harmonics::learn_harmonics(
             &mut harmonics::HarmonicInputs {
                 previous: trial.previous.map(|p| harmonics::PreviousInputs {
@@ -1064,12 +1075,13 @@ impl Learning {
                 noise_measured_m,
                 noise_command_v,
                 model: &model,
-                model_count: RULE_MODE_SAMPLES + 1,
+                model_count: HARMONIC_MODEL_SAMPLES + 1,
                 gain: f64::from(self.params.harmonic_gain),
                 cap_v: HARMONIC_STEP_CAP * window,
             },
             next_v,
             &mut changes,
+            &mut gains,
         );
         let scale = self.limit_collateral(
             command,
@@ -1077,6 +1089,7 @@ impl Learning {
             slope,
             error_rms_m,
             &mut changes[..changed],
+            &gains,
             next_v,
         );
         self.cancel_mixing(
@@ -1094,8 +1107,11 @@ impl Learning {
     /// what the hysteresis model mixes from them into the harmonics above Q's band, through the
     /// stage's dynamics, stays within κ ([`LearningParams::collateral_share`]) of the trial's
     /// error RMS (module doc, "Mixing above the band"): with M = Ŵ(u + Δ) − Ŵ(u) − ḡ·Δ,
-    /// `c² = Σ_h 2·|G(f_h)/ḡ|²·|M(h)|²` (G the stage file's own response) over the harmonics
-    /// the step examines, and `α = min(1, κ·e_rms/c)`. Returns α.
+    /// `c² = Σ_h 2·|G(f_h)/ḡ|²·|M(h)|²` over the harmonics the step examines, |G/ḡ| the larger
+    /// of the stage file's own response and the one measured where the step learned
+    /// (`measured_gains`, from the first harmonic above the cut-off), and
+    /// `α = min(1, κ·e_rms/c)`. Returns α.
+    #[allow(clippy::too_many_arguments)]
     fn limit_collateral(
         &self,
         command: &dyn Fn(usize) -> f32,
@@ -1103,6 +1119,7 @@ impl Learning {
         slope: f64,
         error_rms_m: f64,
         changes: &mut [(usize, C)],
+        measured_gains: &[f64],
         next_v: &mut [f32],
     ) -> f64 {
         let n = next_v.len();
@@ -1133,7 +1150,8 @@ impl Learning {
         let mut collateral_ms = 0.0;
         for (k, m) in mixed[..count].iter().enumerate() {
             let f = (first + k) as f64 / (n as f64 * t);
-            let gain = self.model_response(f, slope, 0).abs() / libm::fabs(slope);
+            let measured = measured_gains.get(k).copied().unwrap_or(0.0);
+            let gain = (self.model_response(f, slope, 0).abs() / libm::fabs(slope)).max(measured);
             let size = gain * m.abs() / n as f64;
             collateral_ms += 2.0 * size * size;
         }
@@ -1281,8 +1299,9 @@ impl Learning {
     }
 
     /// G_model(f) = ḡ·M_μ(f)·e^(−j2πfDT) of the set the harmonic step accepts \[m/V\]: `i` = 0
-    /// the stage file's own mode (or none), 1 ..= [`RULE_MODE_SAMPLES`] the mode at μ across
-    /// (1 ± t) (without a mode in the file: at the rule's frequencies from f_u up).
+    /// the stage file's own mode (or none), 1 ..= [`HARMONIC_MODEL_SAMPLES`] the mode at μ
+    /// across (1 ± t) (without a mode in the file: geometrically across the rule's span from
+    /// f_u to 2/T).
     fn model_response(&self, f_hz: f64, slope: f64, i: usize) -> C {
         let t = f64::from(self.settings.sample_period_s);
         let w = 2.0 * PI * f_hz;
@@ -1292,7 +1311,7 @@ impl Learning {
             let wm = 2.0 * PI * fm;
             C(wm * wm, 2.0 * rho * zeta * wm * w).div(C(wm * wm - w * w, 2.0 * zeta * wm * w))
         };
-        let position = i.saturating_sub(1) as f64 / (RULE_MODE_SAMPLES - 1) as f64;
+        let position = i.saturating_sub(1) as f64 / (HARMONIC_MODEL_SAMPLES - 1) as f64;
         let mode = match (self.mode, i) {
             (Some((fm, zeta, rho)), 0) => resonance(fm, zeta, rho),
             (Some((fm, zeta, rho)), _) => {

@@ -93,11 +93,12 @@
 //! * The model: `1/2 ≤ |Ĝ/G_model| ≤ 2` and `|arg(Ĝ/G_model)| ≤ 45°`
 //!   ([`HARMONIC_MODEL_FACTOR`], [`HARMONIC_MODEL_PHASE_RAD`]) for some G_model of the set the
 //!   cut-off rule trusts: G_model(f) = ḡ·M_μ(f)·e^(−j2πfDT), ḡ the model's mean slope dy/du
-//!   along u_k, M_μ the stage file's mode at μ·f_mode, μ at 33 values across (1 ± t), D its
-//!   delay (a file without a mode: none, or one at the rule's 33 frequencies from f_u up, damping
+//!   along u_k, M_μ the stage file's mode at μ·f_mode, μ at [`super::HARMONIC_MODEL_SAMPLES`]
+//!   values across (1 ± t), D its delay (a file without a mode: none, or one at as many
+//!   frequencies spaced geometrically from f_u to 2/T, 1 % apart at the default f_u, damping
 //!   [`super::UNMODELLED_MODE_DAMPING`]). A lightly damped mode turns the phase by 180° within a
 //!   few harmonics, so the stage file's own mode frequency alone would refuse the harmonics at
-//!   it that ring most. A ratio the hysteresis's own harmonics or a disturbance made, far from
+//!   it that ring most, and so would a set whose modes lie further apart than their width. A ratio the hysteresis's own harmonics or a disturbance made, far from
 //!   every model of the set, is refused.
 //! * A cap: |U_next(h) − U(h)| ≤ [`HARMONIC_STEP_CAP`] of the output window.
 //!
@@ -188,6 +189,7 @@ pub(super) fn learn_harmonics(
     inp: &mut HarmonicInputs<'_>,
     next: &mut [f32],
     changes: &mut [(usize, C)],
+    gains: &mut [f64],
 ) -> (usize, usize) {
     let n = next.len();
     if n < 4 || inp.gain.is_nan() || inp.gain <= 0.0 {
@@ -295,8 +297,11 @@ pub(super) fn learn_harmonics(
             bin_noise_u,
         );
         let target = match step {
-            Some(step) => {
+            Some((step, gain)) => {
                 learned += 1;
+                if let Some(slot) = gains.get_mut(h - first) {
+                    *slot = gain;
+                }
                 let target = C(from.0 + step.0, from.1 + step.1);
                 if let Some(slot) = changes.get_mut(changed) {
                     *slot = (h, C(target.0 - held.0, target.1 - held.1));
@@ -304,8 +309,18 @@ pub(super) fn learn_harmonics(
                 }
                 target
             }
-            // Refused: held where it stands (module doc, "Gates").
-            None => held,
+            // Refused: held where it stands (module doc, "Gates"); the stage's amplification
+            // there as measured, where it stands clear of the noise.
+            None => {
+                if single.w.abs() > 0.0
+                    && clears_noise(inp, single, (inp.model)(f, 0), bin_noise_y, bin_noise_u)
+                {
+                    if let Some(slot) = gains.get_mut(h - first) {
+                        *slot = single.y.div(single.w).abs();
+                    }
+                }
+                held
+            }
         };
         let delta = C(target.0 - x.0, target.1 - x.1);
         if !(delta.0.is_finite() && delta.1.is_finite()) {
@@ -338,8 +353,8 @@ fn clears_noise(
 }
 
 /// ρ·s_h·E(h)/Ĝ at one harmonic, Ĝ = ḡ·Y/Ŵ of `response`, plus ρ·s_h·`handed_over` (the
-/// servo's correction U(h) − T(h) on a first step from the table), or `None` where a gate
-/// refuses it (module doc).
+/// servo's correction U(h) − T(h) on a first step from the table), and |Ĝ/ḡ| (the stage's
+/// measured amplification there), or `None` where a gate refuses it (module doc).
 #[allow(clippy::too_many_arguments)]
 fn gated_step(
     inp: &HarmonicInputs<'_>,
@@ -349,7 +364,7 @@ fn gated_step(
     f: f64,
     bin_noise_y: f64,
     bin_noise_u: f64,
-) -> Option<C> {
+) -> Option<(C, f64)> {
     if !(response.u.abs() > 0.0 && response.w.abs() > 0.0) {
         return None;
     }
@@ -385,7 +400,7 @@ fn gated_step(
         let k = inp.cap_v / size;
         step = C(step.0 * k, step.1 * k);
     }
-    Some(step)
+    Some((step, dynamics.abs()))
 }
 
 #[cfg(test)]
@@ -459,6 +474,7 @@ mod tests {
             },
             &mut next,
             &mut [],
+            &mut [],
         );
         // Harmonics 11 … 49 with content: 15 (in u and y) only; 22 has none in u (no estimate).
         assert_eq!(learned, 1);
@@ -510,6 +526,7 @@ mod tests {
                 cap_v: 1.0,
             },
             &mut next,
+            &mut [],
             &mut [],
         );
         assert_eq!(learned, 0);
@@ -606,6 +623,7 @@ mod tests {
                         cap_v: 1.0,
                     },
                     &mut next,
+                    &mut [],
                     &mut [],
                 );
                 last = Some((y, u, table));
