@@ -834,6 +834,20 @@ impl Learning {
     /// The next command into `next_v` (the length of the trial's slices). Refuses slices of
     /// different lengths (naming the first that differs from `command_v`) or shorter than 2.
     pub fn step(&self, trial: &Trial<'_>, next_v: &mut [f32]) -> Result<StepSummary, ParamError> {
+        self.step_remembering(trial, &mut [], next_v)
+    }
+
+    /// [`Learning::step`] with the stage's responses at the harmonics remembered from earlier
+    /// steps on the same trajectory: `remembered[h]` = Ĝ(h) \[m/V\] as (re, im), (0, 0) where
+    /// none, read where this trial's estimate is refused and written where one is accepted
+    /// (module `harmonics`, "Remembered responses"; without a servo only). A slice shorter than
+    /// n/2 + 1 remembers only the harmonics it holds.
+    pub fn step_remembering(
+        &self,
+        trial: &Trial<'_>,
+        remembered: &mut [[f32; 2]],
+        next_v: &mut [f32],
+    ) -> Result<StepSummary, ParamError> {
         let n = trial.command_v.len();
         for (field, len) in [
             ("reference_m", trial.reference_m.len()),
@@ -964,6 +978,7 @@ impl Learning {
                 let error_rms_m = libm::sqrt(sq / n as f64);
                 self.learn_harmonics(
                     trial,
+                    remembered,
                     noise_rms_m,
                     command_noise_v,
                     error_rms_m,
@@ -988,9 +1003,11 @@ impl Learning {
 
     /// The harmonic step of the module doc on `next_v` (Q's result); returns the harmonics
     /// learned and the factor α their step was scaled by.
+    #[allow(clippy::too_many_arguments)]
     fn learn_harmonics(
         &self,
         trial: &Trial<'_>,
+        remembered: &mut [[f32; 2]],
         noise_measured_m: f64,
         noise_command_v: f64,
         error_rms_m: f64,
@@ -1078,6 +1095,7 @@ impl Learning {
                 model_count: HARMONIC_MODEL_SAMPLES + 1,
                 gain: f64::from(self.params.harmonic_gain),
                 cap_v: HARMONIC_STEP_CAP * window,
+                remembered,
             },
             next_v,
             &mut changes,

@@ -172,6 +172,11 @@ pub struct AxisStep {
     /// model explains the trial (`Learning::gain_ratio`).
     #[serde(skip)]
     pub model_gain: Option<(f64, f64)>,
+    /// Ĝ(h) \[m/V\] as (re, im) per harmonic h (index), (0, 0) where none: the stage's response
+    /// at the harmonics the step accepted, now or at an earlier step it was given
+    /// (`Learning::step_remembering`); the table `learn` writes carries them.
+    #[serde(skip)]
+    pub remembered: Vec<[f32; 2]>,
 }
 
 /// What a step computed.
@@ -193,6 +198,47 @@ pub struct LearnStep {
     pub params: LearningParams,
     /// Whether the trial was periodic.
     pub periodic: bool,
+    /// The periodic trial the table was learned from, per axis its command u_k \[V\] and its
+    /// measured period y_k \[m\] (passes averaged): the table carries them (columns
+    /// [`TRIAL_COMMAND_PREFIX`]…, [`TRIAL_MEASURED_PREFIX`]…) so that the next step reads the
+    /// stage's response from the change between the two trials (`piezo_core::PreviousTrial`).
+    pub learned_from: Option<LearnedFrom>,
+}
+
+/// A periodic trial as a table carries it ([`LearnStep::learned_from`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct LearnedFrom {
+    /// u_k per axis \[V\].
+    pub command_v: Vec<Vec<f32>>,
+    /// y_k per axis, one period \[m\].
+    pub measured_m: Vec<Vec<f32>>,
+}
+
+/// The column of a table carrying the command of the trial it was learned from: this prefix
+/// and the command's own column (`trial_u_V`, `trial_ux_V`).
+pub const TRIAL_COMMAND_PREFIX: &str = "trial_";
+/// The column carrying that trial's measured period: this prefix and the axis (`trial_y_m`;
+/// `trial_y_x_m` and `trial_y_y_m` for two axes).
+pub const TRIAL_MEASURED_PREFIX: &str = "trial_y";
+
+/// The columns of a table carrying its trial, command and measured, for `axes` axes.
+fn trial_columns(axes: usize) -> Vec<(String, String)> {
+    let names: &[&str] = if axes == 1 {
+        &["u_V"]
+    } else {
+        &["ux_V", "uy_V"]
+    };
+    names
+        .iter()
+        .enumerate()
+        .map(|(i, name)| {
+            let measured = match axes {
+                1 => format!("{TRIAL_MEASURED_PREFIX}_m"),
+                _ => format!("{TRIAL_MEASURED_PREFIX}_{}_m", ["x", "y"][i]),
+            };
+            (format!("{TRIAL_COMMAND_PREFIX}{name}"), measured)
+        })
+        .collect()
 }
 
 /// The rule, as printed in reports.
@@ -237,6 +283,16 @@ impl LearnStep {
             names.push(name.to_string());
             columns.push(r.iter().map(|&v| f64::from(v)).collect());
         }
+        if let Some(trial) = &self.learned_from {
+            let wide = |v: &Vec<f32>| v.iter().map(|&x| f64::from(x)).collect::<Vec<f64>>();
+            for (i, (command, measured)) in trial_columns(self.next_v.len()).into_iter().enumerate()
+            {
+                names.push(command);
+                columns.push(wide(&trial.command_v[i]));
+                names.push(measured);
+                columns.push(wide(&trial.measured_m[i]));
+            }
+        }
         Table {
             path: PathBuf::new(),
             names,
@@ -246,12 +302,26 @@ impl LearnStep {
 
     /// The `#` lines before the table.
     pub fn header(&self, params: &Path) -> String {
-        format!(
+        let mut header = format!(
             "# host-sim learn: iteration {}\n# {STAGE_KEY}{:#010x} ({})\n",
             self.iteration,
             self.stage_fnv1a32,
             params.display()
-        )
+        );
+        // The stage's responses at the harmonics, `h:re:im` in m/V, for the next step.
+        for ((name, _), axis) in self.next_v.iter().zip(&self.axes) {
+            let kept: Vec<String> = axis
+                .remembered
+                .iter()
+                .enumerate()
+                .filter(|(_, g)| g[0] != 0.0 || g[1] != 0.0)
+                .map(|(h, g)| format!("{h}:{:e}:{:e}", g[0], g[1]))
+                .collect();
+            if !kept.is_empty() {
+                header += &format!("# {RESPONSES_KEY}{name}: {}\n", kept.join(" "));
+            }
+        }
+        header
     }
 
     /// `STEP.json`: one entry per axis, named by its column, beside the iteration, the stage
@@ -308,6 +378,7 @@ pub struct AxisStepReport<'a> {
 
 const STAGE_KEY: &str = "stage_fnv1a32 = ";
 const ITERATION_KEY: &str = "# host-sim learn: iteration ";
+const RESPONSES_KEY: &str = "harmonic_responses_m_per_v ";
 
 /// A command file: its table and, for a table `learn` wrote, the iteration and the stage file's
 /// fingerprint and name.
@@ -315,6 +386,9 @@ struct CommandFile {
     table: Table,
     iteration: u32,
     stage: Option<(u32, String)>,
+    /// Per voltage column, the stage's responses at the harmonics the step that wrote the
+    /// table had accepted: (h, \[re, im\] m/V).
+    remembered: Vec<(String, Vec<(usize, [f32; 2])>)>,
 }
 
 fn read_command(path: &Path) -> crate::Result<CommandFile> {
@@ -322,6 +396,7 @@ fn read_command(path: &Path) -> crate::Result<CommandFile> {
     let table = crate::csv::parse_csv(path, &text).map_err(crate::Error::from)?;
     let mut iteration = 0;
     let mut stage = None;
+    let mut remembered = Vec::new();
     for (i, line) in text.lines().enumerate().filter(|(_, l)| l.starts_with('#')) {
         let bad = || {
             crate::Error::Usage(format!(
@@ -340,12 +415,37 @@ fn read_command(path: &Path) -> crate::Result<CommandFile> {
             let hash = u32::from_str_radix(hash.trim_start_matches("0x"), 16).map_err(|_| bad())?;
             let name = name.trim().trim_start_matches('(').trim_end_matches(')');
             stage = Some((hash, name.to_string()));
+        } else if let Some(rest) = line
+            .strip_prefix("# ")
+            .and_then(|l| l.strip_prefix(RESPONSES_KEY))
+        {
+            let (column, entries) = rest.split_once(':').ok_or_else(bad)?;
+            let entries = entries
+                .split_whitespace()
+                .map(|entry| {
+                    let mut parts = entry.split(':');
+                    let (Some(h), Some(re), Some(im), None) =
+                        (parts.next(), parts.next(), parts.next(), parts.next())
+                    else {
+                        return Err(bad());
+                    };
+                    let g = [re.parse::<f32>(), im.parse::<f32>()];
+                    match (h.parse::<usize>(), g) {
+                        (Ok(h), [Ok(re), Ok(im)]) if re.is_finite() && im.is_finite() => {
+                            Ok((h, [re, im]))
+                        }
+                        _ => Err(bad()),
+                    }
+                })
+                .collect::<crate::Result<Vec<_>>>()?;
+            remembered.push((column.trim().to_string(), entries));
         }
     }
     Ok(CommandFile {
         table,
         iteration,
         stage,
+        remembered,
     })
 }
 
@@ -477,6 +577,11 @@ pub struct LearnedTable {
     pub t_s: Vec<f64>,
     /// Per axis the voltages \[V\].
     pub voltages_v: Vec<Vec<f32>>,
+    /// Per axis the stage's responses at the harmonics the table's step accepted
+    /// ([`AxisStep::remembered`]), n/2 + 1 entries; all (0, 0) for a table without them.
+    pub remembered: Vec<Vec<[f32; 2]>>,
+    /// The trial it was learned from, where it carries one ([`LearnStep::learned_from`]).
+    pub learned_from: Option<LearnedFrom>,
 }
 
 /// A command for `axes` axes read from `path` (`compensate`'s output, iteration 0, or a table
@@ -500,10 +605,55 @@ pub fn read_learned_table(
     }
     check_table_belongs(&command, path, c)?;
     let voltages_v = command_columns(&command, path, axes)?;
+    let names: &[&str] = if axes == 1 {
+        &["u_V"]
+    } else {
+        &["ux_V", "uy_V"]
+    };
+    let mut remembered = vec![vec![[0.0f32; 2]; n / 2 + 1]; axes];
+    for (column, entries) in &command.remembered {
+        let Some(axis) = names.iter().position(|name| name == column) else {
+            return Err(crate::Error::Usage(format!(
+                "{}: harmonic responses for `{column}`, which is not among its columns {}",
+                path.display(),
+                names.join(", ")
+            )));
+        };
+        for &(h, g) in entries {
+            let slot = remembered[axis].get_mut(h).ok_or_else(|| {
+                crate::Error::Usage(format!(
+                    "{}: a harmonic response at harmonic {h} of `{column}`, above the table's \
+                     n/2 = {}",
+                    path.display(),
+                    n / 2
+                ))
+            })?;
+            *slot = g;
+        }
+    }
+    let trial: Option<Vec<(Vec<f32>, Vec<f32>)>> = trial_columns(axes)
+        .iter()
+        .map(|(u, y)| {
+            let column = |name: &str| {
+                command
+                    .table
+                    .column(name)
+                    .ok()
+                    .map(|c| c.iter().map(|&v| v as f32).collect::<Vec<f32>>())
+            };
+            Some((column(u)?, column(y)?))
+        })
+        .collect();
+    let learned_from = trial.map(|axes| LearnedFrom {
+        command_v: axes.iter().map(|(u, _)| u.clone()).collect(),
+        measured_m: axes.into_iter().map(|(_, y)| y).collect(),
+    });
     Ok(LearnedTable {
         iteration: command.iteration,
         t_s: t_u.to_vec(),
         voltages_v,
+        remembered,
+        learned_from,
     })
 }
 
@@ -642,6 +792,9 @@ pub struct AxesTrial<'a> {
     /// The trial before on the same trajectory, for the harmonic step's two-trial estimate
     /// (`piezo_core::PreviousTrial`).
     pub previous: Option<AxesPrevious<'a>>,
+    /// Per axis the stage's responses at the harmonics accepted at earlier steps on the same
+    /// trajectory ([`AxisStep::remembered`]); `None`: none kept.
+    pub remembered: Option<&'a [Vec<[f32; 2]>]>,
 }
 
 /// The trial before ([`AxesTrial::previous`]), per axis.
@@ -664,8 +817,16 @@ pub fn step_axes(trial: &AxesTrial<'_>) -> crate::Result<(Vec<AxisStep>, Vec<Vec
         let name = trial.names[i];
         let mut next = vec![0.0f32; trial.reference.t_s.len()];
         let noise = trial.noise.and_then(|n| n.get(i).copied().flatten());
+        let mut remembered = match trial.remembered {
+            Some(r) => {
+                let mut kept = r.get(i).cloned().unwrap_or_default();
+                kept.resize(trial.reference.t_s.len() / 2 + 1, [0.0; 2]);
+                kept
+            }
+            None => Vec::new(),
+        };
         let summary = learning
-            .step(
+            .step_remembering(
                 &Trial {
                     reference_m: &trial.reference.axes[i].1,
                     command_v: &trial.command_v[i],
@@ -680,6 +841,7 @@ pub fn step_axes(trial: &AxesTrial<'_>) -> crate::Result<(Vec<AxisStep>, Vec<Vec
                     }),
                     table_v: trial.table_v.map(|t| t[i].as_slice()),
                 },
+                &mut remembered,
                 &mut next,
             )
             .map_err(|e| crate::Error::Usage(format!("axis {name}: {e}")))?;
@@ -696,6 +858,7 @@ pub fn step_axes(trial: &AxesTrial<'_>) -> crate::Result<(Vec<AxisStep>, Vec<Vec
             harmonic_scale: summary.harmonic_scale,
             noise_from_passes: noise.is_some(),
             model_gain: None,
+            remembered,
         });
         next_v.push(next);
     }
@@ -771,6 +934,8 @@ pub fn learn(a: &LearnArgs) -> crate::Result<LearnStep> {
         iteration,
         t_s: t_u,
         voltages_v: u,
+        remembered,
+        learned_from,
     } = read_learned_table(&a.command, &context, axes.len())?;
     let measured = read_csv(&a.measured).map_err(crate::Error::from)?;
     let t_y = measured.column("t_s").map_err(crate::Error::from)?;
@@ -850,7 +1015,15 @@ pub fn learn(a: &LearnArgs) -> crate::Result<LearnStep> {
             periodic: a.periodic,
             noise: noise.as_deref(),
             table_v: None,
-            previous: None,
+            previous: learned_from
+                .as_ref()
+                .filter(|_| a.periodic)
+                .map(|trial| AxesPrevious {
+                    command_v: &trial.command_v,
+                    measured_m: &trial.measured_m,
+                    table_v: None,
+                }),
+            remembered: Some(&remembered),
         },
         &files,
     )?;
@@ -869,6 +1042,10 @@ pub fn learn(a: &LearnArgs) -> crate::Result<LearnStep> {
         axes: steps,
         params,
         periodic: a.periodic,
+        learned_from: a.periodic.then(|| LearnedFrom {
+            command_v: u.clone(),
+            measured_m: y.clone(),
+        }),
     })
 }
 
@@ -947,6 +1124,7 @@ mod tests {
             harmonic_scale: 0.5,
             noise_from_passes: true,
             model_gain: Some((1.2, 1e-7)),
+            remembered: Vec::new(),
         };
         let report = AxisStepReport {
             step: &step,

@@ -454,6 +454,7 @@ pub fn link_learn(
                 noise: None,
                 table_v: None,
                 previous: None,
+                remembered: None,
             })?
             .1,
         ),
@@ -527,6 +528,7 @@ pub fn link_learn(
                     measured_m: y,
                     table_v: a.feedback.then_some(t.as_slice()),
                 }),
+                remembered: None,
             },
             &files,
         )?;
@@ -667,6 +669,7 @@ impl LinkLearnReport {
             axes: best.axes.clone(),
             params: a.learning.params(),
             periodic: true,
+            learned_from: None,
         }
     }
 
