@@ -174,7 +174,7 @@ pub const RULE_FREQUENCIES: usize = 2048;
 /// Mode frequencies (relative, spread over the tolerance) the rule checks per frequency.
 pub const RULE_MODE_SAMPLES: usize = 33;
 
-/// Modes of the set the harmonic step's model gate accepts ([`harmonics`], "The model"): the
+/// Modes of the set the harmonic step's model gate accepts (module `harmonics`, "The model"): the
 /// rule's span sampled this densely. A mode of damping ζ moves its response by ×2 or 45° within
 /// about ζ of its frequency at the harmonics that ring most: the rule's 33 frequencies from f_u
 /// (12 % apart over 500 Hz – 20 kHz at 10 kHz) left a stage's 740 Hz mode between two of them,

@@ -388,8 +388,11 @@ struct CommandFile {
     stage: Option<(u32, String)>,
     /// Per voltage column, the stage's responses at the harmonics the step that wrote the
     /// table had accepted: (h, \[re, im\] m/V).
-    remembered: Vec<(String, Vec<(usize, [f32; 2])>)>,
+    remembered: Vec<(String, Vec<HarmonicResponse>)>,
 }
+
+/// One harmonic's remembered response as a table carries it: (h, \[re, im\] m/V).
+type HarmonicResponse = (usize, [f32; 2]);
 
 fn read_command(path: &Path) -> crate::Result<CommandFile> {
     let text = std::fs::read_to_string(path).map_err(crate::Error::read("", path))?;
@@ -1106,6 +1109,37 @@ pub fn learn_cmd(a: &LearnArgs) -> crate::Result<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A table's remembered responses are read back as written, and a line that does not read
+    /// as `h:re:im` entries is refused naming the file and the line.
+    #[test]
+    fn a_table_s_harmonic_responses_are_read_back_and_a_bad_line_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("u1.csv");
+        let body = "t_s,u_V,r_m\n0,1,0\n0.0001,2,0\n";
+        std::fs::write(
+            &path,
+            format!("# {RESPONSES_KEY}u_V: 3:1.5e-7:-2e-7 7:0:4e-6\n{body}"),
+        )
+        .unwrap();
+        let file = read_command(&path).unwrap();
+        assert_eq!(
+            file.remembered,
+            vec![(
+                "u_V".to_string(),
+                vec![(3, [1.5e-7, -2e-7]), (7, [0.0, 4e-6])]
+            )]
+        );
+        std::fs::write(&path, format!("# {RESPONSES_KEY}u_V: 3:1.5e-7\n{body}")).unwrap();
+        let Err(e) = read_command(&path) else {
+            panic!("a response without its imaginary part was read");
+        };
+        let message = e.to_string();
+        assert!(
+            message.contains("u1.csv:1:") && message.contains("unreadable learn header"),
+            "{message}"
+        );
+    }
 
     /// An axis's entry of `STEP.json` has the keys it has always had, the model gain's ratio
     /// alone and no axis name (the entry's key).
