@@ -1110,6 +1110,54 @@ pub fn learn_cmd(a: &LearnArgs) -> crate::Result<String> {
 mod tests {
     use super::*;
 
+    /// A two-axis table carries the trial it was learned from in the columns the next step
+    /// reads it from, and a table without them gives none.
+    #[test]
+    fn a_two_axis_table_carries_its_trial() {
+        let dir = tempfile::tempdir().unwrap();
+        let reference_path = dir.path().join("r.csv");
+        std::fs::write(&reference_path, "t_s,rx_m,ry_m\n0,0,1e-6\n0.0001,1e-6,0\n").unwrap();
+        let reference = read_reference(&reference_path).unwrap();
+        let params = dir.path().join("stage.toml");
+        let context = TableContext {
+            params: &params,
+            stage_hash: 0,
+            reference_path: &reference_path,
+            reference: &reference,
+        };
+        let step = LearnStep {
+            t_s: reference.t_s.clone(),
+            next_v: vec![
+                ("ux_V".to_string(), vec![1.0, 2.0]),
+                ("uy_V".to_string(), vec![3.0, 4.0]),
+            ],
+            reference: reference.clone(),
+            iteration: 1,
+            stage_fnv1a32: 0,
+            axes: Vec::new(),
+            params: LearningParams::default(),
+            periodic: true,
+            learned_from: Some(LearnedFrom {
+                command_v: vec![vec![0.5, 1.5], vec![2.5, 3.5]],
+                measured_m: vec![vec![1e-7, 2e-7], vec![3e-7, 4e-7]],
+            }),
+        };
+        let path = dir.path().join("u1.csv");
+        write_learned_table(&path, &step, &params).unwrap();
+        let table = read_learned_table(&path, &context, 2).unwrap();
+        assert_eq!(table.voltages_v, vec![vec![1.0, 2.0], vec![3.0, 4.0]]);
+        assert_eq!(table.learned_from, step.learned_from);
+        let bare = LearnStep {
+            learned_from: None,
+            ..step
+        };
+        write_learned_table(&path, &bare, &params).unwrap();
+        assert_eq!(
+            read_learned_table(&path, &context, 2).unwrap().learned_from,
+            None
+        );
+    }
+
     /// A table's remembered responses are read back as written, and a line that does not read
     /// as `h:re:im` entries is refused naming the file and the line.
     #[test]
