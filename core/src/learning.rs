@@ -536,6 +536,12 @@ pub struct PreviousTrial<'a> {
     pub table_v: Option<&'a [f32]>,
 }
 
+/// The lowest harmonic h of a period of n samples of `sample_period_s` above `cutoff_hz`:
+/// h = ⌊f_c·n·T⌋ + 1.
+fn first_harmonic_above(cutoff_hz: f64, n: usize, sample_period_s: f64) -> usize {
+    libm::floor(cutoff_hz * n as f64 * sample_period_s) as usize + 1
+}
+
 impl Learning {
     /// Learning for the axis whose compensator is `compensator` (a position model) and whose
     /// effects are `effects` (delay and mode used; the rest is left to the learning), with the
@@ -1190,8 +1196,7 @@ impl Learning {
     /// The lowest harmonic of a period of n samples above Q's cut-off: the first the harmonic
     /// step examines, and the end of the band the in-band learning keeps.
     fn first_above_cutoff(&self, n: usize) -> usize {
-        let t = f64::from(self.settings.sample_period_s);
-        libm::floor(self.cutoff_hz * n as f64 * t) as usize + 1
+        first_harmonic_above(self.cutoff_hz, n, f64::from(self.settings.sample_period_s))
     }
 
     /// M = Ŵ(u + Δ) − Ŵ(u) − ḡ·Δ along one period (each from its periodic state; Δ(j) the

@@ -238,7 +238,7 @@ pub(super) fn learn_harmonics(
     }
     let mut changed = 0;
     let t = inp.sample_period_s;
-    let first = libm::floor(inp.cutoff_hz * n as f64 * t) as usize + 1;
+    let first = super::first_harmonic_above(inp.cutoff_hz, n, t);
     // Below the Nyquist frequency (its component has no phase to learn).
     let last = (n - 1) / 2;
     let scale = 1.0 / n as f64;
