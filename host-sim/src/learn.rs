@@ -221,13 +221,18 @@ pub const TRIAL_COMMAND_PREFIX: &str = "trial_";
 /// `trial_y_x_m` and `trial_y_y_m` for two axes).
 pub const TRIAL_MEASURED_PREFIX: &str = "trial_y";
 
-/// The columns of a table carrying its trial, command and measured, for `axes` axes.
-fn trial_columns(axes: usize) -> Vec<(String, String)> {
-    let names: &[&str] = if axes == 1 {
+/// A table's voltage columns for `axes` axes: `u_V`, or `ux_V` and `uy_V`.
+fn voltage_columns(axes: usize) -> &'static [&'static str] {
+    if axes == 1 {
         &["u_V"]
     } else {
         &["ux_V", "uy_V"]
-    };
+    }
+}
+
+/// The columns of a table carrying its trial, command and measured, for `axes` axes.
+fn trial_columns(axes: usize) -> Vec<(String, String)> {
+    let names = voltage_columns(axes);
     names
         .iter()
         .enumerate()
@@ -462,11 +467,7 @@ fn mean_period(t_s: &[f64]) -> f64 {
 
 /// The command's voltage columns for `axes` axes (`u_V`, or `ux_V` and `uy_V`).
 fn command_columns(file: &CommandFile, path: &Path, axes: usize) -> crate::Result<Vec<Vec<f32>>> {
-    let names: &[&str] = if axes == 1 {
-        &["u_V"]
-    } else {
-        &["ux_V", "uy_V"]
-    };
+    let names = voltage_columns(axes);
     names
         .iter()
         .map(|name| {
@@ -608,11 +609,7 @@ pub fn read_learned_table(
     }
     check_table_belongs(&command, path, c)?;
     let voltages_v = command_columns(&command, path, axes)?;
-    let names: &[&str] = if axes == 1 {
-        &["u_V"]
-    } else {
-        &["ux_V", "uy_V"]
-    };
+    let names = voltage_columns(axes);
     let mut remembered = vec![vec![[0.0f32; 2]; n / 2 + 1]; axes];
     for (column, entries) in &command.remembered {
         let Some(axis) = names.iter().position(|name| name == column) else {

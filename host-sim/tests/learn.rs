@@ -65,6 +65,48 @@ fn cli(args: &[&str]) -> Result<String, String> {
     run(Cli::try_parse_from(v).map_err(|e| e.to_string())?).map_err(|e| e.to_string())
 }
 
+/// One `host-sim learn` step: `command` and `measured` to `next`, its report to `report`
+/// (`--periodic` when `periodic`).
+fn learn_step(
+    params: &Path,
+    reference: &Path,
+    [command, measured]: [&Path; 2],
+    [next, report]: [&Path; 2],
+    periodic: bool,
+) -> Result<String, String> {
+    let mut args = vec![
+        "learn",
+        "--params",
+        p(params),
+        "--reference",
+        p(reference),
+        "--command",
+        p(command),
+        "--measured",
+        p(measured),
+        "--out",
+        p(next),
+        "--report",
+        p(report),
+    ];
+    if periodic {
+        args.push("--periodic");
+    }
+    cli(&args)
+}
+
+/// [`learn_step`] with `--periodic`, which must succeed.
+fn learn_periodic(
+    params: &Path,
+    reference: &Path,
+    command: &Path,
+    measured: &Path,
+    next: &Path,
+    report: &Path,
+) {
+    learn_step(params, reference, [command, measured], [next, report], true).unwrap();
+}
+
 fn p(path: &Path) -> &str {
     path.to_str().unwrap()
 }
@@ -192,21 +234,13 @@ fn learning_trials_measured(
         }
         let next = dir.join(format!("u{}.csv", k + 1));
         let report = dir.join(format!("step{k}.json"));
-        cli(&[
-            "learn",
-            "--params",
-            p(params),
-            "--reference",
-            p(&reference),
-            "--command",
-            p(&command),
-            "--measured",
-            p(&measured),
-            "--out",
-            p(&next),
-            "--report",
-            p(&report),
-        ])
+        learn_step(
+            params,
+            &reference,
+            [&command, &measured],
+            [&next, &report],
+            false,
+        )
         .unwrap();
         // The report's error is that of the trial just played.
         let json: serde_json::Value =
@@ -314,22 +348,15 @@ fn learn_refuses_records_and_tables_that_do_not_belong() {
     .unwrap();
     let y0 = dir.join("y0.csv");
     play(&plant, &u0, &y0, &r);
+    let (next, report) = (dir.join("next.csv"), dir.join("step.json"));
     let learn = |params: &Path, reference: &Path, command: &Path, measured: &Path| {
-        cli(&[
-            "learn",
-            "--params",
-            p(params),
-            "--reference",
-            p(reference),
-            "--command",
-            p(command),
-            "--measured",
-            p(measured),
-            "--out",
-            p(&dir.join("next.csv")),
-            "--report",
-            p(&dir.join("step.json")),
-        ])
+        learn_step(
+            params,
+            reference,
+            [command, measured],
+            [&next, &report],
+            false,
+        )
     };
     let u1 = dir.join("u1.csv");
     learn(&params, &reference, &u0, &y0).unwrap();
@@ -573,23 +600,14 @@ fn a_periodic_trial_starts_from_the_settled_period() {
     let measured = dir.join("y0.csv");
     write_table(&measured, &["t_s", "x_m", "y_m"], vec![t, r.clone(), r]);
     let next = dir.join("u1.csv");
-    cli(&[
-        "learn",
-        "--params",
-        p(&params),
-        "--reference",
-        p(&reference),
-        "--command",
-        p(&command),
-        "--measured",
-        p(&measured),
-        "--out",
-        p(&next),
-        "--report",
-        p(&dir.join("step.json")),
-        "--periodic",
-    ])
-    .unwrap();
+    learn_periodic(
+        &params,
+        &reference,
+        &command,
+        &measured,
+        &next,
+        &dir.join("step.json"),
+    );
     let table = read_csv(&next).unwrap();
     for (axis, name) in ["ux_V", "uy_V"].iter().enumerate() {
         let got = table.column(name).unwrap();
@@ -718,23 +736,7 @@ fn a_periodic_file_per_trial_loop_converges_on_a_stage_its_file_does_not_describ
         );
         let next = dir.join(format!("u{}.csv", k + 1));
         let report = dir.join(format!("step{k}.json"));
-        cli(&[
-            "learn",
-            "--params",
-            p(&params),
-            "--reference",
-            p(&reference),
-            "--command",
-            p(&command),
-            "--measured",
-            p(&measured),
-            "--out",
-            p(&next),
-            "--report",
-            p(&report),
-            "--periodic",
-        ])
-        .unwrap();
+        learn_periodic(&params, &reference, &command, &measured, &next, &report);
         let json: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
         assert_eq!(json["x"]["noise_from_passes"], true);
@@ -842,23 +844,14 @@ fn a_mode_between_the_rule_s_frequencies_is_learned_at_its_harmonics() {
             ],
         );
         let next = dir.join(format!("u{}.csv", k + 1));
-        cli(&[
-            "learn",
-            "--params",
-            p(&params),
-            "--reference",
-            p(&reference),
-            "--command",
-            p(&command),
-            "--measured",
-            p(&measured),
-            "--out",
-            p(&next),
-            "--report",
-            p(&dir.join(format!("step{k}.json"))),
-            "--periodic",
-        ])
-        .unwrap();
+        learn_periodic(
+            &params,
+            &reference,
+            &command,
+            &measured,
+            &next,
+            &dir.join(format!("step{k}.json")),
+        );
         command = next;
     }
     println!("RMS error per trial [m]: {errors:?}");
