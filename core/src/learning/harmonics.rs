@@ -101,7 +101,8 @@
 //! * a first step from the one-trial estimate is a probe, at most `ρ·|E(h)|/max_i |G_i(f_h)|`
 //!   in size (the largest response of the model set), so that a wrong estimate moves the
 //!   harmonic's error by at most ρ of itself;
-//! * a harmonic whose error grew after the last step changed it, with no clean two-trial
+//! * a harmonic whose error grew after the last step changed it (by enough to move the output
+//!   3× its noise through the largest response of the set), with no clean two-trial
 //!   estimate, goes back to the trial before's component, and the change's own response
 //!   ḡ·ΔY/ΔŴ is remembered where |ΔY| clears [`HARMONIC_UNDO_SNR`] times its noise.
 //!
@@ -127,8 +128,9 @@
 //!   frequencies spaced geometrically from f_u to 2/T, 1 % apart at the default f_u, damping
 //!   [`super::UNMODELLED_MODE_DAMPING`]). A lightly damped mode turns the phase by 180° within a
 //!   few harmonics, so the stage file's own mode frequency alone would refuse the harmonics at
-//!   it that ring most, and so would a set whose modes lie further apart than their width. A ratio the hysteresis's own harmonics or a disturbance made, far from
-//!   every model of the set, is refused.
+//!   it that ring most, and so would a set whose modes lie further apart than their width. A
+//!   ratio the hysteresis's own harmonics or a disturbance made, far from every model of the
+//!   set, is refused.
 //! * A cap: |U_next(h) − U(h)| ≤ [`HARMONIC_STEP_CAP`] of the output window.
 //!
 //! At most [`MAX_HARMONICS`] harmonics, the lowest above f_c, are examined per step.
@@ -142,11 +144,13 @@ pub const HARMONIC_SNR: f64 = 8.0;
 pub const HARMONIC_MODEL_FACTOR: f64 = 2.0;
 /// |arg(Ĝ/G_model)| at most this \[rad\] (45°).
 pub const HARMONIC_MODEL_PHASE_RAD: f64 = PI / 4.0;
-/// Without a servo, a two-trial estimate counts only where the harmonic's own change ḡ·ΔU(h)
+/// With a memory, a two-trial estimate counts only where the harmonic's own change ḡ·ΔU(h)
 /// is at least this many times what the model says the hysteresis mixed into it from the
 /// changes at the other harmonics, |ΔŴ(h) − ḡ·ΔU(h)| (module doc, "Remembered responses").
 pub const HARMONIC_OWN_CHANGE: f64 = 1.0;
-/// The SNR a harmed harmonic's measured change needs for its response to be remembered.
+/// The SNR a change needs to count as one the error grew after, through the largest response
+/// of the set, and its measured response to be remembered (module doc, "Remembered
+/// responses").
 pub const HARMONIC_UNDO_SNR: f64 = 3.0;
 /// Largest change of a harmonic's amplitude per step, as a share of the output window.
 pub const HARMONIC_STEP_CAP: f64 = 0.01;
@@ -312,10 +316,6 @@ pub(super) fn learn_harmonics(
                 u_noise_scale: core::f64::consts::SQRT_2,
             }
         };
-        // The two-trial estimate where the last step moved this harmonic clear of the noise
-        // (for the stage file's own model) and, without a servo, more than the hysteresis
-        // mixed into it from the other harmonics' changes (module doc, "Remembered responses");
-        // else the one-trial one.
         // With a memory and without a servo (module doc, "Remembered responses").
         let remembering = inp.table.is_none() && !inp.remembered.is_empty();
         let own_change_dominates = !remembering || {
@@ -329,6 +329,9 @@ pub(super) fn learn_harmonics(
             && pair.u.abs() > 0.0
             && pair.u.abs() >= HARMONIC_SNR * pair.u_noise_scale * bin_noise_u
             && pair.y.abs() >= HARMONIC_SNR * pair.y_noise_scale * bin_noise_y;
+        // The two-trial estimate where the last step moved this harmonic clear of the noise
+        // (for the stage file's own model) and, with a memory, more than the hysteresis mixed
+        // into it from the other harmonics' changes; else the one-trial one.
         let moved = inp.previous.is_some()
             && own_change_dominates
             && (measured_change_clears
@@ -357,11 +360,19 @@ pub(super) fn learn_harmonics(
         // trial before's component, and the change's own response, where it stands clear of
         // the noise, is remembered for the next step (module doc, "Remembered responses").
         let previous_error = C(r.0 - py.0, r.1 - py.1);
+        // The largest response of the model set here \[m/V\]: what a change could move at most.
+        let worst = || {
+            (0..inp.model_count.max(1))
+                .map(|i| (inp.model)(f, i).abs())
+                .fold(0.0, f64::max)
+        };
+        // Changed by more than a table's rounding: enough to move the output by a visible
+        // amount through the largest response of the set.
         let harmed = remembering
             && inp.previous.is_some()
             && !moved
-            && pair.u.abs() > 0.0
-            && error.abs() > previous_error.abs();
+            && error.abs() > previous_error.abs()
+            && worst() * pair.u.abs() >= HARMONIC_UNDO_SNR * pair.y_noise_scale * bin_noise_y;
         if harmed {
             if pair.w.abs() > 0.0
                 && pair.y.abs() >= HARMONIC_UNDO_SNR * pair.y_noise_scale * bin_noise_y
@@ -406,9 +417,7 @@ pub(super) fn learn_harmonics(
                     // response of the model set moves the output by at most ρ·|E(h)| (module
                     // doc, "Remembered responses").
                     (Some((probe, estimate)), false, true) => {
-                        let worst = (0..inp.model_count.max(1))
-                            .map(|i| (inp.model)(f, i).abs())
-                            .fold(0.0, f64::max);
+                        let worst = worst();
                         let limit = inp.gain * error.abs() / worst;
                         let size = probe.abs();
                         Some(if worst > 0.0 && size > limit {
