@@ -644,9 +644,12 @@ pub fn read_learned_table(
             Some((column(u)?, column(y)?))
         })
         .collect();
-    let learned_from = trial.map(|axes| LearnedFrom {
-        command_v: axes.iter().map(|(u, _)| u.clone()).collect(),
-        measured_m: axes.into_iter().map(|(_, y)| y).collect(),
+    let learned_from = trial.map(|axes| {
+        let (command_v, measured_m) = axes.into_iter().unzip();
+        LearnedFrom {
+            command_v,
+            measured_m,
+        }
     });
     Ok(LearnedTable {
         iteration: command.iteration,
@@ -1042,9 +1045,9 @@ pub fn learn(a: &LearnArgs) -> crate::Result<LearnStep> {
         axes: steps,
         params,
         periodic: a.periodic,
-        learned_from: a.periodic.then(|| LearnedFrom {
-            command_v: u.clone(),
-            measured_m: y.clone(),
+        learned_from: a.periodic.then_some(LearnedFrom {
+            command_v: u,
+            measured_m: y,
         }),
     })
 }

@@ -373,87 +373,79 @@ pub(super) fn learn_harmonics(
             && !moved
             && error.abs() > previous_error.abs()
             && worst() * pair.u.abs() >= HARMONIC_UNDO_SNR * pair.y_noise_scale * bin_noise_y;
-        if harmed {
+        let target = if harmed {
             if pair.w.abs() > 0.0
                 && pair.y.abs() >= HARMONIC_UNDO_SNR * pair.y_noise_scale * bin_noise_y
             {
                 let dynamics = pair.y.div(pair.w);
-                if let Some(slot) = inp.remembered.get_mut(h) {
-                    *slot = [
-                        (dynamics.0 * inp.slope) as f32,
-                        (dynamics.1 * inp.slope) as f32,
-                    ];
-                }
-            }
-            let back = C(pu.0 - x.0, pu.1 - x.1);
-            if back.0.is_finite() && back.1.is_finite() {
-                for (j, v) in next.iter_mut().enumerate() {
-                    let (c, s) = twiddle(h, j, n);
-                    *v += (2.0 * (back.0 * c + back.1 * s)) as f32;
-                }
-            }
-            continue;
-        }
-        let step = match remembered.filter(|_| !moved) {
-            Some(g) => Some((step_for(inp, g, error, None, bin_noise_y), g)),
-            None => {
-                let step = gated_step(
-                    inp,
-                    response,
-                    error,
-                    handed_over,
-                    f,
-                    bin_noise_y,
-                    bin_noise_u,
+                remember(
+                    inp.remembered,
+                    h,
+                    C(dynamics.0 * inp.slope, dynamics.1 * inp.slope),
                 );
-                match (step, moved, remembering) {
-                    (Some((_, estimate)), true, true) => {
-                        if let Some(slot) = inp.remembered.get_mut(h) {
-                            *slot = [estimate.0 as f32, estimate.1 as f32];
+            }
+            // Back to the trial before's component.
+            pu
+        } else {
+            let step = match remembered.filter(|_| !moved) {
+                Some(g) => Some((step_for(inp, g, error, None, bin_noise_y), g)),
+                None => {
+                    let step = gated_step(
+                        inp,
+                        response,
+                        error,
+                        handed_over,
+                        f,
+                        bin_noise_y,
+                        bin_noise_u,
+                    );
+                    match (step, moved, remembering) {
+                        (Some((_, estimate)), true, true) => {
+                            remember(inp.remembered, h, estimate);
+                            step
                         }
-                        step
+                        // A first step without a servo is a probe: small enough that the largest
+                        // response of the model set moves the output by at most ρ·|E(h)| (module
+                        // doc, "Remembered responses").
+                        (Some((probe, estimate)), false, true) => {
+                            let worst = worst();
+                            let limit = inp.gain * error.abs() / worst;
+                            let size = probe.abs();
+                            Some(if worst > 0.0 && size > limit {
+                                (C(probe.0 * limit / size, probe.1 * limit / size), estimate)
+                            } else {
+                                (probe, estimate)
+                            })
+                        }
+                        _ => step,
                     }
-                    // A first step without a servo is a probe: small enough that the largest
-                    // response of the model set moves the output by at most ρ·|E(h)| (module
-                    // doc, "Remembered responses").
-                    (Some((probe, estimate)), false, true) => {
-                        let worst = worst();
-                        let limit = inp.gain * error.abs() / worst;
-                        let size = probe.abs();
-                        Some(if worst > 0.0 && size > limit {
-                            (C(probe.0 * limit / size, probe.1 * limit / size), estimate)
-                        } else {
-                            (probe, estimate)
-                        })
-                    }
-                    _ => step,
                 }
-            }
-        };
-        let target = match step {
-            Some((step, estimate)) => {
-                learned += 1;
-                if let Some(slot) = gains.get_mut(h - first) {
-                    *slot = estimate.abs() / libm::fabs(inp.slope);
-                }
-                let target = C(from.0 + step.0, from.1 + step.1);
-                if let Some(slot) = changes.get_mut(changed) {
-                    *slot = (h, C(target.0 - held.0, target.1 - held.1));
-                    changed += 1;
-                }
-                target
-            }
-            // Refused: held where it stands (module doc, "Gates"); the stage's amplification
-            // there as measured, where it stands clear of the noise.
-            None => {
-                if single.w.abs() > 0.0
-                    && clears_noise(inp, single, (inp.model)(f, 0), bin_noise_y, bin_noise_u)
-                {
+            };
+            match step {
+                Some((step, estimate)) => {
+                    learned += 1;
                     if let Some(slot) = gains.get_mut(h - first) {
-                        *slot = single.y.div(single.w).abs();
+                        *slot = estimate.abs() / libm::fabs(inp.slope);
                     }
+                    let target = C(from.0 + step.0, from.1 + step.1);
+                    if let Some(slot) = changes.get_mut(changed) {
+                        *slot = (h, C(target.0 - held.0, target.1 - held.1));
+                        changed += 1;
+                    }
+                    target
                 }
-                held
+                // Refused: held where it stands (module doc, "Gates"); the stage's amplification
+                // there as measured, where it stands clear of the noise.
+                None => {
+                    if single.w.abs() > 0.0
+                        && clears_noise(inp, single, (inp.model)(f, 0), bin_noise_y, bin_noise_u)
+                    {
+                        if let Some(slot) = gains.get_mut(h - first) {
+                            *slot = single.y.div(single.w).abs();
+                        }
+                    }
+                    held
+                }
             }
         };
         let delta = C(target.0 - x.0, target.1 - x.1);
@@ -468,6 +460,13 @@ pub(super) fn learn_harmonics(
         }
     }
     (learned, changed)
+}
+
+/// Keeps Ĝ \[m/V\] as harmonic h's remembered response, where `remembered` holds h.
+fn remember(remembered: &mut [[f32; 2]], h: usize, estimate: C) {
+    if let Some(slot) = remembered.get_mut(h) {
+        *slot = [estimate.0 as f32, estimate.1 as f32];
+    }
 }
 
 /// Whether the response's command and its predicted output stand clear of the noise: |U| ≥
