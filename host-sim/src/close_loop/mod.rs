@@ -700,6 +700,11 @@ struct Bench<'a> {
     blocks: &'a [full::Block],
     /// The current model's held-out SSE per block.
     held_without: &'a [f64],
+    /// With several records, the blocks within them.
+    within_records: Option<&'a [full::Block]>,
+    /// The current model's held-out SSE per block within the records (computed when first
+    /// needed).
+    within_without: std::cell::OnceCell<Vec<f64>>,
     /// The current model's SSE.
     sse0: f64,
     /// The run the candidate must not predict worse.
@@ -1052,6 +1057,7 @@ fn try_candidate(model: &AxisModel, cand: &Candidate, bench: &Bench) -> Trial {
         delta_bic: n * (sse1.max(1e-300) / sse0.max(1e-300)).ln() + p_new * n.ln(),
         plausibility,
         out_of_sample: None,
+        within_records: None,
         another_run: None,
         invertibility,
         decision: Decision::HoldsNotBest,
@@ -1087,7 +1093,20 @@ fn try_candidate(model: &AxisModel, cand: &Candidate, bench: &Bench) -> Trial {
     } else {
         let with = held_out_sse(&trial.model, fit_data, bench.blocks);
         let oos = OutOfSample::new(bench.held_without, &with, bench.blocks, bench.t_s);
-        let holds = oos.holds();
+        let mut holds = oos.holds();
+        // Refused by the records only for the consistency of their gains: judged again on
+        // blocks within the records (module doc of `select`, "An effect one record shows").
+        if let Some(within_blocks) = bench.within_records.filter(|_| !holds) {
+            if oos.none_worse_and_pooled_gain() {
+                let without = bench
+                    .within_without
+                    .get_or_init(|| held_out_sse(model, fit_data, within_blocks));
+                let with = held_out_sse(&trial.model, fit_data, within_blocks);
+                let within = OutOfSample::new(without, &with, within_blocks, bench.t_s);
+                holds = within.holds();
+                trial.within_records = Some(within);
+            }
+        }
         trial.out_of_sample = Some(oos);
         if !holds {
             trial.decision = refuse(Refusal::NotOutOfSample);
@@ -1136,6 +1155,8 @@ struct Search<'a> {
     data: FitData<'a>,
     /// The held-out blocks (cross-validation).
     blocks: Vec<full::Block>,
+    /// With several records, the blocks within them ([`select::within_record_folds`]).
+    within_records: Option<Vec<full::Block>>,
     /// Number of scored samples.
     n_scored: f64,
 }
@@ -1199,6 +1220,8 @@ impl Search<'_> {
             data: &self.data,
             blocks: &self.blocks,
             held_without,
+            within_records: self.within_records.as_deref(),
+            within_without: std::cell::OnceCell::new(),
             sse0: current_sse,
             run: self.run,
             t_s: &self.record.t_s,
@@ -1261,12 +1284,18 @@ impl Search<'_> {
 /// Held-out gains (pooled relative MSE reductions) within this of the largest are a tie.
 const HELD_OUT_TIE: f64 = 0.02;
 
-/// The trial that holds with the largest held-out gain. Candidates whose gains are within
-/// [`HELD_OUT_TIE`] of it (two percentage points: closer than the blocks' spread can tell apart)
-/// are a tie, decided by the lower in-sample ΔBIC: the effect that explains the whole fitted record
-/// better.
+/// The trial that holds with the largest held-out gain (for a trial judged within the records,
+/// its gain there: the records' pooled gain dilutes an effect that one record shows). Candidates
+/// whose gains are within [`HELD_OUT_TIE`] of it (two percentage points: closer than the blocks'
+/// spread can tell apart) are a tie, decided by the lower in-sample ΔBIC: the effect that explains
+/// the whole fitted record better.
 fn best_trial(trials: &[Trial]) -> Option<usize> {
-    let gain = |t: &Trial| t.out_of_sample.as_ref().map_or(0.0, |o| o.relative_gain);
+    let gain = |t: &Trial| {
+        t.within_records
+            .as_ref()
+            .or(t.out_of_sample.as_ref())
+            .map_or(0.0, |o| o.relative_gain)
+    };
     let holding = || {
         trials
             .iter()
@@ -1295,15 +1324,24 @@ fn close_axis(
     let u: Vec<f32> = record.u.iter().map(|&v| v as f32).collect();
     // Several records: leave one record out; one record: blocks over time, interleaved when the
     // input is not stationary.
+    let ts = record.sample_period_s();
+    let f_dom = diagnose::dominant_frequency_hz(&record.u[from..], ts);
+    let within_records = (record.segments.len() > 1)
+        .then(|| select::within_record_folds(from, u.len(), ts, f_dom))
+        .flatten();
     let (blocks, held_out_method) = if record.segments.len() > 1 {
         (
             select::record_folds(from, &record.segments, u.len()),
-            "leave one record out: each record predicted by the model refitted on the others"
-                .to_string(),
+            if within_records.is_some() {
+                "leave one record out: each record predicted by the model refitted on the others; \
+                 an effect the records refuse only for the consistency of their gains is judged \
+                 again on blocks within the records"
+            } else {
+                "leave one record out: each record predicted by the model refitted on the others"
+            }
+            .to_string(),
         )
     } else {
-        let ts = record.sample_period_s();
-        let f_dom = diagnose::dominant_frequency_hz(&record.u[from..], ts);
         select::single_record_folds(&record.u, from, ts, f_dom)
     };
     let search = Search {
@@ -1322,6 +1360,7 @@ fn close_axis(
             invertible_at_hz: None,
         },
         blocks,
+        within_records,
         n_scored: (u.len() - from) as f64,
     };
     let (data, blocks) = (&search.data, &search.blocks);

@@ -37,6 +37,10 @@ pub struct Trial {
     pub plausibility: Plausibility,
     /// The cross-validated gain (absent when it was refused before).
     pub out_of_sample: Option<OutOfSample>,
+    /// With several records, the gain on blocks within the records, judged when the records
+    /// refused the effect only for the consistency of their gains
+    /// ([`super::select`], "An effect one record shows"); `None` otherwise.
+    pub within_records: Option<OutOfSample>,
     /// The gain on the `--validate` record (when given and reached).
     pub another_run: Option<RunGain>,
     /// With `--invertible`, when the compensator refused the fit: both fits' figures and its
@@ -77,9 +81,10 @@ impl Trial {
             -100.0 * self.in_sample_gain(),
             self.delta_bic
         );
-        if let Some(o) = &self.out_of_sample {
-            s.push_str(&format!(
-                "; out of sample held-out MSE {:+.1} % (per block {}; t = {:.2})",
+        // "; <where> held-out MSE −x % (per block …; t = …)".
+        let held_out = |place: &str, o: &OutOfSample| {
+            format!(
+                "; {place} held-out MSE {:+.1} % (per block {}; t = {:.2})",
                 -100.0 * o.relative_gain,
                 o.log_ratios
                     .iter()
@@ -87,7 +92,13 @@ impl Trial {
                     .collect::<Vec<_>>()
                     .join(", "),
                 o.t_statistic()
-            ));
+            )
+        };
+        if let Some(o) = &self.out_of_sample {
+            s.push_str(&held_out("out of sample", o));
+        }
+        if let Some(o) = &self.within_records {
+            s.push_str(&held_out("within the records", o));
         }
         if let Some(r) = &self.another_run {
             s.push_str(&format!(
@@ -130,6 +141,7 @@ impl Trial {
                 delta_bic: self.delta_bic,
             },
             out_of_sample: self.out_of_sample.as_ref().map(OutOfSample::report),
+            within_records: self.within_records.as_ref().map(OutOfSample::report),
             another_run: self.another_run.as_ref().map(RunGain::report),
             plausibility: self.plausibility.report(),
             invertibility: self.invertibility.as_deref(),
@@ -154,6 +166,8 @@ pub struct TrialReport<'a> {
     pub in_sample: InSampleReport,
     /// The cross-validated gain (null when it was refused before).
     pub out_of_sample: Option<OutOfSampleReport<'a>>,
+    /// The gain on blocks within the records (null unless judged: [`Trial::within_records`]).
+    pub within_records: Option<OutOfSampleReport<'a>>,
     /// The gain on the `--validate` record (null unless given and reached).
     pub another_run: Option<RunGainReport>,
     /// Plausibility of the fitted parameters.
@@ -476,6 +490,7 @@ pub(super) mod tests {
                 spread: 0.5,
                 relative_gain: 0.625,
             }),
+            within_records: None,
             another_run: Some(RunGain {
                 rms_zeroed_without: 3e-7,
                 rms_zeroed_with: 2e-7,
@@ -535,6 +550,7 @@ pub(super) mod tests {
                 "parameters",
                 "in_sample",
                 "out_of_sample",
+                "within_records",
                 "another_run",
                 "plausibility",
                 "invertibility",
@@ -590,6 +606,7 @@ pub(super) mod tests {
 
         let refused = Trial {
             out_of_sample: None,
+            within_records: None,
             another_run: None,
             invertibility: Some("not invertible".into()),
             decision: Decision::Refused(Refusal::Implausible),

@@ -36,6 +36,16 @@
 //! offset re-estimated when offsets are free), and the t-test takes K − 1 degrees of freedom for K
 //! records ([`t_critical`]).
 //!
+//! **An effect one record shows.** Leaving a record out asks every record to show the effect by a
+//! similar factor. An effect that only one record excites (a mode a step record rings and sines far
+//! below it barely move) cannot pass that test: refitted without that record, the effect is not
+//! identified, and the records that do not excite it gain nothing. When the records refuse an
+//! effect only for that consistency, (2) and (3) holding (no record predicted more than
+//! [`MAX_BLOCK_LOSS`] worse, the pooled held-out MSE [`MIN_RELATIVE_GAIN`] lower), it is judged
+//! again on [`FOLDS`] blocks that each take every [`FOLDS`]-th segment of
+//! [`PERIODS_PER_SEGMENT`] input periods from every record ([`within_record_folds`]), so that each
+//! refit sees part of every record, by rules (1)–(3); the report gives both.
+//!
 //! **Plausibility.** Every effect parameter is fitted inside the range that makes it that effect
 //! ([`super::full::EffectBounds`]): creep time constants from three sample periods to a third of
 //! the record and gains of the sign of the stage's static gain dy/du (the output keeps moving the
@@ -96,6 +106,30 @@ pub fn record_folds(from: usize, segments: &[usize], n: usize) -> Vec<Block> {
         .filter(|(a, b)| b > a)
         .map(|(a, b)| Block::contiguous(a, b))
         .collect()
+}
+
+/// The blocks within several records ([`FOLDS`] of them over the scored samples `from..n`): segments
+/// of [`PERIODS_PER_SEGMENT`] periods of the dominant input frequency `f_dom_hz` go to the blocks in
+/// turn across the records end to end, so that each block and each refit sees part of every
+/// record (module doc, "An effect one record shows"). `None` when the samples hold fewer than two
+/// segments per block or the frequency is not positive.
+pub fn within_record_folds(from: usize, n: usize, ts: f64, f_dom_hz: f64) -> Option<Vec<Block>> {
+    if !(f_dom_hz > 0.0 && f_dom_hz.is_finite() && ts > 0.0) {
+        return None;
+    }
+    let seg = ((PERIODS_PER_SEGMENT / f_dom_hz / ts).round() as usize).max(10);
+    if n.saturating_sub(from) / seg < 2 * FOLDS {
+        return None;
+    }
+    Some(
+        (0..FOLDS)
+            .map(|i| Block {
+                start: from,
+                end: n,
+                interleave: Some((seg, FOLDS, i)),
+            })
+            .collect(),
+    )
 }
 
 /// The blocks of the cross-validation: `FOLDS` contiguous ranges of samples over `from..n`.
@@ -306,8 +340,13 @@ impl OutOfSample {
     pub fn holds(&self) -> bool {
         let consistent = self.t_statistic() > t_critical(self.log_ratios.len())
             || (self.log_ratios.len() == 2 && self.relative_gain >= TWO_BLOCK_GAIN);
+        consistent && self.none_worse_and_pooled_gain()
+    }
+
+    /// Whether rules (2) and (3) hold (no block more than [`MAX_BLOCK_LOSS`] worse, the pooled
+    /// held-out MSE [`MIN_RELATIVE_GAIN`] lower), whatever the consistency test (1) says.
+    pub fn none_worse_and_pooled_gain(&self) -> bool {
         self.mean_log_ratio.is_finite()
-            && consistent
             && self.log_ratios.iter().all(|&l| l <= MAX_BLOCK_LOSS.ln())
             && self.relative_gain >= MIN_RELATIVE_GAIN
     }
@@ -315,7 +354,7 @@ impl OutOfSample {
     /// For the report: the blocks' figures, the t statistic, the rule and whether it holds.
     pub fn report(&self) -> OutOfSampleReport<'_> {
         OutOfSampleReport {
-            method: format!("blocked cross-validation, {} blocks (over time in one record; one record each with several): refit on the other blocks, simulate the whole record, score the held-out block", self.log_ratios.len()),
+            method: format!("blocked cross-validation, {} blocks (over time in one record, interleaved segments when it is not stationary; one record each with several, or, judged within the records, interleaved segments of every record): refit on the other blocks, simulate the whole record, score the held-out block", self.log_ratios.len()),
             blocks_s: &self.blocks_s,
             mse_without_m2: &self.mse_without,
             mse_with_m2: &self.mse_with,
@@ -505,7 +544,7 @@ impl Refusal {
             Self::FitFailed => "the fit failed (every set refused by piezo-core)",
             Self::Implausible => "a parameter ran to the bound of its plausible range: not this effect",
             Self::NoInSampleGain => "it does not lower the residual even in sample",
-            Self::NotOutOfSample => "the gain does not hold on the held-out blocks (one-sided t-test on the blocks' log MSE ratios, or with two blocks a pooled gain of a third; no block worse; pooled gain)",
+            Self::NotOutOfSample => "the gain does not hold on the held-out blocks (one-sided t-test on the blocks' log MSE ratios, or with two blocks a pooled gain of a third; no block worse; pooled gain; with several records, where the records refuse it only for the t-test, also on blocks within the records)",
             Self::WorseOnAnotherRun => "it makes the prediction of the --validate record worse",
             Self::NotInvertible => "not invertible: with this effect the fit is a set the compensator refuses, and held to the sets it accepts it gains nothing (--invertible)",
         }
