@@ -7,8 +7,8 @@
 # weights 0.06 each, so its loops widen with rate; a cubic strain saturation the core has no form
 # for), or relaxing-stack-shaped (the relaxing stack with a second, fast-saturating switching
 # population, a rate-independent loop-shape error no core form has: its static fit leaves about
-# 1 % of the span, as a measured actuator's does); all with a force-driven 740 Hz mode, zeta
-# 0.03, and a 35 um span, driven by rising-amplitude sines
+# 1 % of the span, as a measured actuator's does), or relaxing-stack-stiff (the relaxing stack with
+# its mode at 7.4 kHz); all with a force-driven mode (740 Hz unless said), zeta 0.03, and a 35 um span, driven by rising-amplitude sines
 # +-90 V (bipolar) at 20, 40 and 100 Hz, 0.5 s at 10 kHz unless DURATION_S says otherwise, white
 # sensor noise NOISE_RMS_M (1 nm), a sensor offset per record (sessions: 20 Hz 0, 40 Hz +2.5 um,
 # 100 Hz session A -1.5 um; 100 Hz session B +3.2 um, rising to 80 V, another noise draw). `close-loop --data

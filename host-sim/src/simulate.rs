@@ -12,7 +12,7 @@ use std::path::PathBuf;
 /// Arguments of `simulate`.
 #[derive(Debug, clap::Args)]
 pub struct SimulateArgs {
-    /// Plant: nac2024, stage, xy-stage, bipolar-stack, relaxing-stack, relaxing-stack-shaped.
+    /// Plant: nac2024, stage, xy-stage, bipolar-stack, relaxing-stack, relaxing-stack-shaped, relaxing-stack-stiff.
     #[arg(long)]
     pub plant: String,
     /// Signal spec in stack volts, e.g.

@@ -121,7 +121,7 @@ impl std::error::Error for PlantError {}
 
 /// Plant names accepted by [`PlantKind::from_name`].
 pub const PLANT_NAMES: &str =
-    "nac2024, stage, xy-stage, bipolar-stack, relaxing-stack, relaxing-stack-shaped";
+    "nac2024, stage, xy-stage, bipolar-stack, relaxing-stack, relaxing-stack-shaped, relaxing-stack-stiff";
 
 /// A reference plant.
 pub trait Plant: Send + Sync {
@@ -185,7 +185,8 @@ pub enum PlantKind {
 
 impl PlantKind {
     /// `nac2024`, `stage` (Case III; `stage-case1`, `stage-case2` also accepted), `xy-stage`,
-    /// `bipolar-stack`, `relaxing-stack`, `relaxing-stack-shaped` ([`RelaxingStack::shaped`]).
+    /// `bipolar-stack`, `relaxing-stack`, `relaxing-stack-shaped` ([`RelaxingStack::shaped`]),
+    /// `relaxing-stack-stiff` ([`RelaxingStack::stiff`]).
     pub fn from_name(name: &str) -> Result<Self, PlantError> {
         Ok(match name {
             "nac2024" => Self::Nac2024(Nac2024::published()),
@@ -196,6 +197,7 @@ impl PlantKind {
             "bipolar-stack" => Self::BipolarStack(BipolarStack::default()),
             "relaxing-stack" => Self::RelaxingStack(RelaxingStack::default()),
             "relaxing-stack-shaped" => Self::RelaxingStack(RelaxingStack::shaped()),
+            "relaxing-stack-stiff" => Self::RelaxingStack(RelaxingStack::stiff()),
             other => {
                 return Err(PlantError::UnknownPlant {
                     given: other.into(),

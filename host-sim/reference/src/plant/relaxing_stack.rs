@@ -83,6 +83,16 @@ const SECOND_HYSTERESIS: BoucWen = BoucWen {
 };
 
 impl RelaxingStack {
+    /// The default stack on a mount ten times stiffer (`relaxing-stack-stiff`): its mode at
+    /// 7.4 kHz, so that up to 100 Hz its resonance raises the gain by at most 0.02 % (the 740 Hz
+    /// mode's: 1.9 %): the rate dependence that 20 and 40 Hz sines fix, without a mode they barely
+    /// excite.
+    pub fn stiff() -> Self {
+        let mut p = Self::default();
+        p.mode_frequency_hz *= 10.0;
+        p
+    }
+
     /// The default stack with a second switching population h₂ (module doc;
     /// `relaxing-stack-shaped`): a rate-independent shape error no core form has, span 35 µm.
     pub fn shaped() -> Self {
