@@ -514,23 +514,29 @@ fn lag_record(name: &str, f: u32, duration_s: f64) -> PathBuf {
 
 /// `close-loop --data DATA --free-offset` on the x axis: its report and the stage file written.
 fn close_loop_records(name: &str, data: &str) -> (serde_json::Value, PathBuf) {
+    let (done, report, stage) = close_loop_run(name, data, &["--u", "ux_V", "--y", "x_m"]);
+    done.unwrap();
+    (report, stage)
+}
+
+/// `close-loop --data DATA --free-offset EXTRA…`: whether it succeeded, its report and the stage
+/// file's path (the report is written whether or not the firmware's check accepts the file).
+fn close_loop_run(
+    name: &str,
+    data: &str,
+    extra: &[&str],
+) -> (Result<String, String>, serde_json::Value, PathBuf) {
     let (report, stage) = (temp(&format!("{name}.json")), temp(&format!("{name}.toml")));
-    cli(&[
-        "close-loop",
-        "--data",
-        data,
-        "--free-offset",
-        "--u",
-        "ux_V",
-        "--y",
-        "x_m",
+    let mut args = vec!["close-loop", "--data", data, "--free-offset"];
+    args.extend_from_slice(extra);
+    args.extend_from_slice(&[
         "--report",
         report.to_str().unwrap(),
         "--out",
         stage.to_str().unwrap(),
-    ])
-    .unwrap();
-    (json(&report), stage)
+    ]);
+    let done = cli(&args);
+    (done, json(&report), stage)
 }
 
 /// The zeroed RMS with which `stage` predicts the x axis of a two-axis `record` from rest, its
@@ -854,22 +860,9 @@ fn widening_loops_run(plant: &str, tag: &str) -> WideningRun {
     let r40 = rec(40, "", 90.0, 40, 2.5e-6);
     let r100a = rec(100, "a", 90.0, 100, -1.5e-6);
     let r100b = rec(100, "b", 80.0, 101, 3.2e-6);
-    let (report, stage) = (temp(&format!("{tag}.json")), temp(&format!("{tag}.toml")));
     let data = format!("{},{}", r20.display(), r40.display());
     // The file is written whether or not the firmware's check accepts it; the figures are judged.
-    let _ = cli(&[
-        "close-loop",
-        "--data",
-        &data,
-        "--free-offset",
-        "--validate",
-        r100a.to_str().unwrap(),
-        "--report",
-        report.to_str().unwrap(),
-        "--out",
-        stage.to_str().unwrap(),
-    ]);
-    let r = json(&report);
+    let (_, r, stage) = close_loop_run(tag, &data, &["--validate", r100a.to_str().unwrap()]);
     let words = r["words"].to_string();
     assert_eq!(
         added(&r).first().map(String::as_str),
@@ -930,19 +923,8 @@ fn a_mode_only_a_step_record_rings_is_judged_within_the_records() {
         "steps:levels=0/40/-30/60/-60/20/-80/80/0,hold=0.05,rate=10000",
         &["noise:rms_m=1e-9,seed=7"],
     );
-    let (report, stage) = (temp("ring.json"), temp("ring.toml"));
     let data = format!("{},{},{}", r20.display(), r40.display(), steps.display());
-    let _ = cli(&[
-        "close-loop",
-        "--data",
-        &data,
-        "--free-offset",
-        "--report",
-        report.to_str().unwrap(),
-        "--out",
-        stage.to_str().unwrap(),
-    ]);
-    let r = json(&report);
+    let (_, r, _) = close_loop_run("ring", &data, &[]);
     let words = r["words"].to_string();
     assert_eq!(
         added(&r).first().map(String::as_str),
