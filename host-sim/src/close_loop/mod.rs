@@ -1322,13 +1322,13 @@ fn close_axis(
 ) -> crate::Result<AxisSearch> {
     let from = record.index_at(s.start_s);
     let u: Vec<f32> = record.u.iter().map(|&v| v as f32).collect();
-    // Several records: leave one record out; one record: blocks over time, interleaved when the
-    // input is not stationary.
     let ts = record.sample_period_s();
     let f_dom = diagnose::dominant_frequency_hz(&record.u[from..], ts);
     let within_records = (record.segments.len() > 1)
         .then(|| select::within_record_folds(from, u.len(), ts, f_dom))
         .flatten();
+    // Several records: leave one record out (and blocks within them for an effect one record
+    // shows); one record: blocks over time, interleaved when the input is not stationary.
     let (blocks, held_out_method) = if record.segments.len() > 1 {
         (
             select::record_folds(from, &record.segments, u.len()),
