@@ -818,4 +818,28 @@ mod tests {
         assert_eq!(short, folds(0, 300));
         assert!(words.contains("extrapolation"), "{words}");
     }
+
+    #[test]
+    fn the_blocks_within_records_each_take_part_of_every_record() {
+        // Three records end to end (samples 0, 1000 and 2500 on), 1 ms samples, 10 Hz: segments
+        // of 100 samples go to the four blocks in turn.
+        let (records, n) = ([0usize, 1000, 2500], 3000);
+        let blocks = within_record_folds(0, n, 1e-3, 10.0).unwrap();
+        assert_eq!(blocks.len(), FOLDS);
+        for k in 0..n {
+            assert_eq!(blocks.iter().filter(|b| b.contains(k)).count(), 1, "{k}");
+        }
+        for b in &blocks {
+            for (i, &first) in records.iter().enumerate() {
+                let last = records.get(i + 1).copied().unwrap_or(n);
+                assert!(
+                    (first..last).any(|k| b.contains(k)),
+                    "block {b:?} has no sample of the record at {first}"
+                );
+            }
+        }
+        // Fewer than two segments per block, or no input frequency: none.
+        assert_eq!(within_record_folds(0, 700, 1e-3, 10.0), None);
+        assert_eq!(within_record_folds(0, n, 1e-3, 0.0), None);
+    }
 }
