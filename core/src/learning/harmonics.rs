@@ -360,11 +360,15 @@ pub(super) fn learn_harmonics(
         // trial before's component, and the change's own response, where it stands clear of
         // the noise, is remembered for the next step (module doc, "Remembered responses").
         let previous_error = C(r.0 - py.0, r.1 - py.1);
-        // The largest response of the model set here \[m/V\]: what a change could move at most.
+        // The largest response of the model set here \[m/V\]: what a change could move at most
+        // (the set evaluated once, when first needed).
+        let worst_response = core::cell::OnceCell::new();
         let worst = || {
-            (0..inp.model_count.max(1))
-                .map(|i| (inp.model)(f, i).abs())
-                .fold(0.0, f64::max)
+            *worst_response.get_or_init(|| {
+                (0..inp.model_count.max(1))
+                    .map(|i| (inp.model)(f, i).abs())
+                    .fold(0.0, f64::max)
+            })
         };
         // Changed by more than a table's rounding: enough to move the output by a visible
         // amount through the largest response of the set.

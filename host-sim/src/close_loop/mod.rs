@@ -1155,7 +1155,7 @@ struct Search<'a> {
     data: FitData<'a>,
     /// The held-out blocks (cross-validation).
     blocks: Vec<full::Block>,
-    /// With several records, the blocks within them ([`select::within_record_folds`]).
+    /// With several records, the blocks within them ([`select::interleaved_folds`]).
     within_records: Option<Vec<full::Block>>,
     /// Number of scored samples.
     n_scored: f64,
@@ -1325,21 +1325,22 @@ fn close_axis(
     let ts = record.sample_period_s();
     let f_dom = diagnose::dominant_frequency_hz(&record.u[from..], ts);
     let within_records = (record.segments.len() > 1)
-        .then(|| select::within_record_folds(from, u.len(), ts, f_dom))
+        .then(|| select::interleaved_folds(from, u.len(), ts, f_dom))
         .flatten();
     // Several records: leave one record out (and blocks within them for an effect one record
     // shows); one record: blocks over time, interleaved when the input is not stationary.
     let (blocks, held_out_method) = if record.segments.len() > 1 {
         (
             select::record_folds(from, &record.segments, u.len()),
-            if within_records.is_some() {
-                "leave one record out: each record predicted by the model refitted on the others; \
-                 an effect the records refuse only for the consistency of their gains is judged \
-                 again on blocks within the records"
-            } else {
-                "leave one record out: each record predicted by the model refitted on the others"
-            }
-            .to_string(),
+            format!(
+                "leave one record out: each record predicted by the model refitted on the others{}",
+                if within_records.is_some() {
+                    "; an effect the records refuse only for the consistency of their gains is \
+                     judged again on blocks within the records"
+                } else {
+                    ""
+                }
+            ),
         )
     } else {
         select::single_record_folds(&record.u, from, ts, f_dom)

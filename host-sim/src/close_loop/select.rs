@@ -43,7 +43,7 @@
 //! effect only for that consistency, (2) and (3) holding (no record predicted more than
 //! [`MAX_BLOCK_LOSS`] worse, the pooled held-out MSE [`MIN_RELATIVE_GAIN`] lower), it is judged
 //! again on [`FOLDS`] blocks that each take every [`FOLDS`]-th segment of
-//! [`PERIODS_PER_SEGMENT`] input periods from every record ([`within_record_folds`]), so that each
+//! [`PERIODS_PER_SEGMENT`] input periods from every record ([`interleaved_folds`]), so that each
 //! refit sees part of every record, by rules (1)–(3); the report gives both.
 //!
 //! **Plausibility.** Every effect parameter is fitted inside the range that makes it that effect
@@ -108,12 +108,13 @@ pub fn record_folds(from: usize, segments: &[usize], n: usize) -> Vec<Block> {
         .collect()
 }
 
-/// The blocks within several records ([`FOLDS`] of them over the scored samples `from..n`): segments
-/// of [`PERIODS_PER_SEGMENT`] periods of the dominant input frequency `f_dom_hz` go to the blocks in
-/// turn across the records end to end, so that each block and each refit sees part of every
-/// record (module doc, "An effect one record shows"). `None` when the samples hold fewer than two
-/// segments per block or the frequency is not positive.
-pub fn within_record_folds(from: usize, n: usize, ts: f64, f_dom_hz: f64) -> Option<Vec<Block>> {
+/// [`FOLDS`] blocks over the scored samples `from..n` that interleave: segments of
+/// [`PERIODS_PER_SEGMENT`] periods of the dominant input frequency `f_dom_hz` (at least 10
+/// samples) go to the blocks in turn, so that each block and each refit sees the whole of a
+/// non-stationary record ([`single_record_folds`]), or, over several records end to end, part of
+/// every record (module doc, "An effect one record shows"). `None` when the samples hold fewer
+/// than two segments per block or the frequency is not positive.
+pub fn interleaved_folds(from: usize, n: usize, ts: f64, f_dom_hz: f64) -> Option<Vec<Block>> {
     if !(f_dom_hz > 0.0 && f_dom_hz.is_finite() && ts > 0.0) {
         return None;
     }
@@ -189,17 +190,11 @@ pub fn single_record_folds(u: &[f64], from: usize, ts: f64, f_dom_hz: f64) -> (V
     if amp <= STATIONARY_RATIO && rate <= STATIONARY_RATIO {
         return (contiguous, contiguous_words.into());
     }
-    let seg = if f_dom_hz > 0.0 && f_dom_hz.is_finite() {
-        ((PERIODS_PER_SEGMENT / f_dom_hz / ts).round() as usize).max(10)
-    } else {
-        usize::MAX
-    };
-    let n = u.len().saturating_sub(from);
     let why = format!(
         "the input is not stationary: the contiguous blocks' amplitudes differ {amp:.2}x and \
          their rates {rate:.2}x"
     );
-    if seg == usize::MAX || n / seg < 2 * FOLDS {
+    let Some(blocks) = interleaved_folds(from, u.len(), ts, f_dom_hz) else {
         return (
             contiguous,
             format!(
@@ -208,14 +203,8 @@ pub fn single_record_folds(u: &[f64], from: usize, ts: f64, f_dom_hz: f64) -> (V
                  range the others were fitted on: a gain on the later blocks is an extrapolation"
             ),
         );
-    }
-    let blocks = (0..FOLDS)
-        .map(|i| Block {
-            start: from,
-            end: u.len(),
-            interleave: Some((seg, FOLDS, i)),
-        })
-        .collect();
+    };
+    let seg = blocks[0].interleave.map_or(0, |(len, _, _)| len);
     (
         blocks,
         format!(
@@ -824,7 +813,7 @@ mod tests {
         // Three records end to end (samples 0, 1000 and 2500 on), 1 ms samples, 10 Hz: segments
         // of 100 samples go to the four blocks in turn.
         let (records, n) = ([0usize, 1000, 2500], 3000);
-        let blocks = within_record_folds(0, n, 1e-3, 10.0).unwrap();
+        let blocks = interleaved_folds(0, n, 1e-3, 10.0).unwrap();
         assert_eq!(blocks.len(), FOLDS);
         for k in 0..n {
             assert_eq!(blocks.iter().filter(|b| b.contains(k)).count(), 1, "{k}");
@@ -839,7 +828,7 @@ mod tests {
             }
         }
         // Fewer than two segments per block, or no input frequency: none.
-        assert_eq!(within_record_folds(0, 700, 1e-3, 10.0), None);
-        assert_eq!(within_record_folds(0, n, 1e-3, 0.0), None);
+        assert_eq!(interleaved_folds(0, 700, 1e-3, 10.0), None);
+        assert_eq!(interleaved_folds(0, n, 1e-3, 0.0), None);
     }
 }
