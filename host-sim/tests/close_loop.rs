@@ -891,15 +891,23 @@ fn widening_loops_run(plant: &str, tag: &str) -> WideningRun {
     }
 }
 
-/// The zeroed RMS of the validation record without and with the first effect close-loop added
-/// (its report's first step) \[m\].
-fn added_zeroed_rms(r: &serde_json::Value) -> (f64, f64) {
-    let first = r["steps"][0]["candidates"]
+/// The first candidate of close-loop's first step (its report `r`) for which `is` holds.
+fn first_step_candidate(
+    r: &serde_json::Value,
+    is: impl Fn(&serde_json::Value) -> bool,
+) -> &serde_json::Value {
+    r["steps"][0]["candidates"]
         .as_array()
         .unwrap()
         .iter()
-        .find(|c| c["decision"] == "added")
-        .unwrap();
+        .find(|c| is(c))
+        .unwrap()
+}
+
+/// The zeroed RMS of the validation record without and with the first effect close-loop added
+/// (its report's first step) \[m\].
+fn added_zeroed_rms(r: &serde_json::Value) -> (f64, f64) {
+    let first = first_step_candidate(r, |c| c["decision"] == "added");
     (
         first["another_run"]["rms_zeroed_without"].as_f64().unwrap(),
         first["another_run"]["rms_zeroed_with"].as_f64().unwrap(),
@@ -931,12 +939,7 @@ fn a_mode_only_a_step_record_rings_is_judged_within_the_records() {
         Some("dynamics"),
         "{words}"
     );
-    let trial = r["steps"][0]["candidates"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .find(|t| t["effect"] == "dynamics")
-        .unwrap();
+    let trial = first_step_candidate(&r, |t| t["effect"] == "dynamics");
     // The figures (`-- --nocapture`).
     println!("{}", trial["words"]);
     assert_eq!(trial["out_of_sample"]["holds"], false, "{words}");
