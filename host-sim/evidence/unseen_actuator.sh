@@ -15,14 +15,18 @@
 # r20.csv,r40.csv --free-offset --validate r100a.csv` writes the stage file; `predict
 # --free-offset` scores both 100 Hz records (offset re-estimated). Prints the fit RMS, each 100 Hz
 # record's zeroed prediction RMS and its ratio to the fit RMS, the effects added, and the 100 Hz
-# validation record's zeroed RMS before and after the first effect added.
+# validation record's zeroed RMS before and after the first effect added. With STEPS=1 a third
+# fitted record is passed with the sines: voltage steps 0/40/-30/60/-60/20/-80/80/0 V held 50 ms
+# each (they ring the mode that the sines barely excite), offset 0. AMP (V, default 90) is the
+# final amplitude of the 20 Hz, 40 Hz and session A 100 Hz records (session B stays at 80 V).
 # Usage (from the repository root):
-#   bash host-sim/evidence/unseen_actuator.sh [OUT_DIR] [NOISE_RMS_M] [DURATION_S] [PLANT]
+#   [STEPS=1] [AMP=V] bash host-sim/evidence/unseen_actuator.sh [OUT_DIR] [NOISE_RMS_M] [DURATION_S] [PLANT]
 set -euo pipefail
 OUT=${1:-out/unseen-actuator}
 NOISE=${2:-1e-9}
 DUR=${3:-0.5}
 PLANT=${4:-bipolar-stack}
+AMP=${AMP:-90}
 mkdir -p "$OUT"
 cargo build --release -p host-sim -q
 B=${CARGO_TARGET_DIR:-target}/release/host-sim
@@ -34,11 +38,18 @@ rec() { # name freq offset seed amplitude
   python3 "$(dirname "$0")/sensor_offset.py" "$OUT/raw-$1.csv" "$OUT/$1.csv" "$3"
   rm "$OUT/raw-$1.csv"
 }
-rec r20 20 0 20 90
-rec r40 40 2.5e-6 40 90
-rec r100a 100 -1.5e-6 100 90
+rec r20 20 0 20 "$AMP"
+rec r40 40 2.5e-6 40 "$AMP"
+rec r100a 100 -1.5e-6 100 "$AMP"
 rec r100b 100 3.2e-6 101 80
-$B close-loop --data "$OUT/r20.csv,$OUT/r40.csv" --free-offset --validate "$OUT/r100a.csv" \
+DATA="$OUT/r20.csv,$OUT/r40.csv"
+if [ "${STEPS:-0}" = 1 ]; then
+  $B simulate --plant "$PLANT" \
+    --signal "steps:levels=0/40/-30/60/-60/20/-80/80/0,hold=0.05,rate=10000" \
+    --effect "noise:rms_m=$NOISE,seed=7" --out "$OUT/steps.csv" >/dev/null
+  DATA="$DATA,$OUT/steps.csv"
+fi
+$B close-loop --data "$DATA" --free-offset --validate "$OUT/r100a.csv" \
   --report "$OUT/close-loop.json" --out "$OUT/close-loop.toml" >"$OUT/close-loop.txt" 2>&1 \
   || echo "close-loop exited non-zero (see $OUT/close-loop.txt)"
 for r in r100a r100b; do
@@ -52,7 +63,7 @@ cl = json.load(open(f"{out}/close-loop.json"))
 added = [s for s in cl["steps"] if s.get("outcome") == "added"]
 names = [f"{s['effect']} ({s['form']})" if s.get("form") else s["effect"] for s in added]
 fit = cl["after"]["rms"]
-print("| fit RMS 20+40 Hz [um] | 100 Hz record | prediction RMS, offset re-estimated [um] | ratio | effects added |")
+print("| fit RMS [um] | 100 Hz record | prediction RMS, offset re-estimated [um] | ratio | effects added |")
 print("|---|---|---|---|---|")
 for r in ("r100a", "r100b"):
     p = json.load(open(f"{out}/predict-{r}.json"))["rms_zeroed_m"][0]

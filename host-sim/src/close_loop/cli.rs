@@ -49,7 +49,8 @@ pub struct CloseLoopArgs {
     #[arg(long)]
     pub end: Option<f64>,
     /// Another record (another run, or the same file with --validate-start) both models predict
-    /// from its first sample, seeing only u; an effect that predicts it worse is not added.
+    /// from its first sample, seeing only u; an effect that predicts it worse is not added, and of
+    /// the effects that hold, the one that predicts it best is.
     #[arg(long)]
     pub validate: Option<PathBuf>,
     /// First scored time of the validation record (s).

@@ -1289,6 +1289,13 @@ const HELD_OUT_TIE: f64 = 0.02;
 /// whose gains are within [`HELD_OUT_TIE`] of it (two percentage points: closer than the blocks'
 /// spread can tell apart) are a tie, decided by the lower in-sample ΔBIC: the effect that explains
 /// the whole fitted record better.
+///
+/// With a `--validate` record, every trial that holds has been scored on it too, and the one that
+/// predicts it best is added: the held-out blocks come from the fitted records' own conditions,
+/// the other run from those the stage file is for (another rate, another session), and two forms
+/// that both hold on the blocks can extrapolate to it very differently (the gain is
+/// 1 − (RMS with / RMS without)², zeroed RMS). Trials within [`HELD_OUT_TIE`] of the best gain
+/// on the other run are a tie, decided by the rule above.
 fn best_trial(trials: &[Trial]) -> Option<usize> {
     let gain = |t: &Trial| {
         t.within_records
@@ -1296,16 +1303,25 @@ fn best_trial(trials: &[Trial]) -> Option<usize> {
             .or(t.out_of_sample.as_ref())
             .map_or(0.0, |o| o.relative_gain)
     };
+    let run_gain = |t: &Trial| {
+        t.another_run.map_or(0.0, |r| {
+            1.0 - (r.rms_zeroed_with / r.rms_zeroed_without).powi(2)
+        })
+    };
     let holding = || {
         trials
             .iter()
             .enumerate()
             .filter(|(_, t)| t.decision == Decision::HoldsNotBest)
     };
-    let top = holding()
+    let top_run = holding()
+        .map(|(_, t)| run_gain(t))
+        .fold(f64::NEG_INFINITY, f64::max);
+    let contenders = || holding().filter(|(_, t)| run_gain(t) >= top_run - HELD_OUT_TIE);
+    let top = contenders()
         .map(|(_, t)| gain(t))
         .fold(f64::NEG_INFINITY, f64::max);
-    holding()
+    contenders()
         .filter(|(_, t)| gain(t) >= top - HELD_OUT_TIE)
         .min_by(|a, b| a.1.delta_bic.total_cmp(&b.1.delta_bic))
         .map(|(i, _)| i)
@@ -1329,7 +1345,7 @@ fn close_axis(
         .flatten();
     // Several records: leave one record out (and blocks within them for an effect one record
     // shows); one record: blocks over time, interleaved when the input is not stationary.
-    let (blocks, held_out_method) = if record.segments.len() > 1 {
+    let (blocks, mut held_out_method) = if record.segments.len() > 1 {
         (
             select::record_folds(from, &record.segments, u.len()),
             format!(
@@ -1345,7 +1361,7 @@ fn close_axis(
     } else {
         select::single_record_folds(&record.u, from, ts, f_dom)
     };
-    let search = Search {
+    let mut search = Search {
         name,
         record,
         other_z,
@@ -1364,7 +1380,6 @@ fn close_axis(
         within_records,
         n_scored: (u.len() - from) as f64,
     };
-    let (data, blocks) = (&search.data, &search.blocks);
     let mut model = base.clone();
     // With free offsets the residual the screening reads has each record's own offset removed.
     let simulate = |m: &AxisModel| -> crate::Result<Simulation> {
@@ -1376,8 +1391,8 @@ fn close_axis(
     };
     let mut sim = simulate(&model)?;
     let noise_m = noise_estimate(&search.residual(&sim));
-    let mut current_sse = sse(&model, data);
-    let base_held = held_out_sse(&model, data, blocks);
+    let mut current_sse = sse(&model, &search.data);
+    let mut base_held = held_out_sse(&model, &search.data, &search.blocks);
     let mut held = Some(base_held.clone());
     let mut steps = Vec::new();
     search.log(format!(
@@ -1424,7 +1439,7 @@ fn close_axis(
             break;
         }
         let held_without = held
-            .get_or_insert_with(|| held_out_sse(&model, data, blocks))
+            .get_or_insert_with(|| held_out_sse(&model, &search.data, &search.blocks))
             .clone();
         step.trials = search.trials(&model, &chosen, &held_without, current_sse);
         let Some(best) = best_trial(&step.trials) else {
@@ -1444,12 +1459,27 @@ fn close_axis(
             rms_after: search.rms(current_sse),
         };
         let added = chosen.effect;
+        let judged_within = chosen.within_records.is_some();
         search.log(format!("added {}", chosen.label()));
         steps.push(step);
+        // An effect only blocks within the records confirmed needs every record to be identified:
+        // leaving a record out would also lose it, so every later effect is judged within the
+        // records (module doc of `select`, "An effect one record shows").
+        if judged_within {
+            if let Some(within) = search.within_records.take() {
+                search.blocks = within;
+                base_held = held_out_sse(&base, &search.data, &search.blocks);
+                search.log("from now on every effect is judged on the blocks within the records");
+                held_out_method.push_str(
+                    "; after an effect judged within the records was added, every later effect \
+                     (and the held-out RMS) on the blocks within the records",
+                );
+            }
+        }
         (model, current_sse) = search.prune(model, current_sse, added, floor, &mut steps);
         sim = simulate(&model)?;
     }
-    let held_final = held.unwrap_or_else(|| held_out_sse(&model, data, blocks));
+    let held_final = held.unwrap_or_else(|| held_out_sse(&model, &search.data, &search.blocks));
     let rms_of = |v: &[f64]| (v.iter().sum::<f64>() / search.n_scored).sqrt();
     let held_out_rms = (rms_of(&base_held), rms_of(&held_final));
     Ok(AxisSearch {

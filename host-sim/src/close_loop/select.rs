@@ -15,7 +15,8 @@
 //! (or sit within a few per cent of it), which (1) or (3) refuse; a genuine effect lowers every
 //! block's error by a similar factor, which passes however different the blocks' errors are. On a
 //! `--validate` record (another run) the model fitted on the whole record must also lower the RMS
-//! with one constant offset re-estimated on that record.
+//! with one constant offset re-estimated on that record; of the effects that hold, the one that
+//! predicts that record best is added (the parent module's `best_trial`).
 //!
 //! **Two blocks.** With two blocks (two records left out in turn) the t-test has one degree of
 //! freedom and refuses every effect whose gain differs between them, which is what an effect that
@@ -44,7 +45,10 @@
 //! [`MAX_BLOCK_LOSS`] worse, the pooled held-out MSE [`MIN_RELATIVE_GAIN`] lower), it is judged
 //! again on [`FOLDS`] blocks that each take every [`FOLDS`]-th segment of
 //! [`PERIODS_PER_SEGMENT`] input periods from every record ([`interleaved_folds`]), so that each
-//! refit sees part of every record, by rules (1)–(3); the report gives both.
+//! refit sees part of every record, by rules (1)–(3); the report gives both. Once such an effect
+//! is in the model, every later effect (and the held-out RMS the report gives) is judged on those
+//! blocks alone: a record left out would take the first effect's identification with it, and the
+//! later effect would be judged against a model that lost it.
 //!
 //! **Plausibility.** Every effect parameter is fitted inside the range that makes it that effect
 //! ([`super::full::EffectBounds`]): creep time constants from three sample periods to a third of
