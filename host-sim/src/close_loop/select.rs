@@ -550,7 +550,8 @@ impl Refusal {
 pub enum Decision {
     /// Added to the model.
     Added,
-    /// It holds, but another candidate held better in this step.
+    /// It holds, but another candidate held better in this step (a larger held-out gain, or with
+    /// `--validate` a better prediction of that record).
     HoldsNotBest,
     /// Not added.
     Refused(Refusal),
@@ -561,7 +562,11 @@ impl Decision {
     pub fn words(self) -> String {
         match self {
             Self::Added => "added".into(),
-            Self::HoldsNotBest => "holds, but another candidate holds better this step".into(),
+            Self::HoldsNotBest => {
+                "holds, but another candidate holds better this step (a larger held-out gain, or \
+                 with --validate a better prediction of that record)"
+                    .into()
+            }
             Self::Refused(r) => format!("refused: {}", r.words()),
         }
     }
