@@ -1012,3 +1012,33 @@ fn a_mode_only_a_step_record_rings_is_judged_within_the_records() {
         }
     }
 }
+
+/// A `--validate` record at another sample period than the fitted records' is refused before any
+/// fit, naming the file and both periods: the discrete models would not describe it, and every
+/// effect would be refused on a run predicted at the wrong rate.
+#[test]
+fn a_validate_record_at_another_sample_period_is_refused_by_name() {
+    let fitted = plant_record("relaxing-stack", "period20", 20, 90.0, 20, 0.0, 0.1);
+    let other = simulate(
+        "period100.csv",
+        "relaxing-stack",
+        "rising-sine:amp=90,offset=0,freq=100,phase_deg=0,raised=0,duration=0.1,rate=5000",
+        &[],
+    );
+    let report = temp("period.json");
+    let err = cli(&[
+        "close-loop",
+        "--data",
+        fitted.to_str().unwrap(),
+        "--validate",
+        other.to_str().unwrap(),
+        "--report",
+        report.to_str().unwrap(),
+    ])
+    .unwrap_err();
+    assert!(!report.exists(), "no report for a refused command line");
+    assert!(
+        err.contains("--validate") && err.contains("period100.csv") && err.contains("2.000000e-4"),
+        "{err}"
+    );
+}

@@ -159,6 +159,20 @@ pub fn close_loop_cmd(a: &CloseLoopArgs) -> crate::Result<String> {
                 records.len()
             )));
         }
+        // The models run at the fitted records' sample period; another period would be another
+        // discrete model, and every effect would be judged on a run it does not describe.
+        let ts = records[0].sample_period_s();
+        if let Some(r) = v
+            .iter()
+            .find(|r| (r.sample_period_s() - ts).abs() > 1e-3 * ts)
+        {
+            return Err(crate::Error::Usage(format!(
+                "--validate: {}: sample period {:.6e} s differs from --data's {ts:.6e} s \
+                 (record it, or resample it, at the fitted records' rate)",
+                r.path.display(),
+                r.sample_period_s()
+            )));
+        }
     }
     let (stage, io) = stage::stage_and_io_for(&records, &a.data, a.stage.as_deref())?;
     if let Some(path) = &a.stage {
