@@ -714,12 +714,13 @@ fn plant_record(
 
 /// An actuator whose rate dependence is none of the core's forms: fitted on 20 and 40 Hz records
 /// (`--free-offset`, the 100 Hz record of one session as `--validate`), close-loop adds the
-/// rate-dependent hysteresis first in its two-time-constant form (an input lag and a relaxation
-/// of the hysteretic output: one first-order lag cannot follow a spread of relaxation times
-/// across rates), which lowers that 100 Hz record's zeroed RMS by more than a third (22 % with
-/// the input lag alone); the stage file predicts the 100 Hz records of both sessions (the second
-/// at another amplitude and offset) at under half the base model's error. The prediction is
-/// still several times the fit's RMS: the 100 Hz loops lie outside what 20 and 40 Hz fix.
+/// rate-dependent hysteresis first, in the form that predicts that 100 Hz record best: the
+/// relaxation of the hysteretic output (the input lag with one or two relaxations fits 20 and
+/// 40 Hz closer, but one first-order lag before the operator does not follow a spread of
+/// relaxation times across rates). It lowers that 100 Hz record's zeroed RMS by more than half
+/// (65 % measured), and the stage file predicts the 100 Hz records of both sessions (the second at
+/// another amplitude and offset) at under 40 % of the base model's error. The prediction is still
+/// a few times the fit's RMS: the 100 Hz loops lie outside what 20 and 40 Hz fix.
 #[test]
 fn an_actuator_with_a_spread_of_relaxation_times_is_predicted_at_a_rate_it_did_not_see() {
     let r20 = stack_record("s20", 20, 90.0, 20, 0.0);
@@ -749,16 +750,16 @@ fn an_actuator_with_a_spread_of_relaxation_times_is_predicted_at_a_rate_it_did_n
         "{words}"
     );
     let form = r["steps"][0]["form"].as_str().unwrap();
-    assert!(form.starts_with("input lag and"), "form {form}\n{words}");
+    assert_eq!(form, "relaxation", "{words}");
     let (without, with) = added_zeroed_rms(&r);
     assert!(
-        with <= 0.65 * without,
+        with <= 0.5 * without,
         "100 Hz zeroed RMS {without:.4e} -> {with:.4e} m\n{words}"
     );
     for record in [&r100a, &r100b] {
         let p = predicted_zeroed_rms(&stage, record, &[]);
         assert!(
-            p <= 0.5 * without,
+            p <= 0.4 * without,
             "{}: predicted at {p:.4e} m, base {without:.4e} m\n{words}",
             record.display()
         );

@@ -721,15 +721,17 @@ struct Bench<'a> {
 /// started again with gains of the static gain's sign and the static gain held (k1 lowered by the
 /// creep's gain). On data held to the compensator's sets ([`FitData::invertible_at_hz`]) a creep
 /// fit that could not lower k1 and gained nothing is started again the same way, from the largest
-/// share of that start the compensator accepts.
+/// share of that start the compensator accepts. `run` (`--validate`) chooses the rate-dependent
+/// hysteresis's form ([`fit_rate_dependent`]).
 fn fit_candidate(
     model: &AxisModel,
     cand: &Candidate,
     data: &FitData,
     sse0: f64,
+    run: Option<&OtherRun>,
 ) -> (AxisModel, f64) {
     let (mut fitted, mut sse1) = if cand.effect == EffectKind::RateDependent {
-        fit_rate_dependent(model, cand, data)
+        fit_rate_dependent(model, cand, data, run)
     } else if cand.effect == EffectKind::Dynamics {
         fit_dynamics(model, cand, data)
     } else {
@@ -828,7 +830,19 @@ fn fit_dynamics(model: &AxisModel, cand: &Candidate, data: &FitData) -> (AxisMod
 /// The richer forms nest the input lag (a relaxation gain → 0 runs to its plausible bound), so on
 /// a stage with one lag they are not plausible and the input lag is kept; a spread of dielectric
 /// relaxation times, which one lag cannot follow across rates, keeps two time constants.
-fn fit_rate_dependent(model: &AxisModel, cand: &Candidate, data: &FitData) -> (AxisModel, f64) {
+///
+/// With a `--validate` record (`run`), the plausible form that predicts it best is kept instead
+/// (zeroed RMS; forms within [`HELD_OUT_TIE`] of the best gain 1 − (RMS / the current model's
+/// RMS)² are a tie, decided by the lower SSE): the forms fit the fitted rates alike and part at
+/// others (a stack whose hysteretic part relaxes over a spread of times: fitted on 20 and 40 Hz,
+/// the relaxation alone predicts 100 Hz better than the input lag with a relaxation, which fits
+/// 20 and 40 Hz closer).
+fn fit_rate_dependent(
+    model: &AxisModel,
+    cand: &Candidate,
+    data: &FitData,
+    run: Option<&OtherRun>,
+) -> (AxisModel, f64) {
     let fit_form = |form: full::RateForm| {
         let mut base = model.clone();
         base.rate_form = form;
@@ -867,17 +881,48 @@ fn fit_rate_dependent(model: &AxisModel, cand: &Candidate, data: &FitData) -> (A
             },
         )
     };
-    let mut best = if key(&relaxation) > key(&lag) {
-        relaxation
-    } else {
-        lag
-    };
-    for fit in [whole, both, three].into_iter().flatten() {
-        if key(&fit) > key(&best) {
-            best = fit;
+    let forms: Vec<(AxisModel, f64, bool)> = [Some(lag), Some(relaxation), whole, both, three]
+        .into_iter()
+        .flatten()
+        .collect();
+    // The lowest SSE among the plausible forms (among all when none is plausible).
+    let by_sse = |forms: &[(AxisModel, f64, bool)]| {
+        let mut best = &forms[0];
+        for fit in &forms[1..] {
+            if key(fit) > key(best) {
+                best = fit;
+            }
         }
+        (best.0.clone(), best.1)
+    };
+    let Some(run) = run else {
+        return by_sse(&forms);
+    };
+    // Plausible forms with a finite SSE, each with its gain on the other run.
+    let rms_without = run.rms_zeroed(model);
+    let gains: Vec<f64> = forms
+        .iter()
+        .map(|(m, sse, plausible)| {
+            let gain = 1.0 - (run.rms_zeroed(m) / rms_without).powi(2);
+            if *plausible && sse.is_finite() && gain.is_finite() {
+                gain
+            } else {
+                f64::NEG_INFINITY
+            }
+        })
+        .collect();
+    let top = gains.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    if top == f64::NEG_INFINITY {
+        return by_sse(&forms);
     }
-    (best.0, best.1)
+    let (m, sse, _) = forms
+        .iter()
+        .zip(&gains)
+        .filter(|(_, &g)| g >= top - HELD_OUT_TIE)
+        .map(|(f, _)| f)
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .expect("the top form is among them");
+    (m.clone(), *sse)
 }
 
 /// The plausible fit with the lowest SSE (the lowest SSE when none is plausible; a non-finite SSE
@@ -971,9 +1016,10 @@ fn fit_held(
     held: &FitData,
     free: &AxisModel,
     sse0: f64,
+    run: Option<&OtherRun>,
 ) -> (AxisModel, f64) {
     let Some(rate) = held.invertible_at_hz else {
-        return fit_candidate(model, cand, held, sse0);
+        return fit_candidate(model, cand, held, sse0, run);
     };
     let accepted = |m: &AxisModel| stage::compensator_check(m, rate).is_ok();
     // The start in the form the free fit took (the rate-dependent hysteresis has two).
@@ -981,7 +1027,7 @@ fn fit_held(
     base.rate_form = free.rate_form;
     let start = last_accepted_on_the_way(&base.with_effect(cand.init), free, accepted);
     let (on_the_way, sse_way, _) = refit(&start, held, TRIAL_ITERATIONS);
-    let (again, sse_again) = fit_candidate(model, cand, held, sse0);
+    let (again, sse_again) = fit_candidate(model, cand, held, sse0, run);
     if sse_again < sse_way {
         (again, sse_again)
     } else {
@@ -1010,7 +1056,7 @@ fn held_to<'a>(data: &FitData<'a>, rate: f32) -> FitData<'a> {
 fn try_candidate(model: &AxisModel, cand: &Candidate, bench: &Bench) -> Trial {
     let (data, sse0) = (bench.data, bench.sse0);
     let n = data.fitted_count() as f64;
-    let (mut fitted, mut sse1) = fit_candidate(model, cand, data, sse0);
+    let (mut fitted, mut sse1) = fit_candidate(model, cand, data, sse0, bench.run);
     let rms = |sse: f64| (sse / n).sqrt();
     let mut invertibility = None;
     let mut refused_as_not_invertible = false;
@@ -1018,7 +1064,7 @@ fn try_candidate(model: &AxisModel, cand: &Candidate, bench: &Bench) -> Trial {
     let mut fit_data = data;
     if let (Some(rate), Some(held)) = (bench.invertible_at_hz, constrained.as_ref()) {
         if let Err(refusal) = stage::compensator_check(&fitted, rate) {
-            let (c, sse_c) = fit_held(model, cand, held, &fitted, sse0);
+            let (c, sse_c) = fit_held(model, cand, held, &fitted, sse0, bench.run);
             let free = format!(
                 "the fit reaches in-sample RMS {:.4e} m with a set the compensator refuses ({refusal})",
                 rms(sse1)
