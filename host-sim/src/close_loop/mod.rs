@@ -798,26 +798,7 @@ fn fit_dynamics(model: &AxisModel, cand: &Candidate, data: &FitData) -> (AxisMod
             (fitted, sse, plausible)
         })
         .collect();
-    let key = |(_, sse, plausible): &(AxisModel, f64, bool)| {
-        (
-            *plausible,
-            if sse.is_finite() {
-                -sse
-            } else {
-                f64::NEG_INFINITY
-            },
-        )
-    };
-    let mut fits = fits.into_iter();
-    let Some(mut best) = fits.next() else {
-        return (model.clone(), f64::INFINITY);
-    };
-    for fit in fits {
-        if key(&fit) > key(&best) {
-            best = fit;
-        }
-    }
-    (best.0, best.1)
+    best_fit(fits).map_or((model.clone(), f64::INFINITY), |(m, sse, _)| (m, sse))
 }
 
 /// The rate-dependent hysteresis fitted in its forms ([`full::RateForm`]): the operator driven
@@ -870,59 +851,45 @@ fn fit_rate_dependent(
     let three = both
         .as_ref()
         .and_then(|b| fit_one_more_relaxation(&b.0, cand, data));
-    // Plausible first, then the lower SSE (a non-finite SSE never wins).
-    let key = |(_, sse, plausible): &(AxisModel, f64, bool)| {
-        (
-            *plausible,
-            if sse.is_finite() {
-                -sse
-            } else {
-                f64::NEG_INFINITY
-            },
-        )
-    };
     let forms: Vec<(AxisModel, f64, bool)> = [Some(lag), Some(relaxation), whole, both, three]
         .into_iter()
         .flatten()
         .collect();
-    // The lowest SSE among the plausible forms (among all when none is plausible).
-    let by_sse = |forms: &[(AxisModel, f64, bool)]| {
-        let mut best = &forms[0];
-        for fit in &forms[1..] {
-            if key(fit) > key(best) {
-                best = fit;
-            }
-        }
-        (best.0.clone(), best.1)
+    // With the other run: each plausible form's gain on it (−∞ for the others).
+    let gains: Option<Vec<f64>> = run.map(|run| {
+        let rms_zeroed_without = run.rms_zeroed(model);
+        forms
+            .iter()
+            .map(|(m, sse, plausible)| {
+                let gain = RunGain {
+                    rms_zeroed_without,
+                    rms_zeroed_with: run.rms_zeroed(m),
+                }
+                .gain();
+                if *plausible && sse.is_finite() && gain.is_finite() {
+                    gain
+                } else {
+                    f64::NEG_INFINITY
+                }
+            })
+            .collect()
+    });
+    let top = gains.as_ref().map_or(f64::NEG_INFINITY, |g| {
+        g.iter().copied().fold(f64::NEG_INFINITY, f64::max)
+    });
+    let chosen = match gains {
+        // The best on the other run, ties by the lower SSE.
+        Some(gains) if top > f64::NEG_INFINITY => forms
+            .into_iter()
+            .zip(gains)
+            .filter(|(_, g)| *g >= top - HELD_OUT_TIE)
+            .map(|(f, _)| f)
+            .min_by(|a, b| a.1.total_cmp(&b.1)),
+        // Without it (or with no plausible form): the lowest SSE.
+        _ => best_fit(forms),
     };
-    let Some(run) = run else {
-        return by_sse(&forms);
-    };
-    // Plausible forms with a finite SSE, each with its gain on the other run.
-    let rms_without = run.rms_zeroed(model);
-    let gains: Vec<f64> = forms
-        .iter()
-        .map(|(m, sse, plausible)| {
-            let gain = 1.0 - (run.rms_zeroed(m) / rms_without).powi(2);
-            if *plausible && sse.is_finite() && gain.is_finite() {
-                gain
-            } else {
-                f64::NEG_INFINITY
-            }
-        })
-        .collect();
-    let top = gains.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-    if top == f64::NEG_INFINITY {
-        return by_sse(&forms);
-    }
-    let (m, sse, _) = forms
-        .iter()
-        .zip(&gains)
-        .filter(|(_, &g)| g >= top - HELD_OUT_TIE)
-        .map(|(f, _)| f)
-        .min_by(|a, b| a.1.total_cmp(&b.1))
-        .expect("the top form is among them");
-    (m.clone(), *sse)
+    let (m, sse, _) = chosen.expect("the input lag and the relaxation are always fitted");
+    (m, sse)
 }
 
 /// The plausible fit with the lowest SSE (the lowest SSE when none is plausible; a non-finite SSE
@@ -1349,11 +1316,7 @@ fn best_trial(trials: &[Trial]) -> Option<usize> {
             .or(t.out_of_sample.as_ref())
             .map_or(0.0, |o| o.relative_gain)
     };
-    let run_gain = |t: &Trial| {
-        t.another_run.map_or(0.0, |r| {
-            1.0 - (r.rms_zeroed_with / r.rms_zeroed_without).powi(2)
-        })
-    };
+    let run_gain = |t: &Trial| t.another_run.map_or(0.0, |r| r.gain());
     let holding = || {
         trials
             .iter()

@@ -486,6 +486,12 @@ pub struct RunGain {
 }
 
 impl RunGain {
+    /// The share by which the effect lowers the zeroed MSE on the other run,
+    /// 1 − (RMS with / RMS without)².
+    pub fn gain(&self) -> f64 {
+        1.0 - (self.rms_zeroed_with / self.rms_zeroed_without).powi(2)
+    }
+
     /// Whether the effect lowers the zeroed RMS on the other run.
     pub fn holds(&self) -> bool {
         self.rms_zeroed_with < self.rms_zeroed_without
