@@ -94,6 +94,9 @@ enum Exponent {
 
 /// Largest number of RK4 sub-steps of the general-n path in one sample.
 const MAX_SUBSTEPS: f32 = 64.0;
+/// Largest number of RK4 sub-steps a range-limited set (β + γ' ≤ 0) of general n may need over its
+/// whole input span (its per-sample path has no cap: a set beyond it is refused when built).
+const MAX_SPAN_SUBSTEPS: f64 = 4096.0;
 /// Largest number of RK4 sub-steps spent on the way into saturation before the closed-form tail.
 const SATURATION_SUBSTEPS: f32 = 1024.0;
 /// Pieces a general-n RK4 sub-step is cut into where it may cross h = 0.
@@ -359,6 +362,20 @@ impl BoucWen {
         let lipschitz = nn
             * (f64::from(beta) + f64::from(gamma).abs())
             * libm::pow(state_bound.max(1e-30), nn - 1.0);
+        // A range-limited set's general-n path is not capped per sample (module doc): bound its
+        // cost at build time, so that no sample can take longer than a sweep of the whole span.
+        if class == BoundClass::RangeLimited
+            && exponent == Exponent::General
+            && !(lipschitz * span / f64::from(SUBSTEP_THETA) <= MAX_SPAN_SUBSTEPS)
+        {
+            return Err(ParamError::OutOfRange {
+                field: "n",
+                value: n,
+                requirement:
+                    "with beta + gamma <= 0, at most 4096 RK4 sub-steps over the input span \
+                              (n (beta + |gamma|) h_max^(n-1) span <= 409.6)",
+            });
+        }
         let state_bound_f32 = state_bound as f32;
         Ok(Self {
             params,
@@ -1359,5 +1376,30 @@ mod tests {
             }
             other => panic!("expected StateLimitExceeded, got {other:?}"),
         }
+    }
+
+    #[test]
+    fn a_range_limited_set_too_stiff_to_integrate_in_bounded_time_is_refused() {
+        // β + γ = 0: h = A·u, reach 20 over the span; J = n·(β + |γ|)·20^0.5.
+        let stiff = BoucWenParams {
+            a: 1.0,
+            beta: 1000.0,
+            gamma: -1000.0,
+            n: 1.5,
+        };
+        match BoucWen::with_input_range(stiff, -10.0, 10.0, 1e3) {
+            Err(ParamError::OutOfRange { field, .. }) => assert_eq!(field, "n"),
+            other => panic!("expected the sub-step bound, got {other:?}"),
+        }
+        let mild = BoucWenParams {
+            beta: 0.01,
+            gamma: -0.01,
+            ..stiff
+        };
+        let ok = BoucWen::with_input_range(mild, -10.0, 10.0, 1e3).unwrap();
+        assert_eq!(ok.class(), BoundClass::RangeLimited);
+        // A whole-span sweep in one sample stays within the bound's sub-steps.
+        let h = ok.advance(0.0, 20.0);
+        assert!(h.is_finite() && (h - 20.0).abs() < 1e-3, "{h}");
     }
 }

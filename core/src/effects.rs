@@ -13,7 +13,9 @@
 //!                           l = 0 … LOG_CREEP_ELEMENTS − 1 (half a decade apart, 6 decades)
 //! c_w[j] = Σᵢ g_wᵢ·vᵢ[j]    rate-dependent hysteresis (relaxation of w − k_r·u), at most
 //!        vᵢ[j] = bᵢ·vᵢ[j−1] + (1 − bᵢ)·(p[j−1] − p_ref),  bᵢ = exp(−T/τ_wᵢ),  vᵢ[0] = 0
-//!        p[j] = w[j] − k_r·u[j]  MAX_RELAXATION_ELEMENTS elements, p_ref the first p
+//!        p[j] = w[j] − k_r·u[j]  MAX_RELAXATION_ELEMENTS elements, p_ref the first p; with a
+//!                           spread W > 0 each element is N lags τ_wᵢ·10^(W·(k/(N−1) − ½)) of
+//!                           gain g_wᵢ/N (k = 0 … N − 1, N = RELAXATION_SPREAD_POINTS)
 //! s[j] = w[j] + e·(u[j−1] − u_c)² + c[j] + c_w[j],   u[−1] := u_c       even-order term
 //! z[j] = M(s)[j]            second-order mode  z̈ + 2ζω·ż + ω²·z = ω²·s + 2ρζω·ṡ,  ω = 2π·f_mode
 //! y[k] = z(k − D) + d(k·T) + κ·z_other(k − D)                           output sample k
@@ -39,7 +41,7 @@
 //! | creep (Kelvin–Voigt) | `creep_gain_m_per_v`, `creep_time_constant_s` | Σᵢ gᵢ·xᵢ | exact, in [`Effects::creep_m`] |
 //! | creep (logarithmic) | `log_creep_gain_m_per_v`, `log_creep_time_s` | g_log·½·Σₗ xₗ ≈ g_log·Δu·log₁₀(1 + t/t₀) after a step | exact, in [`Effects::creep_m`] |
 //! | hysteresis input lag | `hysteresis_lag_s` | the Bouc-Wen operator driven by v, τ_v·v̇ = u − v | exact, the compensator's Newton solve ([`crate::static_model`]) |
-//! | rate-dependent hysteresis | `relaxation_gain`, `relaxation_time_constant_s` | Σᵢ g_wᵢ·vᵢ, vᵢ a first-order lag of w | exact, in [`Effects::relaxation_m`] |
+//! | rate-dependent hysteresis | `relaxation_gain`, `relaxation_time_constant_s`, `relaxation_spread_decades` | Σᵢ g_wᵢ·vᵢ, vᵢ a first-order lag of w (or a box of N lags) | exact, in [`Effects::relaxation_m`] |
 //! | even term | `even_coefficient_m_per_v2`, `even_center_v` | e·(u\[j−1\] − u_c)² | exact, [`Effects::even_term_m`] |
 //! | mode | `mode_frequency_hz`, `mode_damping`, `mode_relative_damping` | z̈ + 2ζω·(ż − ρ·ṡ) + ω²·(z − s) = 0 | central differences |
 //! | delay | `delay_s` | z(k − D) | reference taken ahead |
@@ -67,7 +69,16 @@
 //!   w and u up to j−1, so its inverse is explicit: `w* = s* − c[j] − c_w[j] − even`, and the compensator's
 //!   per-sample map is unchanged. The inverse recursion (v driven by the w the inverse chose) is
 //!   stable iff `Σᵢ g_wᵢ·tanh(T/(2τ_wᵢ)) < 1` (its one real root below every bᵢ stays above −1);
-//!   [`Effects::new`] asks ≤ [`MAX_RELAXATION_LOOP_GAIN`] = 0.5 and g_wᵢ ≥ 0.
+//!   [`Effects::new`] asks ≤ [`MAX_RELAXATION_LOOP_GAIN`] = 0.5 and g_wᵢ ≥ 0 (a spread element
+//!   counts each of its N lags with g_wᵢ/N).
+//! * **Spread relaxation**: a dielectric's relaxation times are spread, not one; with W > 0
+//!   (`relaxation_spread_decades`, ≤ [`MAX_RELAXATION_SPREAD_DECADES`]) each element is the box
+//!   distribution of relaxation times, ln τ uniform over W decades centred on τ_wᵢ (Nowick &
+//!   Berry, *Anelastic Relaxation in Crystalline Solids*, Academic Press 1972, ch. 4, the box
+//!   distribution), run as N = [`RELAXATION_SPREAD_POINTS`] lags at
+//!   τ_wᵢ·10^(W·(k/(N − 1) − ½)) of gain g_wᵢ/N: `G(s) = 1 + Σᵢ (g_wᵢ/N)·Σₖ 1/(1 + s·τ_wᵢₖ)`.
+//!   Its loop opening grows over W decades of rate instead of one, and W = 0 is the single lag.
+//!   The N lags are the same delta-form update, so forward and inverse stay exact and explicit.
 //! * **Even term** `e·(u[j−1] − u_c)²` on the *previous* command u\[j−1\] (the last command the
 //!   state has seen, the same one the creep uses; u\[−1\] := u_c, so the term is 0 at the first
 //!   sample). Electrostriction is an even function of the drive voltage; evaluated at the previous
@@ -189,6 +200,13 @@ pub const MAX_CURVATURE_HALF_WIDTH: usize = 8;
 pub const MAX_COUPLING: f32 = 0.5;
 /// Largest number of elements of the rate-dependent hysteresis (relaxation of w).
 pub const MAX_RELAXATION_ELEMENTS: usize = 2;
+/// N: the lags each relaxation element runs as when its time constants are spread
+/// (`relaxation_spread_decades` > 0): τ_wᵢ·10^(W·(k/(N − 1) − ½)), k = 0 … N − 1, each of gain g_wᵢ/N.
+pub const RELAXATION_SPREAD_POINTS: usize = 7;
+/// Largest spread W of the relaxation times \[decades\].
+pub const MAX_RELAXATION_SPREAD_DECADES: f32 = 4.0;
+/// The lags the relaxation runs: N per element when spread, one per element otherwise.
+pub const RELAXATION_LAGS: usize = MAX_RELAXATION_ELEMENTS * RELAXATION_SPREAD_POINTS;
 /// Bound on Σᵢ g_wᵢ·tanh(T/(2τ_wᵢ)): the inverse recursion of the relaxation is stable below 1;
 /// at 0.5 its slowest-alternating root stays above −1/3 (well damped).
 pub const MAX_RELAXATION_LOOP_GAIN: f64 = 0.5;
@@ -354,6 +372,11 @@ pub struct EffectParams {
         serde(deserialize_with = "up_to_relaxation_elements")
     )]
     pub relaxation_time_constant_s: [f32; MAX_RELAXATION_ELEMENTS],
+    /// W \[decades\] in \[0, 4\]: each relaxation element's time constants spread log-uniformly
+    /// over W decades centred (geometrically) on τ_wᵢ, the box distribution of relaxation times;
+    /// run as [`RELAXATION_SPREAD_POINTS`] lags τ_wᵢ·10^(W·(k/(N − 1) − ½)) of gain g_wᵢ/N each
+    /// (0: one time constant per element).
+    pub relaxation_spread_decades: f32,
     /// k_r \[m/V\]: the relaxation is driven by w − k_r·u (0: all of w relaxes; the map's k1: only
     /// the hysteretic part; any finite value).
     pub relaxation_linear_m_per_v: f32,
@@ -579,10 +602,13 @@ pub struct Effects {
 /// The validated elements of the rate-dependent hysteresis (relaxation of w).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 struct Relaxation {
-    /// 1 − bᵢ = 1 − exp(−T/τ_wᵢ) (0 for an absent element).
-    rate: [f32; MAX_RELAXATION_ELEMENTS],
-    /// g_wᵢ \[1\] (0 for an absent element).
-    gain: [f32; MAX_RELAXATION_ELEMENTS],
+    /// 1 − b = 1 − exp(−T/τ) of each lag (0 for an absent one): element i's lag at
+    /// `rate[i]` without a spread, its N lags at `rate[i·N + k]` with one.
+    rate: [f32; RELAXATION_LAGS],
+    /// The gain of each lag \[1\]: g_wᵢ without a spread, g_wᵢ/N with one (0 for an absent one).
+    gain: [f32; RELAXATION_LAGS],
+    /// The lags in use: [`MAX_RELAXATION_ELEMENTS`] without a spread, [`RELAXATION_LAGS`] with one.
+    lags: usize,
     /// k_r \[m/V\].
     linear: f32,
 }
@@ -597,6 +623,23 @@ impl Relaxation {
             )?,
             ..Self::default()
         };
+        let spread = finite(
+            "relaxation_spread_decades",
+            params.relaxation_spread_decades,
+        )?;
+        if !(0.0..=MAX_RELAXATION_SPREAD_DECADES).contains(&spread) {
+            return Err(ParamError::OutOfRange {
+                field: "relaxation_spread_decades",
+                value: spread,
+                requirement: "in [0, 4] decades",
+            });
+        }
+        let points = if spread > 0.0 {
+            RELAXATION_SPREAD_POINTS
+        } else {
+            1
+        };
+        out.lags = MAX_RELAXATION_ELEMENTS * points;
         let mut loop_gain = 0.0f64;
         for i in 0..MAX_RELAXATION_ELEMENTS {
             let g = finite(RELAXATION_GAIN_FIELDS[i], params.relaxation_gain[i])?;
@@ -613,10 +656,18 @@ impl Relaxation {
             }
             if g != 0.0 {
                 positive(RELAXATION_TIME_FIELDS[i], tau)?;
-                let x = f64::from(t) / f64::from(tau);
-                out.rate[i] = -libm::expm1(-x) as f32;
-                out.gain[i] = g;
-                loop_gain += f64::from(g) * libm::tanh(0.5 * x);
+                let gain = f64::from(g) / points as f64;
+                for k in 0..points {
+                    let decades = if points > 1 {
+                        f64::from(spread) * (k as f64 / (points - 1) as f64 - 0.5)
+                    } else {
+                        0.0
+                    };
+                    let x = f64::from(t) / (f64::from(tau) * libm::pow(10.0, decades));
+                    out.rate[i * points + k] = -libm::expm1(-x) as f32;
+                    out.gain[i * points + k] = gain as f32;
+                    loop_gain += gain * libm::tanh(0.5 * x);
+                }
             }
         }
         if loop_gain > MAX_RELAXATION_LOOP_GAIN || !loop_gain.is_finite() {
@@ -666,8 +717,8 @@ pub struct EffectsState {
     head: usize,
     /// Number of samples processed (saturating).
     samples: u32,
-    /// vᵢ of the rate-dependent hysteresis for the next sample \[m\].
-    relaxation_m: [f32; MAX_RELAXATION_ELEMENTS],
+    /// The relaxation's lags vᵢ for the next sample \[m\].
+    relaxation_m: [f32; RELAXATION_LAGS],
     /// p_ref: the first p = w − k_r·u \[m\].
     w_reference_m: f32,
 }
@@ -696,7 +747,7 @@ impl EffectsState {
             ring: [0.0; RING_LEN],
             head: 0,
             samples: 0,
-            relaxation_m: [0.0; MAX_RELAXATION_ELEMENTS],
+            relaxation_m: [0.0; RELAXATION_LAGS],
             w_reference_m: 0.0,
         }
     }
@@ -895,10 +946,10 @@ impl Effects {
             && self.relaxation.is_absent()
     }
 
-    /// The rate-dependent hysteresis's elements as (1 − bᵢ, g_wᵢ) with k_r \[m/V\] (gains 0
-    /// without it): c_w = Σ g_wᵢ·vᵢ, vᵢ\[j\] = vᵢ\[j−1\] + (1 − bᵢ)·(p\[j−1\] − p_ref − vᵢ\[j−1\]),
-    /// p = w − k_r·u.
-    pub(crate) fn relaxation_elements(&self) -> ([(f32, f32); MAX_RELAXATION_ELEMENTS], f32) {
+    /// The rate-dependent hysteresis's lags as (1 − bᵢ, gain) with k_r \[m/V\] (gains 0
+    /// without it; a spread element's N lags each with its share g_w/N): c_w = Σ gainᵢ·vᵢ,
+    /// vᵢ\[j\] = vᵢ\[j−1\] + (1 − bᵢ)·(p\[j−1\] − p_ref − vᵢ\[j−1\]), p = w − k_r·u.
+    pub(crate) fn relaxation_elements(&self) -> ([(f32, f32); RELAXATION_LAGS], f32) {
         let r = &self.relaxation;
         (core::array::from_fn(|i| (r.rate[i], r.gain[i])), r.linear)
     }
@@ -1017,7 +1068,13 @@ impl Effects {
     #[inline]
     pub fn relaxation_m(&self, state: &EffectsState) -> f32 {
         let mut c = 0.0;
-        for (g, v) in self.relaxation.gain.iter().zip(state.relaxation_m.iter()) {
+        for (g, v) in self
+            .relaxation
+            .gain
+            .iter()
+            .zip(state.relaxation_m.iter())
+            .take(self.relaxation.lags)
+        {
             c += g * v;
         }
         bounded(c)
@@ -1046,7 +1103,7 @@ impl Effects {
         let p = bounded(w - self.relaxation.linear * u);
         if !state.started {
             state.w_reference_m = p;
-            state.relaxation_m = [0.0; MAX_RELAXATION_ELEMENTS];
+            state.relaxation_m = [0.0; RELAXATION_LAGS];
         }
         let s =
             bounded(w + self.even_term_m(state) + self.creep_m(state) + self.relaxation_m(state));
@@ -1109,6 +1166,7 @@ impl Effects {
                 .relaxation_m
                 .iter_mut()
                 .zip(self.relaxation.rate.iter())
+                .take(self.relaxation.lags)
             {
                 *v += rate * (dw - *v);
             }
@@ -1737,6 +1795,89 @@ mod tests {
         // The lag lowers the output's amplitude at 80 Hz: (1 + Σ g) at DC, |G(jω)| here.
         assert!(worst_forward < 2e-11, "forward {worst_forward}");
         assert!(worst_inverse < 2e-11, "inverse {worst_inverse}");
+    }
+
+    #[test]
+    fn a_spread_relaxation_is_its_box_of_lags_and_its_inverse_is_exact() {
+        // W = 2 decades around τ = 1 ms: 7 lags from 0.1 to 10 ms, g/7 each.
+        let (g, tau, spread) = (0.7f32, 1e-3f32, 2.0f32);
+        let effects = Effects::new(
+            EffectParams {
+                relaxation_gain: [g, 0.0],
+                relaxation_time_constant_s: [tau, 0.0],
+                relaxation_spread_decades: spread,
+                ..EffectParams::default()
+            },
+            period(),
+            range(1e-4),
+        )
+        .unwrap();
+        let n = RELAXATION_SPREAD_POINTS;
+        let b: [f64; RELAXATION_SPREAD_POINTS] = core::array::from_fn(|k| {
+            let tau_k = 1e-3 * libm::pow(10.0, 2.0 * (k as f64 / (n - 1) as f64 - 0.5));
+            libm::exp(-1e-4 / tau_k)
+        });
+        let mut v = [0.0f64; RELAXATION_SPREAD_POINTS];
+        let mut plant = EffectsState::at_rest(0.0);
+        let mut controller = EffectsState::at_rest(0.0);
+        let (mut w0, mut previous) = (0.0f64, 0.0f64);
+        let (mut worst_forward, mut worst_inverse, mut largest) = (0.0f64, 0.0f32, 0.0f64);
+        for j in 0..3000 {
+            let t = j as f64 * 1e-4;
+            let w = 2e-5 * (1.0 - libm::cos(2.0 * core::f64::consts::PI * 30.0 * t));
+            if j == 0 {
+                w0 = w;
+            } else {
+                for k in 0..n {
+                    v[k] = b[k] * v[k] + (1.0 - b[k]) * (previous - w0);
+                }
+            }
+            let relaxed = f64::from(g) / n as f64 * v.iter().sum::<f64>();
+            largest = largest.max(relaxed.abs());
+            let z = effects.forward_z(&mut plant, 0.0, w as f32);
+            worst_forward = worst_forward.max(libm::fabs(f64::from(z) - (w + relaxed)));
+            let target = effects.inverse_target_w(&controller, z, z, z);
+            worst_inverse = worst_inverse.max((target - w as f32).abs());
+            effects.commit_command(&mut controller, 0.0, target);
+            previous = w;
+        }
+        assert!(largest > 1e-5, "the relaxation is there: {largest}");
+        assert!(worst_forward < 2e-11, "forward {worst_forward}");
+        assert!(worst_inverse < 2e-11, "inverse {worst_inverse}");
+        // No spread is the one lag, bit for bit.
+        let one = relaxation([g, 0.0], [tau, 0.0]).unwrap();
+        let zero_spread = Effects::new(
+            EffectParams {
+                relaxation_gain: [g, 0.0],
+                relaxation_time_constant_s: [tau, 0.0],
+                relaxation_spread_decades: 0.0,
+                ..EffectParams::default()
+            },
+            period(),
+            range(1e-4),
+        )
+        .unwrap();
+        assert_eq!(one, zero_spread);
+        // A spread outside [0, 4] decades, or not finite, is refused by name.
+        for bad in [-0.1f32, 4.5, f32::NAN, f32::INFINITY] {
+            let e = Effects::new(
+                EffectParams {
+                    relaxation_gain: [g, 0.0],
+                    relaxation_time_constant_s: [tau, 0.0],
+                    relaxation_spread_decades: bad,
+                    ..EffectParams::default()
+                },
+                period(),
+                range(1e-4),
+            )
+            .unwrap_err();
+            match e {
+                ParamError::OutOfRange { field, .. } | ParamError::NonFinite { field } => {
+                    assert_eq!(field, "relaxation_spread_decades", "{bad}")
+                }
+                other => panic!("{bad}: {other:?}"),
+            }
+        }
     }
 
     #[test]

@@ -153,7 +153,7 @@ pub use harmonics::{
 };
 
 use crate::compensator::{Compensator, CompensatorSettings};
-use crate::effects::{Effects, MAX_RELAXATION_ELEMENTS};
+use crate::effects::{Effects, RELAXATION_LAGS};
 use crate::error::{finite, ParamError};
 use crate::math::clamp;
 use crate::static_model::{ModelState, StaticModel};
@@ -376,7 +376,7 @@ pub struct Learning {
     /// (f_mode \[Hz\], ζ, ρ) of the model's mode (ρ the share of ζ on the relative motion).
     mode: Option<(f64, f64, f64)>,
     /// The rate-dependent hysteresis of the effects: (1 − bᵢ, g_wᵢ) per element and k_r \[m/V\].
-    relaxation: ([(f64, f64); MAX_RELAXATION_ELEMENTS], f64),
+    relaxation: ([(f64, f64); RELAXATION_LAGS], f64),
     params: LearningParams,
     learning_gain: f64,
     cutoff_hz: f64,
@@ -1509,7 +1509,7 @@ impl Learning {
         // hysteresis"): the lagged input's Δv, the last Δu, and the relaxation elements' Δvᵢ.
         let mut dv = 0.0f64;
         let mut du_last = 0.0f64;
-        let mut relaxed = [0.0f64; MAX_RELAXATION_ELEMENTS];
+        let mut relaxed = [0.0f64; RELAXATION_LAGS];
         // A periodic trial's memory starts in its periodic state: one pass to reach it.
         let passes = if periodic && (lag.is_some() || relaxes) {
             2
@@ -1555,7 +1555,7 @@ impl Learning {
                     // A model the linearisation cannot follow here: nothing learned, memory reset.
                     correction = 0.0;
                     dv = 0.0;
-                    relaxed = [0.0; MAX_RELAXATION_ELEMENTS];
+                    relaxed = [0.0; RELAXATION_LAGS];
                 }
                 if let Some((_, b)) = lag {
                     dv = dv_pre + b * correction;

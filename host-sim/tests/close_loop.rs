@@ -715,9 +715,9 @@ fn plant_record(
 /// An actuator whose rate dependence is none of the core's forms: fitted on 20 and 40 Hz records
 /// (`--free-offset`, the 100 Hz record of one session as `--validate`), close-loop adds the
 /// rate-dependent hysteresis first, in the form that predicts that 100 Hz record best: the
-/// relaxation of the hysteretic output (the input lag with one or two relaxations fits 20 and
-/// 40 Hz closer, but one first-order lag before the operator does not follow a spread of
-/// relaxation times across rates). It lowers that 100 Hz record's zeroed RMS by more than half
+/// relaxation of the hysteretic output with its time constants spread over about a decade (the
+/// input lag with one or two relaxations fits 20 and 40 Hz closer, but one first-order lag before
+/// the operator does not follow a spread of relaxation times across rates). It lowers that 100 Hz record's zeroed RMS by more than half
 /// (65 % measured), and the stage file predicts the 100 Hz records of both sessions (the second at
 /// another amplitude and offset) at under 40 % of the base model's error. The prediction is still
 /// a few times the fit's RMS: the 100 Hz loops lie outside what 20 and 40 Hz fix.
@@ -750,7 +750,25 @@ fn an_actuator_with_a_spread_of_relaxation_times_is_predicted_at_a_rate_it_did_n
         "{words}"
     );
     let form = r["steps"][0]["form"].as_str().unwrap();
-    assert_eq!(form, "relaxation", "{words}");
+    assert_eq!(form, "spread relaxation", "{words}");
+    // The plant's relaxation times span 0.2 to 5 ms, 1.4 decades.
+    let spread = r["steps"][0]["candidates"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["decision"] == "added")
+        .and_then(|c| {
+            c["plausibility"]["checks"]
+                .as_array()?
+                .iter()
+                .find(|k| k["parameter"] == "relaxation_spread_decades")?["value"]
+                .as_f64()
+        })
+        .unwrap();
+    assert!(
+        (0.5..=2.5).contains(&spread),
+        "spread {spread} decades\n{words}"
+    );
     let (without, with) = added_zeroed_rms(&r);
     assert!(
         with <= 0.5 * without,

@@ -694,6 +694,8 @@ fn two_axis_inverse_chain_tracks_with_all_effects() {
         log_creep_time_s: 1e-3,
         relaxation_gain: [0.3, 0.05],
         relaxation_time_constant_s: [2e-3, 2e-2],
+        // Its elements' time constants spread over a decade and a half each.
+        relaxation_spread_decades: 1.5,
         relaxation_linear_m_per_v: 2e-7,
         // y's operator behind a 0.5 ms input lag (rate-dependent hysteresis).
         hysteresis_lag_s: 5e-4,
@@ -982,6 +984,7 @@ prop_compose! {
         relaxation_taus in prop::array::uniform2(1e-3f32..100.0),
         lag in prop_oneof![Just(0.0f32), 1e-4f32..1.0],
         relative in prop_oneof![Just(0.0f32), Just(1.0f32), 0.0f32..=1.0],
+        spread in prop_oneof![Just(0.0f32), 0.0f32..=4.0],
     ) -> EffectParams {
         EffectParams {
             creep_gain_m_per_v: gains,
@@ -1000,6 +1003,7 @@ prop_compose! {
             log_creep_time_s: log_t0,
             relaxation_gain: relaxation_gains,
             relaxation_time_constant_s: relaxation_taus,
+            relaxation_spread_decades: spread,
             relaxation_linear_m_per_v: 0.0,
             hysteresis_lag_s: lag,
         }

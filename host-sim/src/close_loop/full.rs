@@ -80,6 +80,12 @@ pub enum RateForm {
     /// domains, follows the voltage through a dielectric loss, so that its loops widen with rate
     /// where those of [`Self::Relaxation`] (the hysteretic part alone relaxing) narrow.
     WholeRelaxation,
+    /// [`Self::Relaxation`] with its relaxation times spread log-uniformly over W decades around
+    /// τ_w (the core's `relaxation_spread_decades`; g, τ_w and W fitted): a dielectric's spread
+    /// of relaxation times, whose loop opening grows over W decades of rate.
+    SpreadRelaxation,
+    /// [`Self::WholeRelaxation`] with its relaxation times spread over W decades (g, τ_w, W).
+    WholeSpreadRelaxation,
 }
 
 impl RateForm {
@@ -91,6 +97,8 @@ impl RateForm {
             Self::LagAndRelaxation => "input lag and relaxation",
             Self::LagAndTwoRelaxations => "input lag and two relaxations",
             Self::WholeRelaxation => "relaxation of the whole output",
+            Self::SpreadRelaxation => "spread relaxation",
+            Self::WholeSpreadRelaxation => "spread relaxation of the whole output",
         }
     }
 }
@@ -111,13 +119,27 @@ impl RateForm {
                 | Self::LagAndRelaxation
                 | Self::LagAndTwoRelaxations
                 | Self::WholeRelaxation
+                | Self::SpreadRelaxation
+                | Self::WholeSpreadRelaxation
         )
+    }
+    /// Whether the relaxation times are spread (W fitted).
+    pub fn has_spread(self) -> bool {
+        matches!(self, Self::SpreadRelaxation | Self::WholeSpreadRelaxation)
+    }
+    /// Whether the whole output relaxes (k_r = 0), not the hysteretic part alone (k_r = k1).
+    pub fn relaxes_whole_output(self) -> bool {
+        matches!(self, Self::WholeRelaxation | Self::WholeSpreadRelaxation)
     }
     /// Number of relaxation elements fitted.
     pub fn relaxation_elements(self) -> usize {
         match self {
             Self::InputLag => 0,
-            Self::Relaxation | Self::LagAndRelaxation | Self::WholeRelaxation => 1,
+            Self::Relaxation
+            | Self::LagAndRelaxation
+            | Self::WholeRelaxation
+            | Self::SpreadRelaxation
+            | Self::WholeSpreadRelaxation => 1,
             Self::LagAndTwoRelaxations => 2,
         }
     }
@@ -353,6 +375,9 @@ impl ParamSpec {
         (self.value(self.lo), self.value(self.hi))
     }
 }
+
+/// The range of the Bouc-Wen exponent n that piezo-core accepts.
+const BOUC_WEN_EXPONENT_RANGE: (f64, f64) = (1.0, 16.0);
 
 /// Share of a range within which a fitted value counts as having run to the bound.
 pub const AT_BOUND_SHARE: f64 = 0.01;
@@ -599,7 +624,7 @@ impl AxisModel {
             }
             EffectInit::RateDependent {
                 time_constant_s, ..
-            } if m.rate_form == RateForm::WholeRelaxation => {
+            } if m.rate_form.relaxes_whole_output() => {
                 // A relaxation of the whole output at the screening's τ, its gain twice the
                 // bound's lowest (the start is the current model, nearly: the gain and its split
                 // from τ are the fit's and [`Self::relaxation_restart`]'s), the static gains
@@ -709,6 +734,7 @@ impl AxisModel {
                 e.relaxation_gain = Default::default();
                 e.relaxation_time_constant_s = Default::default();
                 e.relaxation_linear_m_per_v = 0.0;
+                e.relaxation_spread_decades = 0.0;
                 e.hysteresis_lag_s = 0.0;
             }
         }
@@ -784,6 +810,9 @@ impl AxisModel {
                 ]
                 .map(ParamSpec::free)
                 .to_vec();
+                // The core's range of the exponent: a step beyond it would be refused, and a fit
+                // whose gradient points there would stall on refusals instead of moving along it.
+                (spec[2].lo, spec[2].hi) = (BOUC_WEN_EXPONENT_RANGE.0, BOUC_WEN_EXPONENT_RANGE.1);
                 // With free offsets each record's offset is re-estimated on its samples, so y0 is
                 // held (its column would be zero).
                 if self.free_offset {
@@ -888,6 +917,18 @@ impl AxisModel {
                         ),
                     );
                 }
+                if self.rate_form.has_spread() {
+                    theta.push(
+                        f64::from(e.relaxation_spread_decades),
+                        1.0,
+                        ParamSpec::within(
+                            Param::RelaxationSpread,
+                            kind,
+                            0.0,
+                            f64::from(piezo_core::effects::MAX_RELAXATION_SPREAD_DECADES),
+                        ),
+                    );
+                }
             }
         }
     }
@@ -976,7 +1017,7 @@ impl AxisModel {
         }
         if m.added.contains(&EffectKind::RateDependent) && m.rate_form.has_relaxation() {
             // Only the hysteretic part relaxes (k_r = k1), or the whole output (k_r = 0).
-            m.effects.relaxation_linear_m_per_v = if m.rate_form == RateForm::WholeRelaxation {
+            m.effects.relaxation_linear_m_per_v = if m.rate_form.relaxes_whole_output() {
                 0.0
             } else {
                 m.map.k1_m_per_v

@@ -804,9 +804,10 @@ fn fit_dynamics(model: &AxisModel, cand: &Candidate, data: &FitData) -> (AxisMod
 /// The rate-dependent hysteresis fitted in its forms ([`full::RateForm`]): the operator driven
 /// by a lag of the command, the relaxation of its output (that one also from other splits of its
 /// first-order lag into g and τ, [`AxisModel::relaxation_restart`]), on several records the
-/// relaxation of the whole output (the linear strain too: loops that widen with rate), and the input lag together with
-/// one or two relaxation elements (started from the input lag's fit, one element at a time:
-/// [`fit_one_more_relaxation`]). The form kept is the plausible one with the lowest SSE (the lowest
+/// relaxation of the whole output (the linear strain too: loops that widen with rate), the input
+/// lag together with one or two relaxation elements (started from the input lag's fit, one element at a time:
+/// [`fit_one_more_relaxation`]), and either relaxation with its time constants spread over W
+/// decades (started from its one-lag fit, [`fit_spread`]). The form kept is the plausible one with the lowest SSE (the lowest
 /// SSE when none is plausible): which form a stage's rate dependence takes is the data's to say.
 /// The richer forms nest the input lag (a relaxation gain → 0 runs to its plausible bound), so on
 /// a stage with one lag they are not plausible and the input lag is kept; a spread of dielectric
@@ -816,7 +817,7 @@ fn fit_dynamics(model: &AxisModel, cand: &Candidate, data: &FitData) -> (AxisMod
 /// (zeroed RMS; forms within [`HELD_OUT_TIE`] of the best gain 1 − (RMS / the current model's
 /// RMS)² are a tie, decided by the lower SSE): the forms fit the fitted rates alike and part at
 /// others (a stack whose hysteretic part relaxes over a spread of times: fitted on 20 and 40 Hz,
-/// the relaxation alone predicts 100 Hz better than the input lag with a relaxation, which fits
+/// the spread relaxation predicts 100 Hz better than the input lag with a relaxation, which fits
 /// 20 and 40 Hz closer).
 fn fit_rate_dependent(
     model: &AxisModel,
@@ -851,10 +852,37 @@ fn fit_rate_dependent(
     let three = both
         .as_ref()
         .and_then(|b| fit_one_more_relaxation(&b.0, cand, data));
-    let forms: Vec<(AxisModel, f64, bool)> = [Some(lag), Some(relaxation), whole, both, three]
-        .into_iter()
-        .flatten()
-        .collect();
+    // With another run, that run judges the spread as it judges every form; without one, the
+    // records must resolve it.
+    let judged_within = run.is_none();
+    let spread = fit_spread(
+        &relaxation.0,
+        full::RateForm::SpreadRelaxation,
+        cand,
+        data,
+        judged_within,
+    );
+    let whole_spread = whole.as_ref().and_then(|w| {
+        fit_spread(
+            &w.0,
+            full::RateForm::WholeSpreadRelaxation,
+            cand,
+            data,
+            judged_within,
+        )
+    });
+    let forms: Vec<(AxisModel, f64, bool)> = [
+        Some(lag),
+        Some(relaxation),
+        whole,
+        both,
+        three,
+        spread,
+        whole_spread,
+    ]
+    .into_iter()
+    .flatten()
+    .collect();
     // With the other run: each plausible form's gain on it (−∞ for the others).
     let gains: Option<Vec<f64>> = run.map(|run| {
         let rms_zeroed_without = run.rms_zeroed(model);
@@ -913,6 +941,74 @@ fn best_fit(fits: Vec<(AxisModel, f64, bool)>) -> Option<(AxisModel, f64, bool)>
     }
     best
 }
+
+/// Spreads W of the spread relaxation's starts \[decades\].
+const SPREAD_STARTS: [f64; 2] = [1.0, 2.5];
+
+/// The spread form `to` ([`full::RateForm::SpreadRelaxation`] or
+/// [`full::RateForm::WholeSpreadRelaxation`]) fitted from the one-time-constant fit `from`
+/// ([`full::RateForm::Relaxation`] or [`full::RateForm::WholeRelaxation`]): started at each of
+/// [`SPREAD_STARTS`] with the gain kept and the centre τ_w moved so that the mean of the lags' time
+/// constants is the fitted τ_w (the first-order lag g·τ̄ that slow records fix is kept); the
+/// plausible fit with the lowest SSE. The spread form nests the single lag (W → 0), so on a stage
+/// one lag describes, W runs to its lower bound and the fit is not plausible; `judged_within`
+/// (no other run to judge it) also asks W to lie [`SPREAD_RESOLVED`] standard errors above 0.
+fn fit_spread(
+    from: &AxisModel,
+    to: full::RateForm,
+    cand: &Candidate,
+    data: &FitData,
+    judged_within: bool,
+) -> Option<(AxisModel, f64, bool)> {
+    use piezo_core::effects::RELAXATION_SPREAD_POINTS as N;
+    if !from.added.contains(&EffectKind::RateDependent)
+        || !from.rate_form.has_relaxation()
+        || from.rate_form.has_input_lag()
+        || from.rate_form.has_spread()
+    {
+        return None;
+    }
+    let (lo, hi) = from.bounds.relaxation_tau_s;
+    let tau = f64::from(from.effects.relaxation_time_constant_s[0]);
+    let fits = SPREAD_STARTS
+        .iter()
+        .map(|&w| {
+            let mean = (0..N)
+                .map(|k| 10f64.powf(w * (k as f64 / (N - 1) as f64 - 0.5)))
+                .sum::<f64>()
+                / N as f64;
+            let mut start = from.clone();
+            start.rate_form = to;
+            start.effects.relaxation_time_constant_s[0] = (tau / mean).clamp(lo, hi) as f32;
+            start.effects.relaxation_spread_decades = w as f32;
+            let (fitted, sse, _) = refit(&start, data, TRIAL_ITERATIONS);
+            let plausible = Plausibility::of(&fitted, cand.effect).plausible();
+            (fitted, sse, plausible)
+        })
+        .collect();
+    let (m, sse, plausible) = best_fit(fits)?;
+    // A spread the records do not resolve (W within SPREAD_RESOLVED standard errors of 0, the
+    // Bartlett-corrected errors of the fit's linearisation) is the single lag's.
+    if !judged_within {
+        return Some((m, sse, plausible));
+    }
+    let resolved = plausible
+        && full::linearise(&m, data)
+            .and_then(|l| crate::uncertainty::estimate(&l))
+            .ok()
+            .and_then(|u| {
+                let name = full::report_name(param::Param::RelaxationSpread);
+                let i = u.parameters.iter().position(|p| p.name == name)?;
+                u.standard_errors.get(i).copied()
+            })
+            .is_some_and(|se| {
+                f64::from(m.effects.relaxation_spread_decades) > SPREAD_RESOLVED * se
+            });
+    Some((m, sse, resolved))
+}
+
+/// How many standard errors a fitted spread W must lie above 0 to be kept.
+const SPREAD_RESOLVED: f64 = 2.0;
 
 /// Relaxation time constants of the two-time-constant form's starts, as multiples of the fitted
 /// input lag τ_v: a spread of relaxation times lies on both sides of the one lag that fits best.

@@ -59,6 +59,8 @@ pub enum Param {
     RelaxationGain1,
     /// Second relaxation element's time constant τ_w₁ \[s\].
     RelaxationTimeConstant1,
+    /// Spread W of the relaxation times \[decades\].
+    RelaxationSpread,
 }
 
 impl From<Param> for &'static str {
@@ -69,7 +71,7 @@ impl From<Param> for &'static str {
 
 impl Param {
     /// Every parameter, in θ's order of effects.
-    pub const ALL: [Self; 24] = [
+    pub const ALL: [Self; 25] = [
         Self::Beta,
         Self::Gamma,
         Self::Exponent,
@@ -94,6 +96,7 @@ impl Param {
         Self::HysteresisLag,
         Self::RelaxationGain1,
         Self::RelaxationTimeConstant1,
+        Self::RelaxationSpread,
     ];
 
     /// The Kelvin–Voigt elements' gains, element by element.
@@ -130,6 +133,7 @@ impl Param {
             Self::HysteresisLag => "hysteresis_lag_s",
             Self::RelaxationGain1 => "relaxation_gain[1]",
             Self::RelaxationTimeConstant1 => "relaxation_time_constant_s[1]",
+            Self::RelaxationSpread => "relaxation_spread_decades",
         }
     }
 
@@ -172,6 +176,7 @@ impl Param {
             Self::HysteresisLag => e.hysteresis_lag_s = v,
             Self::RelaxationGain1 => e.relaxation_gain[1] = v,
             Self::RelaxationTimeConstant1 => e.relaxation_time_constant_s[1] = v,
+            Self::RelaxationSpread => e.relaxation_spread_decades = v,
         }
     }
 }
