@@ -364,9 +364,10 @@ impl BoucWen {
             * libm::pow(state_bound.max(1e-30), nn - 1.0);
         // A range-limited set's general-n path is not capped per sample (module doc): bound its
         // cost at build time, so that no sample can take longer than a sweep of the whole span.
+        let span_substeps = lipschitz * span / f64::from(SUBSTEP_THETA);
         if class == BoundClass::RangeLimited
             && exponent == Exponent::General
-            && !(lipschitz * span / f64::from(SUBSTEP_THETA) <= MAX_SPAN_SUBSTEPS)
+            && (span_substeps.is_nan() || span_substeps > MAX_SPAN_SUBSTEPS)
         {
             return Err(ParamError::OutOfRange {
                 field: "n",

@@ -607,7 +607,8 @@ struct Relaxation {
     rate: [f32; RELAXATION_LAGS],
     /// The gain of each lag \[1\]: g_wᵢ without a spread, g_wᵢ/N with one (0 for an absent one).
     gain: [f32; RELAXATION_LAGS],
-    /// The lags in use: [`MAX_RELAXATION_ELEMENTS`] without a spread, [`RELAXATION_LAGS`] with one.
+    /// The lags in use: those up to the last present element's (one per element without a
+    /// spread, N with one); 0 without the relaxation.
     lags: usize,
     /// k_r \[m/V\].
     linear: f32,
@@ -639,7 +640,6 @@ impl Relaxation {
         } else {
             1
         };
-        out.lags = MAX_RELAXATION_ELEMENTS * points;
         let mut loop_gain = 0.0f64;
         for i in 0..MAX_RELAXATION_ELEMENTS {
             let g = finite(RELAXATION_GAIN_FIELDS[i], params.relaxation_gain[i])?;
@@ -668,6 +668,7 @@ impl Relaxation {
                     out.gain[i * points + k] = gain as f32;
                     loop_gain += gain * libm::tanh(0.5 * x);
                 }
+                out.lags = (i + 1) * points;
             }
         }
         if loop_gain > MAX_RELAXATION_LOOP_GAIN || !loop_gain.is_finite() {
@@ -681,7 +682,7 @@ impl Relaxation {
     }
 
     fn is_absent(&self) -> bool {
-        self.gain.iter().all(|&g| g == 0.0)
+        self.lags == 0
     }
 }
 

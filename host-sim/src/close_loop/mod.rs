@@ -852,15 +852,18 @@ fn fit_rate_dependent(
     let three = both
         .as_ref()
         .and_then(|b| fit_one_more_relaxation(&b.0, cand, data));
-    // With another run, that run judges the spread as it judges every form; without one, the
+    // With another run, the spread must predict it better than its one lag; without one, the
     // records must resolve it.
-    let judged_within = run.is_none();
+    let judge = run.map_or(SpreadJudge::Records, |run| SpreadJudge::Run {
+        run,
+        rms_zeroed_without: run.rms_zeroed(model),
+    });
     let spread = fit_spread(
         &relaxation.0,
         full::RateForm::SpreadRelaxation,
         cand,
         data,
-        judged_within,
+        judge,
     );
     let whole_spread = whole.as_ref().and_then(|w| {
         fit_spread(
@@ -868,7 +871,7 @@ fn fit_rate_dependent(
             full::RateForm::WholeSpreadRelaxation,
             cand,
             data,
-            judged_within,
+            judge,
         )
     });
     let forms: Vec<(AxisModel, f64, bool)> = [
@@ -951,14 +954,14 @@ const SPREAD_STARTS: [f64; 2] = [1.0, 2.5];
 /// [`SPREAD_STARTS`] with the gain kept and the centre τ_w moved so that the mean of the lags' time
 /// constants is the fitted τ_w (the first-order lag g·τ̄ that slow records fix is kept); the
 /// plausible fit with the lowest SSE. The spread form nests the single lag (W → 0), so on a stage
-/// one lag describes, W runs to its lower bound and the fit is not plausible; `judged_within`
-/// (no other run to judge it) also asks W to lie [`SPREAD_RESOLVED`] standard errors above 0.
+/// one lag describes, W runs to its lower bound and the fit is not plausible; W near 0 fits as
+/// well as one lag and is not plausible either unless `judge` says the spread holds.
 fn fit_spread(
     from: &AxisModel,
     to: full::RateForm,
     cand: &Candidate,
     data: &FitData,
-    judged_within: bool,
+    judge: SpreadJudge,
 ) -> Option<(AxisModel, f64, bool)> {
     use piezo_core::effects::RELAXATION_SPREAD_POINTS as N;
     if !from.added.contains(&EffectKind::RateDependent)
@@ -987,24 +990,58 @@ fn fit_spread(
         })
         .collect();
     let (m, sse, plausible) = best_fit(fits)?;
-    // A spread the records do not resolve (W within SPREAD_RESOLVED standard errors of 0, the
-    // Bartlett-corrected errors of the fit's linearisation) is the single lag's.
-    if !judged_within {
-        return Some((m, sse, plausible));
+    let holds = plausible && judge.holds(&m, from, data);
+    Some((m, sse, holds))
+}
+
+/// What decides whether a fitted spread of relaxation times holds against its one lag.
+#[derive(Clone, Copy)]
+enum SpreadJudge<'a> {
+    /// The records alone: W more than [`SPREAD_RESOLVED`] standard errors above 0 (the
+    /// Bartlett-corrected errors of the fit's linearisation).
+    Records,
+    /// Another run (`--validate`): the spread's gain on it, 1 − (RMS with / without)², more than
+    /// [`HELD_OUT_TIE`] above the one lag's (a spread that predicts it as well is the one lag's).
+    Run {
+        run: &'a OtherRun,
+        /// The run's zeroed RMS without the effect \[m\].
+        rms_zeroed_without: f64,
+    },
+}
+
+impl SpreadJudge<'_> {
+    /// Whether the spread fit `spread` holds against the one-lag fit `one_lag` on `data`.
+    fn holds(self, spread: &AxisModel, one_lag: &AxisModel, data: &FitData) -> bool {
+        match self {
+            Self::Run {
+                run,
+                rms_zeroed_without,
+            } => {
+                let gain = |m: &AxisModel| {
+                    RunGain {
+                        rms_zeroed_without,
+                        rms_zeroed_with: run.rms_zeroed(m),
+                    }
+                    .gain()
+                };
+                gain(spread) > gain(one_lag) + HELD_OUT_TIE
+            }
+            Self::Records => spread_is_resolved(spread, data),
+        }
     }
-    let resolved = plausible
-        && full::linearise(&m, data)
-            .and_then(|l| crate::uncertainty::estimate(&l))
-            .ok()
-            .and_then(|u| {
-                let name = full::report_name(param::Param::RelaxationSpread);
-                let i = u.parameters.iter().position(|p| p.name == name)?;
-                u.standard_errors.get(i).copied()
-            })
-            .is_some_and(|se| {
-                f64::from(m.effects.relaxation_spread_decades) > SPREAD_RESOLVED * se
-            });
-    Some((m, sse, resolved))
+}
+
+/// Whether the fit `m`'s spread W lies more than [`SPREAD_RESOLVED`] standard errors above 0.
+fn spread_is_resolved(m: &AxisModel, data: &FitData) -> bool {
+    full::linearise(m, data)
+        .and_then(|l| crate::uncertainty::estimate(&l))
+        .ok()
+        .and_then(|u| {
+            let name = full::report_name(param::Param::RelaxationSpread);
+            let i = u.parameters.iter().position(|p| p.name == name)?;
+            u.standard_errors.get(i).copied()
+        })
+        .is_some_and(|se| f64::from(m.effects.relaxation_spread_decades) > SPREAD_RESOLVED * se)
 }
 
 /// How many standard errors a fitted spread W must lie above 0 to be kept.
