@@ -1801,18 +1801,20 @@ mod tests {
     #[test]
     fn a_spread_relaxation_is_its_box_of_lags_and_its_inverse_is_exact() {
         // W = 2 decades around τ = 1 ms: 7 lags from 0.1 to 10 ms, g/7 each.
-        let (g, tau, spread) = (0.7f32, 1e-3f32, 2.0f32);
-        let effects = Effects::new(
-            EffectParams {
-                relaxation_gain: [g, 0.0],
-                relaxation_time_constant_s: [tau, 0.0],
-                relaxation_spread_decades: spread,
-                ..EffectParams::default()
-            },
-            period(),
-            range(1e-4),
-        )
-        .unwrap();
+        let (g, tau) = (0.7f32, 1e-3f32);
+        let spread = |decades: f32| {
+            Effects::new(
+                EffectParams {
+                    relaxation_gain: [g, 0.0],
+                    relaxation_time_constant_s: [tau, 0.0],
+                    relaxation_spread_decades: decades,
+                    ..EffectParams::default()
+                },
+                period(),
+                range(1e-4),
+            )
+        };
+        let effects = spread(2.0).unwrap();
         let n = RELAXATION_SPREAD_POINTS;
         let b: [f64; RELAXATION_SPREAD_POINTS] = core::array::from_fn(|k| {
             let tau_k = 1e-3 * libm::pow(10.0, 2.0 * (k as f64 / (n - 1) as f64 - 0.5));
@@ -1847,31 +1849,10 @@ mod tests {
         assert!(worst_inverse < 2e-11, "inverse {worst_inverse}");
         // No spread is the one lag, bit for bit.
         let one = relaxation([g, 0.0], [tau, 0.0]).unwrap();
-        let zero_spread = Effects::new(
-            EffectParams {
-                relaxation_gain: [g, 0.0],
-                relaxation_time_constant_s: [tau, 0.0],
-                relaxation_spread_decades: 0.0,
-                ..EffectParams::default()
-            },
-            period(),
-            range(1e-4),
-        )
-        .unwrap();
-        assert_eq!(one, zero_spread);
+        assert_eq!(one, spread(0.0).unwrap());
         // A spread outside [0, 4] decades, or not finite, is refused by name.
         for bad in [-0.1f32, 4.5, f32::NAN, f32::INFINITY] {
-            let e = Effects::new(
-                EffectParams {
-                    relaxation_gain: [g, 0.0],
-                    relaxation_time_constant_s: [tau, 0.0],
-                    relaxation_spread_decades: bad,
-                    ..EffectParams::default()
-                },
-                period(),
-                range(1e-4),
-            )
-            .unwrap_err();
+            let e = spread(bad).unwrap_err();
             match e {
                 ParamError::OutOfRange { field, .. } | ParamError::NonFinite { field } => {
                     assert_eq!(field, "relaxation_spread_decades", "{bad}")

@@ -1617,9 +1617,10 @@ mod tests {
         kelvin_voigt.creep_elements = 2;
         kelvin_voigt.effects.creep_gain_m_per_v[1] = 1e-9;
         kelvin_voigt.effects.creep_time_constant_s[1] = 0.05;
-        kelvin_voigt.rate_form = RateForm::Relaxation;
+        kelvin_voigt.rate_form = RateForm::SpreadRelaxation;
         kelvin_voigt.effects.relaxation_gain[0] = 0.5;
         kelvin_voigt.effects.relaxation_time_constant_s[0] = 0.01;
+        kelvin_voigt.effects.relaxation_spread_decades = 1.0;
         let mut logarithmic = model_with_effects();
         logarithmic.added = every_effect;
         logarithmic.creep_form = CreepForm::Logarithmic;

@@ -15,8 +15,8 @@
 //! Each axis's report names the effects its chain ran (`effects_ran`, [`effects_ran`]): every
 //! effect of the stage file's `[x.effects]` with a non-zero part, named and in the form
 //! `close-loop` reports (creep "Kelvin-Voigt, 2 elements" or "logarithmic", drift "linear" or
-//! "exponential settling", dynamics "stack-driven", rate-dependent hysteresis "input lag" or
-//! "relaxation"); none for the dynamic and oscillator models, which run without effects.
+//! "exponential settling", dynamics "stack-driven", rate-dependent hysteresis "input lag",
+//! "relaxation" or "spread relaxation"); none for the dynamic and oscillator models, which run without effects.
 
 use super::model::from_axis;
 use super::{check_finite, fit_block, min_max, oscillator, FitBlock, Record};
@@ -68,7 +68,7 @@ pub struct AxisPrediction {
 /// has one form): creep (Kelvin-Voigt with N elements of gain gᵢ ≠ 0, and/or logarithmic,
 /// g_log ≠ 0), drift (linear, rate ≠ 0; exponential settling, A_d ≠ 0), delay (≠ 0), asymmetry
 /// (the even term, e ≠ 0), dynamics (f_mode ≠ 0; "stack-driven" when ρ > 0), coupling (κ ≠ 0),
-/// rate-dependent hysteresis (input lag τ_v ≠ 0; relaxation, some g_wᵢ ≠ 0).
+/// rate-dependent hysteresis (input lag τ_v ≠ 0; relaxation, some g_wᵢ ≠ 0, "spread" when W > 0).
 pub fn effects_ran(e: &piezo_core::effects::EffectParams) -> Vec<(&'static str, String)> {
     let mut out: Vec<(&'static str, String)> = Vec::new();
     let elements = e.creep_gain_m_per_v.iter().filter(|&&g| g != 0.0).count();
@@ -106,7 +106,12 @@ pub fn effects_ran(e: &piezo_core::effects::EffectParams) -> Vec<(&'static str, 
         out.push(("rate-dependent hysteresis", "input lag".into()));
     }
     if e.relaxation_gain.iter().any(|&g| g != 0.0) {
-        out.push(("rate-dependent hysteresis", "relaxation".into()));
+        let form = if e.relaxation_spread_decades > 0.0 {
+            "spread relaxation"
+        } else {
+            "relaxation"
+        };
+        out.push(("rate-dependent hysteresis", form.into()));
     }
     out
 }
