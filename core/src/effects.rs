@@ -14,8 +14,8 @@
 //! c_w[j] = Σᵢ g_wᵢ·vᵢ[j]    rate-dependent hysteresis (relaxation of w − k_r·u), at most
 //!        vᵢ[j] = bᵢ·vᵢ[j−1] + (1 − bᵢ)·(p[j−1] − p_ref),  bᵢ = exp(−T/τ_wᵢ),  vᵢ[0] = 0
 //!        p[j] = w[j] − k_r·u[j]  MAX_RELAXATION_ELEMENTS elements, p_ref the first p; with a
-//!                           spread W > 0 each element is N lags τ_wᵢ·10^(W·(k/(N−1) − ½)) of
-//!                           gain g_wᵢ/N (k = 0 … N − 1, N = RELAXATION_SPREAD_POINTS)
+//!                           spread W > 0 the first element is N lags τ_w₀·10^(W·(k/(N−1) − ½))
+//!                           of gain g_w₀/N (k = 0 … N − 1, N = RELAXATION_SPREAD_POINTS)
 //! s[j] = w[j] + e·(u[j−1] − u_c)² + c[j] + c_w[j],   u[−1] := u_c       even-order term
 //! z[j] = M(s)[j]            second-order mode  z̈ + 2ζω·ż + ω²·z = ω²·s + 2ρζω·ṡ,  ω = 2π·f_mode
 //! y[k] = z(k − D) + d(k·T) + κ·z_other(k − D)                           output sample k
@@ -70,15 +70,17 @@
 //!   per-sample map is unchanged. The inverse recursion (v driven by the w the inverse chose) is
 //!   stable iff `Σᵢ g_wᵢ·tanh(T/(2τ_wᵢ)) < 1` (its one real root below every bᵢ stays above −1);
 //!   [`Effects::new`] asks ≤ [`MAX_RELAXATION_LOOP_GAIN`] = 0.5 and g_wᵢ ≥ 0 (a spread element
-//!   counts each of its N lags with g_wᵢ/N).
+//!   counts each of its N lags with g_w₀/N).
 //! * **Spread relaxation**: a dielectric's relaxation times are spread, not one; with W > 0
-//!   (`relaxation_spread_decades`, ≤ [`MAX_RELAXATION_SPREAD_DECADES`]) each element is the box
-//!   distribution of relaxation times, ln τ uniform over W decades centred on τ_wᵢ (Nowick &
+//!   (`relaxation_spread_decades`, ≤ [`MAX_RELAXATION_SPREAD_DECADES`]) the first element is the
+//!   box distribution of relaxation times, ln τ uniform over W decades centred on τ_w₀ (Nowick &
 //!   Berry, *Anelastic Relaxation in Crystalline Solids*, Academic Press 1972, ch. 4, the box
 //!   distribution), run as N = [`RELAXATION_SPREAD_POINTS`] lags at
-//!   τ_wᵢ·10^(W·(k/(N − 1) − ½)) of gain g_wᵢ/N: `G(s) = 1 + Σᵢ (g_wᵢ/N)·Σₖ 1/(1 + s·τ_wᵢₖ)`.
-//!   Its loop opening grows over W decades of rate instead of one, and W = 0 is the single lag.
-//!   The N lags are the same delta-form update, so forward and inverse stay exact and explicit.
+//!   τ_w₀·10^(W·(k/(N − 1) − ½)) of gain g_w₀/N:
+//!   `G(s) = 1 + (g_w₀/N)·Σₖ 1/(1 + s·τ_w₀ₖ) + g_w₁/(1 + s·τ_w₁)`. Its loop opening grows over
+//!   W decades of rate instead of one, and W = 0 is the single lag. The N lags are the same
+//!   delta-form update, so forward and inverse stay exact and explicit; the second element keeps
+//!   one lag (the state holds N + 1 lags, which every copy of an axis's chain carries).
 //! * **Even term** `e·(u[j−1] − u_c)²` on the *previous* command u\[j−1\] (the last command the
 //!   state has seen, the same one the creep uses; u\[−1\] := u_c, so the term is 0 at the first
 //!   sample). Electrostriction is an even function of the drive voltage; evaluated at the previous
@@ -200,13 +202,13 @@ pub const MAX_CURVATURE_HALF_WIDTH: usize = 8;
 pub const MAX_COUPLING: f32 = 0.5;
 /// Largest number of elements of the rate-dependent hysteresis (relaxation of w).
 pub const MAX_RELAXATION_ELEMENTS: usize = 2;
-/// N: the lags each relaxation element runs as when its time constants are spread
-/// (`relaxation_spread_decades` > 0): τ_wᵢ·10^(W·(k/(N − 1) − ½)), k = 0 … N − 1, each of gain g_wᵢ/N.
-pub const RELAXATION_SPREAD_POINTS: usize = 7;
+/// N: the lags the first relaxation element runs as when its time constants are spread
+/// (`relaxation_spread_decades` > 0): τ_w₀·10^(W·(k/(N − 1) − ½)), k = 0 … N − 1, each of gain g_w₀/N.
+pub const RELAXATION_SPREAD_POINTS: usize = 5;
 /// Largest spread W of the relaxation times \[decades\].
 pub const MAX_RELAXATION_SPREAD_DECADES: f32 = 4.0;
-/// The lags the relaxation runs: N per element when spread, one per element otherwise.
-pub const RELAXATION_LAGS: usize = MAX_RELAXATION_ELEMENTS * RELAXATION_SPREAD_POINTS;
+/// The most lags the relaxation runs: the first element's N when spread, and the second's one.
+pub const RELAXATION_LAGS: usize = RELAXATION_SPREAD_POINTS + MAX_RELAXATION_ELEMENTS - 1;
 /// Bound on Σᵢ g_wᵢ·tanh(T/(2τ_wᵢ)): the inverse recursion of the relaxation is stable below 1;
 /// at 0.5 its slowest-alternating root stays above −1/3 (well damped).
 pub const MAX_RELAXATION_LOOP_GAIN: f64 = 0.5;
@@ -372,10 +374,10 @@ pub struct EffectParams {
         serde(deserialize_with = "up_to_relaxation_elements")
     )]
     pub relaxation_time_constant_s: [f32; MAX_RELAXATION_ELEMENTS],
-    /// W \[decades\] in \[0, 4\]: each relaxation element's time constants spread log-uniformly
-    /// over W decades centred (geometrically) on τ_wᵢ, the box distribution of relaxation times;
-    /// run as [`RELAXATION_SPREAD_POINTS`] lags τ_wᵢ·10^(W·(k/(N − 1) − ½)) of gain g_wᵢ/N each
-    /// (0: one time constant per element).
+    /// W \[decades\] in \[0, 4\]: the first relaxation element's time constants spread
+    /// log-uniformly over W decades centred (geometrically) on τ_w₀, the box distribution of
+    /// relaxation times; run as [`RELAXATION_SPREAD_POINTS`] lags τ_w₀·10^(W·(k/(N − 1) − ½)) of
+    /// gain g_w₀/N each (0: one time constant; the second element always has one).
     pub relaxation_spread_decades: f32,
     /// k_r \[m/V\]: the relaxation is driven by w − k_r·u (0: all of w relaxes; the map's k1: only
     /// the hysteretic part; any finite value).
@@ -602,13 +604,14 @@ pub struct Effects {
 /// The validated elements of the rate-dependent hysteresis (relaxation of w).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 struct Relaxation {
-    /// 1 − b = 1 − exp(−T/τ) of each lag (0 for an absent one): element i's lag at
-    /// `rate[i]` without a spread, its N lags at `rate[i·N + k]` with one.
+    /// 1 − b = 1 − exp(−T/τ) of each lag (0 for an absent one): the first element's
+    /// `first_lags` lags, then the second element's one.
     rate: [f32; RELAXATION_LAGS],
-    /// The gain of each lag \[1\]: g_wᵢ without a spread, g_wᵢ/N with one (0 for an absent one).
-    gain: [f32; RELAXATION_LAGS],
-    /// The lags in use: those up to the last present element's (one per element without a
-    /// spread, N with one); 0 without the relaxation.
+    /// The gain of each of the first element's lags, g_w₀/`first_lags`, and the second's, g_w₁ \[1\].
+    gain: [f32; MAX_RELAXATION_ELEMENTS],
+    /// The first element's lags: N with a spread, 1 without.
+    first_lags: usize,
+    /// The lags in use: `first_lags` + 1, 0 without the relaxation.
     lags: usize,
     /// k_r \[m/V\].
     linear: f32,
@@ -640,6 +643,7 @@ impl Relaxation {
         } else {
             1
         };
+        out.first_lags = points;
         let mut loop_gain = 0.0f64;
         for i in 0..MAX_RELAXATION_ELEMENTS {
             let g = finite(RELAXATION_GAIN_FIELDS[i], params.relaxation_gain[i])?;
@@ -656,19 +660,23 @@ impl Relaxation {
             }
             if g != 0.0 {
                 positive(RELAXATION_TIME_FIELDS[i], tau)?;
-                let gain = f64::from(g) / points as f64;
-                for k in 0..points {
-                    let decades = if points > 1 {
-                        f64::from(spread) * (k as f64 / (points - 1) as f64 - 0.5)
+                // The first element's N lags (one without a spread), then the second's one.
+                let (n, first) = if i == 0 { (points, 0) } else { (1, points) };
+                let gain = f64::from(g) / n as f64;
+                out.gain[i] = gain as f32;
+                for k in 0..n {
+                    let decades = if n > 1 {
+                        f64::from(spread) * (k as f64 / (n - 1) as f64 - 0.5)
                     } else {
                         0.0
                     };
                     let x = f64::from(t) / (f64::from(tau) * libm::pow(10.0, decades));
-                    out.rate[i * points + k] = -libm::expm1(-x) as f32;
-                    out.gain[i * points + k] = gain as f32;
+                    if let Some(rate) = out.rate.get_mut(first + k) {
+                        *rate = -libm::expm1(-x) as f32;
+                    }
                     loop_gain += gain * libm::tanh(0.5 * x);
                 }
-                out.lags = (i + 1) * points;
+                out.lags = points + 1;
             }
         }
         if loop_gain > MAX_RELAXATION_LOOP_GAIN || !loop_gain.is_finite() {
@@ -952,7 +960,12 @@ impl Effects {
     /// vᵢ\[j\] = vᵢ\[j−1\] + (1 − bᵢ)·(p\[j−1\] − p_ref − vᵢ\[j−1\]), p = w − k_r·u.
     pub(crate) fn relaxation_elements(&self) -> ([(f32, f32); RELAXATION_LAGS], f32) {
         let r = &self.relaxation;
-        (core::array::from_fn(|i| (r.rate[i], r.gain[i])), r.linear)
+        let gain = |i: usize| match i.cmp(&r.first_lags) {
+            core::cmp::Ordering::Less => r.gain[0],
+            core::cmp::Ordering::Equal => r.gain[1],
+            core::cmp::Ordering::Greater => 0.0,
+        };
+        (core::array::from_fn(|i| (r.rate[i], gain(i))), r.linear)
     }
 
     /// Whether the second-order mode is present.
@@ -1068,17 +1081,16 @@ impl Effects {
     /// sample).
     #[inline]
     pub fn relaxation_m(&self, state: &EffectsState) -> f32 {
-        let mut c = 0.0;
-        for (g, v) in self
-            .relaxation
-            .gain
-            .iter()
-            .zip(state.relaxation_m.iter())
-            .take(self.relaxation.lags)
-        {
-            c += g * v;
+        let r = &self.relaxation;
+        if r.lags == 0 {
+            return 0.0;
         }
-        bounded(c)
+        let mut first = 0.0;
+        for v in state.relaxation_m.iter().take(r.first_lags) {
+            first += v;
+        }
+        let second = state.relaxation_m.get(r.first_lags).copied().unwrap_or(0.0);
+        bounded(r.gain[0] * first + r.gain[1] * second)
     }
 
     /// Forward, one command sample: given the command u\[j\] \[V\] and w\[j\] = H(u\[j\]) \[m\] from the
@@ -1800,13 +1812,14 @@ mod tests {
 
     #[test]
     fn a_spread_relaxation_is_its_box_of_lags_and_its_inverse_is_exact() {
-        // W = 2 decades around τ = 1 ms: 7 lags from 0.1 to 10 ms, g/7 each.
-        let (g, tau) = (0.7f32, 1e-3f32);
+        // W = 2 decades around τ = 1 ms: 5 lags from 0.1 to 10 ms, g/5 each, and a second
+        // element's one lag of 8 ms.
+        let (g, tau, g1, tau1) = (0.7f32, 1e-3f32, 0.2f32, 8e-3f32);
         let spread = |decades: f32| {
             Effects::new(
                 EffectParams {
-                    relaxation_gain: [g, 0.0],
-                    relaxation_time_constant_s: [tau, 0.0],
+                    relaxation_gain: [g, g1],
+                    relaxation_time_constant_s: [tau, tau1],
                     relaxation_spread_decades: decades,
                     ..EffectParams::default()
                 },
@@ -1821,6 +1834,7 @@ mod tests {
             libm::exp(-1e-4 / tau_k)
         });
         let mut v = [0.0f64; RELAXATION_SPREAD_POINTS];
+        let (b1, mut v1) = (libm::exp(-1e-4 / f64::from(tau1)), 0.0f64);
         let mut plant = EffectsState::at_rest(0.0);
         let mut controller = EffectsState::at_rest(0.0);
         let (mut w0, mut previous) = (0.0f64, 0.0f64);
@@ -1834,8 +1848,9 @@ mod tests {
                 for k in 0..n {
                     v[k] = b[k] * v[k] + (1.0 - b[k]) * (previous - w0);
                 }
+                v1 = b1 * v1 + (1.0 - b1) * (previous - w0);
             }
-            let relaxed = f64::from(g) / n as f64 * v.iter().sum::<f64>();
+            let relaxed = f64::from(g) / n as f64 * v.iter().sum::<f64>() + f64::from(g1) * v1;
             largest = largest.max(relaxed.abs());
             let z = effects.forward_z(&mut plant, 0.0, w as f32);
             worst_forward = worst_forward.max(libm::fabs(f64::from(z) - (w + relaxed)));
@@ -1848,7 +1863,7 @@ mod tests {
         assert!(worst_forward < 2e-11, "forward {worst_forward}");
         assert!(worst_inverse < 2e-11, "inverse {worst_inverse}");
         // No spread is the one lag, bit for bit.
-        let one = relaxation([g, 0.0], [tau, 0.0]).unwrap();
+        let one = relaxation([g, g1], [tau, tau1]).unwrap();
         assert_eq!(one, spread(0.0).unwrap());
         // A spread outside [0, 4] decades, or not finite, is refused by name.
         for bad in [-0.1f32, 4.5, f32::NAN, f32::INFINITY] {

@@ -23,7 +23,10 @@ use serde::{Deserialize, Serialize};
 ///
 /// 4: an axis's servo carries the notch's pole frequency (`notch_pole_frequency_hz`, a notch
 /// with lead) after its Q.
-pub const PROTOCOL_VERSION: u16 = 4;
+///
+/// 5: an axis's effects carry the relaxation's spread (`relaxation_spread_decades`) after the
+/// mode's relative damping.
+pub const PROTOCOL_VERSION: u16 = 5;
 
 /// Setpoints per [`Request::TableAppend`], [`Request::Stream`] or [`Request::LearnedAppend`]
 /// message.
