@@ -854,9 +854,12 @@ fn fit_rate_dependent(
         .and_then(|b| fit_one_more_relaxation(&b.0, cand, data));
     // With another run, the spread must predict it better than its one lag; without one, the
     // records must resolve it.
-    let judge = run.map_or(SpreadJudge::Records, |run| SpreadJudge::Run {
-        run,
-        rms_zeroed_without: run.rms_zeroed(model),
+    let run = run.map(|run| (run, run.rms_zeroed(model)));
+    let judge = run.map_or(SpreadJudge::Records, |(run, rms_zeroed_without)| {
+        SpreadJudge::Run {
+            run,
+            rms_zeroed_without,
+        }
     });
     let spread = fit_spread(
         &relaxation.0,
@@ -887,8 +890,7 @@ fn fit_rate_dependent(
     .flatten()
     .collect();
     // With the other run: each plausible form's gain on it (−∞ for the others).
-    let gains: Option<Vec<f64>> = run.map(|run| {
-        let rms_zeroed_without = run.rms_zeroed(model);
+    let gains: Option<Vec<f64>> = run.map(|(run, rms_zeroed_without)| {
         forms
             .iter()
             .map(|(m, sse, plausible)| {
@@ -963,11 +965,12 @@ fn fit_spread(
     data: &FitData,
     judge: SpreadJudge,
 ) -> Option<(AxisModel, f64, bool)> {
-    use piezo_core::effects::RELAXATION_SPREAD_POINTS as N;
+    use piezo_core::effects::{relaxation_spread_factor, RELAXATION_SPREAD_POINTS as N};
     if !from.added.contains(&EffectKind::RateDependent)
-        || !from.rate_form.has_relaxation()
-        || from.rate_form.has_input_lag()
-        || from.rate_form.has_spread()
+        || !matches!(
+            from.rate_form,
+            full::RateForm::Relaxation | full::RateForm::WholeRelaxation
+        )
     {
         return None;
     }
@@ -976,10 +979,7 @@ fn fit_spread(
     let fits = SPREAD_STARTS
         .iter()
         .map(|&w| {
-            let mean = (0..N)
-                .map(|k| 10f64.powf(w * (k as f64 / (N - 1) as f64 - 0.5)))
-                .sum::<f64>()
-                / N as f64;
+            let mean = (0..N).map(|k| relaxation_spread_factor(w, k)).sum::<f64>() / N as f64;
             let mut start = from.clone();
             start.rate_form = to;
             start.effects.relaxation_time_constant_s[0] = (tau / mean).clamp(lo, hi) as f32;
