@@ -15,6 +15,8 @@
 //! - `dielectric-lag` (xy-stage): rate-dependent hysteresis, the stacks' Bouc-Wen operator driven by a
 //!   first-order lag of the stack voltage (τ_v·v̇ = u − v), the linear strain by u itself; see
 //!   [`crate::plant::XyStage`].
+//! - `rate-bouc-wen` (xy-stage): rate-dependent hysteresis, the stacks' Bouc-Wen gain growing with
+//!   the input's speed, α·(1 + |u̇|/ṙ₀); see [`crate::plant::XyStage`].
 //! - `second-mode` (nac2024): second resonance mode, see [`crate::plant::SecondMode`].
 
 use crate::plant::{PlantError, PlantKind, SecondMode};
@@ -23,7 +25,7 @@ use std::fmt;
 
 /// Effect names accepted by [`Effects::add_spec`].
 pub const EFFECT_NAMES: &str =
-    "creep, drift, delay, amplifier, noise, adc, dac, electrostriction, coupling, dielectric-lag, second-mode";
+    "creep, drift, delay, amplifier, noise, adc, dac, electrostriction, coupling, dielectric-lag, rate-bouc-wen, second-mode";
 
 /// Help text for effect specs.
 pub const EFFECT_HELP: &str = "\
@@ -38,6 +40,7 @@ Effect spec: NAME:key=value,...  (repeat --effect for several; lists use '/')
   electrostriction  per_v (1e-3)
   coupling          xy (0.01), yx (0.01)                       xy-stage only
   dielectric-lag    tau (s, 1e-3): Bouc-Wen driven by a lag of the stack voltage   xy-stage only
+  rate-bouc-wen     rate (V/s, 1e5): Bouc-Wen gain alpha*(1 + |rate|/rate0)       xy-stage only
   second-mode       freq_hz (480e3), zeta (0.05), participation (0.05)   nac2024 only";
 
 /// Effect errors.
@@ -226,6 +229,8 @@ pub struct Effects {
     pub coupling: Option<[f64; 2]>,
     /// Dielectric lag of the stacks' hysteresis, s.
     pub dielectric_lag_s: Option<f64>,
+    /// Rate scale ṙ₀ of the rate-dependent Bouc-Wen, V/s.
+    pub hysteresis_rate_scale_v_per_s: Option<f64>,
     /// Second resonance mode.
     pub second_mode: Option<SecondMode>,
 }
@@ -412,6 +417,10 @@ impl Effects {
                 self.dielectric_lag_s = Some(pos("tau", kv.num("tau", 1e-3)?)?);
                 kv.finish("tau")?;
             }
+            "rate-bouc-wen" => {
+                self.hysteresis_rate_scale_v_per_s = Some(pos("rate", kv.num("rate", 1e5)?)?);
+                kv.finish("rate")?;
+            }
             "second-mode" => {
                 self.second_mode = Some(SecondMode {
                     frequency_hz: pos("freq_hz", kv.num("freq_hz", 480e3)?)?,
@@ -443,11 +452,20 @@ impl Effects {
                 if let Some(tau) = self.dielectric_lag_s {
                     p.dielectric_lag_s = tau;
                 }
+                if let Some(rate) = self.hysteresis_rate_scale_v_per_s {
+                    p.hysteresis_rate_scale_v_per_s = rate;
+                }
             }
-            other if self.coupling.is_some() || self.dielectric_lag_s.is_some() => {
+            other
+                if self.coupling.is_some()
+                    || self.dielectric_lag_s.is_some()
+                    || self.hysteresis_rate_scale_v_per_s.is_some() =>
+            {
                 return Err(PlantError::Unsupported {
                     plant: other.as_plant().name(),
-                    what: "cross-axis coupling or a dielectric lag (xy-stage only)".into(),
+                    what: "cross-axis coupling, a dielectric lag or a rate-dependent Bouc-Wen \
+                           (xy-stage only)"
+                        .into(),
                 })
             }
             _ => {}

@@ -560,3 +560,71 @@ fn widening_stack_figures(p: &dyn Plant, name: &str) -> f64 {
     assert!((700.0..780.0).contains(&f), "ring at {f} Hz");
     o1
 }
+
+/// The x axis's loop opening at u = 60 V in the fourth period of a 0–120 V sine of `freq` Hz on
+/// the XY stage with the effects `specs`: y on the way down minus y on the way up \[m\], and the
+/// largest fall of y while u rises (a stack that moves backwards as its voltage rises) \[m\].
+fn xy_opening_at_60_v(freq: f64, specs: &[&str]) -> (f64, f64) {
+    let mut e = Effects::default();
+    for s in specs {
+        e.add_spec(s).unwrap();
+    }
+    let mut p = PlantKind::XyStage(XyStage::default());
+    e.apply_to_plant(&mut p).unwrap();
+    let fs = 100_000.0;
+    let signals: Vec<Box<dyn Signal>> = vec![
+        Box::new(Sine {
+            amplitude_v: 60.0,
+            offset_v: 60.0,
+            frequency_hz: freq,
+            phase_rad: 0.0,
+        }),
+        Box::new(Piecewise::new(vec![0.0], vec![0.0], true).unwrap()),
+    ];
+    let out = run(p.as_plant(), signals, &e, fs, 4.0 / freq);
+    let per = (fs / freq) as usize;
+    let (u, y) = (&out.inputs_v[0], &out.outputs_m[0]);
+    let at = |from: usize, to: usize| {
+        (from..to)
+            .min_by(|&a, &b| (u[a] - 60.0).abs().total_cmp(&(u[b] - 60.0).abs()))
+            .map(|i| y[i])
+            .unwrap()
+    };
+    // u falls through 60 V at half a period, rises through it at a whole one.
+    let base = 3 * per;
+    let opening = at(base + per / 4, base + 3 * per / 4) - at(base + 3 * per / 4, base + per - 1);
+    let backwards = (base + 1..base + per)
+        .filter(|&k| u[k] > u[k - 1])
+        .map(|k| y[k - 1] - y[k])
+        .fold(0.0f64, f64::max);
+    (opening, backwards)
+}
+
+#[test]
+fn rate_dependent_bouc_wen_widens_the_loop_with_rate_only() {
+    let rate = ["rate-bouc-wen:rate=1e5"];
+    // At 1 Hz (|u̇| ≤ 377 V/s, α within 0.4 % of its slow value) the loop is the standard one.
+    let (slow_plain, _) = xy_opening_at_60_v(1.0, &[]);
+    let (slow_rate, _) = xy_opening_at_60_v(1.0, &rate);
+    assert!(
+        within(slow_rate, slow_plain, 0.03),
+        "1 Hz: {slow_rate:e} vs {slow_plain:e}"
+    );
+    // At 100 Hz (|u̇| up to 37.7 kV/s, α up to 1.38 times) the hysteretic part grows with the
+    // speed: the loop opens wider than the same plant's without the effect (6.6 -> 8.6 um), and
+    // the stack does not move backwards while its voltage rises (beyond 10 nm, the structure's
+    // response to the faster switching: 3 nm).
+    let (fast_plain, _) = xy_opening_at_60_v(100.0, &[]);
+    let (fast_rate, backwards) = xy_opening_at_60_v(100.0, &rate);
+    assert!(
+        fast_rate > 1.15 * fast_plain,
+        "100 Hz: {fast_rate:e} vs {fast_plain:e}"
+    );
+    assert!(backwards < 1e-8, "moves back {backwards:e} m while u rises");
+    // Only the XY stage has it.
+    let mut e = Effects::default();
+    e.add_spec(rate[0]).unwrap();
+    assert!(e
+        .apply_to_plant(&mut PlantKind::Nac2024(Nac2024::published()))
+        .is_err());
+}

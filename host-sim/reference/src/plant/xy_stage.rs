@@ -184,9 +184,25 @@ impl AxisModel {
     /// x = [q(4), q̇(4), h]; `hysteresis_rate` is the rate of the Bouc-Wen operator's input
     /// (u̇, or v̇ of the stack's dielectric lag).
     #[allow(clippy::needless_range_loop)] // index form mirrors M·q̈ = f − K·q
-    fn rhs(&self, u: f64, du: f64, hysteresis_rate: f64, e: f64, x: &[f64], dx: &mut [f64]) {
+    #[allow(clippy::too_many_arguments)]
+    fn rhs(
+        &self,
+        u: f64,
+        du: f64,
+        hysteresis_rate: f64,
+        rate_scale_v_per_s: f64,
+        e: f64,
+        x: &[f64],
+        dx: &mut [f64],
+    ) {
         let (ud, dud) = drive(u, du, e);
-        let dh = self.bw.rate(x[8], hysteresis_rate);
+        // α·(1 + |v̇|/ṙ₀)·v̇: the rate-dependent Bouc-Wen's extra switching at speed.
+        let extra = if rate_scale_v_per_s > 0.0 {
+            self.bw.a * hysteresis_rate * hysteresis_rate.abs() / rate_scale_v_per_s
+        } else {
+            0.0
+        };
+        let dh = self.bw.rate(x[8], hysteresis_rate) + extra;
         let a = self.gain_slope_per_v;
         let eta = self.d_m_per_v * (1.0 + a * ud) * (ud - x[8]);
         let deta = self.d_m_per_v * (a * dud * (ud - x[8]) + (1.0 + a * ud) * (dud - dh));
@@ -215,6 +231,16 @@ impl AxisModel {
 /// τ_v·v̇ = u − v, ḣ = α·v̇ − β·|v̇|·h − γ·v̇·|h|, while the linear piezo strain d·u follows u at
 /// once: η = d·(u − h(v)). The loop opens wider and tilts as the rate rises (rate-dependent
 /// hysteresis); at rest v = u. The core's models carry no such lag.
+///
+/// **Rate-dependent Bouc-Wen** (effect `rate-bouc-wen`, [`XyStage::hysteresis_rate_scale_v_per_s`]
+/// = ṙ₀ > 0): the operator's gain grows with the input's speed, ḣ = α·(1 + |u̇|/ṙ₀)·u̇ −
+/// β·|u̇|·h − γ·u̇·|h| (the rate-dependent Bouc-Wen models whose parameters are functions of the
+/// input rate, here the simplest, α linear in |u̇|): the faster the drive, the more the domains
+/// switch per volt and the wider and taller the hysteretic part of the loop; at slow rates the
+/// standard operator. With the dielectric lag, u̇ is v̇. A voltage step moves h as the standard
+/// operator does (a step has no finite speed). ṙ₀ = 1e5 V/s raises α up to 1.38 times on a
+/// 100 Hz, 0–120 V sine; a much smaller ṙ₀ makes the stack move backwards at speed (not a
+/// stack). The core's models carry no such form.
 #[derive(Debug, Clone, PartialEq)]
 pub struct XyStage {
     x_axis: XyAxis,
@@ -226,6 +252,8 @@ pub struct XyStage {
     pub electrostriction_per_v: f64,
     /// τ_v of the stacks' dielectric lag, s (effect; 0: none).
     pub dielectric_lag_s: f64,
+    /// ṙ₀ of the rate-dependent Bouc-Wen, V/s (effect; 0: none).
+    pub hysteresis_rate_scale_v_per_s: f64,
 }
 
 impl Default for XyStage {
@@ -270,6 +298,7 @@ impl Default for XyStage {
             coupling: [0.0; 2],
             electrostriction_per_v: 0.0,
             dielectric_lag_s: 0.0,
+            hysteresis_rate_scale_v_per_s: 0.0,
         }
     }
 }
@@ -327,6 +356,7 @@ impl XyStage {
             coupling: [0.0; 2],
             electrostriction_per_v: 0.0,
             dielectric_lag_s: 0.0,
+            hysteresis_rate_scale_v_per_s: 0.0,
         })
     }
 
@@ -356,6 +386,7 @@ impl XyStage {
             coupling: [0.0; 2],
             electrostriction_per_v: 0.0,
             dielectric_lag_s: 0.0,
+            hysteresis_rate_scale_v_per_s: 0.0,
         }
     }
 
@@ -411,6 +442,7 @@ impl Plant for XyStage {
                 u,
                 du,
                 hysteresis_rate,
+                self.hysteresis_rate_scale_v_per_s,
                 self.electrostriction_per_v,
                 &x[r.clone()],
                 &mut dx[r],
