@@ -8,7 +8,7 @@
 # rest, its offset re-estimated (`predict --free-offset`, zeroed RMS). Prints fit RMS, prediction
 # RMS, their ratio, and the effects close-loop added with their forms.
 # EFFECT replaces the dielectric lag by another undeclared rate dependence, e.g.
-# EFFECT=rate-bouc-wen:rate=2e4 (the operator's gain growing with the input's speed).
+# EFFECT=rate-bouc-wen:rate=1e5 (the operator's gain growing with the input's speed).
 # Usage (from the repository root):
 #   [EFFECT=SPEC] bash host-sim/evidence/rate_dependent.sh [OUT_DIR] [TAU_S] [NOISE_RMS_M]
 set -euo pipefail
