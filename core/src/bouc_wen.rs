@@ -430,6 +430,23 @@ impl BoucWen {
         self.state_bound
     }
 
+    /// The largest |h| the loading sweep reaches from rest over an input span `span_v` \[V\] for
+    /// a bounded set: `min(H, L(span))` (module doc); `None` for a range-limited set.
+    pub(crate) fn bounded_reach_over(&self, span_v: f64) -> Option<f64> {
+        let BoucWenParams { a, beta, gamma, n } = self.params;
+        let load = f64::from(beta) + f64::from(gamma * a.signum());
+        if self.class != BoundClass::Bounded || load <= 0.0 {
+            return None;
+        }
+        let (a_abs, nn) = (f64::from(a.abs()), f64::from(n));
+        let bound = libm::pow(a_abs / load, 1.0 / nn);
+        Some(if span_v.is_finite() {
+            bounded_reach(a_abs, load, nn, span_v).min(bound)
+        } else {
+            bound
+        })
+    }
+
     /// The bound [`BoucWen::clamp_state`] clamps |h| to: the state bound with a margin of 1e-5
     /// for rounding.
     #[inline]

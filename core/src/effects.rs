@@ -41,6 +41,7 @@
 //! | creep (Kelvin–Voigt) | `creep_gain_m_per_v`, `creep_time_constant_s` | Σᵢ gᵢ·xᵢ | exact, in [`Effects::creep_m`] |
 //! | creep (logarithmic) | `log_creep_gain_m_per_v`, `log_creep_time_s` | g_log·½·Σₗ xₗ ≈ g_log·Δu·log₁₀(1 + t/t₀) after a step | exact, in [`Effects::creep_m`] |
 //! | hysteresis input lag | `hysteresis_lag_s` | the Bouc-Wen operator driven by v, τ_v·v̇ = u − v | exact, the compensator's Newton solve ([`crate::static_model`]) |
+//! | hysteresis rate gain | `hysteresis_rate_gain_s_per_v` | the operator's A·(1 + c·\|v̇\|) | exact, the compensator's Newton solve ([`crate::static_model`]) |
 //! | rate-dependent hysteresis | `relaxation_gain`, `relaxation_time_constant_s`, `relaxation_spread_decades` | Σᵢ g_wᵢ·vᵢ, vᵢ a first-order lag of w (or a box of N lags) | exact, in [`Effects::relaxation_m`] |
 //! | even term | `even_coefficient_m_per_v2`, `even_center_v` | e·(u\[j−1\] − u_c)² | exact, [`Effects::even_term_m`] |
 //! | mode | `mode_frequency_hz`, `mode_damping`, `mode_relative_damping` | z̈ + 2ζω·(ż − ρ·ṡ) + ω²·(z − s) = 0 | central differences |
@@ -179,7 +180,7 @@
 use crate::compensator::{Compensator, CompensatorState};
 use crate::error::{finite, positive, ParamError};
 use crate::math::clamp;
-use crate::static_model::{check_input_lag, ModelState, StaticModel};
+use crate::static_model::{check_input_lag, check_rate_gain, ModelState, StaticModel};
 
 /// Largest number of creep elements.
 pub const MAX_CREEP_ELEMENTS: usize = 3;
@@ -393,6 +394,11 @@ pub struct EffectParams {
     /// lag of the command ([`crate::static_model`], [`Effects::hysteresis_model`]); 0: none, else
     /// between one sample period and 1 s.
     pub hysteresis_lag_s: f32,
+    /// c \[s/V\] of the hysteresis's rate-dependent gain: the Bouc-Wen operator's A grows to
+    /// A·(1 + c·|v̇|) with the speed of its input ([`crate::static_model`],
+    /// [`Effects::hysteresis_model`]); 0: none, else at most
+    /// [`crate::static_model::MAX_RATE_GAIN_S_PER_V`].
+    pub hysteresis_rate_gain_s_per_v: f32,
 }
 
 impl EffectParams {
@@ -407,7 +413,9 @@ impl EffectParams {
         model: StaticModel,
         sample_period_s: f32,
     ) -> Result<StaticModel, ParamError> {
-        model.with_input_lag(self.hysteresis_lag_s, sample_period_s)
+        model
+            .with_input_lag(self.hysteresis_lag_s, sample_period_s)?
+            .with_rate_gain(self.hysteresis_rate_gain_s_per_v, sample_period_s)
     }
 }
 
@@ -821,6 +829,10 @@ impl Effects {
         let t = positive("sample_period_s", sample_period_s)?;
         let (span_v, stroke_m) = range.spans()?;
         check_input_lag(finite("hysteresis_lag_s", params.hysteresis_lag_s)?, t)?;
+        check_rate_gain(finite(
+            "hysteresis_rate_gain_s_per_v",
+            params.hysteresis_rate_gain_s_per_v,
+        )?)?;
 
         let mut creep_rate = [0.0f32; MAX_CREEP_ELEMENTS];
         let mut creep_gain = [0.0f32; MAX_CREEP_ELEMENTS];

@@ -697,8 +697,10 @@ fn two_axis_inverse_chain_tracks_with_all_effects() {
         // Its elements' time constants spread over a decade and a half each.
         relaxation_spread_decades: 1.5,
         relaxation_linear_m_per_v: 2e-7,
-        // y's operator behind a 0.5 ms input lag (rate-dependent hysteresis).
+        // y's operator behind a 0.5 ms input lag (rate-dependent hysteresis), its gain rising
+        // with the lagged input's speed (doubled at 100 kV/s).
         hysteresis_lag_s: 5e-4,
+        hysteresis_rate_gain_s_per_v: 1e-5,
     };
     let (ex, ey) = (effects(px), effects(py));
     let (mx, my) = (
@@ -985,6 +987,7 @@ prop_compose! {
         lag in prop_oneof![Just(0.0f32), 1e-4f32..1.0],
         relative in prop_oneof![Just(0.0f32), Just(1.0f32), 0.0f32..=1.0],
         spread in prop_oneof![Just(0.0f32), 0.0f32..=4.0],
+        rate_gain in prop_oneof![Just(0.0f32), 0.0f32..=1e-3],
     ) -> EffectParams {
         EffectParams {
             creep_gain_m_per_v: gains,
@@ -1006,6 +1009,7 @@ prop_compose! {
             relaxation_spread_decades: spread,
             relaxation_linear_m_per_v: 0.0,
             hysteresis_lag_s: lag,
+            hysteresis_rate_gain_s_per_v: rate_gain,
         }
     }
 }

@@ -26,7 +26,10 @@ use serde::{Deserialize, Serialize};
 ///
 /// 5: an axis's effects carry the relaxation's spread (`relaxation_spread_decades`) after the
 /// mode's relative damping.
-pub const PROTOCOL_VERSION: u16 = 5;
+///
+/// 6: an axis's effects carry the hysteresis's rate-dependent gain
+/// (`hysteresis_rate_gain_s_per_v`) after the relaxation's spread.
+pub const PROTOCOL_VERSION: u16 = 6;
 
 /// Setpoints per [`Request::TableAppend`], [`Request::Stream`] or [`Request::LearnedAppend`]
 /// message.
@@ -505,7 +508,7 @@ mod effects_wire {
     type Tuple = (
         [f32; MAX_CREEP_ELEMENTS],
         [f32; MAX_CREEP_ELEMENTS],
-        [f32; 14],
+        [f32; 15],
         [f32; MAX_RELAXATION_ELEMENTS],
         [f32; MAX_RELAXATION_ELEMENTS],
         f32,
@@ -530,6 +533,7 @@ mod effects_wire {
                 e.hysteresis_lag_s,
                 e.mode_relative_damping,
                 e.relaxation_spread_decades,
+                e.hysteresis_rate_gain_s_per_v,
             ],
             e.relaxation_gain,
             e.relaxation_time_constant_s,
@@ -564,6 +568,7 @@ mod effects_wire {
             hysteresis_lag_s: f[11],
             mode_relative_damping: f[12],
             relaxation_spread_decades: f[13],
+            hysteresis_rate_gain_s_per_v: f[14],
             relaxation_gain,
             relaxation_time_constant_s,
             relaxation_linear_m_per_v,
