@@ -32,7 +32,8 @@
 //! [x.oscillator]                     # the benchmark oscillator (oscillator; substeps below)
 //! [x.effects]                        # optional: creep, even term, mode (mode_frequency_hz,
 //!                                    # mode_damping, mode_relative_damping), delay, drift, coupling,
-//!                                    # rate-dependent hysteresis (hysteresis_lag_s, relaxation_*)
+//!                                    # rate-dependent hysteresis (hysteresis_lag_s,
+//!                                    # hysteresis_rate_gain_s_per_v, relaxation_*)
 //! [x.limits]                         # output_min_v, output_max_v, slew_limit_v_per_s,
 //!                                    # envelope_policy = "warn" | "feedback-only" (default
 //!                                    # warn: what the firmware does while a command leaves

@@ -202,9 +202,15 @@ impl Axis {
                     located(key, e)
                 })?;
                 // The first loading above is the quasi-static one: the lag enters here.
-                let model = effects
-                    .hysteresis_model(model)
-                    .map_err(|e| located(format!("{name}.effects.hysteresis_lag_s"), e))?;
+                let model = effects.hysteresis_model(model).map_err(|e| {
+                    let field = match &e {
+                        ParamError::NonFinite { field } | ParamError::OutOfRange { field, .. } => {
+                            field
+                        }
+                        _ => "hysteresis_lag_s",
+                    };
+                    located(format!("{name}.effects.{field}"), e)
+                })?;
                 linear_gain_m_per_v = gain;
                 rest_output_m = rest;
                 AxisChain::Static { model, effects }

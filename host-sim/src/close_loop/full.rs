@@ -86,6 +86,10 @@ pub enum RateForm {
     SpreadRelaxation,
     /// [`Self::WholeRelaxation`] with its relaxation times spread over W decades (g, τ_w, W).
     WholeSpreadRelaxation,
+    /// The Bouc-Wen operator's gain rising with the command's speed, A·(1 + c·|u̇|) (c fitted;
+    /// the core's `hysteresis_rate_gain_s_per_v`): loops that grow taller and wider with the rate
+    /// and keep growing with it, where a lag's or a relaxation's effect levels off.
+    RateGain,
 }
 
 impl RateForm {
@@ -99,6 +103,7 @@ impl RateForm {
             Self::WholeRelaxation => "relaxation of the whole output",
             Self::SpreadRelaxation => "spread relaxation",
             Self::WholeSpreadRelaxation => "spread relaxation of the whole output",
+            Self::RateGain => "rate-dependent gain",
         }
     }
 }
@@ -123,6 +128,10 @@ impl RateForm {
                 | Self::WholeSpreadRelaxation
         )
     }
+    /// Whether the operator's gain rises with the command's speed (c fitted).
+    pub fn has_rate_gain(self) -> bool {
+        self == Self::RateGain
+    }
     /// Whether the relaxation times are spread (W fitted).
     pub fn has_spread(self) -> bool {
         matches!(self, Self::SpreadRelaxation | Self::WholeSpreadRelaxation)
@@ -134,7 +143,7 @@ impl RateForm {
     /// Number of relaxation elements fitted.
     pub fn relaxation_elements(self) -> usize {
         match self {
-            Self::InputLag => 0,
+            Self::InputLag | Self::RateGain => 0,
             Self::Relaxation
             | Self::LagAndRelaxation
             | Self::WholeRelaxation
@@ -243,6 +252,14 @@ impl EffectBounds {
     }
 }
 
+/// The rate-dependent gain c the [`RateForm::RateGain`] fit starts from \[s/V\]: the operator's
+/// gain 5 % higher at 10 kV/s (a 0–120 V sine at 27 Hz).
+pub const RATE_GAIN_START_S_PER_V: f64 = 5e-6;
+
+/// The lowest rate-dependent gain c a fit may reach \[s/V\]: 0.1 % at 100 kV/s, the fastest
+/// command a 10 kHz loop's slew limit usually allows; a fit that runs here has found none.
+pub const MIN_RATE_GAIN_S_PER_V: f64 = 1e-8;
+
 /// The relaxation gain g the two-time-constant form ([`RateForm::LagAndRelaxation`]) starts from.
 pub const LAG_AND_RELAXATION_START_GAIN: f64 = 0.2;
 
@@ -302,6 +319,8 @@ pub struct HysteresisPath {
     input_range_v: (f32, f32),
     /// The operator's input lag τ_v \[s\] (0: none).
     lag_s: f32,
+    /// The operator's rate-dependent gain c \[s/V\] (0: none).
+    rate_gain_s_per_v: f32,
     /// The validated operator.
     operator: BoucWen,
     /// The operator's input per sample (the command clamped into its range) \[V\].
@@ -316,6 +335,7 @@ impl HysteresisPath {
         self.bouc_wen == model.bouc_wen
             && self.input_range_v == model.input_range_v
             && self.lag_s == model.effects.hysteresis_lag_s
+            && self.rate_gain_s_per_v == model.effects.hysteresis_rate_gain_s_per_v
     }
 }
 
@@ -459,6 +479,7 @@ impl AxisModel {
             bouc_wen: self.bouc_wen,
             input_range_v: self.input_range_v,
             lag_s: self.effects.hysteresis_lag_s,
+            rate_gain_s_per_v: self.effects.hysteresis_rate_gain_s_per_v,
             operator: *model.hysteresis(),
             input_v: Vec::with_capacity(u.len()),
             h: Vec::with_capacity(u.len()),
@@ -614,6 +635,11 @@ impl AxisModel {
                     (4.0 * lag).clamp(b.relaxation_tau_s.0, b.relaxation_tau_s.1) as f32;
                 e.relaxation_linear_m_per_v = m.map.k1_m_per_v;
             }
+            EffectInit::RateDependent { .. } if m.rate_form == RateForm::RateGain => {
+                // The operator's gain 5 % higher at 10 kV/s: the fit moves it from there
+                // ([`RATE_GAIN_START_S_PER_V`]).
+                e.hysteresis_rate_gain_s_per_v = RATE_GAIN_START_S_PER_V as f32;
+            }
             EffectInit::RateDependent {
                 time_constant_s, ..
             } if m.rate_form == RateForm::InputLag => {
@@ -736,6 +762,7 @@ impl AxisModel {
                 e.relaxation_linear_m_per_v = 0.0;
                 e.relaxation_spread_decades = 0.0;
                 e.hysteresis_lag_s = 0.0;
+                e.hysteresis_rate_gain_s_per_v = 0.0;
             }
         }
         m
@@ -884,6 +911,18 @@ impl AxisModel {
                             kind,
                             bd.relaxation_tau_s.0,
                             bd.relaxation_tau_s.1,
+                        ),
+                    );
+                }
+                if self.rate_form.has_rate_gain() {
+                    theta.push(
+                        f64::from(e.hysteresis_rate_gain_s_per_v).max(1e-12).ln(),
+                        10.0,
+                        ParamSpec::log_within(
+                            Param::HysteresisRateGain,
+                            kind,
+                            MIN_RATE_GAIN_S_PER_V,
+                            f64::from(piezo_core::static_model::MAX_RATE_GAIN_S_PER_V),
                         ),
                     );
                 }

@@ -807,7 +807,9 @@ fn fit_dynamics(model: &AxisModel, cand: &Candidate, data: &FitData) -> (AxisMod
 /// relaxation of the whole output (the linear strain too: loops that widen with rate), the input
 /// lag together with one or two relaxation elements (started from the input lag's fit, one element at a time:
 /// [`fit_one_more_relaxation`]), and either relaxation with its time constants spread over W
-/// decades (started from its one-lag fit, [`fit_spread`]). The form kept is the plausible one with the lowest SSE (the lowest
+/// decades (started from its one-lag fit, [`fit_spread`]), and the operator's gain rising with
+/// the command's speed (the rate-dependent Bouc-Wen gain A·(1 + c·|u̇|), kept only where the
+/// compensator accepts its set). The form kept is the plausible one with the lowest SSE (the lowest
 /// SSE when none is plausible): which form a stage's rate dependence takes is the data's to say.
 /// The richer forms nest the input lag (a relaxation gain → 0 runs to its plausible bound), so on
 /// a stage with one lag they are not plausible and the input lag is kept; a spread of dielectric
@@ -877,6 +879,7 @@ fn fit_rate_dependent(
             judge,
         )
     });
+    let gain = fit_form(full::RateForm::RateGain);
     let forms: Vec<(AxisModel, f64, bool)> = [
         Some(lag),
         Some(relaxation),
@@ -885,9 +888,20 @@ fn fit_rate_dependent(
         three,
         spread,
         whole_spread,
+        Some(gain),
     ]
     .into_iter()
     .flatten()
+    .map(|(m, sse, plausible)| {
+        // A form whose set the compensator refuses is no model of the stage (with
+        // `--invertible` every fit is already held to the sets it accepts): a rate-dependent
+        // gain's map must stay monotone at the speeds the slew limit allows.
+        let runs = data.invertible_at_hz.is_some() || !m.rate_form.has_rate_gain() || {
+            let rate = crate::stage_file::rate_of(1.0 / f64::from(m.sample_period_s));
+            stage::compensator_check(&m, rate).is_ok()
+        };
+        (m, sse, plausible && runs)
+    })
     .collect();
     // With the other run: each plausible form's gain on it (−∞ for the others).
     let gains: Option<Vec<f64>> = run.map(|(run, rms_zeroed_without)| {

@@ -61,6 +61,8 @@ pub enum Param {
     RelaxationTimeConstant1,
     /// Spread W of the relaxation times \[decades\].
     RelaxationSpread,
+    /// Rate-dependent gain c of the Bouc-Wen operator, A·(1 + c·|v̇|) \[s/V\].
+    HysteresisRateGain,
 }
 
 impl From<Param> for &'static str {
@@ -71,7 +73,7 @@ impl From<Param> for &'static str {
 
 impl Param {
     /// Every parameter, in θ's order of effects.
-    pub const ALL: [Self; 25] = [
+    pub const ALL: [Self; 26] = [
         Self::Beta,
         Self::Gamma,
         Self::Exponent,
@@ -97,6 +99,7 @@ impl Param {
         Self::RelaxationGain1,
         Self::RelaxationTimeConstant1,
         Self::RelaxationSpread,
+        Self::HysteresisRateGain,
     ];
 
     /// The Kelvin–Voigt elements' gains, element by element.
@@ -134,6 +137,7 @@ impl Param {
             Self::RelaxationGain1 => "relaxation_gain[1]",
             Self::RelaxationTimeConstant1 => "relaxation_time_constant_s[1]",
             Self::RelaxationSpread => "relaxation_spread_decades",
+            Self::HysteresisRateGain => "hysteresis_rate_gain_s_per_v",
         }
     }
 
@@ -177,6 +181,7 @@ impl Param {
             Self::RelaxationGain1 => e.relaxation_gain[1] = v,
             Self::RelaxationTimeConstant1 => e.relaxation_time_constant_s[1] = v,
             Self::RelaxationSpread => e.relaxation_spread_decades = v,
+            Self::HysteresisRateGain => e.hysteresis_rate_gain_s_per_v = v,
         }
     }
 }
