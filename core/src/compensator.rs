@@ -492,9 +492,8 @@ impl Compensator {
         // With a rate-dependent gain the reachable states and slopes depend on the fastest move
         // the slew limit allows (crate::static_model).
         let (lo, hi) = model.slope_range_for_step(max_step_v);
-        let monotone = (lo > 0.0 || hi < 0.0)
-            && lo.abs().min(hi.abs()) >= MIN_SLOPE_RATIO * lo.abs().max(hi.abs());
-        if model.has_rate_gain() && (!monotone || !lo.is_finite() || !hi.is_finite()) {
+        let monotone = is_invertible_slope_range(lo, hi);
+        if model.has_rate_gain() && !monotone {
             return Err(ParamError::OutOfRange {
                 field: "hysteresis_rate_gain_s_per_v",
                 value: model.rate_gain_s_per_v(),
@@ -502,7 +501,7 @@ impl Compensator {
                               min/max >= 0.01) at every gain the slew limit allows",
             });
         }
-        if !monotone || !lo.is_finite() || !hi.is_finite() {
+        if !monotone {
             return Err(ParamError::NotInvertible {
                 min_slope: lo,
                 max_slope: hi,
@@ -1794,6 +1793,48 @@ impl Compensator {
 
 /// e^(−z) by its 5-term series 1 − z + z²/2 − z³/6 + z⁴/24 (|z| < 0.1: truncation < 1e-7).
 #[inline]
+/// Whether one-step slopes dy/du within `[lo, hi]` make an invertible map: finite, of one sign,
+/// and `min|dy/du| / max|dy/du| ≥ MIN_SLOPE_RATIO` (module doc).
+pub fn is_invertible_slope_range(lo: f32, hi: f32) -> bool {
+    lo.is_finite()
+        && hi.is_finite()
+        && (lo > 0.0 || hi < 0.0)
+        && lo.abs().min(hi.abs()) >= MIN_SLOPE_RATIO * lo.abs().max(hi.abs())
+}
+
+/// The fastest slew limit \[V/s\] at which [`Compensator::new`] accepts `model` at the sample
+/// period `sample_period_s` over a window of `window_v` \[V\]: for a rate-dependent gain the
+/// largest step M (to 1e-4 of the window, by bisection, less 1e-5 of itself) whose states and gains keep the map
+/// invertible ([`StaticModel::slope_range_for_step`]), as M/T; +∞ when every step up to the
+/// whole window does (every model without a rate gain whose map is invertible), 0 when none does.
+pub fn fastest_invertible_slew_v_per_s(
+    model: &StaticModel,
+    window_v: f32,
+    sample_period_s: f32,
+) -> f32 {
+    let accepts = |step: f32| {
+        let (lo, hi) = model.slope_range_for_step(step);
+        is_invertible_slope_range(lo, hi)
+    };
+    if accepts(window_v) {
+        return f32::INFINITY;
+    }
+    if !accepts(0.0) {
+        return 0.0;
+    }
+    let (mut ok, mut bad) = (0.0f32, window_v);
+    while bad - ok > 1e-4 * window_v {
+        let mid = 0.5 * (ok + bad);
+        if accepts(mid) {
+            ok = mid;
+        } else {
+            bad = mid;
+        }
+    }
+    // A hair inside, so that the limit read back as a step (S·T in f32) is accepted.
+    ok * (1.0 - 1e-5) / sample_period_s
+}
+
 fn exp_neg_series(z: f32) -> f32 {
     1.0 - z * (1.0 - 0.5 * z * (1.0 - z * (1.0 / 3.0) * (1.0 - 0.25 * z)))
 }
@@ -2694,11 +2735,21 @@ mod tests {
             "{:?}",
             got.err()
         );
-        let slower = CompensatorSettings {
-            limits: Limits::new(0.0, 120.0, 5e3),
+        // The fastest slew limit it is accepted at: accepted there, refused 1 % above.
+        let fastest = fastest_invertible_slew_v_per_s(&model, 120.0, period);
+        assert!(fastest > 1e3 && fastest < 1e5, "{fastest}");
+        let at = |slew: f32| CompensatorSettings {
+            limits: Limits::new(0.0, 120.0, slew),
             sample_period_s: period,
         };
-        assert!(Compensator::new(model, slower).is_ok());
+        assert!(Compensator::new(model, at(fastest)).is_ok());
+        assert!(Compensator::new(model, at(1.01 * fastest)).is_err());
+        // Without a rate gain every slew limit is.
+        let plain = rate_gain_stage(0.0, period);
+        assert_eq!(
+            fastest_invertible_slew_v_per_s(&plain, 120.0, period),
+            f32::INFINITY
+        );
     }
 
     /// Hostile references through the rate-gain inverse: never NaN, never outside the window,

@@ -47,8 +47,8 @@ pub use bouc_wen::{
     max_input_span, BoucWen, BoucWenParams, BoundClass, HysteresisState, STATE_LIMIT,
 };
 pub use compensator::{
-    Command, CommandStatus, Compensator, CompensatorSettings, CompensatorState, ZeroReach,
-    MIN_WINDOW_TICKS,
+    fastest_invertible_slew_v_per_s, is_invertible_slope_range, Command, CommandStatus,
+    Compensator, CompensatorSettings, CompensatorState, ZeroReach, MIN_WINDOW_TICKS,
 };
 pub use dynamic_model::{DynamicModel, DynamicState, MassSpringDamperParams};
 pub use envelope::{Envelope, EnvelopeCounts, EnvelopeMonitor, EnvelopePolicy};

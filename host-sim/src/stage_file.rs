@@ -346,7 +346,9 @@ pub fn write_stage(path: &Path, header: &str, file: &StageFile) -> WrittenStage 
 }
 
 /// `file` with each axis's slew limit lowered, where needed, to the fastest the core accepts at
-/// the file's loop rate.
+/// the file's loop rate: what the DAC and amplifier chain can swing, and for a rate-dependent
+/// gain the fastest move at which the compensator can invert it
+/// ([`piezo_core::fastest_invertible_slew_v_per_s`]).
 pub(crate) fn with_feasible_slew(file: &StageFile) -> StageFile {
     let mut file = file.clone();
     let period = 1.0 / file.stage.loop_rate_hz;
@@ -367,6 +369,33 @@ pub(crate) fn with_feasible_slew(file: &StageFile) -> StageFile {
     lower(&mut file.x);
     if let Some(y) = file.y.as_mut() {
         lower(y);
+    }
+    // A rate-dependent gain is invertible only up to the speed at which its one-step map stays
+    // monotone over the states and gains it reaches: the slew limit is lowered to that speed.
+    if let Ok(valid) = file.validate_with(piezo_stage::Check::Models) {
+        for axis in &valid.axes {
+            let piezo_stage::AxisChain::Static { model, .. } = axis.chain else {
+                continue;
+            };
+            if !model.has_rate_gain() {
+                continue;
+            }
+            let limits = if axis.name == "x" {
+                &mut file.x.limits
+            } else if let Some(y) = file.y.as_mut() {
+                &mut y.limits
+            } else {
+                continue;
+            };
+            let fastest = piezo_core::fastest_invertible_slew_v_per_s(
+                &model,
+                limits.output_max_v - limits.output_min_v,
+                period,
+            );
+            if fastest.is_finite() && fastest > 0.0 && fastest < limits.slew_limit_v_per_s {
+                limits.slew_limit_v_per_s = fastest;
+            }
+        }
     }
     file
 }

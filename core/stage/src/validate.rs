@@ -93,6 +93,7 @@ fn core_key(name: &str, e: &ParamError, section: &str) -> String {
                 "input_range_v" | "input_rate_max_v_per_s" => "identified",
                 "k1_m_per_v" | "k2_m_per_h" | "offset_m" => "static_map",
                 "delta_per_v_s" | "input_shift_s" => "asymmetry",
+                "hysteresis_lag_s" | "hysteresis_rate_gain_s_per_v" => "effects",
                 "sample_period_s" => return "stage.loop_rate_hz".into(),
                 _ => section,
             };
@@ -399,6 +400,39 @@ impl StageFile {
                     // A forward simulation needs no inverse; every other refusal (the window,
                     // the slew limit) is a value the file must not hold.
                     (Err(ParamError::NotInvertible { .. }), Check::Models) => {}
+                    (
+                        Err(ParamError::OutOfRange {
+                            field: "hysteresis_rate_gain_s_per_v",
+                            ..
+                        }),
+                        Check::Models,
+                    ) => {}
+                    (
+                        Err(
+                            e @ ParamError::OutOfRange {
+                                field: "hysteresis_rate_gain_s_per_v",
+                                ..
+                            },
+                        ),
+                        Check::Firmware,
+                    ) => {
+                        // Say how fast the model can be inverted: the slew limit that would do.
+                        let inside = settings.inside_guard();
+                        let fastest = piezo_core::fastest_invertible_slew_v_per_s(
+                            &model,
+                            l.output_max_v - l.output_min_v,
+                            sample_period_s,
+                        );
+                        return Err(invalid(
+                            &format!("{name}.effects.hysteresis_rate_gain_s_per_v"),
+                            format!(
+                                "{e}; at the slew limit {} V/s the map is not monotone over the \
+                                 states and gains it reaches: set {name}.limits.\
+                                 slew_limit_v_per_s to at most {fastest:.0} V/s, or lower the gain",
+                                inside.limits.slew_limit_v_per_s
+                            ),
+                        ));
+                    }
                     (Err(e), _) => return Err(located(core_key(name, &e, "limits"), e)),
                 }
             }

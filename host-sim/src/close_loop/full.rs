@@ -1669,8 +1669,12 @@ mod tests {
         logarithmic.rate_form = RateForm::LagAndTwoRelaxations;
         logarithmic.effects.relaxation_gain = [0.2, 0.1];
         logarithmic.effects.relaxation_time_constant_s = [0.002, 0.02];
+        let mut rate_gain = model_with_effects();
+        rate_gain.added = EffectKind::ALL.to_vec();
+        rate_gain.rate_form = RateForm::RateGain;
+        rate_gain.effects.hysteresis_rate_gain_s_per_v = 1e-5;
         let mut seen = std::collections::HashSet::new();
-        for model in [kelvin_voigt, logarithmic] {
+        for model in [kelvin_voigt, logarithmic, rate_gain] {
             let (th, typ, spec) = model.encode();
             let moved: Vec<f64> = th
                 .iter()
