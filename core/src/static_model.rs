@@ -137,6 +137,17 @@ pub struct Asymmetry {
     pub input_shift_s: f32,
 }
 
+/// Which one-step update a model runs, chosen once when built: one test per sample picks it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum OneStep {
+    /// The operator driven by the (shifted) command, with the asymmetric terms when there are.
+    Command,
+    /// The operator driven by a first-order lag of the command.
+    Lag,
+    /// The operator's gain rising with its input's speed (with or without the lag).
+    RateGain,
+}
+
 /// A validated static (or asymmetric static) hysteresis model: settings only.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StaticModel {
@@ -163,6 +174,8 @@ pub struct StaticModel {
     /// The clamp of |h| with a rate-dependent gain: the bound reached at the gain of a move over
     /// the whole input span in one sample (0: none).
     rate_state_limit: f32,
+    /// The one-step update these settings run.
+    one_step: OneStep,
 }
 
 /// The state of a [`StaticModel`].
@@ -242,6 +255,7 @@ impl StaticModel {
             rate_gain_s_per_v: 0.0,
             inverse_exponent: 1.0 / hysteresis.params().n,
             rate_state_limit: 0.0,
+            one_step: OneStep::Command,
         })
     }
 
@@ -277,6 +291,7 @@ impl StaticModel {
             rate_gain_s_per_v: 0.0,
             inverse_exponent: 1.0 / hysteresis.params().n,
             rate_state_limit: 0.0,
+            one_step: OneStep::Command,
         })
     }
 
@@ -307,6 +322,7 @@ impl StaticModel {
             self.lag_fraction = 0.0;
             self.lag_hold_share = 0.0;
             self.lag_s = 0.0;
+            self.choose_one_step();
             return Ok(self);
         }
         let period = positive("sample_period_s", sample_period_s)?;
@@ -324,6 +340,7 @@ impl StaticModel {
         self.lag_hold_share = (1.0 - c / x) as f32;
         self.lag_s = lag_s;
         self.sample_period_s = period;
+        self.choose_one_step();
         Ok(self)
     }
 
@@ -347,6 +364,7 @@ impl StaticModel {
             self.rate_per_v = 0.0;
             self.rate_gain_s_per_v = 0.0;
             self.rate_state_limit = 0.0;
+            self.choose_one_step();
             return Ok(self);
         }
         let period = positive("sample_period_s", sample_period_s)?;
@@ -377,6 +395,7 @@ impl StaticModel {
         self.rate_gain_s_per_v = gain_s_per_v;
         self.rate_state_limit = (limit * (1.0 + 1e-5)) as f32 + f32::MIN_POSITIVE;
         self.sample_period_s = period;
+        self.choose_one_step();
         Ok(self)
     }
 
@@ -392,6 +411,17 @@ impl StaticModel {
         Some(libm::pow(k, inv_n) * reach)
     }
 
+    /// Picks the one-step update the settings need.
+    fn choose_one_step(&mut self) {
+        self.one_step = if self.rate_per_v != 0.0 {
+            OneStep::RateGain
+        } else if self.lag_fraction != 0.0 {
+            OneStep::Lag
+        } else {
+            OneStep::Command
+        };
+    }
+
     /// c of the rate-dependent gain \[s/V\] (0: none).
     pub fn rate_gain_s_per_v(&self) -> f32 {
         self.rate_gain_s_per_v
@@ -402,12 +432,57 @@ impl StaticModel {
         self.rate_per_v != 0.0
     }
 
-    /// The operator's increment from `h` along an input move `delta_v`: the plain operator, or
-    /// with a rate-dependent gain k = 1 + (c/T)·|Δv| the scaled one, h₁ = k^(1/n)·G(h/k^(1/n),
-    /// k^(1 − 1/n)·Δv) (module doc), clamped to the rate bound.
-    #[inline]
-    fn operator_advance(&self, h: f32, delta_v: f32) -> f32 {
-        if self.rate_per_v == 0.0 || !delta_v.is_finite() {
+    /// [`StaticModel::next_state`] with a rate-dependent gain (out of line: the models without
+    /// one keep their path as it was): v is the command, or its lag, and h moves along v's move.
+    #[cold]
+    #[inline(never)]
+    fn next_state_with_rate_gain(&self, state: &ModelState, u: f32) -> ModelState {
+        let v0 = state.hysteresis.input_v;
+        let v = if self.lag_fraction != 0.0 {
+            v0 + self.lag_fraction * (state.input_v - v0)
+                + self.lag_hold_share * (u - state.input_v)
+        } else {
+            u
+        };
+        let moved = self.rate_advance(state.hysteresis.h, v - v0);
+        ModelState {
+            input_v: u,
+            hysteresis: HysteresisState {
+                input_v: v,
+                h: if moved.is_finite() {
+                    moved
+                } else {
+                    state.hysteresis.h
+                },
+            },
+        }
+    }
+
+    /// [`StaticModel::step_slope`] with a rate-dependent gain: `k1 + k2·dh₁/dv`, times b with a lag.
+    #[cold]
+    #[inline(never)]
+    fn step_slope_with_rate_gain(
+        &self,
+        from: &ModelState,
+        reached: &ModelState,
+        direction: f32,
+    ) -> f32 {
+        let v_move = reached.hysteresis.input_v - from.hysteresis.input_v;
+        let branch = if v_move != 0.0 { v_move } else { direction };
+        let dh_dv = self.rate_slope(from.hysteresis.h, reached.hysteresis.h, v_move, branch);
+        let share = if self.lag_fraction != 0.0 {
+            self.lag_hold_share
+        } else {
+            1.0
+        };
+        self.map.k1_m_per_v + self.map.k2_m_per_h * share * dh_dv
+    }
+
+    /// The operator's increment from `h` along an input move `delta_v` with the rate-dependent
+    /// gain k = 1 + (c/T)·|Δv|: h₁ = k^(1/n)·G(h/k^(1/n), k^(1 − 1/n)·Δv) (module doc), clamped
+    /// to the rate bound.
+    fn rate_advance(&self, h: f32, delta_v: f32) -> f32 {
+        if !delta_v.is_finite() {
             return self.hysteresis.advance(h, delta_v);
         }
         let k = 1.0 + self.rate_per_v * delta_v.abs();
@@ -435,17 +510,23 @@ impl StaticModel {
         (scale, k / scale)
     }
 
-    /// dh₁/dΔv of [`StaticModel::operator_advance`] from `h0` to `h1` along `delta_v` (its
-    /// branch `branch` when it did not move). Without a rate gain the operator's slope at h₁.
-    /// With one, f(h) = A·k − (β·s·sgn h + γ)·|h|^n at the sample's k plus the gain's share,
+    /// dh₁/dΔv of the operator's step from `h0` to `h1` along `delta_v` (its branch `branch` when
+    /// it did not move). Without a rate gain the operator's slope at h₁. With one
+    /// ([`StaticModel::rate_slope`]), f(h) = A·k − (β·s·sgn h + γ)·|h|^n at the sample's k plus
+    /// the gain's share,
     /// ∂h₁/∂k·(c/T)·s with `∂h₁/∂k = (h₁ − h₀·f(h₁)/f(h₀))/(n·k) + (1 − 1/n)·Δv·f(h₁)/k`
     /// (the flow's sensitivity to its start is f(h₁)/f(h₀) in one dimension).
-    #[inline]
+    #[inline(always)]
     fn operator_slope(&self, h0: f32, h1: f32, delta_v: f32, branch: f32) -> f32 {
-        let plain = self.hysteresis.slope(h1, branch);
-        if self.rate_per_v == 0.0 {
-            return plain;
+        if self.rate_per_v != 0.0 {
+            return self.rate_slope(h0, h1, delta_v, branch);
         }
+        self.hysteresis.slope(h1, branch)
+    }
+
+    /// [`StaticModel::operator_slope`] with a rate-dependent gain.
+    fn rate_slope(&self, h0: f32, h1: f32, delta_v: f32, branch: f32) -> f32 {
+        let plain = self.hysteresis.slope(h1, branch);
         let a = self.hysteresis.params().a;
         let k = 1.0 + self.rate_per_v * delta_v.abs();
         let f1 = plain + a * (k - 1.0);
@@ -479,7 +560,7 @@ impl StaticModel {
     /// the state then moves while the command is held, and the compensator's small-step paths
     /// do not apply.
     pub(crate) fn has_extra_terms(&self) -> bool {
-        self.is_asymmetric() || self.has_input_lag() || self.has_rate_gain()
+        self.one_step != OneStep::Command || self.is_asymmetric()
     }
 
     /// The Bouc-Wen operator.
@@ -528,13 +609,13 @@ impl StaticModel {
     /// Shared by [`StaticModel::step`] and the inverse compensator, so both use one discretisation.
     #[inline]
     pub(crate) fn next_state(&self, state: &ModelState, u: f32) -> ModelState {
-        if self.lag_fraction != 0.0 {
+        if self.one_step == OneStep::Lag {
             // v[k] = v[k−1] + c·(u[k−1] − v[k−1]) + b·(u[k] − u[k−1]).
             let v0 = state.hysteresis.input_v;
             let v = v0
                 + self.lag_fraction * (state.input_v - v0)
                 + self.lag_hold_share * (u - state.input_v);
-            let moved = self.operator_advance(state.hysteresis.h, v - v0);
+            let moved = self.hysteresis.advance(state.hysteresis.h, v - v0);
             return ModelState {
                 input_v: u,
                 hysteresis: HysteresisState {
@@ -546,6 +627,9 @@ impl StaticModel {
                     },
                 },
             };
+        }
+        if self.one_step == OneStep::RateGain {
+            return self.next_state_with_rate_gain(state, u);
         }
         let previous = state.input_v;
         let du = u - previous;
@@ -559,7 +643,9 @@ impl StaticModel {
             0.0
         };
         if self.delta_half_step == 0.0 {
-            h = self.operator_advance(h, shifted - state.hysteresis.input_v);
+            h = self
+                .hysteresis
+                .advance(h, shifted - state.hysteresis.input_v);
         } else {
             // The δ-term carries h past the Bouc-Wen bound H (seed 001 Case II reaches 1.04·H):
             // integrate unclamped and clamp only at the wider safety bound.
@@ -592,10 +678,15 @@ impl StaticModel {
         reached: &ModelState,
         direction: f32,
     ) -> f32 {
-        if self.lag_fraction != 0.0 {
+        if self.one_step == OneStep::Lag {
             // dy/du = k1 + k2·b·dh/dv, on the branch v moved along.
-            let dh_dv = self.lagged_input_slope(from, reached, direction);
+            let v_move = reached.hysteresis.input_v - from.hysteresis.input_v;
+            let branch = if v_move != 0.0 { v_move } else { direction };
+            let dh_dv = self.hysteresis.slope(reached.hysteresis.h, branch);
             return self.map.k1_m_per_v + self.map.k2_m_per_h * self.lag_hold_share * dh_dv;
+        }
+        if self.one_step == OneStep::RateGain {
+            return self.step_slope_with_rate_gain(from, reached, direction);
         }
         let shifted_move = reached.hysteresis.input_v - from.hysteresis.input_v;
         let branch = if shifted_move != 0.0 {
@@ -608,12 +699,7 @@ impl StaticModel {
             if self.delta_half_step != 0.0 && reached.hysteresis.h.abs() >= self.state_limit() {
                 0.0
             } else {
-                self.operator_slope(
-                    from.hysteresis.h,
-                    reached.hysteresis.h,
-                    shifted_move,
-                    branch,
-                )
+                self.hysteresis.slope(reached.hysteresis.h, branch)
             };
         let s = if direction < 0.0 { -1.0 } else { 1.0 };
         self.map.k1_m_per_v
