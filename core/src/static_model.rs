@@ -432,6 +432,28 @@ impl StaticModel {
         self.rate_per_v != 0.0
     }
 
+    /// [`StaticModel::next_state`] with an input lag:
+    /// v\[k\] = v\[k−1\] + c·(u\[k−1\] − v\[k−1\]) + b·(u\[k\] − u\[k−1\]), h moved along v's move.
+    #[inline(always)]
+    fn next_state_lagged(&self, state: &ModelState, u: f32) -> ModelState {
+        let v0 = state.hysteresis.input_v;
+        let v = v0
+            + self.lag_fraction * (state.input_v - v0)
+            + self.lag_hold_share * (u - state.input_v);
+        let moved = self.hysteresis.advance(state.hysteresis.h, v - v0);
+        ModelState {
+            input_v: u,
+            hysteresis: HysteresisState {
+                input_v: v,
+                h: if moved.is_finite() {
+                    moved
+                } else {
+                    state.hysteresis.h
+                },
+            },
+        }
+    }
+
     /// [`StaticModel::next_state`] with a rate-dependent gain (out of line: the models without
     /// one keep their path as it was): v is the command, or its lag, and h moves along v's move.
     #[cold]
@@ -609,27 +631,12 @@ impl StaticModel {
     /// Shared by [`StaticModel::step`] and the inverse compensator, so both use one discretisation.
     #[inline]
     pub(crate) fn next_state(&self, state: &ModelState, u: f32) -> ModelState {
-        if self.one_step == OneStep::Lag {
-            // v[k] = v[k−1] + c·(u[k−1] − v[k−1]) + b·(u[k] − u[k−1]).
-            let v0 = state.hysteresis.input_v;
-            let v = v0
-                + self.lag_fraction * (state.input_v - v0)
-                + self.lag_hold_share * (u - state.input_v);
-            let moved = self.hysteresis.advance(state.hysteresis.h, v - v0);
-            return ModelState {
-                input_v: u,
-                hysteresis: HysteresisState {
-                    input_v: v,
-                    h: if moved.is_finite() {
-                        moved
-                    } else {
-                        state.hysteresis.h
-                    },
-                },
+        if self.one_step != OneStep::Command {
+            return if self.one_step == OneStep::Lag {
+                self.next_state_lagged(state, u)
+            } else {
+                self.next_state_with_rate_gain(state, u)
             };
-        }
-        if self.one_step == OneStep::RateGain {
-            return self.next_state_with_rate_gain(state, u);
         }
         let previous = state.input_v;
         let du = u - previous;
@@ -678,15 +685,15 @@ impl StaticModel {
         reached: &ModelState,
         direction: f32,
     ) -> f32 {
-        if self.one_step == OneStep::Lag {
+        if self.one_step != OneStep::Command {
+            if self.one_step == OneStep::RateGain {
+                return self.step_slope_with_rate_gain(from, reached, direction);
+            }
             // dy/du = k1 + k2·b·dh/dv, on the branch v moved along.
             let v_move = reached.hysteresis.input_v - from.hysteresis.input_v;
             let branch = if v_move != 0.0 { v_move } else { direction };
             let dh_dv = self.hysteresis.slope(reached.hysteresis.h, branch);
             return self.map.k1_m_per_v + self.map.k2_m_per_h * self.lag_hold_share * dh_dv;
-        }
-        if self.one_step == OneStep::RateGain {
-            return self.step_slope_with_rate_gain(from, reached, direction);
         }
         let shifted_move = reached.hysteresis.input_v - from.hysteresis.input_v;
         let branch = if shifted_move != 0.0 {
