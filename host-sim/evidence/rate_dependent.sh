@@ -8,7 +8,8 @@
 # rest, its offset re-estimated (`predict --free-offset`, zeroed RMS). Prints fit RMS, prediction
 # RMS, their ratio, and the effects close-loop added with their forms.
 # EFFECT replaces the dielectric lag by another undeclared rate dependence, e.g.
-# EFFECT=rate-bouc-wen:rate=1e5 (the operator's gain growing with the input's speed).
+# EFFECT=rate-bouc-wen:rate=1e5 (the operator's gain growing with the input's speed); several
+# specs separated by spaces act together, e.g. EFFECT="dielectric-lag:tau=1e-3 rate-bouc-wen:rate=1e5".
 # Usage (from the repository root):
 #   [EFFECT=SPEC] bash host-sim/evidence/rate_dependent.sh [OUT_DIR] [TAU_S] [NOISE_RMS_M]
 set -euo pipefail
@@ -16,6 +17,8 @@ OUT=${1:-out/rate-dependent}
 TAU=${2:-1e-3}
 NOISE=${3:-2e-9}
 EFFECT=${EFFECT:-dielectric-lag:tau=$TAU}
+effects=()
+for e in $EFFECT; do effects+=(--effect "$e"); done
 mkdir -p "$OUT"
 cargo build --release -p host-sim -q
 B=${CARGO_TARGET_DIR:-target}/release/host-sim
@@ -23,7 +26,7 @@ offset() { case $1 in 20) echo 0;; 40) echo 2.5e-6;; 100) echo -1.5e-6;; esac; }
 for f in 20 40 100; do
   $B simulate --plant xy-stage \
     --signal "rising-sine:amp=60,offset=0,freq=$f,phase_deg=-90,raised=1,duration=0.5,rate=10000" \
-    --effect "$EFFECT" --effect "noise:rms_m=$NOISE,seed=$f" --out "$OUT/raw$f.csv" >/dev/null
+    "${effects[@]}" --effect "noise:rms_m=$NOISE,seed=$f" --out "$OUT/raw$f.csv" >/dev/null
   # The sensor's zero moved between sessions: a constant offset per record.
   python3 "$(dirname "$0")/sensor_offset.py" "$OUT/raw$f.csv" "$OUT/r$f.csv" "$(offset $f)"
 done

@@ -282,6 +282,9 @@ pub struct AxisModel {
     pub drift_form: DriftForm,
     /// The rate-dependent hysteresis's form (when added).
     pub rate_form: RateForm,
+    /// Whether the form also carries the operator's rate-dependent gain A·(1 + c·|v̇|) (c fitted
+    /// beside the form's own parameters; [`RateForm::RateGain`] is the gain alone).
+    pub with_rate_gain: bool,
     /// Input range the Bouc-Wen set is validated over \[V\].
     pub input_range_v: (f32, f32),
     /// Range of the hysteresis output w (the measured range widened by a quarter each side) \[m\].
@@ -732,6 +735,9 @@ impl AxisModel {
     pub fn without_effect(&self, kind: EffectKind) -> Self {
         let mut m = self.clone();
         m.added.retain(|k| *k != kind);
+        if kind == EffectKind::RateDependent {
+            m.with_rate_gain = false;
+        }
         let e = &mut m.effects;
         match kind {
             EffectKind::Creep => {
@@ -778,6 +784,9 @@ impl AxisModel {
             ),
             EffectKind::Creep => self.creep_form.name().into(),
             EffectKind::Drift => self.drift_form.name().into(),
+            EffectKind::RateDependent if self.with_rate_gain => {
+                format!("{} and rate-dependent gain", self.rate_form.name())
+            }
             EffectKind::RateDependent => self.rate_form.name().into(),
             EffectKind::Dynamics if self.effects.mode_relative_damping > 0.0 => {
                 "stack-driven".into()
@@ -914,7 +923,7 @@ impl AxisModel {
                         ),
                     );
                 }
-                if self.rate_form.has_rate_gain() {
+                if self.rate_form.has_rate_gain() || self.with_rate_gain {
                     theta.push(
                         f64::from(e.hysteresis_rate_gain_s_per_v).max(1e-12).ln(),
                         10.0,

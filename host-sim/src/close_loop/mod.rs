@@ -557,6 +557,7 @@ fn base_model(
         creep_form: full::CreepForm::KelvinVoigt,
         creep_elements: 1,
         rate_form: full::RateForm::InputLag,
+        with_rate_gain: false,
         drift_form: full::DriftForm::Linear,
         input_range_v: window,
         w_range_m: ((lo - pad) as f32, (hi + pad) as f32),
@@ -808,8 +809,9 @@ fn fit_dynamics(model: &AxisModel, cand: &Candidate, data: &FitData) -> (AxisMod
 /// lag together with one or two relaxation elements (started from the input lag's fit, one element at a time:
 /// [`fit_one_more_relaxation`]), and either relaxation with its time constants spread over W
 /// decades (started from its one-lag fit, [`fit_spread`]), and the operator's gain rising with
-/// the command's speed (the rate-dependent Bouc-Wen gain A·(1 + c·|u̇|), kept only where the
-/// compensator accepts its set). The form kept is the plausible one with the lowest SSE (the lowest
+/// the command's speed (the rate-dependent Bouc-Wen gain A·(1 + c·|u̇|)), alone and beside the
+/// input lag and the best other form (started from their fits; the gain then acts on the lagged
+/// input), kept only where the compensator accepts its set. The form kept is the plausible one with the lowest SSE (the lowest
 /// SSE when none is plausible): which form a stage's rate dependence takes is the data's to say.
 /// The richer forms nest the input lag (a relaxation gain → 0 runs to its plausible bound), so on
 /// a stage with one lag they are not plausible and the input lag is kept; a spread of dielectric
@@ -845,6 +847,7 @@ fn fit_rate_dependent(
         (fitted, sse1, plausible)
     };
     let lag = fit_form(full::RateForm::InputLag);
+    let lag_fit = lag.0.clone();
     let relaxation = fit_form(full::RateForm::Relaxation);
     // Whether the whole output relaxes shows in how the loops open from one rate to another;
     // within one record at one rate its lag is the delay's signature, so it is fitted only on
@@ -880,7 +883,7 @@ fn fit_rate_dependent(
         )
     });
     let gain = fit_form(full::RateForm::RateGain);
-    let forms: Vec<(AxisModel, f64, bool)> = [
+    let mut forms: Vec<(AxisModel, f64, bool)> = [
         Some(lag),
         Some(relaxation),
         whole,
@@ -892,17 +895,50 @@ fn fit_rate_dependent(
     ]
     .into_iter()
     .flatten()
-    .map(|(m, sse, plausible)| {
-        // A form whose set the compensator refuses is no model of the stage (with
-        // `--invertible` every fit is already held to the sets it accepts): a rate-dependent
-        // gain's map must stay monotone at the speeds the slew limit allows.
-        let runs = data.invertible_at_hz.is_some() || !m.rate_form.has_rate_gain() || {
-            let rate = crate::stage_file::rate_of(1.0 / f64::from(m.sample_period_s));
-            stage::compensator_check(&m, rate).is_ok()
-        };
-        (m, sse, plausible && runs)
-    })
     .collect();
+    // The input lag and the best plausible other form with the operator's rate-dependent gain
+    // beside them: a lag or a relaxation that levels off with the rate, and a gain that keeps
+    // growing with the speed (the gain acts on the lagged input when there is a lag).
+    let best_alone = best_fit(
+        forms
+            .iter()
+            .filter(|f| !f.0.rate_form.has_rate_gain())
+            .cloned()
+            .collect(),
+    )
+    .filter(|f| f.2 && f.0.rate_form != full::RateForm::InputLag);
+    let with_gain: Vec<AxisModel> = [Some(lag_fit), best_alone.map(|f| f.0)]
+        .into_iter()
+        .flatten()
+        .map(|mut start| {
+            start.with_rate_gain = true;
+            start.effects.hysteresis_rate_gain_s_per_v = full::RATE_GAIN_START_S_PER_V as f32;
+            start
+        })
+        .collect();
+    let fitted: Vec<(AxisModel, f64, bool)> = with_gain
+        .par_iter()
+        .map(|start| {
+            let (fitted, sse, _) = refit(start, data, TRIAL_ITERATIONS);
+            let plausible = Plausibility::of(&fitted, cand.effect).plausible();
+            (fitted, sse, plausible)
+        })
+        .collect();
+    forms.extend(fitted);
+    let forms: Vec<(AxisModel, f64, bool)> = forms
+        .into_iter()
+        .map(|(m, sse, plausible)| {
+            // A form whose set the compensator refuses is no model of the stage (with
+            // `--invertible` every fit is already held to the sets it accepts): a rate-dependent
+            // gain's map must stay monotone at the speeds the slew limit allows.
+            let gains = m.rate_form.has_rate_gain() || m.with_rate_gain;
+            let runs = data.invertible_at_hz.is_some() || !gains || {
+                let rate = crate::stage_file::rate_of(1.0 / f64::from(m.sample_period_s));
+                stage::compensator_check(&m, rate).is_ok()
+            };
+            (m, sse, plausible && runs)
+        })
+        .collect();
     // With the other run: each plausible form's gain on it (−∞ for the others).
     let gains: Option<Vec<f64>> = run.map(|(run, rms_zeroed_without)| {
         forms

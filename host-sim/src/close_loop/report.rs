@@ -443,6 +443,7 @@ pub(super) mod tests {
             creep_form: CreepForm::KelvinVoigt,
             creep_elements: 1,
             rate_form: RateForm::InputLag,
+            with_rate_gain: false,
             drift_form: DriftForm::Linear,
             input_range_v: (0.0, 20.0),
             w_range_m: (-1e-5, 1e-5),

@@ -68,8 +68,8 @@ pub struct AxisPrediction {
 /// has one form): creep (Kelvin-Voigt with N elements of gain gᵢ ≠ 0, and/or logarithmic,
 /// g_log ≠ 0), drift (linear, rate ≠ 0; exponential settling, A_d ≠ 0), delay (≠ 0), asymmetry
 /// (the even term, e ≠ 0), dynamics (f_mode ≠ 0; "stack-driven" when ρ > 0), coupling (κ ≠ 0),
-/// rate-dependent hysteresis (input lag τ_v ≠ 0; rate-dependent gain c ≠ 0; relaxation, some
-/// g_wᵢ ≠ 0, "spread" when W > 0).
+/// rate-dependent hysteresis (input lag τ_v ≠ 0; relaxation, some g_wᵢ ≠ 0, "spread" when W > 0;
+/// rate-dependent gain c ≠ 0, alone or "… and rate-dependent gain" beside another form).
 pub fn effects_ran(e: &piezo_core::effects::EffectParams) -> Vec<(&'static str, String)> {
     let mut out: Vec<(&'static str, String)> = Vec::new();
     let elements = e.creep_gain_m_per_v.iter().filter(|&&g| g != 0.0).count();
@@ -106,9 +106,7 @@ pub fn effects_ran(e: &piezo_core::effects::EffectParams) -> Vec<(&'static str, 
     if e.hysteresis_lag_s != 0.0 {
         out.push(("rate-dependent hysteresis", "input lag".into()));
     }
-    if e.hysteresis_rate_gain_s_per_v != 0.0 {
-        out.push(("rate-dependent hysteresis", "rate-dependent gain".into()));
-    }
+
     if e.relaxation_gain.iter().any(|&g| g != 0.0) {
         let form = if e.relaxation_spread_decades > 0.0 {
             "spread relaxation"
@@ -116,6 +114,15 @@ pub fn effects_ran(e: &piezo_core::effects::EffectParams) -> Vec<(&'static str, 
             "relaxation"
         };
         out.push(("rate-dependent hysteresis", form.into()));
+    }
+    if e.hysteresis_rate_gain_s_per_v != 0.0 {
+        // Beside another form, as close-loop names it ("input lag and rate-dependent gain").
+        match out.last_mut() {
+            Some((name, form)) if *name == "rate-dependent hysteresis" => {
+                form.push_str(" and rate-dependent gain");
+            }
+            _ => out.push(("rate-dependent hysteresis", "rate-dependent gain".into())),
+        }
     }
     out
 }
