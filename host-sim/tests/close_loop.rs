@@ -699,8 +699,7 @@ fn a_gain_that_grows_with_speed_is_named_and_predicted_at_a_rate_it_did_not_see(
 /// 40 Hz records (0.5 s, 2 nm noise): close-loop names the rate-dependent hysteresis first as the
 /// input lag with the rate-dependent gain (a lag alone levels off with the rate, a gain alone has no
 /// phase lag), finds both (τ_v within 5 % of 1 ms, c within 5 % of 1e-5 s/V) and predicts the
-/// 100 Hz record it did not see within 1.3× its fit (1.15× measured; 5.1× with the input lag and
-/// two relaxations, the best form without the gain).
+/// 100 Hz record it did not see within 1.3× its fit (1.15× measured).
 #[test]
 fn a_lag_and_a_gain_that_grows_with_speed_are_named_together() {
     let record = |f: u32| {
