@@ -235,6 +235,23 @@ pub(crate) fn check_rate_gain(gain_s_per_v: f32) -> Result<(), ParamError> {
     })
 }
 
+/// The state after a sample whose command is `u` and whose operator input moved to `v`, its h to
+/// `moved` (the last h kept when that is not finite).
+#[inline(always)]
+fn moved_along(state: &ModelState, u: f32, v: f32, moved: f32) -> ModelState {
+    ModelState {
+        input_v: u,
+        hysteresis: HysteresisState {
+            input_v: v,
+            h: if moved.is_finite() {
+                moved
+            } else {
+                state.hysteresis.h
+            },
+        },
+    }
+}
+
 /// Input step of [`StaticModel::first_loading`] \[V\].
 pub const FIRST_LOADING_STEP_V: f32 = 0.01;
 
@@ -441,17 +458,7 @@ impl StaticModel {
             + self.lag_fraction * (state.input_v - v0)
             + self.lag_hold_share * (u - state.input_v);
         let moved = self.hysteresis.advance(state.hysteresis.h, v - v0);
-        ModelState {
-            input_v: u,
-            hysteresis: HysteresisState {
-                input_v: v,
-                h: if moved.is_finite() {
-                    moved
-                } else {
-                    state.hysteresis.h
-                },
-            },
-        }
+        moved_along(state, u, v, moved)
     }
 
     /// [`StaticModel::next_state`] with a rate-dependent gain (out of line: the models without
@@ -467,17 +474,7 @@ impl StaticModel {
             u
         };
         let moved = self.rate_advance(state.hysteresis.h, v - v0);
-        ModelState {
-            input_v: u,
-            hysteresis: HysteresisState {
-                input_v: v,
-                h: if moved.is_finite() {
-                    moved
-                } else {
-                    state.hysteresis.h
-                },
-            },
-        }
+        moved_along(state, u, v, moved)
     }
 
     /// [`StaticModel::step_slope`] with a rate-dependent gain: `k1 + k2·dh₁/dv`, times b with a lag.

@@ -502,13 +502,22 @@ fn invertible_holds_for_the_whole_set_with_effects() {
 /// The XY stage's x axis with the stacks' dielectric lag (τ_v = 1 ms) under a rising-amplitude
 /// raised sine 0–120 V at `f` Hz for `duration_s` at 10 kHz, from rest, 2 nm sensor noise.
 fn lag_record(name: &str, f: u32, duration_s: f64) -> PathBuf {
+    xy_record(name, f, duration_s, &["dielectric-lag:tau=1e-3"])
+}
+
+/// The XY stage's x axis with the plant effects `effects` under a rising-amplitude raised sine
+/// 0–120 V at `f` Hz for `duration_s` at 10 kHz, from rest, 2 nm sensor noise (seeded by `f`).
+fn xy_record(name: &str, f: u32, duration_s: f64, effects: &[&str]) -> PathBuf {
+    let noise = format!("noise:rms_m=2e-9,seed={f}");
+    let mut all = effects.to_vec();
+    all.push(&noise);
     simulate(
         &format!("{name}{f}.csv"),
         "xy-stage",
         &format!(
             "rising-sine:amp=60,offset=0,freq={f},phase_deg=-90,raised=1,duration={duration_s},rate=10000"
         ),
-        &["dielectric-lag:tau=1e-3", &format!("noise:rms_m=2e-9,seed={f}")],
+        &all,
     )
 }
 
@@ -654,16 +663,7 @@ fn rate_dependent_hysteresis_is_named_across_two_records() {
 /// 0.010 µm measured, the stage's 3.2 kHz mode, below the noise at 20 and 40 Hz, most of the rest).
 #[test]
 fn a_gain_that_grows_with_speed_is_named_and_predicted_at_a_rate_it_did_not_see() {
-    let record = |f: u32| {
-        simulate(
-            &format!("speed{f}.csv"),
-            "xy-stage",
-            &format!(
-                "rising-sine:amp=60,offset=0,freq={f},phase_deg=-90,raised=1,duration=0.5,rate=10000"
-            ),
-            &["rate-bouc-wen:rate=1e5", &format!("noise:rms_m=2e-9,seed={f}")],
-        )
-    };
+    let record = |f: u32| xy_record("speed", f, 0.5, &["rate-bouc-wen:rate=1e5"]);
     let data = format!("{},{}", record(20).display(), record(40).display());
     let (r, stage) = close_loop_records("speed", &data);
     let words = r["words"].to_string();
@@ -703,17 +703,11 @@ fn a_gain_that_grows_with_speed_is_named_and_predicted_at_a_rate_it_did_not_see(
 #[test]
 fn a_lag_and_a_gain_that_grows_with_speed_are_named_together() {
     let record = |f: u32| {
-        simulate(
-            &format!("lag-speed{f}.csv"),
-            "xy-stage",
-            &format!(
-                "rising-sine:amp=60,offset=0,freq={f},phase_deg=-90,raised=1,duration=0.5,rate=10000"
-            ),
-            &[
-                "dielectric-lag:tau=1e-3",
-                "rate-bouc-wen:rate=1e5",
-                &format!("noise:rms_m=2e-9,seed={f}"),
-            ],
+        xy_record(
+            "lag-speed",
+            f,
+            0.5,
+            &["dielectric-lag:tau=1e-3", "rate-bouc-wen:rate=1e5"],
         )
     };
     let data = format!("{},{}", record(20).display(), record(40).display());
