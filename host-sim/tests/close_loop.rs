@@ -658,9 +658,10 @@ fn rate_dependent_hysteresis_is_named_across_two_records() {
 /// raised sines 0–120 V at 20 and 40 Hz (0.5 s at 10 kHz, 2 nm noise), fitted together with their
 /// own offsets: close-loop names the rate-dependent hysteresis first, as the operator's
 /// rate-dependent gain, finds the plant's c = 1/ṙ₀ = 1e-5 s/V within 5 %, and lowers the RMS
-/// twentyfold; the stage file predicts the 100 Hz record it did not see at a tenth of what the
-/// rate-independent model and the lag and relaxation forms reach there (0.51 and 0.37 µm;
-/// 0.010 µm measured, the stage's 3.2 kHz mode, below the noise at 20 and 40 Hz, most of the rest).
+/// twentyfold; then the stage's 3.2 kHz mode, whose quasi-static response (a gain of
+/// 1 + (f/f_mode)², a few nm at 40 Hz) the screening's stack-driven form sees. The stage file
+/// predicts the 100 Hz record it did not see within 1.3× the fit (the rate-independent model and
+/// the lag and relaxation forms: 0.51 and 0.37 µm there; without the mode 0.010 µm, 4.9× the fit).
 #[test]
 fn a_gain_that_grows_with_speed_is_named_and_predicted_at_a_rate_it_did_not_see() {
     let record = |f: u32| xy_record("speed", f, 0.5, &["rate-bouc-wen:rate=1e5"]);
@@ -684,9 +685,14 @@ fn a_gain_that_grows_with_speed_is_named_and_predicted_at_a_rate_it_did_not_see(
         after <= 0.05 * before,
         "rms {before:.4e} -> {after:.4e}\n{words}"
     );
+    assert_eq!(
+        added(&r).get(1).map(String::as_str),
+        Some("dynamics"),
+        "{words}"
+    );
     let rms_unseen = predicted_rms(&stage, &record(100));
     assert!(
-        rms_unseen <= 0.03e-6,
+        rms_unseen <= 1.3 * after,
         "100 Hz predicted at {rms_unseen:.4e} m, fit {after:.4e} m"
     );
     // The written slew limit is the fastest at which the compensator can invert the gain.

@@ -12,10 +12,10 @@
 //! - `dac`: command sampled at `rate` Hz, held (zero-order hold) and quantised to `bits` over [min, max] V.
 //! - `electrostriction`: quadratic term, the linear drive k·u becomes k·(u + e·u²).
 //! - `coupling` (xy-stage): measured x += xy·y, measured y += yx·x.
-//! - `dielectric-lag` (xy-stage): rate-dependent hysteresis, the stacks' Bouc-Wen operator driven by a
+//! - `dielectric-lag` (xy-stage, stage): rate-dependent hysteresis, the stacks' Bouc-Wen operator driven by a
 //!   first-order lag of the stack voltage (τ_v·v̇ = u − v), the linear strain by u itself; see
 //!   [`crate::plant::XyStage`].
-//! - `rate-bouc-wen` (xy-stage): rate-dependent hysteresis, the stacks' Bouc-Wen gain growing with
+//! - `rate-bouc-wen` (xy-stage, stage): rate-dependent hysteresis, the stacks' Bouc-Wen gain growing with
 //!   the input's speed, α·(1 + |u̇|/ṙ₀); see [`crate::plant::XyStage`].
 //! - `second-mode` (nac2024): second resonance mode, see [`crate::plant::SecondMode`].
 
@@ -39,8 +39,8 @@ Effect spec: NAME:key=value,...  (repeat --effect for several; lists use '/')
   dac               bits (16), min (0 V), max (120 V), rate_hz (1e5)
   electrostriction  per_v (1e-3)
   coupling          xy (0.01), yx (0.01)                       xy-stage only
-  dielectric-lag    tau (s, 1e-3): Bouc-Wen driven by a lag of the stack voltage   xy-stage only
-  rate-bouc-wen     rate (V/s, 1e5): Bouc-Wen gain alpha*(1 + |rate|/rate0)       xy-stage only
+  dielectric-lag    tau (s, 1e-3): Bouc-Wen driven by a lag of the stack voltage   xy-stage, stage
+  rate-bouc-wen     rate (V/s, 1e5): Bouc-Wen gain alpha*(1 + |rate|/rate0)       xy-stage, stage
   second-mode       freq_hz (480e3), zeta (0.05), participation (0.05)   nac2024 only";
 
 /// Effect errors.
@@ -456,6 +456,14 @@ impl Effects {
                     p.hysteresis_rate_scale_v_per_s = rate;
                 }
             }
+            PlantKind::Stage(p) if self.coupling.is_none() => {
+                if let Some(tau) = self.dielectric_lag_s {
+                    p.dielectric_lag_s = tau;
+                }
+                if let Some(rate) = self.hysteresis_rate_scale_v_per_s {
+                    p.hysteresis_rate_scale_v_per_s = rate;
+                }
+            }
             other
                 if self.coupling.is_some()
                     || self.dielectric_lag_s.is_some()
@@ -463,8 +471,8 @@ impl Effects {
             {
                 return Err(PlantError::Unsupported {
                     plant: other.as_plant().name(),
-                    what: "cross-axis coupling, a dielectric lag or a rate-dependent Bouc-Wen \
-                           (xy-stage only)"
+                    what: "cross-axis coupling (xy-stage only), a dielectric lag or a \
+                           rate-dependent Bouc-Wen (xy-stage and stage only)"
                         .into(),
                 })
             }

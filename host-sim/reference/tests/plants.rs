@@ -626,10 +626,66 @@ fn rate_dependent_bouc_wen_widens_the_loop_with_rate_only() {
         fast_rate * 1e6
     );
     assert!(backwards < 1e-8, "moves back {backwards:e} m while u rises");
-    // Only the XY stage has it.
+    // The NAC2024 has neither rate dependence.
     let mut e = Effects::default();
     e.add_spec(rate[0]).unwrap();
     assert!(e
         .apply_to_plant(&mut PlantKind::Nac2024(Nac2024::published()))
         .is_err());
+}
+
+/// The asymmetric stage's (Case III) loop opening at u = 10 V in the fourth period of a 0–20 V
+/// sine of `freq` Hz with the effects `specs` \[m\] (its gains are negative: the size of it).
+fn stage_opening_at_10_v(freq: f64, specs: &[&str]) -> f64 {
+    let mut e = Effects::default();
+    for s in specs {
+        e.add_spec(s).unwrap();
+    }
+    let mut p = PlantKind::Stage(AsymmetricStage::new(StageCase::III));
+    e.apply_to_plant(&mut p).unwrap();
+    let fs = 100_000.0;
+    let signals: Vec<Box<dyn Signal>> = vec![Box::new(Sine {
+        amplitude_v: 10.0,
+        offset_v: 10.0,
+        frequency_hz: freq,
+        phase_rad: 0.0,
+    })];
+    let out = run(p.as_plant(), signals, &e, fs, 4.0 / freq);
+    opening_at(&out, fs / freq, 10.0).abs()
+}
+
+/// The asymmetric stage takes both undeclared rate dependences: at 1 Hz its loop is the paper's;
+/// at 100 Hz (|u̇| up to 6.3 kV/s) the rate-dependent gain (ṙ₀ = 1.5e4 V/s: A up to 1.42×) and the
+/// input lag (τ_v = 0.5 ms, 17° at 100 Hz) each change the opening by more than 10 %; without
+/// them the rate changes it by about 1 % (the paper's δ·u·sgn(u̇) acts per second, not per volt).
+#[test]
+fn the_asymmetric_stage_takes_the_rate_dependences() {
+    let plain = |f| stage_opening_at_10_v(f, &[]);
+    let gain = |f| stage_opening_at_10_v(f, &["rate-bouc-wen:rate=1.5e4"]);
+    let lag = |f| stage_opening_at_10_v(f, &["dielectric-lag:tau=5e-4"]);
+    let (p1, p100) = (plain(1.0), plain(100.0));
+    let (g1, g100, l1, l100) = (gain(1.0), gain(100.0), lag(1.0), lag(100.0));
+    eprintln!(
+        "stage loop opening at 10 V [um]: plain {:.4} / {:.4}, rate gain {:.4} / {:.4}, \
+         input lag {:.4} / {:.4} (1 / 100 Hz)",
+        p1 * 1e6,
+        p100 * 1e6,
+        g1 * 1e6,
+        g100 * 1e6,
+        l1 * 1e6,
+        l100 * 1e6
+    );
+    assert!(p1 > 0.0 && within(p100, p1, 0.02), "plain {p1:e} {p100:e}");
+    assert!(
+        within(g1, p1, 0.02) && within(l1, p1, 0.02),
+        "1 Hz {g1:e} {l1:e} {p1:e}"
+    );
+    assert!(
+        (g100 / p100 - 1.0).abs() > 0.1,
+        "rate gain {g100:e} vs {p100:e}"
+    );
+    assert!(
+        (l100 / p100 - 1.0).abs() > 0.1,
+        "input lag {l100:e} vs {p100:e}"
+    );
 }

@@ -7,8 +7,10 @@
 //! small angle, so the residual of a base model that lacks any one of them looks like the others'
 //! signature too, and their screening shares do not say which it is ([`PHASE_EFFECTS`]). Hence:
 //!
-//! 1. every candidate whose share is at least `needed` is fitted, best first, up to
-//!    [`super::MAX_TRIALS`];
+//! 1. the effects whose best form's share is at least `needed` are fitted, best first, up to
+//!    [`super::MAX_TRIALS`] effects, each in every form whose share is at least `needed`: the
+//!    screening ranks effects, and which form an effect takes (Kelvin–Voigt or logarithmic creep,
+//!    linear or settling drift) is the fit's and the held-out test's to say;
 //! 2. when one of the fitted candidates is a phase effect, every other phase effect the search may
 //!    still add is fitted as well (its best form): the screening cannot separate them, the fit and
 //!    the held-out test do;
@@ -40,7 +42,8 @@ pub enum Tried {
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
 #[serde(into = "&'static str")]
 pub enum NotTried {
-    /// Another form of the effect, with a larger share, is fitted.
+    /// Another form of the effect, with a larger share, is fitted (this one's share is below
+    /// the share needed).
     OtherForm,
     /// Its screening share is below the share a candidate needs.
     BelowShare {
@@ -49,7 +52,7 @@ pub enum NotTried {
     },
     /// It ranked below the first [`super::MAX_TRIALS`] and is not a phase effect of one fitted.
     Ranked {
-        /// Its rank among the candidates with the share needed (from 1).
+        /// Its effect's rank among the effects with the share needed (from 1).
         rank: usize,
     },
     /// It is in the model already.
@@ -171,11 +174,18 @@ pub fn choose(
     needed: f64,
     max_ranked: usize,
 ) -> (Vec<(usize, Tried)>, Vec<Skipped>) {
+    // The effects with the share needed, best first (their rank), and those fitted by rank.
+    let mut ranks: Vec<EffectKind> = Vec::new();
+    for c in candidates.iter().filter(|c| c.share >= needed) {
+        if !ranks.contains(&c.effect) {
+            ranks.push(c.effect);
+        }
+    }
+    let rank_of = |e: EffectKind| ranks.iter().position(|r| *r == e).map(|p| p + 1);
     let mut tried: Vec<(usize, Tried)> = candidates
         .iter()
         .enumerate()
-        .filter(|(_, c)| c.share >= needed)
-        .take(max_ranked)
+        .filter(|(_, c)| c.share >= needed && rank_of(c.effect).is_some_and(|r| r <= max_ranked))
         .map(|(i, _)| (i, Tried::Ranked))
         .collect();
     let first_phase = tried
@@ -193,21 +203,18 @@ pub fn choose(
             }
         }
     }
-    let mut rank = 0;
     let mut skipped = Vec::new();
     for (i, c) in candidates.iter().enumerate() {
-        if c.share >= needed {
-            rank += 1;
-        }
         if tried.iter().any(|&(j, _)| j == i) {
             continue;
         }
         let reason = if tried.iter().any(|&(j, _)| candidates[j].effect == c.effect) {
             NotTried::OtherForm
-        } else if c.share < needed {
-            NotTried::BelowShare { needed }
         } else {
-            NotTried::Ranked { rank }
+            match rank_of(c.effect) {
+                Some(rank) if c.share >= needed => NotTried::Ranked { rank },
+                _ => NotTried::BelowShare { needed },
+            }
         };
         skipped.push(Skipped {
             effect: c.effect,
@@ -343,6 +350,8 @@ mod tests {
         assert_eq!(skipped[0].reason, NotTried::BelowShare { needed: 0.0125 });
     }
 
+    /// The ranks go to effects: a ranked effect's other forms with the share needed are fitted
+    /// too, and an effect ranked below the first two is not, whatever its forms' shares.
     #[test]
     fn without_a_phase_effect_only_the_ranked_are_fitted() {
         let c = [
@@ -350,10 +359,14 @@ mod tests {
             cand(EffectKind::Asymmetry, 0.3),
             cand(EffectKind::Coupling, 0.2),
             cand(EffectKind::Drift, 0.1),
+            cand(EffectKind::Drift, 0.001),
             cand(EffectKind::Delay, 0.0),
         ];
         let (tried, skipped) = choose(&c, 0.0125, 2);
-        assert_eq!(tried, vec![(0, Tried::Ranked), (1, Tried::Ranked)]);
+        assert_eq!(
+            tried,
+            vec![(0, Tried::Ranked), (1, Tried::Ranked), (3, Tried::Ranked)]
+        );
         let reasons: Vec<NotTried> = skipped.iter().map(|s| s.reason).collect();
         assert_eq!(
             reasons,

@@ -20,7 +20,12 @@
 //!   (u[−1] := u_mid; the core's even-order term on the previous command);
 //! - dynamics: the prediction replaced by M_{f,ζ}\[ŷ\], M the unit-DC-gain second-order mode (no free
 //!   coefficient), f on a log grid from 11× the dominant input frequency to 0.4/Ts,
-//!   ζ ∈ {0.05, 0.1, 0.2, 0.4, 0.7, 1, 1.5, 2.5};
+//!   ζ ∈ {0.05, 0.1, 0.2, 0.4, 0.7, 1, 1.5, 2.5}, in both its forms: force-driven,
+//!   z̈ + 2ζω·ż + ω²·(z − ŷ) = 0, and driven through the stack's spring and damper,
+//!   z̈ + 2ζω·(ż − dŷ/dt) + ω²·(z − ŷ) = 0, i.e. z = ŷ + M\[−(d²ŷ/dt²)/ω²\] (the second
+//!   derivative by central differences). Well below the mode the second form has no phase lag and
+//!   moves the output by −(d²ŷ/dt²)/ω² alone, a gain that grows with the input's frequency: the
+//!   force-driven form's lag 2ζ·f/f_mode would hide it;
 //! - coupling: the other axis's prediction (two-axis records only).
 //!
 //! The screening only ranks and initialises candidates (its ΔBIC = N·ln(SSE₁/SSE₀) + p·ln N is
@@ -191,6 +196,25 @@ pub struct Signals<'a> {
     pub from: usize,
     /// Sample period \[s\].
     pub sample_period_s: f64,
+    /// First sample of each record (`[0]` for one record): a filter of the prediction (the
+    /// delay's, the mode's) starts again from rest at each, as the model's simulation does.
+    pub segments: &'a [usize],
+}
+
+/// `filter` run on each record of `s` on its own (records starting at `segments`), so that no
+/// record's state, nor the step between two records' sensor offsets, carries into the next.
+pub fn per_record(s: &[f64], segments: &[usize], filter: impl Fn(&[f64]) -> Vec<f64>) -> Vec<f64> {
+    let n = s.len();
+    let mut out = Vec::with_capacity(n);
+    let starts = segments.iter().copied().filter(|&a| a > 0 && a < n);
+    let mut a = 0;
+    for b in starts.chain(std::iter::once(n)) {
+        if b > a {
+            out.extend(filter(&s[a..b]));
+            a = b;
+        }
+    }
+    out
 }
 
 /// One screened candidate.
@@ -307,6 +331,17 @@ pub fn mode_filter(s: &[f64], frequency_hz: f64, damping: f64, ts: f64) -> Vec<f
             zm
         })
         .collect()
+}
+
+/// d²s/dt² by central differences (s\[k+1\] − 2·s\[k\] + s\[k−1\])/Ts², the end samples taking
+/// their neighbour's.
+pub fn second_derivative(s: &[f64], ts: f64) -> Vec<f64> {
+    let n = s.len();
+    if n < 3 {
+        return vec![0.0; n];
+    }
+    let inner = |k: usize| (s[k + 1] - 2.0 * s[k] + s[k - 1]) / (ts * ts);
+    (0..n).map(|k| inner(k.clamp(1, n - 2))).collect()
 }
 
 /// Φ = e^(A·Ts) of A = [[0, 1], [−ω², −2ζω]].
@@ -706,7 +741,7 @@ impl<'s, 'a> Screening<'s, 'a> {
         let rows: Vec<(f64, f64)> = grid
             .iter()
             .map(|&d| {
-                let yd = delayed(sig.y_hat, d);
+                let yd = per_record(sig.y_hat, sig.segments, |s| delayed(s, d));
                 let shifted: Vec<f64> = self.scored().map(|k| sig.y[k] - yd[k]).collect();
                 (d, least_squares(&self.nuisance(), &shifted).0)
             })
@@ -783,28 +818,42 @@ impl<'s, 'a> Screening<'s, 'a> {
             .collect();
         // The prediction through the mode replaces ŷ (what adding the mode does), with the
         // linear map refitted through the nuisance basis.
-        let rows: Vec<(f64, f64, f64)> = grid
+        let curvature = per_record(sig.y_hat, sig.segments, |s| second_derivative(s, ts));
+        let rows: Vec<(f64, f64, f64, f64)> = grid
             .iter()
-            .map(|&(f, z)| {
-                let m = mode_filter(sig.y_hat, f, z, ts);
-                let moved: Vec<f64> = self.scored().map(|k| sig.y[k] - m[k]).collect();
-                (f, z, least_squares(&self.nuisance(), &moved).0)
+            .flat_map(|&(f, z)| {
+                let w = 2.0 * std::f64::consts::PI * f;
+                let mode = |s: &[f64]| mode_filter(s, f, z, ts);
+                let force = per_record(sig.y_hat, sig.segments, mode);
+                let through_stack: Vec<f64> = curvature.iter().map(|a| -a / (w * w)).collect();
+                let through_stack = per_record(&through_stack, sig.segments, mode);
+                let sse_of = |m: &dyn Fn(usize) -> f64| {
+                    let moved: Vec<f64> = self.scored().map(|k| sig.y[k] - m(k)).collect();
+                    least_squares(&self.nuisance(), &moved).0
+                };
+                [
+                    (f, z, 0.0, sse_of(&|k| force[k])),
+                    (f, z, 1.0, sse_of(&|k| sig.y_hat[k] + through_stack[k])),
+                ]
             })
             .collect();
-        let best = rows.iter().copied().min_by(|a, b| a.2.total_cmp(&b.2))?;
+        let best = rows.iter().copied().min_by(|a, b| a.3.total_cmp(&b.3))?;
         Some(Candidate {
             effect: EffectKind::Dynamics,
-            share: self.share(best.2),
-            delta_bic: self.bic(best.2, 2),
+            share: self.share(best.3),
+            delta_bic: self.bic(best.3, 2),
             init: EffectInit::Dynamics {
                 frequency_hz: best.0,
                 damping: best.1,
             },
-            test: "the prediction through a second-order mode against the measurement (frequency x damping grid)",
+            test:
+                "the prediction through a second-order mode, force-driven and driven through the \
+                   stack, against the measurement (frequency x damping grid)",
             figures: vec![
                 ("dominant_input_frequency_hz", f_dom),
                 ("frequency_hz", best.0),
                 ("damping", best.1),
+                ("relative_damping", best.2),
             ],
         })
     }
@@ -888,6 +937,7 @@ pub fn spectrum(r: &[f64], ts: f64) -> Vec<(f64, f64)> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::f64::consts::PI;
 
     /// A residual's figures serialise with the keys of the report, the whiteness verdict against
     /// the limit; an effect serialises as its name.
@@ -942,6 +992,49 @@ mod tests {
             .fold((0, f64::MIN), |a, (k, &v)| if v > a.1 { (k, v) } else { a });
         assert!((kp as f64 - 50.5).abs() <= 2.0, "peak at {kp}");
         assert!((vp - 1.855).abs() < 0.01, "{vp} {peak}");
+    }
+
+    /// The screening's stack-driven mode, ŷ + M[−(d²ŷ/dt²)/ω²], is the steady state of
+    /// z̈ + 2ζω·(ż − ṡ) + ω²·(z − s) = 0: H(jΩ) = (ω² + 2jζωΩ)/(ω² − Ω² + 2jζωΩ), a gain above 1
+    /// and (nearly) no phase lag well below the mode.
+    #[test]
+    fn the_stack_driven_mode_is_the_relative_damping_law() {
+        let (ts, f_in, f_mode, zeta) = (1e-5, 100.0, 1000.0, 0.1);
+        let (w_in, w) = (2.0 * PI * f_in, 2.0 * PI * f_mode);
+        let t: Vec<f64> = (0..40_000).map(|k| k as f64 * ts).collect();
+        let s: Vec<f64> = t.iter().map(|t| (w_in * t).sin()).collect();
+        let push: Vec<f64> = second_derivative(&s, ts)
+            .iter()
+            .map(|a| -a / (w * w))
+            .collect();
+        let m = mode_filter(&push, f_mode, zeta, ts);
+        // H = (a + jb)/(c + jb), a = ω², c = ω² − Ω², b = 2ζωΩ.
+        let (a, c, b) = (w * w, w * w - w_in * w_in, 2.0 * zeta * w * w_in);
+        let (den, re_num, im_num) = (c * c + b * b, a * c + b * b, b * c - a * b);
+        let (re, im) = (re_num / den, im_num / den);
+        let worst = (30_000..40_000)
+            .map(|k| {
+                let expected = re * (w_in * t[k]).sin() + im * (w_in * t[k]).cos();
+                (s[k] + m[k] - expected).abs()
+            })
+            .fold(0.0, f64::max);
+        // The gain 1.0101 shows; the half-sample delay of the held drive is what is left.
+        assert!(re > 1.01 && im.abs() < 2e-3, "{re} {im}");
+        assert!(worst < 2e-4, "{worst}");
+    }
+
+    /// Two records whose sensor offsets differ: the mode run over the records together rings
+    /// at the step between them, run per record it starts from rest at each.
+    #[test]
+    fn a_filter_of_the_prediction_starts_again_at_each_record() {
+        let s: Vec<f64> = (0..200).map(|k| if k < 100 { 1.0 } else { 3.0 }).collect();
+        let mode = |s: &[f64]| mode_filter(s, 1000.0, 0.05, 1e-4);
+        let together = mode(&s);
+        let per = per_record(&s, &[0, 100], mode);
+        assert_eq!(per.len(), s.len());
+        assert!(per.iter().zip(&s).all(|(a, b)| (a - b).abs() < 1e-12));
+        assert!((together[101] - 3.0).abs() > 0.1, "{}", together[101]);
+        assert_eq!(per_record(&s, &[0], mode), together);
     }
 
     #[test]

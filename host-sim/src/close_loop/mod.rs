@@ -811,7 +811,7 @@ fn fit_dynamics(model: &AxisModel, cand: &Candidate, data: &FitData) -> (AxisMod
 /// decades (started from its one-lag fit, [`fit_spread`]), and the operator's gain rising with
 /// the command's speed (the rate-dependent Bouc-Wen gain A·(1 + c·|u̇|)), alone and beside the
 /// input lag and the best other form (started from their fits; the gain then acts on the lagged
-/// input), kept only where the compensator accepts its set. The form kept is the plausible one with the lowest SSE (the lowest
+/// input), kept only where the compensator accepts its set or refuses it without the gain too. The form kept is the plausible one with the lowest SSE (the lowest
 /// SSE when none is plausible): which form a stage's rate dependence takes is the data's to say.
 /// The richer forms nest the input lag (a relaxation gain → 0 runs to its plausible bound), so on
 /// a stage with one lag they are not plausible and the input lag is kept; a spread of dielectric
@@ -928,13 +928,18 @@ fn fit_rate_dependent(
     let forms: Vec<(AxisModel, f64, bool)> = forms
         .into_iter()
         .map(|(m, sse, plausible)| {
-            // A form whose set the compensator refuses is no model of the stage (with
-            // `--invertible` every fit is already held to the sets it accepts): a rate-dependent
-            // gain's map must stay monotone at the speeds the slew limit allows.
+            // A form whose set the compensator refuses because of its gain is no model of the
+            // stage (with `--invertible` every fit is already held to the sets it accepts): a
+            // rate-dependent gain's map must stay monotone at the speeds the slew limit allows.
+            // A stage whose map folds without the gain (a set no compensator inverts, written
+            // without `--invertible`) is judged by its fit alone.
             let gains = m.rate_form.has_rate_gain() || m.with_rate_gain;
             let runs = data.invertible_at_hz.is_some() || !gains || {
                 let rate = crate::stage_file::rate_of(1.0 / f64::from(m.sample_period_s));
+                let mut without_gain = m.clone();
+                without_gain.effects.hysteresis_rate_gain_s_per_v = 0.0;
                 stage::compensator_check(&m, rate).is_ok()
+                    || stage::compensator_check(&without_gain, rate).is_err()
             };
             (m, sse, plausible && runs)
         })
@@ -1395,6 +1400,7 @@ impl Search<'_> {
             other_y_hat: self.other_z,
             from: self.data.from,
             sample_period_s: self.record.sample_period_s(),
+            segments: &self.record.segments,
         };
         if remaining.is_empty() {
             Vec::new()

@@ -11,6 +11,11 @@
 //! u = 10 − 10·cos(4πt) V, N = 10 000 samples over 1 s. The set is of the bounded class (|h| ≤ ≈ 0.43
 //! without the δ term). For zero-order-hold inputs the jump of U is applied at the jump of u (φ is far
 //! shorter than any sample period). sgn(0) = 0.
+//!
+//! Two rate dependences the paper does not have may be switched on (effects `dielectric-lag` and
+//! `rate-bouc-wen`, as on the XY stage): the operator driven by a first-order lag of the input,
+//! τ_v·v̇ = U − v (state `[h, v]`; the linear term k1·u follows u at once), and its gain growing
+//! with its input's speed, A·(1 + |v̇|/ṙ₀)·v̇ in place of A·v̇.
 
 use super::{drive, InputAt, Plant, PlantError};
 use crate::bouc_wen::BoucWen;
@@ -41,6 +46,11 @@ pub struct AsymmetricStage {
     pub input_shift_s: f64,
     /// Electrostrictive coefficient e, 1/V (effect).
     pub electrostriction_per_v: f64,
+    /// τ_v of the operator's input lag, s (effect `dielectric-lag`; 0: none).
+    pub dielectric_lag_s: f64,
+    /// ṙ₀ of the operator's rate-dependent gain A·(1 + |v̇|/ṙ₀), V/s (effect `rate-bouc-wen`;
+    /// 0: none).
+    pub hysteresis_rate_scale_v_per_s: f64,
 }
 
 impl AsymmetricStage {
@@ -63,6 +73,8 @@ impl AsymmetricStage {
             asymmetry_delta: delta,
             input_shift_s: phi,
             electrostriction_per_v: 0.0,
+            dielectric_lag_s: 0.0,
+            hysteresis_rate_scale_v_per_s: 0.0,
         }
     }
 }
@@ -88,7 +100,11 @@ impl Plant for AsymmetricStage {
         &["y_m"]
     }
     fn state_dim(&self) -> usize {
-        1
+        if self.dielectric_lag_s > 0.0 {
+            2
+        } else {
+            1
+        }
     }
     fn initial_state(&self, x: &mut [f64]) {
         x.fill(0.0);
@@ -100,9 +116,27 @@ impl Plant for AsymmetricStage {
         } else {
             input.input(0, (t - self.input_shift_s).max(0.0)).1
         };
-        dx[0] = self.hysteresis.rate(x[0], du_shifted) + self.asymmetry_delta * u * sgn(du);
+        // The operator's input rate: U̇, or v̇ = (U − v)/τ_v behind the lag.
+        let rate = if self.dielectric_lag_s > 0.0 {
+            let shifted = input.input(0, (t - self.input_shift_s).max(0.0)).0;
+            let dv = (shifted - x[1]) / self.dielectric_lag_s;
+            dx[1] = dv;
+            dv
+        } else {
+            du_shifted
+        };
+        let extra = if self.hysteresis_rate_scale_v_per_s > 0.0 {
+            self.hysteresis.a * rate * rate.abs() / self.hysteresis_rate_scale_v_per_s
+        } else {
+            0.0
+        };
+        dx[0] = self.hysteresis.rate(x[0], rate) + extra + self.asymmetry_delta * u * sgn(du);
     }
     fn input_jump(&self, x: &mut [f64], _channel: usize, u_from: f64, u_to: f64) {
+        if self.dielectric_lag_s > 0.0 {
+            // v is continuous: a step moves h only as v follows it.
+            return;
+        }
         x[0] = self.hysteresis.jump(x[0], u_from, u_to);
     }
     fn output(&self, x: &[f64], u: &[f64], y: &mut [f64]) {
