@@ -700,6 +700,60 @@ fn a_gain_that_grows_with_speed_is_named_and_predicted_at_a_rate_it_did_not_see(
     assert!(slew > 1e3 && slew < 1e5, "slew {slew} V/s");
 }
 
+/// The asymmetric stage of seed 001 (its gains negative, n ≈ 3, and a map that folds: no
+/// compensator inverts it, so it is fitted without `--invertible`) with a Bouc-Wen gain growing
+/// with the voltage's speed (`rate-bouc-wen:rate=1.5e4`, A up to 1.17× at 40 Hz), rising raised
+/// sines 0–20 V at 20 and 40 Hz (0.5 s, 2 nm noise, offsets 0 and +2.5 µm): close-loop names the
+/// rate-dependent gain first, though the compensator refuses the stage's set with or without it,
+/// finds c = 1/ṙ₀ within 5 %, and the stage file predicts the 100 Hz record within 1.3× the fit.
+#[test]
+fn a_gain_that_grows_with_speed_is_named_on_a_stage_no_compensator_inverts() {
+    let record = |f: u32, offset_m: f64| {
+        let raw = simulate(
+            &format!("fold-raw{f}.csv"),
+            "stage",
+            &format!(
+                "rising-sine:amp=10,offset=0,freq={f},phase_deg=-90,raised=1,duration=0.5,rate=10000"
+            ),
+            &["rate-bouc-wen:rate=1.5e4", &format!("noise:rms_m=2e-9,seed={f}")],
+        );
+        with_offset(&raw, &format!("fold{f}"), offset_m)
+    };
+    let data = format!(
+        "{},{}",
+        record(20, 0.0).display(),
+        record(40, 2.5e-6).display()
+    );
+    let (done, r, stage) = close_loop_run("fold", &data, &[]);
+    let words = r["words"].to_string();
+    // The stage's own map folds: the set is written with the firmware's refusal.
+    assert!(done.is_err(), "{words}");
+    assert_eq!(
+        added(&r).first().map(String::as_str),
+        Some("rate-dependent hysteresis"),
+        "{words}"
+    );
+    assert_eq!(r["steps"][0]["form"], "rate-dependent gain", "{words}");
+    // The file is written with the firmware's refusal, so it is read as text, not loaded.
+    let text = std::fs::read_to_string(&stage).unwrap();
+    let gain: f64 = text
+        .lines()
+        .find_map(|l| l.strip_prefix("hysteresis_rate_gain_s_per_v = "))
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(
+        (gain - 1.0 / 1.5e4).abs() <= 0.05 / 1.5e4,
+        "c = {gain} s/V\n{words}"
+    );
+    let after = r["after"]["rms"].as_f64().unwrap();
+    let rms_unseen = predicted_zeroed_rms(&stage, &record(100, -1.5e-6), &[]);
+    assert!(
+        rms_unseen <= 1.3 * after,
+        "100 Hz predicted at {rms_unseen:.4e} m, fit {after:.4e} m"
+    );
+}
+
 /// The XY stage's x axis with both rate dependences at once, the stacks' dielectric lag (τ_v =
 /// 1 ms) and a Bouc-Wen gain growing with the lagged voltage's speed (ṙ₀ = 1e5 V/s), from 20 and
 /// 40 Hz records (0.5 s, 2 nm noise): close-loop names the rate-dependent hysteresis first as the
@@ -796,7 +850,13 @@ fn plant_record(
         ),
         &[&format!("noise:rms_m=1e-9,seed={seed}")],
     );
-    let text = std::fs::read_to_string(&raw).unwrap();
+    with_offset(&raw, name, offset_m)
+}
+
+/// The one-axis record `raw` (t, u, y) with the sensor offset `offset_m` added to y, written as
+/// `{name}.csv`.
+fn with_offset(raw: &Path, name: &str, offset_m: f64) -> PathBuf {
+    let text = std::fs::read_to_string(raw).unwrap();
     let mut lines = text.lines();
     let mut out = format!("{}\n", lines.next().unwrap());
     for line in lines {

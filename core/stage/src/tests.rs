@@ -466,3 +466,32 @@ fn the_firmware_refuses_a_stroke_no_piezo_stage_has() {
         "{message}"
     );
 }
+
+/// A rate-dependent gain the slew limit cannot carry is refused by its key with the slew limit
+/// that would pass; on a map that folds at rest, with or without the gain, by the static map's,
+/// since no slew limit helps there.
+#[test]
+fn a_rate_gain_refusal_names_what_would_pass_or_that_nothing_would() {
+    let mut stage = example();
+    stage.x.effects.hysteresis_rate_gain_s_per_v = 1e-4;
+    let e = stage.validate().unwrap_err();
+    assert_eq!(e.key, "x.effects.hysteresis_rate_gain_s_per_v", "{e}");
+    let fastest: f64 = e
+        .message
+        .split("at most ")
+        .nth(1)
+        .and_then(|s| s.split(' ').next())
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("{e}"));
+    assert!(fastest > 0.0 && fastest < 1e5, "{e}");
+    stage.x.limits.slew_limit_v_per_s = fastest as f32;
+    stage.y = None;
+    assert!(stage.validate().is_ok(), "at {fastest} V/s");
+    // The hysteretic part ten times the linear one, against it: dy/du changes sign at rest.
+    if let Some(map) = stage.x.static_map.as_mut() {
+        map.k2_m_per_h = -3.573939e-6;
+    }
+    let e = stage.validate().unwrap_err();
+    assert_eq!(e.key, "x.static_map", "{e}");
+    assert!(e.message.contains("no slew limit"), "{e}");
+}
