@@ -492,19 +492,21 @@ impl Compensator {
         // With a rate-dependent gain the reachable states and slopes depend on the fastest move
         // the slew limit allows (crate::static_model).
         let (lo, hi) = model.slope_range_for_step(max_step_v);
-        let monotone = is_invertible_slope_range(lo, hi);
-        if model.has_rate_gain() && !monotone {
-            return Err(ParamError::OutOfRange {
-                field: "hysteresis_rate_gain_s_per_v",
-                value: model.rate_gain_s_per_v(),
-                requirement: "a one-step map that stays monotone (dy/du of one sign, \
-                              min/max >= 0.01) at every gain the slew limit allows",
-            });
-        }
-        if !monotone {
+        if !is_invertible_slope_range(lo, hi) {
+            // The gain is to blame only where the map is monotone for the slowest steps (gain 1):
+            // a map that folds there folds without the gain too, and no slew limit helps.
+            let (rest_lo, rest_hi) = model.slope_range_for_step(0.0);
+            if model.has_rate_gain() && is_invertible_slope_range(rest_lo, rest_hi) {
+                return Err(ParamError::OutOfRange {
+                    field: "hysteresis_rate_gain_s_per_v",
+                    value: model.rate_gain_s_per_v(),
+                    requirement: "a one-step map that stays monotone (dy/du of one sign, \
+                                  min/max >= 0.01) at every gain the slew limit allows",
+                });
+            }
             return Err(ParamError::NotInvertible {
-                min_slope: lo,
-                max_slope: hi,
+                min_slope: rest_lo,
+                max_slope: rest_hi,
             });
         }
         if model.has_input_lag() {

@@ -468,8 +468,8 @@ fn the_firmware_refuses_a_stroke_no_piezo_stage_has() {
 }
 
 /// A rate-dependent gain the slew limit cannot carry is refused by its key with the slew limit
-/// that would pass; on a map that folds at rest, with or without the gain, by the static map's,
-/// since no slew limit helps there.
+/// that would pass; a map that folds at rest, where the gain is 1, is refused by the static map's
+/// key as the same set without the gain is, since no slew limit helps there.
 #[test]
 fn a_rate_gain_refusal_names_what_would_pass_or_that_nothing_would() {
     let mut stage = example();
@@ -493,5 +493,18 @@ fn a_rate_gain_refusal_names_what_would_pass_or_that_nothing_would() {
     }
     let e = stage.validate().unwrap_err();
     assert_eq!(e.key, "x.static_map", "{e}");
-    assert!(e.message.contains("no slew limit"), "{e}");
+    stage.x.effects.hysteresis_rate_gain_s_per_v = 0.0;
+    let without_gain = stage.validate().unwrap_err();
+    assert_eq!(without_gain.key, "x.static_map", "{without_gain}");
+    // The same slopes, to the f32 rounding of the gain's own path at gain 1.
+    let slopes = |e: &StageError| match e.core {
+        Some(ParamError::NotInvertible {
+            min_slope,
+            max_slope,
+        }) => (min_slope, max_slope),
+        _ => panic!("{e}"),
+    };
+    let ((lo, hi), (lo0, hi0)) = (slopes(&e), slopes(&without_gain));
+    assert!((lo - lo0).abs() <= 1e-6 * lo0.abs(), "{e}\n{without_gain}");
+    assert!((hi - hi0).abs() <= 1e-6 * hi0.abs(), "{e}\n{without_gain}");
 }

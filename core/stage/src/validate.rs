@@ -423,18 +423,6 @@ impl StageFile {
                             l.output_max_v - l.output_min_v,
                             sample_period_s,
                         );
-                        if fastest <= 0.0 {
-                            // Not even the slowest steps, where the gain is 1: the map folds
-                            // without the gain too, and no slew limit helps.
-                            return Err(invalid(
-                                &format!("{name}.static_map"),
-                                "the forward map is not strictly monotone in u over the \
-                                 reachable hysteresis states even at rest (with or without \
-                                 the rate-dependent gain): no slew limit makes the inverse \
-                                 compensator unique"
-                                    .to_string(),
-                            ));
-                        }
                         return Err(invalid(
                             &format!("{name}.effects.hysteresis_rate_gain_s_per_v"),
                             format!(
