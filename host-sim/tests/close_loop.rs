@@ -574,6 +574,17 @@ fn predicted_zeroed_rms(stage: &Path, record: &Path, columns: &[&str]) -> f64 {
     json(&report)["rms_zeroed_m"][0].as_f64().unwrap()
 }
 
+/// Asserts that close-loop's first step added the rate-dependent hysteresis, in `form`.
+fn assert_rate_dependent_first(r: &serde_json::Value, form: &str) {
+    let words = r["words"].to_string();
+    assert_eq!(
+        added(r).first().map(String::as_str),
+        Some("rate-dependent hysteresis"),
+        "{words}"
+    );
+    assert_eq!(r["steps"][0]["form"], form, "{words}");
+}
+
 /// The effects a close-loop report added, in order.
 fn added(report: &serde_json::Value) -> Vec<String> {
     report["effects_added"]
@@ -668,12 +679,7 @@ fn a_gain_that_grows_with_speed_is_named_and_predicted_at_a_rate_it_did_not_see(
     let data = format!("{},{}", record(20).display(), record(40).display());
     let (r, stage) = close_loop_records("speed", &data);
     let words = r["words"].to_string();
-    assert_eq!(
-        added(&r).first().map(String::as_str),
-        Some("rate-dependent hysteresis"),
-        "{words}"
-    );
-    assert_eq!(r["steps"][0]["form"], "rate-dependent gain", "{words}");
+    assert_rate_dependent_first(&r, "rate-dependent gain");
     let (file, _) = piezo_stage::StageFile::load(&stage).unwrap();
     let gain = file.x.effects.hysteresis_rate_gain_s_per_v;
     assert!((gain - 1e-5).abs() <= 0.05e-5, "c = {gain} s/V\n{words}");
@@ -728,12 +734,7 @@ fn a_gain_that_grows_with_speed_is_named_on_a_stage_no_compensator_inverts() {
     let words = r["words"].to_string();
     // The stage's own map folds: the set is written with the firmware's refusal.
     assert!(done.is_err(), "{words}");
-    assert_eq!(
-        added(&r).first().map(String::as_str),
-        Some("rate-dependent hysteresis"),
-        "{words}"
-    );
-    assert_eq!(r["steps"][0]["form"], "rate-dependent gain", "{words}");
+    assert_rate_dependent_first(&r, "rate-dependent gain");
     // The file is written with the firmware's refusal, so it is read as text, not loaded.
     let text = std::fs::read_to_string(&stage).unwrap();
     let gain: f64 = text
@@ -773,15 +774,7 @@ fn a_lag_and_a_gain_that_grows_with_speed_are_named_together() {
     let data = format!("{},{}", record(20).display(), record(40).display());
     let (r, stage) = close_loop_records("lag-speed", &data);
     let words = r["words"].to_string();
-    assert_eq!(
-        added(&r).first().map(String::as_str),
-        Some("rate-dependent hysteresis"),
-        "{words}"
-    );
-    assert_eq!(
-        r["steps"][0]["form"], "input lag and rate-dependent gain",
-        "{words}"
-    );
+    assert_rate_dependent_first(&r, "input lag and rate-dependent gain");
     let (file, _) = piezo_stage::StageFile::load(&stage).unwrap();
     let (lag, gain) = (
         file.x.effects.hysteresis_lag_s,
@@ -903,13 +896,7 @@ fn an_actuator_with_a_spread_of_relaxation_times_is_predicted_at_a_rate_it_did_n
     .unwrap();
     let r = json(&report);
     let words = r["words"].to_string();
-    assert_eq!(
-        added(&r).first().map(String::as_str),
-        Some("rate-dependent hysteresis"),
-        "{words}"
-    );
-    let form = r["steps"][0]["form"].as_str().unwrap();
-    assert_eq!(form, "spread relaxation", "{words}");
+    assert_rate_dependent_first(&r, "spread relaxation");
     // The plant's relaxation times span 0.2 to 5 ms, 1.4 decades.
     let spread = r["steps"][0]["candidates"]
         .as_array()
@@ -1042,13 +1029,7 @@ fn widening_loops_run(plant: &str, tag: &str) -> WideningRun {
     // The file is written whether or not the firmware's check accepts it; the figures are judged.
     let (_, r, stage) = close_loop_run(tag, &data, &["--validate", r100a.to_str().unwrap()]);
     let words = r["words"].to_string();
-    assert_eq!(
-        added(&r).first().map(String::as_str),
-        Some("rate-dependent hysteresis"),
-        "{words}"
-    );
-    let form = r["steps"][0]["form"].as_str().unwrap();
-    assert_eq!(form, "relaxation of the whole output", "{words}");
+    assert_rate_dependent_first(&r, "relaxation of the whole output");
     let (without, with) = added_zeroed_rms(&r);
     assert!(
         with <= 0.8 * without,

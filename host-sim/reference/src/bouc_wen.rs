@@ -34,6 +34,18 @@ impl BoucWen {
         self.a * du - self.beta * du.abs() * signed - self.gamma * du * m
     }
 
+    /// ḣ of the rate-dependent Bouc-Wen, whose gain grows with the input's speed:
+    /// A·(1 + |u̇|/ṙ₀)·u̇ in place of A·u̇, ṙ₀ = `rate_scale` (input units per second; 0: the
+    /// standard operator, [`Self::rate`]).
+    pub fn rate_with_speed_gain(&self, h: f64, du: f64, rate_scale: f64) -> f64 {
+        let extra = if rate_scale > 0.0 {
+            self.a * du * du.abs() / rate_scale
+        } else {
+            0.0
+        };
+        self.rate(h, du) + extra
+    }
+
     /// dh/du along a path whose input moves in the direction of `direction` (sign only).
     pub fn slope(&self, h: f64, direction: f64) -> f64 {
         let (m, _) = self.h_pow(h);

@@ -111,26 +111,23 @@ impl Plant for AsymmetricStage {
     }
     fn rhs(&self, t: f64, x: &[f64], input: &dyn InputAt, dx: &mut [f64]) {
         let (u, du) = input.input(0, t);
-        let du_shifted = if self.input_shift_s == 0.0 {
-            du
+        let (u_shifted, du_shifted) = if self.input_shift_s == 0.0 {
+            (u, du)
         } else {
-            input.input(0, (t - self.input_shift_s).max(0.0)).1
+            input.input(0, (t - self.input_shift_s).max(0.0))
         };
         // The operator's input rate: U̇, or v̇ = (U − v)/τ_v behind the lag.
         let rate = if self.dielectric_lag_s > 0.0 {
-            let shifted = input.input(0, (t - self.input_shift_s).max(0.0)).0;
-            let dv = (shifted - x[1]) / self.dielectric_lag_s;
+            let dv = (u_shifted - x[1]) / self.dielectric_lag_s;
             dx[1] = dv;
             dv
         } else {
             du_shifted
         };
-        let extra = if self.hysteresis_rate_scale_v_per_s > 0.0 {
-            self.hysteresis.a * rate * rate.abs() / self.hysteresis_rate_scale_v_per_s
-        } else {
-            0.0
-        };
-        dx[0] = self.hysteresis.rate(x[0], rate) + extra + self.asymmetry_delta * u * sgn(du);
+        dx[0] =
+            self.hysteresis
+                .rate_with_speed_gain(x[0], rate, self.hysteresis_rate_scale_v_per_s)
+                + self.asymmetry_delta * u * sgn(du);
     }
     fn input_jump(&self, x: &mut [f64], _channel: usize, u_from: f64, u_to: f64) {
         if self.dielectric_lag_s > 0.0 {

@@ -197,12 +197,9 @@ impl AxisModel {
     ) {
         let (ud, dud) = drive(u, du, e);
         // α·(1 + |v̇|/ṙ₀)·v̇: the rate-dependent Bouc-Wen's extra switching at speed.
-        let extra = if rate_scale_v_per_s > 0.0 {
-            self.bw.a * hysteresis_rate * hysteresis_rate.abs() / rate_scale_v_per_s
-        } else {
-            0.0
-        };
-        let dh = self.bw.rate(x[8], hysteresis_rate) + extra;
+        let dh = self
+            .bw
+            .rate_with_speed_gain(x[8], hysteresis_rate, rate_scale_v_per_s);
         let a = self.gain_slope_per_v;
         let eta = self.d_m_per_v * (1.0 + a * ud) * (ud - x[8]);
         let deta = self.d_m_per_v * (a * dud * (ud - x[8]) + (1.0 + a * ud) * (dud - dh));
