@@ -1633,6 +1633,7 @@ fn close_axis(
         let chosen: Vec<&Candidate> = tried.iter().map(|&(i, _)| &candidates[i]).collect();
         if chosen.is_empty() {
             step.outcome = StepOutcome::Stopped(Stop::NoCandidates);
+            search.log(step.words());
             steps.push(step);
             break;
         }

@@ -617,7 +617,10 @@ impl Stop {
                 "the residual is within {NOISE_FLOOR_FACTOR} x the sensor noise estimate: nothing left to explain"
             ),
             Self::NothingHolds => "no candidate holds on data the fit did not see and is plausible".into(),
-            Self::NoCandidates => "no candidate left to try".into(),
+            Self::NoCandidates => "no candidate left to try: each effect is in the model already, \
+                 or its screening explains less of the residual than the share a candidate needs \
+                 (the report lists each with its share)"
+                .into(),
         }
     }
 }

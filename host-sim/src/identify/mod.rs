@@ -356,6 +356,21 @@ impl Record {
     /// own first sample; times continue from one record to the next. The sample periods must agree
     /// within 0.1 %.
     pub fn concatenate(parts: Vec<Record>) -> crate::Result<Record> {
+        // A record given twice (the same file, or the same samples under another name) would be
+        // judged on itself when the records are held out in turn.
+        for (i, a) in parts.iter().enumerate() {
+            if let Some(b) = parts[..i]
+                .iter()
+                .find(|b| b.path == a.path || (b.u == a.u && b.y_m == a.y_m))
+            {
+                return Err(crate::Error::Usage(format!(
+                    "{}: the same record as {} (each record is held out in turn, so a record \
+                     given twice would be judged on itself)",
+                    a.path.display(),
+                    b.path.display()
+                )));
+            }
+        }
         let mut parts = parts.into_iter();
         let Some(mut out) = parts.next() else {
             return Err(crate::Error::Usage("no record".into()));
@@ -1858,6 +1873,32 @@ mod tests {
         );
         let force = ["u_N".to_string()];
         assert!(drive_warnings(&data, &force, &[record(1e3)], &io, stage).is_empty());
+    }
+
+    /// Records are held out in turn: the same file twice, or the same samples under another
+    /// name, is refused with both names; two records with their own samples are joined.
+    #[test]
+    fn a_record_given_twice_is_refused_with_both_names() {
+        let record = |name: &str, gain: f64| {
+            Record::from_parts(
+                PathBuf::from(name),
+                (0..20).map(|k| 1e-4 * f64::from(k)).collect(),
+                (0..20).map(f64::from).collect(),
+                (0..20).map(|k| gain * f64::from(k)).collect(),
+            )
+        };
+        for (a, b) in [("a.csv", "a.csv"), ("a.csv", "copy.csv")] {
+            let err = Record::concatenate(vec![record(a, 1e-7), record(b, 1e-7)])
+                .unwrap_err()
+                .to_string();
+            assert!(
+                err.contains(&format!("{b}: the same record as {a}")),
+                "{err}"
+            );
+        }
+        let joined =
+            Record::concatenate(vec![record("a.csv", 1e-7), record("b.csv", 2e-7)]).unwrap();
+        assert_eq!(joined.segments, [0, 20]);
     }
 
     #[test]
