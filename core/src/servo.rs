@@ -653,6 +653,34 @@ impl StageDynamics {
         }
     }
 
+    /// The dynamics of the model a compensator inverts, its gain g taken over the states and
+    /// one-step moves the compensator's slew limit allows: the slope of largest magnitude of
+    /// [`StaticModel::slope_range_for_step`] at the step `slew_limit_v_per_s · sample_period_s`
+    /// (for a model without a rate-dependent gain that is [`StaticModel::slope_range`], as
+    /// [`StageDynamics::from_model`]; with one, every step of the whole window would count moves
+    /// the compensator never makes, whose slopes it does not invert).
+    pub fn from_compensator(
+        compensator: &crate::compensator::Compensator,
+        mode_frequency_hz: f32,
+        mode_damping: f32,
+        latency_s: f32,
+    ) -> Self {
+        let model = compensator.model();
+        let settings = compensator.settings();
+        let step = settings.limits.slew_limit_v_per_s * settings.sample_period_s;
+        let (lo, hi) = model.slope_range_for_step(step);
+        Self {
+            gain_m_per_v: if libm::fabsf(lo) > libm::fabsf(hi) {
+                lo
+            } else {
+                hi
+            },
+            mode_frequency_hz,
+            mode_damping,
+            latency_s,
+        }
+    }
+
     /// P(jω) = g·ω_n² / (ω_n² − ω² + 2jζω_nω) · e^{−jωτ}, with the mode at `mode_scale`·f_n.
     fn plant(&self, hz: f64, mode_scale: f64) -> Complex {
         let w = 2.0 * core::f64::consts::PI * hz;

@@ -629,8 +629,8 @@ pub(crate) fn controllers_with(
         let compensator = v
             .compensator
             .ok_or_else(|| crate::Error::Usage("no compensator".into()))?;
-        let dynamics = StageDynamics::from_model(
-            compensator.model(),
+        let dynamics = StageDynamics::from_compensator(
+            &compensator,
             identified[a].1 as f32,
             identified[a].2 as f32,
             1.5 * valid.sample_period_s,

@@ -152,8 +152,8 @@ pub fn tune_file(
             ))
         })?;
         let (f, zeta) = first_mode(file, index, mode_hz, damping)?;
-        let dynamics = StageDynamics::from_model(
-            compensator.model(),
+        let dynamics = StageDynamics::from_compensator(
+            &compensator,
             f,
             zeta,
             latency.at_period(valid.sample_period_s),

@@ -330,6 +330,9 @@ pub fn stage_text(header: &str, file: &StageFile) -> (StageFile, String) {
 /// `io_chain::MIN_DRIVE_TICKS`).
 pub fn write_stage(path: &Path, header: &str, file: &StageFile) -> WrittenStage {
     let file = &with_feasible_slew(file);
+    for note in slower_than_the_records(path, file) {
+        eprintln!("note: {note}");
+    }
     let written = file
         .write(path, header)
         .map_err(crate::Error::from)
@@ -343,6 +346,33 @@ pub fn write_stage(path: &Path, header: &str, file: &StageFile) -> WrittenStage 
         verdict: Verdict::of(file, path, text.as_deref()),
         not_written,
     }
+}
+
+/// For each axis with a rate-dependent gain whose slew limit is below the fastest command its
+/// records reached (`identified.input_rate_max_v_per_s`): a note that its compensator follows a
+/// command that fast only slew-limited, naming the file, the field and both speeds.
+pub(crate) fn slower_than_the_records(path: &Path, file: &StageFile) -> Vec<String> {
+    let mut notes = Vec::new();
+    for (name, axis) in [("x", Some(&file.x)), ("y", file.y.as_ref())] {
+        let Some(axis) = axis else { continue };
+        let slew = axis.limits.slew_limit_v_per_s;
+        let reached = axis
+            .identified
+            .as_ref()
+            .and_then(|p| p.input_rate_max_v_per_s)
+            .unwrap_or(0.0);
+        if axis.effects.hysteresis_rate_gain_s_per_v > 0.0 && slew < reached {
+            notes.push(format!(
+                "{}: `{name}.limits.slew_limit_v_per_s` = {slew:.0} V/s, the fastest move at \
+                 which the compensator can invert the rate-dependent gain \
+                 (`{name}.effects.hysteresis_rate_gain_s_per_v`) over every state it reaches; \
+                 the records reached {reached:.0} V/s, so a command that fast is followed only \
+                 slew-limited",
+                path.display()
+            ));
+        }
+    }
+    notes
 }
 
 /// `file` with each axis's slew limit lowered, where needed, to the fastest the core accepts at
@@ -405,6 +435,35 @@ mod tests {
     use super::*;
     use crate::json_keys as keys;
     use std::collections::BTreeSet;
+
+    /// A rate-dependent gain whose slew limit is below the records' fastest command gets a note
+    /// naming the file, the field and both speeds; without the gain, or with a slew limit at the
+    /// records' speed, none.
+    #[test]
+    fn a_slew_limit_below_the_records_speed_is_noted_for_a_rate_gain() {
+        let text = std::fs::read_to_string(
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/relaxing-stack-close-loop.toml"),
+        )
+        .unwrap();
+        let mut file = StageFile::parse("stage.toml", &text).unwrap();
+        let path = Path::new("out/stage.toml");
+        assert!(slower_than_the_records(path, &file).is_empty());
+        file.x.effects.hysteresis_rate_gain_s_per_v = 1e-5;
+        file.x.limits.slew_limit_v_per_s = 3571.0;
+        let reached = file.x.identified.as_ref().unwrap().input_rate_max_v_per_s;
+        assert_eq!(reached, Some(22589.236));
+        let notes = slower_than_the_records(path, &file);
+        assert_eq!(notes.len(), 1, "{notes:?}");
+        assert!(
+            notes[0].starts_with("out/stage.toml: `x.limits.slew_limit_v_per_s` = 3571 V/s")
+                && notes[0].contains("`x.effects.hysteresis_rate_gain_s_per_v`")
+                && notes[0].contains("reached 22589 V/s"),
+            "{}",
+            notes[0]
+        );
+        file.x.limits.slew_limit_v_per_s = 22589.236;
+        assert!(slower_than_the_records(path, &file).is_empty());
+    }
 
     /// A written file's report has the verdict's keys beside its own; a refusal carries the
     /// check's message and the remedy, and a file not written says why.

@@ -704,6 +704,35 @@ fn a_gain_that_grows_with_speed_is_named_and_predicted_at_a_rate_it_did_not_see(
     // The written slew limit is the fastest at which the compensator can invert the gain.
     let slew = file.x.limits.slew_limit_v_per_s;
     assert!(slew > 1e3 && slew < 1e5, "slew {slew} V/s");
+    // The servo is tuned on the mode at that slew limit: its integral gain has the sign of the
+    // stage's dy/du (positive here), as the firmware's check asks.
+    let servo = file.x.servo.as_ref().expect("a servo tuned on the mode");
+    assert!(servo.ki_v_per_m_s > 0.0, "{servo:?}");
+}
+
+/// A long 20 Hz record (0.5 s) and a short 40 Hz one (0.1 s, a fifth of its samples) of the XY
+/// stage with a 1 ms dielectric lag: leaving the long record out would refit on the short one
+/// alone, so close-loop holds out interleaved segments of both records instead, says so with the
+/// short record's name, and still names the rate-dependent hysteresis first.
+#[test]
+fn records_of_very_unequal_length_are_judged_on_blocks_within_them() {
+    let long = xy_record("unequal", 20, 0.5, &["dielectric-lag:tau=1e-3"]);
+    let short = xy_record("unequal", 40, 0.1, &["dielectric-lag:tau=1e-3"]);
+    let data = format!("{},{}", long.display(), short.display());
+    let (r, _) = close_loop_records("unequal", &data);
+    let words = r["words"].to_string();
+    let method = r["axes"][0]["held_out"]["method"].as_str().unwrap();
+    assert!(
+        method.starts_with("blocks within the records")
+            && method.contains(&format!("{} holds 1000 scored samples", short.display()))
+            && method.contains("longest record's 5000"),
+        "{method}"
+    );
+    assert_eq!(
+        added(&r).first().map(String::as_str),
+        Some("rate-dependent hysteresis"),
+        "{words}"
+    );
 }
 
 /// The asymmetric stage of seed 001 (its gains negative, n ≈ 3, and a map that folds: no

@@ -19,14 +19,16 @@ coupling, fits the best candidates and every phase effect (creep, delay, rate-de
 dynamics) the screening cannot separate from one of them, and adds one only if its parameters stay \
 inside the range that makes it that effect, its gain holds on held-out blocks of the record (blocked \
 cross-validation over time, interleaved one-period segments when the input's amplitude or rate changes \
-along the record; several records: leave one record out) and on the --validate record, and the \
+along the record; several records: leave one record out, or interleaved segments of every record \
+when one holds less than a quarter of the longest's samples) and on the --validate record, and the \
 residual is not yet at the sensor noise estimated from the data. Every decision and its evidence, and \
 why each other effect was not fitted, goes into the report. \
 Two-axis records: --u ux_V,uy_V --y x_m,y_m.")]
 pub struct CloseLoopArgs {
     /// Record to fit (CSV with unit-suffixed columns); several comma-separated records of one stage
     /// are fitted together, each from rest at its own first sample, and cross-validated by leaving
-    /// one record out.
+    /// one record out (on interleaved segments of every record when one holds less than a quarter
+    /// of the longest's samples).
     #[arg(long)]
     pub data: PathBuf,
     /// Several records: each has its own constant sensor offset, re-estimated per record (the

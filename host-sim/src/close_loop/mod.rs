@@ -1538,12 +1538,30 @@ fn close_axis(
     let u: Vec<f32> = record.u.iter().map(|&v| v as f32).collect();
     let ts = record.sample_period_s();
     let f_dom = diagnose::dominant_frequency_hz(&record.u[from..], ts);
-    let within_records = (record.segments.len() > 1)
+    let mut within_records = (record.segments.len() > 1)
         .then(|| select::interleaved_folds(from, u.len(), ts, f_dom))
         .flatten();
     // Several records: leave one record out (and blocks within them for an effect one record
     // shows); one record: blocks over time, interleaved when the input is not stationary.
-    let (blocks, mut held_out_method) = if record.segments.len() > 1 {
+    let unequal = select::unequal_records(from, &record.segments, u.len());
+    let (blocks, mut held_out_method) = if let (Some((index, shortest, longest)), Some(within)) =
+        (unequal, within_records.take_if(|_| unequal.is_some()))
+    {
+        let short = record.sources.get(index).map_or_else(
+            || format!("record {}", index + 1),
+            |p| p.display().to_string(),
+        );
+        (
+            within,
+            format!(
+                "blocks within the records (interleaved one-period segments of every record), \
+                 not leave one record out: {short} holds {shortest} scored samples, less than \
+                 {:.0} % of the longest record's {longest}, so a model refitted without the \
+                 longest would stand on too little of the data",
+                100.0 * select::MIN_RECORD_SHARE
+            ),
+        )
+    } else if record.segments.len() > 1 {
         (
             select::record_folds(from, &record.segments, u.len()),
             format!(
@@ -1597,6 +1615,9 @@ fn close_axis(
         "base model rms {:.4e} m, sensor noise estimate {noise_m:.4e} m",
         search.rms(current_sse)
     ));
+    if unequal.is_some() {
+        search.log(format!("held out: {held_out_method}"));
+    }
     loop {
         let floor = Floor {
             residual: ResidualFigures::of(&search.residual(&sim)),

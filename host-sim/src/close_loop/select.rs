@@ -35,7 +35,11 @@
 //! **Several records.** With several records of one stage the blocks are the records themselves
 //! (leave one record out: each record predicted by the model refitted on the others, with its own
 //! offset re-estimated when offsets are free), and the t-test takes K − 1 degrees of freedom for K
-//! records ([`t_critical`]).
+//! records ([`t_critical`]). Records of very unequal length are the exception
+//! ([`unequal_records`]): when the shortest holds less than [`MIN_RECORD_SHARE`] of the longest's
+//! scored samples, the fold that holds out the longest would refit on little more than the short
+//! one, so the blocks interleave within the records instead ([`interleaved_folds`]), and the
+//! report's held-out method says why.
 //!
 //! **An effect one record shows.** Leaving a record out asks every record to show the effect by a
 //! similar factor. An effect that only one record excites (a mode a step record rings and sines far
@@ -110,6 +114,31 @@ pub fn record_folds(from: usize, segments: &[usize], n: usize) -> Vec<Block> {
         .filter(|(a, b)| b > a)
         .map(|(a, b)| Block::contiguous(a, b))
         .collect()
+}
+
+/// The shortest record's share of the longest below which leaving one record out is not the
+/// test: refitted without the longest record, the model would stand on too little of the data
+/// ([`unequal_records`]).
+pub const MIN_RECORD_SHARE: f64 = 0.25;
+
+/// With several records, the shortest one's index and scored samples and the longest one's
+/// scored samples, when the shortest holds less than [`MIN_RECORD_SHARE`] of the longest: the
+/// records are then too unequal for leave-one-record-out (the fold that holds out the longest
+/// refits on the short one alone, and the fold that holds out the short one judges on a few
+/// samples), and the blocks interleave within the records instead. `None` otherwise.
+pub fn unequal_records(from: usize, segments: &[usize], n: usize) -> Option<(usize, usize, usize)> {
+    let folds = record_folds(from, segments, n);
+    if folds.len() < 2 {
+        return None;
+    }
+    let lengths: Vec<usize> = folds.iter().map(|b| b.end - b.start).collect();
+    let longest = lengths.iter().copied().max()?;
+    let (index, shortest) = lengths
+        .iter()
+        .copied()
+        .enumerate()
+        .min_by_key(|&(_, len)| len)?;
+    ((shortest as f64) < MIN_RECORD_SHARE * longest as f64).then_some((index, shortest, longest))
 }
 
 /// [`FOLDS`] blocks over the scored samples `from..n` that interleave: segments of

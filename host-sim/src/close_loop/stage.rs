@@ -389,12 +389,14 @@ fn with_servo(stage: &piezo_stage::Stage, io: &piezo_stage::Io, axes: Vec<Axis>)
     if axes.is_empty() || axes.iter().any(|a| a.effects.mode_frequency_hz <= 0.0) {
         return axes;
     }
-    let mut file = piezo_stage::StageFile {
+    // Tuned as it will be written: a rate-dependent gain's slew limit lowered to the speed its
+    // compensator inverts (a file at the unlowered limit is refused, and would tune nothing).
+    let mut file = crate::stage_file::with_feasible_slew(&piezo_stage::StageFile {
         stage: stage.clone(),
         io: io.clone(),
         x: axes[0].clone(),
         y: axes.get(1).cloned(),
-    };
+    });
     let goal = piezo_core::servo::TuningGoal::default();
     match crate::servo_tune::tune_file(
         &mut file,
@@ -406,7 +408,8 @@ fn with_servo(stage: &piezo_stage::Stage, io: &piezo_stage::Io, axes: Vec<Axis>)
         Ok(tunings) => {
             for t in &tunings {
                 eprintln!(
-                    "close-loop: [{}.servo] tuned on the mode effect ({:.0} Hz): crossover {:.0} Hz,                      phase margin {:.0}°",
+                    "close-loop: [{}.servo] tuned on the mode effect ({:.0} Hz): crossover {:.0} Hz, \
+                     phase margin {:.0}°",
                     t.axis,
                     t.dynamics.mode_frequency_hz,
                     t.tuning.crossover_hz,
@@ -418,7 +421,11 @@ fn with_servo(stage: &piezo_stage::Stage, io: &piezo_stage::Io, axes: Vec<Axis>)
             out
         }
         Err(e) => {
-            eprintln!("close-loop: no servo written: {e}");
+            let e = e.to_string();
+            eprintln!(
+                "close-loop: no servo written: {}",
+                e.trim_start_matches(": ")
+            );
             axes
         }
     }

@@ -120,7 +120,8 @@ fn si_factor(path: &Path, name: &str, flag: &str, wanted: &[Quantity]) -> crate:
 
 /// Warnings for a record whose values look read in the wrong unit: an output span outside
 /// [`PLAUSIBLE_STROKE_M`] or an input span outside [`PLAUSIBLE_INPUT_SPAN_V`] (volts only), each
-/// naming the column and the unit it was read with.
+/// naming the column and the unit it was read with; and for a record whose input never moves
+/// (nothing of the hysteresis in it: its output's moves are noise, drift or another input's).
 pub fn scale_warnings(
     path: &Path,
     u_name: &str,
@@ -147,6 +148,16 @@ pub fn scale_warnings(
             "a piezo drive",
         ),
     ];
+    let (u_min, u_max) = min_max(u);
+    let constant = (u_max == u_min).then(|| {
+        format!(
+            "{}: column `{u_name}` is constant ({u_min} over {} samples): the record holds \
+             nothing of the hysteresis, and every model of the input sees its output's moves as \
+             error; is it the input column?",
+            path.display(),
+            u.len()
+        )
+    });
     checks
         .into_iter()
         .filter_map(|(name, values, quantity, (lo, hi), unit, what)| {
@@ -163,6 +174,7 @@ pub fn scale_warnings(
                 )
             })
         })
+        .chain(constant)
         .collect()
 }
 
