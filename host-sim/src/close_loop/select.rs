@@ -703,6 +703,24 @@ mod tests {
     use crate::json_keys as keys;
     use std::collections::BTreeSet;
 
+    /// Leave-one-record-out stands while the shortest record holds a quarter of the longest's
+    /// scored samples; below that the shortest is named with both lengths; one record never is.
+    #[test]
+    fn records_under_a_quarter_of_the_longest_are_unequal() {
+        // Records of 4000, 1000 and 3000 samples: 1000 is exactly a quarter.
+        assert_eq!(unequal_records(0, &[0, 4000, 5000], 8000), None);
+        // 999 is below it; the scored samples start at `from`, inside the first record.
+        assert_eq!(
+            unequal_records(0, &[0, 4000, 4999], 8000),
+            Some((1, 999, 4000))
+        );
+        assert_eq!(
+            unequal_records(3500, &[0, 4000, 5000], 8000),
+            Some((0, 500, 3000))
+        );
+        assert_eq!(unequal_records(0, &[0], 8000), None);
+    }
+
     /// The noise floor, the out-of-sample gain, the plausibility and another run's gain serialise
     /// with the keys of the report; a decision as its short name.
     #[test]
