@@ -1230,3 +1230,50 @@ fn a_validate_record_at_another_sample_period_is_refused_by_name() {
         "{err}"
     );
 }
+
+/// A `--validate` record that is one of the `--data` records (by name, or its samples under
+/// another name) is refused before any fit when the samples it is scored on were fitted: fitted
+/// whole, or validated from before `--end`. The same file fitted up to `--end` and validated from
+/// there on is another run's stand-in and is accepted.
+#[test]
+fn a_validate_record_the_fit_has_seen_is_refused_by_name() {
+    let fitted = plant_record("relaxing-stack", "seen20", 20, 90.0, 20, 0.0, 0.1);
+    let copy = temp("seen-copy.csv");
+    std::fs::copy(&fitted, &copy).unwrap();
+    let report = temp("seen.json");
+    let run = |validate: &Path, extra: &[&str]| {
+        let mut args = vec![
+            "close-loop",
+            "--data",
+            fitted.to_str().unwrap(),
+            "--validate",
+            validate.to_str().unwrap(),
+            "--report",
+            report.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        cli(&args)
+    };
+    for (validate, extra, said) in [
+        (&fitted, &[][..], "fitted whole"),
+        (&copy, &[][..], "fitted whole"),
+        (
+            &fitted,
+            &["--end", "0.06", "--validate-start", "0.05"][..],
+            "fitted up to --end 0.06 s and validated from --validate-start 0.05 s",
+        ),
+    ] {
+        let err = run(validate, extra).unwrap_err();
+        assert!(!report.exists(), "no report for a refused command line");
+        assert!(
+            err.contains(&format!(
+                "--validate: {} is the --data record {}, {said}",
+                validate.display(),
+                fitted.display()
+            )),
+            "{err}"
+        );
+    }
+    run(&fitted, &["--end", "0.06", "--validate-start", "0.06"]).unwrap();
+    assert!(report.exists());
+}

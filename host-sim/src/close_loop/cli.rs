@@ -50,9 +50,10 @@ pub struct CloseLoopArgs {
     /// Last time used for the fit (s).
     #[arg(long)]
     pub end: Option<f64>,
-    /// Another record (another run, or the same file with --validate-start) both models predict
-    /// from its first sample, seeing only u; an effect that predicts it worse is not added, and of
-    /// the effects that hold, the one that predicts it best is.
+    /// Another record (another run, or the same file with --validate-start at or after --end)
+    /// both models predict from its first sample, seeing only u; an effect that predicts it worse
+    /// is not added, and of the effects that hold, the one that predicts it best is. A record whose
+    /// scored samples were fitted is refused.
     #[arg(long)]
     pub validate: Option<PathBuf>,
     /// First scored time of the validation record (s).
@@ -159,6 +160,38 @@ pub fn close_loop_cmd(a: &CloseLoopArgs) -> crate::Result<String> {
                 "--validate: {} axes, --data has {}",
                 v.len(),
                 records.len()
+            )));
+        }
+        // A record fitted cannot also judge the effects on the samples they were fitted on: the
+        // same record validates only from --validate-start on, at or after --end.
+        let overlap = match a.end {
+            None => true,
+            Some(end) => a.validate_start < end,
+        };
+        let fitted = &records[0];
+        let same = fitted
+            .segment_ranges()
+            .into_iter()
+            .zip(&fitted.sources)
+            .find(|&((start, end), source)| {
+                *source == v[0].path
+                    || (fitted.u[start..end] == v[0].u[..]
+                        && fitted.y_m[start..end] == v[0].y_m[..])
+            });
+        if let (true, Some((_, source))) = (overlap, same) {
+            return Err(crate::Error::Usage(format!(
+                "--validate: {} is the --data record {}, {}: the effects would be judged on \
+                 samples they were fitted on (pass another run, or fit the record's first part \
+                 with --end and validate its rest with --validate-start at or after it)",
+                v[0].path.display(),
+                source.display(),
+                match a.end {
+                    None => "fitted whole".to_string(),
+                    Some(end) => format!(
+                        "fitted up to --end {end} s and validated from --validate-start {} s",
+                        a.validate_start
+                    ),
+                }
             )));
         }
         // The models run at the fitted records' sample period; another period would be another
