@@ -640,17 +640,12 @@ impl StageDynamics {
         mode_damping: f32,
         latency_s: f32,
     ) -> Self {
-        let (lo, hi) = model.slope_range();
-        Self {
-            gain_m_per_v: if libm::fabsf(lo) > libm::fabsf(hi) {
-                lo
-            } else {
-                hi
-            },
+        Self::from_slope_range(
+            model.slope_range(),
             mode_frequency_hz,
             mode_damping,
             latency_s,
-        }
+        )
     }
 
     /// The dynamics of the model a compensator inverts, its gain g taken over the states and
@@ -668,7 +663,21 @@ impl StageDynamics {
         let model = compensator.model();
         let settings = compensator.settings();
         let step = settings.limits.slew_limit_v_per_s * settings.sample_period_s;
-        let (lo, hi) = model.slope_range_for_step(step);
+        Self::from_slope_range(
+            model.slope_range_for_step(step),
+            mode_frequency_hz,
+            mode_damping,
+            latency_s,
+        )
+    }
+
+    /// g: the slope of largest magnitude of the one-step slopes `(lo, hi)` \[m/V\].
+    fn from_slope_range(
+        (lo, hi): (f32, f32),
+        mode_frequency_hz: f32,
+        mode_damping: f32,
+        latency_s: f32,
+    ) -> Self {
         Self {
             gain_m_per_v: if libm::fabsf(lo) > libm::fabsf(hi) {
                 lo

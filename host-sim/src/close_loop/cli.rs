@@ -138,6 +138,34 @@ pub fn close_loop_cmd(a: &CloseLoopArgs) -> crate::Result<String> {
             parts[i].push(r);
         }
     }
+    let validation = match &a.validate {
+        Some(v) => Some(
+            read_records(v, a.t.as_deref(), a.u.as_deref(), a.y.as_deref(), None)
+                .map_err(|e| crate::Error::Usage(format!("--validate: {e}")))?,
+        ),
+        None => None,
+    };
+    // A record fitted cannot also judge the effects on the samples they were fitted on: the same
+    // record validates only from --validate-start on, at or after --end.
+    let overlap = a.end.is_none_or(|end| a.validate_start < end);
+    if let (true, Some(v), Some(fitted)) = (overlap, &validation, parts.first()) {
+        if let Some(same) = fitted.iter().find(|r| r.is_same_record(&v[0])) {
+            return Err(crate::Error::Usage(format!(
+                "--validate: {} is the --data record {}, {}: the effects would be judged on \
+                 samples they were fitted on (pass another run, or fit the record's first part \
+                 with --end and validate its rest with --validate-start at or after it)",
+                v[0].path.display(),
+                same.path.display(),
+                match a.end {
+                    None => "fitted whole".to_string(),
+                    Some(end) => format!(
+                        "fitted up to --end {end} s and validated from --validate-start {} s",
+                        a.validate_start
+                    ),
+                }
+            )));
+        }
+    }
     let records = parts
         .into_iter()
         .map(|p| Record::concatenate(p).map_err(|e| crate::Error::Usage(format!("--data: {e}"))))
@@ -147,51 +175,12 @@ pub fn close_loop_cmd(a: &CloseLoopArgs) -> crate::Result<String> {
             "--start: with several records each is scored from its first sample".into(),
         ));
     }
-    let validation = match &a.validate {
-        Some(v) => Some(
-            read_records(v, a.t.as_deref(), a.u.as_deref(), a.y.as_deref(), None)
-                .map_err(|e| crate::Error::Usage(format!("--validate: {e}")))?,
-        ),
-        None => None,
-    };
     if let Some(v) = &validation {
         if v.len() != records.len() {
             return Err(crate::Error::Usage(format!(
                 "--validate: {} axes, --data has {}",
                 v.len(),
                 records.len()
-            )));
-        }
-        // A record fitted cannot also judge the effects on the samples they were fitted on: the
-        // same record validates only from --validate-start on, at or after --end.
-        let overlap = match a.end {
-            None => true,
-            Some(end) => a.validate_start < end,
-        };
-        let fitted = &records[0];
-        let same = fitted
-            .segment_ranges()
-            .into_iter()
-            .zip(&fitted.sources)
-            .find(|&((start, end), source)| {
-                *source == v[0].path
-                    || (fitted.u[start..end] == v[0].u[..]
-                        && fitted.y_m[start..end] == v[0].y_m[..])
-            });
-        if let (true, Some((_, source))) = (overlap, same) {
-            return Err(crate::Error::Usage(format!(
-                "--validate: {} is the --data record {}, {}: the effects would be judged on \
-                 samples they were fitted on (pass another run, or fit the record's first part \
-                 with --end and validate its rest with --validate-start at or after it)",
-                v[0].path.display(),
-                source.display(),
-                match a.end {
-                    None => "fitted whole".to_string(),
-                    Some(end) => format!(
-                        "fitted up to --end {end} s and validated from --validate-start {} s",
-                        a.validate_start
-                    ),
-                }
             )));
         }
         // The models run at the fitted records' sample period; another period would be another

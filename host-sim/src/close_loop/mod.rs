@@ -1543,9 +1543,11 @@ fn close_axis(
         .flatten();
     // Several records: leave one record out (and blocks within them for an effect one record
     // shows); one record: blocks over time, interleaved when the input is not stationary.
-    let unequal = select::unequal_records(from, &record.segments, u.len());
-    let (blocks, mut held_out_method) = if let (Some((index, shortest, longest)), Some(within)) =
-        (unequal, within_records.take_if(|_| unequal.is_some()))
+    // Records too unequal for leave-one-record-out take the blocks within them (when there are).
+    let unequal = select::unequal_records(from, &record.segments, u.len())
+        .and_then(|lengths| Some((lengths, within_records.take()?)));
+    let judged_within_unequal = unequal.is_some();
+    let (blocks, mut held_out_method) = if let Some(((index, shortest, longest), within)) = unequal
     {
         let short = record.sources.get(index).map_or_else(
             || format!("record {}", index + 1),
@@ -1615,7 +1617,7 @@ fn close_axis(
         "base model rms {:.4e} m, sensor noise estimate {noise_m:.4e} m",
         search.rms(current_sse)
     ));
-    if unequal.is_some() {
+    if judged_within_unequal {
         search.log(format!("held out: {held_out_method}"));
     }
     loop {

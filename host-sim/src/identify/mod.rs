@@ -364,6 +364,12 @@ impl Record {
         }
     }
 
+    /// Whether `other` is this record again: the same file, or the same samples (u and y) under
+    /// another name.
+    pub fn is_same_record(&self, other: &Record) -> bool {
+        self.path == other.path || (self.u == other.u && self.y_m == other.y_m)
+    }
+
     /// Several records of one stage end to end, each a segment that models start from rest at its
     /// own first sample; times continue from one record to the next. The sample periods must agree
     /// within 0.1 %.
@@ -371,10 +377,7 @@ impl Record {
         // A record given twice (the same file, or the same samples under another name) would be
         // judged on itself when the records are held out in turn.
         for (i, a) in parts.iter().enumerate() {
-            if let Some(b) = parts[..i]
-                .iter()
-                .find(|b| b.path == a.path || (b.u == a.u && b.y_m == a.y_m))
-            {
+            if let Some(b) = parts[..i].iter().find(|b| b.is_same_record(a)) {
                 return Err(crate::Error::Usage(format!(
                     "{}: the same record as {} (each record is held out in turn, so a record \
                      given twice would be judged on itself)",
